@@ -1,0 +1,63 @@
+"""Shared fixtures.
+
+Taichi runs one backend per process, so the backend fixtures are session-scoped: pytest groups the
+tests by backend and Taichi is re-initialised only when the backend changes.
+- ``arch``: parametrised over cpu and vulkan (vulkan skipped with a reason where no device is present);
+  use it for kernel tests, which compare every backend against the same NumPy float64 reference.
+- ``cpu``: the CPU backend only, for pipeline and end-to-end tests.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ti_fusion.backend import current_backend, init_backend, vulkan_available
+
+REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen-7scenes"
+
+_vulkan_ok: bool | None = None
+
+
+def _has_vulkan() -> bool:
+    global _vulkan_ok
+    if _vulkan_ok is None:
+        _vulkan_ok = os.environ.get("TI_FUSION_NO_VULKAN") is None and vulkan_available()
+    return _vulkan_ok
+
+
+def _use(arch: str) -> str:
+    from ti_fusion import backend
+
+    if backend._current is None or backend._current.arch != arch:
+        init_backend(arch)
+    return arch
+
+
+@pytest.fixture(params=["cpu", "vulkan"])
+def arch(request):
+    if request.param == "vulkan" and not _has_vulkan():
+        pytest.skip("no Vulkan device (apt-get install mesa-vulkan-drivers for lavapipe)")
+    return _use(request.param)
+
+
+@pytest.fixture
+def cpu():
+    return _use("cpu")
+
+
+@pytest.fixture
+def rng(request):
+    """A fresh random generator per test, seeded from the test's name so failures reproduce."""
+    seed = abs(hash(request.node.nodeid)) % (2**32)
+    return np.random.default_rng(seed)
+
+
+@pytest.fixture
+def redkitchen():
+    if not (REDKITCHEN / "frame-000000.depth.png").is_file():
+        pytest.skip(f"real data not found at {REDKITCHEN}")
+    return REDKITCHEN

@@ -1,0 +1,197 @@
+"""Typed configuration: one dataclass per stage, documented defaults, TOML/YAML files, CLI overrides.
+
+A config file holds one table per section, e.g.::
+
+    [icp]
+    iterations = [10, 5, 4]      # coarse to fine
+    dist_threshold = 0.10
+
+    [fusion]
+    capacity = 4_000_000
+
+and any field can be overridden from the command line with ``--set icp.dist_threshold=0.05``.
+"""
+
+from __future__ import annotations
+
+import ast
+import dataclasses
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import InputError
+
+
+@dataclass
+class DatasetConfig:
+    path: str = ""             # dataset folder; "" = the embedded synthetic sequence
+    format: str = "auto"       # auto | tum | iclnuim | 7scenes | synthetic
+    downsample: int = 1        # integer subsampling factor (2 → 320×240 from 640×480)
+    start: int = 0             # first frame (index into the sequence)
+    stop: int | None = None    # one past the last frame; None = to the end
+    stride: int = 1            # take every stride-th frame
+    depth_max: float = 4.0     # depth beyond this (metres) is treated as invalid
+    intrinsics_file: str = ""  # TUM only: a file with "fx fy cx cy" overriding the freiburg guess
+
+
+@dataclass
+class SynthConfig:
+    frames: int = 120          # frames in the embedded synthetic sequence (~4 s at 30 Hz)
+    width: int = 640
+    height: int = 480
+    fx: float = 525.0          # fx = fy; principal point at the image centre
+    noise: bool = True         # Kinect-like depth noise (axial Gaussian, quantisation, dropouts)
+    seed: int = 0              # same seed → same frames
+
+
+@dataclass
+class ICPConfig:
+    iterations: list[int] = field(default_factory=lambda: [10, 5, 4])  # per pyramid level, coarse → fine
+    dist_threshold: float = 0.10     # metres: max ‖p′ − q‖ for a correspondence (finest level)
+    normal_threshold_deg: float = 30.0  # max angle between the source and target normals
+    solver: str = "cholesky"         # cholesky | lu | qr (QR solves the stacked n×6 system)
+    robust: str = "none"             # none | huber | tukey: weights on the point-to-plane residual
+    robust_scale: float = 0.01       # metres: Huber's k or Tukey's c
+    min_inliers: int = 100           # fewer correspondences → degenerate, reported as a failure
+    max_condition: float = 1e7       # cond(AᵀA) above this → degenerate
+    stop_update: float = 1e-6        # stop a level when ‖δξ‖ falls below this
+    normal_max_depth_jump: float = 0.05  # metres: neighbours further apart in depth give no normal
+    pyramid_depth_sigma: float = 0.03    # metres: depth averaging in the pyramid ignores larger jumps
+
+
+@dataclass
+class FusionConfig:
+    capacity: int = 4_000_000        # surfels preallocated
+    grow: bool = True                # when full: reallocate ×2 (True) or stop with an error (False)
+    dist_threshold: float = 0.03     # metres: stricter than ICP association
+    normal_threshold_deg: float = 20.0
+    confidence_weighting: bool = True  # weight measurements by radial distance from the image centre
+    remove_unstable: bool = True     # drop surfels with low confidence not seen for `unstable_age` frames
+    unstable_weight: float = 3.0
+    unstable_age: int = 20
+    remove_free_space: bool = False  # drop surfels observed clearly in front of the measured surface
+    free_space_margin: float = 0.05  # metres
+
+
+@dataclass
+class SLAMConfig:
+    tracking: str = "model"          # model: align to the map rendered at the last pose | frame: previous frame
+    motion_model: bool = True        # constant-velocity initialisation
+    min_inlier_ratio: float = 0.15   # below → tracking failure (frame not fused)
+    max_residual: float = 0.02       # metres RMS: above → tracking failure
+    max_update_deg: float = 20.0     # pose change against the motion model above this → failure
+    max_update_m: float = 0.3
+    relocalise: str = "features"     # features | none: after a failure, re-initialise with ORB+PnP
+
+
+@dataclass
+class VOConfig:
+    n_features: int = 1000
+    match: str = "min_distance"      # min_distance: d < max(4·d_min, floor) | ratio: Lowe's ratio test
+    min_distance_factor: float = 4.0
+    min_distance_floor: float = 30.0
+    ratio: float = 0.8
+    min_good_match: int = 10
+    min_inliers: int = 5
+    max_norm: float = 0.3            # ‖Δt‖ + min(2π − ‖r‖, ‖r‖) above this → frame rejected
+    ransac_reprojection_px: float = 3.0
+    voxel_size: float = 0.02         # metres: downsampling of the joined cloud
+
+
+@dataclass
+class LogConfig:
+    map_every: int = 30              # frames between /map/points messages (and one at the end)
+    map_max_points: int = 200_000    # /map/points is downsampled to at most this many points
+    depth_every: int = 10            # frames between /camera/depth images
+    progress: bool = True            # progress bar on the terminal
+
+
+@dataclass
+class Config:
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    synth: SynthConfig = field(default_factory=SynthConfig)
+    icp: ICPConfig = field(default_factory=ICPConfig)
+    fusion: FusionConfig = field(default_factory=FusionConfig)
+    slam: SLAMConfig = field(default_factory=SLAMConfig)
+    vo: VOConfig = field(default_factory=VOConfig)
+    log: LogConfig = field(default_factory=LogConfig)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _read_file(path: Path) -> dict:
+    if not path.is_file():
+        raise InputError(path, "config file not found")
+    text = path.read_text()
+    try:
+        if path.suffix == ".toml":
+            try:
+                import tomllib
+            except ModuleNotFoundError:  # Python 3.10
+                import tomli as tomllib
+            return tomllib.loads(text)
+        if path.suffix in (".yaml", ".yml"):
+            try:
+                import yaml
+            except ModuleNotFoundError:
+                raise InputError(path, "reading YAML needs PyYAML (pip install pyyaml); or use TOML") from None
+            return yaml.safe_load(text) or {}
+        if path.suffix == ".json":
+            return json.loads(text)
+    except InputError:
+        raise
+    except Exception as exc:  # parse errors from any of the three readers
+        raise InputError(path, f"cannot parse config: {exc}") from None
+    raise InputError(path, "config must be .toml, .yaml/.yml or .json")
+
+
+def _set_field(section_obj: Any, key: str, value: Any, where: str) -> None:
+    names = {f.name for f in dataclasses.fields(section_obj)}
+    if key not in names:
+        raise InputError(None, f"{where}: unknown setting {key!r} (known: {', '.join(sorted(names))})")
+    current = getattr(section_obj, key)
+    if isinstance(current, bool):
+        if isinstance(value, str):
+            value = value.lower() in ("1", "true", "yes", "on")
+        value = bool(value)
+    elif isinstance(current, int) and not isinstance(value, bool) and isinstance(value, (int, float)):
+        value = int(value)
+    elif isinstance(current, float) and isinstance(value, (int, float)):
+        value = float(value)
+    setattr(section_obj, key, value)
+
+
+def apply_dict(config: Config, data: dict, where: str = "config") -> Config:
+    for section, values in data.items():
+        if not hasattr(config, section) or not isinstance(values, dict):
+            raise InputError(None, f"{where}: unknown section {section!r}")
+        for key, value in values.items():
+            _set_field(getattr(config, section), key, value, f"{where} [{section}]")
+    return config
+
+
+def parse_override(text: str) -> tuple[str, str, Any]:
+    """``"icp.iterations=[10,5,4]"`` → ("icp", "iterations", [10, 5, 4])."""
+    if "=" not in text or "." not in text.split("=", 1)[0]:
+        raise InputError(None, f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. icp.dist_threshold=0.05")
+    lhs, rhs = text.split("=", 1)
+    section, key = lhs.strip().split(".", 1)
+    try:
+        value = ast.literal_eval(rhs.strip())
+    except (ValueError, SyntaxError):
+        value = rhs.strip()
+    return section, key, value
+
+
+def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
+    """Defaults, then the file (if any), then ``--set`` overrides."""
+    config = Config()
+    if path:
+        apply_dict(config, _read_file(Path(path)), where=str(path))
+    for text in overrides or []:
+        section, key, value = parse_override(text)
+        apply_dict(config, {section: {key: value}}, where="--set")
+    return config

@@ -1,0 +1,26 @@
+"""Errors that reach the user as one line: what is wrong and, where there is one, which file."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class TiFusionError(Exception):
+    """Base class of every error the CLI reports as a one-line message (exit code 2)."""
+
+
+class InputError(TiFusionError):
+    """Bad input data: a missing folder, an unreadable image, a pose that is not rigid, ..."""
+
+    def __init__(self, path: str | Path | None, problem: str):
+        self.path = None if path is None else Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
+
+
+class BackendUnavailable(TiFusionError):
+    """The requested Taichi backend is absent on this machine."""
+
+
+class MapCapacityError(TiFusionError):
+    """The surfel map is full and growth is disabled."""

@@ -1,0 +1,162 @@
+"""SO(3)/SE(3) in float64 NumPy: exponential and logarithm maps, quaternions, checks.
+
+Conventions used across ti-fusion:
+- poses are 4×4 homogeneous camera-to-world matrices T = [R | t];
+- a twist is ξ = (ω, v) with the ROTATION FIRST (ω: axis-angle, v: translation part), matching the
+  ICP Jacobian [(p × n)ᵀ, nᵀ];
+- quaternions are (qx, qy, qz, qw), the TUM order.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+_EPS = 1e-10
+
+
+def hat(w: np.ndarray) -> np.ndarray:
+    """The skew-symmetric matrix [w]× with [w]× x = w × x."""
+    wx, wy, wz = np.asarray(w, dtype=np.float64)
+    return np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+
+
+def so3_exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of the axis-angle vector ``w`` (Rodrigues' formula)."""
+    w = np.asarray(w, dtype=np.float64)
+    theta = np.linalg.norm(w)
+    W = hat(w)
+    if theta < 1e-8:
+        return np.eye(3) + W + 0.5 * W @ W
+    return np.eye(3) + np.sin(theta) / theta * W + (1.0 - np.cos(theta)) / theta**2 * W @ W
+
+
+def so3_log(R: np.ndarray) -> np.ndarray:
+    """Axis-angle vector of a rotation matrix (inverse of so3_exp, angle in [0, π])."""
+    R = np.asarray(R, dtype=np.float64)
+    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    theta = np.arccos(cos_theta)
+    vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    if theta < 1e-6:
+        return 0.5 * vee
+    if np.pi - theta < 1e-4:
+        # Near π the antisymmetric part vanishes: read the axis off the symmetric part instead.
+        B = 0.5 * (0.5 * (R + R.T) + np.eye(3))  # = a aᵀ at θ = π
+        axis = np.sqrt(np.clip(np.diag(B), 0.0, None))
+        k = int(np.argmax(axis))
+        axis = B[k] / max(axis[k], _EPS)
+        axis /= np.linalg.norm(axis)
+        if np.dot(axis, vee) < 0:
+            axis = -axis
+        return theta * axis
+    return theta / (2.0 * np.sin(theta)) * vee
+
+
+def _left_jacobian(w: np.ndarray) -> np.ndarray:
+    theta = np.linalg.norm(w)
+    W = hat(w)
+    if theta < 1e-8:
+        return np.eye(3) + 0.5 * W + W @ W / 6.0
+    return (
+        np.eye(3)
+        + (1.0 - np.cos(theta)) / theta**2 * W
+        + (theta - np.sin(theta)) / theta**3 * W @ W
+    )
+
+
+def se3_exp(xi: np.ndarray) -> np.ndarray:
+    """4×4 rigid transform of the twist ξ = (ω, v), rotation first. Exact, always rigid."""
+    xi = np.asarray(xi, dtype=np.float64)
+    T = np.eye(4)
+    T[:3, :3] = so3_exp(xi[:3])
+    T[:3, 3] = _left_jacobian(xi[:3]) @ xi[3:]
+    return T
+
+
+def se3_log(T: np.ndarray) -> np.ndarray:
+    """Twist ξ = (ω, v) of a rigid transform (inverse of se3_exp)."""
+    T = np.asarray(T, dtype=np.float64)
+    w = so3_log(T[:3, :3])
+    v = np.linalg.solve(_left_jacobian(w), T[:3, 3])
+    return np.concatenate([w, v])
+
+
+def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = t
+    return T
+
+
+def invert(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid transform, using Rᵀ rather than a general inverse."""
+    R, t = T[:3, :3], T[:3, 3]
+    return make_pose(R.T, -R.T @ t)
+
+
+def orthonormalize(R: np.ndarray) -> np.ndarray:
+    """Nearest rotation matrix (SVD projection onto SO(3))."""
+    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    return U @ D @ Vt
+
+
+def rigidity_error(T: np.ndarray) -> str | None:
+    """Why ``T`` is not a rigid 4×4 transform (None when it is, to a tolerance that accepts real data)."""
+    T = np.asarray(T, dtype=np.float64)
+    if T.shape != (4, 4):
+        return f"expected a 4x4 matrix, got shape {T.shape}"
+    if not np.all(np.isfinite(T)):
+        return "contains NaN or infinite values"
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        return f"last row is {T[3].tolist()}, not [0, 0, 0, 1]"
+    R = T[:3, :3]
+    ortho = np.abs(R.T @ R - np.eye(3)).max()
+    if ortho > 1e-2:
+        return f"rotation block is not orthonormal (|RᵀR - I| = {ortho:.3g})"
+    det = np.linalg.det(R)
+    if det < 0:
+        return f"rotation block is a reflection (det = {det:.3g})"
+    return None
+
+
+def quat_to_rot(q: np.ndarray) -> np.ndarray:
+    """Rotation matrix of a quaternion (qx, qy, qz, qw); normalises it first."""
+    x, y, z, w = np.asarray(q, dtype=np.float64) / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
+
+
+def rot_to_quat(R: np.ndarray) -> np.ndarray:
+    """Quaternion (qx, qy, qz, qw) with qw ≥ 0 of a rotation matrix (Shepperd's method)."""
+    R = np.asarray(R, dtype=np.float64)
+    tr = np.trace(R)
+    if tr > 0:
+        s = 2.0 * np.sqrt(tr + 1.0)
+        q = np.array([(R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s, 0.25 * s])
+    else:
+        i = int(np.argmax(np.diag(R)))
+        j, k = (i + 1) % 3, (i + 2) % 3
+        s = 2.0 * np.sqrt(1.0 + R[i, i] - R[j, j] - R[k, k])
+        q = np.empty(4)
+        q[i] = 0.25 * s
+        q[j] = (R[j, i] + R[i, j]) / s
+        q[k] = (R[k, i] + R[i, k]) / s
+        q[3] = (R[k, j] - R[j, k]) / s
+    q /= np.linalg.norm(q)
+    return -q if q[3] < 0 else q
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees."""
+    return float(np.degrees(np.linalg.norm(so3_log(R))))
+
+
+def pose_error(T_est: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:
+    """(rotation error in degrees, translation error in metres) of T_est against T_ref."""
+    E = invert(T_ref) @ T_est
+    return rotation_angle_deg(E[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_ref[:3, 3]))

@@ -7,6 +7,8 @@ that asking for an absent backend fails at once with one line that says what is 
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 from dataclasses import dataclass
 
@@ -49,10 +51,17 @@ def _started_arch() -> str:
 
 
 def _try_start(arch: str, **kwargs) -> bool:
+    """Start Taichi on ``arch``; False (and Taichi reset) when that backend is absent."""
     import taichi as ti
 
     ti.reset()
-    ti.init(arch=getattr(ti, arch), log_level=ti.ERROR, **kwargs)
+    try:
+        # Taichi prints "[Taichi] Starting on arch=..." itself; we report the backend our own way.
+        with contextlib.redirect_stdout(io.StringIO()):
+            ti.init(arch=getattr(ti, arch), log_level=ti.ERROR, enable_fallback=False, **kwargs)
+    except RuntimeError:
+        ti.reset()
+        return False
     return _started_arch() == arch
 
 

@@ -1,0 +1,54 @@
+"""Backend selection: what starts, and the one-line message when a backend is absent."""
+
+import subprocess
+import sys
+
+import pytest
+
+from ti_fusion import backend
+from ti_fusion.backend import init_backend
+from ti_fusion.errors import BackendUnavailable
+
+
+def _has_cuda() -> bool:
+    import ctypes.util
+
+    return ctypes.util.find_library("cuda") is not None
+
+
+@pytest.mark.skipif(_has_cuda(), reason="this machine has CUDA")
+def test_missing_cuda_is_one_clear_line():
+    with pytest.raises(BackendUnavailable) as info:
+        init_backend("cuda")
+    message = str(info.value)
+    assert "\n" not in message
+    assert "CUDA" in message and "--arch" in message
+    assert backend._current is None  # nothing half-started is left behind
+
+
+def test_unknown_backend():
+    with pytest.raises(BackendUnavailable, match="unknown backend"):
+        init_backend("metal-ish")
+
+
+def test_auto_picks_and_says_why():
+    info = init_backend("auto")
+    assert info.arch in ("cuda", "vulkan", "cpu")
+    assert info.reason.startswith(f"auto: picked {info.arch}")
+    assert info.has_f64 == (info.arch == "cpu")
+    init_backend("cpu")
+
+
+def test_cli_missing_backend_exits_with_one_line(tmp_path):
+    if _has_cuda():
+        pytest.skip("this machine has CUDA")
+    proc = subprocess.run(
+        [sys.executable, "-m", "ti_fusion.cli", "icp", "--arch", "cuda", "--out", str(tmp_path)],
+        capture_output=True, text=True, timeout=120,
+    )
+    if "invalid choice" in proc.stderr:
+        pytest.skip("icp command not available yet")
+    assert proc.returncode == 2
+    lines = [line for line in proc.stderr.splitlines() if line.strip()]
+    assert len(lines) == 1, proc.stderr
+    assert "cuda" in lines[0].lower() and "--arch" in lines[0]

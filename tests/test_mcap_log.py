@@ -1,0 +1,310 @@
+"""The MCAP run log: written, read back with the mcap reader, every channel decoded; crash safety;
+``ti-fusion inspect`` on it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap_protobuf.decoder import DecoderFactory
+
+from ti_fusion.camera import Intrinsics
+from ti_fusion.cli import main
+from ti_fusion.errors import InputError
+from ti_fusion.geometry import se3_exp
+from ti_fusion.mcap_log import (RunLogger, depth_from_msg, points_from_msg, pose_from_msg, read_log,
+                                software_versions)
+
+T0 = 1305031102.175304  # a TUM-style unix timestamp: the ns conversion must keep µs
+N_FRAMES = 6
+
+
+def _trajectory(rng, n=N_FRAMES):
+    poses, T = [], np.eye(4)
+    for _ in range(n):
+        T = T @ se3_exp(np.concatenate([rng.normal(0, 0.05, 3), rng.normal(0, 0.05, 3)]))
+        poses.append(T)
+    return np.array(poses)
+
+
+def _stats(i: int) -> dict:
+    return {
+        "frame": i,
+        "status": "ok" if i != 3 else "low_inliers",
+        "ms": {"load": 1.0 + i, "maps": 2.0, "track": 10.0 + 2 * i, "fuse": 5.0, "log": np.float32(0.5)},
+        "icp": {"iterations": [10, 5, 3], "residual": 0.01 * (i + 1), "inliers": 1000 + i,
+                "inlier_ratio": 0.9, "cond": float("nan")},
+        "surfels": np.int64(5000 * (i + 1)),
+    }
+
+
+def _write_log(path: Path, rng) -> dict:
+    """A short log with every channel; returns what was written, for the checks."""
+    poses = _trajectory(rng)
+    gt = np.array([p @ se3_exp(rng.normal(0, 0.002, 6)) for p in poses])
+    times = T0 + 0.033 * np.arange(N_FRAMES)
+    xyz = rng.normal(0, 1, (500, 3)).astype(np.float32)
+    xyz[7] = np.nan  # dropped
+    rgb = rng.integers(0, 256, (500, 3), dtype=np.uint8)
+    depth = rng.uniform(0.4, 4.0, (12, 16)).astype(np.float32)
+    depth[0, :4] = [0.0, np.nan, -1.0, 70.0]  # invalid / out of 16-bit mm range → 0
+    color = rng.integers(0, 256, (12, 16, 3), dtype=np.uint8)
+    meta = {"config": {"icp": {"levels": 3}, "log": {"map_every": 30}},
+            "dataset": {"path": "/data/x", "frames": N_FRAMES},
+            "backend": {"arch": "cpu"}, "versions": software_versions()}
+    with RunLogger(path, meta) as log:
+        log.log_calibration(times[0], Intrinsics(525.0, 525.0, 319.5, 239.5, 640, 480))
+        for i in range(N_FRAMES):
+            log.log_pose(times[i], poses[i], gt[i])
+            log.log_stats(times[i], _stats(i))
+            if i % 2 == 0:
+                log.log_depth(times[i], depth)
+                log.log_image(times[i], color, fmt="png")
+        n_kept = log.log_points(times[-1], xyz, rgb, max_points=300)
+    return dict(poses=poses, gt=gt, times=times, xyz=xyz, rgb=rgb, depth=depth, color=color,
+                meta=meta, n_kept=n_kept)
+
+
+@pytest.fixture
+def written(tmp_path, rng):
+    path = tmp_path / "log.mcap"
+    return path, _write_log(path, rng)
+
+
+def _decode_all(path: Path) -> dict[str, list]:
+    """Every message of every channel, decoded with the protobuf decoder factory or json."""
+    out: dict[str, list] = {}
+    with open(path, "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, message in reader.iter_messages():
+            if channel.message_encoding == "json":
+                assert schema.encoding == "jsonschema"
+                assert json.loads(schema.data)["type"] == "object"
+                decoded = json.loads(message.data)
+            else:
+                assert channel.message_encoding == "protobuf" and schema.encoding == "protobuf"
+                decoded = DecoderFactory().decoder_for(channel.message_encoding, schema)(message.data)
+            out.setdefault(channel.topic, []).append((message.log_time, schema.name, decoded))
+    return out
+
+
+def test_every_channel_decodes_with_its_values(written):
+    path, w = written
+    msgs = _decode_all(path)
+    schemas = {topic: {s for _, s, _ in m} for topic, m in msgs.items()}
+    assert schemas == {
+        "/tf": {"foxglove.FrameTransforms"}, "/camera/pose": {"foxglove.PoseInFrame"},
+        "/gt/pose": {"foxglove.PoseInFrame"}, "/slam/stats": {"ti_fusion.SlamStats"},
+        "/map/points": {"foxglove.PointCloud"}, "/camera/depth": {"foxglove.RawImage"},
+        "/camera/color": {"foxglove.CompressedImage"}, "/camera/calibration": {"foxglove.CameraCalibration"},
+    }
+    expected_ns = [int(round(t * 1e9)) for t in w["times"]]
+
+    assert [t for t, _, _ in msgs["/tf"]] == expected_ns
+    for (_, _, tf), (_, _, pose), (_, _, gt), T, G in zip(msgs["/tf"], msgs["/camera/pose"], msgs["/gt/pose"],
+                                                        w["poses"], w["gt"]):
+        (tr,) = tf.transforms
+        assert (tr.parent_frame_id, tr.child_frame_id) == ("world", "camera")
+        np.testing.assert_allclose([tr.translation.x, tr.translation.y, tr.translation.z], T[:3, 3], atol=1e-12)
+        assert pose.frame_id == gt.frame_id == "world"
+        np.testing.assert_allclose(pose_from_msg(pose), T, atol=1e-9)
+        np.testing.assert_allclose(pose_from_msg(gt), G, atol=1e-9)
+        assert pose.timestamp.seconds == int(T0)
+
+    stats = [m for _, _, m in msgs["/slam/stats"]]
+    assert [s["frame"] for s in stats] == list(range(N_FRAMES))
+    assert stats[3]["status"] == "low_inliers"
+    assert stats[2]["ms"]["log"] == 0.5 and stats[1]["surfels"] == 10000
+    assert stats[0]["icp"]["cond"] is None  # NaN is not JSON: written as null
+    assert stats[0]["icp"]["iterations"] == [10, 5, 3]
+
+    ((_, _, cloud),) = msgs["/map/points"]
+    assert cloud.frame_id == "world" and cloud.point_stride == 16
+    assert [(f.name, f.offset) for f in cloud.fields] == [
+        ("x", 0), ("y", 4), ("z", 8), ("red", 12), ("green", 13), ("blue", 14), ("alpha", 15)]
+    xyz, rgba = points_from_msg(cloud)
+    assert len(xyz) == w["n_kept"] == 300
+    finite = np.all(np.isfinite(w["xyz"]), axis=1)
+    source = {tuple(p): tuple(c) for p, c in zip(w["xyz"][finite], w["rgb"][finite])}
+    assert all(source[tuple(p)] == tuple(c[:3]) for p, c in zip(xyz, rgba))  # a subset, colours kept
+    assert np.all(rgba[:, 3] == 255)
+
+    depths = [m for _, _, m in msgs["/camera/depth"]]
+    assert len(depths) == 3 and depths[0].encoding == "16UC1" and depths[0].frame_id == "camera"
+    d = depth_from_msg(depths[0])
+    assert d.shape == w["depth"].shape
+    assert np.all(d[0, :4] == 0)
+    np.testing.assert_allclose(d[1:], w["depth"][1:], atol=0.0005 + 1e-6)  # millimetre rounding
+
+    import cv2
+
+    png = msgs["/camera/color"][0][2]
+    assert png.format == "png"
+    bgr = cv2.imdecode(np.frombuffer(png.data, np.uint8), cv2.IMREAD_COLOR)
+    np.testing.assert_array_equal(bgr[..., ::-1], w["color"])
+
+    calib = msgs["/camera/calibration"][0][2]
+    assert list(calib.K) == [525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1] and calib.width == 640
+
+
+def test_metadata_records(written):
+    path, w = written
+    with open(path, "rb") as f:
+        records = {m.name: m.metadata for m in make_reader(f).iter_metadata()}
+    assert set(records) == {"config", "dataset", "backend", "versions"}
+    assert json.loads(records["config"]["icp"]) == {"levels": 3}
+    assert records["backend"]["arch"] == "cpu"  # strings stay readable, not JSON-quoted
+    assert records["versions"]["mcap"]
+
+
+def test_read_log(written):
+    path, w = written
+    log = read_log(path)
+    assert log.complete
+    assert log.channels["/tf"].count == N_FRAMES and log.channels["/camera/depth"].count == 3
+    assert log.channels["/slam/stats"].schema_name == "ti_fusion.SlamStats"
+    assert log.start_s == pytest.approx(T0, abs=1e-6) and log.end_s == pytest.approx(w["times"][-1], abs=1e-6)
+    np.testing.assert_allclose(log.est_poses, w["poses"], atol=1e-9)
+    np.testing.assert_allclose(log.gt_poses, w["gt"], atol=1e-9)
+    np.testing.assert_allclose(log.est_times, w["times"], atol=1e-6)
+    assert log.stats_topic == "/slam/stats" and [s["frame"] for s in log.stats] == list(range(N_FRAMES))
+    assert log.metadata_value("dataset", "frames") == N_FRAMES
+    assert log.metadata_value("dataset", "path") == "/data/x"
+
+
+@pytest.mark.parametrize("error", [RuntimeError, KeyboardInterrupt])
+def test_log_is_finalised_when_the_run_is_interrupted(tmp_path, error):
+    path = tmp_path / "log.mcap"
+    with pytest.raises(error):
+        with RunLogger(path, {"backend": {"arch": "cpu"}}) as log:
+            for i in range(3):
+                log.log_pose(i, np.eye(4), np.eye(4))
+                log.log_stats(i, {"frame": i, "status": "ok", "ms": {"track": 1.0}})
+                log.log_depth(i, np.ones((4, 5), np.float32))
+            log.log_points(2, np.zeros((10, 3)))
+            raise error()
+    msgs = _decode_all(path)  # the footer-indexed reader: needs the finalised file
+    assert {t: len(m) for t, m in msgs.items()} == {
+        "/tf": 3, "/camera/pose": 3, "/gt/pose": 3, "/slam/stats": 3, "/camera/depth": 3, "/map/points": 1}
+    assert read_log(path).complete
+
+
+def test_unclosed_logger_is_finalised_when_collected(tmp_path):
+    path = tmp_path / "log.mcap"
+    log = RunLogger(path)
+    log.log_stats(0.0, {"frame": 0})
+    del log
+    assert len(_decode_all(path)["/slam/stats"]) == 1
+
+
+def test_hard_kill_recovers_whole_chunks(tmp_path):
+    """No footer (SIGKILL): the indexed reader gives up, read_log keeps every whole chunk."""
+    path = tmp_path / "log.mcap"
+    with RunLogger(path, chunk_size=2048) as log:
+        for i in range(200):
+            log.log_stats(i * 0.1, {"frame": i, "status": "ok", "ms": {"track": float(i)}})
+    data = path.read_bytes()
+    torn = tmp_path / "torn.mcap"
+    torn.write_bytes(data[: len(data) * 2 // 3])
+    with open(torn, "rb") as f, pytest.raises(Exception):
+        list(make_reader(f).iter_messages())
+    log = read_log(torn)
+    assert not log.complete
+    frames = [s["frame"] for s in log.stats]
+    assert 20 < len(frames) < 200 and frames == list(range(len(frames)))
+
+
+def test_time_guards(tmp_path):
+    path = tmp_path / "log.mcap"
+    with pytest.warns(UserWarning, match="timestamp"):
+        with RunLogger(path) as log:
+            log.log_stats(0, {"frame": 0})          # 7-Scenes: timestamps are frame indices
+            log.log_stats(2.5, {"frame": 1})
+            log.log_stats(float("nan"), {"frame": 2})
+            log.log_stats(-1.0, {"frame": 3})
+    times = [t for t, _, _ in _decode_all(path)["/slam/stats"]]
+    assert times == [0, 2_500_000_000, 2_500_000_000, 2_500_000_000]
+
+
+def test_points_downsampling_is_deterministic_and_float_colours(tmp_path, rng):
+    xyz = rng.normal(size=(1000, 3))
+    rgb = rng.uniform(0, 1, (1000, 3))
+    clouds = []
+    for name in ("a.mcap", "b.mcap"):
+        with RunLogger(tmp_path / name) as log:
+            log.log_points(0, xyz, rgb, max_points=100)
+            log.log_points(1, xyz[:50], topic="/map/plain")
+        clouds.append(_decode_all(tmp_path / name))
+    a, b = (points_from_msg(c["/map/points"][0][2]) for c in clouds)
+    np.testing.assert_array_equal(a[0], b[0])
+    idx = [int(np.flatnonzero(np.all(xyz.astype(np.float32) == p, axis=1))[0]) for p in a[0]]
+    np.testing.assert_array_equal(a[1][:, :3], np.round(rgb[idx] * 255).astype(np.uint8))
+    plain_xyz, plain_rgba = points_from_msg(clouds[0]["/map/plain"][0][2])
+    assert plain_rgba is None and len(plain_xyz) == 50
+
+
+def test_inspect_prints_the_summary(written, tmp_path, capsys):
+    path, w = written
+    out = tmp_path / "inspect"
+    assert main(["inspect", str(path), "--out", str(out), "--quiet", "--plot"]) == 0
+    text = capsys.readouterr().out
+    for needle in ("/tf", "foxglove.FrameTransforms", "/slam/stats", "ti_fusion.SlamStats", "json",
+                   "time range: 1305031102.175304", "track", "tracking failures: 1: 3 (low_inliers)",
+                   "ATE RMSE:", "metadata: backend, config, dataset, versions"):
+        assert needle in text, needle
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["command"] == "inspect" and summary["frames"] == N_FRAMES
+    assert summary["channels"]["/camera/depth"]["count"] == 3
+    assert summary["tracking_failures"] == 1
+    track = [10.0 + 2 * i for i in range(N_FRAMES)]
+    assert summary["ms_per_stage"]["track"] == {"median": float(np.median(track)), "max": max(track)}
+    assert 0 < summary["ate_rmse_m"] < 0.01 and summary["ate_poses"] == N_FRAMES
+    png = out / "stats.png"
+    assert png.is_file() and png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert summary["plot"] == str(png)
+
+
+def test_inspect_ate_matches_a_known_offset(tmp_path, rng):
+    """GT = estimate rigidly moved, plus a known error on one axis: the aligned ATE sees only the error."""
+    poses = _trajectory(rng, 20)
+    offset = se3_exp([0.1, -0.2, 0.3, 1.0, 2.0, 3.0])
+    path = tmp_path / "log.mcap"
+    with RunLogger(path) as log:
+        for i, T in enumerate(poses):
+            G = offset @ T
+            G[:3, 3] += offset[:3, :3] @ [0.01 * (-1) ** i, 0, 0]  # ±1 cm, zero mean
+            log.log_pose(i, T, G)
+    from ti_fusion.commands.inspect import _ate_rmse
+
+    rmse, n = _ate_rmse(read_log(path))
+    assert n == 20 and rmse == pytest.approx(0.01, abs=2e-3)
+
+
+def test_inspect_bad_input(tmp_path, capsys):
+    missing = tmp_path / "nope.mcap"
+    assert main(["inspect", str(missing), "--out", str(tmp_path / "o")]) == 2
+    assert str(missing) in capsys.readouterr().err
+    not_mcap = tmp_path / "x.mcap"
+    not_mcap.write_text("hello")
+    with pytest.raises(InputError, match="not an MCAP file"):
+        read_log(not_mcap)
+    assert main(["inspect", str(not_mcap), "--out", str(tmp_path / "o")]) == 2
+    assert "x.mcap: not an MCAP file" in capsys.readouterr().err
+
+
+def test_inspect_on_an_unfinalised_log(tmp_path, capsys):
+    path = tmp_path / "log.mcap"
+    with RunLogger(path, chunk_size=1024) as log:
+        for i in range(100):
+            log.log_pose(i, np.eye(4))
+            log.log_stats(i, {"frame": i, "status": "ok", "ms": {"track": 1.0}})
+    torn = tmp_path / "torn.mcap"
+    shutil.copy(path, torn)
+    with open(torn, "r+b") as f:
+        f.truncate(path.stat().st_size // 2)
+    assert main(["inspect", str(torn), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+    assert "NOT finalised" in capsys.readouterr().out

@@ -88,16 +88,19 @@ class SLAMConfig:
 
 @dataclass
 class VOConfig:
-    n_features: int = 1000
+    n_features: int = 1000           # ORB keypoints per frame at most (cv2.ORB_create(n_features))
     match: str = "min_distance"      # min_distance: d < max(4·d_min, floor) | ratio: Lowe's ratio test
-    min_distance_factor: float = 4.0
-    min_distance_floor: float = 30.0
-    ratio: float = 0.8
-    min_good_match: int = 10
-    min_inliers: int = 5
+    min_distance_factor: float = 4.0  # min_distance mode: good = Hamming distance < factor · d_min ...
+    min_distance_floor: float = 30.0  # ... or below this floor (so near-identical frames keep matches)
+    ratio: float = 0.8               # ratio mode: best distance < ratio · second best (knnMatch k=2)
+    min_good_match: int = 10         # fewer good matches → frame rejected
+    min_inliers: int = 5             # fewer RANSAC inliers → frame rejected
+    min_inliers_init: int = 20       # ICP initialiser / re-localisation (no motion-size check): fewer → no estimate
     max_norm: float = 0.3            # ‖Δt‖ + min(2π − ‖r‖, ‖r‖) above this → frame rejected
-    ransac_reprojection_px: float = 3.0
+    ransac_reprojection_px: float = 3.0  # RANSAC inlier threshold on the reprojection error (pixels)
+    ransac_iterations: int = 300     # RANSAC hypotheses at most (fewer once 0.99 confidence is reached)
     voxel_size: float = 0.02         # metres: downsampling of the joined cloud
+    cloud_stride: int = 4            # joined cloud: back-project every N-th pixel in u and v of each frame
 
 
 @dataclass

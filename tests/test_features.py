@@ -242,3 +242,80 @@ def test_backproject():
     np.testing.assert_array_equal(rgb[0], (1, 2, 3))
     xyz2, _ = backproject(depth, K, stride=2)  # pixel (7, 2) is not on the even grid; (1, 6) is not either
     assert len(xyz2) == 0
+
+
+# --------------------------------------------------------------------------------------------------
+# The vo command
+# --------------------------------------------------------------------------------------------------
+def _write_sevenscenes(root, frames, blank: int | None = None):
+    """The synthetic frames as a 7-Scenes folder (16-bit millimetre depth, PNG colour, 4×4 pose files)."""
+    import cv2
+
+    root.mkdir()
+    K = frames[0].intrinsics
+    np.savetxt(root / "camera-intrinsics.txt", K.K)
+    for f in frames:
+        stem = root / f"frame-{f.index:06d}"
+        color = np.full_like(f.color, 90) if f.index == blank else f.color
+        assert cv2.imwrite(f"{stem}.depth.png", np.rint(f.depth * 1000.0).astype(np.uint16))
+        assert cv2.imwrite(f"{stem}.color.png", np.ascontiguousarray(color[..., ::-1]))
+        np.savetxt(f"{stem}.pose.txt", f.gt_pose)
+    return root
+
+
+def test_vo_command_writes_all_outputs(synth, tmp_path):
+    from ti_fusion.cli import main
+    from ti_fusion.mcap_log import read_log
+    from ti_fusion.ply import read_ply
+    from ti_fusion.trajectory import read_tum
+
+    _, frames, _ = synth
+    data = _write_sevenscenes(tmp_path / "seq", frames[:12], blank=5)
+    out = tmp_path / "out"
+    assert main(["vo", str(data), "--out", str(out), "--quiet", "--pair", "0", "3",
+                 "--set", "log.map_every=5"]) == 0
+    for name in ("trajectory.tum", "cloud.ply", "matches.png", "log.mcap", "trajectory.png", "summary.json"):
+        assert (out / name).is_file(), name
+    s = json.loads((out / "summary.json").read_text())
+    assert s["frames"] == 12 and s["accepted"] == 11 and s["rejected"] == {"few_matches": 1}
+    assert s["rejected_frames"] == [[5, "few_matches"]] and s["first_pose"] == "ground truth"
+    assert s["ate_rmse_m"] < 0.02 and s["rpe_trans_m"] < 0.01 and s["fps"] > 0
+    assert s["pair"]["frames"] == [0, 3] and s["pair"]["inliers"] >= 20
+    stamps, poses = read_tum(out / "trajectory.tum")
+    assert len(stamps) == 11 and 5.0 not in stamps
+    cloud = read_ply(out / "cloud.ply")
+    assert len(cloud) == s["cloud_points"] > 1000
+    import cv2
+
+    assert cv2.imread(str(out / "matches.png")).shape[:2] == (3 * H, 2 * W)
+    log = read_log(out / "log.mcap")
+    assert log.complete and log.stats_topic == "/vo/stats"
+    assert log.channels["/vo/stats"].count == 12
+    assert log.channels["/camera/pose"].count == 11 and log.channels["/gt/pose"].count == 11
+    assert log.channels["/map/points"].count >= 2
+    assert [m["reason"] for m in log.stats][5] == "few_matches"
+    assert {"keypoints", "matches", "good", "inliers", "status", "ms"} <= set(log.stats[1])
+    np.testing.assert_allclose(log.est_poses, poses, atol=1e-6)
+
+
+def test_vo_command_keeps_the_trajectory_and_log_when_interrupted(synth, tmp_path, monkeypatch):
+    from ti_fusion.cli import main
+    from ti_fusion.mcap_log import read_log
+    from ti_fusion.trajectory import read_tum
+
+    _, frames, _ = synth
+    data = _write_sevenscenes(tmp_path / "seq", frames[:8])
+    original = FeatureOdometry.register_frame
+
+    def interrupted(self, frame):
+        if frame.index == 4:
+            raise KeyboardInterrupt
+        return original(self, frame)
+
+    monkeypatch.setattr(FeatureOdometry, "register_frame", interrupted)
+    out = tmp_path / "out"
+    assert main(["vo", str(data), "--out", str(out), "--quiet"]) == 130
+    stamps, _ = read_tum(out / "trajectory.tum")
+    assert list(stamps) == [0.0, 1.0, 2.0, 3.0]
+    log = read_log(out / "log.mcap")
+    assert log.complete and log.channels["/vo/stats"].count == 4

@@ -313,6 +313,7 @@ class FeatureOdometry:
         self.keyframe: FrameFeatures | None = None
         self.keyframe_index: int | None = None
         self.keyframe_pose: np.ndarray | None = None
+        self.anchor: str | None = None  # where the first pose came from: "given" | "ground truth" | "identity"
 
     def register_frame(self, frame: Frame) -> VOResult:
         t0 = time.perf_counter()
@@ -346,9 +347,12 @@ class FeatureOdometry:
 
     def _anchor_pose(self, frame: Frame) -> np.ndarray:
         if self.initial_pose is not None:
+            self.anchor = "given"
             return np.asarray(self.initial_pose, dtype=np.float64).copy()
         if frame.gt_pose is not None and np.all(np.isfinite(frame.gt_pose)):
+            self.anchor = "ground truth"
             return make_pose(orthonormalize(frame.gt_pose[:3, :3]), frame.gt_pose[:3, 3])
+        self.anchor = "identity"
         return np.eye(4)
 
     def _make_keyframe(self, frame: Frame, features: FrameFeatures, pose: np.ndarray) -> None:

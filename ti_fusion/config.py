@@ -32,8 +32,9 @@ class DatasetConfig:
     start: int = 0             # first frame (index into the sequence)
     stop: int | None = None    # one past the last frame; None = to the end
     stride: int = 1            # take every stride-th frame
-    depth_max: float = 4.0     # depth beyond this (metres) is treated as invalid
-    intrinsics_file: str = ""  # TUM only: a file with "fx fy cx cy" overriding the freiburg guess
+    depth_max: float = 4.0     # depth beyond this (metres) is treated as invalid; 0 = keep every range
+    intrinsics_file: str = ""  # a file with "fx fy cx cy" (or a 3x3 K) overriding the format's intrinsics
+    max_time_difference: float = 0.02  # seconds: TUM rgb↔depth association and ground-truth lookup tolerance
 
 
 @dataclass

@@ -2,30 +2,34 @@
 
 from __future__ import annotations
 
+import importlib
 from pathlib import Path
 
 from ..config import DatasetConfig, SynthConfig
 from ..errors import InputError
 from .base import Dataset, Frame
 
-__all__ = ["Dataset", "Frame", "open_dataset", "FORMATS"]
+__all__ = ["Dataset", "Frame", "open_dataset", "detect_format", "loader_class", "FORMATS"]
 
 FORMATS = ("tum", "iclnuim", "7scenes", "synthetic")
 
 
-def _loader_classes() -> dict:
-    from .iclnuim import ICLNUIMDataset
-    from .sevenscenes import SevenScenesDataset
-    from .synthetic import SyntheticDataset
-    from .tum import TUMDataset
+# format → (module, class). Order matters for detection: ICL-NUIM's TUM-like layout is checked before
+# plain TUM. Modules are imported on demand, so one format's import problem cannot break the others.
+_LOADERS = {
+    "iclnuim": (".iclnuim", "ICLNUIMDataset"),
+    "tum": (".tum", "TUMDataset"),
+    "7scenes": (".sevenscenes", "SevenScenesDataset"),
+    "synthetic": (".synthetic", "SyntheticDataset"),
+}
 
-    # Order matters for detection: ICL-NUIM's TUM layout is checked before plain TUM.
-    return {
-        "iclnuim": ICLNUIMDataset,
-        "tum": TUMDataset,
-        "7scenes": SevenScenesDataset,
-        "synthetic": SyntheticDataset,
-    }
+
+def loader_class(fmt: str) -> type:
+    """The Dataset subclass of format ``fmt``."""
+    if fmt not in _LOADERS:
+        raise InputError(None, f"unknown dataset format {fmt!r}: choose one of auto, {', '.join(FORMATS)}")
+    module, name = _LOADERS[fmt]
+    return getattr(importlib.import_module(module, __name__), name)
 
 
 def detect_format(root: Path) -> str:
@@ -33,9 +37,9 @@ def detect_format(root: Path) -> str:
         raise InputError(root, "dataset folder does not exist")
     if not root.is_dir():
         raise InputError(root, "not a folder (give the dataset's folder)")
-    for name, cls in _loader_classes().items():
-        if cls.detect(root):
-            return name
+    for fmt in _LOADERS:
+        if fmt != "synthetic" and loader_class(fmt).detect(root):
+            return fmt
     raise InputError(
         root,
         "unrecognised dataset layout: expected TUM (rgb.txt, depth.txt), ICL-NUIM (rgb/, depth/, *.gt.freiburg) "
@@ -45,16 +49,13 @@ def detect_format(root: Path) -> str:
 
 def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Dataset:
     """The dataset ``cfg`` names; with an empty path, the embedded synthetic sequence."""
-    classes = _loader_classes()
     common = dict(downsample=cfg.downsample, start=cfg.start, stop=cfg.stop, stride=cfg.stride)
     if not cfg.path or cfg.format == "synthetic" and not cfg.path:
-        return classes["synthetic"].from_config(synth or SynthConfig(), **common)
+        return loader_class("synthetic").from_config(synth or SynthConfig(), **common)
     root = Path(cfg.path)
     fmt = cfg.format
     if fmt == "auto":
         fmt = detect_format(root)
     elif not root.is_dir():
         raise InputError(root, "dataset folder does not exist")
-    if fmt not in classes:
-        raise InputError(None, f"unknown dataset format {fmt!r}: choose one of auto, {', '.join(FORMATS)}")
-    return classes[fmt](root, config=cfg, **common)
+    return loader_class(fmt)(root, config=cfg, **common)

@@ -1,0 +1,133 @@
+"""ICL-NUIM in its TUM-compatible release (the ``living_room_trajN_frei_png`` folders).
+
+Layout: ``rgb/N.png`` and ``depth/N.png`` for frame numbers N = 0, 1, ...; 16-bit depth with 5000
+units per metre; the ground truth ``livingRoomN.gt.freiburg`` (or ``groundtruth.txt``) holds
+"i tx ty tz qx qy qz qw" lines whose "timestamp" i is the frame number. The timestamp of frame N is N,
+so a written trajectory compares directly with the .gt.freiburg file. Frame 0 has no ground-truth
+line in the original release (its gt_pose is None).
+
+Intrinsics: fx 481.20, fy 480.0, cx 319.5, cy 239.5. The original POV-Ray renders use fy = −480.0
+(y up in the image); the TUM-compatible PNGs and the .gt.freiburg poses are given for the flipped,
+y-down camera, so fy = +480.0 and the poses are used as they are (camera-to-world, x right, y down,
+z forward). ``DatasetConfig.intrinsics_file`` overrides the intrinsics.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Intrinsics
+from ..config import DatasetConfig
+from ..errors import InputError
+from ..trajectory import read_tum
+from .base import Dataset, Frame
+from .imageio import read_depth_png, read_intrinsics_file, read_rgbd
+
+DEPTH_SCALE = 5000.0
+ICL_INTRINSICS = (481.20, 480.0, 319.5, 239.5)  # fy after the y flip (−480.0 in the original renders)
+
+_NUMBERED_PNG = re.compile(r"^(\d+)\.png$")
+
+
+def numbered_pngs(folder: Path) -> dict[int, Path]:
+    """{N: folder/N.png} for the integer-named PNGs of a folder."""
+    if not folder.is_dir():
+        return {}
+    found = {}
+    for path in folder.iterdir():
+        m = _NUMBERED_PNG.match(path.name)
+        if m:
+            found[int(m.group(1))] = path
+    return found
+
+
+def _ground_truth_file(root: Path) -> Path | None:
+    candidates = sorted(root.glob("*.gt.freiburg"))
+    if len(candidates) > 1:
+        raise InputError(root, f"several ground-truth files ({', '.join(p.name for p in candidates)}): keep one")
+    if candidates:
+        return candidates[0]
+    return root / "groundtruth.txt" if (root / "groundtruth.txt").is_file() else None
+
+
+class ICLNUIMDataset(Dataset):
+    """An ICL-NUIM sequence in TUM layout (see the module docstring for conventions)."""
+
+    format = "iclnuim"
+
+    def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
+                 stop: int | None = None, stride: int = 1):
+        super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)
+        self.config = config or DatasetConfig()
+        self.name = self.root.name
+        if not self.root.is_dir():
+            raise InputError(self.root, "dataset folder does not exist")
+        depth_dir, rgb_dir = self.root / "depth", self.root / "rgb"
+        if not depth_dir.is_dir():
+            raise InputError(depth_dir, "depth folder does not exist")
+        depth = numbered_pngs(depth_dir)
+        if not depth:
+            raise InputError(depth_dir, "empty sequence: no numbered depth images (N.png)")
+        self._numbers = sorted(depth)
+        self._depth_files = [depth[n] for n in self._numbers]
+
+        color = numbered_pngs(rgb_dir)
+        self._color_files: list[Path | None] = [None] * len(self._numbers)
+        if color:
+            for k, n in enumerate(self._numbers):
+                if n not in color:
+                    raise InputError(rgb_dir / f"{n}.png", f"colour image for depth/{n}.png does not exist")
+                self._color_files[k] = color[n]
+
+        self._gt_poses: list[np.ndarray | None] = [None] * len(self._numbers)
+        gt_path = _ground_truth_file(self.root)
+        if gt_path is not None:
+            stamps, poses = read_tum(gt_path)
+            by_number = {int(round(t)): T for t, T in zip(stamps, poses) if abs(t - round(t)) < 1e-6}
+            if not by_number:
+                raise InputError(gt_path, "timestamps are not frame numbers (expected 'i tx ty tz qx qy qz qw')")
+            self._gt_poses = [by_number.get(n) for n in self._numbers]
+
+        height, width = read_depth_png(self._depth_files[0]).shape
+        if self.config.intrinsics_file:
+            self._intrinsics = read_intrinsics_file(self.config.intrinsics_file, width, height)
+        else:
+            self._intrinsics = Intrinsics(*ICL_INTRINSICS, width, height)
+
+    @staticmethod
+    def detect(root: Path) -> bool:
+        """rgb/ and depth/ with numbered PNGs, and a *.gt.freiburg file or at least no TUM depth.txt
+        (a TUM folder whose images happen to have integer names stays TUM)."""
+        root = Path(root)
+        if not (root / "rgb").is_dir() or not numbered_pngs(root / "depth"):
+            return False
+        return any(root.glob("*.gt.freiburg")) or not (root / "depth.txt").is_file()
+
+    @property
+    def raw_intrinsics(self) -> Intrinsics:
+        return self._intrinsics
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return any(T is not None for T in self._gt_poses)
+
+    def _num_raw_frames(self) -> int:
+        return len(self._depth_files)
+
+    def _load_raw(self, raw_index: int) -> Frame:
+        depth_path, color_path = self._depth_files[raw_index], self._color_files[raw_index]
+        K = self._intrinsics
+        depth, color = read_rgbd(depth_path, color_path, DEPTH_SCALE, self.config.depth_max, (K.width, K.height))
+        gt = self._gt_poses[raw_index]
+        return Frame(index=raw_index, timestamp=float(self._numbers[raw_index]), depth=depth, intrinsics=K,
+                     color=color, gt_pose=None if gt is None else gt.copy(),
+                     meta={"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps, camera-to-world poses N×4×4) of the selected frames that have ground truth."""
+        keep = [i for i in self.indices if self._gt_poses[i] is not None]
+        stamps = np.array([self._numbers[i] for i in keep], dtype=np.float64)
+        return stamps, np.array([self._gt_poses[i] for i in keep]).reshape(-1, 4, 4)

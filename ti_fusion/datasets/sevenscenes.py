@@ -1,0 +1,109 @@
+"""Microsoft 7-Scenes sequences (one ``seq-XX`` folder, or the shared redkitchen-7scenes folder).
+
+Layout: ``frame-XXXXXX.depth.png`` (16-bit, millimetres; 0 and 65535 invalid),
+``frame-XXXXXX.color.png`` or ``.color.jpg``, ``frame-XXXXXX.pose.txt`` (4×4 camera-to-world, metres).
+
+- 7-Scenes has no timestamps: the timestamp of frame-XXXXXX is the number XXXXXX, as in the shared
+  ``groundtruth_tum.txt``, so written trajectories compare directly with that file.
+- Pose rotations are slightly non-orthonormal in the release (det 0.9995..0.9999): each is checked
+  to be rigid within tolerance (``geometry.rigidity_error``) and then projected onto SO(3).
+- Intrinsics: ``DatasetConfig.intrinsics_file``, else ``camera-intrinsics.txt`` (3×3 K), else the
+  nominal 585, 585, 320, 240.
+- Colour is NOT registered to depth (a different camera, uncalibrated against depth): use depth for
+  geometry and tracking, colour only for display or, with that caveat, for features.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ..camera import Intrinsics
+from ..config import DatasetConfig
+from ..errors import InputError
+from .base import Dataset, Frame
+from .imageio import read_depth_png, read_intrinsics_file, read_pose_matrix, read_rgbd
+
+DEPTH_SCALE = 1000.0
+INVALID_DEPTH = (0, 65535)
+DEFAULT_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
+
+_DEPTH_NAME = re.compile(r"^frame-(\d+)\.depth\.png$")
+
+
+class SevenScenesDataset(Dataset):
+    """A 7-Scenes sequence folder (see the module docstring for conventions)."""
+
+    format = "7scenes"
+
+    def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
+                 stop: int | None = None, stride: int = 1):
+        super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)
+        self.config = config or DatasetConfig()
+        self.name = self.root.name
+        if not self.root.is_dir():
+            raise InputError(self.root, "dataset folder does not exist")
+        numbered = {}
+        for path in self.root.glob("frame-*.depth.png"):
+            m = _DEPTH_NAME.match(path.name)
+            if m:
+                numbered[int(m.group(1))] = path
+        if not numbered:
+            raise InputError(self.root, "empty sequence: no frame-XXXXXX.depth.png files")
+        self._numbers = sorted(numbered)
+        self._depth_files = [numbered[n] for n in self._numbers]
+        self._color_files = [self._color_file(p) for p in self._depth_files]
+        # Poses are small text files: read and check them all now, so a bad one fails on opening.
+        self._gt_poses = []
+        for p in self._depth_files:
+            pose_path = p.with_name(p.name.replace(".depth.png", ".pose.txt"))
+            self._gt_poses.append(read_pose_matrix(pose_path) if pose_path.is_file() else None)
+
+        height, width = read_depth_png(self._depth_files[0]).shape
+        if self.config.intrinsics_file:
+            self._intrinsics = read_intrinsics_file(self.config.intrinsics_file, width, height)
+        elif (self.root / "camera-intrinsics.txt").is_file():
+            self._intrinsics = read_intrinsics_file(self.root / "camera-intrinsics.txt", width, height)
+        else:
+            self._intrinsics = Intrinsics(*DEFAULT_INTRINSICS, width, height)
+
+    @staticmethod
+    def _color_file(depth_path: Path) -> Path | None:
+        for suffix in (".color.png", ".color.jpg"):
+            path = depth_path.with_name(depth_path.name.replace(".depth.png", suffix))
+            if path.is_file():
+                return path
+        return None
+
+    @staticmethod
+    def detect(root: Path) -> bool:
+        return next(Path(root).glob("frame-*.depth.png"), None) is not None
+
+    @property
+    def raw_intrinsics(self) -> Intrinsics:
+        return self._intrinsics
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return any(T is not None for T in self._gt_poses)
+
+    def _num_raw_frames(self) -> int:
+        return len(self._depth_files)
+
+    def _load_raw(self, raw_index: int) -> Frame:
+        depth_path, color_path = self._depth_files[raw_index], self._color_files[raw_index]
+        K = self._intrinsics
+        depth, color = read_rgbd(depth_path, color_path, DEPTH_SCALE, self.config.depth_max,
+                                 (K.width, K.height), INVALID_DEPTH)
+        gt = self._gt_poses[raw_index]
+        return Frame(index=raw_index, timestamp=float(self._numbers[raw_index]), depth=depth, intrinsics=K,
+                     color=color, gt_pose=None if gt is None else gt.copy(),
+                     meta={"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps, camera-to-world poses N×4×4) of the selected frames that have ground truth."""
+        keep = [i for i in self.indices if self._gt_poses[i] is not None]
+        stamps = np.array([self._numbers[i] for i in keep], dtype=np.float64)
+        return stamps, np.array([self._gt_poses[i] for i in keep]).reshape(-1, 4, 4)

@@ -10,6 +10,7 @@ tests by backend and Taichi is re-initialised only when the backend changes.
 from __future__ import annotations
 
 import os
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -52,7 +53,7 @@ def cpu():
 @pytest.fixture
 def rng(request):
     """A fresh random generator per test, seeded from the test's name so failures reproduce."""
-    seed = abs(hash(request.node.nodeid)) % (2**32)
+    seed = zlib.crc32(request.node.nodeid.encode())  # stable across processes, unlike hash()
     return np.random.default_rng(seed)
 
 

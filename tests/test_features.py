@@ -319,3 +319,42 @@ def test_vo_command_keeps_the_trajectory_and_log_when_interrupted(synth, tmp_pat
     assert list(stamps) == [0.0, 1.0, 2.0, 3.0]
     log = read_log(out / "log.mcap")
     assert log.complete and log.channels["/vo/stats"].count == 4
+
+
+# --------------------------------------------------------------------------------------------------
+# As the ICP initialiser
+# --------------------------------------------------------------------------------------------------
+def test_feature_initialised_icp_recovers_a_large_motion(synth):
+    """≈ 20° and 30 cm between two noise-free frames: ICP from the identity fails, from ORB + PnP it converges."""
+    from ti_fusion.config import ICPConfig
+    from ti_fusion.icp import ICP
+    from ti_fusion.kernels.maps import FrameMaps
+
+    seq, _, _ = synth
+    pose_a = seq.poses[10]
+    pose_b = pose_a @ make_pose(so3_exp(np.radians([3.0, 20.0, 0.0])), [-0.3, 0.03, 0.05])
+    frames = []
+    for i, pose in enumerate((pose_a, pose_b)):
+        depth, color = seq.render(pose, noise=False)
+        frames.append(Frame(i, float(i), depth, seq.intrinsics, color, pose))
+    T_gt = invert(pose_b) @ pose_a  # source a → target b
+    moved_deg, moved_m = pose_error(np.eye(4), T_gt)
+    assert moved_deg > 19.0 and moved_m > 0.29
+
+    cfg = ICPConfig()
+    maps = []
+    for f in frames:
+        m = FrameMaps(H, W, levels=len(cfg.iterations))
+        m.compute(f.depth, f.intrinsics, cfg.normal_max_depth_jump, cfg.pyramid_depth_sigma)
+        maps.append(m)
+    icp = ICP(cfg)
+    from_identity = icp.align(maps[0], maps[1], None)
+    rot_deg, trans_m = pose_error(from_identity.pose, T_gt)
+    assert from_identity.failure is not None or rot_deg > 1.0 or trans_m > 0.05
+
+    est = estimate_relative_pose(frames[0], frames[1])
+    assert est.ok, est.reason
+    result = icp.align(maps[0], maps[1], est.T)
+    rot_deg, trans_m = pose_error(result.pose, T_gt)
+    assert result.failure is None
+    assert rot_deg < 0.1 and trans_m < 0.001, (rot_deg, trans_m)

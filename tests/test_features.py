@@ -358,3 +358,14 @@ def test_feature_initialised_icp_recovers_a_large_motion(synth):
     rot_deg, trans_m = pose_error(result.pose, T_gt)
     assert result.failure is None
     assert rot_deg < 0.1 and trans_m < 0.001, (rot_deg, trans_m)
+
+
+def test_vo_command_on_the_synthetic_default(synth, tmp_path):
+    from ti_fusion.cli import main
+
+    out = tmp_path / "out"
+    assert main(["vo", "--frames", "6", "--downsample", "2", "--out", str(out), "--quiet"]) == 0
+    for name in ("trajectory.tum", "cloud.ply", "matches.png", "log.mcap", "trajectory.png", "summary.json"):
+        assert (out / name).is_file(), name
+    s = json.loads((out / "summary.json").read_text())
+    assert s["frames"] == 6 and s["accepted"] == 6 and s["ate_rmse_m"] < 0.01

@@ -88,6 +88,7 @@ def test_relative_pose_convention_and_accuracy(synth):
     moved_deg, moved_m = pose_error(np.eye(4), T_gt)
     assert rot_deg < 0.3 and trans_m < 0.01, (rot_deg, trans_m, moved_deg, moved_m)
     assert est.good >= est.inliers >= VOConfig().min_inliers_init
+    assert est.pose is est.T
     np.testing.assert_allclose(est.motion_norm, motion_norm(est.T))
     # Re-localisation: b's camera-to-world pose from a's.
     pose_b = relocalise(a, a.gt_pose, b)
@@ -155,7 +156,8 @@ def test_min_inliers_rule(synth):
 def test_no_depth_and_no_colour(synth):
     _, frames, _ = synth
     no_depth = replace(frames[0], depth=np.zeros_like(frames[0].depth))
-    assert estimate_relative_pose(no_depth, frames[1]).reason == NO_DEPTH
+    failed = estimate_relative_pose(no_depth, frames[1])
+    assert failed.reason == NO_DEPTH and not failed.ok and failed.pose is None
     assert estimate_relative_pose(replace(frames[0], color=None), frames[1]).reason == NO_COLOR
     r = FeatureOdometry().register_frame(replace(frames[0], color=None))
     assert not r.accepted and r.reason == NO_COLOR

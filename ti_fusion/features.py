@@ -170,6 +170,11 @@ class PnPEstimate:
     def ok(self) -> bool:
         return self.reason is None and self.T is not None
 
+    @property
+    def pose(self) -> np.ndarray | None:
+        """``T`` when the estimate passed its checks, else None: what an initialiser should use."""
+        return self.T if self.ok else None
+
 
 def solve_pnp(a: FrameFeatures, b: FrameFeatures, intrinsics, config: VOConfig,
               check_motion: bool = True) -> PnPEstimate:

@@ -121,7 +121,8 @@ def main(argv: list[str] | None = None) -> int:
         backend = init_backend(args.arch) if getattr(module, "USES_TAICHI", False) else None
         if backend is not None and not args.quiet:
             print(f"backend: {backend.arch} ({backend.reason})", flush=True)
-        out = RunDir(args.command, args.out)
+        positional = getattr(module, "OUT_FROM_POSITIONAL", None)  # a command whose positional names its output
+        out = RunDir(args.command, getattr(args, positional) if positional else args.out)
         ctx = RunContext(args.command, args, config, out, backend, args.quiet)
         t0 = time.perf_counter()
         result = module.run(ctx) or {}

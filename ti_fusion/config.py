@@ -45,6 +45,13 @@ class SynthConfig:
     fx: float = 525.0          # fx = fy; principal point at the image centre
     noise: bool = True         # Kinect-like depth noise (axial Gaussian, quantisation, dropouts)
     seed: int = 0              # same seed → same frames
+    min_range: float = 0.4     # metres: nearer depth is dropped (noise on)
+    max_range: float = 4.0     # metres: farther depth is dropped (noise on)
+    grazing_deg: float = 80.0  # depth dropped where the ray is more than this from the surface normal (noise on)
+    baseline: float = 0.075    # metres: projector–camera baseline of the disparity quantisation
+    subpixel: float = 8.0      # disparity quantised to 1/subpixel pixel ...
+    sensor_width: int = 640    # ... of a sensor this wide with the same field of view (fx · sensor_width / width)
+    color_noise: float = 2.0   # grey levels: Gaussian noise per colour channel (noise on)
 
 
 @dataclass

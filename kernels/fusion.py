@@ -1,0 +1,730 @@
+"""The surfel map and point-based fusion (Keller et al. 2013) as Taichi kernels.
+
+A surfel is a small oriented disc: position, normal, colour, weight (confidence), radius and the frames
+it was created and last updated in. The map keeps them as a structure of arrays of a fixed capacity;
+``SurfelMap.ensure_capacity`` grows it (reallocate ×2 and copy, on the Taichi side) or raises
+``MapCapacityError`` before a write could go past the end.
+
+One fusion step for a frame with camera-to-world pose T = [R | t] (``ti_fusion.fusion.SurfelMapper``
+strings the stages together):
+
+1. project    every surfel into the frame; per pixel, the surfel nearest in depth (the index map);
+2. filter 1   the per-surfel mask "projects inside the image with positive depth" (``proj_pixel >= 0``,
+              computed by the same kernel as step 1);
+3. filter 2   per pixel, the index-map surfel is associated when the frame's vertex is within a distance
+              and its normal within an angle of the surfel's (``assoc`` image);
+4. merge      associated surfels average in the measurement (weight 1, or Keller's radial confidence);
+5. add        every valid pixel without an association becomes a new surfel;
+6. remove     unstable surfels (low weight, not updated for a while) and, optionally, surfels the frame
+              sees through (free-space violations); the arrays are compacted in place.
+
+Why the index map needs two passes: Vulkan guarantees only 32-bit atomics, so a 64-bit key
+(depth << 32 | index) is out. A packed 32-bit key would leave too few bits for either: 2**20 surfels
+need 20 bits, leaving 12 bits of depth, i.e. millimetres over 4 m. So pass 1 takes an atomic min of
+the depth's float bits (for positive IEEE-754 floats the bit patterns, read as int32, order exactly like
+the values), and pass 2 lets every surfel whose depth bits equal the pixel's minimum take an atomic min
+of its index. The winner is the nearest surfel, exact ties broken by the smallest index: deterministic
+on every backend.
+
+Determinism elsewhere: new surfels are appended in row-major pixel order (per-row counts, a serial scan
+over rows, then per-row writes), and removal fills the k-th hole below the new count with the k-th
+surviving surfel above it (block counts and scans), so a run gives the same map on every run and
+thread count, not just the same set.
+"""
+
+import math
+
+import numpy as np
+import taichi as ti
+
+from ti_fusion.errors import MapCapacityError
+
+INT_MAX = 2147483647  # "no surfel" in the index maps and "no depth" in the depth keys
+BLOCK = 1024  # surfels per block in the deterministic compaction scans
+SQRT2 = math.sqrt(2.0)
+MIN_COS_VIEW = 0.2  # radius = √2 z / (f |n_z|): |n_z| is clamped here so grazing surfels stay bounded
+Vec3 = ti.types.vector(3, ti.f32)
+Mat3 = ti.types.matrix(3, 3, ti.f32)
+
+# Fields of one surfel, in the order of ``SurfelArrays.attributes``.
+ATTRIBUTES = ("position", "normal", "colour", "weight", "radius", "t_created", "t_updated")
+
+
+@ti.data_oriented
+class SurfelArrays:
+    """The surfel attributes (structure of arrays) and per-surfel scratch, for one capacity.
+
+    Allocated in its own SNode tree so that growing the map can free the old arrays.
+    """
+
+    def __init__(self, capacity: int):
+        self.capacity = int(capacity)
+        self.blocks = self.capacity // BLOCK + 1
+        fb = ti.FieldsBuilder()
+        self.position = ti.Vector.field(3, ti.f32)  # world frame, metres
+        self.normal = ti.Vector.field(3, ti.f32)  # world frame, unit
+        self.colour = ti.Vector.field(3, ti.f32)  # RGB in [0, 255]
+        self.weight = ti.field(ti.f32)  # confidence: sum of measurement weights
+        self.radius = ti.field(ti.f32)  # metres
+        self.t_created = ti.field(ti.i32)  # frame index
+        self.t_updated = ti.field(ti.i32)  # frame index of the last merge
+        # Scratch of the current step: pixel (v·W + u, or -1 outside: filter pass 1) and depth bits.
+        self.proj_pixel = ti.field(ti.i32)
+        self.proj_depth = ti.field(ti.i32)
+        self.flag = ti.field(ti.i32)  # 1 = remove
+        self.slot = ti.field(ti.i32)  # removal: the k-th hole's index
+        for f in (self.position, self.normal, self.colour, self.weight, self.radius, self.t_created,
+                  self.t_updated, self.proj_pixel, self.proj_depth, self.flag, self.slot):
+            fb.dense(ti.i, self.capacity).place(f)  # one array per attribute: SoA
+        self.block_a = ti.field(ti.i32)
+        self.block_b = ti.field(ti.i32)
+        self.offset_a = ti.field(ti.i32)
+        self.offset_b = ti.field(ti.i32)
+        for f in (self.block_a, self.block_b, self.offset_a, self.offset_b):
+            fb.dense(ti.i, self.blocks).place(f)
+        self.tree = fb.finalize()
+
+    @property
+    def attributes(self):
+        return [getattr(self, name) for name in ATTRIBUTES]
+
+    def destroy(self) -> None:
+        self.tree.destroy()
+
+
+@ti.data_oriented
+class ImageScratch:
+    """Per-pixel work images of one resolution, shared by the fusion step and the renderer."""
+
+    def __init__(self, height: int, width: int):
+        self.height, self.width = height, width
+        shape = (height, width)
+        self.depth_key = ti.field(ti.i32, shape=shape)  # float bits of the nearest depth, INT_MAX = none
+        self.index = ti.field(ti.i32, shape=shape)  # nearest surfel; INT_MAX (after pass 2: -1) = none
+        self.assoc = ti.field(ti.i32, shape=shape)  # filter pass 2: associated surfel or -1
+        self.colour = ti.field(ti.i32, shape=shape)  # frame colour packed r | g << 8 | b << 16
+        self.row_new = ti.field(ti.i32, shape=height)
+        self.row_merged = ti.field(ti.i32, shape=height)
+        self.row_offset = ti.field(ti.i32, shape=height)
+        # Rendering: the front surfel of each pixel in the camera frame, the splat result, and outputs.
+        self.pc = ti.Vector.field(3, ti.f32, shape=shape)
+        self.nc = ti.Vector.field(3, ti.f32, shape=shape)
+        self.rad = ti.field(ti.f32, shape=shape)  # -1 = no surfel
+        self.view_index = ti.field(ti.i32, shape=shape)  # surfel seen at the pixel, INT_MAX = none
+        self.vertex = ti.Vector.field(3, ti.f32, shape=shape)
+        self.normal = ti.Vector.field(3, ti.f32, shape=shape)
+        self.depth = ti.field(ti.f32, shape=shape)
+        self.image = ti.Vector.field(3, ti.f32, shape=shape)  # rendered RGB in [0, 1]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Small helpers
+
+
+@ti.func
+def depth_bits(z):
+    """int32 bit pattern of a positive float32: ordered exactly like the floats themselves."""
+    return ti.bit_cast(ti.cast(z, ti.f32), ti.i32)
+
+
+@ti.func
+def bits_depth(k):
+    return ti.bit_cast(k, ti.f32)
+
+
+@ti.func
+def is_valid(q, nq):
+    return q.z > 0 and nq.norm_sqr() > 0
+
+
+@ti.func
+def measurement_weight(u, v, cx, cy, confidence: ti.template(), sigma):
+    """1, or Keller's exp(−γ²/2σ²) with γ the radial distance from the image centre over its maximum."""
+    w = 1.0
+    if ti.static(confidence):
+        gamma2 = ((u - cx) ** 2 + (v - cy) ** 2) / (cx * cx + cy * cy)
+        w = ti.exp(-gamma2 / (2.0 * sigma * sigma))
+    return w
+
+
+@ti.func
+def measurement_radius(z, nz, f):
+    """Keller's surfel radius: the pixel's footprint at depth z, √2 z / f, widened by the slant 1/|n_z|."""
+    return SQRT2 * z / (f * ti.max(ti.abs(nz), MIN_COS_VIEW))
+
+
+@ti.func
+def unpack_colour(c):
+    return Vec3(c & 255, (c >> 8) & 255, (c >> 16) & 255)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 1-2. Projection, index map, filter pass 1
+
+
+@ti.kernel
+def clear_index(img: ti.template()):
+    for v, u in img.index:
+        img.depth_key[v, u] = INT_MAX
+        img.index[v, u] = INT_MAX
+
+
+@ti.kernel
+def project_surfels(s: ti.template(), n: ti.i32, img: ti.template(), R: Mat3, t: Vec3,
+                    fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32):
+    """Filter pass 1 (proj_pixel ≥ 0: inside the image, z > 0) and the nearest depth per pixel.
+
+    (R, t) maps world to camera. Pixel u = ⌊fx x/z + cx + ½⌋ (round to nearest): a frame vertex at pixel
+    u projects back to u. For rendering, surfels below ``min_weight`` or facing away are left out too.
+    """
+    H, W = img.index.shape
+    for i in range(n):
+        pc = R @ s.position[i] + t
+        pix = -1
+        keep = pc.z > 0
+        if ti.static(render):
+            keep = keep and s.weight[i] >= min_weight and (R @ s.normal[i]).dot(pc) < 0
+        if keep:
+            uf = fx * pc.x / pc.z + cx + 0.5
+            vf = fy * pc.y / pc.z + cy + 0.5
+            if 0.0 <= uf < W and 0.0 <= vf < H:  # compared as floats: no overflow in the cast below
+                u = ti.cast(ti.floor(uf), ti.i32)
+                v = ti.cast(ti.floor(vf), ti.i32)
+                if u < W and v < H:
+                    pix = v * W + u
+                    key = depth_bits(pc.z)
+                    s.proj_depth[i] = key
+                    if key < img.depth_key[v, u]:  # plain read first: most lose, skip their atomic
+                        ti.atomic_min(img.depth_key[v, u], key)
+        s.proj_pixel[i] = pix
+
+
+@ti.kernel
+def claim_index(s: ti.template(), n: ti.i32, img: ti.template()):
+    """Second pass of the index map: among the surfels at the nearest depth, the smallest index wins."""
+    W = img.index.shape[1]
+    for i in range(n):
+        pix = s.proj_pixel[i]
+        if pix >= 0:
+            v, u = pix // W, pix % W
+            if s.proj_depth[i] == img.depth_key[v, u]:
+                ti.atomic_min(img.index[v, u], i)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 3. Filter pass 2
+
+
+@ti.kernel
+def associate(s: ti.template(), img: ti.template(), vertex: ti.template(), normal: ti.template(),
+              R: Mat3, t: Vec3, dist_threshold: ti.f32, cos_threshold: ti.f32):
+    """assoc[v, u] = the index-map surfel if the frame's point is within the thresholds, else -1.
+
+    (R, t) maps camera to world. One pixel merges into at most one surfel (its index-map surfel), and a
+    surfel projects to one pixel, so no surfel is merged twice.
+    """
+    for v, u in img.index:
+        i = img.index[v, u]
+        a = -1
+        if i == INT_MAX:
+            img.index[v, u] = -1
+        else:
+            q = vertex[v, u]
+            nq = normal[v, u]
+            if is_valid(q, nq):
+                qw = R @ q + t
+                nw = R @ nq
+                if (qw - s.position[i]).norm() <= dist_threshold and nw.dot(s.normal[i]) >= cos_threshold:
+                    a = i
+        img.assoc[v, u] = a
+
+
+# ---------------------------------------------------------------------------------------------------
+# 4. Merge
+
+
+@ti.kernel
+def merge(s: ti.template(), img: ti.template(), vertex: ti.template(), normal: ti.template(),
+          R: Mat3, t: Vec3, f: ti.f32, cx: ti.f32, cy: ti.f32, confidence: ti.template(), sigma: ti.f32,
+          has_colour: ti.i32, frame_index: ti.i32):
+    """p ← (w p + α (R q + t)) / (w + α), n likewise then normalised, colour likewise, w ← w + α."""
+    for v, u in img.assoc:
+        i = img.assoc[v, u]
+        if i >= 0:
+            q = vertex[v, u]
+            nq = normal[v, u]
+            a = measurement_weight(ti.cast(u, ti.f32), ti.cast(v, ti.f32), cx, cy, confidence, sigma)
+            w = s.weight[i]
+            s.position[i] = (w * s.position[i] + a * (R @ q + t)) / (w + a)
+            n_sum = w * s.normal[i] + a * (R @ nq)
+            length = n_sum.norm()
+            if length > 0:
+                s.normal[i] = n_sum / length
+            if has_colour:
+                s.colour[i] = (w * s.colour[i] + a * unpack_colour(img.colour[v, u])) / (w + a)
+            s.weight[i] = w + a
+            s.radius[i] = ti.min(s.radius[i], measurement_radius(q.z, nq.z, f))
+            s.t_updated[i] = frame_index
+
+
+# ---------------------------------------------------------------------------------------------------
+# 5. Add (stream compaction in row-major pixel order)
+
+
+@ti.kernel
+def count_rows(img: ti.template(), vertex: ti.template(), normal: ti.template()):
+    """Per row: pixels merged, and valid pixels without an association (the new surfels)."""
+    H, W = img.assoc.shape
+    for v in range(H):
+        new = 0
+        merged = 0
+        for u in range(W):
+            if img.assoc[v, u] >= 0:
+                merged += 1
+            elif is_valid(vertex[v, u], normal[v, u]):
+                new += 1
+        img.row_new[v] = new
+        img.row_merged[v] = merged
+
+
+@ti.kernel
+def scan_rows(img: ti.template(), totals: ti.template()):
+    """Exclusive prefix sum of the new-surfel counts; totals = (new, merged)."""
+    new = 0
+    merged = 0
+    ti.loop_config(serialize=True)
+    for v in range(img.row_new.shape[0]):
+        img.row_offset[v] = new
+        new += img.row_new[v]
+        merged += img.row_merged[v]
+    totals[0] = new
+    totals[1] = merged
+
+
+@ti.kernel
+def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
+               R: Mat3, t: Vec3, f: ti.f32, cx: ti.f32, cy: ti.f32, confidence: ti.template(), sigma: ti.f32,
+               has_colour: ti.i32, frame_index: ti.i32, overflow: ti.template()):
+    """Write the new surfels at n + row_offset[v] + (rank within the row); count any that do not fit.
+
+    The caller has grown the map first, so ``overflow`` stays 0: it is the guard against an
+    out-of-bounds write, not the capacity check.
+    """
+    H, W = img.assoc.shape
+    for v in range(H):
+        k = n + img.row_offset[v]
+        lost = 0
+        for u in range(W):
+            q = vertex[v, u]
+            nq = normal[v, u]
+            if img.assoc[v, u] < 0 and is_valid(q, nq):
+                if k < s.capacity:
+                    s.position[k] = R @ q + t
+                    s.normal[k] = R @ nq
+                    c = Vec3(128.0, 128.0, 128.0)
+                    if has_colour:
+                        c = unpack_colour(img.colour[v, u])
+                    s.colour[k] = c
+                    s.weight[k] = measurement_weight(ti.cast(u, ti.f32), ti.cast(v, ti.f32), cx, cy,
+                                                     confidence, sigma)
+                    s.radius[k] = measurement_radius(q.z, nq.z, f)
+                    s.t_created[k] = frame_index
+                    s.t_updated[k] = frame_index
+                else:
+                    lost += 1
+                k += 1
+        if lost > 0:
+            ti.atomic_add(overflow[2], lost)
+
+
+# ---------------------------------------------------------------------------------------------------
+# 6. Remove (in-place compaction that keeps the order of the survivors below the new count)
+
+
+@ti.kernel
+def mark_removal(s: ti.template(), n: ti.i32, n_projected: ti.i32, frame_index: ti.i32,
+                 unstable: ti.i32, unstable_weight: ti.f32, unstable_age: ti.i32,
+                 free_space: ti.i32, margin: ti.f32, depth: ti.template()):
+    """flag[i] = 1 for surfels to drop; block_a[b] = how many in block b.
+
+    Unstable: weight < unstable_weight and not updated for unstable_age frames. Free space: the frame
+    measures a depth more than ``margin`` behind the surfel along its ray, so the camera sees through
+    it (only surfels that existed at projection time, i < n_projected, and were not merged now).
+    """
+    W = depth.shape[1]
+    for b in range((n + BLOCK - 1) // BLOCK):
+        removed = 0
+        for j in range(BLOCK):
+            i = b * BLOCK + j
+            if i < n:
+                rm = 0
+                if unstable and s.weight[i] < unstable_weight and frame_index - s.t_updated[i] >= unstable_age:
+                    rm = 1
+                if free_space and i < n_projected and s.t_updated[i] != frame_index and s.proj_pixel[i] >= 0:
+                    pix = s.proj_pixel[i]
+                    d = depth[pix // W, pix % W]
+                    if d > 0 and d > bits_depth(s.proj_depth[i]) + margin:
+                        rm = 1
+                s.flag[i] = rm
+                removed += rm
+        s.block_a[b] = removed
+
+
+@ti.kernel
+def sum_blocks(s: ti.template(), n: ti.i32, totals: ti.template()):
+    total = 0
+    ti.loop_config(serialize=True)
+    for b in range((n + BLOCK - 1) // BLOCK):
+        total += s.block_a[b]
+    totals[3] = total
+
+
+@ti.kernel
+def count_holes_movers(s: ti.template(), n: ti.i32, m: ti.i32):
+    """Per block: holes (removed, index < m) and movers (kept, index ≥ m). There are as many of each."""
+    for b in range((n + BLOCK - 1) // BLOCK):
+        holes = 0
+        movers = 0
+        for j in range(BLOCK):
+            i = b * BLOCK + j
+            if i < n:
+                if i < m and s.flag[i] == 1:
+                    holes += 1
+                if i >= m and s.flag[i] == 0:
+                    movers += 1
+        s.block_a[b] = holes
+        s.block_b[b] = movers
+
+
+@ti.kernel
+def scan_blocks(s: ti.template(), n: ti.i32):
+    holes = 0
+    movers = 0
+    ti.loop_config(serialize=True)
+    for b in range((n + BLOCK - 1) // BLOCK):
+        s.offset_a[b] = holes
+        s.offset_b[b] = movers
+        holes += s.block_a[b]
+        movers += s.block_b[b]
+
+
+@ti.kernel
+def list_holes(s: ti.template(), m: ti.i32):
+    for b in range((m + BLOCK - 1) // BLOCK):
+        k = s.offset_a[b]
+        for j in range(BLOCK):
+            i = b * BLOCK + j
+            if i < m and s.flag[i] == 1:
+                s.slot[k] = i
+                k += 1
+
+
+@ti.func
+def copy_surfel(src: ti.template(), i, dst: ti.template(), k):
+    dst.position[k] = src.position[i]
+    dst.normal[k] = src.normal[i]
+    dst.colour[k] = src.colour[i]
+    dst.weight[k] = src.weight[i]
+    dst.radius[k] = src.radius[i]
+    dst.t_created[k] = src.t_created[i]
+    dst.t_updated[k] = src.t_updated[i]
+
+
+@ti.kernel
+def fill_holes(s: ti.template(), n: ti.i32, m: ti.i32):
+    """The k-th surviving surfel at or above m moves into the k-th hole below m (no overlap)."""
+    for b in range(m // BLOCK, (n + BLOCK - 1) // BLOCK):
+        k = s.offset_b[b]
+        for j in range(BLOCK):
+            i = b * BLOCK + j
+            if m <= i < n and s.flag[i] == 0:
+                copy_surfel(s, i, s, s.slot[k])
+                k += 1
+
+
+@ti.kernel
+def copy_all(src: ti.template(), dst: ti.template(), n: ti.i32):
+    for i in range(n):
+        copy_surfel(src, i, dst, i)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Rendering: screen-space surfel splatting with a z-test
+#
+# Splatting every surfel's disc over its pixel footprint costs (footprint) atomics per surfel: over
+# 400 ms for a 1 M-surfel map at 320×240 on two CPU cores. Instead the renderer (1) projects the surfels
+# as points into a z-buffer (the index map's two passes, culling back faces and unstable surfels), then
+# (2) lets every pixel gather the front surfels of its (2h+1)² neighbourhood and keep the nearest disc
+# its ray meets. A disc thus covers up to h pixels around its centre, as a splat would; the one
+# difference is that only the front surfel of each pixel's point projection can spill into neighbours.
+
+
+@ti.kernel
+def gather_winners(s: ti.template(), img: ti.template(), R: Mat3, t: Vec3):
+    """Camera-frame position, normal and radius of each pixel's front surfel (radius -1: none)."""
+    for v, u in img.index:
+        i = img.index[v, u]
+        r = -1.0
+        if i != INT_MAX:
+            img.pc[v, u] = R @ s.position[i] + t
+            img.nc[v, u] = R @ s.normal[i]
+            r = s.radius[i]
+        img.rad[v, u] = r
+
+
+@ti.kernel
+def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, half: ti.template(),
+                 out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
+    """Per pixel: the nearest disc among the neighbourhood's front surfels that the pixel's ray meets.
+
+    A surfel always covers its own pixel (at its centre depth if the ray misses the disc), so surfels
+    small on screen still show as points. Ties in depth go to the smaller surfel index. Outputs are in
+    the camera frame; ``img.view_index`` gets the surfel (INT_MAX = none). ``half`` is a compile-time
+    constant: the unrolled neighbourhood runs about twice as fast as a loop.
+    """
+    H, W = img.index.shape
+    for v, u in ti.ndrange(H, W):
+        d = Vec3((u - cx) / fx, (v - cy) / fy, 1.0)
+        best_z = 0.0
+        best_i = INT_MAX
+        best_n = Vec3(0.0, 0.0, 0.0)
+        for dv in ti.static(range(-half, half + 1)):
+            for du in ti.static(range(-half, half + 1)):
+                y = v + dv
+                x = u + du
+                if 0 <= y < H and 0 <= x < W:
+                    r = img.rad[y, x]
+                    if r >= 0:
+                        pc = img.pc[y, x]
+                        nc = img.nc[y, x]
+                        z = 0.0
+                        denom = nc.dot(d)
+                        if ti.abs(denom) > 1e-6:
+                            zz = nc.dot(pc) / denom
+                            if zz > 0 and (zz * d - pc).norm_sqr() <= r * r:
+                                z = zz
+                        if ti.static(dv == 0 and du == 0):
+                            if z == 0.0:
+                                z = pc.z
+                        if z > 0:
+                            j = img.index[y, x]
+                            if best_i == INT_MAX or z < best_z or (z == best_z and j < best_i):
+                                best_z = z
+                                best_i = j
+                                best_n = nc
+        img.view_index[v, u] = best_i
+        out_vertex[v, u] = best_z * d
+        out_normal[v, u] = best_n
+        out_depth[v, u] = best_z
+
+
+@ti.kernel
+def shade(s: ti.template(), img: ti.template(), by_normal: ti.i32, background: Vec3):
+    """RGB in [0, 1]: the surfel's colour, or its world normal mapped as (n + 1) / 2."""
+    for v, u in img.view_index:
+        i = img.view_index[v, u]
+        c = background
+        if i != INT_MAX:
+            if by_normal:
+                c = 0.5 * (s.normal[i] + 1.0)
+            else:
+                c = s.colour[i] / 255.0
+        img.image[v, u] = c
+
+
+# ---------------------------------------------------------------------------------------------------
+
+
+def _world_to_camera(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    inv = np.linalg.inv(np.asarray(pose, dtype=np.float64))
+    return inv[:3, :3].astype(np.float32), inv[:3, 3].astype(np.float32)
+
+
+def _camera_to_world(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    T = np.asarray(pose, dtype=np.float64)
+    return T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
+
+
+@ti.data_oriented
+class SurfelMap:
+    """A growable surfel map on the Taichi side, with the stages of one fusion step and the renderer.
+
+    ``count`` surfels are live, at indices [0, count). Stage methods take the frame's level-0 fields
+    (``FrameMaps.vertex[0]`` etc.) and 4×4 camera-to-world poses (float64 NumPy).
+    """
+
+    def __init__(self, capacity: int = 4_000_000, grow: bool = True):
+        if capacity < 1:
+            raise MapCapacityError(f"fusion.capacity must be positive (got {capacity})")
+        self.grow = grow
+        self.arrays = SurfelArrays(capacity)
+        self.count = 0
+        self.totals = ti.field(ti.i32, shape=4)  # new, merged, overflow, removed
+        self._scratch: dict[tuple[int, int], ImageScratch] = {}
+        self._retired: list[SurfelArrays] = []  # keeps ids of old arrays unique for Taichi's kernel cache
+        self._projected = 0  # surfels that existed at the last projection (their proj_* are current)
+
+    # -- storage ---------------------------------------------------------------------------------------
+    @property
+    def capacity(self) -> int:
+        return self.arrays.capacity
+
+    def scratch(self, height: int, width: int) -> ImageScratch:
+        key = (height, width)
+        if key not in self._scratch:
+            self._scratch[key] = ImageScratch(height, width)
+        return self._scratch[key]
+
+    def ensure_capacity(self, needed: int) -> None:
+        """Make room for ``needed`` surfels in total: grow ×2 until they fit, or raise MapCapacityError."""
+        if needed <= self.capacity:
+            return
+        if not self.grow:
+            raise MapCapacityError(
+                f"surfel map full: {self.count} surfels + {needed - self.count} new > capacity {self.capacity}; "
+                f"raise fusion.capacity (e.g. --set fusion.capacity={2 * needed}) or allow fusion.grow")
+        capacity = self.capacity
+        while capacity < needed:
+            capacity *= 2
+        new = SurfelArrays(capacity)
+        copy_all(self.arrays, new, self.count)
+        old, self.arrays = self.arrays, new
+        old.destroy()
+        self._retired.append(old)
+        self._projected = 0  # the scratch was not copied
+
+    def clear(self) -> None:
+        self.count = 0
+        self._projected = 0
+
+    # -- 1-3: project, filter pass 1, filter pass 2 ------------------------------------------------------
+    def project(self, pose: np.ndarray, intrinsics, height: int, width: int) -> ImageScratch:
+        """Index map of the surfels in the frame with camera-to-world ``pose`` (and filter pass 1)."""
+        img = self.scratch(height, width)
+        R, t = _world_to_camera(pose)
+        clear_index(img)
+        if self.count > 0:
+            project_surfels(self.arrays, self.count, img, R, t, *intrinsics.as_tuple(), False, 0.0)
+            claim_index(self.arrays, self.count, img)
+        self._projected = self.count
+        return img
+
+    def associate(self, img: ImageScratch, vertex, normal, pose: np.ndarray, dist_threshold: float,
+                  normal_threshold_deg: float) -> None:
+        """Filter pass 2 into ``img.assoc`` (turns the index map's "none" into -1)."""
+        R, t = _camera_to_world(pose)
+        cos_threshold = math.cos(math.radians(normal_threshold_deg))
+        associate(self.arrays, img, vertex, normal, R, t, dist_threshold, cos_threshold)
+
+    def pass1_mask(self) -> np.ndarray:
+        """Filter pass 1 of the last projection: surfels inside the image with positive depth."""
+        return self.arrays.proj_pixel.to_numpy()[: self._projected] >= 0
+
+    # -- 4-5: merge and add --------------------------------------------------------------------------------
+    def merge(self, img: ImageScratch, vertex, normal, pose, intrinsics, frame_index: int,
+              confidence: bool, sigma: float, has_colour: bool) -> None:
+        R, t = _camera_to_world(pose)
+        fx, _, cx, cy = intrinsics.as_tuple()
+        merge(self.arrays, img, vertex, normal, R, t, fx, cx, cy, bool(confidence), sigma, int(has_colour),
+              frame_index)
+
+    def add(self, img: ImageScratch, vertex, normal, pose, intrinsics, frame_index: int, confidence: bool,
+            sigma: float, has_colour: bool) -> tuple[int, int]:
+        """Append the valid unassociated pixels as surfels; returns (added, merged) pixel counts."""
+        count_rows(img, vertex, normal)
+        scan_rows(img, self.totals)
+        totals = self.totals.to_numpy()
+        new, merged = int(totals[0]), int(totals[1])
+        self.ensure_capacity(self.count + new)  # before any write: grow or raise
+        if new > 0:
+            R, t = _camera_to_world(pose)
+            fx, _, cx, cy = intrinsics.as_tuple()
+            self.totals[2] = 0
+            append_new(self.arrays, self.count, img, vertex, normal, R, t, fx, cx, cy, bool(confidence), sigma,
+                       int(has_colour), frame_index, self.totals)
+            lost = int(self.totals[2])
+            if lost:  # cannot happen after ensure_capacity; never let it pass silently
+                raise MapCapacityError(f"{lost} new surfels did not fit (capacity {self.capacity}): "
+                                       f"raise fusion.capacity")
+            self.count += new
+        return new, merged
+
+    # -- 6: remove ------------------------------------------------------------------------------------------
+    def remove(self, frame_index: int, unstable: bool, unstable_weight: float, unstable_age: int,
+               free_space: bool = False, free_space_margin: float = 0.05, depth=None) -> int:
+        """Drop unstable / free-space-violating surfels and compact in place; returns how many went."""
+        n = self.count
+        if n == 0 or not (unstable or free_space):
+            return 0
+        if free_space and depth is None:
+            raise ValueError("free-space removal needs the frame's depth field")
+        if depth is None:
+            depth = self._dummy_depth()  # never read: free-space removal is off
+        mark_removal(self.arrays, n, min(self._projected, n), frame_index, int(unstable), unstable_weight,
+                     unstable_age, int(free_space), free_space_margin, depth)
+        sum_blocks(self.arrays, n, self.totals)
+        removed = int(self.totals[3])
+        if removed > 0:
+            m = n - removed
+            count_holes_movers(self.arrays, n, m)
+            scan_blocks(self.arrays, n)
+            list_holes(self.arrays, m)
+            fill_holes(self.arrays, n, m)
+            self.count = m
+            self._projected = 0  # indices moved: the projection scratch is stale
+        return removed
+
+    def _dummy_depth(self):
+        if not hasattr(self, "_no_depth"):
+            self._no_depth = ti.field(ti.f32, shape=(1, 1))
+        return self._no_depth
+
+    # -- rendering ------------------------------------------------------------------------------------------
+    def render(self, pose: np.ndarray, intrinsics, out_vertex=None, out_normal=None, out_depth=None,
+               min_weight: float = 0.0, max_half: int = 1) -> ImageScratch:
+        """Predicted vertex / normal / depth maps in the camera frame of ``pose`` (zero = no surfel).
+
+        Outputs are Taichi fields of shape (intrinsics.height, intrinsics.width), e.g. a FrameMaps' level
+        0; left out, they are the returned scratch's ``vertex``, ``normal``, ``depth`` fields (valid until
+        the next render or fusion step at this resolution). Surfels with weight ≥ ``min_weight`` that face
+        the camera are splatted as discs reaching at most ``max_half`` pixels from their centre pixel; the
+        vertex lies on the pixel's ray, at the depth where the ray meets the disc.
+        """
+        img = self.scratch(intrinsics.height, intrinsics.width)
+        R, t = _world_to_camera(pose)
+        fx, fy, cx, cy = intrinsics.as_tuple()
+        clear_index(img)
+        if self.count > 0:
+            project_surfels(self.arrays, self.count, img, R, t, fx, fy, cx, cy, True, float(min_weight))
+            claim_index(self.arrays, self.count, img)
+        self._projected = 0  # proj_* now hold the render's projection, not the fusion step's
+        gather_winners(self.arrays, img, R, t)
+        splat_gather(img, fx, fy, cx, cy, int(max_half),
+                     img.vertex if out_vertex is None else out_vertex,
+                     img.normal if out_normal is None else out_normal,
+                     img.depth if out_depth is None else out_depth)
+        return img
+
+    def render_image(self, pose: np.ndarray, intrinsics, by_normal: bool = False, min_weight: float = 0.0,
+                     max_half: int = 3, background=(0.12, 0.12, 0.12)) -> np.ndarray:
+        """uint8 RGB view of the map from ``pose``: surfel colours, or world normals as (n + 1) / 2."""
+        img = self.render(pose, intrinsics, min_weight=min_weight, max_half=max_half)
+        shade(self.arrays, img, int(by_normal), np.asarray(background, dtype=np.float32))
+        return (np.clip(img.image.to_numpy(), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+    # -- NumPy edges ----------------------------------------------------------------------------------------
+    def to_numpy(self) -> dict[str, np.ndarray]:
+        """The live surfels as NumPy arrays (copies), keyed by attribute name."""
+        n = self.count
+        return {name: field.to_numpy()[:n] for name, field in zip(ATTRIBUTES, self.arrays.attributes)}
+
+    def from_numpy(self, data: dict[str, np.ndarray]) -> None:
+        """Replace the map by the given surfels (every attribute of ATTRIBUTES, same length)."""
+        n = len(data["position"])
+        self.ensure_capacity(n)
+        for name, field in zip(ATTRIBUTES, self.arrays.attributes):
+            full = field.to_numpy()
+            full[:n] = data[name]
+            field.from_numpy(full)
+        self.count = n
+        self._projected = 0

@@ -1,0 +1,551 @@
+"""Point-based fusion: each kernel against a NumPy float64 reference (cpu and vulkan), then the pipeline.
+
+Random maps are built around a random frame so that every branch is exercised: surfels outside the
+image or behind the camera (filter pass 1), several surfels on one pixel and exact duplicates (the
+index map's nearest-depth rule and its tie-break), surfels just inside and just outside the distance
+and angle thresholds (filter pass 2), invalid pixels (no depth, or depth without a normal). Cases
+closer to a threshold than float32 can decide are dropped from the random draw, so the comparison with
+the float64 reference is exact where it should be.
+"""
+
+import math
+
+import numpy as np
+import pytest
+import taichi as ti
+
+from ti_fusion.camera import Intrinsics
+from ti_fusion.config import FusionConfig
+from ti_fusion.errors import MapCapacityError
+from ti_fusion.fusion import SurfelMapper, pack_colour
+from ti_fusion.geometry import se3_exp
+from ti_fusion.kernels import fusion as F
+from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.ply import read_ply, write_ply
+
+K = Intrinsics(fx=100.0, fy=104.0, cx=31.5, cy=23.5, width=64, height=48)
+H, W = K.height, K.width
+DIST = 0.03
+ANGLE = 20.0
+SIGMA = 0.6
+
+
+# -- random inputs -----------------------------------------------------------------------------------
+
+
+def random_pose(rng) -> np.ndarray:
+    return se3_exp(np.concatenate([rng.normal(scale=0.4, size=3), rng.normal(scale=1.0, size=3)]))
+
+
+def rays(u, v):
+    return np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(np.asarray(u, dtype=float))], -1)
+
+
+def random_frame(rng):
+    """Camera-frame vertex and normal maps (float32), some pixels invalid, and a colour image."""
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    depth = rng.uniform(1.0, 3.0, size=(H, W))
+    vertex = rays(u, v) * depth[..., None]
+    normal = rng.normal(size=(H, W, 3))
+    normal[..., 2] = -np.abs(normal[..., 2]) - 1.0  # roughly facing the camera
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    no_depth = rng.random((H, W)) < 0.12
+    no_normal = rng.random((H, W)) < 0.05
+    vertex[no_depth] = 0.0
+    normal[no_depth | no_normal] = 0.0
+    depth[no_depth] = 0.0
+    colour = rng.integers(0, 256, size=(H, W, 3), dtype=np.uint8)
+    return vertex.astype(np.float32), normal.astype(np.float32), depth.astype(np.float32), colour
+
+
+def rotate_towards(n, angle_deg, rng):
+    """Unit vectors at ``angle_deg`` from each row of ``n`` (random direction)."""
+    a = rng.normal(size=n.shape)
+    a -= (a * n).sum(-1, keepdims=True) * n
+    a /= np.linalg.norm(a, axis=-1, keepdims=True)
+    t = np.radians(angle_deg)[:, None]
+    return np.cos(t) * n + np.sin(t) * a
+
+
+def random_map(rng, vertex, normal, pose, n_hit=600):
+    """Surfels (world frame) around the frame's valid pixels plus some that pass 1 rejects."""
+    valid = np.argwhere((vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0))
+    pick = valid[rng.integers(0, len(valid), n_hit)]
+    v, u = pick[:, 0], pick[:, 1]
+    q = vertex[v, u].astype(np.float64)
+    nq = normal[v, u].astype(np.float64)
+    # sub-pixel offsets (never near a rounding boundary) and depth offsets on both sides of DIST
+    offset = rng.uniform(-0.35, 0.35, size=(n_hit, 2))
+    dz = rng.choice([-1.0, 1.0], n_hit) * np.where(rng.random(n_hit) < 0.6, rng.uniform(0, 0.9, n_hit),
+                                                    rng.uniform(1.1, 4.0, n_hit)) * DIST
+    cam = rays(u + offset[:, 0], v + offset[:, 1]) * (q[:, 2] + dz)[:, None]
+    angle = np.where(rng.random(n_hit) < 0.6, rng.uniform(0, 0.9, n_hit), rng.uniform(1.1, 3.0, n_hit)) * ANGLE
+    ncam = rotate_towards(nq, angle, rng)
+    # pass-1 rejects: outside the image (left/right/top/bottom) and behind the camera
+    m = 60
+    zz = rng.uniform(0.5, 3.0, m)
+    uu = np.concatenate([rng.uniform(-30, -0.6, m // 4), rng.uniform(W - 0.4, W + 30, m // 4),
+                         rng.uniform(0, W - 1, m // 2)])
+    vv = np.concatenate([rng.uniform(0, H - 1, m // 2), rng.uniform(-30, -0.6, m // 4),
+                         rng.uniform(H - 0.4, H + 30, m // 4)])
+    out = rays(uu, vv) * zz[:, None]
+    out[:10] *= -1.0  # behind the camera
+    cam = np.concatenate([cam, out])
+    ncam = np.concatenate([ncam, np.tile([0.0, 0.0, -1.0], (m, 1))])
+    n = len(cam)
+    world = cam @ pose[:3, :3].T + pose[:3, 3]
+    nworld = ncam @ pose[:3, :3].T
+    data = {
+        "position": world.astype(np.float32),
+        "normal": nworld.astype(np.float32),
+        "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+        "weight": rng.uniform(0.3, 8.0, n).astype(np.float32),
+        "radius": rng.uniform(0.005, 0.05, n).astype(np.float32),
+        "t_created": rng.integers(0, 5, n).astype(np.int32),
+        "t_updated": rng.integers(5, 10, n).astype(np.int32),
+    }
+    # exact duplicates of some surfels: a tie in the index map, broken by the smaller index
+    dup = rng.integers(0, n_hit, 40)
+    data = {k: np.concatenate([a, a[dup]]) for k, a in data.items()}
+    return drop_ambiguous(data, vertex, normal, pose)
+
+
+def drop_ambiguous(data, vertex, normal, pose):
+    """Remove surfels whose pass-2 test or depth order float32 cannot decide like float64."""
+    p = data["position"].astype(np.float64)
+    pix, z = ref_project(p, pose)
+    keep = np.ones(len(p), bool)
+    inside = pix >= 0
+    v, u = pix[inside] // W, pix[inside] % W
+    qw = vertex[v, u].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    nw = normal[v, u].astype(np.float64) @ pose[:3, :3].T
+    dist = np.linalg.norm(qw - p[inside], axis=-1)
+    cos = (nw * data["normal"][inside]).sum(-1)
+    close = (np.abs(dist - DIST) < 1e-4) | (np.abs(cos - math.cos(math.radians(ANGLE))) < 1e-5)
+    keep[np.flatnonzero(inside)[close]] = False
+    # distinct surfels nearly tied in depth on one pixel
+    order = np.lexsort((z, pix))
+    same = (pix[order][1:] == pix[order][:-1]) & (pix[order][1:] >= 0)
+    dz = np.abs(z[order][1:] - z[order][:-1])
+    near = same & (dz > 0) & (dz < 1e-5)
+    keep[order[1:][near]] = False
+    keep[order[:-1][near]] = False
+    return {k: a[keep] for k, a in data.items()}
+
+
+# -- float64 references --------------------------------------------------------------------------------
+
+
+def ref_project(p, pose):
+    """(pixel v·W + u or -1, camera depth) of each world point, rounding as the kernel does."""
+    inv = np.linalg.inv(pose)
+    pc = p @ inv[:3, :3].T + inv[:3, 3]
+    z = pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uf = K.fx * pc[:, 0] / z + K.cx + 0.5
+        vf = K.fy * pc[:, 1] / z + K.cy + 0.5
+        ok = (z > 0) & (uf >= 0) & (uf < W) & (vf >= 0) & (vf < H)
+    pix = np.full(len(p), -1, np.int64)
+    pix[ok] = np.floor(vf[ok]).astype(np.int64) * W + np.floor(uf[ok]).astype(np.int64)
+    return pix, z
+
+
+def ref_index_map(pix, z):
+    """Per pixel: the surfel nearest in depth, ties to the smaller index; -1 where none."""
+    index = np.full(H * W, -1, np.int64)
+    ids = np.flatnonzero(pix >= 0)
+    order = ids[np.lexsort((ids, z[ids], pix[ids]))]
+    first = np.ones(len(order), bool)
+    first[1:] = pix[order][1:] != pix[order][:-1]
+    index[pix[order][first]] = order[first]
+    return index.reshape(H, W)
+
+
+def ref_associate(index, data, vertex, normal, pose):
+    assoc = np.full((H, W), -1, np.int64)
+    valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
+    v, u = np.nonzero((index >= 0) & valid)
+    i = index[v, u]
+    qw = vertex[v, u].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+    nw = normal[v, u].astype(np.float64) @ pose[:3, :3].T
+    ok = (np.linalg.norm(qw - data["position"][i], axis=-1) <= DIST) & \
+         ((nw * data["normal"][i]).sum(-1) >= math.cos(math.radians(ANGLE)))
+    assoc[v[ok], u[ok]] = i[ok]
+    return assoc
+
+
+def ref_alpha(u, v, confidence):
+    if not confidence:
+        return np.ones(np.shape(u))
+    gamma2 = ((u - K.cx) ** 2 + (v - K.cy) ** 2) / (K.cx ** 2 + K.cy ** 2)
+    return np.exp(-gamma2 / (2 * SIGMA ** 2))
+
+
+def ref_radius(z, nz):
+    return math.sqrt(2.0) * z / (K.fx * np.maximum(np.abs(nz), F.MIN_COS_VIEW))
+
+
+def ref_merge(data, assoc, vertex, normal, colour, pose, frame, confidence):
+    out = {k: a.astype(np.float64) if a.dtype.kind == "f" else a.copy() for k, a in data.items()}
+    v, u = np.nonzero(assoc >= 0)
+    i = assoc[v, u]
+    q = vertex[v, u].astype(np.float64)
+    nq = normal[v, u].astype(np.float64)
+    a = ref_alpha(u, v, confidence)[:, None]
+    w = out["weight"][i][:, None]
+    out["position"][i] = (w * out["position"][i] + a * (q @ pose[:3, :3].T + pose[:3, 3])) / (w + a)
+    n = w * out["normal"][i] + a * (nq @ pose[:3, :3].T)
+    out["normal"][i] = n / np.linalg.norm(n, axis=-1, keepdims=True)
+    out["colour"][i] = (w * out["colour"][i] + a * colour[v, u]) / (w + a)
+    out["weight"][i] = (w + a)[:, 0]
+    out["radius"][i] = np.minimum(out["radius"][i], ref_radius(q[:, 2], nq[:, 2]))
+    out["t_updated"][i] = frame
+    return out
+
+
+def ref_new_surfels(assoc, vertex, normal, colour, pose, frame, confidence):
+    valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
+    v, u = np.nonzero(valid & (assoc < 0))  # row-major order
+    q = vertex[v, u].astype(np.float64)
+    nq = normal[v, u].astype(np.float64)
+    return {
+        "position": q @ pose[:3, :3].T + pose[:3, 3],
+        "normal": nq @ pose[:3, :3].T,
+        "colour": colour[v, u].astype(np.float64),
+        "weight": ref_alpha(u, v, confidence),
+        "radius": ref_radius(q[:, 2], nq[:, 2]),
+        "t_created": np.full(len(v), frame),
+        "t_updated": np.full(len(v), frame),
+    }
+
+
+def sorted_rows(data):
+    """Surfels as rows of one float64 matrix, sorted lexicographically: compare sets, not orders."""
+    rows = np.column_stack([np.asarray(data[k], np.float64).reshape(len(data["position"]), -1)
+                            for k in F.ATTRIBUTES])
+    return rows[np.lexsort(rows.T[::-1])]
+
+
+# -- helpers ---------------------------------------------------------------------------------------------
+
+
+def frame_fields(vertex, normal, depth):
+    fv = ti.Vector.field(3, ti.f32, shape=(H, W))
+    fn = ti.Vector.field(3, ti.f32, shape=(H, W))
+    fd = ti.field(ti.f32, shape=(H, W))
+    fv.from_numpy(vertex)
+    fn.from_numpy(normal)
+    fd.from_numpy(depth)
+    return fv, fn, fd
+
+
+def setup(rng, capacity=4096):
+    pose = random_pose(rng)
+    vertex, normal, depth, colour = random_frame(rng)
+    data = random_map(rng, vertex, normal, pose)
+    smap = F.SurfelMap(capacity)
+    smap.from_numpy(data)
+    return pose, vertex, normal, depth, colour, data, smap
+
+
+def assert_close(got, want, atol, rtol=1e-5):
+    np.testing.assert_allclose(np.asarray(got, np.float64), np.asarray(want, np.float64), atol=atol, rtol=rtol)
+
+
+# -- kernels against the references --------------------------------------------------------------------
+
+
+def test_index_map_and_pass1(arch, rng):
+    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    img = smap.project(pose, K, H, W)
+    pix, z = ref_project(data["position"].astype(np.float64), pose)
+    np.testing.assert_array_equal(smap.pass1_mask(), pix >= 0)
+    assert (pix < 0).sum() >= 40 and (pix >= 0).sum() > 500  # both sides of pass 1 exercised
+    want = ref_index_map(pix, z)
+    got = img.index.to_numpy()
+    got[got == F.INT_MAX] = -1
+    np.testing.assert_array_equal(got, want)
+    # the test drew exact duplicates: they tie, and the smaller index won
+    _, counts = np.unique(pix[pix >= 0], return_counts=True)
+    assert counts.max() >= 2
+
+
+def test_filter_pass2(arch, rng):
+    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    fv, fn, _ = frame_fields(vertex, normal, depth)
+    img = smap.project(pose, K, H, W)
+    smap.associate(img, fv, fn, pose, DIST, ANGLE)
+    pix, z = ref_project(data["position"].astype(np.float64), pose)
+    index = ref_index_map(pix, z)
+    want = ref_associate(index, data, vertex, normal, pose)
+    np.testing.assert_array_equal(img.index.to_numpy(), index)
+    np.testing.assert_array_equal(img.assoc.to_numpy(), want)
+    # both outcomes of pass 2 occur, for in-image surfels on valid pixels
+    valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
+    assert (want >= 0).sum() > 50 and ((index >= 0) & valid & (want < 0)).sum() > 50
+
+
+@pytest.mark.parametrize("confidence", [False, True])
+def test_merge_and_add(arch, rng, confidence):
+    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    fv, fn, _ = frame_fields(vertex, normal, depth)
+    img = smap.project(pose, K, H, W)
+    smap.associate(img, fv, fn, pose, DIST, ANGLE)
+    img.colour.from_numpy(pack_colour(colour))
+    frame = 12
+    smap.merge(img, fv, fn, pose, K, frame, confidence, SIGMA, True)
+    n0 = smap.count
+    added, merged = smap.add(img, fv, fn, pose, K, frame, confidence, SIGMA, True)
+
+    pix, z = ref_project(data["position"].astype(np.float64), pose)
+    assoc = ref_associate(ref_index_map(pix, z), data, vertex, normal, pose)
+    want = ref_merge(data, assoc, vertex, normal, colour, pose, frame, confidence)
+    new = ref_new_surfels(assoc, vertex, normal, colour, pose, frame, confidence)
+    got = smap.to_numpy()
+    assert merged == (assoc >= 0).sum() and added == len(new["position"]) and smap.count == n0 + added
+    tolerances = {"position": 2e-5, "normal": 2e-5, "colour": 1e-3, "weight": 1e-5, "radius": 1e-7}
+    for name in F.ATTRIBUTES:  # merge: in place, same order
+        if name in tolerances:
+            assert_close(got[name][:n0], want[name], tolerances[name])
+        else:
+            np.testing.assert_array_equal(got[name][:n0], want[name])
+    # add: the same set of new surfels (and, by construction, in row-major pixel order)
+    got_new = {k: a[n0:] for k, a in got.items()}
+    assert_close(sorted_rows(got_new), sorted_rows(new), 2e-5)
+    assert_close(got_new["position"], new["position"], 2e-5)
+
+
+@pytest.mark.parametrize("free_space", [False, True])
+def test_remove(arch, rng, free_space):
+    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    fv, fn, fd = frame_fields(vertex, normal, depth)
+    frame, w_min, age, margin = 30, 3.0, 20, 0.05
+    n = len(data["position"])
+    data["t_updated"] = rng.choice([frame, frame - 5, frame - age + 1, frame - age, frame - 40], n).astype(np.int32)
+    smap.from_numpy(data)
+    smap.project(pose, K, H, W)
+    removed = smap.remove(frame, True, w_min, age, free_space, margin, fd)
+
+    pix, z = ref_project(data["position"].astype(np.float64), pose)
+    drop = (data["weight"] < w_min) & (frame - data["t_updated"] >= age)
+    if free_space:
+        d = np.where(pix >= 0, depth.reshape(-1)[np.maximum(pix, 0)], 0.0)
+        seen_through = (pix >= 0) & (d > 0) & (d > z + margin) & (data["t_updated"] != frame)
+        assert seen_through.sum() > 20 and (seen_through & ~drop).sum() > 10
+        drop |= seen_through
+    assert 20 < drop.sum() < n - 20
+    assert removed == drop.sum() and smap.count == n - drop.sum()
+    got = smap.to_numpy()
+    kept = {k: a[~drop] for k, a in data.items()}
+    np.testing.assert_array_equal(sorted_rows(got), sorted_rows(kept))
+    # survivors below the new count never move: only the tail fills the holes
+    m = smap.count
+    stay = ~drop[:m]
+    np.testing.assert_array_equal(got["position"][:m][stay], data["position"][:m][stay])
+
+
+def ref_render(data, pose, half, min_weight=0.0):
+    """Point z-buffer of the front-facing, confident surfels, then per pixel the nearest disc hit among
+    the neighbourhood's front surfels (the kernel's screen-space splatting), in float64."""
+    inv = np.linalg.inv(pose)
+    pc = data["position"].astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]
+    nc = data["normal"].astype(np.float64) @ inv[:3, :3].T
+    pix, z = ref_project(data["position"].astype(np.float64), pose)
+    pix[((nc * pc).sum(-1) >= 0) | (data["weight"] < min_weight)] = -1
+    index = ref_index_map(pix, z)
+    v, u = np.mgrid[0:H, 0:W]
+    d = rays(u.astype(float), v.astype(float))
+    best_z = np.full((H, W), np.inf)
+    best_i = np.full((H, W), -1)
+    for dv in range(-half, half + 1):
+        for du in range(-half, half + 1):
+            y, x = v + dv, u + du
+            inside = (y >= 0) & (y < H) & (x >= 0) & (x < W)
+            j = np.where(inside, index[np.clip(y, 0, H - 1), np.clip(x, 0, W - 1)], -1)
+            has = j >= 0
+            jj = np.maximum(j, 0)
+            p, n, r = pc[jj], nc[jj], data["radius"][jj].astype(np.float64)
+            denom = (n * d).sum(-1)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                zz = (n * p).sum(-1) / denom
+                hit = (np.abs(denom) > 1e-6) & (zz > 0) & (np.linalg.norm(zz[..., None] * d - p, axis=-1) <= r)
+            zc = np.where(hit, zz, p[..., 2] if (du == 0 and dv == 0) else np.inf)
+            zc = np.where(has, zc, np.inf)
+            better = (zc < best_z) | ((zc == best_z) & (j < best_i) & has)
+            best_z = np.where(better, zc, best_z)
+            best_i = np.where(better, j, best_i)
+    best_z[best_i < 0] = 0.0
+    return best_i, best_z, nc
+
+
+def test_render_matches_reference(arch, rng):
+    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    data["radius"] = rng.uniform(0.0, 0.08, len(data["radius"])).astype(np.float32)
+    smap.from_numpy(data)
+    out_v = ti.Vector.field(3, ti.f32, shape=(H, W))
+    out_n = ti.Vector.field(3, ti.f32, shape=(H, W))
+    out_d = ti.field(ti.f32, shape=(H, W))
+    for half in (0, 2):
+        img = smap.render(pose, K, out_v, out_n, out_d, min_weight=1.0, max_half=half)
+        want_i, want_z, nc = ref_render(data, pose, half, min_weight=1.0)
+        got_i = img.view_index.to_numpy()
+        got_i[got_i == F.INT_MAX] = -1
+        same = got_i == want_i
+        assert same.mean() > 0.995, f"half={half}: {same.mean():.4f} of pixels agree"
+        assert (want_i >= 0).sum() > 300
+        got_z = out_d.to_numpy()
+        assert_close(got_z[same], want_z[same], 1e-4)
+        ok = same & (want_i >= 0)
+        v, u = np.nonzero(ok)
+        assert_close(out_v.to_numpy()[ok], rays(u.astype(float), v.astype(float)) * want_z[ok][:, None], 1e-4)
+        assert_close(out_n.to_numpy()[ok], nc[want_i[ok]], 1e-5)
+        assert np.all(out_d.to_numpy()[want_i < 0][same[want_i < 0]] == 0)
+    # the footprint makes discs cover more pixels than their points
+    assert (want_i >= 0).sum() > (ref_render(data, pose, 0, 1.0)[0] >= 0).sum()
+
+
+def test_render_image_colours(arch, rng):
+    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    rgb = smap.render_image(pose, K, by_normal=False, max_half=1)
+    nrm = smap.render_image(pose, K, by_normal=True, max_half=1)
+    img = smap.scratch(H, W)
+    idx = img.view_index.to_numpy()
+    hit = idx != F.INT_MAX
+    assert rgb.shape == (H, W, 3) and rgb.dtype == np.uint8 and hit.sum() > 300
+    np.testing.assert_allclose(rgb[hit], np.rint(data["colour"][idx[hit]]), atol=1)
+    np.testing.assert_allclose(nrm[hit], np.rint((data["normal"][idx[hit]] + 1) / 2 * 255), atol=1)
+    assert np.all(rgb[~hit] == round(0.12 * 255))
+
+
+# -- the pipeline (cpu) ----------------------------------------------------------------------------------
+
+
+def plane_frame(tilt=0.002):
+    """A slanted plane seen by K: depth 2 m + tilt per column."""
+    _, u = np.mgrid[0:H, 0:W]
+    depth = (2.0 + tilt * u).astype(np.float32)
+    depth[:5, :7] = 0.0  # a hole
+    maps = FrameMaps(H, W, levels=1)
+    maps.compute(depth, K)
+    return maps, depth
+
+
+@pytest.mark.parametrize("confidence", [False, True])
+def test_same_frame_twice_adds_nothing(cpu, rng, confidence):
+    maps, _ = plane_frame()
+    colour = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    pose = random_pose(rng)
+    mapper = SurfelMapper(FusionConfig(capacity=10_000, confidence_weighting=confidence))
+    first = mapper.integrate(maps, colour, pose, 0)
+    before = mapper.to_numpy()
+    second = mapper.integrate(maps, colour, pose, 1)
+    after = mapper.to_numpy()
+    assert first.added > 0.8 * H * W and first.merged == 0
+    assert second.added == 0 and second.merged == first.added and second.surfels == first.surfels
+    assert_close(after["position"], before["position"], 1e-5)
+    assert_close(after["normal"], before["normal"], 1e-5)
+    assert_close(after["colour"], before["colour"], 1e-3)
+    assert_close(after["weight"], 2 * before["weight"], 1e-6)  # +1 each, or +α for α the first weight
+    if not confidence:
+        assert np.all(after["weight"] == 2.0)
+    assert np.all(after["t_updated"] == 1) and np.all(after["t_created"] == 0)
+
+
+def test_capacity_grows(cpu, rng):
+    maps, _ = plane_frame()
+    mapper = SurfelMapper(FusionConfig(capacity=100, grow=True, remove_unstable=False))
+    mapper.integrate(maps, None, np.eye(4), 0)
+    first = mapper.to_numpy()
+    assert mapper.map.capacity >= first["position"].shape[0] > 100
+    moved = np.eye(4)
+    moved[:3, 3] = [0.0, 0.0, 1.0]  # the same plane 1 m further: all new surfels
+    stats = mapper.integrate(maps, None, moved, 1)
+    assert stats.added == len(first["position"]) and mapper.map.capacity >= mapper.count
+    got = mapper.to_numpy()
+    np.testing.assert_array_equal(got["position"][: len(first["position"])], first["position"])  # copied over
+    assert_close(got["position"][len(first["position"]):], first["position"] + [0, 0, 1], 1e-5)
+
+
+def test_capacity_error_names_the_setting(cpu):
+    maps, _ = plane_frame()
+    mapper = SurfelMapper(FusionConfig(capacity=1000, grow=False))
+    with pytest.raises(MapCapacityError, match=r"fusion\.capacity") as info:
+        mapper.integrate(maps, None, np.eye(4), 0)
+    assert "\n" not in str(info.value)
+    assert mapper.count == 0 and mapper.map.capacity == 1000  # nothing half-written
+
+
+def test_remove_unstable_in_pipeline(cpu):
+    maps, _ = plane_frame()
+    cfg = FusionConfig(capacity=20_000, confidence_weighting=False, unstable_weight=1.5, unstable_age=3)
+    mapper = SurfelMapper(cfg)
+    mapper.integrate(maps, None, np.eye(4), 0)
+    away = np.eye(4)
+    away[:3, 3] = [0.0, 0.0, 50.0]  # the camera looks elsewhere: no merges, new surfels far away
+    n_first = mapper.count
+    for frame in (1, 2):
+        assert mapper.integrate(maps, None, away, frame).removed == 0
+    stats = mapper.integrate(maps, None, away, 3)  # the first frame's surfels are now 3 frames old
+    assert stats.removed == n_first
+    assert np.all(mapper.to_numpy()["t_created"] >= 1)
+
+
+def test_ply_round_trip(tmp_path, rng):
+    n = 1000
+    p = rng.normal(size=(n, 3)).astype(np.float32)
+    nrm = rng.normal(size=(n, 3)).astype(np.float32)
+    c = rng.uniform(0, 255, (n, 3))
+    path = write_ply(tmp_path / "x.ply", p, nrm, c)
+    header = path.read_bytes().split(b"end_header\n")[0].decode()
+    assert header.startswith("ply\nformat binary_little_endian 1.0\n") and f"element vertex {n}" in header
+    props = [line.split()[-1] for line in header.splitlines() if line.startswith("property")]
+    assert props == ["x", "y", "z", "nx", "ny", "nz", "red", "green", "blue"]
+    assert "property uchar red" in header and "property float nx" in header
+    data = read_ply(path)
+    np.testing.assert_array_equal(np.stack([data["x"], data["y"], data["z"]], 1), p)
+    np.testing.assert_array_equal(np.stack([data["nx"], data["ny"], data["nz"]], 1), nrm)
+    np.testing.assert_array_equal(np.stack([data["red"], data["green"], data["blue"]], 1), np.rint(c))
+    assert path.stat().st_size == len(header) + len("end_header\n") + n * (6 * 4 + 3)
+
+
+# -- end to end on the synthetic sequence (cpu) -------------------------------------------------------------
+
+
+def fuse_synthetic(noise, frames, stride=3):
+    synthetic = pytest.importorskip("ti_fusion.synthetic")
+    from ti_fusion.config import SynthConfig
+
+    seq = synthetic.SyntheticSequence(SynthConfig(frames=frames * stride, width=160, height=120, fx=131.25,
+                                                  noise=noise, seed=3))
+    Ks = seq.intrinsics
+    maps = FrameMaps(Ks.height, Ks.width, levels=1)
+    mapper = SurfelMapper(FusionConfig(capacity=200_000))
+    single = None
+    for k, i in enumerate(range(0, frames * stride, stride)):
+        depth, colour = seq.frame(i)
+        maps.compute(depth, Ks)
+        mapper.integrate(maps, colour, seq.poses[i], k)
+        if single is None:
+            v = maps.vertex[0].to_numpy()
+            valid = (v[..., 2] > 0) & (np.abs(maps.normal[0].to_numpy()).sum(-1) > 0)
+            single = v[valid].astype(np.float64) @ seq.poses[i][:3, :3].T + seq.poses[i][:3, 3]
+    return seq, mapper, single
+
+
+def test_noise_free_fusion_lies_on_the_surfaces(cpu):
+    seq, mapper, _ = fuse_synthetic(noise=False, frames=12)
+    p = mapper.to_numpy()["position"].astype(np.float64)
+    dist = seq.surface_distance(p)
+    assert len(p) > 10_000
+    assert np.percentile(dist, 99) < 0.003 and dist.max() < 0.01, (np.percentile(dist, 99), dist.max())
+
+
+def test_fusion_reduces_noise(cpu):
+    seq, mapper, single = fuse_synthetic(noise=True, frames=12)
+    data = mapper.to_numpy()
+    stable = data["weight"] >= 3.0  # surfels that averaged several measurements
+    fused = seq.surface_distance(data["position"][stable].astype(np.float64))
+    raw = seq.surface_distance(single)
+    rms = lambda d: float(np.sqrt(np.mean(d**2)))  # noqa: E731
+    assert stable.sum() > 5_000
+    assert rms(fused) < 0.8 * rms(raw), (rms(fused), rms(raw))

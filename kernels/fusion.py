@@ -175,26 +175,28 @@ def project_surfels(s: ti.template(), n: ti.i32, img: ti.template(), R: Mat3, t:
     """Filter pass 1 (proj_pixel ≥ 0: inside the image, z > 0) and the nearest depth per pixel.
 
     (R, t) maps world to camera. Pixel u = ⌊fx x/z + cx + ½⌋ (round to nearest): a frame vertex at pixel
-    u projects back to u. For rendering, surfels below ``min_weight`` or facing away are left out too.
+    u projects back to u. For rendering, surfels below ``min_weight`` or facing away are left out too
+    (their weight and normal are read only for surfels inside the image: this pass is memory-bound).
     """
     H, W = img.index.shape
     for i in range(n):
         pc = R @ s.position[i] + t
         pix = -1
-        keep = pc.z > 0
-        if ti.static(render):
-            keep = keep and s.weight[i] >= min_weight and (R @ s.normal[i]).dot(pc) < 0
-        if keep:
-            uf = fx * pc.x / pc.z + cx + 0.5
-            vf = fy * pc.y / pc.z + cy + 0.5
-            if 0.0 <= uf < W and 0.0 <= vf < H:  # compared as floats: no overflow in the cast below
-                u = ti.cast(ti.floor(uf), ti.i32)
-                v = ti.cast(ti.floor(vf), ti.i32)
-                if u < W and v < H:
+        if pc.z > 0:
+            inv_z = 1.0 / pc.z
+            uf = fx * pc.x * inv_z + cx + 0.5
+            vf = fy * pc.y * inv_z + cy + 0.5
+            if 0.0 <= uf < W and 0.0 <= vf < H:  # compared as floats: no overflow in the casts below
+                keep = True
+                if ti.static(render):
+                    keep = s.weight[i] >= min_weight and (R @ s.normal[i]).dot(pc) < 0
+                if keep:
+                    u = ti.min(ti.cast(uf, ti.i32), W - 1)  # uf ≥ 0: truncation is the floor
+                    v = ti.min(ti.cast(vf, ti.i32), H - 1)
                     pix = v * W + u
                     key = depth_bits(pc.z)
                     s.proj_depth[i] = key
-                    if key < img.depth_key[v, u]:  # plain read first: most lose, skip their atomic
+                    if key < img.depth_key[v, u]:  # plain read first: most lose, and skip the atomic
                         ti.atomic_min(img.depth_key[v, u], key)
         s.proj_pixel[i] = pix
 
@@ -226,7 +228,7 @@ def associate(s: ti.template(), img: ti.template(), vertex: ti.template(), norma
     for v, u in img.index:
         i = img.index[v, u]
         a = -1
-        if i == INT_MAX:
+        if i == INT_MAX or i < 0:  # < 0: already converted by an earlier call
             img.index[v, u] = -1
         else:
             q = vertex[v, u]

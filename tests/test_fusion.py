@@ -512,6 +512,8 @@ def test_ply_round_trip(tmp_path, rng):
 
 
 def fuse_synthetic(noise, frames, stride=3):
+    """Fuse every stride-th frame at its true pose; also return the first frame's world points (H×W×3,
+    NaN where invalid) and its pose, to compare a single frame with the fused map at the same places."""
     synthetic = pytest.importorskip("ti_fusion.synthetic")
     from ti_fusion.config import SynthConfig
 
@@ -520,16 +522,17 @@ def fuse_synthetic(noise, frames, stride=3):
     Ks = seq.intrinsics
     maps = FrameMaps(Ks.height, Ks.width, levels=1)
     mapper = SurfelMapper(FusionConfig(capacity=200_000))
-    single = None
+    first = None
     for k, i in enumerate(range(0, frames * stride, stride)):
         depth, colour = seq.frame(i)
         maps.compute(depth, Ks)
         mapper.integrate(maps, colour, seq.poses[i], k)
-        if single is None:
-            v = maps.vertex[0].to_numpy()
-            valid = (v[..., 2] > 0) & (np.abs(maps.normal[0].to_numpy()).sum(-1) > 0)
-            single = v[valid].astype(np.float64) @ seq.poses[i][:3, :3].T + seq.poses[i][:3, 3]
-    return seq, mapper, single
+        if first is None:
+            v = maps.vertex[0].to_numpy().astype(np.float64)
+            world = v @ seq.poses[i][:3, :3].T + seq.poses[i][:3, 3]
+            world[v[..., 2] <= 0] = np.nan
+            first = world
+    return seq, mapper, first
 
 
 def test_noise_free_fusion_lies_on_the_surfaces(cpu):
@@ -537,15 +540,62 @@ def test_noise_free_fusion_lies_on_the_surfaces(cpu):
     p = mapper.to_numpy()["position"].astype(np.float64)
     dist = seq.surface_distance(p)
     assert len(p) > 10_000
-    assert np.percentile(dist, 99) < 0.003 and dist.max() < 0.01, (np.percentile(dist, 99), dist.max())
+    # measured: 99th percentile 0.1 mm, max 3.4 mm (averaging across a curved surface's samples)
+    assert np.percentile(dist, 99) < 0.002 and dist.max() < 0.006, (np.percentile(dist, 99), dist.max())
 
 
 def test_fusion_reduces_noise(cpu):
-    seq, mapper, single = fuse_synthetic(noise=True, frames=12)
+    """Surfels that averaged several measurements are closer to the truth than the first frame's raw
+    points at the same places (each surfel paired with the raw point of the pixel it projects to)."""
+    seq, mapper, first = fuse_synthetic(noise=True, frames=12)
     data = mapper.to_numpy()
-    stable = data["weight"] >= 3.0  # surfels that averaged several measurements
-    fused = seq.surface_distance(data["position"][stable].astype(np.float64))
-    raw = seq.surface_distance(single)
+    fused = data["position"][data["weight"] >= 3.0].astype(np.float64)
+    pose0 = seq.poses[0]
+    inv = np.linalg.inv(pose0)
+    pc = fused @ inv[:3, :3].T + inv[:3, 3]
+    Ks = seq.intrinsics
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = np.floor(Ks.fx * pc[:, 0] / pc[:, 2] + Ks.cx + 0.5)
+        v = np.floor(Ks.fy * pc[:, 1] / pc[:, 2] + Ks.cy + 0.5)
+    ok = (pc[:, 2] > 0) & (u >= 0) & (u < Ks.width) & (v >= 0) & (v < Ks.height)
+    raw = first[v[ok].astype(int), u[ok].astype(int)]
+    pair = ~np.isnan(raw[:, 0])
     rms = lambda d: float(np.sqrt(np.mean(d**2)))  # noqa: E731
-    assert stable.sum() > 5_000
-    assert rms(fused) < 0.8 * rms(raw), (rms(fused), rms(raw))
+    fused_err = rms(seq.surface_distance(fused[ok][pair]))
+    raw_err = rms(seq.surface_distance(raw[pair]))
+    assert pair.sum() > 2_000
+    assert fused_err < 0.7 * raw_err, (fused_err, raw_err)  # measured: 2.5 mm against 4.7 mm
+
+
+# -- the command (last: the CLI restarts Taichi) ---------------------------------------------------------------
+
+
+def _run_fuse(tmp_path, *args):
+    import json
+
+    from ti_fusion.cli import main
+
+    assert main(["fuse", *args, "--out", str(tmp_path), "--quiet"]) == 0
+    summary = json.loads((tmp_path / "summary.json").read_text())
+    assert 0 < summary["surfels"] <= summary["naive_points"]
+    assert summary["compression_ratio"] == pytest.approx(summary["surfels"] / summary["naive_points"])
+    assert set(summary["ms_per_stage"]) >= {"project", "filter", "merge", "add", "remove"}
+    assert len(read_ply(tmp_path / "map.ply")) == summary["surfels"]
+    import cv2
+
+    for name in ("map_color.png", "map_normals.png"):
+        image = cv2.imread(str(tmp_path / name))
+        assert image is not None and image.shape == (480, 640, 3)
+        assert (image.reshape(-1, 3) != image[0, 0]).any(axis=1).mean() > 0.1  # the map shows, not just background
+    return summary
+
+
+def test_fuse_command_on_the_synthetic_default(cpu, tmp_path):
+    pytest.importorskip("ti_fusion.datasets.synthetic")
+    summary = _run_fuse(tmp_path, "--frames", "4", "--downsample", "4")
+    assert summary["frames"] == 4 and summary["naive_points"] > 4 * 160 * 120 * 0.5
+
+
+def test_fuse_command_on_redkitchen(cpu, tmp_path, redkitchen):
+    summary = _run_fuse(tmp_path, str(redkitchen), "--frames", "3", "--stride", "5", "--downsample", "4")
+    assert summary["frames"] == 3 and summary["compression_ratio"] < 0.8

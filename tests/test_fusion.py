@@ -451,6 +451,23 @@ def test_same_frame_twice_adds_nothing(cpu, rng, confidence):
     assert np.all(after["t_updated"] == 1) and np.all(after["t_created"] == 0)
 
 
+def test_render_maps_reproduces_the_fused_frame(cpu, rng):
+    """Rendering the map of one frame at that frame's pose gives back its depth, vertices and normals."""
+    maps, depth = plane_frame()
+    pose = random_pose(rng)
+    mapper = SurfelMapper(FusionConfig(capacity=10_000))
+    mapper.integrate(maps, None, pose, 0)
+    predicted = FrameMaps(H, W, levels=2)
+    mapper.render_maps(predicted, pose, K)
+    got = predicted.depth[0].to_numpy()
+    fused = np.abs(maps.normal[0].to_numpy()).sum(-1) > 0  # the pixels that became surfels
+    assert np.all(got[fused] > 0) and (got > 0).sum() >= fused.sum()
+    assert_close(got[fused], depth[fused], 1e-5)
+    assert_close(predicted.vertex[0].to_numpy()[fused], maps.vertex[0].to_numpy()[fused], 1e-5)
+    assert_close(predicted.normal[0].to_numpy()[fused], maps.normal[0].to_numpy()[fused], 1e-5)
+    assert (predicted.depth[1].to_numpy() > 0).mean() > 0.9  # the pyramid was built from the rendering
+
+
 def test_capacity_grows(cpu, rng):
     maps, _ = plane_frame()
     mapper = SurfelMapper(FusionConfig(capacity=100, grow=True, remove_unstable=False))

@@ -96,13 +96,15 @@ class SurfelMapper:
         self.map.render(pose, intrinsics, out_vertex, out_normal, out_depth, self.config.render_min_weight,
                         self.config.render_max_half)
 
-    def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics) -> None:
-        """Fill a ``FrameMaps`` with the prediction: every pyramid level from the rendered depth, and level
-        0's vertex and normal maps straight from the surfels (smoother than normals from depth)."""
+    def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics, max_depth_jump: float = 0.05,
+                    pyramid_max_diff: float = 0.09) -> None:
+        """Fill a ``FrameMaps`` with the prediction: every pyramid level from the rendered depth (the last two
+        arguments as in ``FrameMaps.compute``), and level 0's vertex and normal maps straight from the
+        surfels (averaged normals, smoother than normals from depth differences)."""
         img = self.map.render(pose, intrinsics, min_weight=self.config.render_min_weight,
                               max_half=self.config.render_max_half)
         frame_maps.depth[0].copy_from(img.depth)
-        frame_maps.compute_from_field(intrinsics)
+        frame_maps.compute_from_field(intrinsics, max_depth_jump, pyramid_max_diff)
         frame_maps.vertex[0].copy_from(img.vertex)
         frame_maps.normal[0].copy_from(img.normal)
 

@@ -100,6 +100,18 @@ def orthonormalize(R: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
+def renormalize(T: np.ndarray) -> np.ndarray:
+    """``T`` with its rotation projected back onto SO(3).
+
+    Chains of compositions and transpose-inverses let round-off grow geometrically (an inverse by
+    transposition of a slightly non-orthonormal R doubles its error); poses kept across frames are
+    renormalised after every composition.
+    """
+    out = np.array(T, dtype=np.float64)
+    out[:3, :3] = orthonormalize(out[:3, :3])
+    return out
+
+
 def rigidity_error(T: np.ndarray) -> str | None:
     """Why ``T`` is not a rigid 4×4 transform (None when it is, to a tolerance that accepts real data)."""
     T = np.asarray(T, dtype=np.float64)

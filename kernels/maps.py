@@ -1,9 +1,22 @@
 """Per-frame maps on the Taichi side: depth pyramid, vertex maps and normal maps.
 
-Level 0 is the input resolution; level l is subsampled by 2**l. The coarse depth at (u', v') is the
-average of the 3×3 fine neighbourhood centred on (2u', 2v') over the pixels within a range of the
-centre depth, so the average never mixes the two sides of a depth edge, and pixel u' stays exactly at
-fine pixel 2u' (intrinsics of level l are ``Intrinsics.downsampled(2**l)``).
+Level 0 is the input resolution (optionally smoothed, see below); level l is subsampled by 2**l. The
+coarse depth at (u', v') is the average of the 3×3 fine neighbourhood centred on (2u', 2v') over the
+pixels within a range of the centre depth, so the average never mixes the two sides of a depth edge, and
+pixel u' stays exactly at fine pixel 2u' (intrinsics of level l are ``Intrinsics.downsampled(2**l)``).
+On the image border the window is the symmetric part that fits (a one-sided window would bend slanted
+surfaces there, and that bend, fixed to the image, would hold ICP back from sliding along a plane).
+
+Smoothing (``smooth_radius`` > 0, the role of KinectFusion's bilateral filter): the level-0 depth is
+replaced by the mean of the (2r+1)×(2r+1) neighbours within the same range of the centre depth, computed
+separably (a row pass, then a column pass, each range-checked against its own centre). Normals from
+central differences of raw Kinect-like depth are noisy enough at full resolution that most of them fail
+ICP's normal-angle test; r = 2 cuts the normal noise several-fold at ~3 ms per 640×480 frame.
+
+Speed (2-core CPU): these kernels are scalar, the loop over pixels is not vectorised by Taichi's CPU
+backend (the field's root pointer is reloaded in every iteration, which stops LLVM's loop vectoriser);
+what helps is short dependency chains (one accumulator per window row, branch-free taps) and fewer
+divisions. The timing of each kernel is in docs/ICP.md.
 """
 
 
@@ -17,30 +30,69 @@ from ti_fusion.camera import Intrinsics
 def pyramid_down(fine: ti.template(), coarse: ti.template(), max_diff: ti.f32):
     H, W = fine.shape
     for v, u in coarse:
-        c = fine[2 * v, 2 * u]
-        total = 0.0
-        count = 0
+        y0 = 2 * v
+        x0 = 2 * u
+        c = fine[y0, x0]
+        out = 0.0
         if c > 0:
+            # On the image border the window shrinks to the symmetric part that fits (only the centre row
+            # or column), so that a slanted surface is not bent towards the edge.
+            ry = ti.min(1, ti.min(y0, H - 1 - y0))
+            rx = ti.min(1, ti.min(x0, W - 1 - x0))
+            # one (sum, count) pair per window row: three short add chains instead of one long one
+            total = ti.Vector([0.0, 0.0, 0.0])
+            count = ti.Vector([0.0, 0.0, 0.0])
             for dv, du in ti.static(ti.ndrange((-1, 2), (-1, 2))):
-                y = 2 * v + dv
-                x = 2 * u + du
-                if 0 <= y < H and 0 <= x < W:
-                    d = fine[y, x]
-                    if d > 0 and ti.abs(d - c) < max_diff:
-                        total += d
-                        count += 1
-        coarse[v, u] = total / count if count > 0 else 0.0
+                d = fine[y0 + dv * ry, x0 + du * rx]  # outside the window: re-reads a row/column inside
+                ok = (ti.abs(dv) <= ry) & (ti.abs(du) <= rx) & (d > 0) & (ti.abs(d - c) < max_diff)
+                total[dv + 1] += ti.select(ok, d, 0.0)
+                count[dv + 1] += ti.select(ok, 1.0, 0.0)
+            out = total.sum() / count.sum()  # the centre always counts
+        coarse[v, u] = out
+
+
+@ti.kernel
+def smooth_pass(src: ti.template(), dst: ti.template(), radius: ti.template(), along_rows: ti.template(),
+                max_diff: ti.f32):
+    """One separable pass of the range-checked mean: dst = mean of the 2r+1 neighbours along a row (or a
+    column) that are valid and within ``max_diff`` of the centre; invalid stays invalid."""
+    H, W = src.shape
+    for v, u in src:
+        c = src[v, u]
+        out = 0.0
+        if c > 0:
+            total = 0.0
+            count = 0.0
+            i = u if ti.static(along_rows) else v  # position along the pass
+            n = W if ti.static(along_rows) else H
+            if radius <= i < n - radius:  # interior: branch-free taps
+                for k in ti.static(range(-radius, radius + 1)):
+                    d = src[v, u + k] if ti.static(along_rows) else src[v + k, u]
+                    ok = (d > 0) & (ti.abs(d - c) < max_diff)
+                    total += ti.select(ok, d, 0.0)
+                    count += ti.select(ok, 1.0, 0.0)
+            else:  # near the border: a symmetric window of the radius that fits (a one-sided window
+                # would bend a slanted surface towards the image edge)
+                fit = ti.min(i, n - 1 - i)
+                for k in ti.static(range(-radius, radius + 1)):
+                    if ti.abs(k) <= fit:
+                        d = src[v, u + k] if ti.static(along_rows) else src[v + k, u]
+                        if d > 0 and ti.abs(d - c) < max_diff:
+                            total += d
+                            count += 1.0
+            out = total / count  # the centre always counts
+        dst[v, u] = out
 
 
 @ti.kernel
 def backproject(depth: ti.template(), vertex: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32):
-    """vertex[v, u] = ((u - cx) z / fx, (v - cy) z / fy, z); zero where depth is invalid (≤ 0)."""
+    """vertex[v, u] = ((u - cx) z / fx, (v - cy) z / fy, z); zero where depth is invalid (≤ 0 or NaN)."""
+    ifx = 1.0 / fx  # one division per launch, not two per pixel
+    ify = 1.0 / fy
     for v, u in depth:
         z = depth[v, u]
-        p = ti.Vector([0.0, 0.0, 0.0])
-        if z > 0:
-            p = ti.Vector([(u - cx) * z / fx, (v - cy) * z / fy, z])
-        vertex[v, u] = p
+        z = ti.select(z > 0, z, 0.0)  # branch-free: the zero vector falls out of z = 0
+        vertex[v, u] = ti.Vector([(u - cx) * ifx * z, (v - cy) * ify * z, z])
 
 
 @ti.kernel
@@ -55,20 +107,20 @@ def compute_normals(vertex: ti.template(), normal: ti.template(), max_depth_jump
         n = ti.Vector([0.0, 0.0, 0.0])
         if 0 < u < W - 1 and 0 < v < H - 1:
             c = vertex[v, u]
-            l = vertex[v, u - 1]
-            r = vertex[v, u + 1]
-            t = vertex[v - 1, u]
-            b = vertex[v + 1, u]
-            ok = c.z > 0 and l.z > 0 and r.z > 0 and t.z > 0 and b.z > 0
-            jump = ti.max(ti.max(ti.abs(l.z - c.z), ti.abs(r.z - c.z)), ti.max(ti.abs(t.z - c.z), ti.abs(b.z - c.z)))
-            if ok and jump <= max_depth_jump:
-                m = (r - l).cross(b - t)
-                length = m.norm()
-                if length > 0:
-                    m = m / length
-                    if m.dot(c) > 0:  # face the camera
-                        m = -m
-                    n = m
+            if c.z > 0:  # holes are common: skip the four neighbour reads
+                l = vertex[v, u - 1]
+                r = vertex[v, u + 1]
+                t = vertex[v - 1, u]
+                b = vertex[v + 1, u]
+                lo = ti.min(ti.min(l.z, r.z), ti.min(t.z, b.z))
+                hi = ti.max(ti.max(l.z, r.z), ti.max(t.z, b.z))
+                # all neighbours valid, and max |z_neighbour - z_centre| <= max_depth_jump
+                if lo > 0 and hi - c.z <= max_depth_jump and c.z - lo <= max_depth_jump:
+                    m = (r - l).cross(b - t)
+                    len2 = m.dot(m)
+                    if len2 > 0:
+                        s = ti.rsqrt(len2)
+                        n = m * ti.select(m.dot(c) > 0, -s, s)  # face the camera
         normal[v, u] = n
 
 
@@ -87,13 +139,26 @@ class FrameMaps:
         self.vertex = [ti.Vector.field(3, ti.f32, shape=s) for s in self.shapes]
         self.normal = [ti.Vector.field(3, ti.f32, shape=s) for s in self.shapes]
         self.intrinsics: list[Intrinsics] = []
+        self._raw = self._tmp = None  # input depth and the row-pass result, when smoothing
 
     def compute(self, depth: np.ndarray, intrinsics: Intrinsics, max_depth_jump: float = 0.05,
-                pyramid_max_diff: float = 0.09) -> None:
-        """Upload a float32 depth image (metres, 0 = invalid) and build every level's maps."""
+                pyramid_max_diff: float = 0.09, smooth_radius: int = 0) -> None:
+        """Upload a float32 depth image (metres, 0 = invalid) and build every level's maps.
+
+        ``smooth_radius`` r > 0 first replaces the depth by its range-checked (2r+1)² mean (see the module
+        docstring); ``depth[0]`` then holds the smoothed depth."""
         if depth.shape != self.shapes[0]:
             raise ValueError(f"depth of shape {depth.shape} given to FrameMaps of shape {self.shapes[0]}")
-        self.depth[0].from_numpy(np.ascontiguousarray(depth, dtype=np.float32))
+        depth = np.ascontiguousarray(depth, dtype=np.float32)
+        if smooth_radius > 0:
+            if self._raw is None:
+                self._raw = ti.field(ti.f32, shape=self.shapes[0])
+                self._tmp = ti.field(ti.f32, shape=self.shapes[0])
+            self._raw.from_numpy(depth)
+            smooth_pass(self._raw, self._tmp, int(smooth_radius), True, pyramid_max_diff)
+            smooth_pass(self._tmp, self.depth[0], int(smooth_radius), False, pyramid_max_diff)
+        else:
+            self.depth[0].from_numpy(depth)
         self.compute_from_field(intrinsics, max_depth_jump, pyramid_max_diff)
 
     def compute_from_field(self, intrinsics: Intrinsics, max_depth_jump: float = 0.05,

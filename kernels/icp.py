@@ -1,0 +1,325 @@
+"""Projective point-to-plane ICP on the Taichi side: association, linearisation and the 6×6 reduction.
+
+One ICP iteration at one pyramid level is one pass over the source pixels (``PointToPlane.reduce``):
+
+association (``_associate``, shared by every kernel here)
+    a source pixel is used when its vertex has z > 0 and its normal is non-zero. p′ = R p + t is
+    projected with the target intrinsics of the level and rounded to the nearest pixel,
+    u = ⌊fx x′/z′ + cx + ½⌋, v = ⌊fy y′/z′ + cy + ½⌋. The pair (p′, q = target vertex at (u, v)) is a
+    correspondence only if, in this order (the first failing test is the pixel's status code):
+        STATUS_SOURCE_INVALID  6  source vertex z ≤ 0 or source normal zero
+        STATUS_BEHIND          2  z′ ≤ 0 (behind the target camera, or on its centre plane)
+        STATUS_OUT_OF_IMAGE    1  not 0 ≤ u < W and 0 ≤ v < H
+        STATUS_TARGET_INVALID  3  target vertex z ≤ 0 or target normal zero
+        STATUS_TOO_FAR         4  not ‖p′ − q‖ < d_thr
+        STATUS_NORMAL_ANGLE    5  not angle(R n_p, n_q) < θ, tested as (R n_p)·n_q > cos θ
+        STATUS_OK              0  a correspondence (an inlier)
+
+linearisation (point to plane)
+    r = n_qᵀ (p′ − q). The update is applied on the left, T ← exp(δξ) T, with the twist
+    δξ = (ω, v) ROTATION FIRST (ti_fusion.geometry.se3_exp). To first order exp(δξ) p′ ≈ p′ + ω × p′ + v,
+    so r(δξ) ≈ r + n_qᵀ(ω × p′) + n_qᵀ v = r + (p′ × n_q)ᵀ ω + n_qᵀ v, hence the 1×6 Jacobian
+        A = [ (p′ × n_q)ᵀ , n_qᵀ ]          and b = r,
+    and the Gauss–Newton step solves (Σ w AᵀA) δξ = −Σ w Aᵀ b.
+
+reduction
+    per correspondence, with the robust weight w (1, Huber or Tukey on r), the kernel accumulates
+    SUMS = 30 numbers: the 21 upper-triangle entries of Σ w AᵀA (row-major: (0,0), (0,1), …, (0,5),
+    (1,1), …, (5,5)), the 6 entries of Σ w Aᵀ b, Σ r² (unweighted: the loss), the inlier count and, as a
+    30th number, the count of valid source pixels (for the inlier ratio). The pixels are split into
+    ``n_chunks`` contiguous runs; one parallel task per run accumulates in registers and writes its 30
+    partial sums to ``partials[chunk, :]``; a second small kernel adds the partials (Kahan-compensated,
+    which matters for the float32 path). No atomics.
+
+Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
+(vulkan, cuda), chosen when ``PointToPlane`` is built. Fields stay float32.
+"""
+
+
+import math
+import os
+
+import numpy as np
+import taichi as ti
+
+STATUS_OK = 0
+STATUS_OUT_OF_IMAGE = 1
+STATUS_BEHIND = 2
+STATUS_TARGET_INVALID = 3
+STATUS_TOO_FAR = 4
+STATUS_NORMAL_ANGLE = 5
+STATUS_SOURCE_INVALID = 6
+STATUS_NAMES = {
+    STATUS_OK: "ok",
+    STATUS_OUT_OF_IMAGE: "out of image",
+    STATUS_BEHIND: "behind the camera",
+    STATUS_TARGET_INVALID: "target invalid",
+    STATUS_TOO_FAR: "too far",
+    STATUS_NORMAL_ANGLE: "normal angle",
+    STATUS_SOURCE_INVALID: "source invalid",
+}
+
+N_SUMS = 30  # 21 AᵀA + 6 Aᵀb + Σr² + inliers + valid source pixels
+SUM_ATB = 21
+SUM_R2 = 27
+SUM_INLIERS = 28
+SUM_SOURCE = 29
+UPPER = [(i, j) for i in range(6) for j in range(i, 6)]  # order of the 21 AᵀA entries
+
+ROBUST_CODES = {"none": 0, "huber": 1, "tukey": 2}
+
+
+def unpack_sums(sums: np.ndarray) -> dict:
+    """The 30 reduced numbers as AtA (6×6, symmetric), Atb (6), r2 (Σ r²), inliers and sources."""
+    sums = np.asarray(sums, dtype=np.float64)
+    AtA = np.zeros((6, 6))
+    for k, (i, j) in enumerate(UPPER):
+        AtA[i, j] = AtA[j, i] = sums[k]
+    return {"AtA": AtA, "Atb": sums[SUM_ATB:SUM_ATB + 6].copy(), "r2": float(sums[SUM_R2]),
+            "inliers": int(round(sums[SUM_INLIERS])), "sources": int(round(sums[SUM_SOURCE]))}
+
+
+def default_chunks(arch: str) -> int:
+    """Parallel runs per reduction. Taichi's CPU backend gives each task at least 512 loop iterations,
+    so 512 runs per thread are needed to use every thread; GPUs want many more, shorter runs."""
+    if arch == "cpu":
+        return 512 * max(2, os.cpu_count() or 2)
+    return 16384
+
+
+_KERNELS: dict = {}
+
+
+def _build_kernels(real):
+    """The kernels for one arithmetic type (ti.f64 on cpu, ti.f32 on GPU backends)."""
+    vec3 = ti.types.vector(3, real)
+    mat3 = ti.types.matrix(3, 3, real)
+    vec4 = ti.types.vector(4, real)
+
+    @ti.func
+    def _associate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                   v, u, R, t, K, dist2_thr, cos_thr):
+        """(status, p′, q, n_q) of the source pixel (v, u); see the module docstring for the codes."""
+        Ht, Wt = tgt_v.shape
+        status = STATUS_SOURCE_INVALID
+        pt = vec3(0.0)
+        q = vec3(0.0)
+        nq = vec3(0.0)
+        p = ti.cast(src_v[v, u], real)
+        n = ti.cast(src_n[v, u], real)
+        if p.z > 0 and n.dot(n) > 0:
+            status = STATUS_BEHIND
+            pt = R @ p + t
+            if pt.z > 0:
+                status = STATUS_OUT_OF_IMAGE
+                inv_z = 1.0 / pt.z
+                uf = ti.floor(K[0] * pt.x * inv_z + K[2] + 0.5)
+                vf = ti.floor(K[1] * pt.y * inv_z + K[3] + 0.5)
+                if 0 <= uf and uf < Wt and 0 <= vf and vf < Ht:
+                    status = STATUS_TARGET_INVALID
+                    ui = ti.cast(uf, ti.i32)
+                    vi = ti.cast(vf, ti.i32)
+                    q = ti.cast(tgt_v[vi, ui], real)
+                    nq = ti.cast(tgt_n[vi, ui], real)
+                    if q.z > 0 and nq.dot(nq) > 0:
+                        status = STATUS_TOO_FAR
+                        d = pt - q
+                        if d.dot(d) < dist2_thr:
+                            status = STATUS_NORMAL_ANGLE
+                            if (R @ n).dot(nq) > cos_thr:
+                                status = STATUS_OK
+        return status, pt, q, nq
+
+    @ti.func
+    def _weight(r, robust: ti.i32, scale):
+        w = ti.cast(1.0, real)
+        a = ti.abs(r)
+        if robust == 1:  # Huber: quadratic up to k, linear beyond
+            if a > scale:
+                w = scale / a
+        elif robust == 2:  # Tukey's biweight: zero beyond c
+            w = 0.0
+            if a < scale:
+                s = 1.0 - (r / scale) * (r / scale)
+                w = s * s
+        return w
+
+    @ti.func
+    def _row(pt, q, nq):
+        """The Jacobian row A = [(p′ × n_q)ᵀ, n_qᵀ] and the residual r = n_qᵀ (p′ − q)."""
+        c = pt.cross(nq)
+        A = ti.Vector([c.x, c.y, c.z, nq.x, nq.y, nq.z], dt=real)
+        return A, nq.dot(pt - q)
+
+    @ti.kernel
+    def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+               partials: ti.template(), n_chunks: ti.i32, R: mat3, t: vec3, K: vec4, dist2_thr: real,
+               cos_thr: real, robust: ti.i32, scale: real):
+        H, W = src_v.shape
+        n_pix = H * W
+        chunk = (n_pix + n_chunks - 1) // n_chunks
+        for c in range(n_chunks):
+            acc = ti.Vector([0.0] * N_SUMS, dt=real)
+            begin = ti.min(c * chunk, n_pix)
+            end = ti.min(begin + chunk, n_pix)
+            v = begin // W
+            u = begin - v * W
+            for _ in range(begin, end):
+                status, pt, q, nq = _associate(src_v, src_n, tgt_v, tgt_n, v, u, R, t, K, dist2_thr, cos_thr)
+                if status != STATUS_SOURCE_INVALID:
+                    acc[SUM_SOURCE] += 1.0
+                if status == STATUS_OK:
+                    A, r = _row(pt, q, nq)
+                    w = _weight(r, robust, scale)
+                    wA = w * A
+                    for k in ti.static(range(21)):
+                        acc[k] += wA[UPPER[k][0]] * A[UPPER[k][1]]
+                    for k in ti.static(range(6)):
+                        acc[SUM_ATB + k] += wA[k] * r
+                    acc[SUM_R2] += r * r
+                    acc[SUM_INLIERS] += 1.0
+                u += 1
+                if u == W:
+                    u = 0
+                    v += 1
+            for k in ti.static(range(N_SUMS)):
+                partials[c, k] = acc[k]
+
+    @ti.kernel
+    def sum_partials(partials: ti.template(), n_chunks: ti.i32, totals: ti.template()):
+        for k in range(N_SUMS):
+            s = ti.cast(0.0, real)
+            comp = ti.cast(0.0, real)  # Kahan compensation: keeps the float32 path near float64
+            for c in range(n_chunks):
+                y = partials[c, k] - comp
+                s_new = s + y
+                comp = (s_new - s) - y
+                s = s_new
+            totals[k] = s
+
+    @ti.kernel
+    def status_map(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                   status: ti.template(), R: mat3, t: vec3, K: vec4, dist2_thr: real, cos_thr: real):
+        for v, u in src_v:
+            s, pt, q, nq = _associate(src_v, src_n, tgt_v, tgt_n, v, u, R, t, K, dist2_thr, cos_thr)
+            status[v, u] = s
+
+    @ti.kernel
+    def write_rows(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                   offsets: ti.template(), rows: ti.template(), n_chunks: ti.i32, R: mat3, t: vec3, K: vec4,
+                   dist2_thr: real, cos_thr: real, robust: ti.i32, scale: real):
+        """Rows √w [A | r] of the correspondences, compact and in pixel order: chunk c writes from
+        ``offsets[c]`` (the exclusive prefix sum of the per-chunk inlier counts of ``reduce``)."""
+        H, W = src_v.shape
+        n_pix = H * W
+        chunk = (n_pix + n_chunks - 1) // n_chunks
+        for c in range(n_chunks):
+            begin = ti.min(c * chunk, n_pix)
+            end = ti.min(begin + chunk, n_pix)
+            v = begin // W
+            u = begin - v * W
+            k = offsets[c]
+            for _ in range(begin, end):
+                status, pt, q, nq = _associate(src_v, src_n, tgt_v, tgt_n, v, u, R, t, K, dist2_thr, cos_thr)
+                if status == STATUS_OK:
+                    A, r = _row(pt, q, nq)
+                    sw = ti.sqrt(_weight(r, robust, scale))
+                    for j in ti.static(range(6)):
+                        rows[k, j] = sw * A[j]
+                    rows[k, 6] = sw * r
+                    k += 1
+                u += 1
+                if u == W:
+                    u = 0
+                    v += 1
+
+    return {"reduce": reduce, "sum_partials": sum_partials, "status_map": status_map, "write_rows": write_rows}
+
+
+def kernels_for(real):
+    if real not in _KERNELS:
+        _KERNELS[real] = _build_kernels(real)
+    return _KERNELS[real]
+
+
+@ti.data_oriented
+class PointToPlane:
+    """Association + linearisation + reduction for one backend, with the fields the passes write.
+
+    ``max_pixels``: the largest source level (H·W) it will see. Poses are 4×4 NumPy arrays mapping
+    source-camera points into the target camera; intrinsics are (fx, fy, cx, cy) of the TARGET level.
+    """
+
+    def __init__(self, max_pixels: int, has_f64: bool, arch: str = "cpu", n_chunks: int | None = None):
+        self.real = ti.f64 if has_f64 else ti.f32
+        self.np_real = np.float64 if has_f64 else np.float32
+        self.max_pixels = int(max_pixels)
+        self.n_chunks = int(n_chunks or default_chunks(arch))
+        self.k = kernels_for(self.real)
+        self.partials = ti.field(self.real, shape=(self.n_chunks, N_SUMS))
+        self.totals = ti.field(self.real, shape=N_SUMS)
+        self.offsets = None  # allocated on the first rows() call (QR only)
+        self.rows_field = None
+        self.status_field = {}
+
+    def _args(self, T: np.ndarray, K, dist_threshold: float, normal_threshold_deg: float):
+        T = np.asarray(T, dtype=np.float64)
+        R = ti.Matrix(T[:3, :3].astype(self.np_real).tolist(), dt=self.real)
+        t = ti.Vector(T[:3, 3].astype(self.np_real).tolist(), dt=self.real)
+        Kv = ti.Vector([float(x) for x in K], dt=self.real)
+        cos_thr = math.cos(math.radians(normal_threshold_deg))
+        return R, t, Kv, float(dist_threshold) ** 2, cos_thr
+
+    def _chunks(self, src_v) -> int:
+        n = src_v.shape[0] * src_v.shape[1]
+        if n > self.max_pixels:
+            raise ValueError(f"source of {n} pixels given to a PointToPlane sized for {self.max_pixels}")
+        return min(self.n_chunks, n)
+
+    def reduce(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
+               robust: str = "none", robust_scale: float = 0.01) -> np.ndarray:
+        """The 30 sums (float64 NumPy) of one association + linearisation pass at pose ``T``."""
+        n_chunks = self._chunks(src_v)
+        R, t, Kv, d2, cos_thr = self._args(T, K, dist_threshold, normal_threshold_deg)
+        self.k["reduce"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, R, t, Kv, d2, cos_thr,
+                         ROBUST_CODES[robust], float(robust_scale))
+        self.k["sum_partials"](self.partials, n_chunks, self.totals)
+        return self.totals.to_numpy().astype(np.float64)
+
+    def chunk_inliers(self, n_chunks: int) -> np.ndarray:
+        """Per-chunk inlier counts of the last ``reduce``."""
+        return np.rint(self.partials.to_numpy()[:n_chunks, SUM_INLIERS]).astype(np.int64)
+
+    def rows(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
+             robust: str = "none", robust_scale: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+        """(the 30 sums, the stacked system √w [A | b]) of one pass: the rows are n × 7, float64 NumPy, one
+        per correspondence in pixel order.
+
+        Runs ``reduce`` first (its per-chunk inlier counts give each chunk its output offset), so it costs
+        two passes: it is for the QR solver and for tests, not for the default path."""
+        n_chunks = self._chunks(src_v)
+        sums = self.reduce(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold, normal_threshold_deg, robust,
+                           robust_scale)
+        counts = self.chunk_inliers(n_chunks)
+        offsets = np.zeros(self.n_chunks, dtype=np.int32)
+        offsets[1:n_chunks] = np.cumsum(counts)[:-1]
+        if self.offsets is None:
+            self.offsets = ti.field(ti.i32, shape=self.n_chunks)
+            self.rows_field = ti.field(self.real, shape=(self.max_pixels, 7))
+        self.offsets.from_numpy(offsets)
+        R, t, Kv, d2, cos_thr = self._args(T, K, dist_threshold, normal_threshold_deg)
+        self.k["write_rows"](src_v, src_n, tgt_v, tgt_n, self.offsets, self.rows_field, n_chunks, R, t, Kv, d2,
+                             cos_thr, ROBUST_CODES[robust], float(robust_scale))
+        n = int(counts.sum())
+        return sums, self.rows_field.to_numpy()[:n].astype(np.float64)
+
+    def status(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float,
+               normal_threshold_deg: float) -> np.ndarray:
+        """Per-source-pixel association status codes (int32 H×W; STATUS_* above). For tests and plots."""
+        shape = tuple(src_v.shape)
+        if shape not in self.status_field:
+            self.status_field[shape] = ti.field(ti.i32, shape=shape)
+        field = self.status_field[shape]
+        R, t, Kv, d2, cos_thr = self._args(T, K, dist_threshold, normal_threshold_deg)
+        self.k["status_map"](src_v, src_n, tgt_v, tgt_n, field, R, t, Kv, d2, cos_thr)
+        return field.to_numpy()

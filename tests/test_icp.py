@@ -1,0 +1,384 @@
+"""Point-to-plane ICP: the association / reduction kernels against the NumPy float64 reference on every
+backend, the solvers, and the coarse-to-fine loop on synthetic and real pairs.
+
+Tolerances. cpu (float64 arithmetic): the 30 sums agree with NumPy to 1e-5 relative (in practice 1e-11).
+vulkan (float32 arithmetic and per-chunk float32 partials, Kahan-summed): each AᵀA entry within 1e-4 of
+√(AᵀA_ii AᵀA_jj), each Aᵀb entry within 1e-4 of √(AᵀA_ii Σr²), Σr² within 1e-4 relative, counts exact;
+the scale is the Cauchy–Schwarz bound of the entry, because entries that are sums of signed terms (Aᵀb near
+convergence) may be close to zero while their rounding is not.
+"""
+
+import math
+
+import numpy as np
+import pytest
+import taichi as ti
+
+from ti_fusion import icp_numpy
+from ti_fusion.backend import current_backend
+from ti_fusion.camera import Intrinsics
+from ti_fusion.config import DatasetConfig, ICPConfig
+from ti_fusion.geometry import invert, make_pose, pose_error, se3_exp, so3_exp
+from ti_fusion.icp import ICP
+from ti_fusion.kernels import icp as kicp
+from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.solve import check_system, solve_normal_equations, solve_stacked_qr
+
+THR = 0.1
+THETA = 30.0
+
+
+# -- helpers -------------------------------------------------------------------------------------------
+def vec_field(a: np.ndarray):
+    f = ti.Vector.field(3, ti.f32, shape=a.shape[:2])
+    f.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+    return f
+
+
+def pass_for(n_pixels: int, n_chunks: int | None = None) -> kicp.PointToPlane:
+    b = current_backend()
+    return kicp.PointToPlane(n_pixels, b.has_f64, b.arch, n_chunks)
+
+
+def rays(K: Intrinsics, u, v):
+    return np.stack([(u - K.cx) / K.fx, (v - K.cy) / K.fy, np.ones_like(u, dtype=np.float64)], axis=-1)
+
+
+def random_unit_near(rng, axis, max_deg, size):
+    """Unit vectors at angles uniform in [0, max_deg] from ``axis`` (an array of unit vectors)."""
+    a = rng.normal(size=(size, 3))
+    a -= np.einsum("ij,ij->i", a, axis)[:, None] * axis
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    ang = np.radians(rng.uniform(0, max_deg, size))
+    return np.cos(ang)[:, None] * axis + np.sin(ang)[:, None] * a
+
+
+def random_pose(rng, scale):
+    """A random pose whose target camera sits 0.5 m in front of the source camera, so that some source
+    points (z > 0) are behind the target camera."""
+    T = se3_exp(rng.normal(scale=scale, size=6))
+    T[2, 3] -= 0.5
+    return T
+
+
+def random_pass_inputs(rng, T, K_t: Intrinsics, src_shape=(48, 64)):
+    """Source and target vertex/normal maps whose association hits every status code, with no pixel
+    within rounding distance of a decision boundary (so float32 and float64 must agree exactly)."""
+    Ht, Wt = K_t.height, K_t.width
+    v, u = np.mgrid[0:Ht, 0:Wt]
+    zt = rng.uniform(0.8, 3.0, (Ht, Wt))
+    Vt = rays(K_t, u, v) * zt[..., None]
+    Nt = random_unit_near(rng, np.broadcast_to([0.0, 0.0, -1.0], (Ht * Wt, 3)), 60, Ht * Wt).reshape(Ht, Wt, 3)
+    Vt[rng.random((Ht, Wt)) < 0.08] = 0.0
+    Nt[rng.random((Ht, Wt)) < 0.05] = 0.0
+
+    n = src_shape[0] * src_shape[1]
+    uc = rng.uniform(-3.0, Wt + 3.0, n)  # projected position, some outside the image
+    vc = rng.uniform(-3.0, Ht + 3.0, n)
+    ui = np.clip(np.floor(uc + 0.5), 0, Wt - 1).astype(int)
+    vi = np.clip(np.floor(vc + 0.5), 0, Ht - 1).astype(int)
+    zq = np.where(Vt[vi, ui, 2] > 0, Vt[vi, ui, 2], rng.uniform(0.8, 3.0, n))
+    z = zq + rng.uniform(-2 * THR, 2 * THR, n)
+    behind = rng.random(n) < 0.05
+    z[behind] = -rng.uniform(0.0, 0.4, behind.sum())  # behind the target camera, in front of the source
+    p_t = rays(K_t, uc, vc) * z[:, None]
+    nq = Nt[vi, ui]
+    base = np.where(np.any(nq != 0, axis=1)[:, None], nq, [0.0, 0.0, -1.0])
+    n_t = random_unit_near(rng, base, 2 * THETA, n)
+    R, t = T[:3, :3], T[:3, 3]
+    P = (p_t - t) @ R  # source points: p = Rᵀ (p′ − t)
+    N = n_t @ R
+    P[rng.random(n) < 0.06] = 0.0
+    N[rng.random(n) < 0.04] = 0.0
+
+    # Keep only pixels clear of every boundary (else mark them source-invalid).
+    frac_u = np.abs((uc + 0.5) - np.round(uc + 0.5))
+    frac_v = np.abs((vc + 0.5) - np.round(vc + 0.5))
+    d = np.linalg.norm(p_t - Vt[vi, ui], axis=1)
+    cosang = np.einsum("ij,ij->i", n_t, nq)
+    ang = np.degrees(np.arccos(np.clip(cosang, -1, 1)))
+    clear = (frac_u > 0.02) & (frac_v > 0.02) & (np.abs(d - THR) > 0.01 * THR) & (np.abs(ang - THETA) > 0.3) \
+        & (np.abs(z) > 0.01)
+    P[~clear] = 0.0
+    shape = src_shape + (3,)  # float32, as the fields hold them: the references see the same numbers
+    return (P.reshape(shape).astype(np.float32), N.reshape(shape).astype(np.float32), Vt.astype(np.float32),
+            Nt.astype(np.float32))
+
+
+def cs_scale(sums: np.ndarray) -> np.ndarray:
+    """Cauchy–Schwarz bound of every sum's magnitude (see the module docstring)."""
+    s = kicp.unpack_sums(sums)
+    diag = np.diag(s["AtA"])
+    scale = np.ones(kicp.N_SUMS)
+    scale[:21] = [math.sqrt(diag[i] * diag[j]) for i, j in kicp.UPPER]
+    scale[kicp.SUM_ATB:kicp.SUM_ATB + 6] = np.sqrt(diag * s["r2"])
+    scale[kicp.SUM_R2] = s["r2"]
+    return scale
+
+
+def assert_sums_close(got, ref):
+    np.testing.assert_array_equal(got[kicp.SUM_INLIERS:], ref[kicp.SUM_INLIERS:])
+    if current_backend().has_f64:
+        np.testing.assert_allclose(got, ref, rtol=1e-5, atol=0)
+    else:
+        err = np.abs(got - ref) / cs_scale(ref)
+        assert err.max() < 1e-4, f"float32 sums off by {err.max():.2e} of their scale"
+
+
+# -- association ---------------------------------------------------------------------------------------
+@pytest.mark.parametrize("robust", ["none", "huber", "tukey"])
+def test_status_and_sums_match_reference(arch, rng, robust):
+    T = random_pose(rng, 0.1)
+    K_t = Intrinsics(120.0, 110.0, 27.3, 20.6, 56, 40)
+    P, N, Vt, Nt = random_pass_inputs(rng, T, K_t)
+    kp = pass_for(P.shape[0] * P.shape[1], n_chunks=97)  # chunks that do not divide the image
+    args = (vec_field(P), vec_field(N), vec_field(Vt), vec_field(Nt))
+    status = kp.status(*args, T, K_t.as_tuple(), THR, THETA)
+    sums = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, robust, 0.05)
+    ref_status, ref_sums = icp_numpy.icp_pass(P, N, Vt, Nt, T, K_t.as_tuple(), THR, THETA, robust, 0.05)
+    np.testing.assert_array_equal(status, ref_status)
+    counts = np.bincount(status.ravel(), minlength=7)
+    assert np.all(counts >= 20), f"every status code exercised: {counts}"
+    assert sums[kicp.SUM_INLIERS] == counts[kicp.STATUS_OK]
+    assert sums[kicp.SUM_SOURCE] == status.size - counts[kicp.STATUS_SOURCE_INVALID]
+    assert_sums_close(sums, ref_sums)
+
+
+def boundary_case(K_t: Intrinsics, T: np.ndarray):
+    """Source points placed a hair inside and outside every association boundary. Returns the maps and
+    the expected status code per source pixel (one row of the source image per case). The point on the
+    camera plane (z′ = 0 exactly) is included only for a pure translation, where float32 keeps it exact."""
+    Ht, Wt = K_t.height, K_t.width
+    v, u = np.mgrid[0:Ht, 0:Wt]
+    Vt = rays(K_t, u, v) * 1.5
+    Nt = np.broadcast_to([0.0, 0.0, -1.0], Vt.shape).copy()
+    Vt[2, 3] = 0.0   # invalid target vertex
+    Nt[2, 5] = 0.0   # invalid target normal
+    eps, deg = 0.02, 0.3
+    cos_t, sin_t = math.cos(math.radians(THETA - deg)), math.sin(math.radians(THETA - deg))
+    cos_f, sin_f = math.cos(math.radians(THETA + deg)), math.sin(math.radians(THETA + deg))
+    # (target-camera point p′ as (u, v, z) on the pixel grid, target-camera normal, expected status)
+    n0 = [0.0, 0.0, -1.0]
+    cases = [
+        ((-0.5 + eps, 4, 1.5), n0, kicp.STATUS_OK),                   # rounds to u = 0
+        ((-0.5 - eps, 4, 1.5), n0, kicp.STATUS_OUT_OF_IMAGE),         # rounds to u = −1
+        ((Wt - 0.5 - eps, 4, 1.5), n0, kicp.STATUS_OK),               # u = W − 1
+        ((Wt - 0.5 + eps, 4, 1.5), n0, kicp.STATUS_OUT_OF_IMAGE),     # u = W
+        ((6, -0.5 + eps, 1.5), n0, kicp.STATUS_OK),
+        ((6, -0.5 - eps, 1.5), n0, kicp.STATUS_OUT_OF_IMAGE),
+        ((6, Ht - 0.5 - eps, 1.5), n0, kicp.STATUS_OK),
+        ((6, Ht - 0.5 + eps, 1.5), n0, kicp.STATUS_OUT_OF_IMAGE),
+        ((6, 4, 1e-3), n0, kicp.STATUS_TOO_FAR),                     # just in front: associates, far away
+        ((6, 4, 0.0), n0, kicp.STATUS_BEHIND),                       # on the camera plane (z′ = 0)
+        ((6, 4, -1e-3), n0, kicp.STATUS_BEHIND),
+        ((3, 2, 1.5), n0, kicp.STATUS_TARGET_INVALID),               # target vertex zero
+        ((5, 2, 1.5), n0, kicp.STATUS_TARGET_INVALID),               # target normal zero
+        ((6, 4, 1.5 + THR * 0.99), n0, kicp.STATUS_OK),              # ‖p′ − q‖ just below d_thr
+        ((6, 4, 1.5 + THR * 1.01), n0, kicp.STATUS_TOO_FAR),         # just above
+        ((6, 4, 1.5 - THR * 1.01), n0, kicp.STATUS_TOO_FAR),
+        ((6, 4, 1.5), [sin_t, 0.0, -cos_t], kicp.STATUS_OK),         # angle just below θ
+        ((6, 4, 1.5), [0.0, sin_f, -cos_f], kicp.STATUS_NORMAL_ANGLE),  # just above
+        ((6, 4, 1.5), [0.0, 0.0, 1.0], kicp.STATUS_NORMAL_ANGLE),    # back-facing
+    ]
+    R, t = T[:3, :3], T[:3, 3]
+    if not np.array_equal(R, np.eye(3)):
+        cases = [c for c in cases if c[0][2] != 0.0]
+    P = np.zeros((len(cases) + 2, 1, 3))
+    N = np.zeros_like(P)
+    expected = []
+    for i, ((pu, pv, z), n_t, code) in enumerate(cases):
+        p_t = rays(K_t, np.array([pu], float), np.array([pv], float))[0] * z
+        if z == 0.0:
+            p_t = np.array([0.3, -0.2, 0.0])
+        P[i, 0] = R.T @ (p_t - t)
+        N[i, 0] = R.T @ np.asarray(n_t)
+        expected.append(code)
+    P[len(cases), 0], N[len(cases), 0] = 0.0, [0.0, 0.0, -1.0]    # source vertex invalid
+    P[len(cases) + 1, 0], N[len(cases) + 1, 0] = [0.1, 0.1, 1.0], 0.0  # source normal invalid
+    expected += [kicp.STATUS_SOURCE_INVALID] * 2
+    return P, N, Vt, Nt, np.array(expected).reshape(-1, 1)
+
+
+@pytest.mark.parametrize("rotation", [[0.02, -0.03, 0.01], [0.0, 0.0, 0.0]])
+def test_status_codes_at_every_boundary(arch, rotation):
+    T = se3_exp(rotation + [0.0, 0.0, 0.0])
+    T[:3, 3] = [0.05, -0.025, -0.5]  # the target camera 0.5 m ahead: see random_pose
+    K_t = Intrinsics(100.0, 100.0, 6.3, 4.2, 12, 9)
+    P, N, Vt, Nt, expected = boundary_case(K_t, T)
+    kp = pass_for(P.shape[0])
+    args = (vec_field(P), vec_field(N), vec_field(Vt), vec_field(Nt))
+    status = kp.status(*args, T, K_t.as_tuple(), THR, THETA)
+    ref_status, _ = icp_numpy.icp_pass(P, N, Vt, Nt, T, K_t.as_tuple(), THR, THETA)
+    np.testing.assert_array_equal(ref_status, expected)
+    np.testing.assert_array_equal(status, expected)
+
+
+# -- solve ---------------------------------------------------------------------------------------------
+def test_rows_match_reference_and_solvers_agree(arch, rng):
+    T = random_pose(rng, 0.05)
+    K_t = Intrinsics(120.0, 110.0, 27.3, 20.6, 56, 40)
+    P, N, Vt, Nt = random_pass_inputs(rng, T, K_t)
+    kp = pass_for(P.shape[0] * P.shape[1], n_chunks=61)
+    args = (vec_field(P), vec_field(N), vec_field(Vt), vec_field(Nt))
+    sums, rows = kp.rows(*args, T, K_t.as_tuple(), THR, THETA, "huber", 0.05)
+    ref_rows = icp_numpy.stacked_rows(P, N, Vt, Nt, T, K_t.as_tuple(), THR, THETA, "huber", 0.05)
+    assert rows.shape == ref_rows.shape and rows.shape[0] > 100
+    tol = 1e-9 if current_backend().has_f64 else 2e-5
+    np.testing.assert_allclose(rows, ref_rows, rtol=tol, atol=tol * np.abs(ref_rows).max())
+    s = kicp.unpack_sums(sums)
+    d_chol = solve_normal_equations(s["AtA"], s["Atb"], "cholesky")
+    d_lu = solve_normal_equations(s["AtA"], s["Atb"], "lu")
+    d_qr = solve_stacked_qr(rows)
+    scale = np.abs(d_chol).max()
+    np.testing.assert_allclose(d_lu, d_chol, atol=1e-9 * scale)
+    # QR solves the stacked rows, Cholesky the kernel's sums: equal up to the sums' rounding.
+    np.testing.assert_allclose(d_qr, d_chol, atol=(1e-7 if current_backend().has_f64 else 1e-3) * scale)
+
+
+def test_solvers_on_a_known_system(rng):
+    A = rng.normal(size=(500, 6)) * [1.0, 2.0, 0.5, 1.0, 3.0, 1.0]
+    delta = rng.normal(size=6)
+    b = -A @ delta + 1e-9 * rng.normal(size=500)
+    AtA, Atb = A.T @ A, A.T @ b
+    for d in (solve_normal_equations(AtA, Atb, "cholesky"), solve_normal_equations(AtA, Atb, "lu"),
+              solve_stacked_qr(np.concatenate([A, b[:, None]], axis=1))):
+        np.testing.assert_allclose(d, delta, atol=1e-8)
+
+
+def test_degenerate_systems_are_reported():
+    assert check_system(np.eye(6), 12, 100, 1e7)[0] == "too few inliers (12 < 100)"
+    singular = np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 0.0])
+    assert check_system(singular, 1000, 100, 1e7)[0].startswith("rank-deficient AᵀA (rank 5")
+    ill = np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 1e-9])
+    failure, cond = check_system(ill, 1000, 100, 1e7)
+    assert failure.startswith("ill-conditioned AᵀA (cond 1.0e+09") and cond == pytest.approx(1e9)
+    assert check_system(np.diag([1.0, 2, 3, 4, 5, 6]), 1000, 100, 1e7) == (None, pytest.approx(6.0))
+
+
+# -- the loop on synthetic pairs ---------------------------------------------------------------------
+ROOM_LO, ROOM_HI = np.array([-2.0, -1.4, -1.0]), np.array([2.4, 1.2, 4.2])
+BOXES = [(np.array([-0.9, 0.5, 2.0]), np.array([-0.2, 1.2, 2.7])),
+         (np.array([0.5, -0.3, 2.6]), np.array([1.1, 1.2, 3.0]))]
+SPHERE = (np.array([0.0, -0.3, 3.0]), 0.45)
+
+
+def render_scene(T_wc: np.ndarray, K: Intrinsics, noise: bool = False, rng=None) -> np.ndarray:
+    """Depth of an analytic room (walls, floor, ceiling), two boxes and a ball, by ray casting."""
+    v, u = np.mgrid[0:K.height, 0:K.width]
+    d = rays(K, u.astype(float), v.astype(float)).reshape(-1, 3) @ T_wc[:3, :3].T  # z_cam = 1 along each ray
+    o = T_wc[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        exit_t = np.where(d > 0, (ROOM_HI - o) / d, (ROOM_LO - o) / d)
+        best = np.min(np.where(np.isfinite(exit_t), exit_t, np.inf), axis=1)
+        for lo, hi in BOXES:
+            t1, t2 = (lo - o) / d, (hi - o) / d
+            near = np.max(np.minimum(t1, t2), axis=1)
+            far = np.min(np.maximum(t1, t2), axis=1)
+            hit = (near <= far) & (near > 0)
+            best = np.where(hit & (near < best), near, best)
+    c, r = SPHERE
+    oc = o - c
+    a = np.einsum("ij,ij->i", d, d)
+    b = 2 * d @ oc
+    disc = b * b - 4 * a * (oc @ oc - r * r)
+    ts = (-b - np.sqrt(np.maximum(disc, 0))) / (2 * a)
+    best = np.where((disc > 0) & (ts > 0) & (ts < best), ts, best)
+    depth = best.reshape(K.height, K.width)
+    if noise:  # Kinect-like axial noise (Nguyen et al. 2012), quantised to millimetres like the PNGs
+        depth = depth + rng.normal(size=depth.shape) * (0.0012 + 0.0019 * (depth - 0.4) ** 2)
+        depth = np.round(depth * 1000) / 1000
+        depth[rng.random(depth.shape) < 0.02] = 0.0
+    return depth.astype(np.float32)
+
+
+SOURCE_POSE = np.eye(4)
+SOURCE_POSE[:3, :3] = so3_exp([0.05, -0.1, 0.02])
+SOURCE_POSE[:3, 3] = [0.1, -0.1, -0.2]
+
+
+def synthetic_pair(rng, K, noise, deg=3.0, metres=0.05):
+    """Source and target maps of the room seen from two poses ``deg`` degrees and ``metres`` apart (a
+    random axis and direction), and the true relative pose G (p_target = G p_source)."""
+    axis, direction = rng.normal(size=3), rng.normal(size=3)
+    G = make_pose(so3_exp(np.radians(deg) * axis / np.linalg.norm(axis)), metres * direction / np.linalg.norm(direction))
+    T_target = SOURCE_POSE @ invert(G)
+    return maps_of(render_scene(SOURCE_POSE, K, noise, rng), K), maps_of(render_scene(T_target, K, noise, rng), K), G
+
+
+def maps_of(depth: np.ndarray, K: Intrinsics, cfg: ICPConfig = ICPConfig()) -> FrameMaps:
+    """The maps of one depth image as the ICP command builds them (smoothing and thresholds of ``cfg``)."""
+    maps = FrameMaps(K.height, K.width, len(cfg.iterations))
+    maps.compute(depth, K, cfg.normal_max_depth_jump, 3 * cfg.pyramid_depth_sigma, cfg.depth_smooth_radius)
+    return maps
+
+
+K_SYN = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
+
+
+def test_synthetic_motion_recovered_without_noise(arch, rng):
+    src, tgt, G = synthetic_pair(rng, K_SYN, noise=False)
+    result = ICP(ICPConfig()).align(src, tgt)
+    rot, trans = pose_error(result.pose, G)
+    assert result.failure is None and result.converged
+    assert rot < 0.05 and trans < 0.5e-3, (rot, trans)
+    losses = [r.loss for r in result.iterations if r.level == 0]
+    assert losses[-1] < 1e-6 and result.inlier_ratio > 0.8
+
+
+@pytest.mark.parametrize("solver", ["cholesky", "qr"])
+def test_synthetic_motion_recovered_with_noise(cpu, rng, solver):
+    src, tgt, G = synthetic_pair(rng, K_SYN, noise=True)
+    result = ICP(ICPConfig(solver=solver)).align(src, tgt)
+    rot, trans = pose_error(result.pose, G)
+    assert result.failure is None
+    assert rot < 0.1 and trans < 3e-3, (rot, trans)  # the stated tolerance with noise on
+
+
+def test_robust_weights_still_converge(cpu, rng):
+    src, tgt, G = synthetic_pair(rng, K_SYN, noise=True)
+    for robust, scale in (("huber", 0.01), ("tukey", 0.03)):
+        result = ICP(ICPConfig(robust=robust, robust_scale=scale)).align(src, tgt)
+        rot, trans = pose_error(result.pose, G)
+        assert result.failure is None and rot < 0.1 and trans < 3e-3, (robust, rot, trans)
+
+
+def test_single_plane_is_degenerate(cpu):
+    K = Intrinsics(131.25, 131.25, 79.5, 59.5, 160, 120)
+    v, u = np.mgrid[0:K.height, 0:K.width]
+    n = np.array([0.2, -0.1, -1.0]) / np.linalg.norm([0.2, -0.1, -1.0])
+    depth = (-2.0 / (rays(K, u.astype(float), v.astype(float)) @ n)).astype(np.float32)
+    src, tgt = maps_of(depth, K), maps_of(depth, K)
+    init = se3_exp([0.0, 0.0, 0.0, 0.01, 0.0, 0.0])
+    result = ICP(ICPConfig()).align(src, tgt, init=init)
+    assert result.failure is not None and "AᵀA" in result.failure
+    assert not result.converged
+    np.testing.assert_allclose(result.pose, init)  # the last good estimate: nothing was solved
+
+
+def test_all_invalid_depth_is_a_failure_not_an_exception(cpu):
+    K = Intrinsics(131.25, 131.25, 79.5, 59.5, 160, 120)
+    src, tgt = maps_of(render_scene(SOURCE_POSE, K), K), maps_of(np.zeros((K.height, K.width), np.float32), K)
+    result = ICP(ICPConfig()).align(src, tgt)
+    assert result.failure == "level 2 iteration 0: too few inliers (0 < 100)"
+    assert result.inliers == 0 and result.inlier_ratio == 0.0 and not result.converged
+    np.testing.assert_array_equal(result.pose, np.eye(4))
+
+
+# -- real data ---------------------------------------------------------------------------------------
+REAL_PAIRS = [(10, 20), (40, 50)]
+
+
+@pytest.mark.realdata
+@pytest.mark.parametrize("source, target", REAL_PAIRS)
+def test_redkitchen_pair_from_identity(cpu, redkitchen, source, target):
+    from ti_fusion.datasets import open_dataset
+
+    data = open_dataset(DatasetConfig(path=str(redkitchen)))
+    fs, ft = data.frame_by_raw_index(source), data.frame_by_raw_index(target)
+    cfg = ICPConfig()
+    src, tgt = maps_of(fs.depth, fs.intrinsics, cfg), maps_of(ft.depth, ft.intrinsics, cfg)
+    reference = invert(ft.gt_pose) @ fs.gt_pose
+    result = ICP(cfg).align(src, tgt)
+    rot, trans = pose_error(result.pose, reference)
+    assert result.failure is None
+    assert rot < 0.5 and trans < 5e-3, (rot, trans)

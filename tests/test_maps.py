@@ -1,0 +1,209 @@
+"""FrameMaps kernels (pyramid, back-projection, normals) against NumPy float64 references, on every backend.
+
+Random depths are multiples of 1/1024 m: exactly representable in float32 with exact differences, so
+the depth-jump and range tests of the kernels and of the references never disagree by a rounding.
+"""
+
+import numpy as np
+import pytest
+
+from ti_fusion.camera import Intrinsics
+from ti_fusion.kernels.maps import FrameMaps
+
+K = Intrinsics(fx=150.0, fy=140.0, cx=39.5, cy=30.25, width=80, height=60)
+JUMP = 0.05 + 1 / 4096  # never equal to a difference of two depths on the 1/1024 grid
+PYR = 0.09 + 1 / 4096
+
+
+def random_depth(rng, shape=(60, 80), invalid=0.15):
+    """A smooth surface with rough patches, steps and holes (metres, 0 = invalid)."""
+    H, W = shape
+    v, u = np.mgrid[0:H, 0:W]
+    z = 1.5 + 0.3 * np.sin(u / 9.0 + rng.uniform(0, 6)) + 0.2 * np.cos(v / 7.0) + 0.004 * rng.normal(size=shape)
+    z[:, W // 2:] += 0.08  # a depth step down the middle column
+    z[rng.random(shape) < 0.02] += 0.06  # isolated jumps
+    z[rng.random(shape) < invalid] = 0.0
+    return (np.round(z * 1024) / 1024).astype(np.float32)
+
+
+def backproject_ref(depth, K):
+    H, W = depth.shape
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    z = depth.astype(np.float64)
+    V = np.stack([(u - K.cx) * z / K.fx, (v - K.cy) * z / K.fy, z], axis=-1)
+    V[z <= 0] = 0.0
+    return V
+
+
+def normals_ref(V, max_jump):
+    """Cross product of central differences, facing the camera; zero on the border, next to an invalid
+    pixel, or across a depth jump larger than max_jump."""
+    H, W, _ = V.shape
+    N = np.zeros_like(V)
+    c = V[1:-1, 1:-1]
+    l, r, t, b = V[1:-1, :-2], V[1:-1, 2:], V[:-2, 1:-1], V[2:, 1:-1]
+    zs = np.stack([c[..., 2], l[..., 2], r[..., 2], t[..., 2], b[..., 2]])
+    ok = np.all(zs > 0, axis=0) & (np.max(np.abs(zs[1:] - zs[0]), axis=0) <= max_jump)
+    m = np.cross(r - l, b - t)
+    length = np.linalg.norm(m, axis=-1)
+    ok &= length > 0
+    m = m / np.where(ok, length, 1.0)[..., None]
+    m *= np.where(np.einsum("hwk,hwk->hw", m, c) > 0, -1.0, 1.0)[..., None]
+    N[1:-1, 1:-1] = np.where(ok[..., None], m, 0.0)
+    return N
+
+
+def pyramid_ref(fine, max_diff):
+    H, W = fine.shape
+    h, w = (H + 1) // 2, (W + 1) // 2
+    out = np.zeros((h, w))
+    f = fine.astype(np.float64)
+    for v in range(h):
+        for u in range(w):
+            c = f[2 * v, 2 * u]
+            if c <= 0:
+                continue
+            ry = min(1, 2 * v, H - 1 - 2 * v)  # symmetric window on the border
+            rx = min(1, 2 * u, W - 1 - 2 * u)
+            win = f[2 * v - ry:2 * v + ry + 1, 2 * u - rx:2 * u + rx + 1]
+            sel = win[(win > 0) & (np.abs(win - c) < max_diff)]
+            out[v, u] = sel.mean()
+    return out
+
+
+def test_backprojection_matches_reference(arch, rng):
+    depth = random_depth(rng)
+    maps = FrameMaps(*depth.shape, levels=1)
+    maps.compute(depth, K, JUMP, PYR)
+    V = maps.vertex[0].to_numpy()
+    np.testing.assert_allclose(V, backproject_ref(depth, K), rtol=2e-6, atol=1e-7)
+    assert np.all(V[depth == 0] == 0)
+
+
+def test_normals_match_reference(arch, rng):
+    depth = random_depth(rng)
+    maps = FrameMaps(*depth.shape, levels=1)
+    maps.compute(depth, K, JUMP, PYR)
+    N = maps.normal[0].to_numpy()
+    # The reference starts from the kernel's float32 vertices, so only the normal arithmetic is compared.
+    ref = normals_ref(maps.vertex[0].to_numpy().astype(np.float64), np.float32(JUMP))
+    valid_ref = np.any(ref != 0, axis=-1)
+    valid = np.any(N != 0, axis=-1)
+    np.testing.assert_array_equal(valid, valid_ref)
+    assert 0.3 < valid.mean() < 0.9  # the test exercises both outcomes
+    np.testing.assert_allclose(N, ref, atol=2e-5)
+    np.testing.assert_allclose(np.linalg.norm(N[valid], axis=-1), 1.0, atol=1e-5)
+
+
+def test_normals_invalid_neighbours_depth_jumps_and_border(arch):
+    H, W = 12, 16
+    depth = np.full((H, W), 1.0, dtype=np.float32)
+    depth[5, 5] = 0.0                       # a hole: its 4 neighbours lose their normal
+    depth[2, 10] = 1.0 + 0.05               # a jump just below max_depth_jump: still a normal
+    depth[8, 10] = 1.0 + 0.0625             # a jump just above: no normal around it
+    maps = FrameMaps(H, W, levels=1)
+    maps.compute(depth, Intrinsics(100.0, 100.0, 7.5, 5.5, W, H), max_depth_jump=0.0546875, pyramid_max_diff=0.09)
+    N = maps.normal[0].to_numpy()
+    has = np.any(N != 0, axis=-1)
+    assert not has[0].any() and not has[-1].any() and not has[:, 0].any() and not has[:, -1].any()
+    for v, u in [(5, 5), (4, 5), (6, 5), (5, 4), (5, 6)]:
+        assert not has[v, u]
+    assert has[2, 10] and has[1, 10] and has[2, 9]
+    for v, u in [(8, 10), (7, 10), (9, 10), (8, 9), (8, 11)]:
+        assert not has[v, u]
+    assert has[3, 3]
+    # A fronto-parallel plane: the normal points back at the camera.
+    np.testing.assert_allclose(N[3, 3], [0.0, 0.0, -1.0], atol=1e-6)
+
+
+def test_normal_faces_the_camera_on_a_slanted_plane(arch):
+    H, W = 20, 24
+    Kp = Intrinsics(60.0, 60.0, 11.5, 9.5, W, H)
+    v, u = np.mgrid[0:H, 0:W]
+    # plane n·X = d with n = (0.3, -0.2, -0.93) (unit after normalising), seen from the origin
+    n = np.array([0.3, -0.2, -0.93])
+    n /= np.linalg.norm(n)
+    rays = np.stack([(u - Kp.cx) / Kp.fx, (v - Kp.cy) / Kp.fy, np.ones_like(u, dtype=float)], -1)
+    z = -1.5 / (rays @ n)
+    maps = FrameMaps(H, W, levels=1)
+    maps.compute(z.astype(np.float32), Kp, max_depth_jump=1.0)
+    N = maps.normal[0].to_numpy()[1:-1, 1:-1].reshape(-1, 3)
+    np.testing.assert_allclose(N, np.broadcast_to(n, N.shape), atol=2e-4)
+
+
+def smooth_ref(depth, radius, max_diff):
+    """Range-checked mean along rows, then along columns (each against its own centre); near the border
+    the window shrinks to the symmetric radius that fits."""
+    out = depth.astype(np.float64)
+    for axis in (1, 0):
+        src = out
+        n = src.shape[axis]
+        total = np.zeros_like(src)
+        count = np.zeros_like(src)
+        pos = np.arange(n)
+        fit = np.minimum(pos, n - 1 - pos)  # symmetric window at the border
+        for k in range(-radius, radius + 1):
+            shifted = np.roll(src, -k, axis=axis)
+            inside = (abs(k) <= fit)[None, :] if axis == 1 else (abs(k) <= fit)[:, None]
+            ok = inside & (shifted > 0) & (np.abs(shifted - src) < max_diff)
+            total += np.where(ok, shifted, 0.0)
+            count += ok
+        out = np.where(src > 0, total / np.maximum(count, 1), 0.0)
+        out = out.astype(np.float32).astype(np.float64)  # the kernel stores the row pass in float32
+    return out
+
+
+def test_smoothing_and_pyramid_keep_a_ramp_up_to_the_border(arch):
+    u = np.arange(40, dtype=np.float64)
+    depth = np.broadcast_to(1.0 + 0.004 * u + 0.002 * u[:, None][:30], (30, 40)).astype(np.float32)
+    maps = FrameMaps(30, 40, levels=3)
+    maps.compute(depth, Intrinsics(50.0, 50.0, 19.5, 14.5, 40, 30), smooth_radius=2)
+    np.testing.assert_allclose(maps.depth[0].to_numpy(), depth, rtol=1e-6)
+    np.testing.assert_allclose(maps.depth[1].to_numpy(), depth[::2, ::2], rtol=1e-6)
+    np.testing.assert_allclose(maps.depth[2].to_numpy(), depth[::4, ::4], rtol=1e-6)
+
+
+@pytest.mark.parametrize("radius", [1, 2])
+def test_smoothing_matches_reference(arch, rng, radius):
+    depth = random_depth(rng)
+    maps = FrameMaps(*depth.shape, levels=2)
+    maps.compute(depth, K, JUMP, PYR, smooth_radius=radius)
+    got = maps.depth[0].to_numpy()
+    expected = smooth_ref(depth, radius, np.float32(PYR))
+    np.testing.assert_array_equal(got > 0, depth > 0)
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
+    assert np.abs(got - depth).max() > 1e-3  # it did smooth
+    np.testing.assert_allclose(maps.vertex[0].to_numpy(), backproject_ref(got, K), rtol=2e-6, atol=1e-7)
+
+
+def test_pyramid_matches_reference(arch, rng):
+    depth = random_depth(rng, shape=(61, 81))  # odd sizes: the last coarse pixel sees a clipped window
+    maps = FrameMaps(*depth.shape, levels=3)
+    maps.compute(depth, Intrinsics(150.0, 140.0, 40.0, 30.0, 81, 61), JUMP, PYR)
+    assert maps.shapes == [(61, 81), (31, 41), (16, 21)]
+    expected = depth
+    for level in range(1, 3):
+        expected = pyramid_ref(expected, np.float32(PYR))
+        got = maps.depth[level].to_numpy()
+        np.testing.assert_array_equal(got > 0, expected > 0)
+        np.testing.assert_allclose(got, expected, rtol=1e-6)
+        expected = got  # the next level is built from this level's float32 values
+        K_l = maps.intrinsics[level]
+        assert (K_l.width, K_l.height) == maps.shapes[level][::-1]
+        np.testing.assert_allclose(maps.vertex[level].to_numpy(), backproject_ref(got, K_l), rtol=2e-6, atol=1e-7)
+
+
+def test_pyramid_does_not_average_across_an_edge(arch):
+    depth = np.full((8, 8), 1.0, dtype=np.float32)
+    depth[:, 3:] = 2.0  # the coarse pixel at u = 1 (fine u = 2) has fine neighbours on both sides
+    maps = FrameMaps(8, 8, levels=2)
+    maps.compute(depth, Intrinsics(10.0, 10.0, 3.5, 3.5, 8, 8))
+    coarse = maps.depth[1].to_numpy()
+    np.testing.assert_array_equal(coarse[:, :2], 1.0)
+    np.testing.assert_array_equal(coarse[:, 2:], 2.0)
+
+
+def test_wrong_depth_shape_is_refused(cpu):
+    maps = FrameMaps(10, 12, levels=1)
+    with pytest.raises(ValueError, match="shape"):
+        maps.compute(np.zeros((12, 10), np.float32), Intrinsics(10.0, 10.0, 5.0, 5.0, 12, 10))

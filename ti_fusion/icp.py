@@ -1,0 +1,134 @@
+"""Projective point-to-plane ICP, coarse to fine: ``ICP(config).align(source, target, init)``.
+
+``source`` and ``target`` are ``FrameMaps`` (or anything with per-level ``vertex``, ``normal`` fields and
+``intrinsics``) of two depth frames; the result's ``pose`` maps source-camera points into the target
+camera, p_target = T p_source. Each iteration runs one Taichi pass (association + linearisation +
+reduction, ``ti_fusion.kernels.icp``); only the reduced sums cross to NumPy, where the 6×6 system is
+checked and solved and the pose updated on the left with the exact exponential, T ← exp(δξ) · T, the
+twist δξ = (ω, v) rotation first.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .backend import current_backend
+from .config import ICPConfig
+from .geometry import se3_exp
+from .kernels.icp import ROBUST_CODES, PointToPlane, unpack_sums
+from .solve import SOLVERS, check_system, solve_normal_equations, solve_stacked_qr
+
+
+@dataclass
+class IterationRecord:
+    """One ICP iteration: pyramid level (0 = finest), iteration within the level, the mean squared
+    point-to-plane residual and the correspondence count at the pose before the update, and ‖δξ‖."""
+
+    level: int
+    iteration: int
+    loss: float
+    inliers: int
+    update_norm: float = float("nan")
+
+
+@dataclass
+class ICPResult:
+    """Outcome of ``ICP.align``.
+
+    pose: 4×4 float64, source camera → target camera (p_target = T p_source). On a failure, the last
+    good estimate (the pose before the degenerate iteration).
+    converged: no failure and the last update ‖δξ‖ is below ``config.converged_update``.
+    failure: None, or a short reason ("too few inliers (12 < 100)", "ill-conditioned AᵀA (cond ...)").
+    inliers, inlier_ratio (inliers / valid source pixels), residual_rms (metres), condition (cond AᵀA),
+    update_norm: of the last iteration that ran.
+    """
+
+    pose: np.ndarray
+    converged: bool = False
+    failure: str | None = None
+    iterations: list[IterationRecord] = field(default_factory=list)
+    inliers: int = 0
+    inlier_ratio: float = 0.0
+    residual_rms: float = float("nan")
+    condition: float = float("nan")
+    update_norm: float = float("nan")
+
+    def table(self) -> list[dict]:
+        """The per-iteration records as plain dicts (for summary.json)."""
+        return [{"level": r.level, "iteration": r.iteration, "loss": r.loss, "inliers": r.inliers,
+                 "update_norm": r.update_norm} for r in self.iterations]
+
+
+class ICP:
+    """Coarse-to-fine projective point-to-plane ICP with the kernels of the running Taichi backend."""
+
+    def __init__(self, config: ICPConfig | None = None):
+        self.config = config or ICPConfig()
+        if self.config.solver not in SOLVERS:
+            raise ValueError(f"icp.solver {self.config.solver!r}: choose one of {', '.join(SOLVERS)}")
+        if self.config.robust not in ROBUST_CODES:
+            raise ValueError(f"icp.robust {self.config.robust!r}: choose one of {', '.join(ROBUST_CODES)}")
+        self._pass: PointToPlane | None = None
+        self._backend = None
+
+    def _kernels(self, n_pixels: int) -> PointToPlane:
+        """The pass of the current backend, sized for ``n_pixels`` (rebuilt after a backend change)."""
+        backend = current_backend()
+        if self._pass is None or self._backend is not backend or self._pass.max_pixels < n_pixels:
+            self._pass = PointToPlane(n_pixels, backend.has_f64, backend.arch)
+            self._backend = backend
+        return self._pass
+
+    def dist_threshold(self, level: int) -> float:
+        """d_thr at a pyramid level: coarse levels start further from the solution, so they may accept
+        correspondences further apart (``level_dist_scale`` ** level)."""
+        return self.config.dist_threshold * self.config.level_dist_scale ** level
+
+    def align(self, source, target, init: np.ndarray | None = None) -> ICPResult:
+        """Align ``source`` to ``target`` starting from ``init`` (identity when None)."""
+        cfg = self.config
+        n_levels = len(cfg.iterations)
+        if source.levels < n_levels or target.levels < n_levels:
+            raise ValueError(f"icp.iterations has {n_levels} levels but the maps have "
+                             f"{min(source.levels, target.levels)}")
+        T = np.eye(4) if init is None else np.array(init, dtype=np.float64)
+        kernels = self._kernels(source.shapes[0][0] * source.shapes[0][1])
+        result = ICPResult(pose=T.copy())
+        for level, n_iter in zip(reversed(range(n_levels)), cfg.iterations):
+            args = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level])
+            K = target.intrinsics[level].as_tuple()
+            thresholds = (self.dist_threshold(level), cfg.normal_threshold_deg, cfg.robust, cfg.robust_scale)
+            for it in range(n_iter):
+                if cfg.solver == "qr":
+                    sums, rows = kernels.rows(*args, T, K, *thresholds)
+                else:
+                    sums, rows = kernels.reduce(*args, T, K, *thresholds), None
+                s = unpack_sums(sums)
+                n = s["inliers"]
+                record = IterationRecord(level, it, s["r2"] / n if n else float("nan"), n)
+                result.iterations.append(record)
+                result.inliers = n
+                result.inlier_ratio = n / s["sources"] if s["sources"] else 0.0
+                result.residual_rms = float(np.sqrt(record.loss)) if n else float("nan")
+                failure, result.condition = check_system(s["AtA"], n, cfg.min_inliers, cfg.max_condition)
+                if failure is None:
+                    try:
+                        delta = solve_stacked_qr(rows) if rows is not None else \
+                            solve_normal_equations(s["AtA"], s["Atb"], cfg.solver)
+                    except np.linalg.LinAlgError as exc:
+                        failure = f"solver failed ({exc})"
+                if failure is None and not np.all(np.isfinite(delta)):
+                    failure = "non-finite update"
+                if failure is not None:
+                    result.failure = f"level {level} iteration {it}: {failure}"
+                    result.pose = T
+                    return result
+                T = se3_exp(delta) @ T
+                record.update_norm = result.update_norm = float(np.linalg.norm(delta))
+                if record.update_norm < cfg.stop_update:
+                    break
+        result.pose = T
+        result.converged = result.update_norm < cfg.converged_update
+        return result

@@ -1,0 +1,106 @@
+"""Vectorised NumPy float64 version of one ICP pass: association, linearisation, reduction.
+
+The same math as ``ti_fusion.kernels.icp`` (read its docstring for the conventions): the reference the
+kernel tests compare against, and the NumPy baseline of ``scripts/bench_icp.py``. Inputs are H×W×3
+vertex and normal maps (any float dtype; computed in float64), a 4×4 pose mapping source points into the
+target camera and the target level's (fx, fy, cx, cy).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .kernels.icp import (N_SUMS, STATUS_BEHIND, STATUS_NORMAL_ANGLE, STATUS_OK, STATUS_OUT_OF_IMAGE,
+                          STATUS_SOURCE_INVALID, STATUS_TARGET_INVALID, STATUS_TOO_FAR, SUM_ATB, SUM_INLIERS,
+                          SUM_R2, SUM_SOURCE, UPPER)
+
+
+def robust_weights(r: np.ndarray, robust: str, scale: float) -> np.ndarray:
+    """Huber: 1 up to k, k/|r| beyond; Tukey: (1 − (r/c)²)² up to c, 0 beyond; none: 1."""
+    a = np.abs(r)
+    if robust == "huber":
+        return np.where(a > scale, scale / np.maximum(a, 1e-300), 1.0)
+    if robust == "tukey":
+        return np.where(a < scale, (1.0 - (r / scale) ** 2) ** 2, 0.0)
+    return np.ones_like(r)
+
+
+def associate(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float):
+    """Correspondences of one pass.
+
+    Returns (status H×W int32 or None, rows) where rows holds, for the STATUS_OK pixels in pixel order,
+    ``p`` (p′ = R p + t), ``q``, ``nq`` (float64 m×3) and ``sources`` (the count of valid source pixels).
+    """
+    T = np.asarray(T, dtype=np.float64)
+    R, t = T[:3, :3], T[:3, 3]
+    fx, fy, cx, cy = (float(k) for k in K)
+    Ht, Wt = tgt_v.shape[:2]
+    P = src_v.reshape(-1, 3)
+    N = src_n.reshape(-1, 3)
+    status = np.full(P.shape[0], STATUS_SOURCE_INVALID, dtype=np.int32)
+
+    idx = np.flatnonzero((P[:, 2] > 0) & np.any(N != 0, axis=1))
+    p = P[idx].astype(np.float64) @ R.T + t
+    status[idx] = STATUS_BEHIND
+    front = p[:, 2] > 0
+    idx, p = idx[front], p[front]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        u = np.floor(fx * p[:, 0] / p[:, 2] + cx + 0.5)
+        v = np.floor(fy * p[:, 1] / p[:, 2] + cy + 0.5)
+    status[idx] = STATUS_OUT_OF_IMAGE
+    inside = (u >= 0) & (u < Wt) & (v >= 0) & (v < Ht)
+    idx, p = idx[inside], p[inside]
+    flat = v[inside].astype(np.int64) * Wt + u[inside].astype(np.int64)
+    q = tgt_v.reshape(-1, 3)[flat].astype(np.float64)
+    nq = tgt_n.reshape(-1, 3)[flat].astype(np.float64)
+    status[idx] = STATUS_TARGET_INVALID
+    ok = (q[:, 2] > 0) & np.any(nq != 0, axis=1)
+    idx, p, q, nq = idx[ok], p[ok], q[ok], nq[ok]
+    status[idx] = STATUS_TOO_FAR
+    d = p - q
+    ok = np.einsum("ij,ij->i", d, d) < float(dist_threshold) ** 2
+    idx, p, q, nq = idx[ok], p[ok], q[ok], nq[ok]
+    status[idx] = STATUS_NORMAL_ANGLE
+    n_rot = N[idx].astype(np.float64) @ R.T
+    ok = np.einsum("ij,ij->i", n_rot, nq) > np.cos(np.radians(normal_threshold_deg))
+    idx, p, q, nq = idx[ok], p[ok], q[ok], nq[ok]
+    status[idx] = STATUS_OK
+    sources = int(np.count_nonzero(status != STATUS_SOURCE_INVALID))
+    return status.reshape(src_v.shape[:2]), {"p": p, "q": q, "nq": nq, "sources": sources}
+
+
+def linearise(p: np.ndarray, q: np.ndarray, nq: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A (m×6) = [(p′ × n_q)ᵀ, n_qᵀ] and r (m) = n_qᵀ (p′ − q)."""
+    A = np.concatenate([np.cross(p, nq), nq], axis=1)
+    r = np.einsum("ij,ij->i", nq, p - q)
+    return A, r
+
+
+def reduce_sums(A: np.ndarray, r: np.ndarray, w: np.ndarray, sources: int) -> np.ndarray:
+    """The 30 sums in the kernel's order (21 upper AᵀA, 6 Aᵀb, Σr², inliers, sources)."""
+    wA = A * w[:, None]
+    AtA = wA.T @ A
+    sums = np.zeros(N_SUMS)
+    sums[:21] = [AtA[i, j] for i, j in UPPER]
+    sums[SUM_ATB:SUM_ATB + 6] = wA.T @ r
+    sums[SUM_R2] = r @ r
+    sums[SUM_INLIERS] = r.shape[0]
+    sums[SUM_SOURCE] = sources
+    return sums
+
+
+def icp_pass(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
+             robust: str = "none", robust_scale: float = 0.01):
+    """(status H×W, sums[30]) of one pass: the float64 reference of ``PointToPlane.reduce``/``status``."""
+    status, c = associate(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold, normal_threshold_deg)
+    A, r = linearise(c["p"], c["q"], c["nq"])
+    return status, reduce_sums(A, r, robust_weights(r, robust, robust_scale), c["sources"])
+
+
+def stacked_rows(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
+                 robust: str = "none", robust_scale: float = 0.01) -> np.ndarray:
+    """√w [A | r] (m×7) in pixel order: the reference of ``PointToPlane.rows``."""
+    _, c = associate(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold, normal_threshold_deg)
+    A, r = linearise(c["p"], c["q"], c["nq"])
+    sw = np.sqrt(robust_weights(r, robust, robust_scale))
+    return np.concatenate([A, r[:, None]], axis=1) * sw[:, None]

@@ -1,0 +1,69 @@
+"""The 6×6 Gauss–Newton step of point-to-plane ICP, and the checks that refuse a degenerate system.
+
+All three solvers minimise ‖A δ + b‖² over the twist δ = (ω, v) (rotation first):
+- ``cholesky`` (default) and ``lu`` solve the normal equations AᵀA δ = −Aᵀb from the reduced 6×6 sums;
+- ``qr`` factorises the stacked n×6 system A = QR and solves R δ = −Qᵀ b, which never forms AᵀA and so
+  squares no condition number (it needs the per-correspondence rows, see ``PointToPlane.rows``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SOLVERS = ("cholesky", "lu", "qr")
+
+
+def condition_number(AtA: np.ndarray) -> float:
+    """cond(AᵀA) = λmax / λmin of the symmetric matrix; inf when it is singular or not positive."""
+    if not np.all(np.isfinite(AtA)):
+        return float("inf")
+    lam = np.linalg.eigvalsh(AtA)
+    if lam[-1] <= 0 or lam[0] <= lam[-1] * 1e-15:
+        return float("inf")
+    return float(lam[-1] / lam[0])
+
+
+def check_system(AtA: np.ndarray, inliers: int, min_inliers: int, max_condition: float) -> tuple[str | None, float]:
+    """(failure reason or None, cond(AᵀA)): too few correspondences, rank deficiency, ill-conditioning."""
+    if inliers < min_inliers:
+        return f"too few inliers ({inliers} < {min_inliers})", float("inf")
+    cond = condition_number(AtA)
+    if not np.isfinite(cond):
+        rank = int(np.linalg.matrix_rank(AtA)) if np.all(np.isfinite(AtA)) else 0
+        return f"rank-deficient AᵀA (rank {rank} < 6)", cond
+    if cond > max_condition:
+        return f"ill-conditioned AᵀA (cond {cond:.1e} > {max_condition:.0e})", cond
+    return None, cond
+
+
+def _forward(L: np.ndarray, b: np.ndarray) -> np.ndarray:
+    x = np.zeros_like(b)
+    for i in range(len(b)):
+        x[i] = (b[i] - L[i, :i] @ x[:i]) / L[i, i]
+    return x
+
+
+def _backward(U: np.ndarray, b: np.ndarray) -> np.ndarray:
+    x = np.zeros_like(b)
+    for i in reversed(range(len(b))):
+        x[i] = (b[i] - U[i, i + 1:] @ x[i + 1:]) / U[i, i]
+    return x
+
+
+def solve_normal_equations(AtA: np.ndarray, Atb: np.ndarray, method: str = "cholesky") -> np.ndarray:
+    """δ with AᵀA δ = −Aᵀb; ``method`` cholesky (AᵀA = L Lᵀ) or lu (partial pivoting)."""
+    AtA = np.asarray(AtA, dtype=np.float64)
+    rhs = -np.asarray(Atb, dtype=np.float64)
+    if method == "cholesky":
+        L = np.linalg.cholesky(AtA)
+        return _backward(L.T, _forward(L, rhs))
+    if method == "lu":
+        return np.linalg.solve(AtA, rhs)  # LAPACK gesv: LU with partial pivoting
+    raise ValueError(f"unknown solver {method!r}: choose one of {', '.join(SOLVERS)}")
+
+
+def solve_stacked_qr(rows: np.ndarray) -> np.ndarray:
+    """δ minimising ‖A δ + b‖ for the stacked rows [A | b] (n×7) by a reduced QR of A."""
+    rows = np.asarray(rows, dtype=np.float64)
+    Q, R = np.linalg.qr(rows[:, :6], mode="reduced")
+    return _backward(R, -(Q.T @ rows[:, 6]))

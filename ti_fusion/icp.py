@@ -61,6 +61,9 @@ class ICPResult:
                  "update_norm": r.update_norm} for r in self.iterations]
 
 
+_SHARED: dict = {}  # the PointToPlane pass of the running backend
+
+
 class ICP:
     """Coarse-to-fine projective point-to-plane ICP with the kernels of the running Taichi backend."""
 
@@ -70,16 +73,17 @@ class ICP:
             raise ValueError(f"icp.solver {self.config.solver!r}: choose one of {', '.join(SOLVERS)}")
         if self.config.robust not in ROBUST_CODES:
             raise ValueError(f"icp.robust {self.config.robust!r}: choose one of {', '.join(ROBUST_CODES)}")
-        self._pass: PointToPlane | None = None
-        self._backend = None
 
     def _kernels(self, n_pixels: int) -> PointToPlane:
-        """The pass of the current backend, sized for ``n_pixels`` (rebuilt after a backend change)."""
+        """The pass of the current backend, sized for ``n_pixels``, shared by every ICP object: Taichi
+        compiles a kernel once per set of fields it is given, so a shared pass compiles once per pair of
+        maps rather than once per ICP object (rebuilt after a backend change)."""
         backend = current_backend()
-        if self._pass is None or self._backend is not backend or self._pass.max_pixels < n_pixels:
-            self._pass = PointToPlane(n_pixels, backend.has_f64, backend.arch)
-            self._backend = backend
-        return self._pass
+        shared = _SHARED.get("pass")
+        if shared is None or _SHARED.get("backend") is not backend or shared.max_pixels < n_pixels:
+            shared = PointToPlane(n_pixels, backend.has_f64, backend.arch)
+            _SHARED.update({"pass": shared, "backend": backend})
+        return shared
 
     def dist_threshold(self, level: int) -> float:
         """d_thr at a pyramid level: coarse levels start further from the solution, so they may accept

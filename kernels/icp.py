@@ -28,8 +28,10 @@ reduction
     (1,1), …, (5,5)), the 6 entries of Σ w Aᵀ b, Σ r² (unweighted: the loss), the inlier count and, as a
     30th number, the count of valid source pixels (for the inlier ratio). The pixels are split into
     ``n_chunks`` contiguous runs; one parallel task per run accumulates in registers and writes its 30
-    partial sums to ``partials[chunk, :]``; a second small kernel adds the partials (Kahan-compensated,
-    which matters for the float32 path). No atomics.
+    partial sums to ``partials[chunk, :]``; a second loop of the same kernel (Taichi runs top-level loops
+    one after the other) adds the partials, Kahan-compensated (which matters for the float32 path), into
+    a NumPy array passed as an ndarray argument: one launch per iteration, no copy on the CPU. No atomics.
+    The robust weight is a compile-time choice (one kernel per robust mode).
 
 Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
 (vulkan, cuda), chosen when ``PointToPlane`` is built. Fields stay float32.
@@ -65,6 +67,7 @@ SUM_R2 = 27
 SUM_INLIERS = 28
 SUM_SOURCE = 29
 UPPER = [(i, j) for i in range(6) for j in range(i, 6)]  # order of the 21 AᵀA entries
+_UPPER_IDX = tuple(np.array(UPPER).T)
 
 ROBUST_CODES = {"none": 0, "huber": 1, "tukey": 2}
 
@@ -73,8 +76,8 @@ def unpack_sums(sums: np.ndarray) -> dict:
     """The 30 reduced numbers as AtA (6×6, symmetric), Atb (6), r2 (Σ r²), inliers and sources."""
     sums = np.asarray(sums, dtype=np.float64)
     AtA = np.zeros((6, 6))
-    for k, (i, j) in enumerate(UPPER):
-        AtA[i, j] = AtA[j, i] = sums[k]
+    AtA[_UPPER_IDX] = sums[:21]
+    AtA.T[_UPPER_IDX] = sums[:21]
     return {"AtA": AtA, "Atb": sums[SUM_ATB:SUM_ATB + 6].copy(), "r2": float(sums[SUM_R2]),
             "inliers": int(round(sums[SUM_INLIERS])), "sources": int(round(sums[SUM_SOURCE]))}
 
@@ -90,11 +93,22 @@ def default_chunks(arch: str) -> int:
 _KERNELS: dict = {}
 
 
+# Layout of the ``params`` array every kernel takes (float64 on cpu, float32 elsewhere): the pose, the
+# target intrinsics and the thresholds travel as one small array (cheaper to pass than matrix arguments).
+P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE, N_PARAMS = 0, 9, 12, 16, 17, 18, 19
+
+
 def _build_kernels(real):
     """The kernels for one arithmetic type (ti.f64 on cpu, ti.f32 on GPU backends)."""
     vec3 = ti.types.vector(3, real)
-    mat3 = ti.types.matrix(3, 3, real)
-    vec4 = ti.types.vector(4, real)
+    params_t = ti.types.ndarray(dtype=real, ndim=1)
+
+    @ti.func
+    def _pose(params: ti.template()):
+        R = ti.Matrix([[params[P_R + 3 * i + j] for j in ti.static(range(3))] for i in ti.static(range(3))], dt=real)
+        t = ti.Vector([params[P_T + i] for i in ti.static(range(3))], dt=real)
+        K = ti.Vector([params[P_K + i] for i in ti.static(range(4))], dt=real)
+        return R, t, K
 
     @ti.func
     def _associate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
@@ -131,15 +145,15 @@ def _build_kernels(real):
         return status, pt, q, nq
 
     @ti.func
-    def _weight(r, robust: ti.i32, scale):
+    def _weight(r, robust: ti.template(), scale):
         w = ti.cast(1.0, real)
-        a = ti.abs(r)
-        if robust == 1:  # Huber: quadratic up to k, linear beyond
+        if ti.static(robust == 1):  # Huber: quadratic up to k, linear beyond
+            a = ti.abs(r)
             if a > scale:
                 w = scale / a
-        elif robust == 2:  # Tukey's biweight: zero beyond c
+        elif ti.static(robust == 2):  # Tukey's biweight: zero beyond c
             w = 0.0
-            if a < scale:
+            if ti.abs(r) < scale:
                 s = 1.0 - (r / scale) * (r / scale)
                 w = s * s
         return w
@@ -153,12 +167,15 @@ def _build_kernels(real):
 
     @ti.kernel
     def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-               partials: ti.template(), n_chunks: ti.i32, R: mat3, t: vec3, K: vec4, dist2_thr: real,
-               cos_thr: real, robust: ti.i32, scale: real):
+               partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
+               out: params_t):
+        """The 30 sums into ``out`` (and the per-chunk partials into ``partials[:n_chunks]``)."""
         H, W = src_v.shape
         n_pix = H * W
         chunk = (n_pix + n_chunks - 1) // n_chunks
-        for c in range(n_chunks):
+        for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
+            R, t, K = _pose(params)
+            dist2_thr, cos_thr, scale = params[P_DIST2], params[P_COS], params[P_SCALE]
             acc = ti.Vector([0.0] * N_SUMS, dt=real)
             begin = ti.min(c * chunk, n_pix)
             end = ti.min(begin + chunk, n_pix)
@@ -184,10 +201,7 @@ def _build_kernels(real):
                     v += 1
             for k in ti.static(range(N_SUMS)):
                 partials[c, k] = acc[k]
-
-    @ti.kernel
-    def sum_partials(partials: ti.template(), n_chunks: ti.i32, totals: ti.template()):
-        for k in range(N_SUMS):
+        for k in range(N_SUMS):  # runs after the loop above has finished: add the partials
             s = ti.cast(0.0, real)
             comp = ti.cast(0.0, real)  # Kahan compensation: keeps the float32 path near float64
             for c in range(n_chunks):
@@ -195,35 +209,38 @@ def _build_kernels(real):
                 s_new = s + y
                 comp = (s_new - s) - y
                 s = s_new
-            totals[k] = s
+            out[k] = s
 
     @ti.kernel
     def status_map(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                   status: ti.template(), R: mat3, t: vec3, K: vec4, dist2_thr: real, cos_thr: real):
+                   status: ti.template(), params: params_t):
         for v, u in src_v:
-            s, pt, q, nq = _associate(src_v, src_n, tgt_v, tgt_n, v, u, R, t, K, dist2_thr, cos_thr)
+            R, t, K = _pose(params)
+            s, pt, q, nq = _associate(src_v, src_n, tgt_v, tgt_n, v, u, R, t, K, params[P_DIST2], params[P_COS])
             status[v, u] = s
 
     @ti.kernel
     def write_rows(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                   offsets: ti.template(), rows: ti.template(), n_chunks: ti.i32, R: mat3, t: vec3, K: vec4,
-                   dist2_thr: real, cos_thr: real, robust: ti.i32, scale: real):
+                   offsets: ti.template(), rows: ti.template(), n_chunks: ti.i32, robust: ti.template(),
+                   params: params_t):
         """Rows √w [A | r] of the correspondences, compact and in pixel order: chunk c writes from
         ``offsets[c]`` (the exclusive prefix sum of the per-chunk inlier counts of ``reduce``)."""
         H, W = src_v.shape
         n_pix = H * W
         chunk = (n_pix + n_chunks - 1) // n_chunks
         for c in range(n_chunks):
+            R, t, K = _pose(params)
             begin = ti.min(c * chunk, n_pix)
             end = ti.min(begin + chunk, n_pix)
             v = begin // W
             u = begin - v * W
             k = offsets[c]
             for _ in range(begin, end):
-                status, pt, q, nq = _associate(src_v, src_n, tgt_v, tgt_n, v, u, R, t, K, dist2_thr, cos_thr)
+                status, pt, q, nq = _associate(src_v, src_n, tgt_v, tgt_n, v, u, R, t, K, params[P_DIST2],
+                                               params[P_COS])
                 if status == STATUS_OK:
                     A, r = _row(pt, q, nq)
-                    sw = ti.sqrt(_weight(r, robust, scale))
+                    sw = ti.sqrt(_weight(r, robust, params[P_SCALE]))
                     for j in ti.static(range(6)):
                         rows[k, j] = sw * A[j]
                     rows[k, 6] = sw * r
@@ -233,7 +250,7 @@ def _build_kernels(real):
                     u = 0
                     v += 1
 
-    return {"reduce": reduce, "sum_partials": sum_partials, "status_map": status_map, "write_rows": write_rows}
+    return {"reduce": reduce, "status_map": status_map, "write_rows": write_rows}
 
 
 def kernels_for(real):
@@ -257,18 +274,23 @@ class PointToPlane:
         self.n_chunks = int(n_chunks or default_chunks(arch))
         self.k = kernels_for(self.real)
         self.partials = ti.field(self.real, shape=(self.n_chunks, N_SUMS))
-        self.totals = ti.field(self.real, shape=N_SUMS)
+        self.params = np.zeros(N_PARAMS, dtype=self.np_real)
+        self.out = np.zeros(N_SUMS, dtype=self.np_real)  # written by the kernel (no copy on cpu)
         self.offsets = None  # allocated on the first rows() call (QR only)
         self.rows_field = None
         self.status_field = {}
 
-    def _args(self, T: np.ndarray, K, dist_threshold: float, normal_threshold_deg: float):
+    def _set_params(self, T: np.ndarray, K, dist_threshold: float, normal_threshold_deg: float,
+                    robust_scale: float = 0.01) -> np.ndarray:
         T = np.asarray(T, dtype=np.float64)
-        R = ti.Matrix(T[:3, :3].astype(self.np_real).tolist(), dt=self.real)
-        t = ti.Vector(T[:3, 3].astype(self.np_real).tolist(), dt=self.real)
-        Kv = ti.Vector([float(x) for x in K], dt=self.real)
-        cos_thr = math.cos(math.radians(normal_threshold_deg))
-        return R, t, Kv, float(dist_threshold) ** 2, cos_thr
+        p = self.params
+        p[P_R:P_R + 9] = T[:3, :3].ravel()
+        p[P_T:P_T + 3] = T[:3, 3]
+        p[P_K:P_K + 4] = [float(x) for x in K]
+        p[P_DIST2] = float(dist_threshold) ** 2
+        p[P_COS] = math.cos(math.radians(normal_threshold_deg))
+        p[P_SCALE] = float(robust_scale)
+        return p
 
     def _chunks(self, src_v) -> int:
         n = src_v.shape[0] * src_v.shape[1]
@@ -280,11 +302,9 @@ class PointToPlane:
                robust: str = "none", robust_scale: float = 0.01) -> np.ndarray:
         """The 30 sums (float64 NumPy) of one association + linearisation pass at pose ``T``."""
         n_chunks = self._chunks(src_v)
-        R, t, Kv, d2, cos_thr = self._args(T, K, dist_threshold, normal_threshold_deg)
-        self.k["reduce"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, R, t, Kv, d2, cos_thr,
-                         ROBUST_CODES[robust], float(robust_scale))
-        self.k["sum_partials"](self.partials, n_chunks, self.totals)
-        return self.totals.to_numpy().astype(np.float64)
+        params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale)
+        self.k["reduce"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, ROBUST_CODES[robust], params, self.out)
+        return self.out.astype(np.float64)
 
     def chunk_inliers(self, n_chunks: int) -> np.ndarray:
         """Per-chunk inlier counts of the last ``reduce``."""
@@ -307,9 +327,9 @@ class PointToPlane:
             self.offsets = ti.field(ti.i32, shape=self.n_chunks)
             self.rows_field = ti.field(self.real, shape=(self.max_pixels, 7))
         self.offsets.from_numpy(offsets)
-        R, t, Kv, d2, cos_thr = self._args(T, K, dist_threshold, normal_threshold_deg)
-        self.k["write_rows"](src_v, src_n, tgt_v, tgt_n, self.offsets, self.rows_field, n_chunks, R, t, Kv, d2,
-                             cos_thr, ROBUST_CODES[robust], float(robust_scale))
+        params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale)
+        self.k["write_rows"](src_v, src_n, tgt_v, tgt_n, self.offsets, self.rows_field, n_chunks,
+                             ROBUST_CODES[robust], params)
         n = int(counts.sum())
         return sums, self.rows_field.to_numpy()[:n].astype(np.float64)
 
@@ -320,6 +340,6 @@ class PointToPlane:
         if shape not in self.status_field:
             self.status_field[shape] = ti.field(ti.i32, shape=shape)
         field = self.status_field[shape]
-        R, t, Kv, d2, cos_thr = self._args(T, K, dist_threshold, normal_threshold_deg)
-        self.k["status_map"](src_v, src_n, tgt_v, tgt_n, field, R, t, Kv, d2, cos_thr)
+        self.k["status_map"](src_v, src_n, tgt_v, tgt_n, field, self._set_params(T, K, dist_threshold,
+                                                                                  normal_threshold_deg))
         return field.to_numpy()

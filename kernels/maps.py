@@ -13,10 +13,18 @@ separably (a row pass, then a column pass, each range-checked against its own ce
 central differences of raw Kinect-like depth are noisy enough at full resolution that most of them fail
 ICP's normal-angle test; r = 2 cuts the normal noise several-fold at ~3 ms per 640×480 frame.
 
-Speed (2-core CPU): these kernels are scalar, the loop over pixels is not vectorised by Taichi's CPU
-backend (the field's root pointer is reloaded in every iteration, which stops LLVM's loop vectoriser);
-what helps is short dependency chains (one accumulator per window row, branch-free taps) and fewer
-divisions. The timing of each kernel is in docs/ICP.md.
+Speed (the 2-core CPU, 640×480, CPU time of one call, min of 9 runs): backproject 0.9 ms, normals 5.1 ms,
+pyramid_down to level 1 1.5 ms, smoothing r = 2 (both passes) 4.2 ms; about 15 ms for every level of one
+frame. These kernels are scalar: Taichi's CPU backend does not vectorise the loop over pixels (the
+field's root pointer is reloaded in every iteration, which stops LLVM's loop vectoriser; checked in the
+generated IR), and the normal and back-projection kernels were already at about the speed of the same
+loop in C at -O2: a struct-for, an ndrange-for and a row loop, AoS and SoA layouts, and fewer divisions
+changed them by less than 15%. What did pay is short dependency chains: a 5×5 range mean written as one
+running sum took 22.8 ms, the separable, branch-free version 4.2 ms.
+
+Compilation: Taichi compiles a kernel once per set of fields it is given, so the first ``compute`` of
+each new FrameMaps costs about 2 s on that machine (0.5 s per kernel); allocate FrameMaps once and reuse
+them. (One fused kernel for all levels compiled slower still, 4.5 s.)
 """
 
 

@@ -36,27 +36,13 @@ def check_system(AtA: np.ndarray, inliers: int, min_inliers: int, max_condition:
     return None, cond
 
 
-def _forward(L: np.ndarray, b: np.ndarray) -> np.ndarray:
-    x = np.zeros_like(b)
-    for i in range(len(b)):
-        x[i] = (b[i] - L[i, :i] @ x[:i]) / L[i, i]
-    return x
-
-
-def _backward(U: np.ndarray, b: np.ndarray) -> np.ndarray:
-    x = np.zeros_like(b)
-    for i in reversed(range(len(b))):
-        x[i] = (b[i] - U[i, i + 1:] @ x[i + 1:]) / U[i, i]
-    return x
-
-
 def solve_normal_equations(AtA: np.ndarray, Atb: np.ndarray, method: str = "cholesky") -> np.ndarray:
     """δ with AᵀA δ = −Aᵀb; ``method`` cholesky (AᵀA = L Lᵀ) or lu (partial pivoting)."""
     AtA = np.asarray(AtA, dtype=np.float64)
     rhs = -np.asarray(Atb, dtype=np.float64)
     if method == "cholesky":
-        L = np.linalg.cholesky(AtA)
-        return _backward(L.T, _forward(L, rhs))
+        L = np.linalg.cholesky(AtA)  # LinAlgError when AᵀA is not positive definite
+        return np.linalg.solve(L.T, np.linalg.solve(L, rhs))  # two triangular solves
     if method == "lu":
         return np.linalg.solve(AtA, rhs)  # LAPACK gesv: LU with partial pivoting
     raise ValueError(f"unknown solver {method!r}: choose one of {', '.join(SOLVERS)}")
@@ -66,4 +52,4 @@ def solve_stacked_qr(rows: np.ndarray) -> np.ndarray:
     """δ minimising ‖A δ + b‖ for the stacked rows [A | b] (n×7) by a reduced QR of A."""
     rows = np.asarray(rows, dtype=np.float64)
     Q, R = np.linalg.qr(rows[:, :6], mode="reduced")
-    return _backward(R, -(Q.T @ rows[:, 6]))
+    return np.linalg.solve(R, -(Q.T @ rows[:, 6]))  # R is upper triangular

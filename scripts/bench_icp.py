@@ -1,0 +1,300 @@
+#!/usr/bin/env python
+"""Benchmark: projective point-to-plane ICP, Taichi kernels against NumPy and Open3D, in one run.
+
+For one frame pair at 640×480 and at 320×240 it prints
+- ms per ICP iteration at the finest level (association + linearisation + reduction + the 6×6 solve):
+  the Taichi pass on the CPU backend against the vectorised NumPy float64 version of the same math
+  (``ti_fusion.icp_numpy``), and their ratio;
+- ms per frame pair (maps of both frames + coarse-to-fine ICP with ``icp.iterations``) against Open3D's
+  ``t.pipelines.odometry.rgbd_odometry_multi_scale`` with ``Method.PointToPlane`` and the same iteration
+  counts (Open3D builds its own pyramids, vertex and normal maps inside that call), with both errors
+  against the reference relative pose when the data has one.
+
+Data: the redkitchen frames ``--pair S T`` (default 100 110) from DATA or ../shared/data when present,
+else two renders of the synthetic room 3° and 5 cm apart.
+
+Open3D is optional: when ``import open3d`` fails it is skipped, unless ``--open3d-python PY`` names an
+interpreter that has it (e.g. a throwaway venv with ``pip install open3d-cpu``); that interpreter then
+runs this file's worker on the same depth images, within the same benchmark run.
+
+usage: scripts/bench_icp.py [DATA] [--pair S T] [--repeats N] [--open3d-python PY] [--set icp.KEY=VALUE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen-7scenes"
+
+
+# -- Open3D (runs in whichever interpreter has it) ---------------------------------------------------------
+class Open3DPair:
+    """One frame pair set up for Open3D's multi-scale point-to-plane odometry; ``run()`` aligns it once."""
+
+    def __init__(self, depth_mm: list, K: list, iterations: list[int], depth_max: float):
+        import numpy as np
+        import open3d as o3d
+
+        self.o3d, self.np = o3d, np
+        odo = o3d.t.pipelines.odometry
+        self.images = []
+        for d in depth_mm:
+            d = np.ascontiguousarray(d, dtype=np.uint16)
+            color = o3d.t.geometry.Image(np.zeros(d.shape + (3,), np.uint8))
+            self.images.append(o3d.t.geometry.RGBDImage(color, o3d.t.geometry.Image(d)))
+        self.K = o3d.core.Tensor(np.asarray(K, dtype=np.float64))
+        self.criteria = [odo.OdometryConvergenceCriteria(n) for n in iterations]  # coarse → fine, as ours
+        self.depth_max = depth_max
+        self.version = o3d.__version__
+
+    def run(self) -> tuple[float, list]:
+        """(ms, 4×4 pose source → target) of one call from the identity."""
+        odo = self.o3d.t.pipelines.odometry
+        t0 = time.perf_counter()
+        result = odo.rgbd_odometry_multi_scale(self.images[0], self.images[1], self.K,
+                                               self.o3d.core.Tensor(self.np.eye(4)), 1000.0, self.depth_max,
+                                               self.criteria, odo.Method.PointToPlane)
+        ms = 1e3 * (time.perf_counter() - t0)
+        return ms, result.transformation.numpy().tolist()
+
+
+def _worker(folder: str) -> None:
+    """Serve ``Open3DPair.run`` over stdin/stdout: one JSON line per "run" line."""
+    import numpy as np
+
+    spec = json.loads(Path(folder, "spec.json").read_text())
+    pair = Open3DPair([np.load(Path(folder, f"depth{i}.npy")) for i in (0, 1)], spec["K"], spec["iterations"],
+                      spec["depth_max"])
+    print(json.dumps({"version": pair.version}), flush=True)
+    for line in sys.stdin:
+        if line.strip() != "run":
+            break
+        ms, pose = pair.run()
+        print(json.dumps({"ms": ms, "pose": pose}), flush=True)
+
+
+class Open3DRunner:
+    """Open3D in this interpreter, or in ``python`` (a worker process) when this one has none."""
+
+    def __init__(self, depth_s, depth_t, K, iterations, depth_max, python: str | None):
+        import numpy as np
+
+        mm = [np.round(np.asarray(d) * 1000.0).astype(np.uint16) for d in (depth_s, depth_t)]
+        Km = [[K.fx, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]]
+        self.pair = self.proc = None
+        if python is None:
+            self.pair = Open3DPair(mm, Km, iterations, depth_max)  # ImportError when absent
+            self.version = self.pair.version
+            return
+        self._folder = tempfile.TemporaryDirectory()
+        for i, d in enumerate(mm):
+            np.save(Path(self._folder.name, f"depth{i}.npy"), d)
+        Path(self._folder.name, "spec.json").write_text(json.dumps(
+            {"K": Km, "iterations": iterations, "depth_max": depth_max}))
+        self.proc = subprocess.Popen([python, __file__, "--open3d-worker", self._folder.name], text=True,
+                                     stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+        line = self.proc.stdout.readline()
+        if not line:
+            raise ImportError(f"{python} could not run Open3D")
+        self.version = json.loads(line)["version"]
+
+    def run(self) -> tuple[float, list]:
+        if self.pair is not None:
+            return self.pair.run()
+        self.proc.stdin.write("run\n")
+        self.proc.stdin.flush()
+        out = json.loads(self.proc.stdout.readline())
+        return out["ms"], out["pose"]
+
+    def close(self) -> None:
+        if self.proc is not None:
+            self.proc.stdin.close()
+            self.proc.wait(timeout=30)
+            self._folder.cleanup()
+
+
+def open3d_runner(depth_s, depth_t, K, iterations, depth_max, python) -> "Open3DRunner | None":
+    try:
+        return Open3DRunner(depth_s, depth_t, K, iterations, depth_max, python)
+    except ImportError:
+        return None
+
+
+# -- the benchmark ------------------------------------------------------------------------------------
+def load_pair(args, cfg):
+    """(source depth, target depth, intrinsics, reference pose or None, description)."""
+    import numpy as np
+
+    from ti_fusion.config import DatasetConfig, SynthConfig
+    from ti_fusion.geometry import invert, make_pose, so3_exp
+
+    data = Path(args.data) if args.data else DEFAULT_DATA
+    if data.is_dir():
+        from ti_fusion.datasets import open_dataset
+
+        dataset = open_dataset(DatasetConfig(path=str(data), depth_max=cfg.dataset.depth_max))
+        s, t = (dataset.frame_by_raw_index(i) for i in args.pair)
+        reference = invert(t.gt_pose) @ s.gt_pose if s.gt_pose is not None and t.gt_pose is not None else None
+        return s.depth, t.depth, s.intrinsics, reference, f"{data.name} frames {args.pair[0]} → {args.pair[1]}"
+    from ti_fusion.synthetic import SyntheticSequence
+
+    seq = SyntheticSequence(SynthConfig())
+    G = make_pose(so3_exp(np.radians(3.0) * np.array([0.3, -0.8, 0.5]) / np.linalg.norm([0.3, -0.8, 0.5])),
+                  [0.03, -0.02, 0.035])
+    pose = seq.poses[40]
+    depth_s, _ = seq.render(pose, seed=1)
+    depth_t, _ = seq.render(pose @ invert(G), seed=2)
+    return depth_s, depth_t, seq.intrinsics, G, "synthetic room, 3° and 5 cm apart (no redkitchen data found)"
+
+
+def median_ms(fn, repeats: int) -> float:
+    import numpy as np
+
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        fn()
+        times.append(1e3 * (time.perf_counter() - t0))
+    return float(np.median(times))
+
+
+def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
+    import numpy as np
+
+    from ti_fusion import icp_numpy
+    from ti_fusion.geometry import pose_error
+    from ti_fusion.icp import ICP
+    from ti_fusion.kernels.icp import unpack_sums
+    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.solve import solve_normal_equations
+
+    c = cfg.icp
+    levels = len(c.iterations)
+    src, tgt = FrameMaps(K.height, K.width, levels), FrameMaps(K.height, K.width, levels)
+    icp = ICP(c)
+
+    def frame_pair():
+        for maps, depth in ((src, depth_s), (tgt, depth_t)):
+            maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.depth_smooth_radius)
+        return icp.align(src, tgt)
+
+    result = frame_pair()  # compiles every kernel
+    o3d = open3d_runner(depth_s, depth_t, K, list(c.iterations), cfg.dataset.depth_max, args.open3d_python)
+    # Ours and Open3D alternate, run after run, so that both see the same load on the machine.
+    ours_ms, o3d_ms, o3d_pose = [], [], None
+    if o3d is not None:
+        o3d.run()  # warm-up
+    for _ in range(args.repeats):
+        t0 = time.perf_counter()
+        result = frame_pair()
+        ours_ms.append(1e3 * (time.perf_counter() - t0))
+        if o3d is not None:
+            ms, o3d_pose = o3d.run()
+            o3d_ms.append(ms)
+    if o3d is not None:
+        o3d.close()
+
+    pose = result.pose  # one iteration is timed at the converged pose: the association of the last iterations
+    kernels = icp._kernels(K.width * K.height)
+    thresholds = (icp.dist_threshold(0), c.normal_threshold_deg, c.robust, c.robust_scale)
+    fields = (src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0])
+    Kt = tgt.intrinsics[0].as_tuple()
+
+    def taichi_iteration():
+        s = unpack_sums(kernels.reduce(*fields, pose, Kt, *thresholds))
+        return solve_normal_equations(s["AtA"], s["Atb"])
+
+    arrays = [f.to_numpy() for f in fields]
+
+    def numpy_iteration():
+        _, sums = icp_numpy.icp_pass(*arrays, pose, Kt, *thresholds)
+        s = unpack_sums(sums)
+        return solve_normal_equations(s["AtA"], s["Atb"])
+
+    taichi_iteration()
+    numpy_iteration()
+    ti_ms, np_ms = [], []
+    for _ in range(max(3, args.repeats // 2)):  # alternate, as above; Taichi timed 4 times per NumPy run
+        ti_ms.append(median_ms(taichi_iteration, 4))
+        np_ms.append(median_ms(numpy_iteration, 1))
+    ms_taichi, ms_numpy = float(np.median(ti_ms)), float(np.median(np_ms))
+    delta_t, delta_n = taichi_iteration(), numpy_iteration()
+    out = {
+        "resolution": f"{K.width}x{K.height}",
+        "iteration_ms": {"taichi": ms_taichi, "numpy": ms_numpy, "ratio": ms_numpy / ms_taichi},
+        "iteration_delta_agreement": float(np.abs(delta_t - delta_n).max()),
+        "frame_ms": {"taichi": float(np.median(ours_ms))},
+        "taichi_error": pose_error(result.pose, reference) if reference is not None else None,
+        "taichi_failure": result.failure,
+    }
+    if o3d is not None:
+        out["frame_ms"]["open3d"] = float(np.median(o3d_ms))
+        out["frame_ms"]["ratio"] = out["frame_ms"]["open3d"] / out["frame_ms"]["taichi"]
+        out["open3d_version"] = o3d.version
+        out["open3d_error"] = pose_error(np.asarray(o3d_pose), reference) if reference is not None else None
+    return out
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("data", nargs="?", default="", help="7-Scenes folder (default: ../shared/data/redkitchen-7scenes)")
+    parser.add_argument("--pair", nargs=2, type=int, default=[100, 110], metavar=("S", "T"))
+    parser.add_argument("--repeats", type=int, default=10, help="timed runs per measurement (median)")
+    parser.add_argument("--open3d-python", default=None, metavar="PY",
+                        help="an interpreter with open3d installed, when this one has none")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
+    parser.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    parser.add_argument("--open3d-worker", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.open3d_worker:
+        _worker(args.open3d_worker)
+        return 0
+
+    os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")
+    from ti_fusion.backend import init_backend
+    from ti_fusion.config import load_config
+
+    cfg = load_config(None, args.set)
+    backend = init_backend("cpu")
+    depth_s, depth_t, K, reference, what = load_pair(args, cfg)
+    print(f"ICP benchmark: {what}; backend {backend.arch}, {os.cpu_count()} CPUs; iterations {cfg.icp.iterations} "
+          f"(coarse → fine), depth smoothing r = {cfg.icp.depth_smooth_radius}; medians of {args.repeats}+ runs")
+    rows = []
+    for f in (1, 2):
+        Kf = K.downsampled(f)
+        rows.append(bench_resolution(depth_s[::f, ::f].copy(), depth_t[::f, ::f].copy(), Kf, reference, cfg, args))
+
+    def err(e):
+        return f"{e[0]:.2f}° {1e3 * e[1]:.1f} mm" if e is not None else "-"
+
+    print()
+    print(f"{'':>9} | {'one ICP iteration, finest level (ms)':^36} | {'one frame pair: maps + ICP (ms)':^34} | "
+          f"{'error vs reference':^29}")
+    print(f"{'':>9} | {'Taichi':>10} {'NumPy':>10} {'NumPy/Ti':>12} | {'Taichi':>10} {'Open3D':>10} {'O3D/Ti':>11} | "
+          f"{'Taichi':>14} {'Open3D':>14}")
+    for r in rows:
+        it, fr = r["iteration_ms"], r["frame_ms"]
+        o3d_ms = f"{fr['open3d']:10.1f}" if "open3d" in fr else f"{'skipped':>10}"
+        o3d_ratio = f"{fr['ratio']:10.2f}×" if "ratio" in fr else f"{'-':>11}"
+        print(f"{r['resolution']:>9} | {it['taichi']:10.2f} {it['numpy']:10.1f} {it['ratio']:11.1f}× | "
+              f"{fr['taichi']:10.1f} {o3d_ms} {o3d_ratio} | {err(r['taichi_error']):>14} "
+              f"{err(r.get('open3d_error')) if 'open3d' in fr else '-':>14}")
+    if "open3d" not in rows[0]["frame_ms"]:
+        print("Open3D: not installed here (pip install open3d-cpu, or --open3d-python PY): skipped")
+    else:
+        print(f"Open3D {rows[0]['open3d_version']}: rgbd_odometry_multi_scale, Method.PointToPlane, its default loss "
+              "parameters (depth_outlier_trunc 0.07, depth_huber_delta 0.05)")
+    if args.json:
+        Path(args.json).write_text(json.dumps({"data": what, "rows": rows}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -371,3 +371,15 @@ def test_vo_command_on_the_synthetic_default(synth, tmp_path):
         assert (out / name).is_file(), name
     s = json.loads((out / "summary.json").read_text())
     assert s["frames"] == 6 and s["accepted"] == 6 and s["ate_rmse_m"] < 0.01
+
+
+def test_icp_command_with_feature_initialisation(synth, tmp_path):
+    from ti_fusion.cli import main
+
+    out = tmp_path / "out"
+    assert main(["icp", "--downsample", "2", "--source", "0", "--target", "30", "--init", "features",
+                 "--out", str(out), "--quiet"]) == 0
+    s = json.loads((out / "summary.json").read_text())
+    assert s["init"] == "features"
+    assert s["init_trans_err_m"] < 0.02 and s["init_rot_err_deg"] < 0.5  # from 11.5° and 28 cm apart
+    assert s["failure"] is None and s["trans_err_m"] < 0.002 and s["rot_err_deg"] < 0.1

@@ -29,9 +29,23 @@ def _identity(source: Frame, target: Frame, ctx) -> np.ndarray:
     return np.eye(4)
 
 
+def _features(source: Frame, target: Frame, ctx) -> np.ndarray:
+    """ORB + PnP RANSAC (ti_fusion.features): for motions too large for ICP from the identity."""
+    from ..features import estimate_relative_pose
+
+    est = estimate_relative_pose(source, target, ctx.config.vo)
+    if est.pose is None:
+        print(f"features: no initial pose ({est.reason}: {est.good} good matches, {est.inliers} inliers); "
+              "starting from the identity", flush=True)
+        return np.eye(4)
+    print(f"features: {est.good} good matches, {est.inliers} RANSAC inliers", flush=True)
+    return est.pose
+
+
 # --init choices: name → function(source frame, target frame, ctx) returning the initial 4×4 pose
 # (source camera → target camera). Add an entry to offer another initialiser.
-INITIALISERS: dict[str, Callable[[Frame, Frame, object], np.ndarray]] = {"identity": _identity}
+INITIALISERS: dict[str, Callable[[Frame, Frame, object], np.ndarray]] = {"identity": _identity,
+                                                                          "features": _features}
 
 
 def add_arguments(parser) -> None:

@@ -383,3 +383,11 @@ def test_icp_command_rejects_a_missing_frame(cpu, redkitchen, tmp_path, capsys):
 
     assert main(["icp", str(redkitchen), "--source", "10", "--target", "100000", "--quiet", "--out", str(tmp_path)]) == 2
     assert "no frame 100000" in capsys.readouterr().err
+
+
+def test_a_non_rigid_initial_pose_is_refused():
+    class Maps:  # align checks the pose before touching any map
+        levels = 3
+
+    with pytest.raises(ValueError, match="initial pose: rotation block is not orthonormal"):
+        ICP().align(Maps, Maps, init=np.diag([2.0, 1.0, 1.0, 1.0]))

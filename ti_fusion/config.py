@@ -67,7 +67,7 @@ class ICPConfig:
     stop_update: float = 1e-6        # stop a level when ‖δξ‖ falls below this
     normal_max_depth_jump: float = 0.05  # metres: neighbours further apart in depth give no normal
     pyramid_depth_sigma: float = 0.03    # metres: depth averaging in the pyramid ignores larger jumps
-    level_dist_scale: float = 1.0    # d_thr at pyramid level l is dist_threshold · level_dist_scale**l
+    level_dist_scale: float = 2.0    # d_thr at pyramid level l is dist_threshold · level_dist_scale**l (coarse levels gate wider)
     depth_smooth_radius: int = 2     # FrameMaps.compute(smooth_radius=): edge-preserving (2r+1)² depth mean; 0 = raw
     converged_update: float = 1e-4   # result.converged: the last ‖δξ‖ (rad, m) fell below this
 

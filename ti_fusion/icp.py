@@ -16,7 +16,7 @@ import numpy as np
 
 from .backend import current_backend
 from .config import ICPConfig
-from .geometry import se3_exp
+from .geometry import rigidity_error, se3_exp
 from .kernels.icp import ROBUST_CODES, PointToPlane, unpack_sums
 from .solve import SOLVERS, check_system, solve_normal_equations, solve_stacked_qr
 
@@ -98,41 +98,52 @@ class ICP:
             raise ValueError(f"icp.iterations has {n_levels} levels but the maps have "
                              f"{min(source.levels, target.levels)}")
         T = np.eye(4) if init is None else np.array(init, dtype=np.float64)
+        problem = rigidity_error(T)
+        if problem:
+            raise ValueError(f"initial pose: {problem}")
         kernels = self._kernels(source.shapes[0][0] * source.shapes[0][1])
-        result = ICPResult(pose=T.copy())
-        for level, n_iter in zip(reversed(range(n_levels)), cfg.iterations):
-            args = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level])
-            K = target.intrinsics[level].as_tuple()
-            thresholds = (self.dist_threshold(level), cfg.normal_threshold_deg, cfg.robust, cfg.robust_scale)
+        result = ICPResult(pose=T)
+        for level, n_iter in zip(reversed(range(n_levels)), cfg.iterations):  # coarse → fine
             for it in range(n_iter):
-                if cfg.solver == "qr":
-                    sums, rows = kernels.rows(*args, T, K, *thresholds)
-                else:
-                    sums, rows = kernels.reduce(*args, T, K, *thresholds), None
-                s = unpack_sums(sums)
-                n = s["inliers"]
-                record = IterationRecord(level, it, s["r2"] / n if n else float("nan"), n)
-                result.iterations.append(record)
-                result.inliers = n
-                result.inlier_ratio = n / s["sources"] if s["sources"] else 0.0
-                result.residual_rms = float(np.sqrt(record.loss)) if n else float("nan")
-                failure, result.condition = check_system(s["AtA"], n, cfg.min_inliers, cfg.max_condition)
-                if failure is None:
-                    try:
-                        delta = solve_stacked_qr(rows) if rows is not None else \
-                            solve_normal_equations(s["AtA"], s["Atb"], cfg.solver)
-                    except np.linalg.LinAlgError as exc:
-                        failure = f"solver failed ({exc})"
-                if failure is None and not np.all(np.isfinite(delta)):
-                    failure = "non-finite update"
-                if failure is not None:
-                    result.failure = f"level {level} iteration {it}: {failure}"
-                    result.pose = T
+                delta = self._iteration(kernels, source, target, level, it, result)
+                if delta is None:  # degenerate: keep the last good pose
                     return result
-                T = se3_exp(delta) @ T
-                record.update_norm = result.update_norm = float(np.linalg.norm(delta))
-                if record.update_norm < cfg.stop_update:
+                result.pose = se3_exp(delta) @ result.pose
+                result.iterations[-1].update_norm = result.update_norm = float(np.linalg.norm(delta))
+                if result.update_norm < cfg.stop_update:
                     break
-        result.pose = T
         result.converged = result.update_norm < cfg.converged_update
         return result
+
+    def _iteration(self, kernels: PointToPlane, source, target, level: int, it: int,
+                   result: ICPResult) -> np.ndarray | None:
+        """One associate + linearise + solve at ``result.pose``: records it in ``result`` and returns δξ,
+        or None after setting ``result.failure`` when the system is degenerate."""
+        cfg = self.config
+        args = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level],
+                result.pose, target.intrinsics[level].as_tuple(), self.dist_threshold(level),
+                cfg.normal_threshold_deg, cfg.robust, cfg.robust_scale)
+        if cfg.solver == "qr":
+            sums, rows = kernels.rows(*args)
+        else:
+            sums, rows = kernels.reduce(*args), None
+        s = unpack_sums(sums)
+        n = s["inliers"]
+        loss = s["r2"] / n if n else float("nan")
+        result.iterations.append(IterationRecord(level, it, loss, n))
+        result.inliers = n
+        result.inlier_ratio = n / s["sources"] if s["sources"] else 0.0
+        result.residual_rms = float(np.sqrt(loss)) if n else float("nan")
+        failure, result.condition = check_system(s["AtA"], n, cfg.min_inliers, cfg.max_condition)
+        delta = None
+        if failure is None:
+            try:
+                delta = solve_stacked_qr(rows) if rows is not None else \
+                    solve_normal_equations(s["AtA"], s["Atb"], cfg.solver)
+                if not np.all(np.isfinite(delta)):
+                    failure, delta = "non-finite update", None
+            except np.linalg.LinAlgError as exc:
+                failure = f"solver failed ({exc})"
+        if failure is not None:
+            result.failure = f"level {level} iteration {it}: {failure}"
+        return delta

@@ -33,9 +33,11 @@ thread count, not just the same set.
 """
 
 import math
+import weakref
 
 import numpy as np
 import taichi as ti
+from taichi.lang import impl
 
 from ti_fusion.errors import MapCapacityError
 
@@ -171,8 +173,10 @@ def clear_index(img: ti.template()):
 
 @ti.kernel
 def project_surfels(s: ti.template(), n: ti.i32, img: ti.template(), R: Mat3, t: Vec3,
-                    fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32):
-    """Filter pass 1 (proj_pixel ≥ 0: inside the image, z > 0) and the nearest depth per pixel.
+                    fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32,
+                    zbuffer: ti.template()):
+    """Filter pass 1 (proj_pixel ≥ 0: inside the image, z > 0) and, with ``zbuffer``, the nearest depth
+    per pixel.
 
     (R, t) maps world to camera. Pixel u = ⌊fx x/z + cx + ½⌋ (round to nearest): a frame vertex at pixel
     u projects back to u. For rendering, surfels below ``min_weight`` or facing away are left out too
@@ -196,18 +200,24 @@ def project_surfels(s: ti.template(), n: ti.i32, img: ti.template(), R: Mat3, t:
                     pix = v * W + u
                     key = depth_bits(pc.z)
                     s.proj_depth[i] = key
-                    if key < img.depth_key[v, u]:  # plain read first: most lose, and skip the atomic
-                        ti.atomic_min(img.depth_key[v, u], key)
+                    if ti.static(zbuffer):
+                        if key < img.depth_key[v, u]:  # plain read first: most lose, and skip the atomic
+                            ti.atomic_min(img.depth_key[v, u], key)
         s.proj_pixel[i] = pix
 
 
 @ti.kernel
-def claim_index(s: ti.template(), n: ti.i32, img: ti.template()):
-    """Second pass of the index map: among the surfels at the nearest depth, the smallest index wins."""
+def claim_index(s: ti.template(), n: ti.i32, img: ti.template(), flagged_only: ti.template()):
+    """Second pass of the index map: among the surfels at the nearest depth, the smallest index wins.
+
+    With ``flagged_only``, only surfels with flag 1 take part (the compatible ones, see below)."""
     W = img.index.shape[1]
     for i in range(n):
         pix = s.proj_pixel[i]
-        if pix >= 0:
+        take = pix >= 0
+        if ti.static(flagged_only):
+            take = take and s.flag[i] == 1
+        if take:
             v, u = pix // W, pix % W
             if s.proj_depth[i] == img.depth_key[v, u]:
                 ti.atomic_min(img.index[v, u], i)
@@ -239,6 +249,43 @@ def associate(s: ti.template(), img: ti.template(), vertex: ti.template(), norma
                 if (qw - s.position[i]).norm() <= dist_threshold and nw.dot(s.normal[i]) >= cos_threshold:
                     a = i
         img.assoc[v, u] = a
+
+
+@ti.kernel
+def flag_compatible(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
+                    R: Mat3, t: Vec3, dist_threshold: ti.f32, cos_threshold: ti.f32):
+    """Keller's association order: filter pass 2 for every surfel of pass 1 against the measurement at its
+    pixel (flag = 1 when within the thresholds), and the nearest depth per pixel among those only.
+
+    (R, t) maps camera to world. ``claim_index(flagged_only=True)`` then picks one surfel per pixel, so a
+    pixel still merges into at most one surfel: the nearest compatible one rather than the nearest one.
+    """
+    W = img.index.shape[1]
+    for i in range(n):
+        ok = 0
+        pix = s.proj_pixel[i]
+        if pix >= 0:
+            v, u = pix // W, pix % W
+            q = vertex[v, u]
+            nq = normal[v, u]
+            if is_valid(q, nq):
+                if ((R @ q + t) - s.position[i]).norm() <= dist_threshold and \
+                        (R @ nq).dot(s.normal[i]) >= cos_threshold:
+                    ok = 1
+                    key = s.proj_depth[i]
+                    if key < img.depth_key[v, u]:
+                        ti.atomic_min(img.depth_key[v, u], key)
+        s.flag[i] = ok
+
+
+@ti.kernel
+def assoc_from_index(img: ti.template()):
+    for v, u in img.index:
+        i = img.index[v, u]
+        if i == INT_MAX or i < 0:
+            i = -1
+        img.index[v, u] = i
+        img.assoc[v, u] = i
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -477,7 +524,13 @@ def gather_winners(s: ti.template(), img: ti.template(), R: Mat3, t: Vec3):
 @ti.kernel
 def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, half: ti.template(),
                  out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
-    """Per pixel: the nearest disc among the neighbourhood's front surfels that the pixel's ray meets.
+    """Per pixel: the pixel's own front surfel, unless a neighbour's disc that the ray meets lies clearly
+    in front of it (an occluding edge), or the pixel has none (a hole, filled by the nearest neighbour disc).
+
+    Why not simply the nearest disc of the neighbourhood: with noisy surfels the minimum depth over
+    (2h+1)² overlapping discs is biased towards the camera by about the noise level (~5 mm on Kinect
+    data), and ICP against such a prediction drifts by that much every frame. A neighbour therefore
+    wins only when it is nearer by more than ``occlusion_margin`` (three sigma of Kinect-like noise).
 
     A surfel always covers its own pixel (at its centre depth if the ray misses the disc), so surfels
     small on screen still show as points. Ties in depth go to the smaller surfel index. Outputs are in
@@ -487,37 +540,61 @@ def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.
     H, W = img.index.shape
     for v, u in ti.ndrange(H, W):
         d = Vec3((u - cx) / fx, (v - cy) / fy, 1.0)
+        own_z = 0.0
         best_z = 0.0
         best_i = INT_MAX
         best_n = Vec3(0.0, 0.0, 0.0)
+        # The pixel's own front surfel first: it is the reference the neighbours must beat.
+        if img.rad[v, u] >= 0:
+            pc = img.pc[v, u]
+            nc = img.nc[v, u]
+            z = ray_disc_depth(pc, nc, img.rad[v, u], d)
+            if z == 0.0:
+                z = pc.z
+            if z > 0:
+                own_z = z
+                best_z = z
+                best_i = img.index[v, u]
+                best_n = nc
+        margin = occlusion_margin(own_z)
         for dv in ti.static(range(-half, half + 1)):
             for du in ti.static(range(-half, half + 1)):
-                y = v + dv
-                x = u + du
-                if 0 <= y < H and 0 <= x < W:
-                    r = img.rad[y, x]
-                    if r >= 0:
-                        pc = img.pc[y, x]
-                        nc = img.nc[y, x]
-                        z = 0.0
-                        denom = nc.dot(d)
-                        if ti.abs(denom) > 1e-6:
-                            zz = nc.dot(pc) / denom
-                            if zz > 0 and (zz * d - pc).norm_sqr() <= r * r:
-                                z = zz
-                        if ti.static(dv == 0 and du == 0):
-                            if z == 0.0:
-                                z = pc.z
-                        if z > 0:
-                            j = img.index[y, x]
-                            if best_i == INT_MAX or z < best_z or (z == best_z and j < best_i):
-                                best_z = z
-                                best_i = j
-                                best_n = nc
+                if ti.static(dv != 0 or du != 0):
+                    y = v + dv
+                    x = u + du
+                    if 0 <= y < H and 0 <= x < W:
+                        r = img.rad[y, x]
+                        if r >= 0:
+                            pc = img.pc[y, x]
+                            z = ray_disc_depth(pc, img.nc[y, x], r, d)
+                            if z > 0 and (own_z == 0.0 or z < own_z - margin):
+                                j = img.index[y, x]
+                                if best_i == INT_MAX or best_z == own_z or z < best_z or (z == best_z and j < best_i):
+                                    best_z = z
+                                    best_i = j
+                                    best_n = img.nc[y, x]
         img.view_index[v, u] = best_i
         out_vertex[v, u] = best_z * d
         out_normal[v, u] = best_n
         out_depth[v, u] = best_z
+
+
+@ti.func
+def ray_disc_depth(pc, nc, r, d):
+    """Depth along the pixel ray ``d`` (z = 1) where it meets the disc (centre pc, normal nc, radius r); 0 if not."""
+    z = 0.0
+    denom = nc.dot(d)
+    if ti.abs(denom) > 1e-6:
+        zz = nc.dot(pc) / denom
+        if zz > 0 and (zz * d - pc).norm_sqr() <= r * r:
+            z = zz
+    return z
+
+
+@ti.func
+def occlusion_margin(z):
+    """Three sigma of Kinect-like axial noise at depth z (Nguyen et al. 2012), at least 1 cm."""
+    return ti.max(0.01, 3.0 * (0.0012 + 0.0019 * (z - 0.4) ** 2))
 
 
 @ti.kernel
@@ -547,6 +624,52 @@ def _camera_to_world(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
 
 
+class _Pool:
+    """Taichi fields shared by every SurfelMap of the running Taichi program, and surfel arrays to reuse.
+
+    Taichi allows 512 SNode trees per program, and freeing one makes it recompile every kernel (seconds),
+    so the arrays of a garbage-collected map go back here for the next map of the same capacity instead
+    of being freed, and all maps share one set of scratch images per resolution. Reset with the program.
+    """
+
+    _runtime = None  # weak reference to the Taichi runtime the fields belong to
+    arrays: dict[int, list[SurfelArrays]] = {}
+    scratch: dict[tuple[int, int], ImageScratch] = {}
+    small: dict[str, object] = {}
+
+    @classmethod
+    def current(cls) -> type["_Pool"]:
+        runtime = impl.get_runtime()
+        if cls._runtime is None or cls._runtime() is not runtime:  # a new program (ti.reset / init)
+            cls._runtime = weakref.ref(runtime)
+            cls.arrays, cls.scratch, cls.small = {}, {}, {}
+        return cls
+
+    @classmethod
+    def take_arrays(cls, capacity: int) -> SurfelArrays:
+        spare = cls.current().arrays.get(capacity)
+        return spare.pop() if spare else SurfelArrays(capacity)
+
+    @classmethod
+    def give_back(cls, runtime_ref, arrays: SurfelArrays) -> None:
+        if cls._runtime is not None and cls._runtime is runtime_ref and runtime_ref() is not None:
+            cls.arrays.setdefault(arrays.capacity, []).append(arrays)
+
+    @classmethod
+    def image_scratch(cls, height: int, width: int) -> ImageScratch:
+        pool = cls.current()
+        if (height, width) not in pool.scratch:
+            pool.scratch[(height, width)] = ImageScratch(height, width)
+        return pool.scratch[(height, width)]
+
+    @classmethod
+    def field(cls, name: str, make):
+        pool = cls.current()
+        if name not in pool.small:
+            pool.small[name] = make()
+        return pool.small[name]
+
+
 @ti.data_oriented
 class SurfelMap:
     """A growable surfel map on the Taichi side, with the stages of one fusion step and the renderer.
@@ -559,12 +682,18 @@ class SurfelMap:
         if capacity < 1:
             raise MapCapacityError(f"fusion.capacity must be positive (got {capacity})")
         self.grow = grow
-        self.arrays = SurfelArrays(capacity)
         self.count = 0
-        self.totals = ti.field(ti.i32, shape=4)  # new, merged, overflow, removed
-        self._scratch: dict[tuple[int, int], ImageScratch] = {}
-        self._retired: list[SurfelArrays] = []  # keeps ids of old arrays unique for Taichi's kernel cache
         self._projected = 0  # surfels that existed at the last projection (their proj_* are current)
+        self._adopt(_Pool.take_arrays(int(capacity)))
+        # new, merged, overflow, removed: per-call results, so one field serves every map
+        self.totals = _Pool.field("totals", lambda: ti.field(ti.i32, shape=4))
+
+    def _adopt(self, arrays: SurfelArrays) -> None:
+        """Use ``arrays`` from now on; they go back to the pool when this map is garbage-collected."""
+        if getattr(self, "_finalizer", None) is not None:
+            self._finalizer.detach()
+        self.arrays = arrays
+        self._finalizer = weakref.finalize(self, _Pool.give_back, _Pool._runtime, arrays)
 
     # -- storage ---------------------------------------------------------------------------------------
     @property
@@ -572,10 +701,8 @@ class SurfelMap:
         return self.arrays.capacity
 
     def scratch(self, height: int, width: int) -> ImageScratch:
-        key = (height, width)
-        if key not in self._scratch:
-            self._scratch[key] = ImageScratch(height, width)
-        return self._scratch[key]
+        """Work images of this resolution: shared by all maps, overwritten by the next step or render."""
+        return _Pool.image_scratch(height, width)
 
     def ensure_capacity(self, needed: int) -> None:
         """Make room for ``needed`` surfels in total: grow ×2 until they fit, or raise MapCapacityError."""
@@ -590,9 +717,10 @@ class SurfelMap:
             capacity *= 2
         new = SurfelArrays(capacity)
         copy_all(self.arrays, new, self.count)
-        old, self.arrays = self.arrays, new
+        old = self.arrays
+        self._adopt(new)
+        # Freed rather than pooled: a grown map is large. Taichi then recompiles its kernels (once).
         old.destroy()
-        self._retired.append(old)
         self._projected = 0  # the scratch was not copied
 
     def clear(self) -> None:
@@ -600,14 +728,16 @@ class SurfelMap:
         self._projected = 0
 
     # -- 1-3: project, filter pass 1, filter pass 2 ------------------------------------------------------
-    def project(self, pose: np.ndarray, intrinsics, height: int, width: int) -> ImageScratch:
-        """Index map of the surfels in the frame with camera-to-world ``pose`` (and filter pass 1)."""
+    def project(self, pose: np.ndarray, intrinsics, height: int, width: int, index_map: bool = True) -> ImageScratch:
+        """Filter pass 1 of the surfels in the frame with camera-to-world ``pose`` and, with ``index_map``,
+        the index map (per pixel the surfel nearest in depth, ties to the smaller index)."""
         img = self.scratch(height, width)
         R, t = _world_to_camera(pose)
         clear_index(img)
         if self.count > 0:
-            project_surfels(self.arrays, self.count, img, R, t, *intrinsics.as_tuple(), False, 0.0)
-            claim_index(self.arrays, self.count, img)
+            project_surfels(self.arrays, self.count, img, R, t, *intrinsics.as_tuple(), False, 0.0, index_map)
+            if index_map:
+                claim_index(self.arrays, self.count, img, False)
         self._projected = self.count
         return img
 
@@ -617,6 +747,18 @@ class SurfelMap:
         R, t = _camera_to_world(pose)
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
         associate(self.arrays, img, vertex, normal, R, t, dist_threshold, cos_threshold)
+
+    def associate_compatible(self, img: ImageScratch, vertex, normal, pose: np.ndarray, dist_threshold: float,
+                             normal_threshold_deg: float) -> None:
+        """Keller's order instead of ``associate``: after ``project(index_map=False)``, filter pass 2 for
+        every surfel of pass 1, then per pixel the nearest surfel that passed: ``img.assoc`` (and
+        ``img.index``, the same) hold it or -1."""
+        R, t = _camera_to_world(pose)
+        cos_threshold = math.cos(math.radians(normal_threshold_deg))
+        if self._projected > 0:
+            flag_compatible(self.arrays, self._projected, img, vertex, normal, R, t, dist_threshold, cos_threshold)
+            claim_index(self.arrays, self._projected, img, True)
+        assoc_from_index(img)
 
     def pass1_mask(self) -> np.ndarray:
         """Filter pass 1 of the last projection: surfels inside the image with positive depth."""
@@ -677,9 +819,7 @@ class SurfelMap:
         return removed
 
     def _dummy_depth(self):
-        if not hasattr(self, "_no_depth"):
-            self._no_depth = ti.field(ti.f32, shape=(1, 1))
-        return self._no_depth
+        return _Pool.field("no_depth", lambda: ti.field(ti.f32, shape=(1, 1)))
 
     # -- rendering ------------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics, out_vertex=None, out_normal=None, out_depth=None,
@@ -697,8 +837,8 @@ class SurfelMap:
         fx, fy, cx, cy = intrinsics.as_tuple()
         clear_index(img)
         if self.count > 0:
-            project_surfels(self.arrays, self.count, img, R, t, fx, fy, cx, cy, True, float(min_weight))
-            claim_index(self.arrays, self.count, img)
+            project_surfels(self.arrays, self.count, img, R, t, fx, fy, cx, cy, True, float(min_weight), True)
+            claim_index(self.arrays, self.count, img, False)
         self._projected = 0  # proj_* now hold the render's projection, not the fusion step's
         gather_winners(self.arrays, img, R, t)
         splat_gather(img, fx, fy, cx, cy, int(max_half),

@@ -174,6 +174,22 @@ def ref_associate(index, data, vertex, normal, pose):
     return assoc
 
 
+def ref_associate_compatible(pix, z, data, vertex, normal, pose):
+    """Keller's order: filter pass 2 for every surfel of pass 1, then per pixel the nearest that passed."""
+    valid = ((vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)).reshape(-1)
+    q = vertex.reshape(-1, 3).astype(np.float64)
+    nq = normal.reshape(-1, 3).astype(np.float64)
+    ok = pix >= 0
+    ok[ok] &= valid[pix[ok]]
+    i = np.flatnonzero(ok)
+    qw = q[pix[i]] @ pose[:3, :3].T + pose[:3, 3]
+    nw = nq[pix[i]] @ pose[:3, :3].T
+    good = (np.linalg.norm(qw - data["position"][i], axis=-1) <= DIST) & \
+           ((nw * data["normal"][i]).sum(-1) >= math.cos(math.radians(ANGLE)))
+    ok[i[~good]] = False
+    return ref_index_map(np.where(ok, pix, -1), z)
+
+
 def ref_alpha(u, v, confidence):
     if not confidence:
         return np.ones(np.shape(u))
@@ -285,12 +301,28 @@ def test_filter_pass2(arch, rng):
     assert (want >= 0).sum() > 50 and ((index >= 0) & valid & (want < 0)).sum() > 50
 
 
-@pytest.mark.parametrize("confidence", [False, True])
-def test_merge_and_add(arch, rng, confidence):
+def test_compatible_association(arch, rng):
     pose, vertex, normal, depth, colour, data, smap = setup(rng)
     fv, fn, _ = frame_fields(vertex, normal, depth)
-    img = smap.project(pose, K, H, W)
-    smap.associate(img, fv, fn, pose, DIST, ANGLE)
+    img = smap.project(pose, K, H, W, index_map=False)
+    smap.associate_compatible(img, fv, fn, pose, DIST, ANGLE)
+    pix, z = ref_project(data["position"].astype(np.float64), pose)
+    want = ref_associate_compatible(pix, z, data, vertex, normal, pose)
+    np.testing.assert_array_equal(img.assoc.to_numpy(), want)
+    nearest = ref_associate(ref_index_map(pix, z), data, vertex, normal, pose)
+    assert (want >= 0).sum() > (nearest >= 0).sum()  # a compatible surfel behind the nearest one now merges
+
+
+@pytest.mark.parametrize("confidence,association", [(False, "nearest"), (True, "nearest"), (True, "compatible")])
+def test_merge_and_add(arch, rng, confidence, association):
+    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    fv, fn, _ = frame_fields(vertex, normal, depth)
+    if association == "nearest":
+        img = smap.project(pose, K, H, W)
+        smap.associate(img, fv, fn, pose, DIST, ANGLE)
+    else:
+        img = smap.project(pose, K, H, W, index_map=False)
+        smap.associate_compatible(img, fv, fn, pose, DIST, ANGLE)
     img.colour.from_numpy(pack_colour(colour))
     frame = 12
     smap.merge(img, fv, fn, pose, K, frame, confidence, SIGMA, True)
@@ -298,7 +330,10 @@ def test_merge_and_add(arch, rng, confidence):
     added, merged = smap.add(img, fv, fn, pose, K, frame, confidence, SIGMA, True)
 
     pix, z = ref_project(data["position"].astype(np.float64), pose)
-    assoc = ref_associate(ref_index_map(pix, z), data, vertex, normal, pose)
+    if association == "nearest":
+        assoc = ref_associate(ref_index_map(pix, z), data, vertex, normal, pose)
+    else:
+        assoc = ref_associate_compatible(pix, z, data, vertex, normal, pose)
     want = ref_merge(data, assoc, vertex, normal, colour, pose, frame, confidence)
     new = ref_new_surfels(assoc, vertex, normal, colour, pose, frame, confidence)
     got = smap.to_numpy()
@@ -430,12 +465,12 @@ def plane_frame(tilt=0.002):
     return maps, depth
 
 
-@pytest.mark.parametrize("confidence", [False, True])
-def test_same_frame_twice_adds_nothing(cpu, rng, confidence):
+@pytest.mark.parametrize("confidence,association", [(False, "nearest"), (True, "nearest"), (True, "compatible")])
+def test_same_frame_twice_adds_nothing(cpu, rng, confidence, association):
     maps, _ = plane_frame()
     colour = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
     pose = random_pose(rng)
-    mapper = SurfelMapper(FusionConfig(capacity=10_000, confidence_weighting=confidence))
+    mapper = SurfelMapper(FusionConfig(capacity=10_000, confidence_weighting=confidence, association=association))
     first = mapper.integrate(maps, colour, pose, 0)
     before = mapper.to_numpy()
     second = mapper.integrate(maps, colour, pose, 1)

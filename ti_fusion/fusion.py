@@ -70,15 +70,19 @@ class SurfelMapper:
         ms: dict[str, float] = {}
         stage = _Stages(timer, ms)
 
+        keller = cfg.association == "compatible"
+        if cfg.association not in ("nearest", "compatible"):
+            raise ValueError(f"fusion.association must be nearest or compatible, not {cfg.association!r}")
         with stage("project"):
-            img = self.map.project(pose, K, H, W)
+            img = self.map.project(pose, K, H, W, index_map=not keller)
             has_colour = color is not None
             if has_colour:
                 if color.shape[:2] != (H, W):
                     raise ValueError(f"colour of shape {color.shape[:2]} for a depth map of shape {(H, W)}")
                 img.colour.from_numpy(pack_colour(color))
         with stage("filter"):
-            self.map.associate(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
+            associate = self.map.associate_compatible if keller else self.map.associate
+            associate(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
         with stage("merge"):
             self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
                            cfg.confidence_sigma, has_colour)

@@ -12,15 +12,20 @@ strings the stages together):
 2. filter 1   the per-surfel mask "projects inside the image with positive depth" (``proj_pixel >= 0``,
               computed by the same kernel as step 1);
 3. filter 2   per pixel, the index-map surfel is associated when the frame's vertex is within a distance
-              and its normal within an angle of the surfel's (``assoc`` image);
+              and its normal within an angle of the surfel's (``assoc`` image). Alternatively
+              (``fusion.association = "compatible"``, Keller's order) every surfel of pass 1 is tested
+              against its pixel's measurement first and the index map keeps the nearest that passed:
+              a compatible surfel behind an incompatible one still merges. Either way a pixel merges
+              into at most one surfel and a surfel takes at most one pixel;
 4. merge      associated surfels average in the measurement (weight 1, or Keller's radial confidence);
 5. add        every valid pixel without an association becomes a new surfel;
 6. remove     unstable surfels (low weight, not updated for a while) and, optionally, surfels the frame
               sees through (free-space violations); the arrays are compacted in place.
 
 Why the index map needs two passes: Vulkan guarantees only 32-bit atomics, so a 64-bit key
-(depth << 32 | index) is out. A packed 32-bit key would leave too few bits for either: 2**20 surfels
-need 20 bits, leaving 12 bits of depth, i.e. millimetres over 4 m. So pass 1 takes an atomic min of
+(depth << 32 | index) is out. A packed 32-bit key would leave too few bits for either: 4 M surfels
+need 22 bits, leaving 10 bits of depth, 4 mm steps over 4 m, so surfels a few millimetres apart would
+tie and be ranked by index rather than depth. So pass 1 takes an atomic min of
 the depth's float bits (for positive IEEE-754 floats the bit patterns, read as int32, order exactly like
 the values), and pass 2 lets every surfel whose depth bits equal the pixel's minimum take an atomic min
 of its index. The winner is the nearest surfel, exact ties broken by the smallest index: deterministic

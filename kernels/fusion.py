@@ -412,13 +412,16 @@ def mark_removal(s: ti.template(), n: ti.i32, n_projected: ti.i32, frame_index: 
             i = b * BLOCK + j
             if i < n:
                 rm = 0
-                if unstable and s.weight[i] < unstable_weight and frame_index - s.t_updated[i] >= unstable_age:
-                    rm = 1
-                if free_space and i < n_projected and s.t_updated[i] != frame_index and s.proj_pixel[i] >= 0:
-                    pix = s.proj_pixel[i]
-                    d = depth[pix // W, pix % W]
-                    if d > 0 and d > bits_depth(s.proj_depth[i]) + margin:
-                        rm = 1
+                if unstable:
+                    if s.weight[i] < unstable_weight:  # nested: t_updated is read for weak surfels only
+                        if frame_index - s.t_updated[i] >= unstable_age:
+                            rm = 1
+                if free_space and i < n_projected and s.proj_pixel[i] >= 0:
+                    if s.t_updated[i] != frame_index:
+                        pix = s.proj_pixel[i]
+                        d = depth[pix // W, pix % W]
+                        if d > 0 and d > bits_depth(s.proj_depth[i]) + margin:
+                            rm = 1
                 s.flag[i] = rm
                 removed += rm
         s.block_a[b] = removed
@@ -434,43 +437,47 @@ def sum_blocks(s: ti.template(), n: ti.i32, totals: ti.template()):
 
 
 @ti.kernel
-def count_holes_movers(s: ti.template(), n: ti.i32, m: ti.i32):
-    """Per block: holes (removed, index < m) and movers (kept, index ≥ m). There are as many of each."""
-    for b in range((n + BLOCK - 1) // BLOCK):
-        holes = 0
-        movers = 0
-        for j in range(BLOCK):
-            i = b * BLOCK + j
-            if i < n:
-                if i < m and s.flag[i] == 1:
-                    holes += 1
-                if i >= m and s.flag[i] == 0:
-                    movers += 1
-        s.block_a[b] = holes
-        s.block_b[b] = movers
-
-
-@ti.kernel
-def scan_blocks(s: ti.template(), n: ti.i32):
+def scan_blocks(s: ti.template(), n: ti.i32, m: ti.i32):
+    """Per block, holes (removed, index < m: block_b) and movers (kept, index ≥ m), and their exclusive
+    prefix sums (offset_a, offset_b). There are as many of each. Blocks wholly below or above m take
+    their counts from block_a (the removals per block); only the block that straddles m is re-counted.
+    """
     holes = 0
     movers = 0
     ti.loop_config(serialize=True)
     for b in range((n + BLOCK - 1) // BLOCK):
+        lo = b * BLOCK
+        hi = ti.min(lo + BLOCK, n)
+        h = 0
+        k = 0
+        if hi <= m:
+            h = s.block_a[b]
+        elif lo >= m:
+            k = (hi - lo) - s.block_a[b]
+        else:
+            for i in range(lo, hi):
+                if i < m and s.flag[i] == 1:
+                    h += 1
+                if i >= m and s.flag[i] == 0:
+                    k += 1
+        s.block_b[b] = h
         s.offset_a[b] = holes
         s.offset_b[b] = movers
-        holes += s.block_a[b]
-        movers += s.block_b[b]
+        holes += h
+        movers += k
 
 
 @ti.kernel
 def list_holes(s: ti.template(), m: ti.i32):
+    """slot[k] = the k-th hole below m, in index order (blocks without holes are skipped)."""
     for b in range((m + BLOCK - 1) // BLOCK):
-        k = s.offset_a[b]
-        for j in range(BLOCK):
-            i = b * BLOCK + j
-            if i < m and s.flag[i] == 1:
-                s.slot[k] = i
-                k += 1
+        if s.block_b[b] > 0:
+            k = s.offset_a[b]
+            for j in range(BLOCK):
+                i = b * BLOCK + j
+                if i < m and s.flag[i] == 1:
+                    s.slot[k] = i
+                    k += 1
 
 
 @ti.func
@@ -815,8 +822,7 @@ class SurfelMap:
         removed = int(self.totals[3])
         if removed > 0:
             m = n - removed
-            count_holes_movers(self.arrays, n, m)
-            scan_blocks(self.arrays, n)
+            scan_blocks(self.arrays, n, m)
             list_holes(self.arrays, m)
             fill_holes(self.arrays, n, m)
             self.count = m

@@ -379,6 +379,44 @@ def test_remove(arch, rng, free_space):
     np.testing.assert_array_equal(got["position"][:m][stay], data["position"][:m][stay])
 
 
+@pytest.mark.parametrize("pattern", ["spread", "clustered"])
+def test_compaction_across_blocks(arch, rng, pattern):
+    """Removal over several compaction blocks: holes in blocks wholly below the new count, survivors in
+    blocks wholly above it, and the block straddling it."""
+    n = 5 * F.BLOCK + 321
+    data = {
+        "position": rng.normal(size=(n, 3)).astype(np.float32),
+        "normal": rng.normal(size=(n, 3)).astype(np.float32),
+        "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+        "weight": rng.uniform(0, 10, n).astype(np.float32),
+        "radius": rng.uniform(0, 0.1, n).astype(np.float32),
+        "t_created": np.arange(n, dtype=np.int32),
+        "t_updated": rng.integers(0, 100, n).astype(np.int32),
+    }
+    if pattern == "clustered":  # removals only in blocks 1 and 4 (as after a burst of new surfels)
+        data["weight"][:] = 5.0
+        for b in (1, 4):
+            sl = slice(b * F.BLOCK + 100, b * F.BLOCK + 900)
+            data["weight"][sl] = rng.uniform(0, 6, 800)
+    smap = F.SurfelMap(8 * F.BLOCK)
+    smap.from_numpy(data)
+    frame, w_min, age = 100, 3.0, 30
+    removed = smap.remove(frame, True, w_min, age)
+    drop = (data["weight"] < w_min) & (frame - data["t_updated"] >= age)
+    assert removed == drop.sum() > 100
+    got = smap.to_numpy()
+    m = n - removed
+    assert smap.count == m and m // F.BLOCK >= 2
+    np.testing.assert_array_equal(np.sort(got["t_created"]), np.flatnonzero(~drop))  # t_created = old index
+    np.testing.assert_array_equal(sorted_rows(got), sorted_rows({k: a[~drop] for k, a in data.items()}))
+    stay = ~drop[:m]
+    np.testing.assert_array_equal(got["t_created"][:m][stay], np.arange(m)[stay])  # survivors below m stay
+    # the k-th hole below m takes the k-th survivor at or above m
+    holes = np.flatnonzero(drop[:m])
+    movers = m + np.flatnonzero(~drop[m:])
+    np.testing.assert_array_equal(got["t_created"][holes], movers)
+
+
 def ref_render(data, pose, half, min_weight=0.0):
     """Point z-buffer of the front-facing, confident surfels, then per pixel the nearest disc hit among
     the neighbourhood's front surfels (the kernel's screen-space splatting), in float64."""

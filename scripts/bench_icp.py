@@ -10,6 +10,12 @@ For one frame pair at 640×480 and at 320×240 it prints
   counts (Open3D builds its own pyramids, vertex and normal maps inside that call), with both errors
   against the reference relative pose when the data has one.
 
+Each table is printed twice: wall-clock, and CPU time of each process (all its threads). The machine
+this was written on is shared by several jobs: with another process on one of its two cores, Taichi's
+two halves of a loop and Open3D's worker threads all share one core and wall-clock ratios swing from run
+to run, while CPU time (the work done) is steadier. Ours and Open3D run alternately, run after run, so
+both see the same load.
+
 Data: the redkitchen frames ``--pair S T`` (default 100 110) from DATA or ../shared/data when present,
 else two renders of the synthetic room 3° and 5 cm apart.
 
@@ -54,15 +60,15 @@ class Open3DPair:
         self.depth_max = depth_max
         self.version = o3d.__version__
 
-    def run(self) -> tuple[float, list]:
-        """(ms, 4×4 pose source → target) of one call from the identity."""
+    def run(self) -> tuple[float, float, list]:
+        """(wall ms, CPU ms of this process, 4×4 pose source → target) of one call from the identity."""
         odo = self.o3d.t.pipelines.odometry
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         result = odo.rgbd_odometry_multi_scale(self.images[0], self.images[1], self.K,
                                                self.o3d.core.Tensor(self.np.eye(4)), 1000.0, self.depth_max,
                                                self.criteria, odo.Method.PointToPlane)
-        ms = 1e3 * (time.perf_counter() - t0)
-        return ms, result.transformation.numpy().tolist()
+        ms, cpu = 1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0)
+        return ms, cpu, result.transformation.numpy().tolist()
 
 
 def _worker(folder: str) -> None:
@@ -76,8 +82,8 @@ def _worker(folder: str) -> None:
     for line in sys.stdin:
         if line.strip() != "run":
             break
-        ms, pose = pair.run()
-        print(json.dumps({"ms": ms, "pose": pose}), flush=True)
+        ms, cpu, pose = pair.run()
+        print(json.dumps({"ms": ms, "cpu": cpu, "pose": pose}), flush=True)
 
 
 class Open3DRunner:
@@ -105,13 +111,13 @@ class Open3DRunner:
             raise ImportError(f"{python} could not run Open3D")
         self.version = json.loads(line)["version"]
 
-    def run(self) -> tuple[float, list]:
+    def run(self) -> tuple[float, float, list]:
         if self.pair is not None:
             return self.pair.run()
         self.proc.stdin.write("run\n")
         self.proc.stdin.flush()
         out = json.loads(self.proc.stdout.readline())
-        return out["ms"], out["pose"]
+        return out["ms"], out["cpu"], out["pose"]
 
     def close(self) -> None:
         if self.proc is not None:
@@ -154,15 +160,12 @@ def load_pair(args, cfg):
     return depth_s, depth_t, seq.intrinsics, G, "synthetic room, 3° and 5 cm apart (no redkitchen data found)"
 
 
-def median_ms(fn, repeats: int) -> float:
-    import numpy as np
-
-    times = []
+def timed(fn, repeats: int = 1) -> tuple[float, float]:
+    """(wall ms, CPU ms of this process) per call, averaged over ``repeats`` calls."""
+    t0, c0 = time.perf_counter(), time.process_time()
     for _ in range(repeats):
-        t0 = time.perf_counter()
         fn()
-        times.append(1e3 * (time.perf_counter() - t0))
-    return float(np.median(times))
+    return 1e3 * (time.perf_counter() - t0) / repeats, 1e3 * (time.process_time() - c0) / repeats
 
 
 def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
@@ -188,16 +191,15 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     result = frame_pair()  # compiles every kernel
     o3d = open3d_runner(depth_s, depth_t, K, list(c.iterations), cfg.dataset.depth_max, args.open3d_python)
     # Ours and Open3D alternate, run after run, so that both see the same load on the machine.
-    ours_ms, o3d_ms, o3d_pose = [], [], None
+    ours, theirs, o3d_pose = [], [], None
     if o3d is not None:
         o3d.run()  # warm-up
     for _ in range(args.repeats):
-        t0 = time.perf_counter()
-        result = frame_pair()
-        ours_ms.append(1e3 * (time.perf_counter() - t0))
+        ours.append(timed(frame_pair))
         if o3d is not None:
-            ms, o3d_pose = o3d.run()
-            o3d_ms.append(ms)
+            ms, cpu, o3d_pose = o3d.run()
+            theirs.append((ms, cpu))
+    result = frame_pair()
     if o3d is not None:
         o3d.close()
 
@@ -220,23 +222,26 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
 
     taichi_iteration()
     numpy_iteration()
-    ti_ms, np_ms = [], []
+    ti_t, np_t = [], []
     for _ in range(max(3, args.repeats // 2)):  # alternate, as above; Taichi timed 4 times per NumPy run
-        ti_ms.append(median_ms(taichi_iteration, 4))
-        np_ms.append(median_ms(numpy_iteration, 1))
-    ms_taichi, ms_numpy = float(np.median(ti_ms)), float(np.median(np_ms))
+        ti_t.append(timed(taichi_iteration, 4))
+        np_t.append(timed(numpy_iteration, 1))
+    (ms_taichi, cpu_taichi), (ms_numpy, cpu_numpy) = np.median(ti_t, axis=0), np.median(np_t, axis=0)
     delta_t, delta_n = taichi_iteration(), numpy_iteration()
     out = {
         "resolution": f"{K.width}x{K.height}",
         "iteration_ms": {"taichi": ms_taichi, "numpy": ms_numpy, "ratio": ms_numpy / ms_taichi},
+        "iteration_cpu_ms": {"taichi": cpu_taichi, "numpy": cpu_numpy, "ratio": cpu_numpy / cpu_taichi},
         "iteration_delta_agreement": float(np.abs(delta_t - delta_n).max()),
-        "frame_ms": {"taichi": float(np.median(ours_ms))},
+        "frame_ms": {"taichi": float(np.median([t[0] for t in ours]))},
+        "frame_cpu_ms": {"taichi": float(np.median([t[1] for t in ours]))},
         "taichi_error": pose_error(result.pose, reference) if reference is not None else None,
         "taichi_failure": result.failure,
     }
     if o3d is not None:
-        out["frame_ms"]["open3d"] = float(np.median(o3d_ms))
-        out["frame_ms"]["ratio"] = out["frame_ms"]["open3d"] / out["frame_ms"]["taichi"]
+        for key, i in (("frame_ms", 0), ("frame_cpu_ms", 1)):
+            out[key]["open3d"] = float(np.median([t[i] for t in theirs]))
+            out[key]["ratio"] = out[key]["open3d"] / out[key]["taichi"]
         out["open3d_version"] = o3d.version
         out["open3d_error"] = pose_error(np.asarray(o3d_pose), reference) if reference is not None else None
     return out
@@ -274,18 +279,20 @@ def main(argv=None) -> int:
     def err(e):
         return f"{e[0]:.2f}° {1e3 * e[1]:.1f} mm" if e is not None else "-"
 
-    print()
-    print(f"{'':>9} | {'one ICP iteration, finest level (ms)':^36} | {'one frame pair: maps + ICP (ms)':^34} | "
-          f"{'error vs reference':^29}")
-    print(f"{'':>9} | {'Taichi':>10} {'NumPy':>10} {'NumPy/Ti':>12} | {'Taichi':>10} {'Open3D':>10} {'O3D/Ti':>11} | "
-          f"{'Taichi':>14} {'Open3D':>14}")
-    for r in rows:
-        it, fr = r["iteration_ms"], r["frame_ms"]
-        o3d_ms = f"{fr['open3d']:10.1f}" if "open3d" in fr else f"{'skipped':>10}"
-        o3d_ratio = f"{fr['ratio']:10.2f}×" if "ratio" in fr else f"{'-':>11}"
-        print(f"{r['resolution']:>9} | {it['taichi']:10.2f} {it['numpy']:10.1f} {it['ratio']:11.1f}× | "
-              f"{fr['taichi']:10.1f} {o3d_ms} {o3d_ratio} | {err(r['taichi_error']):>14} "
-              f"{err(r.get('open3d_error')) if 'open3d' in fr else '-':>14}")
+    for title, it_key, fr_key in (("wall-clock", "iteration_ms", "frame_ms"),
+                                  ("CPU time of each process (all its threads)", "iteration_cpu_ms", "frame_cpu_ms")):
+        print(f"\n{title}")
+        print(f"{'':>9} | {'one ICP iteration, finest level (ms)':^36} | {'one frame pair: maps + ICP (ms)':^34} | "
+              f"{'error vs reference':^29}")
+        print(f"{'':>9} | {'Taichi':>10} {'NumPy':>10} {'NumPy/Ti':>12} | {'Taichi':>10} {'Open3D':>10} "
+              f"{'O3D/Ti':>11} | {'Taichi':>14} {'Open3D':>14}")
+        for r in rows:
+            it, fr = r[it_key], r[fr_key]
+            o3d_ms = f"{fr['open3d']:10.1f}" if "open3d" in fr else f"{'skipped':>10}"
+            o3d_ratio = f"{fr['ratio']:10.2f}×" if "ratio" in fr else f"{'-':>11}"
+            print(f"{r['resolution']:>9} | {it['taichi']:10.2f} {it['numpy']:10.1f} {it['ratio']:11.1f}× | "
+                  f"{fr['taichi']:10.1f} {o3d_ms} {o3d_ratio} | {err(r['taichi_error']):>14} "
+                  f"{err(r.get('open3d_error')) if 'open3d' in fr else '-':>14}")
     if "open3d" not in rows[0]["frame_ms"]:
         print("Open3D: not installed here (pip install open3d-cpu, or --open3d-python PY): skipped")
     else:

@@ -141,6 +141,8 @@ def load_pair(args, cfg):
     from ti_fusion.config import DatasetConfig, SynthConfig
     from ti_fusion.geometry import invert, make_pose, so3_exp
 
+    if args.data and not Path(args.data).is_dir():
+        raise SystemExit(f"bench_icp: {args.data}: not a folder")
     data = Path(args.data) if args.data else DEFAULT_DATA
     if data.is_dir():
         from ti_fusion.datasets import open_dataset

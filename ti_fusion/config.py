@@ -101,6 +101,7 @@ class SLAMConfig:
     max_update_deg: float = 20.0     # pose change against the motion model above this → failure
     max_update_m: float = 0.3
     relocalise: str = "features"     # features | none: after a failure, re-initialise with ORB+PnP
+    anchor_to_ground_truth: bool = True  # start at the first frame's GT pose (same frame as GT in viewers)
 
 
 @dataclass

@@ -80,8 +80,9 @@ class DenseSLAM:
     def register_frame(self, frame: Frame) -> FrameResult:
         ms: dict[str, float] = {}
         with self.timer.stage("maps"):
-            self.frame_maps.compute(frame.depth, frame.intrinsics, self.config.icp.normal_max_depth_jump,
-                                    3 * self.config.icp.pyramid_depth_sigma)
+            icp = self.config.icp
+            self.frame_maps.compute(frame.depth, frame.intrinsics, icp.normal_max_depth_jump,
+                                    3 * icp.pyramid_depth_sigma, icp.depth_smooth_radius)
         if not self.poses:
             pose = frame.gt_pose if frame.gt_pose is not None and self.config.slam.anchor_to_ground_truth \
                 else np.eye(4)
@@ -114,7 +115,8 @@ class DenseSLAM:
         if self.previous_maps is not None:  # frame-to-frame, for comparison only
             return self.previous_maps, self.poses[-1]
         last = self.last_good[1] if self.last_good is not None else self.poses[-1]
-        self.mapper.render_maps(self.model_maps, last, self.intrinsics)
+        self.mapper.render_maps(self.model_maps, last, self.intrinsics, self.config.icp.normal_max_depth_jump,
+                                3 * self.config.icp.pyramid_depth_sigma)
         return self.model_maps, last
 
     def _track(self, frame: Frame) -> FrameResult:

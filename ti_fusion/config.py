@@ -85,7 +85,7 @@ class FusionConfig:
     remove_free_space: bool = False  # drop surfels observed clearly in front of the measured surface
     free_space_margin: float = 0.05  # metres
     confidence_sigma: float = 0.6    # Keller's σ: measurement weight exp(−γ²/2σ²), γ = radial distance / max
-    association: str = "nearest"     # a pixel merges into: nearest = its nearest surfel if that one passes
+    association: str = "compatible"     # a pixel merges into: nearest = its nearest surfel if that one passes
                                      # filter 2 | compatible = the nearest of its surfels that pass (Keller)
     render_min_weight: float = 0.0   # rendering for tracking: only surfels at least this confident
     render_max_half: int = 1         # rendering: a surfel's disc reaches at most this many pixels from its centre

@@ -63,6 +63,7 @@ from mcap_protobuf.schema import build_file_descriptor_set
 
 from .errors import InputError
 from .geometry import quat_to_rot, rot_to_quat
+from .outputs import jsonable
 
 WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
@@ -133,7 +134,7 @@ class RunLogger:
     # -- channels ---------------------------------------------------------------------------------
     def log_metadata(self, name: str, record: dict) -> None:
         """A metadata record: str → str, non-string values JSON-encoded."""
-        data = {str(k): v if isinstance(v, str) else json.dumps(_jsonable(v)) for k, v in record.items()}
+        data = {str(k): v if isinstance(v, str) else json.dumps(jsonable(v)) for k, v in record.items()}
         self._writer.add_metadata(name, data)
         self._file.flush()
 
@@ -158,7 +159,7 @@ class RunLogger:
         if not isinstance(stats, dict):
             raise TypeError(f"stats must be a dict, got {type(stats).__name__}")
         ns = self._ns(t)
-        message = _jsonable(stats)
+        message = jsonable(stats)
         channel_id = self._channels.get(channel, (None,))[0]
         if channel_id is None:
             schema = {"$schema": "https://json-schema.org/draft/2020-12/schema",
@@ -346,25 +347,6 @@ def _point_cloud(ns: int, xyz: np.ndarray, rgba: np.ndarray | None) -> PointClou
         kind = PackedElementField.FLOAT32 if name in "xyz" else PackedElementField.UINT8
         msg.fields.add(name=name, offset=packed.dtype.fields[name][1], type=kind)
     return msg
-
-
-def _jsonable(obj):
-    """Plain JSON types: NumPy scalars/arrays unpacked, NaN/inf → null (JSON has no NaN)."""
-    if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if isinstance(obj, Path):
-        return str(obj)
-    if obj is None or isinstance(obj, (bool, int, float, str)):
-        return obj
-    return str(obj)
 
 
 def _json_schema_of(value) -> dict:

@@ -32,7 +32,7 @@ class RunDir:
 
     def write_summary(self, summary: dict) -> Path:
         path = self.file("summary.json")
-        path.write_text(json.dumps(_jsonable(summary), indent=2) + "\n")
+        path.write_text(json.dumps(jsonable(summary), indent=2) + "\n")
         return path
 
 
@@ -47,20 +47,21 @@ def base_summary(command: str, frames: int, wall_s: float, ms_per_stage: dict) -
     }
 
 
-def _jsonable(obj):
+def jsonable(obj):
+    """Plain JSON types: NumPy scalars/arrays unpacked, NaN/inf → null (JSON has no NaN), paths as text."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
+        obj = obj.item()
     if isinstance(obj, float) and not np.isfinite(obj):
         return None
-    return obj
+    if obj is None or isinstance(obj, (bool, int, float, str)):
+        return obj
+    return str(obj)
 
 
 def progress(items: Iterable[T], total: int, desc: str, enabled: bool = True) -> Iterator[T]:

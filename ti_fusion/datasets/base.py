@@ -116,3 +116,56 @@ class Dataset(ABC):
             "downsample": self.downsample,
             "ground_truth": self.has_ground_truth,
         }
+
+
+class ImageFileDataset(Dataset):
+    """A sequence stored as one depth image (and optionally one colour image) per frame.
+
+    A subclass's ``__init__`` fills, one entry per frame: ``_depth_files``, ``_color_files`` (None where a
+    frame has no colour), ``_stamps`` (float timestamps), ``_gt_poses`` (4×4 or None), and sets
+    ``_intrinsics`` and ``config``; the class attributes give the depth PNG's units per metre and the raw
+    values that mean "no depth".
+    """
+
+    depth_scale: float = 1000.0
+    invalid_depth: tuple[int, ...] = (0,)
+
+    def __init__(self, root, config=None, downsample: int = 1, start: int = 0, stop: int | None = None,
+                 stride: int = 1):
+        from ..config import DatasetConfig
+        from ..errors import InputError
+
+        super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)
+        self.config = config or DatasetConfig()
+        self.name = self.root.name
+        if not self.root.is_dir():
+            raise InputError(self.root, "dataset folder does not exist")
+
+    @property
+    def raw_intrinsics(self) -> Intrinsics:
+        return self._intrinsics
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return any(T is not None for T in self._gt_poses)
+
+    def _num_raw_frames(self) -> int:
+        return len(self._depth_files)
+
+    def _load_raw(self, raw_index: int) -> Frame:
+        from .imageio import read_rgbd
+
+        depth_path, color_path = self._depth_files[raw_index], self._color_files[raw_index]
+        K = self._intrinsics
+        depth, color = read_rgbd(depth_path, color_path, self.depth_scale, self.config.depth_max,
+                                 (K.width, K.height), self.invalid_depth)
+        gt = self._gt_poses[raw_index]
+        return Frame(index=raw_index, timestamp=float(self._stamps[raw_index]), depth=depth, intrinsics=K,
+                     color=color, gt_pose=None if gt is None else gt.copy(),
+                     meta={"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps, camera-to-world poses N×4×4) of the selected frames that have ground truth."""
+        keep = [i for i in self.indices if self._gt_poses[i] is not None]
+        stamps = np.array([self._stamps[i] for i in keep], dtype=np.float64)
+        return stamps, np.array([self._gt_poses[i] for i in keep]).reshape(-1, 4, 4)

@@ -23,7 +23,7 @@ from ..camera import Intrinsics
 from ..config import DatasetConfig
 from ..errors import InputError
 from ..trajectory import read_tum
-from .base import Dataset, Frame
+from .base import ImageFileDataset
 from .imageio import read_depth_png, read_intrinsics_file, read_rgbd
 
 DEPTH_SCALE = 5000.0
@@ -53,18 +53,16 @@ def _ground_truth_file(root: Path) -> Path | None:
     return root / "groundtruth.txt" if (root / "groundtruth.txt").is_file() else None
 
 
-class ICLNUIMDataset(Dataset):
+class ICLNUIMDataset(ImageFileDataset):
     """An ICL-NUIM sequence in TUM layout (see the module docstring for conventions)."""
 
     format = "iclnuim"
 
+    depth_scale = DEPTH_SCALE
+
     def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
-        super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)
-        self.config = config or DatasetConfig()
-        self.name = self.root.name
-        if not self.root.is_dir():
-            raise InputError(self.root, "dataset folder does not exist")
+        super().__init__(root, config, downsample, start, stop, stride)
         depth_dir, rgb_dir = self.root / "depth", self.root / "rgb"
         if not depth_dir.is_dir():
             raise InputError(depth_dir, "depth folder does not exist")
@@ -73,6 +71,7 @@ class ICLNUIMDataset(Dataset):
             raise InputError(depth_dir, "empty sequence: no numbered depth images (N.png)")
         self._numbers = sorted(depth)
         self._depth_files = [depth[n] for n in self._numbers]
+        self._stamps = [float(n) for n in self._numbers]  # frame numbers are the timestamps
 
         color = numbered_pngs(rgb_dir)
         self._color_files: list[Path | None] = [None] * len(self._numbers)
@@ -105,29 +104,3 @@ class ICLNUIMDataset(Dataset):
         if not (root / "rgb").is_dir() or not numbered_pngs(root / "depth"):
             return False
         return any(root.glob("*.gt.freiburg")) or not (root / "depth.txt").is_file()
-
-    @property
-    def raw_intrinsics(self) -> Intrinsics:
-        return self._intrinsics
-
-    @property
-    def has_ground_truth(self) -> bool:
-        return any(T is not None for T in self._gt_poses)
-
-    def _num_raw_frames(self) -> int:
-        return len(self._depth_files)
-
-    def _load_raw(self, raw_index: int) -> Frame:
-        depth_path, color_path = self._depth_files[raw_index], self._color_files[raw_index]
-        K = self._intrinsics
-        depth, color = read_rgbd(depth_path, color_path, DEPTH_SCALE, self.config.depth_max, (K.width, K.height))
-        gt = self._gt_poses[raw_index]
-        return Frame(index=raw_index, timestamp=float(self._numbers[raw_index]), depth=depth, intrinsics=K,
-                     color=color, gt_pose=None if gt is None else gt.copy(),
-                     meta={"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
-
-    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
-        """(timestamps, camera-to-world poses N×4×4) of the selected frames that have ground truth."""
-        keep = [i for i in self.indices if self._gt_poses[i] is not None]
-        stamps = np.array([self._numbers[i] for i in keep], dtype=np.float64)
-        return stamps, np.array([self._gt_poses[i] for i in keep]).reshape(-1, 4, 4)

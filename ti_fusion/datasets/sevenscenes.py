@@ -23,7 +23,7 @@ import numpy as np
 from ..camera import Intrinsics
 from ..config import DatasetConfig
 from ..errors import InputError
-from .base import Dataset, Frame
+from .base import ImageFileDataset
 from .imageio import read_depth_png, read_intrinsics_file, read_pose_matrix, read_rgbd
 
 DEPTH_SCALE = 1000.0
@@ -33,18 +33,17 @@ DEFAULT_INTRINSICS = (585.0, 585.0, 320.0, 240.0)
 _DEPTH_NAME = re.compile(r"^frame-(\d+)\.depth\.png$")
 
 
-class SevenScenesDataset(Dataset):
+class SevenScenesDataset(ImageFileDataset):
     """A 7-Scenes sequence folder (see the module docstring for conventions)."""
 
     format = "7scenes"
 
+    depth_scale = DEPTH_SCALE
+    invalid_depth = INVALID_DEPTH
+
     def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
-        super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)
-        self.config = config or DatasetConfig()
-        self.name = self.root.name
-        if not self.root.is_dir():
-            raise InputError(self.root, "dataset folder does not exist")
+        super().__init__(root, config, downsample, start, stop, stride)
         numbered = {}
         for path in self.root.glob("frame-*.depth.png"):
             m = _DEPTH_NAME.match(path.name)
@@ -54,6 +53,7 @@ class SevenScenesDataset(Dataset):
             raise InputError(self.root, "empty sequence: no frame-XXXXXX.depth.png files")
         self._numbers = sorted(numbered)
         self._depth_files = [numbered[n] for n in self._numbers]
+        self._stamps = [float(n) for n in self._numbers]  # frame numbers are the timestamps
         self._color_files = [self._color_file(p) for p in self._depth_files]
         # Poses are small text files: read and check them all now, so a bad one fails on opening.
         self._gt_poses = []
@@ -80,30 +80,3 @@ class SevenScenesDataset(Dataset):
     @staticmethod
     def detect(root: Path) -> bool:
         return next(Path(root).glob("frame-*.depth.png"), None) is not None
-
-    @property
-    def raw_intrinsics(self) -> Intrinsics:
-        return self._intrinsics
-
-    @property
-    def has_ground_truth(self) -> bool:
-        return any(T is not None for T in self._gt_poses)
-
-    def _num_raw_frames(self) -> int:
-        return len(self._depth_files)
-
-    def _load_raw(self, raw_index: int) -> Frame:
-        depth_path, color_path = self._depth_files[raw_index], self._color_files[raw_index]
-        K = self._intrinsics
-        depth, color = read_rgbd(depth_path, color_path, DEPTH_SCALE, self.config.depth_max,
-                                 (K.width, K.height), INVALID_DEPTH)
-        gt = self._gt_poses[raw_index]
-        return Frame(index=raw_index, timestamp=float(self._numbers[raw_index]), depth=depth, intrinsics=K,
-                     color=color, gt_pose=None if gt is None else gt.copy(),
-                     meta={"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
-
-    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
-        """(timestamps, camera-to-world poses N×4×4) of the selected frames that have ground truth."""
-        keep = [i for i in self.indices if self._gt_poses[i] is not None]
-        stamps = np.array([self._numbers[i] for i in keep], dtype=np.float64)
-        return stamps, np.array([self._gt_poses[i] for i in keep]).reshape(-1, 4, 4)

@@ -29,7 +29,7 @@ from ..config import DatasetConfig
 from ..errors import InputError
 from ..geometry import make_pose, so3_exp, so3_log
 from ..trajectory import associate, read_tum
-from .base import Dataset, Frame
+from .base import ImageFileDataset
 from .imageio import parse_floats, read_depth_png, read_intrinsics_file, read_rgbd, read_table
 
 DEPTH_SCALE = 5000.0
@@ -83,18 +83,16 @@ def interpolate_pose(stamps: np.ndarray, poses: np.ndarray, t: float, tolerance:
     return None
 
 
-class TUMDataset(Dataset):
+class TUMDataset(ImageFileDataset):
     """A TUM RGB-D sequence folder (see the module docstring for association, ground truth, intrinsics)."""
 
     format = "tum"
 
+    depth_scale = DEPTH_SCALE
+
     def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
-        super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)
-        self.config = config or DatasetConfig()
-        self.name = self.root.name
-        if not self.root.is_dir():
-            raise InputError(self.root, "dataset folder does not exist")
+        super().__init__(root, config, downsample, start, stop, stride)
         tolerance = self.config.max_time_difference
 
         depth_stamps, depth_files = read_image_list(self.root / "depth.txt")
@@ -140,28 +138,3 @@ class TUMDataset(Dataset):
     @staticmethod
     def detect(root: Path) -> bool:
         return (Path(root) / "depth.txt").is_file()
-
-    @property
-    def raw_intrinsics(self) -> Intrinsics:
-        return self._intrinsics
-
-    @property
-    def has_ground_truth(self) -> bool:
-        return any(T is not None for T in self._gt_poses)
-
-    def _num_raw_frames(self) -> int:
-        return len(self._depth_files)
-
-    def _load_raw(self, raw_index: int) -> Frame:
-        depth_path, color_path = self._depth_files[raw_index], self._color_files[raw_index]
-        K = self._intrinsics
-        depth, color = read_rgbd(depth_path, color_path, DEPTH_SCALE, self.config.depth_max, (K.width, K.height))
-        gt = self._gt_poses[raw_index]
-        return Frame(index=raw_index, timestamp=float(self._stamps[raw_index]), depth=depth, intrinsics=K,
-                     color=color, gt_pose=None if gt is None else gt.copy(),
-                     meta={"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
-
-    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
-        """(timestamps, camera-to-world poses N×4×4) of the selected frames that have ground truth."""
-        keep = [i for i in self.indices if self._gt_poses[i] is not None]
-        return self._stamps[keep], np.array([self._gt_poses[i] for i in keep]).reshape(-1, 4, 4)

@@ -60,7 +60,7 @@ class ICPConfig:
     dist_threshold: float = 0.10     # metres: max ‖p′ − q‖ for a correspondence (finest level)
     normal_threshold_deg: float = 30.0  # max angle between the source and target normals
     solver: str = "cholesky"         # cholesky | lu | qr (QR solves the stacked n×6 system)
-    robust: str = "none"             # none | huber | tukey: weights on the point-to-plane residual
+    robust: str = "huber"            # none | huber | tukey: weights on the point-to-plane residual
     robust_scale: float = 0.01       # metres: Huber's k or Tukey's c
     min_inliers: int = 100           # fewer correspondences → degenerate, reported as a failure
     max_condition: float = 1e7       # cond(AᵀA) above this → degenerate

@@ -48,7 +48,9 @@ def run(ctx) -> dict:
         if first_pose is None:
             first_pose = frame.gt_pose
         with timer.stage("maps"):
-            maps.compute(frame.depth, frame.intrinsics, cfg.icp.normal_max_depth_jump, cfg.icp.pyramid_depth_sigma)
+            # The same maps the SLAM loop fuses: edge-preserving smoothed depth, normals from it.
+            maps.compute(frame.depth, frame.intrinsics, cfg.icp.normal_max_depth_jump, 3 * cfg.icp.pyramid_depth_sigma,
+                         cfg.icp.depth_smooth_radius)
         stats = mapper.integrate(maps, frame.color, frame.gt_pose, i, timer)
         timer.add("fuse", sum(stats.ms.values()))
         naive += int((frame.depth > 0).sum())

@@ -135,3 +135,32 @@ def test_slam_on_vulkan_is_as_accurate_as_on_cpu(tmp_path):
         _use("cpu")
     assert on_cpu["tracking_failures"] == 0 and on_vulkan["tracking_failures"] == 0
     assert on_vulkan["ate_rmse_m"] <= 1.5 * on_cpu["ate_rmse_m"] + 0.001, (on_vulkan["ate_rmse_m"], on_cpu["ate_rmse_m"])
+
+
+class Jump(BlankFrame):
+    """Frames 0..k-1, then a jump ahead by ``skip`` frames: too far for ICP from the motion model."""
+
+    def __init__(self, dataset, at: int, skip: int, frames: int):
+        super().__init__(dataset, blank=-1)
+        self.at, self.skip, self.frames = at, skip, frames
+
+    def __len__(self):
+        return self.frames
+
+    def __getitem__(self, i):
+        return self.dataset[i if i < self.at else i + self.skip]
+
+
+def test_feature_relocalisation_after_a_jump(cpu, tmp_path):
+    """A 20-frame gap (about 20 cm and 10 degrees) under a health check that allows at most 5 cm against
+    the motion model: tracking from the motion model is refused, ORB + PnP against the last good frame
+    re-initialises ICP, and the frame is tracked ("relocalised") instead of lost."""
+    cfg = _config()
+    cfg.dataset.stop = 40
+    cfg.slam.max_update_m = 0.05
+    dataset = Jump(open_dataset(cfg.dataset, cfg.synth), at=6, skip=20, frames=10)
+    run = RunDir("slam", tmp_path / "run")
+    summary = SLAMPipeline(dataset, cfg, run, current_backend(), show_progress=False).run()
+    assert summary["relocalised"] >= 1, summary["failed_frames"]
+    assert summary["tracking_failures"] == 0
+    assert summary["ate_rmse_m"] < 0.01

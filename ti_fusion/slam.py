@@ -155,12 +155,16 @@ class DenseSLAM:
             return None
         from .features import estimate_relative_pose
 
-        estimate = estimate_relative_pose(self.last_good[0], frame, self.config.vo)
-        if estimate is None or getattr(estimate, "pose", None) is None:
+        reference, reference_pose = self.last_good
+        estimate = estimate_relative_pose(reference, frame, self.config.vo)
+        if estimate.pose is None:
             return None
-        icp = self.icp.align(self._source, self.frame_maps, init=estimate.pose)
+        # The estimate maps the reference frame's camera into the new one; ICP's source sits at `last`
+        # (the same camera in model tracking, the previous frame's in frame-to-frame tracking).
+        init = estimate.pose @ invert(reference_pose) @ last
+        icp = self.icp.align(self._source, self.frame_maps, init=init)
         pose = renormalize(last @ invert(icp.pose))
-        rough = last @ invert(estimate.pose)
+        rough = renormalize(reference_pose @ invert(estimate.pose))
         return (icp, pose) if self._health(icp, pose, rough) == "ok" else None
 
     def _update_motion(self, result: FrameResult) -> None:

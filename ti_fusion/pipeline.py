@@ -102,12 +102,11 @@ class SLAMPipeline:
                 log.log_depth(frame.timestamp, frame.depth)
             if i > 0 and i % cfg.map_every == 0:
                 self._log_map(slam, log, frame.timestamp)
-            ms = {"load": self.timer.last["load"], **result.ms}
-            ms["log"] = (time.perf_counter() - t0) * 1e3
+            result.ms["log"] = (time.perf_counter() - t0) * 1e3
             for name, value in result.ms.items():
                 self.timer.add(name, value)
-            self.timer.add("log", ms["log"])
-            log.log_stats(frame.timestamp, frame_stats(result, slam.surfels, ms))
+            result.ms["load"] = self.timer.last["load"]
+            log.log_stats(frame.timestamp, frame_stats(result, slam.surfels, result.ms))
             self.results.append(result)
             self.gt.append(frame.gt_pose)
 
@@ -125,11 +124,7 @@ class SLAMPipeline:
     # -- after the loop -------------------------------------------------------------------------
     def _frame_rate(self) -> tuple[float | None, float]:
         """(frames per second of processing after warm-up, ms of the warm-up frames)."""
-        per_frame = np.zeros(len(self.results))
-        for name in PROCESSING_STAGES:
-            samples = self.timer.samples.get(name, [])
-            # "track" has no sample for the first frame: align the samples to the end.
-            per_frame[len(per_frame) - len(samples):] += samples
+        per_frame = np.array([sum(r.ms.get(name, 0.0) for name in PROCESSING_STAGES) for r in self.results])
         warm = per_frame[:WARMUP_FRAMES].sum()
         steady = per_frame[WARMUP_FRAMES:]
         fps = round(1e3 * len(steady) / steady.sum(), 2) if len(steady) and steady.sum() > 0 else None

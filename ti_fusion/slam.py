@@ -70,7 +70,6 @@ class DenseSLAM:
         self.previous_maps = FrameMaps(H, W, levels) if config.slam.tracking == "frame" else None
         self.icp = ICP(config.icp)
         self.mapper = SurfelMapper(config.fusion)
-        self.timer = StageTimer()
         self.poses: list[np.ndarray] = []
         self.last_good: tuple[Frame, np.ndarray] | None = None  # for feature re-localisation
         self._velocity = np.eye(4)  # last inter-frame motion, camera-to-camera
@@ -78,8 +77,8 @@ class DenseSLAM:
 
     # -- the verb -------------------------------------------------------------------------------
     def register_frame(self, frame: Frame) -> FrameResult:
-        ms: dict[str, float] = {}
-        with self.timer.stage("maps"):
+        timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
+        with timer.stage("maps"):
             icp = self.config.icp
             self.frame_maps.compute(frame.depth, frame.intrinsics, icp.normal_max_depth_jump,
                                     3 * icp.pyramid_depth_sigma, icp.depth_smooth_radius)
@@ -88,10 +87,10 @@ class DenseSLAM:
                 else np.eye(4)
             result = FrameResult(frame.index, frame.timestamp, pose.copy(), "init")
         else:
-            with self.timer.stage("track"):
+            with timer.stage("track"):
                 result = self._track(frame)
         if result.tracked:
-            with self.timer.stage("fuse"):
+            with timer.stage("fuse"):
                 result.fusion = self.mapper.integrate(self.frame_maps, frame.color, result.pose,
                                                       self._frames_fused)
             self._frames_fused += 1
@@ -99,10 +98,7 @@ class DenseSLAM:
         self._update_motion(result)
         if self.previous_maps is not None:
             self.frame_maps, self.previous_maps = self.previous_maps, self.frame_maps
-        for name in ("maps", "track", "fuse"):
-            if name in self.timer.last and (name != "track" or self.poses[:-1]):
-                ms[name] = self.timer.last[name]
-        result.ms = ms
+        result.ms = dict(timer.last)
         return result
 
     # -- tracking -------------------------------------------------------------------------------
@@ -122,13 +118,12 @@ class DenseSLAM:
     def _track(self, frame: Frame) -> FrameResult:
         predicted = self._predicted_pose()
         source, last = self._reference()
-        self._source = source
         # ICP maps source points (camera frame of `last`) into the new camera: T = inv(T_wc_new) · T_wc_last.
         icp = self.icp.align(source, self.frame_maps, init=invert(predicted) @ last)
         pose = renormalize(last @ invert(icp.pose))
         status = self._health(icp, pose, predicted)
         if status != "ok" and self.config.slam.relocalise == "features":
-            relocalised = self._relocalise(frame, last)
+            relocalised = self._relocalise(frame, source, last)
             if relocalised is not None:
                 icp, pose = relocalised
                 status = "relocalised"
@@ -149,7 +144,7 @@ class DenseSLAM:
             return f"lost: jump of {rot_deg:.1f} deg / {trans_m * 100:.1f} cm from the motion model"
         return "ok"
 
-    def _relocalise(self, frame: Frame, last: np.ndarray):
+    def _relocalise(self, frame: Frame, source: FrameMaps, last: np.ndarray):
         """ICP again, initialised by ORB + PnP against the last well-tracked frame."""
         if self.last_good is None or frame.color is None or self.last_good[0].color is None:
             return None
@@ -162,7 +157,7 @@ class DenseSLAM:
         # The estimate maps the reference frame's camera into the new one; ICP's source sits at `last`
         # (the same camera in model tracking, the previous frame's in frame-to-frame tracking).
         init = estimate.pose @ invert(reference_pose) @ last
-        icp = self.icp.align(self._source, self.frame_maps, init=init)
+        icp = self.icp.align(source, self.frame_maps, init=init)
         pose = renormalize(last @ invert(icp.pose))
         rough = renormalize(reference_pose @ invert(estimate.pose))
         return (icp, pose) if self._health(icp, pose, rough) == "ok" else None
@@ -173,8 +168,6 @@ class DenseSLAM:
             # A constant-velocity model that extrapolates a glitch makes the next frame harder: cap it.
             if np.linalg.norm(se3_log(step)) < 0.5:
                 self._velocity = step
-        elif not result.tracked:
-            pass  # keep the last velocity: tracking resumes from the motion model
         self.poses.append(result.pose)
 
     # -- results --------------------------------------------------------------------------------

@@ -112,8 +112,10 @@ class ImageScratch:
         self.colour = ti.field(ti.i32, shape=shape)  # frame colour packed r | g << 8 | b << 16
         self.row_new = ti.field(ti.i32, shape=height)
         self.row_merged = ti.field(ti.i32, shape=height)
+        self.row_covered = ti.field(ti.i32, shape=height)
         self.row_offset = ti.field(ti.i32, shape=height)
         # Rendering: the front surfel of each pixel in the camera frame, the splat result, and outputs.
+        # (During a fusion step pc, nc, rad hold instead the merged surfel of each pixel, world frame.)
         self.pc = ti.Vector.field(3, ti.f32, shape=shape)
         self.nc = ti.Vector.field(3, ti.f32, shape=shape)
         self.rad = ti.field(ti.f32, shape=shape)  # -1 = no surfel
@@ -257,29 +259,41 @@ def associate(s: ti.template(), img: ti.template(), vertex: ti.template(), norma
 
 
 @ti.kernel
-def flag_compatible(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
-                    R: Mat3, t: Vec3, dist_threshold: ti.f32, cos_threshold: ti.f32):
-    """Keller's association order: filter pass 2 for every surfel of pass 1 against the measurement at its
-    pixel (flag = 1 when within the thresholds), and the nearest depth per pixel among those only.
+def project_compatible(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(),
+                       normal: ti.template(), R: Mat3, t: Vec3, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32,
+                       dist_threshold: ti.f32, cos_threshold: ti.f32):
+    """Keller's association order in one pass over the surfels: filter pass 1 (``proj_pixel``, as in
+    ``project_surfels``), then filter pass 2 against the measurement at that pixel (flag = 1 when within
+    the thresholds), and the nearest depth per pixel among the flagged surfels only.
 
-    (R, t) maps camera to world. ``claim_index(flagged_only=True)`` then picks one surfel per pixel, so a
-    pixel still merges into at most one surfel: the nearest compatible one rather than the nearest one.
+    (R, t) maps world to camera; the test runs in the camera frame (|R p + t − q| and (R n)·n_q are the
+    world-frame distance and angle: the map is rigid). ``claim_index(flagged_only=True)`` then picks one
+    surfel per pixel, so a pixel still merges into at most one surfel: the nearest compatible one rather
+    than the nearest one. One pass instead of two: this loop over every surfel is the step's largest cost.
     """
-    W = img.index.shape[1]
+    H, W = img.index.shape
     for i in range(n):
+        pc = R @ s.position[i] + t
+        pix = -1
         ok = 0
-        pix = s.proj_pixel[i]
-        if pix >= 0:
-            v, u = pix // W, pix % W
-            q = vertex[v, u]
-            nq = normal[v, u]
-            if is_valid(q, nq):
-                if ((R @ q + t) - s.position[i]).norm() <= dist_threshold and \
-                        (R @ nq).dot(s.normal[i]) >= cos_threshold:
-                    ok = 1
-                    key = s.proj_depth[i]
-                    if key < img.depth_key[v, u]:
-                        ti.atomic_min(img.depth_key[v, u], key)
+        if pc.z > 0:
+            inv_z = 1.0 / pc.z
+            uf = fx * pc.x * inv_z + cx + 0.5
+            vf = fy * pc.y * inv_z + cy + 0.5
+            if 0.0 <= uf < W and 0.0 <= vf < H:
+                u = ti.min(ti.cast(uf, ti.i32), W - 1)
+                v = ti.min(ti.cast(vf, ti.i32), H - 1)
+                pix = v * W + u
+                key = depth_bits(pc.z)
+                s.proj_depth[i] = key
+                q = vertex[v, u]
+                if q.z > 0 and (pc - q).norm_sqr() <= dist_threshold * dist_threshold:
+                    nq = normal[v, u]
+                    if nq.norm_sqr() > 0 and (R @ s.normal[i]).dot(nq) >= cos_threshold:
+                        ok = 1
+                        if key < img.depth_key[v, u]:
+                            ti.atomic_min(img.depth_key[v, u], key)
+        s.proj_pixel[i] = pix
         s.flag[i] = ok
 
 
@@ -297,62 +311,137 @@ def assoc_from_index(img: ti.template()):
 # 4. Merge
 
 
+@ti.func
+def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), normal: ti.template(), v, u,
+              R, t, f, cx, cy, confidence: ti.template(), sigma, has_colour, frame_index):
+    """p ← (w p + α (R q + t)) / (w + α), n likewise then normalised, colour likewise, w ← w + α."""
+    q = vertex[v, u]
+    nq = normal[v, u]
+    a = measurement_weight(ti.cast(u, ti.f32), ti.cast(v, ti.f32), cx, cy, confidence, sigma)
+    w = s.weight[i]
+    s.position[i] = (w * s.position[i] + a * (R @ q + t)) / (w + a)
+    n_sum = w * s.normal[i] + a * (R @ nq)
+    length = n_sum.norm()
+    if length > 0:
+        s.normal[i] = n_sum / length
+    if has_colour:
+        s.colour[i] = (w * s.colour[i] + a * unpack_colour(img.colour[v, u])) / (w + a)
+    s.weight[i] = w + a
+    s.radius[i] = ti.min(s.radius[i], measurement_radius(q.z, nq.z, f))
+    s.t_updated[i] = frame_index
+    # the merged surfel at its pixel, for ``mark_covered`` (the render scratch is free during fusion)
+    img.pc[v, u] = s.position[i]
+    img.nc[v, u] = s.normal[i]
+    img.rad[v, u] = s.radius[i]
+
+
 @ti.kernel
-def merge(s: ti.template(), img: ti.template(), vertex: ti.template(), normal: ti.template(),
+def merge(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
           R: Mat3, t: Vec3, f: ti.f32, cx: ti.f32, cy: ti.f32, confidence: ti.template(), sigma: ti.f32,
           has_colour: ti.i32, frame_index: ti.i32):
-    """p ← (w p + α (R q + t)) / (w + α), n likewise then normalised, colour likewise, w ← w + α."""
-    for v, u in img.assoc:
-        i = img.assoc[v, u]
-        if i >= 0:
-            q = vertex[v, u]
-            nq = normal[v, u]
-            a = measurement_weight(ti.cast(u, ti.f32), ti.cast(v, ti.f32), cx, cy, confidence, sigma)
-            w = s.weight[i]
-            s.position[i] = (w * s.position[i] + a * (R @ q + t)) / (w + a)
-            n_sum = w * s.normal[i] + a * (R @ nq)
-            length = n_sum.norm()
-            if length > 0:
-                s.normal[i] = n_sum / length
-            if has_colour:
-                s.colour[i] = (w * s.colour[i] + a * unpack_colour(img.colour[v, u])) / (w + a)
-            s.weight[i] = w + a
-            s.radius[i] = ti.min(s.radius[i], measurement_radius(q.z, nq.z, f))
-            s.t_updated[i] = frame_index
+    """Every surfel that a pixel's association chose averages in that pixel's measurement.
+
+    The loop runs over the surfels (those of the last projection, n), not the pixels: a surfel reads its
+    pixel from ``proj_pixel`` and merges when ``assoc`` there names it. Surfel attributes are then read
+    and written in index order; looping over the pixels instead reached them in random order, one cache
+    miss per attribute per merged surfel, and ran several times slower on maps of a million surfels.
+    """
+    W = img.assoc.shape[1]
+    for i in range(n):
+        pix = s.proj_pixel[i]
+        if pix >= 0:
+            v, u = pix // W, pix % W
+            if img.assoc[v, u] == i:
+                merge_one(s, i, img, vertex, normal, v, u, R, t, f, cx, cy, confidence, sigma, has_colour,
+                          frame_index)
 
 
 # ---------------------------------------------------------------------------------------------------
 # 5. Add (stream compaction in row-major pixel order)
 
 
+COVERED = -2  # ``assoc`` of a pixel that a neighbour's merged surfel already covers: neither merged nor added
+
+
+@ti.kernel
+def mark_covered(img: ti.template(), vertex: ti.template(), normal: ti.template(),
+                 R: Mat3, t: Vec3, dist_threshold: ti.f32, cos_threshold: ti.f32):
+    """assoc = COVERED for a valid, unassociated pixel whose point lies on the disc of a surfel merged at
+    one of its 8 neighbours (within the disc's radius in the tangent plane, ``dist_threshold`` along its
+    normal, normals within the angle). (R, t) maps camera to world.
+
+    Why: surfels project to pixel centres only approximately, so a map as dense as the image still leaves
+    some pixels without a surfel of their own (two surfels round to one pixel, its neighbour gets none).
+    Adding a surfel at every such pixel made the map grow by several percent of the frame at each frame,
+    however often the surface had been seen. Keller et al. search a neighbourhood of a super-sampled index
+    map for the same reason. Pixels only change from -1 to COVERED and only assoc ≥ 0 is read, so the
+    result does not depend on the order the pixels run in.
+    """
+    H, W = img.assoc.shape
+    for v, u in img.assoc:
+        if img.assoc[v, u] == -1:
+            q = vertex[v, u]
+            nq = normal[v, u]
+            if is_valid(q, nq):
+                qw = R @ q + t
+                nw = R @ nq
+                covered = False
+                for dv in ti.static(range(-1, 2)):
+                    for du in ti.static(range(-1, 2)):
+                        if ti.static(dv != 0 or du != 0):
+                            y = v + dv
+                            x = u + du
+                            if 0 <= y < H and 0 <= x < W:
+                                if img.assoc[y, x] >= 0 and not covered:
+                                    # the merged surfel, as ``merge`` left it at that pixel: image reads
+                                    # instead of random reads of the surfel arrays
+                                    d = qw - img.pc[y, x]
+                                    n = img.nc[y, x]
+                                    along = n.dot(d)
+                                    r = img.rad[y, x]
+                                    if ti.abs(along) <= dist_threshold and d.norm_sqr() - along * along <= r * r \
+                                            and n.dot(nw) >= cos_threshold:
+                                        covered = True
+                if covered:
+                    img.assoc[v, u] = COVERED
+
+
 @ti.kernel
 def count_rows(img: ti.template(), vertex: ti.template(), normal: ti.template()):
-    """Per row: pixels merged, and valid pixels without an association (the new surfels)."""
+    """Per row: pixels merged, valid pixels without an association (the new surfels), and covered pixels."""
     H, W = img.assoc.shape
     for v in range(H):
         new = 0
         merged = 0
+        covered = 0
         for u in range(W):
-            if img.assoc[v, u] >= 0:
+            a = img.assoc[v, u]
+            if a >= 0:
                 merged += 1
-            elif is_valid(vertex[v, u], normal[v, u]):
+            elif a == -1 and is_valid(vertex[v, u], normal[v, u]):
                 new += 1
+            elif a == COVERED:
+                covered += 1
         img.row_new[v] = new
         img.row_merged[v] = merged
+        img.row_covered[v] = covered
 
 
 @ti.kernel
 def scan_rows(img: ti.template(), totals: ti.template()):
-    """Exclusive prefix sum of the new-surfel counts; totals = (new, merged)."""
+    """Exclusive prefix sum of the new-surfel counts; totals = (new, merged, -, -, covered)."""
     new = 0
     merged = 0
+    covered = 0
     ti.loop_config(serialize=True)
     for v in range(img.row_new.shape[0]):
         img.row_offset[v] = new
         new += img.row_new[v]
         merged += img.row_merged[v]
+        covered += img.row_covered[v]
     totals[0] = new
     totals[1] = merged
+    totals[4] = covered
 
 
 @ti.kernel
@@ -371,7 +460,7 @@ def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.templ
         for u in range(W):
             q = vertex[v, u]
             nq = normal[v, u]
-            if img.assoc[v, u] < 0 and is_valid(q, nq):
+            if img.assoc[v, u] == -1 and is_valid(q, nq):
                 if k < s.capacity:
                     s.position[k] = R @ q + t
                     s.normal[k] = R @ nq
@@ -697,8 +786,9 @@ class SurfelMap:
         self.count = 0
         self._projected = 0  # surfels that existed at the last projection (their proj_* are current)
         self._adopt(_Pool.take_arrays(int(capacity)))
-        # new, merged, overflow, removed: per-call results, so one field serves every map
-        self.totals = _Pool.field("totals", lambda: ti.field(ti.i32, shape=4))
+        # new, merged, overflow, removed, covered: per-call results, so one field serves every map
+        self.totals = _Pool.field("totals", lambda: ti.field(ti.i32, shape=5))
+        self.covered = 0  # pixels the last ``add`` skipped as covered by a neighbour's surfel
 
     def _adopt(self, arrays: SurfelArrays) -> None:
         """Use ``arrays`` from now on; they go back to the pool when this map is garbage-collected."""
@@ -760,17 +850,31 @@ class SurfelMap:
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
         associate(self.arrays, img, vertex, normal, R, t, dist_threshold, cos_threshold)
 
-    def associate_compatible(self, img: ImageScratch, vertex, normal, pose: np.ndarray, dist_threshold: float,
-                             normal_threshold_deg: float) -> None:
-        """Keller's order instead of ``associate``: after ``project(index_map=False)``, filter pass 2 for
-        every surfel of pass 1, then per pixel the nearest surfel that passed: ``img.assoc`` (and
-        ``img.index``, the same) hold it or -1."""
+    def associate_compatible(self, pose: np.ndarray, intrinsics, vertex, normal, dist_threshold: float,
+                             normal_threshold_deg: float) -> ImageScratch:
+        """Keller's order instead of ``project`` + ``associate``: filter passes 1 and 2 for every surfel in
+        one projection, then per pixel the nearest surfel that passed: ``img.assoc`` (and ``img.index``,
+        the same) hold it or -1."""
+        H, W = vertex.shape
+        img = self.scratch(H, W)
+        R, t = _world_to_camera(pose)
+        cos_threshold = math.cos(math.radians(normal_threshold_deg))
+        clear_index(img)
+        if self.count > 0:
+            project_compatible(self.arrays, self.count, img, vertex, normal, R, t, *intrinsics.as_tuple(),
+                               dist_threshold, cos_threshold)
+            claim_index(self.arrays, self.count, img, True)
+        self._projected = self.count
+        assoc_from_index(img)
+        return img
+
+    def mark_covered(self, img: ImageScratch, vertex, normal, pose: np.ndarray, dist_threshold: float,
+                     normal_threshold_deg: float) -> None:
+        """After ``merge``: unassociated pixels on the disc of a neighbour's merged surfel are not added
+        (``img.assoc`` = COVERED)."""
         R, t = _camera_to_world(pose)
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
-        if self._projected > 0:
-            flag_compatible(self.arrays, self._projected, img, vertex, normal, R, t, dist_threshold, cos_threshold)
-            claim_index(self.arrays, self._projected, img, True)
-        assoc_from_index(img)
+        mark_covered(img, vertex, normal, R, t, dist_threshold, cos_threshold)
 
     def pass1_mask(self) -> np.ndarray:
         """Filter pass 1 of the last projection: surfels inside the image with positive depth."""
@@ -781,8 +885,8 @@ class SurfelMap:
               confidence: bool, sigma: float, has_colour: bool) -> None:
         R, t = _camera_to_world(pose)
         fx, _, cx, cy = intrinsics.as_tuple()
-        merge(self.arrays, img, vertex, normal, R, t, fx, cx, cy, bool(confidence), sigma, int(has_colour),
-              frame_index)
+        merge(self.arrays, self._projected, img, vertex, normal, R, t, fx, cx, cy, bool(confidence), sigma,
+              int(has_colour), frame_index)
 
     def add(self, img: ImageScratch, vertex, normal, pose, intrinsics, frame_index: int, confidence: bool,
             sigma: float, has_colour: bool) -> tuple[int, int]:
@@ -790,7 +894,7 @@ class SurfelMap:
         count_rows(img, vertex, normal)
         scan_rows(img, self.totals)
         totals = self.totals.to_numpy()
-        new, merged = int(totals[0]), int(totals[1])
+        new, merged, self.covered = int(totals[0]), int(totals[1]), int(totals[4])
         self.ensure_capacity(self.count + new)  # before any write: grow or raise
         if new > 0:
             R, t = _camera_to_world(pose)

@@ -5,7 +5,8 @@
 
 For each resolution: fuse frames of the synthetic sequence (noise on) with the Taichi mapper until the
 map holds ``--surfels`` surfels, copy that map into a NumPy implementation of the same step (below:
-project, nearest-depth index map, filter passes 1 and 2, merge, add, remove with the same thresholds),
+project, filter passes 1 and 2 in the configured order (Keller's "compatible" by default), the
+nearest-depth index map, merge, add with the covered-pixel test, remove, with the same thresholds),
 then run the next ``--steps`` frames through both, each on its own copy, and print the median
 milliseconds per stage and the ratio, measured in the same run. The first Taichi step of each size
 (kernel compilation) is not timed.
@@ -55,6 +56,17 @@ class NumpyFusion:
         ids = np.flatnonzero(inside)
         pix = vf[ids].astype(np.int64) * W + uf[ids].astype(np.int64)
         zi = z[ids]
+        R, t = pose[:3, :3].astype(np.float32), pose[:3, 3].astype(np.float32)
+        q = vertex.reshape(-1, 3)
+        nq = normal.reshape(-1, 3)
+        valid = (q[:, 2] > 0) & np.any(nq != 0, axis=1)
+        cos_thr = math.cos(math.radians(cfg.normal_threshold_deg))
+        if cfg.association == "compatible":
+            # Keller's order: filter pass 2 for every surfel of pass 1, then the nearest that passed
+            qp = q[pix]
+            ok = valid[pix] & (np.linalg.norm(pc[ids] - qp, axis=1) <= cfg.dist_threshold) & \
+                (np.einsum("ij,ij->i", a["normal"][ids] @ Rw.T, nq[pix]) >= cos_thr)
+            ids, pix, zi = ids[ok], pix[ok], zi[ok]
         # the kernels' two passes: nearest depth per pixel, then the smallest index at that depth
         # (np.minimum.at is NumPy's unbuffered scatter-min: ~10× faster here than sorting by depth)
         nearest = np.full(H * W, np.inf, np.float32)
@@ -65,18 +77,17 @@ class NumpyFusion:
         index[index == np.iinfo(np.int64).max] = -1
         t1 = time.perf_counter()
         ms["project"] = (t1 - t0) * 1e3
-        # filter pass 2
-        R, t = pose[:3, :3].astype(np.float32), pose[:3, 3].astype(np.float32)
-        q = vertex.reshape(-1, 3)
-        nq = normal.reshape(-1, 3)
-        valid = (q[:, 2] > 0) & np.any(nq != 0, axis=1)
+        # filter pass 2 (in the projection above for Keller's order)
         cand = np.flatnonzero((index >= 0) & valid)
         i = index[cand]
         qw = q[cand] @ R.T + t
         nw = nq[cand] @ R.T
-        ok = (np.linalg.norm(qw - a["position"][i], axis=1) <= cfg.dist_threshold) & \
-             (np.einsum("ij,ij->i", nw, a["normal"][i]) >= math.cos(math.radians(cfg.normal_threshold_deg)))
-        px, i, qw, nw = cand[ok], i[ok], qw[ok], nw[ok]
+        if cfg.association == "compatible":
+            px = cand
+        else:
+            ok = (np.linalg.norm(qw - a["position"][i], axis=1) <= cfg.dist_threshold) & \
+                 (np.einsum("ij,ij->i", nw, a["normal"][i]) >= cos_thr)
+            px, i, qw, nw = cand[ok], i[ok], qw[ok], nw[ok]
         t2 = time.perf_counter()
         ms["filter"] = (t2 - t1) * 1e3
         # merge
@@ -93,10 +104,12 @@ class NumpyFusion:
         a["t_updated"][i] = frame
         t3 = time.perf_counter()
         ms["merge"] = (t3 - t2) * 1e3
-        # add
-        associated = np.zeros(H * W, bool)
-        associated[px] = True
-        new = np.flatnonzero(valid & ~associated)
+        # add (skipping pixels covered by the disc of a surfel merged at a neighbouring pixel)
+        assoc = np.full(H * W, -1, np.int64)
+        assoc[px] = i
+        new = np.flatnonzero(valid & (assoc < 0))
+        if cfg.skip_covered:
+            new = new[~self._covered(new, assoc.reshape(H, W), q, nq, R, t, cos_thr)]
         k = len(new)
         sl = slice(n, n + k)
         a["position"][sl] = q[new] @ R.T + t
@@ -120,6 +133,31 @@ class NumpyFusion:
         self.n = n
         ms["remove"] = (time.perf_counter() - t4) * 1e3
         return ms
+
+    def _covered(self, pixels, assoc, q, nq, R, t, cos_thr) -> np.ndarray:
+        a, (H, W) = self.a, assoc.shape
+        vc, uc = pixels // W, pixels % W
+        qw = q[pixels] @ R.T + t
+        nw = nq[pixels] @ R.T
+        covered = np.zeros(len(pixels), bool)
+        for dv in (-1, 0, 1):
+            for du in (-1, 0, 1):
+                if dv == 0 and du == 0:
+                    continue
+                y, x = vc + dv, uc + du
+                inside = (y >= 0) & (y < H) & (x >= 0) & (x < W)
+                j = np.full(len(pixels), -1, np.int64)
+                j[inside] = assoc[y[inside], x[inside]]
+                k = np.flatnonzero((j >= 0) & ~covered)
+                jk = j[k]
+                d = qw[k] - a["position"][jk]
+                n = a["normal"][jk]
+                along = np.einsum("ij,ij->i", n, d)
+                hit = (np.abs(along) <= self.cfg.dist_threshold) & \
+                      (np.einsum("ij,ij->i", d, d) - along ** 2 <= a["radius"][jk] ** 2) & \
+                      (np.einsum("ij,ij->i", n, nw[k]) >= cos_thr)
+                covered[k[hit]] = True
+        return covered
 
     def _alpha(self, u, v, K):
         if not self.cfg.confidence_weighting:

@@ -221,7 +221,7 @@ def ref_merge(data, assoc, vertex, normal, colour, pose, frame, confidence):
 
 def ref_new_surfels(assoc, vertex, normal, colour, pose, frame, confidence):
     valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
-    v, u = np.nonzero(valid & (assoc < 0))  # row-major order
+    v, u = np.nonzero(valid & (assoc == -1))  # row-major order; -2 = covered
     q = vertex[v, u].astype(np.float64)
     nq = normal[v, u].astype(np.float64)
     return {
@@ -304,8 +304,7 @@ def test_filter_pass2(arch, rng):
 def test_compatible_association(arch, rng):
     pose, vertex, normal, depth, colour, data, smap = setup(rng)
     fv, fn, _ = frame_fields(vertex, normal, depth)
-    img = smap.project(pose, K, H, W, index_map=False)
-    smap.associate_compatible(img, fv, fn, pose, DIST, ANGLE)
+    img = smap.associate_compatible(pose, K, fv, fn, DIST, ANGLE)
     pix, z = ref_project(data["position"].astype(np.float64), pose)
     want = ref_associate_compatible(pix, z, data, vertex, normal, pose)
     np.testing.assert_array_equal(img.assoc.to_numpy(), want)
@@ -321,8 +320,7 @@ def test_merge_and_add(arch, rng, confidence, association):
         img = smap.project(pose, K, H, W)
         smap.associate(img, fv, fn, pose, DIST, ANGLE)
     else:
-        img = smap.project(pose, K, H, W, index_map=False)
-        smap.associate_compatible(img, fv, fn, pose, DIST, ANGLE)
+        img = smap.associate_compatible(pose, K, fv, fn, DIST, ANGLE)
     img.colour.from_numpy(pack_colour(colour))
     frame = 12
     smap.merge(img, fv, fn, pose, K, frame, confidence, SIGMA, True)
@@ -348,6 +346,83 @@ def test_merge_and_add(arch, rng, confidence, association):
     got_new = {k: a[n0:] for k, a in got.items()}
     assert_close(sorted_rows(got_new), sorted_rows(new), 2e-5)
     assert_close(got_new["position"], new["position"], 2e-5)
+
+
+def ref_covered(assoc, data, vertex, normal, pose):
+    """Valid unassociated pixels on the disc of a surfel merged at one of their 8 neighbours, and the
+    pixels whose decision lies closer to a threshold than float32 can tell."""
+    covered = np.zeros((H, W), bool)
+    ambiguous = np.zeros((H, W), bool)
+    valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
+    cos_thr = math.cos(math.radians(ANGLE))
+    for v, u in zip(*np.nonzero(valid & (assoc == -1))):
+        qw = vertex[v, u].astype(np.float64) @ pose[:3, :3].T + pose[:3, 3]
+        nw = normal[v, u].astype(np.float64) @ pose[:3, :3].T
+        for dv in (-1, 0, 1):
+            for du in (-1, 0, 1):
+                y, x = v + dv, u + du
+                if (dv or du) and 0 <= y < H and 0 <= x < W and assoc[y, x] >= 0:
+                    j = assoc[y, x]
+                    d = qw - data["position"][j]
+                    n = data["normal"][j].astype(np.float64)
+                    along = n @ d
+                    r2 = float(data["radius"][j]) ** 2
+                    margins = (DIST - abs(along), r2 - (d @ d - along ** 2), n @ nw - cos_thr)
+                    if min(abs(margins[0]), abs(margins[2])) < 1e-5 or abs(margins[1]) < 1e-4 * r2:
+                        ambiguous[v, u] = True
+                    elif min(margins) >= 0:
+                        covered[v, u] = True
+    return covered, ambiguous & ~covered
+
+
+def test_covered_pixels_add_nothing(arch, rng):
+    """A slanted, partly noisy plane with surfels at a third of its pixels: the other pixels are covered
+    (neither merged nor added) exactly where a neighbour's merged disc holds their point."""
+    pose = random_pose(rng)
+    v, u = np.mgrid[0:H, 0:W].astype(np.float64)
+    depth = 2.0 + 0.004 * u + rng.normal(scale=0.002, size=(H, W))
+    far = rng.random((H, W)) < 0.25
+    depth[far] += rng.choice([-1.0, 1.0], far.sum()) * rng.uniform(1.2, 3.0, far.sum()) * DIST
+    vertex = rays(u, v) * depth[..., None]
+    plane_n = np.array([-0.004 * K.fx / 2.0, 0.0, -1.0])
+    normal = rotate_towards(np.tile(plane_n / np.linalg.norm(plane_n), (H * W, 1)),
+                            np.where(rng.random(H * W) < 0.85, rng.uniform(0, 10, H * W),
+                                     rng.uniform(25, 40, H * W)), rng).reshape(H, W, 3)
+    invalid = rng.random((H, W)) < 0.08
+    vertex[invalid] = 0.0
+    normal[invalid] = 0.0
+    vertex, normal = vertex.astype(np.float32), normal.astype(np.float32)
+    # surfels exactly at a third of the valid pixels: each associates with its own pixel
+    at = np.argwhere(~invalid & (rng.random((H, W)) < 0.33))
+    q = vertex[at[:, 0], at[:, 1]].astype(np.float64)
+    n = len(q)
+    data = {
+        "position": (q @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32),
+        "normal": (normal[at[:, 0], at[:, 1]].astype(np.float64) @ pose[:3, :3].T).astype(np.float32),
+        "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+        "weight": rng.uniform(1.0, 5.0, n).astype(np.float32),
+        "radius": (rng.uniform(0.4, 2.5, n) * q[:, 2] / K.fx).astype(np.float32),
+        "t_created": np.zeros(n, np.int32),
+        "t_updated": np.zeros(n, np.int32),
+    }
+    smap = F.SurfelMap(4096)
+    smap.from_numpy(data)
+    fv, fn, fd = frame_fields(vertex, normal, depth.astype(np.float32))
+    img = smap.associate_compatible(pose, K, fv, fn, DIST, ANGLE)
+    smap.merge(img, fv, fn, pose, K, 1, False, SIGMA, False)
+    merged = smap.to_numpy()
+    assoc = img.assoc.to_numpy()
+    assert (assoc >= 0).sum() == n
+    smap.mark_covered(img, fv, fn, pose, DIST, ANGLE)
+    got = img.assoc.to_numpy()
+    want, ambiguous = ref_covered(assoc, merged, vertex, normal, pose)
+    got_covered = got == F.COVERED
+    np.testing.assert_array_equal(got_covered[~ambiguous], want[~ambiguous])
+    np.testing.assert_array_equal(got[got >= 0], assoc[assoc >= 0])  # associations untouched
+    unassociated = (assoc == -1) & ~invalid
+    assert want.sum() > 50 and (unassociated & ~want).sum() > 50  # both outcomes
+    added, n_merged = smap.add(img, fv, fn, pose, K, 1, False, SIGMA, False)
+    assert n_merged == n and added == (unassociated & ~got_covered).sum() and smap.covered == got_covered.sum()
 
 
 @pytest.mark.parametrize("free_space", [False, True])

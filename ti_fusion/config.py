@@ -87,6 +87,8 @@ class FusionConfig:
     confidence_sigma: float = 0.6    # Keller's σ: measurement weight exp(−γ²/2σ²), γ = radial distance / max
     association: str = "compatible"     # a pixel merges into: nearest = its nearest surfel if that one passes
                                      # filter 2 | compatible = the nearest of its surfels that pass (Keller)
+    skip_covered: bool = True        # a pixel on the disc of a surfel merged at a neighbouring pixel adds no
+                                     # surfel (keeps the map from growing at every frame)
     render_min_weight: float = 0.0   # rendering for tracking: only surfels at least this confident
     render_max_half: int = 1         # rendering: a surfel's disc reaches at most this many pixels from its centre
     view_back: float = 1.0           # PNG views: metres the first camera is pulled back along its axis

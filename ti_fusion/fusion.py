@@ -34,6 +34,7 @@ class FusionStats:
     removed: int  # surfels dropped (unstable or free-space violations)
     surfels: int  # live surfels afterwards
     valid_pixels: int  # pixels with a valid vertex and normal (the naive map would add them all)
+    covered: int = 0  # unassociated pixels not added: a neighbour's merged surfel covers them
     ms: dict[str, float] = field(default_factory=dict)  # per stage (only with a timer)
 
 
@@ -73,26 +74,33 @@ class SurfelMapper:
         keller = cfg.association == "compatible"
         if cfg.association not in ("nearest", "compatible"):
             raise ValueError(f"fusion.association must be nearest or compatible, not {cfg.association!r}")
-        with stage("project"):
-            img = self.map.project(pose, K, H, W, index_map=not keller)
+        with stage("project"):  # with Keller's order, filter pass 2 runs inside the projection
+            if keller:
+                img = self.map.associate_compatible(pose, K, vertex, normal, cfg.dist_threshold,
+                                                    cfg.normal_threshold_deg)
+            else:
+                img = self.map.project(pose, K, H, W)
             has_colour = color is not None
             if has_colour:
                 if color.shape[:2] != (H, W):
                     raise ValueError(f"colour of shape {color.shape[:2]} for a depth map of shape {(H, W)}")
                 img.colour.from_numpy(pack_colour(color))
         with stage("filter"):
-            associate = self.map.associate_compatible if keller else self.map.associate
-            associate(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
+            if not keller:
+                self.map.associate(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
         with stage("merge"):
             self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
                            cfg.confidence_sigma, has_colour)
         with stage("add"):
+            if cfg.skip_covered:
+                self.map.mark_covered(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
             added, merged = self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
                                          cfg.confidence_sigma, has_colour)
         with stage("remove"):
             removed = self.map.remove(frame_index, cfg.remove_unstable, cfg.unstable_weight, cfg.unstable_age,
                                       cfg.remove_free_space, cfg.free_space_margin, depth)
-        return FusionStats(merged, added, removed, self.map.count, merged + added, ms)
+        covered = self.map.covered
+        return FusionStats(merged, added, removed, self.map.count, merged + added + covered, covered, ms)
 
     # -- rendering -----------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics: Intrinsics, out_vertex, out_normal, out_depth) -> None:

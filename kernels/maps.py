@@ -170,12 +170,13 @@ class FrameMaps:
         self.compute_from_field(intrinsics, max_depth_jump, pyramid_max_diff)
 
     def compute_from_field(self, intrinsics: Intrinsics, max_depth_jump: float = 0.05,
-                           pyramid_max_diff: float = 0.09) -> None:
-        """Build every level from ``self.depth[0]`` already on the Taichi side."""
+                           pyramid_max_diff: float = 0.09, level0_maps: bool = True) -> None:
+        """Build every level from ``self.depth[0]`` already on the Taichi side (without level 0's vertex
+        and normal maps when ``level0_maps`` is False: a renderer that writes them itself)."""
         self.intrinsics = [intrinsics.downsampled(2**l) for l in range(self.levels)]
         for l in range(1, self.levels):
             pyramid_down(self.depth[l - 1], self.depth[l], pyramid_max_diff)
-        for l in range(self.levels):
+        for l in range(0 if level0_maps else 1, self.levels):
             backproject(self.depth[l], self.vertex[l], *self.intrinsics[l].as_tuple())
             # A depth edge at a coarse level spans 2**l fine pixels: scale the jump threshold with it.
             compute_normals(self.vertex[l], self.normal[l], max_depth_jump * 2**l)

@@ -23,7 +23,11 @@ Open3D is optional: when ``import open3d`` fails it is skipped, unless ``--open3
 interpreter that has it (e.g. a throwaway venv with ``pip install open3d-cpu``); that interpreter then
 runs this file's worker on the same depth images, within the same benchmark run.
 
+Then, on real data, both run once from the identity on ``--accuracy-pairs`` pairs ``--accuracy-gap``
+frames apart spread over the sequence, and the table gives median / mean / max pose error of each.
+
 usage: scripts/bench_icp.py [DATA] [--pair S T] [--repeats N] [--open3d-python PY] [--set icp.KEY=VALUE]
+                            [--accuracy-pairs N] [--accuracy-gap G]
 """
 
 from __future__ import annotations
@@ -249,6 +253,62 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     return out
 
 
+def accuracy_over_pairs(cfg, args) -> dict | None:
+    """Pose error of ours and of Open3D (once each, from the identity, 640×480) on ``--accuracy-pairs``
+    frame pairs ``--accuracy-gap`` frames apart, spread over the sequence: one pair is too few to rank
+    two methods whose errors are this close to the reference's own error (about 1 cm)."""
+    import numpy as np
+
+    from ti_fusion.config import DatasetConfig
+    from ti_fusion.datasets import open_dataset
+    from ti_fusion.geometry import invert, pose_error
+    from ti_fusion.icp import ICP
+    from ti_fusion.kernels.maps import FrameMaps
+
+    data = Path(args.data) if args.data else DEFAULT_DATA
+    if args.accuracy_pairs <= 0 or not data.is_dir():
+        return None
+    dataset = open_dataset(DatasetConfig(path=str(data), depth_max=cfg.dataset.depth_max))
+    gap = args.accuracy_gap
+    starts = np.linspace(0, len(dataset) - 1 - gap, args.accuracy_pairs).round().astype(int)
+    c = cfg.icp
+    K = dataset[0].intrinsics
+    src, tgt = FrameMaps(K.height, K.width, len(c.iterations)), FrameMaps(K.height, K.width, len(c.iterations))
+    icp = ICP(c)
+    ours, theirs = [], []
+    for s in starts:
+        a, b = dataset[int(s)], dataset[int(s) + gap]
+        reference = invert(b.gt_pose) @ a.gt_pose
+        for maps, depth in ((src, a.depth), (tgt, b.depth)):
+            maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.depth_smooth_radius)
+        ours.append(pose_error(icp.align(src, tgt).pose, reference))
+        o3d = open3d_runner(a.depth, b.depth, K, list(c.iterations), cfg.dataset.depth_max, args.open3d_python)
+        if o3d is not None:
+            theirs.append(pose_error(np.asarray(o3d.run()[2]), reference))
+            o3d.close()
+    out = {"pairs": len(starts), "gap": gap, "ours": np.asarray(ours).tolist()}
+    if theirs:
+        out["open3d"] = np.asarray(theirs).tolist()
+    return out
+
+
+def print_accuracy(acc: dict) -> None:
+    import numpy as np
+
+    print(f"\npose error vs reference over {acc['pairs']} pairs {acc['gap']} frames apart, 640x480, from the identity")
+    print(f"{'':>9} | {'median':>16} {'mean':>16} {'max':>16}")
+    for name in ("ours", "open3d"):
+        if name not in acc:
+            continue
+        e = np.asarray(acc[name])
+        cells = [f"{f(e[:, 0]):.2f}° {1e3 * f(e[:, 1]):5.1f} mm" for f in (np.median, np.mean, np.max)]
+        print(f"{name:>9} | " + " ".join(f"{c:>16}" for c in cells))
+    if "open3d" in acc:
+        o, t = np.asarray(acc["ours"]), np.asarray(acc["open3d"])
+        print(f"ours is nearer the reference on {(o[:, 1] < t[:, 1]).sum()} of {len(o)} pairs in translation, "
+              f"{(o[:, 0] < t[:, 0]).sum()} in rotation")
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("data", nargs="?", default="", help="7-Scenes folder (default: ../shared/data/redkitchen-7scenes)")
@@ -258,6 +318,9 @@ def main(argv=None) -> int:
                         help="an interpreter with open3d installed, when this one has none")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")
     parser.add_argument("--json", metavar="FILE", help="also write the results as JSON")
+    parser.add_argument("--accuracy-pairs", type=int, default=25,
+                        help="frame pairs for the accuracy table (0: skip); real data only")
+    parser.add_argument("--accuracy-gap", type=int, default=10, help="frames between the two of a pair")
     parser.add_argument("--open3d-worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.open3d_worker:
@@ -300,8 +363,11 @@ def main(argv=None) -> int:
     else:
         print(f"Open3D {rows[0]['open3d_version']}: rgbd_odometry_multi_scale, Method.PointToPlane, its default loss "
               "parameters (depth_outlier_trunc 0.07, depth_huber_delta 0.05)")
+    accuracy = accuracy_over_pairs(cfg, args)
+    if accuracy is not None:
+        print_accuracy(accuracy)
     if args.json:
-        Path(args.json).write_text(json.dumps({"data": what, "rows": rows}, indent=2))
+        Path(args.json).write_text(json.dumps({"data": what, "rows": rows, "accuracy": accuracy}, indent=2))
     return 0
 
 

@@ -64,7 +64,8 @@ class ICPConfig:
     robust_scale: float = 0.01       # metres: Huber's k or Tukey's c
     min_inliers: int = 100           # fewer correspondences → degenerate, reported as a failure
     max_condition: float = 1e7       # cond(AᵀA) above this → degenerate
-    stop_update: float = 1e-6        # stop a level when ‖δξ‖ falls below this
+    stop_update: float = 1e-5        # stop a level when ‖δξ‖ (rad, m) falls below this: 0.01 mm, well below
+                                     # the noise (1e-6 gave the same ATE with ~10% more time)
     normal_max_depth_jump: float = 0.05  # metres: neighbours further apart in depth give no normal
     pyramid_depth_sigma: float = 0.03    # metres: depth averaging in the pyramid ignores larger jumps
     level_dist_scale: float = 2.0    # d_thr at pyramid level l is dist_threshold · level_dist_scale**l (coarse levels gate wider)

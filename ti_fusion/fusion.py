@@ -113,12 +113,9 @@ class SurfelMapper:
         """Fill a ``FrameMaps`` with the prediction: every pyramid level from the rendered depth (the last two
         arguments as in ``FrameMaps.compute``), and level 0's vertex and normal maps straight from the
         surfels (averaged normals, smoother than normals from depth differences)."""
-        img = self.map.render(pose, intrinsics, min_weight=self.config.render_min_weight,
-                              max_half=self.config.render_max_half)
-        frame_maps.depth[0].copy_from(img.depth)
-        frame_maps.compute_from_field(intrinsics, max_depth_jump, pyramid_max_diff)
-        frame_maps.vertex[0].copy_from(img.vertex)
-        frame_maps.normal[0].copy_from(img.normal)
+        self.map.render(pose, intrinsics, frame_maps.vertex[0], frame_maps.normal[0], frame_maps.depth[0],
+                        self.config.render_min_weight, self.config.render_max_half)
+        frame_maps.compute_from_field(intrinsics, max_depth_jump, pyramid_max_diff, level0_maps=False)
 
     def render_image(self, pose: np.ndarray, intrinsics: Intrinsics, by_normal: bool = False) -> np.ndarray:
         """uint8 RGB view of the map from ``pose`` (surfel colour, or world normal as (n + 1) / 2)."""

@@ -50,7 +50,7 @@ def frame_stats(result: FrameResult, surfels: int, ms: dict[str, float]) -> dict
         })
     if result.fusion is not None:
         stats.update({"merged": result.fusion.merged, "added": result.fusion.added,
-                      "removed": result.fusion.removed})
+                      "covered": result.fusion.covered, "removed": result.fusion.removed})
     return stats
 
 

@@ -39,7 +39,7 @@ def run(ctx) -> dict:
     maps = FrameMaps(K.height, K.width, levels=1)
     mapper = SurfelMapper(cfg.fusion)
     timer = StageTimer()
-    naive = merged = added = removed = 0
+    naive = merged = added = removed = covered = 0
     first_pose = None
     t0 = time.perf_counter()
     for i, frame in enumerate(progress(dataset, len(dataset), "fuse", cfg.log.progress and not ctx.quiet)):
@@ -55,6 +55,7 @@ def run(ctx) -> dict:
         timer.add("fuse", sum(stats.ms.values()))
         naive += int((frame.depth > 0).sum())
         merged, added, removed = merged + stats.merged, added + stats.added, removed + stats.removed
+        covered += stats.covered
     wall = time.perf_counter() - t0
     frames = len(dataset)
 
@@ -86,6 +87,7 @@ def run(ctx) -> dict:
         "merged": merged,
         "added": added,
         "removed": removed,
+        "covered": covered,
         "capacity": mapper.map.capacity,
         "ply": str(ply),
         "views": {k: str(v) for k, v in views.items()},

@@ -23,7 +23,8 @@ linearisation (point to plane)
     and the Gauss–Newton step solves (Σ w AᵀA) δξ = −Σ w Aᵀ b.
 
 reduction
-    per correspondence, with the robust weight w (1, Huber or Tukey on r), the kernel accumulates
+    per correspondence, with the robust weight w (1, Huber or Tukey on r; optionally on r / σ(z) with a
+    factor 1/σ(z)², σ the depth noise at the target point, see DEPTH_WEIGHTED), the kernel accumulates
     SUMS = 30 numbers: the 21 upper-triangle entries of Σ w AᵀA (row-major: (0,0), (0,1), …, (0,5),
     (1,1), …, (5,5)), the 6 entries of Σ w Aᵀ b, Σ r² (unweighted: the loss), the inlier count and, as a
     30th number, the count of valid source pixels (for the inlier ratio). The pixels are split into
@@ -72,6 +73,16 @@ UPPER = [(i, j) for i in range(6) for j in range(i, 6)]  # order of the 21 AᵀA
 _UPPER_IDX = tuple(np.array(UPPER).T)
 
 ROBUST_CODES = {"none": 0, "huber": 1, "tukey": 2}
+# Added to a robust code: residuals weighted by the depth noise at the target point, Kinect's axial
+# σ(z) = SIGMA_A + SIGMA_B (z − SIGMA_Z0)² (Nguyen et al. 2012): a point at 3 m is ~10× noisier than one
+# at 1 m, and weighting all alike lets the far, noisy ones pull the pose. Scaled so the weight is 1 at 1 m.
+DEPTH_WEIGHTED = 4
+SIGMA_A, SIGMA_B, SIGMA_Z0 = 0.0012, 0.0019, 0.4
+SIGMA_1M = SIGMA_A + SIGMA_B * (1.0 - SIGMA_Z0) ** 2
+
+
+def robust_code(robust: str, depth_weighted: bool = False) -> int:
+    return ROBUST_CODES[robust] + (DEPTH_WEIGHTED if depth_weighted else 0)
 
 
 def unpack_sums(sums: np.ndarray) -> dict:
@@ -82,6 +93,12 @@ def unpack_sums(sums: np.ndarray) -> dict:
     AtA.T[_UPPER_IDX] = sums[:21]
     return {"AtA": AtA, "Atb": sums[SUM_ATB:SUM_ATB + 6].copy(), "r2": float(sums[SUM_R2]),
             "inliers": int(round(sums[SUM_INLIERS])), "sources": int(round(sums[SUM_SOURCE]))}
+
+
+def _code(robust: str) -> int:
+    """"huber", or "huber+depth" for the depth-weighted variant (see DEPTH_WEIGHTED)."""
+    name, _, depth = robust.partition("+")
+    return robust_code(name, depth == "depth")
 
 
 def default_chunks(arch: str) -> int:
@@ -97,7 +114,7 @@ _KERNELS: dict = {}
 
 # Layout of the ``params`` array every kernel takes (float64 on cpu, float32 elsewhere): the pose, the
 # target intrinsics and the thresholds travel as one small array (cheaper to pass than matrix arguments).
-P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE, N_PARAMS = 0, 9, 12, 16, 17, 18, 19
+P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE, P_NOISE, N_PARAMS = 0, 9, 12, 16, 17, 18, 19, 23
 
 
 def _build_kernels(real):
@@ -147,18 +164,25 @@ def _build_kernels(real):
         return status, pt, q, nq
 
     @ti.func
-    def _weight(r, robust: ti.template(), scale):
+    def _weight(r, robust: ti.template(), scale, z, params: ti.template()):
+        """The robust weight of residual r at target depth z (robust: ROBUST_CODES, + DEPTH_WEIGHTED).
+        The noise model's constants come in ``params`` (a Python float here would be a float32 constant)."""
+        s = ti.cast(1.0, real)
+        if ti.static(robust >= DEPTH_WEIGHTED):  # r in units of the noise at 1 m, weight 1/σ(z)² likewise
+            dz = z - params[P_NOISE + 2]
+            s = params[P_NOISE + 3] / (params[P_NOISE] + params[P_NOISE + 1] * dz * dz)
+        rn = r * s
         w = ti.cast(1.0, real)
-        if ti.static(robust == 1):  # Huber: quadratic up to k, linear beyond
-            a = ti.abs(r)
+        if ti.static(robust % DEPTH_WEIGHTED == 1):  # Huber: quadratic up to k, linear beyond
+            a = ti.abs(rn)
             if a > scale:
                 w = scale / a
-        elif ti.static(robust == 2):  # Tukey's biweight: zero beyond c
+        elif ti.static(robust % DEPTH_WEIGHTED == 2):  # Tukey's biweight: zero beyond c
             w = 0.0
-            if ti.abs(r) < scale:
-                s = 1.0 - (r / scale) * (r / scale)
-                w = s * s
-        return w
+            if ti.abs(rn) < scale:
+                u = 1.0 - (rn / scale) * (rn / scale)
+                w = u * u
+        return w * s * s
 
     @ti.func
     def _row(pt, q, nq):
@@ -189,7 +213,7 @@ def _build_kernels(real):
                     acc[SUM_SOURCE] += 1.0
                 if status == STATUS_OK:
                     A, r = _row(pt, q, nq)
-                    w = _weight(r, robust, scale)
+                    w = _weight(r, robust, scale, q.z, params)
                     wA = w * A
                     for k in ti.static(range(21)):
                         acc[k] += wA[UPPER[k][0]] * A[UPPER[k][1]]
@@ -252,7 +276,7 @@ def _build_kernels(real):
                                                params[P_COS])
                 if status == STATUS_OK:
                     A, r = _row(pt, q, nq)
-                    sw = ti.sqrt(_weight(r, robust, params[P_SCALE]))
+                    sw = ti.sqrt(_weight(r, robust, params[P_SCALE], q.z, params))
                     for j in ti.static(range(6)):
                         rows[k, j] = sw * A[j]
                     rows[k, 6] = sw * r
@@ -302,6 +326,7 @@ class PointToPlane:
         p[P_DIST2] = float(dist_threshold) ** 2
         p[P_COS] = math.cos(math.radians(normal_threshold_deg))
         p[P_SCALE] = float(robust_scale)
+        p[P_NOISE:P_NOISE + 4] = (SIGMA_A, SIGMA_B, SIGMA_Z0, SIGMA_1M)
         return p
 
     def _chunks(self, src_v) -> int:
@@ -315,7 +340,7 @@ class PointToPlane:
         """The 30 sums (float64 NumPy) of one association + linearisation pass at pose ``T``."""
         n_chunks = self._chunks(src_v)
         params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale)
-        self.k["reduce"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, ROBUST_CODES[robust], params, self.out)
+        self.k["reduce"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, _code(robust), params, self.out)
         return self.out.astype(np.float64)
 
     def chunk_inliers(self, n_chunks: int) -> np.ndarray:
@@ -341,7 +366,7 @@ class PointToPlane:
         self.offsets.from_numpy(offsets)
         params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale)
         self.k["write_rows"](src_v, src_n, tgt_v, tgt_n, self.offsets, self.rows_field, n_chunks,
-                             ROBUST_CODES[robust], params)
+                             _code(robust), params)
         n = int(counts.sum())
         return sums, self.rows_field.to_numpy()[:n].astype(np.float64)
 

@@ -127,7 +127,7 @@ def assert_sums_close(got, ref):
 
 
 # -- association ---------------------------------------------------------------------------------------
-@pytest.mark.parametrize("robust", ["none", "huber", "tukey"])
+@pytest.mark.parametrize("robust", ["none", "huber", "tukey", "none+depth", "huber+depth"])
 def test_status_and_sums_match_reference(arch, rng, robust):
     T = random_pose(rng, 0.1)
     K_t = Intrinsics(120.0, 110.0, 27.3, 20.6, 56, 40)
@@ -221,8 +221,8 @@ def test_rows_match_reference_and_solvers_agree(arch, rng):
     P, N, Vt, Nt = random_pass_inputs(rng, T, K_t)
     kp = pass_for(P.shape[0] * P.shape[1], n_chunks=61)
     args = (vec_field(P), vec_field(N), vec_field(Vt), vec_field(Nt))
-    sums, rows = kp.rows(*args, T, K_t.as_tuple(), THR, THETA, "huber", 0.05)
-    ref_rows = icp_numpy.stacked_rows(P, N, Vt, Nt, T, K_t.as_tuple(), THR, THETA, "huber", 0.05)
+    sums, rows = kp.rows(*args, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05)
+    ref_rows = icp_numpy.stacked_rows(P, N, Vt, Nt, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05)
     assert rows.shape == ref_rows.shape and rows.shape[0] > 100
     tol = 1e-9 if current_backend().has_f64 else 2e-5
     np.testing.assert_allclose(rows, ref_rows, rtol=tol, atol=tol * np.abs(ref_rows).max())
@@ -305,11 +305,14 @@ def test_synthetic_motion_recovered_without_noise(arch, rng, sequence):
     assert losses[-1] < 1e-6 and result.inlier_ratio > 0.8
 
 
-@pytest.mark.parametrize("solver, robust", [("cholesky", "none"), ("qr", "huber"), ("lu", "tukey")])
+@pytest.mark.parametrize("solver, robust", [("cholesky", "none"), ("qr", "huber"), ("lu", "tukey"),
+                                           ("cholesky", "huber+depth")])
 def test_synthetic_motion_recovered_with_noise(cpu, rng, sequence, solver, robust):
     src, tgt, G = synthetic_pair(sequence, rng, noise=True)
+    robust, _, depth = robust.partition("+")
     scale = {"none": 0.01, "huber": 0.01, "tukey": 0.03}[robust]
-    result = ICP(ICPConfig(solver=solver, robust=robust, robust_scale=scale)).align(src, tgt)
+    config = ICPConfig(solver=solver, robust=robust, robust_scale=scale, depth_weighting=depth == "depth")
+    result = ICP(config).align(src, tgt)
     rot, trans = pose_error(result.pose, G)
     assert result.failure is None
     # The stated tolerance with the renderer's Kinect-like noise: 0.05° and 1.5 mm (over 8 random pairs

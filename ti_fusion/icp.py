@@ -122,7 +122,7 @@ class ICP:
         cfg = self.config
         args = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level],
                 result.pose, target.intrinsics[level].as_tuple(), self.dist_threshold(level),
-                cfg.normal_threshold_deg, cfg.robust, cfg.robust_scale)
+                cfg.normal_threshold_deg, cfg.robust + ("+depth" if cfg.depth_weighting else ""), cfg.robust_scale)
         if cfg.solver == "qr":
             sums, rows = kernels.rows(*args)
         else:

@@ -10,19 +10,27 @@ from __future__ import annotations
 
 import numpy as np
 
-from .kernels.icp import (N_SUMS, STATUS_BEHIND, STATUS_NORMAL_ANGLE, STATUS_OK, STATUS_OUT_OF_IMAGE,
+from .kernels.icp import (SIGMA_1M, SIGMA_A, SIGMA_B, SIGMA_Z0, N_SUMS, STATUS_BEHIND, STATUS_NORMAL_ANGLE, STATUS_OK, STATUS_OUT_OF_IMAGE,
                           STATUS_SOURCE_INVALID, STATUS_TARGET_INVALID, STATUS_TOO_FAR, SUM_ATB, SUM_INLIERS,
                           SUM_R2, SUM_SOURCE, UPPER)
 
 
-def robust_weights(r: np.ndarray, robust: str, scale: float) -> np.ndarray:
-    """Huber: 1 up to k, k/|r| beyond; Tukey: (1 − (r/c)²)² up to c, 0 beyond; none: 1."""
-    a = np.abs(r)
-    if robust == "huber":
-        return np.where(a > scale, scale / np.maximum(a, 1e-300), 1.0)
-    if robust == "tukey":
-        return np.where(a < scale, (1.0 - (r / scale) ** 2) ** 2, 0.0)
-    return np.ones_like(r)
+def robust_weights(r: np.ndarray, robust: str, scale: float, z: np.ndarray | None = None) -> np.ndarray:
+    """Huber: 1 up to k, k/|r| beyond; Tukey: (1 − (r/c)²)² up to c, 0 beyond; none: 1. With
+    "+depth" (e.g. "huber+depth"), r is first divided by the depth noise σ(z) at the target depth z
+    (relative to 1 m) and the weight multiplied by 1/σ(z)² (likewise)."""
+    name, _, depth = robust.partition("+")
+    s = np.ones_like(r)
+    if depth == "depth":
+        s = SIGMA_1M / (SIGMA_A + SIGMA_B * (np.asarray(z, np.float64) - SIGMA_Z0) ** 2)
+    a = np.abs(r * s)
+    if name == "huber":
+        w = np.where(a > scale, scale / np.maximum(a, 1e-300), 1.0)
+    elif name == "tukey":
+        w = np.where(a < scale, (1.0 - (a / scale) ** 2) ** 2, 0.0)
+    else:
+        w = np.ones_like(r)
+    return w * s * s
 
 
 def associate(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float):
@@ -94,7 +102,7 @@ def icp_pass(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_thr
     """(status H×W, sums[30]) of one pass: the float64 reference of ``PointToPlane.reduce``/``status``."""
     status, c = associate(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold, normal_threshold_deg)
     A, r = linearise(c["p"], c["q"], c["nq"])
-    return status, reduce_sums(A, r, robust_weights(r, robust, robust_scale), c["sources"])
+    return status, reduce_sums(A, r, robust_weights(r, robust, robust_scale, c["q"][:, 2]), c["sources"])
 
 
 def stacked_rows(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
@@ -102,5 +110,5 @@ def stacked_rows(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal
     """√w [A | r] (m×7) in pixel order: the reference of ``PointToPlane.rows``."""
     _, c = associate(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold, normal_threshold_deg)
     A, r = linearise(c["p"], c["q"], c["nq"])
-    sw = np.sqrt(robust_weights(r, robust, robust_scale))
+    sw = np.sqrt(robust_weights(r, robust, robust_scale, c["q"][:, 2]))
     return np.concatenate([A, r[:, None]], axis=1) * sw[:, None]

@@ -50,6 +50,12 @@ INT_MAX = 2147483647  # "no surfel" in the index maps and "no depth" in the dept
 BLOCK = 1024  # surfels per block in the deterministic compaction scans
 SQRT2 = math.sqrt(2.0)
 MIN_COS_VIEW = 0.2  # radius = √2 z / (f |n_z|): |n_z| is clamped here so grazing surfels stay bounded
+# Measurement weights (``measurement_weight``'s ``confidence`` bits): Keller's radial confidence, and
+# Kinect's depth noise σ(z) = A + B (z − Z0)² (Nguyen et al. 2012) relative to 1 m, capped.
+RADIAL, DEPTH = 1, 2
+NOISE_A, NOISE_B, NOISE_Z0 = 0.0012, 0.0019, 0.4
+NOISE_1M = NOISE_A + NOISE_B * (1.0 - NOISE_Z0) ** 2
+DEPTH_WEIGHT_MAX = 4.0
 Vec3 = ti.types.vector(3, ti.f32)
 Mat3 = ti.types.matrix(3, 3, ti.f32)
 
@@ -147,12 +153,17 @@ def is_valid(q, nq):
 
 
 @ti.func
-def measurement_weight(u, v, cx, cy, confidence: ti.template(), sigma):
-    """1, or Keller's exp(−γ²/2σ²) with γ the radial distance from the image centre over its maximum."""
+def measurement_weight(u, v, z, cx, cy, confidence: ti.template(), sigma):
+    """1, or Keller's exp(−γ²/2σ²) with γ the radial distance from the image centre over its maximum
+    (``confidence`` bit 1); times (σ(1 m) / σ(z))², capped at DEPTH_WEIGHT_MAX, with σ Kinect's axial
+    depth noise (bit 2: inverse-variance weighting, as the ICP's ``depth_weighting``)."""
     w = 1.0
-    if ti.static(confidence):
+    if ti.static(confidence & RADIAL):
         gamma2 = ((u - cx) ** 2 + (v - cy) ** 2) / (cx * cx + cy * cy)
         w = ti.exp(-gamma2 / (2.0 * sigma * sigma))
+    if ti.static(confidence & DEPTH):
+        s = NOISE_1M / (NOISE_A + NOISE_B * (z - NOISE_Z0) * (z - NOISE_Z0))
+        w *= ti.min(s * s, DEPTH_WEIGHT_MAX)
     return w
 
 
@@ -317,7 +328,7 @@ def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), no
     """p ← (w p + α (R q + t)) / (w + α), n likewise then normalised, colour likewise, w ← w + α."""
     q = vertex[v, u]
     nq = normal[v, u]
-    a = measurement_weight(ti.cast(u, ti.f32), ti.cast(v, ti.f32), cx, cy, confidence, sigma)
+    a = measurement_weight(ti.cast(u, ti.f32), ti.cast(v, ti.f32), q.z, cx, cy, confidence, sigma)
     w = s.weight[i]
     s.position[i] = (w * s.position[i] + a * (R @ q + t)) / (w + a)
     n_sum = w * s.normal[i] + a * (R @ nq)
@@ -468,7 +479,7 @@ def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.templ
                     if has_colour:
                         c = unpack_colour(img.colour[v, u])
                     s.colour[k] = c
-                    s.weight[k] = measurement_weight(ti.cast(u, ti.f32), ti.cast(v, ti.f32), cx, cy,
+                    s.weight[k] = measurement_weight(ti.cast(u, ti.f32), ti.cast(v, ti.f32), q.z, cx, cy,
                                                      confidence, sigma)
                     s.radius[k] = measurement_radius(q.z, nq.z, f)
                     s.t_created[k] = frame_index
@@ -715,6 +726,10 @@ def shade(s: ti.template(), img: ti.template(), by_normal: ti.i32, background: V
 # ---------------------------------------------------------------------------------------------------
 
 
+def _weight_bits(radial: bool, depth: bool) -> int:
+    return (RADIAL if radial else 0) | (DEPTH if depth else 0)
+
+
 def _world_to_camera(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     inv = np.linalg.inv(np.asarray(pose, dtype=np.float64))
     return inv[:3, :3].astype(np.float32), inv[:3, 3].astype(np.float32)
@@ -882,14 +897,14 @@ class SurfelMap:
 
     # -- 4-5: merge and add --------------------------------------------------------------------------------
     def merge(self, img: ImageScratch, vertex, normal, pose, intrinsics, frame_index: int,
-              confidence: bool, sigma: float, has_colour: bool) -> None:
+              confidence: bool, sigma: float, has_colour: bool, depth_weighted: bool = False) -> None:
         R, t = _camera_to_world(pose)
         fx, _, cx, cy = intrinsics.as_tuple()
-        merge(self.arrays, self._projected, img, vertex, normal, R, t, fx, cx, cy, bool(confidence), sigma,
-              int(has_colour), frame_index)
+        merge(self.arrays, self._projected, img, vertex, normal, R, t, fx, cx, cy,
+              _weight_bits(confidence, depth_weighted), sigma, int(has_colour), frame_index)
 
     def add(self, img: ImageScratch, vertex, normal, pose, intrinsics, frame_index: int, confidence: bool,
-            sigma: float, has_colour: bool) -> tuple[int, int]:
+            sigma: float, has_colour: bool, depth_weighted: bool = False) -> tuple[int, int]:
         """Append the valid unassociated pixels as surfels; returns (added, merged) pixel counts."""
         count_rows(img, vertex, normal)
         scan_rows(img, self.totals)
@@ -900,8 +915,8 @@ class SurfelMap:
             R, t = _camera_to_world(pose)
             fx, _, cx, cy = intrinsics.as_tuple()
             self.totals[2] = 0
-            append_new(self.arrays, self.count, img, vertex, normal, R, t, fx, cx, cy, bool(confidence), sigma,
-                       int(has_colour), frame_index, self.totals)
+            append_new(self.arrays, self.count, img, vertex, normal, R, t, fx, cx, cy,
+                       _weight_bits(confidence, depth_weighted), sigma, int(has_colour), frame_index, self.totals)
             lost = int(self.totals[2])
             if lost:  # cannot happen after ensure_capacity; never let it pass silently
                 raise MapCapacityError(f"{lost} new surfels did not fit (capacity {self.capacity}): "

@@ -88,6 +88,7 @@ class FusionConfig:
     unstable_age: int = 20
     remove_free_space: bool = False  # drop surfels observed clearly in front of the measured surface
     free_space_margin: float = 0.05  # metres
+    depth_weighting: bool = False    # measurement weight also × (σ(1 m)/σ(z))², capped at 4 (Kinect depth noise)
     confidence_sigma: float = 0.6    # Keller's σ: measurement weight exp(−γ²/2σ²), γ = radial distance / max
     association: str = "compatible"     # a pixel merges into: nearest = its nearest surfel if that one passes
                                      # filter 2 | compatible = the nearest of its surfels that pass (Keller)

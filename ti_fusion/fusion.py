@@ -90,12 +90,12 @@ class SurfelMapper:
                 self.map.associate(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
         with stage("merge"):
             self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
-                           cfg.confidence_sigma, has_colour)
+                           cfg.confidence_sigma, has_colour, cfg.depth_weighting)
         with stage("add"):
             if cfg.skip_covered:
                 self.map.mark_covered(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
             added, merged = self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
-                                         cfg.confidence_sigma, has_colour)
+                                         cfg.confidence_sigma, has_colour, cfg.depth_weighting)
         with stage("remove"):
             removed = self.map.remove(frame_index, cfg.remove_unstable, cfg.unstable_weight, cfg.unstable_age,
                                       cfg.remove_free_space, cfg.free_space_margin, depth)

@@ -95,7 +95,9 @@ class FusionConfig:
     skip_covered: bool = True        # a pixel on the disc of a surfel merged at a neighbouring pixel adds no
                                      # surfel (keeps the map from growing at every frame)
     render_min_weight: float = 0.0   # rendering for tracking: only surfels at least this confident
-    render_max_half: int = 1         # rendering: a surfel's disc reaches at most this many pixels from its centre
+    render_max_half: int = 0         # rendering for tracking: a surfel's disc reaches at most this many pixels
+                                     # from its centre. 0: each pixel shows its own front surfel; 1 dilated
+                                     # occluding edges by a pixel and cost ATE (redkitchen 320×240: 4.5 → 3.4 cm)
     view_back: float = 1.0           # PNG views: metres the first camera is pulled back along its axis
 
 

@@ -186,7 +186,7 @@ def bench_size(width: int, height: int, target: int, steps: int) -> dict:
     fx = 525.0 * width / 640.0
     seq = SyntheticSequence(SynthConfig(frames=600, width=width, height=height, fx=fx, noise=True))
     K = seq.intrinsics
-    cfg = FusionConfig()
+    cfg = FusionConfig(level=0)  # the step at this resolution (the SLAM default fuses 640×480 input at 320×240)
     mapper = SurfelMapper(cfg)
     maps = FrameMaps(height, width, levels=1)
     frame = 0

@@ -191,7 +191,7 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
 
     def frame_pair():
         for maps, depth in ((src, depth_s), (tgt, depth_t)):
-            maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.depth_smooth_radius)
+            maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.smooth_radius(K.width))
         return icp.align(src, tgt)
 
     result = frame_pair()  # compiles every kernel
@@ -280,7 +280,7 @@ def accuracy_over_pairs(cfg, args) -> dict | None:
         a, b = dataset[int(s)], dataset[int(s) + gap]
         reference = invert(b.gt_pose) @ a.gt_pose
         for maps, depth in ((src, a.depth), (tgt, b.depth)):
-            maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.depth_smooth_radius)
+            maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.smooth_radius(K.width))
         ours.append(pose_error(icp.align(src, tgt).pose, reference))
         o3d = open3d_runner(a.depth, b.depth, K, list(c.iterations), cfg.dataset.depth_max, args.open3d_python)
         if o3d is not None:
@@ -335,7 +335,7 @@ def main(argv=None) -> int:
     backend = init_backend("cpu")
     depth_s, depth_t, K, reference, what = load_pair(args, cfg)
     print(f"ICP benchmark: {what}; backend {backend.arch}, {os.cpu_count()} CPUs; iterations {cfg.icp.iterations} "
-          f"(coarse → fine), depth smoothing r = {cfg.icp.depth_smooth_radius}; medians of {args.repeats}+ runs")
+          f"(coarse → fine), depth smoothing r = {cfg.icp.smooth_radius(K.width)} at {K.width} px (half at half); medians of {args.repeats}+ runs")
     rows = []
     for f in (1, 2):
         Kf = K.downsampled(f)

@@ -608,6 +608,35 @@ def test_same_frame_twice_adds_nothing(cpu, rng, confidence, association):
     assert np.all(after["t_updated"] == 1) and np.all(after["t_created"] == 0)
 
 
+def test_auto_map_level_and_smoothing_follow_the_width():
+    from ti_fusion.config import ICPConfig
+    assert [FusionConfig().map_level(w) for w in (160, 320, 321, 640, 1280)] == [0, 0, 1, 1, 2]
+    assert FusionConfig(level=0).map_level(640) == 0
+    assert [ICPConfig().smooth_radius(w) for w in (32, 320, 640)] == [1, 6, 12]
+    assert ICPConfig(depth_smooth_radius=0).smooth_radius(640) == 0
+
+
+def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
+    """fusion.level = 1: the surfels are level 1's vertices (colour subsampled alike), not level 0's."""
+    _, u = np.mgrid[0:H, 0:W]
+    depth = (2.0 + 0.002 * u).astype(np.float32)
+    maps = FrameMaps(H, W, levels=2)
+    maps.compute(depth, K)
+    colour = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    pose = random_pose(rng)
+    mapper = SurfelMapper(FusionConfig(capacity=10_000, level=1))
+    stats = mapper.integrate(maps, colour, pose, 0)
+    vertex, normal = maps.vertex[1].to_numpy(), maps.normal[1].to_numpy()
+    valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
+    assert stats.added == valid.sum() == stats.surfels and stats.merged == 0
+    fused = mapper.to_numpy()
+    expected = vertex[valid] @ pose[:3, :3].T + pose[:3, 3]  # row-major pixel order, as appended
+    assert_close(fused["position"], expected, 1e-5)
+    assert_close(fused["colour"], colour[::2, ::2][valid].astype(np.float64), 1e-4)
+    with pytest.raises(ValueError, match="fusion.level 1"):
+        mapper.integrate(FrameMaps(H, W, levels=1), None, pose, 1)
+
+
 def test_render_maps_reproduces_the_fused_frame(cpu, rng):
     """Rendering the map of one frame at that frame's pose gives back its depth, vertices and normals."""
     maps, depth = plane_frame()

@@ -266,7 +266,7 @@ def sequence():
     return SyntheticSequence(SYNTH)
 
 
-def synthetic_pair(sequence, rng, noise, deg=3.0, metres=0.05):
+def synthetic_pair(sequence, rng, noise, deg=3.0, metres=0.05, cfg: ICPConfig = ICPConfig()):
     """Maps of the synthetic room seen from a pose of the camera path and from that pose moved by
     ``deg`` degrees about a random axis and ``metres`` along a random direction, and the true relative
     pose G (p_target = G p_source)."""
@@ -277,7 +277,7 @@ def synthetic_pair(sequence, rng, noise, deg=3.0, metres=0.05):
     depth_s, _ = sequence.render(pose, noise=noise, seed=int(seeds[0]))
     depth_t, _ = sequence.render(pose @ invert(G), noise=noise, seed=int(seeds[1]))
     K = sequence.intrinsics
-    return maps_of(depth_s, K), maps_of(depth_t, K, slot="target"), G
+    return maps_of(depth_s, K, cfg), maps_of(depth_t, K, cfg, slot="target"), G
 
 
 _MAPS: dict = {}
@@ -291,12 +291,13 @@ def maps_of(depth: np.ndarray, K: Intrinsics, cfg: ICPConfig = ICPConfig(), slot
     if backend is not current_backend():  # fields do not survive a change of backend
         maps = FrameMaps(K.height, K.width, len(cfg.iterations))
         _MAPS[key] = (current_backend(), maps)
-    maps.compute(depth, K, cfg.normal_max_depth_jump, 3 * cfg.pyramid_depth_sigma, cfg.depth_smooth_radius)
+    maps.compute(depth, K, cfg.normal_max_depth_jump, 3 * cfg.pyramid_depth_sigma, cfg.smooth_radius(K.width))
     return maps
 
 
 def test_synthetic_motion_recovered_without_noise(arch, rng, sequence):
-    src, tgt, G = synthetic_pair(sequence, rng, noise=False)
+    # Exact depth needs no smoothing, and smoothing is view-dependent at corners (a floor on the residual)
+    src, tgt, G = synthetic_pair(sequence, rng, noise=False, cfg=ICPConfig(depth_smooth_radius=0))
     result = ICP(ICPConfig()).align(src, tgt)
     rot, trans = pose_error(result.pose, G)
     assert result.failure is None and result.converged
@@ -308,10 +309,14 @@ def test_synthetic_motion_recovered_without_noise(arch, rng, sequence):
 @pytest.mark.parametrize("solver, robust", [("cholesky", "none"), ("qr", "huber"), ("lu", "tukey"),
                                            ("cholesky", "huber+depth")])
 def test_synthetic_motion_recovered_with_noise(cpu, rng, sequence, solver, robust):
-    src, tgt, G = synthetic_pair(sequence, rng, noise=True)
     robust, _, depth = robust.partition("+")
     scale = {"none": 0.01, "huber": 0.01, "tukey": 0.03}[robust]
-    config = ICPConfig(solver=solver, robust=robust, robust_scale=scale, depth_weighting=depth == "depth")
+    # Light smoothing (r = 2): the default's heavier, image-relative smoothing pays on real Kinect depth
+    # (redkitchen ATE) but rounds the synthetic room's sharp corners differently in the two views, which
+    # costs a frame pair ~0.3 mm here (median over 12 pairs 0.13 → 0.39 mm).
+    config = ICPConfig(solver=solver, robust=robust, robust_scale=scale, depth_weighting=depth == "depth",
+                       depth_smooth_radius=2)
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=config)
     result = ICP(config).align(src, tgt)
     rot, trans = pose_error(result.pose, G)
     assert result.failure is None

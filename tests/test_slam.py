@@ -164,3 +164,14 @@ def test_feature_relocalisation_after_a_jump(cpu, tmp_path):
     assert summary["relocalised"] >= 1, summary["failed_frames"]
     assert summary["tracking_failures"] == 0
     assert summary["ate_rmse_m"] < 0.01
+
+
+def test_map_at_half_resolution_tracks(cpu, tmp_path):
+    """fusion.level = 1 (the default's choice for 640×480 input): the model is rendered at half the frame's
+    resolution and each of its points is aligned to the full-resolution frame."""
+    cfg = _config()
+    cfg.fusion.level = 1
+    run = RunDir("slam", tmp_path / "run")
+    summary = SLAMPipeline(open_dataset(cfg.dataset, cfg.synth), cfg, run, current_backend(),
+                           show_progress=False).run()
+    assert summary["tracking_failures"] == 0 and summary["ate_rmse_m"] < 0.01

@@ -64,9 +64,15 @@ class SurfelMapper:
         With a ``timer``, every stage is synchronised and timed (ms in the stats and in the timer).
         """
         cfg = self.config
-        vertex, normal, depth = frame_maps.vertex[0], frame_maps.normal[0], frame_maps.depth[0]
-        K: Intrinsics = frame_maps.intrinsics[0]
-        H, W = frame_maps.shapes[0]
+        level = cfg.map_level(frame_maps.width)
+        if level >= frame_maps.levels:
+            raise ValueError(f"fusion.level {level} (for {frame_maps.width} px wide frames) needs frame maps with "
+                             f"at least {level + 1} pyramid levels, not {frame_maps.levels}")
+        vertex, normal, depth = frame_maps.vertex[level], frame_maps.normal[level], frame_maps.depth[level]
+        K: Intrinsics = frame_maps.intrinsics[level]
+        H, W = frame_maps.shapes[level]
+        if color is not None and level > 0:
+            color = color[:: 2**level, :: 2**level]
         pose = np.asarray(pose, dtype=np.float64)
         ms: dict[str, float] = {}
         stage = _Stages(timer, ms)

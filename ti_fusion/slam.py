@@ -65,8 +65,12 @@ class DenseSLAM:
         self.intrinsics = intrinsics
         levels = len(config.icp.iterations)
         H, W = intrinsics.height, intrinsics.width
-        self.frame_maps = FrameMaps(H, W, levels)  # the incoming frame: ICP target
-        self.model_maps = FrameMaps(H, W, levels)  # the map rendered at the last pose: ICP source
+        map_level = config.fusion.map_level(W)
+        self.frame_maps = FrameMaps(H, W, max(levels, map_level + 1))  # the incoming frame: ICP target
+        # The map rendered at the last pose: ICP source, at the map's resolution (level l of the model is
+        # aligned to level l of the frame: with fusion.level 1, each model point to a twice finer target).
+        self.model_intrinsics = intrinsics.downsampled(2**map_level)
+        self.model_maps = FrameMaps(self.model_intrinsics.height, self.model_intrinsics.width, levels)
         self.previous_maps = FrameMaps(H, W, levels) if config.slam.tracking == "frame" else None
         self.icp = ICP(config.icp)
         self.mapper = SurfelMapper(config.fusion)
@@ -81,7 +85,7 @@ class DenseSLAM:
         with timer.stage("maps"):
             icp = self.config.icp
             self.frame_maps.compute(frame.depth, frame.intrinsics, icp.normal_max_depth_jump,
-                                    3 * icp.pyramid_depth_sigma, icp.depth_smooth_radius)
+                                    3 * icp.pyramid_depth_sigma, icp.smooth_radius(frame.depth.shape[1]))
         if not self.poses:
             pose = frame.gt_pose if frame.gt_pose is not None and self.config.slam.anchor_to_ground_truth \
                 else np.eye(4)
@@ -111,7 +115,7 @@ class DenseSLAM:
         if self.previous_maps is not None:  # frame-to-frame, for comparison only
             return self.previous_maps, self.poses[-1]
         last = self.last_good[1] if self.last_good is not None else self.poses[-1]
-        self.mapper.render_maps(self.model_maps, last, self.intrinsics, self.config.icp.normal_max_depth_jump,
+        self.mapper.render_maps(self.model_maps, last, self.model_intrinsics, self.config.icp.normal_max_depth_jump,
                                 3 * self.config.icp.pyramid_depth_sigma)
         return self.model_maps, last
 

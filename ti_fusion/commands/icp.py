@@ -65,7 +65,7 @@ def _frame(dataset, index: int) -> Frame:
 def _maps(frame: Frame, cfg) -> FrameMaps:
     K = frame.intrinsics
     maps = FrameMaps(K.height, K.width, len(cfg.iterations))
-    maps.compute(frame.depth, K, cfg.normal_max_depth_jump, 3 * cfg.pyramid_depth_sigma, cfg.depth_smooth_radius)
+    maps.compute(frame.depth, K, cfg.normal_max_depth_jump, 3 * cfg.pyramid_depth_sigma, cfg.smooth_radius(K.width))
     return maps
 
 

@@ -136,7 +136,16 @@ def compute_normals(vertex: ti.template(), normal: ti.template(), max_depth_jump
 class FrameMaps:
     """Depth, vertex and normal maps of one frame at every pyramid level (camera frame, metres)."""
 
-    def __init__(self, height: int, width: int, levels: int = 3):
+    def __init__(self, height: int, width: int, levels: int = 3, input_level: int = 0):
+        """Maps of ``levels`` levels for depth images of ``height`` × ``width``. With ``input_level`` L > 0
+        the input is first averaged down L times (``pyramid_down``) and level 0 is that 2**L times smaller
+        image: the fine resolution is never smoothed or back-projected, which is what makes it cheaper."""
+        self.input_shape = (height, width)
+        self.input_level = int(input_level)
+        self._inputs = []  # input_level > 0: the input and the intermediate averaged images
+        for _ in range(self.input_level):
+            self._inputs.append(ti.field(ti.f32, shape=(height, width)))
+            height, width = (height + 1) // 2, (width + 1) // 2
         self.height, self.width, self.levels = height, width, levels
         self.shapes = []
         h, w = height, width
@@ -155,19 +164,37 @@ class FrameMaps:
 
         ``smooth_radius`` r > 0 first replaces the depth by its range-checked (2r+1)² mean (see the module
         docstring); ``depth[0]`` then holds the smoothed depth."""
-        if depth.shape != self.shapes[0]:
-            raise ValueError(f"depth of shape {depth.shape} given to FrameMaps of shape {self.shapes[0]}")
+        if depth.shape != self.input_shape:
+            raise ValueError(f"depth of shape {depth.shape} given to FrameMaps of shape {self.input_shape}")
         depth = np.ascontiguousarray(depth, dtype=np.float32)
-        if smooth_radius > 0:
-            if self._raw is None:
-                self._raw = ti.field(ti.f32, shape=self.shapes[0])
-                self._tmp = ti.field(ti.f32, shape=self.shapes[0])
-            self._raw.from_numpy(depth)
-            smooth_pass(self._raw, self._tmp, int(smooth_radius), True, pyramid_max_diff)
-            smooth_pass(self._tmp, self.depth[0], int(smooth_radius), False, pyramid_max_diff)
+        if self.input_level > 0:
+            intrinsics = intrinsics.downsampled(2**self.input_level)
+            self._inputs[0].from_numpy(depth)
+            for l in range(self.input_level):
+                last = l == self.input_level - 1
+                if last and smooth_radius <= 0:
+                    coarse = self.depth[0]
+                elif last:
+                    coarse = self._raw_field()
+                else:
+                    coarse = self._inputs[l + 1]
+                pyramid_down(self._inputs[l], coarse, pyramid_max_diff)
+        elif smooth_radius > 0:
+            self._raw_field().from_numpy(depth)
         else:
             self.depth[0].from_numpy(depth)
+        if smooth_radius > 0:
+            self._raw_field()
+            smooth_pass(self._raw, self._tmp, int(smooth_radius), True, pyramid_max_diff)
+            smooth_pass(self._tmp, self.depth[0], int(smooth_radius), False, pyramid_max_diff)
         self.compute_from_field(intrinsics, max_depth_jump, pyramid_max_diff)
+
+    def _raw_field(self):
+        """The unsmoothed level-0 depth (allocated when smoothing is first asked for)."""
+        if self._raw is None:
+            self._raw = ti.field(ti.f32, shape=self.shapes[0])
+            self._tmp = ti.field(ti.f32, shape=self.shapes[0])
+        return self._raw
 
     def compute_from_field(self, intrinsics: Intrinsics, max_depth_jump: float = 0.05,
                            pyramid_max_diff: float = 0.09, level0_maps: bool = True) -> None:

@@ -635,6 +635,12 @@ def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
     assert_close(fused["colour"], colour[::2, ::2][valid].astype(np.float64), 1e-4)
     with pytest.raises(ValueError, match="fusion.level 1"):
         mapper.integrate(FrameMaps(H, W, levels=1), None, pose, 1)
+    # Maps averaged down to level 1 on input (as the SLAM builds them) give the same surfels
+    decimated = FrameMaps(H, W, levels=1, input_level=1)
+    decimated.compute(depth, K)
+    again = SurfelMapper(FusionConfig(capacity=10_000, level=1))
+    again.integrate(decimated, colour, pose, 0)
+    assert_close(again.to_numpy()["position"], fused["position"], 1e-6)
 
 
 def test_render_maps_reproduces_the_fused_frame(cpu, rng):

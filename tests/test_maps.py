@@ -193,6 +193,30 @@ def test_pyramid_matches_reference(arch, rng):
         np.testing.assert_allclose(maps.vertex[level].to_numpy(), backproject_ref(got, K_l), rtol=2e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("input_level, radius", [(1, 0), (1, 2), (2, 1)])
+def test_input_level_averages_down_first(arch, rng, input_level, radius):
+    """FrameMaps(input_level=L): level 0 is the input averaged down L times (then smoothed), the same
+    maps as level L of full-resolution maps built without smoothing."""
+    depth = random_depth(rng, shape=(61, 81))
+    K_in = Intrinsics(150.0, 140.0, 40.0, 30.0, 81, 61)
+    maps = FrameMaps(*depth.shape, levels=2, input_level=input_level)
+    maps.compute(depth, K_in, JUMP, PYR, smooth_radius=radius)
+    expected = depth
+    for _ in range(input_level):
+        expected = pyramid_ref(expected, np.float32(PYR)).astype(np.float32)
+    assert maps.shapes[0] == expected.shape and maps.input_shape == depth.shape
+    if radius:
+        expected = smooth_ref(expected, radius, np.float32(PYR))
+    got = maps.depth[0].to_numpy()
+    np.testing.assert_array_equal(got > 0, expected > 0)
+    np.testing.assert_allclose(got, expected, rtol=1e-6)
+    K_0 = maps.intrinsics[0]
+    assert K_0 == K_in.downsampled(2**input_level) and (K_0.height, K_0.width) == maps.shapes[0]
+    np.testing.assert_allclose(maps.vertex[0].to_numpy(), backproject_ref(got, K_0), rtol=2e-6, atol=1e-7)
+    with pytest.raises(ValueError, match="shape"):
+        maps.compute(expected.astype(np.float32), K_0)  # the input resolution is expected
+
+
 def test_pyramid_does_not_average_across_an_edge(arch):
     depth = np.full((8, 8), 1.0, dtype=np.float32)
     depth[:, 3:] = 2.0  # the coarse pixel at u = 1 (fine u = 2) has fine neighbours on both sides

@@ -133,6 +133,10 @@ class SLAMConfig:
     max_update_m: float = 0.3
     relocalise: str = "features"     # features | none: after a failure, re-initialise with ORB+PnP
     anchor_to_ground_truth: bool = True  # start at the first frame's GT pose (same frame as GT in viewers)
+    track_at_map_level: bool = True  # with fusion.level > 0, average the frame down to the map's resolution
+                                     # before smoothing and tracking (False: smooth and track at the input
+                                     # resolution, each model point aligned to a finer frame). Redkitchen 500
+                                     # frames at 640×480: ATE 2.73 vs 2.67 cm, maps 8 vs 33 ms per frame
 
 
 @dataclass

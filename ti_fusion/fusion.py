@@ -64,15 +64,18 @@ class SurfelMapper:
         With a ``timer``, every stage is synchronised and timed (ms in the stats and in the timer).
         """
         cfg = self.config
-        level = cfg.map_level(frame_maps.width)
-        if level >= frame_maps.levels:
-            raise ValueError(f"fusion.level {level} (for {frame_maps.width} px wide frames) needs frame maps with "
-                             f"at least {level + 1} pyramid levels, not {frame_maps.levels}")
+        input_width = frame_maps.input_shape[1]
+        map_level = cfg.map_level(input_width)  # counted from the input resolution
+        level = map_level - frame_maps.input_level  # the same level, counted in these maps
+        if not 0 <= level < frame_maps.levels:
+            raise ValueError(f"fusion.level {map_level} (for {input_width} px wide frames) needs frame maps "
+                             f"with level {map_level} of the input; these have levels {frame_maps.input_level}"
+                             f"..{frame_maps.input_level + frame_maps.levels - 1}")
         vertex, normal, depth = frame_maps.vertex[level], frame_maps.normal[level], frame_maps.depth[level]
         K: Intrinsics = frame_maps.intrinsics[level]
         H, W = frame_maps.shapes[level]
-        if color is not None and level > 0:
-            color = color[:: 2**level, :: 2**level]
+        if color is not None and map_level > 0:
+            color = color[:: 2**map_level, :: 2**map_level]
         pose = np.asarray(pose, dtype=np.float64)
         ms: dict[str, float] = {}
         stage = _Stages(timer, ms)

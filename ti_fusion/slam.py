@@ -66,12 +66,15 @@ class DenseSLAM:
         levels = len(config.icp.iterations)
         H, W = intrinsics.height, intrinsics.width
         map_level = config.fusion.map_level(W)
-        self.frame_maps = FrameMaps(H, W, max(levels, map_level + 1))  # the incoming frame: ICP target
+        # The incoming frame: ICP target (averaged down to the map's level first, by default).
+        frame_level = map_level if config.slam.track_at_map_level else 0
+        self.frame_maps = FrameMaps(H, W, max(levels, map_level - frame_level + 1), input_level=frame_level)
         # The map rendered at the last pose: ICP source, at the map's resolution (level l of the model is
         # aligned to level l of the frame: with fusion.level 1, each model point to a twice finer target).
         self.model_intrinsics = intrinsics.downsampled(2**map_level)
         self.model_maps = FrameMaps(self.model_intrinsics.height, self.model_intrinsics.width, levels)
-        self.previous_maps = FrameMaps(H, W, levels) if config.slam.tracking == "frame" else None
+        self.previous_maps = FrameMaps(H, W, levels, input_level=frame_level) \
+            if config.slam.tracking == "frame" else None
         self.icp = ICP(config.icp)
         self.mapper = SurfelMapper(config.fusion)
         self.poses: list[np.ndarray] = []
@@ -85,7 +88,7 @@ class DenseSLAM:
         with timer.stage("maps"):
             icp = self.config.icp
             self.frame_maps.compute(frame.depth, frame.intrinsics, icp.normal_max_depth_jump,
-                                    3 * icp.pyramid_depth_sigma, icp.smooth_radius(frame.depth.shape[1]))
+                                    3 * icp.pyramid_depth_sigma, icp.smooth_radius(self.frame_maps.width))
         if not self.poses:
             pose = frame.gt_pose if frame.gt_pose is not None and self.config.slam.anchor_to_ground_truth \
                 else np.eye(4)

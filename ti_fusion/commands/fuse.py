@@ -36,7 +36,7 @@ def run(ctx) -> dict:
     if len(dataset) == 0:
         raise InputError(dataset.root, "no frames selected (check --start/--stop/--frames)")
     K = dataset.intrinsics
-    maps = FrameMaps(K.height, K.width, levels=cfg.fusion.map_level(K.width) + 1)
+    maps = FrameMaps(K.height, K.width, levels=1, input_level=cfg.fusion.map_level(K.width))  # averaged down, as the SLAM
     mapper = SurfelMapper(cfg.fusion)
     timer = StageTimer()
     naive = merged = added = removed = covered = 0
@@ -50,7 +50,7 @@ def run(ctx) -> dict:
         with timer.stage("maps"):
             # The same maps the SLAM loop fuses: edge-preserving smoothed depth, normals from it.
             maps.compute(frame.depth, frame.intrinsics, cfg.icp.normal_max_depth_jump, 3 * cfg.icp.pyramid_depth_sigma,
-                         cfg.icp.smooth_radius(K.width))
+                         cfg.icp.smooth_radius(maps.width))
         stats = mapper.integrate(maps, frame.color, frame.gt_pose, i, timer)
         timer.add("fuse", sum(stats.ms.values()))
         naive += int((frame.depth > 0).sum())

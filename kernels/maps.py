@@ -1,6 +1,7 @@
 """Per-frame maps on the Taichi side: depth pyramid, vertex maps and normal maps.
 
-Level 0 is the input resolution (optionally smoothed, see below); level l is subsampled by 2**l. The
+Level 0 is the input resolution (optionally smoothed, see below), or with ``input_level`` L the input
+averaged down L times by the same pyramid step; level l is subsampled by 2**l from level 0. The
 coarse depth at (u', v') is the average of the 3×3 fine neighbourhood centred on (2u', 2v') over the
 pixels within a range of the centre depth, so the average never mixes the two sides of a depth edge, and
 pixel u' stays exactly at fine pixel 2u' (intrinsics of level l are ``Intrinsics.downsampled(2**l)``).

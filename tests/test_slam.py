@@ -175,3 +175,5 @@ def test_map_at_half_resolution_tracks(cpu, tmp_path):
     summary = SLAMPipeline(open_dataset(cfg.dataset, cfg.synth), cfg, run, current_backend(),
                            show_progress=False).run()
     assert summary["tracking_failures"] == 0 and summary["ate_rmse_m"] < 0.01
+    assert summary["resolution"] == {"map_level": 1, "map_size": [160, 120], "tracked_at": [160, 120],
+                                     "depth_smooth_radius": 3}

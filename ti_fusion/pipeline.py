@@ -142,6 +142,7 @@ class SLAMPipeline:
             "warmup_ms": warmup_ms,
             "dataset": self.dataset.describe(),
             "surfels": slam.surfels,
+            "resolution": slam.resolution(),
             "tracking_failures": len(lost),
             "failed_frames": [{"frame": r.index, "reason": r.status} for r in lost][:50],
             "relocalised": sum(r.status == "relocalised" for r in self.results),

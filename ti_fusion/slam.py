@@ -187,3 +187,11 @@ class DenseSLAM:
     @property
     def surfels(self) -> int:
         return self.mapper.count
+
+    def resolution(self) -> dict:
+        """What the auto settings resolved to: the map's pyramid level and size, the size the frame is
+        tracked at, and the depth smoothing radius (pixels at that size)."""
+        model, frame = self.model_intrinsics, self.frame_maps
+        return {"map_level": self.config.fusion.map_level(self.intrinsics.width),
+                "map_size": [model.width, model.height], "tracked_at": [frame.width, frame.height],
+                "depth_smooth_radius": self.config.icp.smooth_radius(frame.width)}

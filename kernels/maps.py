@@ -168,25 +168,16 @@ class FrameMaps:
         if depth.shape != self.input_shape:
             raise ValueError(f"depth of shape {depth.shape} given to FrameMaps of shape {self.input_shape}")
         depth = np.ascontiguousarray(depth, dtype=np.float32)
-        if self.input_level > 0:
+        level0 = self._raw_field() if smooth_radius > 0 else self.depth[0]  # the unsmoothed level-0 depth
+        if self.input_level == 0:
+            level0.from_numpy(depth)
+        else:
             intrinsics = intrinsics.downsampled(2**self.input_level)
             self._inputs[0].from_numpy(depth)
-            for l in range(self.input_level):
-                last = l == self.input_level - 1
-                if last and smooth_radius <= 0:
-                    coarse = self.depth[0]
-                elif last:
-                    coarse = self._raw_field()
-                else:
-                    coarse = self._inputs[l + 1]
-                pyramid_down(self._inputs[l], coarse, pyramid_max_diff)
-        elif smooth_radius > 0:
-            self._raw_field().from_numpy(depth)
-        else:
-            self.depth[0].from_numpy(depth)
+            for fine, coarse in zip(self._inputs, self._inputs[1:] + [level0]):
+                pyramid_down(fine, coarse, pyramid_max_diff)
         if smooth_radius > 0:
-            self._raw_field()
-            smooth_pass(self._raw, self._tmp, int(smooth_radius), True, pyramid_max_diff)
+            smooth_pass(level0, self._tmp, int(smooth_radius), True, pyramid_max_diff)
             smooth_pass(self._tmp, self.depth[0], int(smooth_radius), False, pyramid_max_diff)
         self.compute_from_field(intrinsics, max_depth_jump, pyramid_max_diff)
 

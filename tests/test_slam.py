@@ -167,8 +167,8 @@ def test_feature_relocalisation_after_a_jump(cpu, tmp_path):
 
 
 def test_map_at_half_resolution_tracks(cpu, tmp_path):
-    """fusion.level = 1 (the default's choice for 640×480 input): the model is rendered at half the frame's
-    resolution and each of its points is aligned to the full-resolution frame."""
+    """fusion.level = 1 (the default's choice for 640×480 input): the frame is averaged down to half its
+    resolution, and the model is rendered and tracked there."""
     cfg = _config()
     cfg.fusion.level = 1
     run = RunDir("slam", tmp_path / "run")

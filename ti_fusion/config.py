@@ -175,6 +175,11 @@ class Config:
     vo: VOConfig = field(default_factory=VOConfig)
     log: LogConfig = field(default_factory=LogConfig)
 
+    def frame_input_level(self, width: int) -> int:
+        """How many pyramid steps a frame ``width`` px wide is averaged down on input: to the map's level
+        (``fusion.level``) unless ``slam.track_at_map_level`` is off."""
+        return self.fusion.map_level(width) if self.slam.track_at_map_level else 0
+
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
 

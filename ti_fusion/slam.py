@@ -70,9 +70,9 @@ class DenseSLAM:
         self.intrinsics = intrinsics
         levels = len(config.icp.iterations)
         H, W = intrinsics.height, intrinsics.width
-        map_level = config.fusion.map_level(W)
+        self.map_level = map_level = config.fusion.map_level(W)
         # The incoming frame: ICP target (averaged down to the map's level first, by default).
-        frame_level = map_level if config.slam.track_at_map_level else 0
+        frame_level = config.frame_input_level(W)
         self.frame_maps = FrameMaps(H, W, max(levels, map_level - frame_level + 1), input_level=frame_level)
         # The map rendered at the last pose: ICP source, at the map's resolution. Level l of the model is
         # aligned to level l of the frame maps: the same resolution by default, or with
@@ -192,6 +192,6 @@ class DenseSLAM:
         """What the auto settings resolved to: the map's pyramid level and size, the size the frame is
         tracked at, and the depth smoothing radius (pixels at that size)."""
         model, frame = self.model_intrinsics, self.frame_maps
-        return {"map_level": self.config.fusion.map_level(self.intrinsics.width),
+        return {"map_level": self.map_level,
                 "map_size": [model.width, model.height], "tracked_at": [frame.width, frame.height],
                 "depth_smooth_radius": self.config.icp.smooth_radius(frame.width)}

@@ -36,7 +36,10 @@ def run(ctx) -> dict:
     if len(dataset) == 0:
         raise InputError(dataset.root, "no frames selected (check --start/--stop/--frames)")
     K = dataset.intrinsics
-    maps = FrameMaps(K.height, K.width, levels=1, input_level=cfg.fusion.map_level(K.width))  # averaged down, as the SLAM
+    # The frame maps the SLAM loop fuses from: averaged down to the map's level on input (by default)
+    input_level = cfg.frame_input_level(K.width)
+    maps = FrameMaps(K.height, K.width, levels=cfg.fusion.map_level(K.width) - input_level + 1,
+                     input_level=input_level)
     mapper = SurfelMapper(cfg.fusion)
     timer = StageTimer()
     naive = merged = added = removed = covered = 0

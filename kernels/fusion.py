@@ -609,6 +609,21 @@ def copy_all(src: ti.template(), dst: ti.template(), n: ti.i32):
         copy_surfel(src, i, dst, i)
 
 
+@ti.kernel
+def export_vector(src: ti.template(), out: ti.types.ndarray(), stride: ti.i32):
+    """out[k] = src[k · stride] for the rows of ``out``: the live prefix (or a subsample) of one attribute,
+    without copying the whole capacity as ``field.to_numpy()`` would."""
+    for k in range(out.shape[0]):
+        for c in ti.static(range(3)):
+            out[k, c] = src[k * stride][c]
+
+
+@ti.kernel
+def export_scalar(src: ti.template(), out: ti.types.ndarray(), stride: ti.i32):
+    for k in range(out.shape[0]):
+        out[k] = src[k * stride]
+
+
 # ---------------------------------------------------------------------------------------------------
 # Rendering: screen-space surfel splatting with a z-test
 #
@@ -985,10 +1000,25 @@ class SurfelMap:
         return (np.clip(img.image.to_numpy(), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
 
     # -- NumPy edges ----------------------------------------------------------------------------------------
-    def to_numpy(self) -> dict[str, np.ndarray]:
-        """The live surfels as NumPy arrays (copies), keyed by attribute name."""
-        n = self.count
-        return {name: field.to_numpy()[:n] for name, field in zip(ATTRIBUTES, self.arrays.attributes)}
+    def to_numpy(self, names=ATTRIBUTES, stride: int = 1) -> dict[str, np.ndarray]:
+        """The live surfels as NumPy arrays (copies), keyed by attribute name; with ``stride`` k, every k-th
+        surfel only (a cheap, deterministic subsample for logging). Only those surfels are copied: the
+        fields hold the whole capacity, and copying all of it cost ~0.5 s per snapshot of a 4 M map."""
+        stride = max(1, int(stride))
+        m = (self.count + stride - 1) // stride
+        out = {}
+        for name in names:
+            field = getattr(self.arrays, name)
+            dtype = np.float32 if field.dtype == ti.f32 else np.int32
+            if getattr(field, "n", 1) == 3:
+                out[name] = np.empty((m, 3), dtype)
+                if m:
+                    export_vector(field, out[name], stride)
+            else:
+                out[name] = np.empty(m, dtype)
+                if m:
+                    export_scalar(field, out[name], stride)
+        return out
 
     def from_numpy(self, data: dict[str, np.ndarray]) -> None:
         """Replace the map by the given surfels (every attribute of ATTRIBUTES, same length)."""

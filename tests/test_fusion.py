@@ -675,6 +675,23 @@ def test_capacity_grows(cpu, rng):
     assert_close(got["position"][len(first["position"]):], first["position"] + [0, 0, 1], 1e-5)
 
 
+def test_export_copies_the_live_surfels_or_every_kth(cpu, rng):
+    maps, _ = plane_frame()
+    mapper = SurfelMapper(FusionConfig(capacity=50_000, remove_unstable=False))
+    colour = rng.integers(0, 256, size=maps.input_shape + (3,), dtype=np.uint8)
+    mapper.integrate(maps, colour, np.eye(4), 0)
+    full = {name: field.to_numpy()[: mapper.count] for name, field in
+            zip(F.ATTRIBUTES, mapper.map.arrays.attributes)}  # the whole capacity, cut: the slow way
+    got = mapper.to_numpy()
+    for name in F.ATTRIBUTES:
+        np.testing.assert_array_equal(got[name], full[name], err_msg=name)
+    xyz, rgb = mapper.sample_points(max_points=mapper.count // 3)
+    k = -(-mapper.count // (mapper.count // 3))
+    np.testing.assert_array_equal(xyz, full["position"][::k])
+    assert rgb.dtype == np.uint8 and len(xyz) <= mapper.count // 3
+    np.testing.assert_array_equal(rgb, np.rint(full["colour"][::k]).astype(np.uint8))
+
+
 def test_capacity_error_names_the_setting(cpu):
     maps, _ = plane_frame()
     mapper = SurfelMapper(FusionConfig(capacity=1000, grow=False))

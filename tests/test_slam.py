@@ -50,6 +50,18 @@ def test_slam_command_on_synthetic_default(cpu, tmp_path):
     assert {"frame", "status", "surfels", "ms"} <= set(log.stats[-1])
     assert {"maps", "track", "fuse", "log", "load"} <= set(log.stats[-1]["ms"])
     assert log.metadata_value("backend", "arch") == "cpu"
+    # the map snapshot carries the surfels' colours (the textured room), not white
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from ti_fusion.mcap_log import points_from_msg
+
+    with open(out / "log.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        clouds = [msg for _, _, _, msg in reader.iter_decoded_messages(topics=["/map/points"])]
+    xyz, rgba = points_from_msg(clouds[-1])
+    assert len(xyz) == summary["surfels"] or len(xyz) <= Config().log.map_max_points
+    assert rgba[:, :3].std() > 10 and rgba[:, :3].mean() < 240
 
 
 class BlankFrame:

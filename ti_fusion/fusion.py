@@ -134,6 +134,13 @@ class SurfelMapper:
     def to_numpy(self) -> dict[str, np.ndarray]:
         return self.map.to_numpy()
 
+    def sample_points(self, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+        """(positions, uint8 RGB colours) of at most ``max_points`` surfels: every k-th, for log snapshots."""
+        stride = max(1, -(-self.count // max(1, int(max_points))))
+        data = self.map.to_numpy(("position", "colour"), stride)
+        # surfel colours are floats in [0, 255]; log_points reads float colours as [0, 1]
+        return data["position"], np.clip(np.rint(data["colour"]), 0, 255).astype(np.uint8)
+
     def export_ply(self, path: str | Path) -> Path:
         from .ply import write_ply
 

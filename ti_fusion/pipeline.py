@@ -113,8 +113,8 @@ class SLAMPipeline:
     def _log_map(self, slam: DenseSLAM, log: RunLogger, t: float) -> None:
         if slam.surfels == 0:
             return
-        data = slam.mapper.to_numpy()
-        log.log_points(t, data["position"], data["colour"], max_points=self.config.log.map_max_points)
+        xyz, rgb = slam.mapper.sample_points(self.config.log.map_max_points)
+        log.log_points(t, xyz, rgb, max_points=self.config.log.map_max_points)
 
     def _write_trajectory(self) -> None:
         if self.results:

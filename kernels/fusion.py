@@ -29,7 +29,10 @@ tie and be ranked by index rather than depth. So pass 1 takes an atomic min of
 the depth's float bits (for positive IEEE-754 floats the bit patterns, read as int32, order exactly like
 the values), and pass 2 lets every surfel whose depth bits equal the pixel's minimum take an atomic min
 of its index. The winner is the nearest surfel, exact ties broken by the smallest index: deterministic
-on every backend.
+on every backend. Both passes run over a list, not over the map: the projection (one branch-free pass
+over every surfel, the step's largest cost) lists the surfels it keeps per block of BLOCK surfels, and
+the list (about half the map for rendering, a few percent with Keller's order) is gathered in index
+order for the index map's two passes and for the merge.
 
 Determinism elsewhere: new surfels are appended in row-major pixel order (per-row counts, a serial scan
 over rows, then per-row writes), and removal fills the k-th hole below the new count with the k-th
@@ -200,49 +203,36 @@ def clear_index(img: ti.template()):
 
 @ti.kernel
 def project_surfels(s: ti.template(), n: ti.i32, img: ti.template(), R: Mat3, t: Vec3,
-                    fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32,
-                    zbuffer: ti.template()):
-    """Filter pass 1 (proj_pixel ≥ 0: inside the image, z > 0) and, with ``zbuffer``, the nearest depth
-    per pixel.
+                    fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32):
+    """Filter pass 1: proj_pixel ≥ 0 for surfels inside the image with z > 0, which are also listed per
+    block (``candidate``, ``block_candidates``) for the index map's passes over them
+    (``gather_candidates``, ``nearest_candidates``, ``claim_candidates``).
 
     (R, t) maps world to camera. Pixel u = ⌊fx x/z + cx + ½⌋ (round to nearest): a frame vertex at pixel
-    u projects back to u. For rendering, surfels below ``min_weight`` or facing away are left out too
-    (their weight and normal are read only for surfels inside the image: this pass is memory-bound).
+    u projects back to u. For rendering, surfels below ``min_weight`` or facing away are left out too.
+    Branch-free, as ``project_compatible`` (and for the same reason).
     """
     H, W = img.index.shape
-    for i in range(n):
-        pc = R @ s.position[i] + t
-        pix = -1
-        if pc.z > 0:
-            inv_z = 1.0 / pc.z
+    for b in range((n + BLOCK - 1) // BLOCK):  # parallel over blocks, serial inside one
+        found = 0
+        for j in range(BLOCK):
+            i = b * BLOCK + j
+            if i >= n:
+                break
+            pc = R @ s.position[i] + t
+            inv_z = 1.0 / pc.z  # inf or negative where z ≤ 0: masked below
             uf = fx * pc.x * inv_z + cx + 0.5
             vf = fy * pc.y * inv_z + cy + 0.5
-            if 0.0 <= uf < W and 0.0 <= vf < H:  # compared as floats: no overflow in the casts below
-                keep = True
-                if ti.static(render):
-                    keep = s.weight[i] >= min_weight and (R @ s.normal[i]).dot(pc) < 0
-                if keep:
-                    u = ti.min(ti.cast(uf, ti.i32), W - 1)  # uf ≥ 0: truncation is the floor
-                    v = ti.min(ti.cast(vf, ti.i32), H - 1)
-                    pix = v * W + u
-                    key = depth_bits(pc.z)
-                    s.proj_depth[i] = key
-                    if ti.static(zbuffer):
-                        if key < img.depth_key[v, u]:  # plain read first: most lose, and skip the atomic
-                            ti.atomic_min(img.depth_key[v, u], key)
-        s.proj_pixel[i] = pix
-
-
-@ti.kernel
-def claim_index(s: ti.template(), n: ti.i32, img: ti.template()):
-    """Second pass of the index map: among the surfels at the nearest depth, the smallest index wins."""
-    W = img.index.shape[1]
-    for i in range(n):
-        pix = s.proj_pixel[i]
-        if pix >= 0:
-            v, u = pix // W, pix % W
-            if s.proj_depth[i] == img.depth_key[v, u]:
-                ti.atomic_min(img.index[v, u], i)
+            keep = (pc.z > 0) & (uf >= 0.0) & (uf < W) & (vf >= 0.0) & (vf < H)  # NaN compares false
+            if ti.static(render):
+                keep = keep & (s.weight[i] >= min_weight) & ((R @ s.normal[i]).dot(pc) < 0)
+            u = ti.min(ti.cast(ti.select(keep, uf, 0.0), ti.i32), W - 1)  # uf ≥ 0: truncation is the floor
+            v = ti.min(ti.cast(ti.select(keep, vf, 0.0), ti.i32), H - 1)
+            s.proj_pixel[i] = ti.select(keep, v * W + u, -1)
+            s.proj_depth[i] = depth_bits(ti.abs(pc.z))
+            s.candidate[b * BLOCK + found] = i  # listed when kept: written always, kept by the count
+            found += ti.select(keep, 1, 0)
+        s.block_candidates[b] = found
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -320,8 +310,9 @@ def project_compatible(s: ti.template(), n: ti.i32, img: ti.template(), vertex: 
 
 @ti.kernel
 def gather_candidates(s: ti.template(), n: ti.i32):
-    """The per-block lists of ``project_compatible`` into one list in index order: ``slot[:m]``,
-    m = ``n_candidates[0]`` (a serial scan over the blocks, then one parallel copy per block)."""
+    """The per-block lists of the last projection (``project_surfels`` or ``project_compatible``) into
+    one list in index order: ``slot[:m]``, m = ``n_candidates[0]`` (a serial scan over the blocks, then
+    one parallel copy per block)."""
     total = 0
     ti.loop_config(serialize=True)
     for b in range((n + BLOCK - 1) // BLOCK):
@@ -335,7 +326,7 @@ def gather_candidates(s: ti.template(), n: ti.i32):
 
 @ti.kernel
 def nearest_candidates(s: ti.template(), img: ti.template()):
-    """First pass of the index map over the compatible surfels: the nearest depth per pixel."""
+    """First pass of the index map, over the listed surfels: the nearest depth per pixel."""
     W = img.index.shape[1]
     for k in range(s.n_candidates[0]):
         i = s.slot[k]
@@ -348,8 +339,8 @@ def nearest_candidates(s: ti.template(), img: ti.template()):
 
 @ti.kernel
 def claim_candidates(s: ti.template(), img: ti.template()):
-    """Second pass (``claim_index``) over the compatible surfels: among those at a pixel's nearest
-    compatible depth, the smallest index wins."""
+    """Second pass of the index map, over the listed surfels: among those at a pixel's nearest depth, the
+    smallest index wins."""
     W = img.index.shape[1]
     for k in range(s.n_candidates[0]):
         i = s.slot[k]
@@ -398,32 +389,16 @@ def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), no
 
 
 @ti.kernel
-def merge(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
-          R: Mat3, t: Vec3, f: ti.f32, cx: ti.f32, cy: ti.f32, confidence: ti.template(), sigma: ti.f32,
-          has_colour: ti.i32, frame_index: ti.i32):
-    """Every surfel that a pixel's association chose averages in that pixel's measurement.
-
-    The loop runs over the surfels (those of the last projection, n), not the pixels: a surfel reads its
-    pixel from ``proj_pixel`` and merges when ``assoc`` there names it. Surfel attributes are then read
-    and written in index order; looping over the pixels instead reached them in random order, one cache
-    miss per attribute per merged surfel, and ran several times slower on maps of a million surfels.
-    """
-    W = img.assoc.shape[1]
-    for i in range(n):
-        pix = s.proj_pixel[i]
-        if pix >= 0:
-            v, u = pix // W, pix % W
-            if img.assoc[v, u] == i:
-                merge_one(s, i, img, vertex, normal, v, u, R, t, f, cx, cy, confidence, sigma, has_colour,
-                          frame_index)
-
-
-@ti.kernel
-def merge_candidates(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(),
+def merge_candidates(s: ti.template(), img: ti.template(), vertex: ti.template(),
                      normal: ti.template(), R: Mat3, t: Vec3, f: ti.f32, cx: ti.f32, cy: ti.f32,
                      confidence: ti.template(), sigma: ti.f32, has_colour: ti.i32, frame_index: ti.i32):
-    """``merge`` after Keller's association: only the compatible surfels (``gather_candidates``) can have
-    been chosen, so only they are visited, in index order."""
+    """Every surfel that a pixel's association chose averages in that pixel's measurement.
+
+    Only the surfels the projection listed (``gather_candidates``: in the image; with Keller's order,
+    compatible too) can have been chosen, so only they are visited, in index order: each reads its pixel
+    from ``proj_pixel`` and merges when ``assoc`` there names it. Surfel attributes are then read and
+    written in index order; looping over the pixels instead reached them in random order, one cache miss
+    per attribute per merged surfel, and ran several times slower on maps of a million surfels."""
     W = img.assoc.shape[1]
     for k in range(s.n_candidates[0]):
         i = s.slot[k]
@@ -881,7 +856,6 @@ class SurfelMap:
         self.grow = grow
         self.count = 0
         self._projected = 0  # surfels that existed at the last projection (their proj_* are current)
-        self._candidates = False  # the last projection listed the compatible surfels per block
         self._adopt(_Pool.take_arrays(int(capacity)))
         # new, merged, overflow, removed, covered: per-call results, so one field serves every map
         self.totals = _Pool.field("totals", lambda: ti.field(ti.i32, shape=5))
@@ -934,12 +908,18 @@ class SurfelMap:
         R, t = _world_to_camera(pose)
         clear_index(img)
         if self.count > 0:
-            project_surfels(self.arrays, self.count, img, R, t, *intrinsics.as_tuple(), False, 0.0, index_map)
-            if index_map:
-                claim_index(self.arrays, self.count, img)
+            project_surfels(self.arrays, self.count, img, R, t, *intrinsics.as_tuple(), False, 0.0)
+            self._index_map(img, index_map)
         self._projected = self.count
-        self._candidates = False
         return img
+
+    def _index_map(self, img: ImageScratch, with_index: bool = True) -> None:
+        """List the surfels the last projection kept (in index order) and, with ``with_index``, build the
+        index map from them: per pixel the nearest in depth, exact ties to the smaller index."""
+        gather_candidates(self.arrays, self.count)
+        if with_index:
+            nearest_candidates(self.arrays, img)
+            claim_candidates(self.arrays, img)
 
     def associate(self, img: ImageScratch, vertex, normal, pose: np.ndarray, dist_threshold: float,
                   normal_threshold_deg: float) -> None:
@@ -961,11 +941,8 @@ class SurfelMap:
         if self.count > 0:
             project_compatible(self.arrays, self.count, img, vertex, normal, R, t, *intrinsics.as_tuple(),
                                dist_threshold, cos_threshold)
-            gather_candidates(self.arrays, self.count)
-            nearest_candidates(self.arrays, img)
-            claim_candidates(self.arrays, img)
+            self._index_map(img)
         self._projected = self.count
-        self._candidates = True  # merge visits the listed candidates only
         assoc_from_index(img)
         return img
 
@@ -986,9 +963,9 @@ class SurfelMap:
               confidence: bool, sigma: float, has_colour: bool, depth_weighted: bool = False) -> None:
         R, t = _camera_to_world(pose)
         fx, _, cx, cy = intrinsics.as_tuple()
-        kernel = merge_candidates if self._candidates else merge
-        kernel(self.arrays, self._projected, img, vertex, normal, R, t, fx, cx, cy,
-               _weight_bits(confidence, depth_weighted), sigma, int(has_colour), frame_index)
+        if self._projected > 0:
+            merge_candidates(self.arrays, img, vertex, normal, R, t, fx, cx, cy,
+                             _weight_bits(confidence, depth_weighted), sigma, int(has_colour), frame_index)
 
     def add(self, img: ImageScratch, vertex, normal, pose, intrinsics, frame_index: int, confidence: bool,
             sigma: float, has_colour: bool, depth_weighted: bool = False) -> tuple[int, int]:
@@ -1054,8 +1031,8 @@ class SurfelMap:
         fx, fy, cx, cy = intrinsics.as_tuple()
         clear_index(img)
         if self.count > 0:
-            project_surfels(self.arrays, self.count, img, R, t, fx, fy, cx, cy, True, float(min_weight), True)
-            claim_index(self.arrays, self.count, img)
+            project_surfels(self.arrays, self.count, img, R, t, fx, fy, cx, cy, True, float(min_weight))
+            self._index_map(img)
         self._projected = 0  # proj_* now hold the render's projection, not the fusion step's
         gather_winners(self.arrays, img, R, t)
         splat_gather(img, fx, fy, cx, cy, int(max_half),

@@ -83,6 +83,21 @@ class BlankFrame:
         return frame
 
 
+def test_stable_surfels_only_prediction_tracks_from_the_start(cpu, tmp_path):
+    """fusion.render_min_weight > 0 (Keller's stable points): at first no surfel is confirmed, so the
+    prediction uses every surfel until the map has had fusion.unstable_age frames (it used to lose every
+    frame: an empty prediction, nothing fused, the map never grew)."""
+    cfg = _config()
+    cfg.dataset.stop = 16
+    cfg.fusion.render_min_weight = 2.0
+    cfg.fusion.unstable_age = 5
+    run = RunDir("slam", tmp_path / "run")
+    summary = SLAMPipeline(open_dataset(cfg.dataset, cfg.synth), cfg, run, current_backend(),
+                           show_progress=False).run()
+    assert summary["tracking_failures"] == 0
+    assert summary["ate_rmse_m"] < 0.01
+
+
 def test_blank_depth_frame_is_a_logged_failure_and_the_run_completes(cpu, tmp_path):
     cfg = _config()
     cfg.dataset.stop = 16

@@ -108,7 +108,9 @@ class FusionConfig:
                                      # filter 2 | compatible = the nearest of its surfels that pass (Keller)
     skip_covered: bool = True        # a pixel on the disc of a surfel merged at a neighbouring pixel adds no
                                      # surfel (keeps the map from growing at every frame)
-    render_min_weight: float = 0.0   # rendering for tracking: only surfels at least this confident
+    render_min_weight: float = 0.0   # rendering for tracking: only surfels at least this confident (Keller's
+                                     # stable points; from frame unstable_age on, before that all surfels).
+                                     # Redkitchen 500 frames: 1 / 2 / 4 → ATE 2.77 / 2.81 / 2.80 cm vs 2.73 at 0
     render_max_half: int = 0         # rendering for tracking: a surfel's disc reaches at most this many pixels
                                      # from its centre. 0: each pixel shows its own front surfel; 1 dilated
                                      # occluding edges by a pixel and cost ATE (redkitchen 320×240: 4.5 → 3.4 cm)

@@ -124,8 +124,14 @@ class DenseSLAM:
         if self.previous_maps is not None:  # frame-to-frame, for comparison only
             return self.previous_maps, self.poses[-1]
         last = self.last_good[1] if self.last_good is not None else self.poses[-1]
+        fusion = self.config.fusion
+        # Only confirmed surfels predict the surface (Keller's stable points, fusion.render_min_weight),
+        # once the map has had time to confirm any: at first every surfel is new, and a prediction
+        # without them would be empty, every frame lost and never fused.
+        warm = self._frames_fused >= fusion.unstable_age
         self.mapper.render_maps(self.model_maps, last, self.model_intrinsics, self.config.icp.normal_max_depth_jump,
-                                3 * self.config.icp.pyramid_depth_sigma)
+                                3 * self.config.icp.pyramid_depth_sigma,
+                                min_weight=fusion.render_min_weight if warm else 0.0)
         return self.model_maps, last
 
     def _track(self, frame: Frame) -> FrameResult:

@@ -50,7 +50,11 @@ from taichi.lang import impl
 from ti_fusion.errors import MapCapacityError
 
 INT_MAX = 2147483647  # "no surfel" in the index maps and "no depth" in the depth keys
-BLOCK = 1024  # surfels per block in the deterministic compaction scans
+# Surfels per block of the per-block lists and compaction scans. Small enough that the loops over blocks
+# run in parallel: Taichi's CPU backend (1.7) hands out 512 iterations of a range-for per task, whatever
+# block_dim says, so a loop over fewer than ~1000 blocks ran on one thread (at 1024 surfels per block,
+# every map below a million surfels).
+BLOCK = 128
 SQRT2 = math.sqrt(2.0)
 MIN_COS_VIEW = 0.2  # radius = √2 z / (f |n_z|): |n_z| is clamped here so grazing surfels stay bounded
 # Measurement weights (``measurement_weight``'s ``confidence`` bits): Keller's radial confidence, and

@@ -93,11 +93,12 @@ class SurfelArrays:
         self.proj_pixel = ti.field(ti.i32)
         self.proj_depth = ti.field(ti.i32)
         self.flag = ti.field(ti.i32)  # 1 = remove
-        # scratch list: during Keller's association and the merge, the compatible surfels in index order
-        # (n_candidates[0] of them); during removal, the k-th hole's index
+        # scratch list: from a projection to the merge, the surfels the projection kept (in the image;
+        # with Keller's order, compatible too) in index order, n_candidates[0] of them; during removal,
+        # the k-th hole's index
         self.slot = ti.field(ti.i32)
-        # Keller's association: the compatible surfels of block b (filter passes 1 and 2) are first listed
-        # at candidate[b·BLOCK :] (block_candidates[b] of them), then gathered into ``slot``.
+        # the surfels a projection keeps from block b are first listed at candidate[b·BLOCK :]
+        # (block_candidates[b] of them), then gathered into ``slot``
         self.candidate = ti.field(ti.i32)
         for f in (self.position, self.normal, self.colour, self.weight, self.radius, self.t_created,
                   self.t_updated, self.proj_pixel, self.proj_depth, self.flag, self.slot, self.candidate):
@@ -205,6 +206,26 @@ def clear_index(img: ti.template()):
         img.index[v, u] = INT_MAX
 
 
+@ti.func
+def project_to_pixel(pc, fx, fy, cx, cy, H, W):
+    """(inside, u, v) of a camera-frame point, without branches: inside = z > 0 and the pixel
+    u = ⌊fx x/z + cx + ½⌋, v likewise (round to nearest), is in the image; (u, v) = (0, 0) when not."""
+    inv_z = 1.0 / pc.z  # inf or negative where z ≤ 0: masked below
+    uf = fx * pc.x * inv_z + cx + 0.5
+    vf = fy * pc.y * inv_z + cy + 0.5
+    inside = (pc.z > 0) & (uf >= 0.0) & (uf < W) & (vf >= 0.0) & (vf < H)  # NaN compares false
+    u = ti.min(ti.cast(ti.select(inside, uf, 0.0), ti.i32), W - 1)  # uf ≥ 0: truncation is the floor
+    v = ti.min(ti.cast(ti.select(inside, vf, 0.0), ti.i32), H - 1)
+    return inside, u, v
+
+
+@ti.func
+def list_if(s: ti.template(), b, found, i, keep):
+    """Append surfel i to block b's list when ``keep``: written always, kept by the count (no branch)."""
+    s.candidate[b * BLOCK + found] = i
+    return found + ti.select(keep, 1, 0)
+
+
 @ti.kernel
 def project_surfels(s: ti.template(), n: ti.i32, img: ti.template(), R: Mat3, t: Vec3,
                     fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32):
@@ -224,18 +245,12 @@ def project_surfels(s: ti.template(), n: ti.i32, img: ti.template(), R: Mat3, t:
             if i >= n:
                 break
             pc = R @ s.position[i] + t
-            inv_z = 1.0 / pc.z  # inf or negative where z ≤ 0: masked below
-            uf = fx * pc.x * inv_z + cx + 0.5
-            vf = fy * pc.y * inv_z + cy + 0.5
-            keep = (pc.z > 0) & (uf >= 0.0) & (uf < W) & (vf >= 0.0) & (vf < H)  # NaN compares false
+            keep, u, v = project_to_pixel(pc, fx, fy, cx, cy, H, W)
             if ti.static(render):
                 keep = keep & (s.weight[i] >= min_weight) & ((R @ s.normal[i]).dot(pc) < 0)
-            u = ti.min(ti.cast(ti.select(keep, uf, 0.0), ti.i32), W - 1)  # uf ≥ 0: truncation is the floor
-            v = ti.min(ti.cast(ti.select(keep, vf, 0.0), ti.i32), H - 1)
             s.proj_pixel[i] = ti.select(keep, v * W + u, -1)
             s.proj_depth[i] = depth_bits(ti.abs(pc.z))
-            s.candidate[b * BLOCK + found] = i  # listed when kept: written always, kept by the count
-            found += ti.select(keep, 1, 0)
+            found = list_if(s, b, found, i, keep)
         s.block_candidates[b] = found
 
 
@@ -294,21 +309,14 @@ def project_compatible(s: ti.template(), n: ti.i32, img: ti.template(), vertex: 
             if i >= n:
                 break
             pc = R @ s.position[i] + t
-            inv_z = 1.0 / pc.z  # inf or negative where z ≤ 0: masked below
-            uf = fx * pc.x * inv_z + cx + 0.5
-            vf = fy * pc.y * inv_z + cy + 0.5
-            inside = (pc.z > 0) & (uf >= 0.0) & (uf < W) & (vf >= 0.0) & (vf < H)  # NaN compares false
-            u = ti.min(ti.cast(ti.select(inside, uf, 0.0), ti.i32), W - 1)  # uf ≥ 0: truncation is the floor
-            v = ti.min(ti.cast(ti.select(inside, vf, 0.0), ti.i32), H - 1)
-            key = depth_bits(ti.abs(pc.z))
-            q = vertex[v, u]
+            inside, u, v = project_to_pixel(pc, fx, fy, cx, cy, H, W)
+            q = vertex[v, u]  # pixel (0, 0) when outside: read, and masked
             nq = normal[v, u]
             ok = inside & (q.z > 0) & ((pc - q).norm_sqr() <= dist_threshold * dist_threshold) \
                 & (nq.norm_sqr() > 0) & ((R @ s.normal[i]).dot(nq) >= cos_threshold)
-            s.candidate[b * BLOCK + found] = i  # listed when ok: written always, kept by the count
-            found += ti.select(ok, 1, 0)
             s.proj_pixel[i] = ti.select(inside, v * W + u, -1)
-            s.proj_depth[i] = key
+            s.proj_depth[i] = depth_bits(ti.abs(pc.z))
+            found = list_if(s, b, found, i, ok)
         s.block_candidates[b] = found
 
 

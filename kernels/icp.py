@@ -34,11 +34,9 @@ reduction
     per iteration, no copy on the CPU. No atomics. In float64 (cpu) the partials are added in one serial
     pass with 30 independent running sums; in float32 one thread per sum adds them Kahan-compensated,
     which keeps the float32 path within the stated tolerance of float64.
-    Inside a run, the 21 AᵀA terms of each inlier are products of float32 factors added in float32
-    registers over blocks of ATA_BLOCK inliers, and each block's sum joins the run's accumulators: AᵀA's
-    terms do not cancel (its entries stay ~1e-8 relative of float64 throughout), and 21 float64 additions
-    per inlier were a quarter of the pass (8.0 → 6.2 ms per 640×480 pass on one core). Aᵀb and Σr², whose
-    signed terms cancel as ICP converges (Aᵀb → 0), are products and sums in the arithmetic type.
+    Every product and sum is in the arithmetic type, AᵀA's included: its off-diagonal entries are sums of
+    signed terms that can cancel as well as Aᵀb's, and float32 products for them (a quarter faster on the
+    CPU) missed float64 by more than 1e-5 relative on random inputs.
     The robust weight is a compile-time choice (one kernel per robust mode).
 
 Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
@@ -51,6 +49,8 @@ import os
 
 import numpy as np
 import taichi as ti
+
+from ti_fusion.kernels.maps import SERIAL_BELOW
 
 STATUS_OK = 0
 STATUS_OUT_OF_IMAGE = 1
@@ -70,7 +70,6 @@ STATUS_NAMES = {
 }
 
 N_SUMS = 30  # 21 AᵀA + 6 Aᵀb + Σr² + inliers + valid source pixels
-ATA_BLOCK = 16  # inliers whose AᵀA terms are added in float32 registers before joining the chunk's sums
 SUM_ATB = 21
 SUM_R2 = 27
 SUM_INLIERS = 28
@@ -105,6 +104,13 @@ def _code(robust: str) -> int:
     """"huber", or "huber+depth" for the depth-weighted variant (see DEPTH_WEIGHTED)."""
     name, _, depth = robust.partition("+")
     return robust_code(name, depth == "depth")
+
+
+# cpu, small sources (run on the calling thread): at least this many pixels per chunk. On a coarse level
+# (80×60) 1024 chunks were 5 pixels each, and initialising, writing and adding 1024 × 30 partial sums cost
+# more than the pixels themselves. (A parallel loop keeps 1024 chunks: Taichi's CPU backend hands out a
+# range-for in tasks of 512 iterations, so fewer chunks would run on one thread.)
+MIN_CHUNK_PIXELS = 256
 
 
 def default_chunks(arch: str) -> int:
@@ -200,17 +206,18 @@ def _build_kernels(real):
     @ti.kernel
     def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
-               out: params_t):
-        """The 30 sums into ``out`` (and the per-chunk partials into ``partials[:n_chunks]``)."""
+               out: params_t, serial: ti.template()):
+        """The 30 sums into ``out`` (and the per-chunk partials into ``partials[:n_chunks]``); ``serial``:
+        the chunks run on the calling thread (small levels on the CPU, see ``PointToPlane``)."""
         H, W = src_v.shape
         n_pix = H * W
         chunk = (n_pix + n_chunks - 1) // n_chunks
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
         for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
             R, t, K = _pose(params)
             dist2_thr, cos_thr, scale = params[P_DIST2], params[P_COS], params[P_SCALE]
             acc = ti.Vector([0.0] * N_SUMS, dt=real)
-            ata = ti.Vector([0.0] * 21, dt=ti.f32)  # AᵀA of the current block of inliers (see the docstring)
-            in_block = 0
             begin = ti.min(c * chunk, n_pix)
             end = ti.min(begin + chunk, n_pix)
             v = begin // W
@@ -223,30 +230,22 @@ def _build_kernels(real):
                     A, r = _row(pt, q, nq)
                     w = _weight(r, robust, scale, q.z, params)
                     wA = w * A
-                    A32 = ti.cast(A, ti.f32)
-                    wA32 = ti.cast(wA, ti.f32)
                     for k in ti.static(range(21)):
-                        ata[k] += wA32[UPPER[k][0]] * A32[UPPER[k][1]]
+                        acc[k] += wA[UPPER[k][0]] * A[UPPER[k][1]]
                     for k in ti.static(range(6)):
                         acc[SUM_ATB + k] += wA[k] * r
                     acc[SUM_R2] += r * r
                     acc[SUM_INLIERS] += 1.0
-                    in_block += 1
-                    if in_block == ATA_BLOCK:
-                        for k in ti.static(range(21)):
-                            acc[k] += ti.cast(ata[k], real)
-                        ata = ti.Vector([0.0] * 21, dt=ti.f32)
-                        in_block = 0
                 u += 1
                 if u == W:
                     u = 0
                     v += 1
-            for k in ti.static(range(21)):
-                acc[k] += ti.cast(ata[k], real)
             for k in ti.static(range(N_SUMS)):
                 partials[c, k] = acc[k]
         # Runs after the loop above has finished: add the partials.
         if ti.static(real == ti.f64):  # cpu: one serial pass, 30 independent running sums in registers
+            # on the calling thread: handing even a one-iteration loop to the thread pool costs ~70 µs here
+            ti.loop_config(serialize=True)
             for _ in range(1):
                 total = ti.Vector([0.0] * N_SUMS, dt=real)
                 for c in range(n_chunks):
@@ -321,11 +320,16 @@ class PointToPlane:
     source-camera points into the target camera; intrinsics are (fx, fy, cx, cy) of the TARGET level.
     """
 
-    def __init__(self, max_pixels: int, has_f64: bool, arch: str = "cpu", n_chunks: int | None = None):
+    def __init__(self, max_pixels: int, has_f64: bool, arch: str = "cpu", n_chunks: int | None = None,
+                 min_chunk_pixels: int | None = None):
         self.real = ti.f64 if has_f64 else ti.f32
         self.np_real = np.float64 if has_f64 else np.float32
         self.max_pixels = int(max_pixels)
+        self.arch = arch
         self.n_chunks = int(n_chunks or default_chunks(arch))
+        # GPUs want one short chunk per thread; on the CPU a chunk run serially should outweigh its bookkeeping
+        self.min_chunk_pixels = int(min_chunk_pixels or (MIN_CHUNK_PIXELS if arch == "cpu" else 1))
+        self.serial_below = SERIAL_BELOW if arch == "cpu" else 0  # smaller sources run on the calling thread
         self.k = kernels_for(self.real)
         self.partials = ti.field(self.real, shape=(self.n_chunks, N_SUMS))
         self.params = np.zeros(N_PARAMS, dtype=self.np_real)
@@ -351,14 +355,21 @@ class PointToPlane:
         n = src_v.shape[0] * src_v.shape[1]
         if n > self.max_pixels:
             raise ValueError(f"source of {n} pixels given to a PointToPlane sized for {self.max_pixels}")
+        if self._serial(src_v):
+            return max(1, min(self.n_chunks, n // self.min_chunk_pixels))
         return min(self.n_chunks, n)
+
+    def _serial(self, src_v) -> bool:
+        """Small levels run on the calling thread on the CPU (see ``maps.SERIAL_BELOW``)."""
+        return src_v.shape[0] * src_v.shape[1] < self.serial_below
 
     def reduce(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
                robust: str = "none", robust_scale: float = 0.01) -> np.ndarray:
         """The 30 sums (float64 NumPy) of one association + linearisation pass at pose ``T``."""
         n_chunks = self._chunks(src_v)
         params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale)
-        self.k["reduce"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, _code(robust), params, self.out)
+        self.k["reduce"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, _code(robust), params, self.out,
+                         self._serial(src_v))
         return self.out.astype(np.float64)
 
     def chunk_inliers(self, n_chunks: int) -> np.ndarray:

@@ -4,7 +4,9 @@
 For one frame pair at 640×480 and at 320×240 it prints
 - ms per ICP iteration at the finest level (association + linearisation + reduction + the 6×6 solve):
   the Taichi pass on the CPU backend against the vectorised NumPy float64 version of the same math
-  (``ti_fusion.icp_numpy``), and their ratio;
+  (``ti_fusion.icp_numpy``), and their ratio. Taichi is timed over 5 iterations back to back (as within
+  one pyramid level), NumPy one at a time, alternately, with a pause after each NumPy iteration so that
+  OpenBLAS's spinning threads are not timed as part of Taichi's iteration;
 - ms per frame pair (maps of both frames + coarse-to-fine ICP with ``icp.iterations``) against Open3D's
   ``t.pipelines.odometry.rgbd_odometry_multi_scale`` with ``Method.PointToPlane`` and the same iteration
   counts (Open3D builds its own pyramids, vertex and normal maps inside that call), with both errors
@@ -166,6 +168,10 @@ def load_pair(args, cfg):
     return depth_s, depth_t, seq.intrinsics, G, "synthetic room, 3° and 5 cm apart (no redkitchen data found)"
 
 
+BLAS_SETTLE_S = 0.2  # pause after a NumPy iteration before timing Taichi (see bench_resolution)
+ITERATIONS_PER_RUN = 5  # Taichi iterations timed back to back, as within one pyramid level of ICP
+
+
 def timed(fn, repeats: int = 1) -> tuple[float, float]:
     """(wall ms, CPU ms of this process) per call, averaged over ``repeats`` calls."""
     t0, c0 = time.perf_counter(), time.process_time()
@@ -229,9 +235,13 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     taichi_iteration()
     numpy_iteration()
     ti_t, np_t = [], []
-    for _ in range(max(3, args.repeats // 2)):  # alternate, as above; Taichi timed 4 times per NumPy run
-        ti_t.append(timed(taichi_iteration, 4))
+    for _ in range(max(3, args.repeats // 2)):  # alternate, as above
         np_t.append(timed(numpy_iteration, 1))
+        # NumPy's matrix products wake OpenBLAS's worker threads, which then spin for tens of ms (measured
+        # here: 12 ms of CPU in a 10 ms sleep right after one): timed in that window, Taichi's threads
+        # share the cores with them and one iteration took twice as long. Wait until they sleep again.
+        time.sleep(BLAS_SETTLE_S)
+        ti_t.append(timed(taichi_iteration, ITERATIONS_PER_RUN))
     (ms_taichi, cpu_taichi), (ms_numpy, cpu_numpy) = np.median(ti_t, axis=0), np.median(np_t, axis=0)
     delta_t, delta_n = taichi_iteration(), numpy_iteration()
     out = {

@@ -38,7 +38,7 @@ def vec_field(a: np.ndarray):
 
 def pass_for(n_pixels: int, n_chunks: int | None = None) -> kicp.PointToPlane:
     b = current_backend()
-    return kicp.PointToPlane(n_pixels, b.has_f64, b.arch, n_chunks)
+    return kicp.PointToPlane(n_pixels, b.has_f64, b.arch, n_chunks, min_chunk_pixels=1 if n_chunks else None)
 
 
 def rays(K: Intrinsics, u, v):
@@ -128,11 +128,13 @@ def assert_sums_close(got, ref):
 
 # -- association ---------------------------------------------------------------------------------------
 @pytest.mark.parametrize("robust", ["none", "huber", "tukey", "none+depth", "huber+depth"])
-def test_status_and_sums_match_reference(arch, rng, robust):
+@pytest.mark.parametrize("serial", [False, True])
+def test_status_and_sums_match_reference(arch, rng, robust, serial):
     T = random_pose(rng, 0.1)
     K_t = Intrinsics(120.0, 110.0, 27.3, 20.6, 56, 40)
     P, N, Vt, Nt = random_pass_inputs(rng, T, K_t)
     kp = pass_for(P.shape[0] * P.shape[1], n_chunks=97)  # chunks that do not divide the image
+    kp.serial_below = P.shape[0] * P.shape[1] + 1 if serial else 0  # on the calling thread, or in parallel
     args = (vec_field(P), vec_field(N), vec_field(Vt), vec_field(Nt))
     status = kp.status(*args, T, K_t.as_tuple(), THR, THETA)
     sums = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, robust, 0.05)

@@ -163,9 +163,11 @@ def test_smoothing_and_pyramid_keep_a_ramp_up_to_the_border(arch):
     np.testing.assert_allclose(maps.depth[2].to_numpy(), depth[::4, ::4], rtol=1e-6)
 
 
-@pytest.mark.parametrize("radius", [1, 2])
-def test_smoothing_matches_reference(arch, rng, radius):
-    depth = random_depth(rng)
+@pytest.mark.parametrize("radius, shape", [(1, (60, 80)), (2, (60, 80)), (6, (61, 83)), (12, (37, 85))])
+def test_smoothing_matches_reference(arch, rng, radius, shape):
+    """Also widths that are no multiple of the 8-pixel packs, and radii whose window spans several packs."""
+    depth = random_depth(rng, shape)
+    K = Intrinsics(150.0, 140.0, shape[1] / 2, shape[0] / 2, shape[1], shape[0])
     maps = FrameMaps(*depth.shape, levels=2)
     maps.compute(depth, K, JUMP, PYR, smooth_radius=radius)
     got = maps.depth[0].to_numpy()

@@ -1,5 +1,6 @@
 """Backend selection: what starts, and the one-line message when a backend is absent."""
 
+import os
 import subprocess
 import sys
 
@@ -52,3 +53,24 @@ def test_cli_missing_backend_exits_with_one_line(tmp_path):
     lines = [line for line in proc.stderr.splitlines() if line.strip()]
     assert len(lines) == 1, proc.stderr
     assert "cuda" in lines[0].lower() and "--arch" in lines[0]
+
+
+def _single_cpu_threads() -> list[int]:
+    """CPU of every thread of this process whose affinity is one CPU."""
+    out = []
+    for tid in os.listdir("/proc/self/task"):
+        cpus = os.sched_getaffinity(int(tid))
+        if len(cpus) == 1:
+            out.extend(cpus)
+    return out
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs Linux and at least 2 CPUs")
+def test_cpu_workers_are_pinned_one_per_core(monkeypatch):
+    info = init_backend("cpu")
+    assert "worker threads pinned to cores" in info.reason
+    cpus = _single_cpu_threads()
+    assert len(set(cpus)) >= 2, cpus  # at least two workers, on different cores
+    monkeypatch.setenv("TI_FUSION_PIN_THREADS", "0")
+    assert backend.pin_cpu_workers() == ""  # the opt-out

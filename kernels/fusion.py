@@ -55,6 +55,10 @@ INT_MAX = 2147483647  # "no surfel" in the index maps and "no depth" in the dept
 # block_dim says, so a loop over fewer than ~1000 blocks ran on one thread (at 1024 surfels per block,
 # every map below a million surfels).
 BLOCK = 128
+# Each image row is counted and appended in this many segments, so that the loops over segments have
+# enough iterations to run on several threads (Taichi's CPU range-for splits into tasks of 512 iterations:
+# a loop over the 240 rows ran on one).
+SEGMENTS = 8
 SQRT2 = math.sqrt(2.0)
 MIN_COS_VIEW = 0.2  # radius = √2 z / (f |n_z|): |n_z| is clamped here so grazing surfels stay bounded
 # Measurement weights (``measurement_weight``'s ``confidence`` bits): Keller's radial confidence, and
@@ -65,6 +69,9 @@ NOISE_1M = NOISE_A + NOISE_B * (1.0 - NOISE_Z0) ** 2
 DEPTH_WEIGHT_MAX = 4.0
 Vec3 = ti.types.vector(3, ti.f32)
 Mat3 = ti.types.matrix(3, 3, ti.f32)
+# A rigid transform as a kernel argument: R row-major, then t (12 float32). Passed as a small array rather
+# than as matrix and vector arguments, whose conversion cost ~65 µs more per launch (measured on the CPU).
+Rigid = ti.types.ndarray(dtype=ti.f32, ndim=1)
 
 # Fields of one surfel, in the order of ``SurfelArrays.attributes``.
 ATTRIBUTES = ("position", "normal", "colour", "weight", "radius", "t_created", "t_updated")
@@ -133,10 +140,11 @@ class ImageScratch:
         self.index = ti.field(ti.i32, shape=shape)  # nearest surfel; INT_MAX (after pass 2: -1) = none
         self.assoc = ti.field(ti.i32, shape=shape)  # filter pass 2: associated surfel or -1
         self.colour = ti.field(ti.i32, shape=shape)  # frame colour packed r | g << 8 | b << 16
-        self.row_new = ti.field(ti.i32, shape=height)
-        self.row_merged = ti.field(ti.i32, shape=height)
-        self.row_covered = ti.field(ti.i32, shape=height)
-        self.row_offset = ti.field(ti.i32, shape=height)
+        segments = (height, SEGMENTS)  # per row segment (``count_segments``): counts and output offsets
+        self.seg_new = ti.field(ti.i32, shape=segments)
+        self.seg_merged = ti.field(ti.i32, shape=segments)
+        self.seg_covered = ti.field(ti.i32, shape=segments)
+        self.seg_offset = ti.field(ti.i32, shape=segments)
         # Rendering: the front surfel of each pixel in the camera frame, the splat result, and outputs.
         # (During a fusion step pc, nc, rad hold instead the merged surfel of each pixel, world frame.)
         self.pc = ti.Vector.field(3, ti.f32, shape=shape)
@@ -147,10 +155,27 @@ class ImageScratch:
         self.normal = ti.Vector.field(3, ti.f32, shape=shape)
         self.depth = ti.field(ti.f32, shape=shape)
         self.image = ti.Vector.field(3, ti.f32, shape=shape)  # rendered RGB in [0, 1]
+        self.radial = ti.field(ti.f32, shape=shape)  # Keller's radial confidence per pixel (``fill_radial``)
+        self.radial_for = None  # the (cx, cy, sigma) it was filled for
+
+    def radial_confidence(self, cx: float, cy: float, sigma: float) -> None:
+        """Fill ``radial`` for these intrinsics and σ, unless it already holds them."""
+        key = (float(cx), float(cy), float(sigma))
+        if self.radial_for != key:
+            fill_radial(self, *key)
+            self.radial_for = key
 
 
 # ---------------------------------------------------------------------------------------------------
 # Small helpers
+
+
+@ti.func
+def rigid(pose: ti.template()):
+    """(R, t) of a ``Rigid`` argument."""
+    R = Mat3([[pose[3 * i + j] for j in ti.static(range(3))] for i in ti.static(range(3))])
+    t = Vec3(pose[9], pose[10], pose[11])
+    return R, t
 
 
 @ti.func
@@ -169,15 +194,24 @@ def is_valid(q, nq):
     return q.z > 0 and nq.norm_sqr() > 0
 
 
+@ti.kernel
+def fill_radial(img: ti.template(), cx: ti.f32, cy: ti.f32, sigma: ti.f32):
+    """img.radial = Keller's radial confidence exp(−γ²/2σ²) of every pixel, γ its distance from the image
+    centre over the largest such distance. It depends on the pixel only, so it is computed once per
+    image size rather than once per merged or added surfel (an exp each: a quarter of the merge)."""
+    for v, u in img.radial:
+        gamma2 = ((u - cx) ** 2 + (v - cy) ** 2) / (cx * cx + cy * cy)
+        img.radial[v, u] = ti.exp(-gamma2 / (2.0 * sigma * sigma))
+
+
 @ti.func
-def measurement_weight(u, v, z, cx, cy, confidence: ti.template(), sigma):
-    """1, or Keller's exp(−γ²/2σ²) with γ the radial distance from the image centre over its maximum
-    (``confidence`` bit 1); times (σ(1 m) / σ(z))², capped at DEPTH_WEIGHT_MAX, with σ Kinect's axial
-    depth noise (bit 2: inverse-variance weighting, as the ICP's ``depth_weighting``)."""
+def measurement_weight(img: ti.template(), v, u, z, confidence: ti.template()):
+    """1, or Keller's radial confidence of pixel (v, u) (``confidence`` bit 1, ``img.radial``); times
+    (σ(1 m) / σ(z))², capped at DEPTH_WEIGHT_MAX, with σ Kinect's axial depth noise (bit 2:
+    inverse-variance weighting, as the ICP's ``depth_weighting``)."""
     w = 1.0
     if ti.static(confidence & RADIAL):
-        gamma2 = ((u - cx) ** 2 + (v - cy) ** 2) / (cx * cx + cy * cy)
-        w = ti.exp(-gamma2 / (2.0 * sigma * sigma))
+        w = img.radial[v, u]
     if ti.static(confidence & DEPTH):
         s = NOISE_1M / (NOISE_A + NOISE_B * (z - NOISE_Z0) * (z - NOISE_Z0))
         w *= ti.min(s * s, DEPTH_WEIGHT_MAX)
@@ -227,18 +261,19 @@ def list_if(s: ti.template(), b, found, i, keep):
 
 
 @ti.kernel
-def project_surfels(s: ti.template(), n: ti.i32, img: ti.template(), R: Mat3, t: Vec3,
+def project_surfels(s: ti.template(), n: ti.i32, img: ti.template(), pose: Rigid,
                     fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32):
     """Filter pass 1: proj_pixel ≥ 0 for surfels inside the image with z > 0, which are also listed per
     block (``candidate``, ``block_candidates``) for the index map's passes over them
     (``gather_candidates``, ``nearest_candidates``, ``claim_candidates``).
 
-    (R, t) maps world to camera. Pixel u = ⌊fx x/z + cx + ½⌋ (round to nearest): a frame vertex at pixel
+    ``pose`` (R, t) maps world to camera. Pixel u = ⌊fx x/z + cx + ½⌋ (round to nearest): a frame vertex at pixel
     u projects back to u. For rendering, surfels below ``min_weight`` or facing away are left out too.
     Branch-free, as ``project_compatible`` (and for the same reason).
     """
     H, W = img.index.shape
     for b in range((n + BLOCK - 1) // BLOCK):  # parallel over blocks, serial inside one
+        R, t = rigid(pose)
         found = 0
         for j in range(BLOCK):
             i = b * BLOCK + j
@@ -260,13 +295,14 @@ def project_surfels(s: ti.template(), n: ti.i32, img: ti.template(), R: Mat3, t:
 
 @ti.kernel
 def associate(s: ti.template(), img: ti.template(), vertex: ti.template(), normal: ti.template(),
-              R: Mat3, t: Vec3, dist_threshold: ti.f32, cos_threshold: ti.f32):
+              pose: Rigid, dist_threshold: ti.f32, cos_threshold: ti.f32):
     """assoc[v, u] = the index-map surfel if the frame's point is within the thresholds, else -1.
 
     (R, t) maps camera to world. One pixel merges into at most one surfel (its index-map surfel), and a
     surfel projects to one pixel, so no surfel is merged twice.
     """
     for v, u in img.index:
+        R, t = rigid(pose)
         i = img.index[v, u]
         a = -1
         if i == INT_MAX or i < 0:  # < 0: already converted by an earlier call
@@ -284,7 +320,7 @@ def associate(s: ti.template(), img: ti.template(), vertex: ti.template(), norma
 
 @ti.kernel
 def project_compatible(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(),
-                       normal: ti.template(), R: Mat3, t: Vec3, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32,
+                       normal: ti.template(), pose: Rigid, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32,
                        dist_threshold: ti.f32, cos_threshold: ti.f32):
     """Keller's association order in one pass over the surfels: filter pass 1 (``proj_pixel``, as in
     ``project_surfels``), then filter pass 2 against the measurement at that pixel; the surfels that pass
@@ -303,6 +339,7 @@ def project_compatible(s: ti.template(), n: ti.i32, img: ti.template(), vertex: 
     """
     H, W = img.index.shape
     for b in range((n + BLOCK - 1) // BLOCK):  # parallel over blocks, serial inside one
+        R, t = rigid(pose)
         found = 0
         for j in range(BLOCK):
             i = b * BLOCK + j
@@ -378,11 +415,11 @@ def assoc_from_index(img: ti.template()):
 
 @ti.func
 def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), normal: ti.template(), v, u,
-              R, t, f, cx, cy, confidence: ti.template(), sigma, has_colour, frame_index):
+              R, t, f, confidence: ti.template(), has_colour, frame_index):
     """p ← (w p + α (R q + t)) / (w + α), n likewise then normalised, colour likewise, w ← w + α."""
     q = vertex[v, u]
     nq = normal[v, u]
-    a = measurement_weight(ti.cast(u, ti.f32), ti.cast(v, ti.f32), q.z, cx, cy, confidence, sigma)
+    a = measurement_weight(img, v, u, q.z, confidence)
     w = s.weight[i]
     s.position[i] = (w * s.position[i] + a * (R @ q + t)) / (w + a)
     n_sum = w * s.normal[i] + a * (R @ nq)
@@ -402,8 +439,8 @@ def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), no
 
 @ti.kernel
 def merge_candidates(s: ti.template(), img: ti.template(), vertex: ti.template(),
-                     normal: ti.template(), R: Mat3, t: Vec3, f: ti.f32, cx: ti.f32, cy: ti.f32,
-                     confidence: ti.template(), sigma: ti.f32, has_colour: ti.i32, frame_index: ti.i32):
+                     normal: ti.template(), pose: Rigid, f: ti.f32, confidence: ti.template(), has_colour: ti.i32,
+                     frame_index: ti.i32):
     """Every surfel that a pixel's association chose averages in that pixel's measurement.
 
     Only the surfels the projection listed (``gather_candidates``: in the image; with Keller's order,
@@ -413,12 +450,12 @@ def merge_candidates(s: ti.template(), img: ti.template(), vertex: ti.template()
     per attribute per merged surfel, and ran several times slower on maps of a million surfels."""
     W = img.assoc.shape[1]
     for k in range(s.n_candidates[0]):
+        R, t = rigid(pose)
         i = s.slot[k]
         pix = s.proj_pixel[i]
         v, u = pix // W, pix % W
         if img.assoc[v, u] == i:
-            merge_one(s, i, img, vertex, normal, v, u, R, t, f, cx, cy, confidence, sigma, has_colour,
-                      frame_index)
+            merge_one(s, i, img, vertex, normal, v, u, R, t, f, confidence, has_colour, frame_index)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -428,12 +465,37 @@ def merge_candidates(s: ti.template(), img: ti.template(), vertex: ti.template()
 COVERED = -2  # ``assoc`` of a pixel that a neighbour's merged surfel already covers: neither merged nor added
 
 
+@ti.func
+def covered_by_neighbour(img: ti.template(), v, u, qw, nw, dist_threshold, cos_threshold):
+    """Whether the point qw (normal nw), both world frame, of pixel (v, u) lies on the disc of a surfel
+    merged at one of the pixel's 8 neighbours: within the disc's radius in its tangent plane,
+    ``dist_threshold`` along its normal, normals within the angle. The merged surfels are read as
+    ``merge`` left them at their pixels (``img.pc``, ``nc``, ``rad``): image reads instead of random reads
+    of the surfel arrays."""
+    H, W = img.assoc.shape
+    covered = False
+    for dv in ti.static(range(-1, 2)):
+        for du in ti.static(range(-1, 2)):
+            if ti.static(dv != 0 or du != 0):
+                y = v + dv
+                x = u + du
+                if 0 <= y < H and 0 <= x < W:
+                    if img.assoc[y, x] >= 0 and not covered:
+                        d = qw - img.pc[y, x]
+                        n = img.nc[y, x]
+                        along = n.dot(d)
+                        r = img.rad[y, x]
+                        if ti.abs(along) <= dist_threshold and d.norm_sqr() - along * along <= r * r \
+                                and n.dot(nw) >= cos_threshold:
+                            covered = True
+    return covered
+
+
 @ti.kernel
 def mark_covered(img: ti.template(), vertex: ti.template(), normal: ti.template(),
-                 R: Mat3, t: Vec3, dist_threshold: ti.f32, cos_threshold: ti.f32):
+                 pose: Rigid, dist_threshold: ti.f32, cos_threshold: ti.f32):
     """assoc = COVERED for a valid, unassociated pixel whose point lies on the disc of a surfel merged at
-    one of its 8 neighbours (within the disc's radius in the tangent plane, ``dist_threshold`` along its
-    normal, normals within the angle). (R, t) maps camera to world.
+    one of its 8 neighbours (``covered_by_neighbour``). ``pose`` (R, t) maps camera to world.
 
     Why: surfels project to pixel centres only approximately, so a map as dense as the image still leaves
     some pixels without a surfel of their own (two surfels round to one pixel, its neighbour gets none).
@@ -441,69 +503,77 @@ def mark_covered(img: ti.template(), vertex: ti.template(), normal: ti.template(
     however often the surface had been seen. Keller et al. search a neighbourhood of a super-sampled index
     map for the same reason. Pixels only change from -1 to COVERED and only assoc ≥ 0 is read, so the
     result does not depend on the order the pixels run in.
+
+    ``count_segments`` with ``cover`` does the same test in its pass over the image; this kernel is the
+    test on its own.
     """
-    H, W = img.assoc.shape
     for v, u in img.assoc:
+        R, t = rigid(pose)
         if img.assoc[v, u] == -1:
             q = vertex[v, u]
             nq = normal[v, u]
             if is_valid(q, nq):
-                qw = R @ q + t
-                nw = R @ nq
-                covered = False
-                for dv in ti.static(range(-1, 2)):
-                    for du in ti.static(range(-1, 2)):
-                        if ti.static(dv != 0 or du != 0):
-                            y = v + dv
-                            x = u + du
-                            if 0 <= y < H and 0 <= x < W:
-                                if img.assoc[y, x] >= 0 and not covered:
-                                    # the merged surfel, as ``merge`` left it at that pixel: image reads
-                                    # instead of random reads of the surfel arrays
-                                    d = qw - img.pc[y, x]
-                                    n = img.nc[y, x]
-                                    along = n.dot(d)
-                                    r = img.rad[y, x]
-                                    if ti.abs(along) <= dist_threshold and d.norm_sqr() - along * along <= r * r \
-                                            and n.dot(nw) >= cos_threshold:
-                                        covered = True
-                if covered:
+                if covered_by_neighbour(img, v, u, R @ q + t, R @ nq, dist_threshold, cos_threshold):
                     img.assoc[v, u] = COVERED
 
 
+@ti.func
+def segment_range(g, W):
+    """Pixels [begin, end) of segment g of a row of W pixels."""
+    width = (W + SEGMENTS - 1) // SEGMENTS
+    return ti.min(g * width, W), ti.min((g + 1) * width, W)
+
+
 @ti.kernel
-def count_rows(img: ti.template(), vertex: ti.template(), normal: ti.template()):
-    """Per row: pixels merged, valid pixels without an association (the new surfels), and covered pixels."""
+def count_segments(img: ti.template(), vertex: ti.template(), normal: ti.template(), pose: Rigid,
+                   dist_threshold: ti.f32, cos_threshold: ti.f32, cover: ti.template()):
+    """Per row segment: pixels merged, valid pixels without an association (the new surfels), and covered
+    pixels; with ``cover``, the coverage test of ``mark_covered`` first, in the same pass (it reads only
+    the neighbours' merged surfels, which no pixel here changes)."""
     H, W = img.assoc.shape
-    for v in range(H):
+    for v, g in ti.ndrange(H, SEGMENTS):
+        R, t = rigid(pose)
+        begin, end = segment_range(g, W)
         new = 0
         merged = 0
         covered = 0
-        for u in range(W):
+        for u in range(begin, end):
             a = img.assoc[v, u]
             if a >= 0:
                 merged += 1
-            elif a == -1 and is_valid(vertex[v, u], normal[v, u]):
-                new += 1
+            elif a == -1:
+                q = vertex[v, u]
+                nq = normal[v, u]
+                if is_valid(q, nq):
+                    if ti.static(cover):
+                        if covered_by_neighbour(img, v, u, R @ q + t, R @ nq, dist_threshold, cos_threshold):
+                            img.assoc[v, u] = COVERED
+                            covered += 1
+                        else:
+                            new += 1
+                    else:
+                        new += 1
             elif a == COVERED:
                 covered += 1
-        img.row_new[v] = new
-        img.row_merged[v] = merged
-        img.row_covered[v] = covered
+        img.seg_new[v, g] = new
+        img.seg_merged[v, g] = merged
+        img.seg_covered[v, g] = covered
 
 
 @ti.kernel
-def scan_rows(img: ti.template(), totals: ti.template()):
-    """Exclusive prefix sum of the new-surfel counts; totals = (new, merged, -, -, covered)."""
+def scan_segments(img: ti.template(), totals: ti.template()):
+    """Exclusive prefix sum of the new-surfel counts in row-major order; totals = (new, merged, -, -,
+    covered)."""
     new = 0
     merged = 0
     covered = 0
-    ti.loop_config(serialize=True)
-    for v in range(img.row_new.shape[0]):
-        img.row_offset[v] = new
-        new += img.row_new[v]
-        merged += img.row_merged[v]
-        covered += img.row_covered[v]
+    H = img.seg_new.shape[0]
+    ti.loop_config(serialize=True)  # (a struct-for would not be serialised)
+    for v, g in ti.ndrange(H, SEGMENTS):
+        img.seg_offset[v, g] = new
+        new += img.seg_new[v, g]
+        merged += img.seg_merged[v, g]
+        covered += img.seg_covered[v, g]
     totals[0] = new
     totals[1] = merged
     totals[4] = covered
@@ -511,18 +581,21 @@ def scan_rows(img: ti.template(), totals: ti.template()):
 
 @ti.kernel
 def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
-               R: Mat3, t: Vec3, f: ti.f32, cx: ti.f32, cy: ti.f32, confidence: ti.template(), sigma: ti.f32,
-               has_colour: ti.i32, frame_index: ti.i32, overflow: ti.template()):
-    """Write the new surfels at n + row_offset[v] + (rank within the row); count any that do not fit.
+               pose: Rigid, f: ti.f32, confidence: ti.template(), has_colour: ti.i32, frame_index: ti.i32,
+               overflow: ti.template()):
+    """Write the new surfels at n + seg_offset[v, g] + (rank within the segment), so in row-major pixel
+    order; count any that do not fit.
 
     The caller has grown the map first, so ``overflow`` stays 0: it is the guard against an
     out-of-bounds write, not the capacity check.
     """
     H, W = img.assoc.shape
-    for v in range(H):
-        k = n + img.row_offset[v]
+    for v, g in ti.ndrange(H, SEGMENTS):
+        R, t = rigid(pose)
+        begin, end = segment_range(g, W)
+        k = n + img.seg_offset[v, g]
         lost = 0
-        for u in range(W):
+        for u in range(begin, end):
             q = vertex[v, u]
             nq = normal[v, u]
             if img.assoc[v, u] == -1 and is_valid(q, nq):
@@ -533,8 +606,7 @@ def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.templ
                     if has_colour:
                         c = unpack_colour(img.colour[v, u])
                     s.colour[k] = c
-                    s.weight[k] = measurement_weight(ti.cast(u, ti.f32), ti.cast(v, ti.f32), q.z, cx, cy,
-                                                     confidence, sigma)
+                    s.weight[k] = measurement_weight(img, v, u, q.z, confidence)
                     s.radius[k] = measurement_radius(q.z, nq.z, f)
                     s.t_created[k] = frame_index
                     s.t_updated[k] = frame_index
@@ -689,9 +761,10 @@ def export_scalar(src: ti.template(), out: ti.types.ndarray(), stride: ti.i32):
 
 
 @ti.kernel
-def gather_winners(s: ti.template(), img: ti.template(), R: Mat3, t: Vec3):
+def gather_winners(s: ti.template(), img: ti.template(), pose: Rigid):
     """Camera-frame position, normal and radius of each pixel's front surfel (radius -1: none)."""
     for v, u in img.index:
+        R, t = rigid(pose)
         i = img.index[v, u]
         r = -1.0
         if i != INT_MAX:
@@ -798,14 +871,18 @@ def _weight_bits(radial: bool, depth: bool) -> int:
     return (RADIAL if radial else 0) | (DEPTH if depth else 0)
 
 
-def _world_to_camera(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    inv = np.linalg.inv(np.asarray(pose, dtype=np.float64))
-    return inv[:3, :3].astype(np.float32), inv[:3, 3].astype(np.float32)
+def _rigid(T: np.ndarray) -> np.ndarray:
+    """A 4×4 rigid transform as a ``Rigid`` kernel argument: R row-major, then t, float32."""
+    return np.concatenate([T[:3, :3].ravel(), T[:3, 3]]).astype(np.float32)
 
 
-def _camera_to_world(pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    T = np.asarray(pose, dtype=np.float64)
-    return T[:3, :3].astype(np.float32), T[:3, 3].astype(np.float32)
+def _world_to_camera(pose: np.ndarray) -> np.ndarray:
+    """The inverse of a camera-to-world pose, as a ``Rigid`` argument."""
+    return _rigid(np.linalg.inv(np.asarray(pose, dtype=np.float64)))
+
+
+def _camera_to_world(pose: np.ndarray) -> np.ndarray:
+    return _rigid(np.asarray(pose, dtype=np.float64))
 
 
 class _Pool:
@@ -917,10 +994,10 @@ class SurfelMap:
         """Filter pass 1 of the surfels in the frame with camera-to-world ``pose`` and, with ``index_map``,
         the index map (per pixel the surfel nearest in depth, ties to the smaller index)."""
         img = self.scratch(height, width)
-        R, t = _world_to_camera(pose)
+        to_camera = _world_to_camera(pose)
         clear_index(img)
         if self.count > 0:
-            project_surfels(self.arrays, self.count, img, R, t, *intrinsics.as_tuple(), False, 0.0)
+            project_surfels(self.arrays, self.count, img, to_camera, *intrinsics.as_tuple(), False, 0.0)
             self._index_map(img, index_map)
         self._projected = self.count
         return img
@@ -936,9 +1013,9 @@ class SurfelMap:
     def associate(self, img: ImageScratch, vertex, normal, pose: np.ndarray, dist_threshold: float,
                   normal_threshold_deg: float) -> None:
         """Filter pass 2 into ``img.assoc`` (turns the index map's "none" into -1)."""
-        R, t = _camera_to_world(pose)
+        to_world = _camera_to_world(pose)
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
-        associate(self.arrays, img, vertex, normal, R, t, dist_threshold, cos_threshold)
+        associate(self.arrays, img, vertex, normal, to_world, dist_threshold, cos_threshold)
 
     def associate_compatible(self, pose: np.ndarray, intrinsics, vertex, normal, dist_threshold: float,
                              normal_threshold_deg: float) -> ImageScratch:
@@ -947,11 +1024,11 @@ class SurfelMap:
         the same) hold it or -1."""
         H, W = vertex.shape
         img = self.scratch(H, W)
-        R, t = _world_to_camera(pose)
+        to_camera = _world_to_camera(pose)
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
         clear_index(img)
         if self.count > 0:
-            project_compatible(self.arrays, self.count, img, vertex, normal, R, t, *intrinsics.as_tuple(),
+            project_compatible(self.arrays, self.count, img, vertex, normal, to_camera, *intrinsics.as_tuple(),
                                dist_threshold, cos_threshold)
             self._index_map(img)
         self._projected = self.count
@@ -962,9 +1039,9 @@ class SurfelMap:
                      normal_threshold_deg: float) -> None:
         """After ``merge``: unassociated pixels on the disc of a neighbour's merged surfel are not added
         (``img.assoc`` = COVERED)."""
-        R, t = _camera_to_world(pose)
+        to_world = _camera_to_world(pose)
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
-        mark_covered(img, vertex, normal, R, t, dist_threshold, cos_threshold)
+        mark_covered(img, vertex, normal, to_world, dist_threshold, cos_threshold)
 
     def pass1_mask(self) -> np.ndarray:
         """Filter pass 1 of the last projection: surfels inside the image with positive depth."""
@@ -973,26 +1050,31 @@ class SurfelMap:
     # -- 4-5: merge and add --------------------------------------------------------------------------------
     def merge(self, img: ImageScratch, vertex, normal, pose, intrinsics, frame_index: int,
               confidence: bool, sigma: float, has_colour: bool, depth_weighted: bool = False) -> None:
-        R, t = _camera_to_world(pose)
-        fx, _, cx, cy = intrinsics.as_tuple()
         if self._projected > 0:
-            merge_candidates(self.arrays, img, vertex, normal, R, t, fx, cx, cy,
-                             _weight_bits(confidence, depth_weighted), sigma, int(has_colour), frame_index)
+            if confidence:
+                img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
+            merge_candidates(self.arrays, img, vertex, normal, _camera_to_world(pose), intrinsics.fx,
+                             _weight_bits(confidence, depth_weighted), int(has_colour), frame_index)
 
     def add(self, img: ImageScratch, vertex, normal, pose, intrinsics, frame_index: int, confidence: bool,
-            sigma: float, has_colour: bool, depth_weighted: bool = False) -> tuple[int, int]:
-        """Append the valid unassociated pixels as surfels; returns (added, merged) pixel counts."""
-        count_rows(img, vertex, normal)
-        scan_rows(img, self.totals)
+            sigma: float, has_colour: bool, depth_weighted: bool = False,
+            cover: tuple[float, float] | None = None) -> tuple[int, int]:
+        """Append the valid unassociated pixels as surfels; returns (added, merged) pixel counts. With
+        ``cover`` = (dist_threshold, normal_threshold_deg), pixels that ``mark_covered`` would mark are
+        marked first, in the same pass, and not added."""
+        dist, angle = cover if cover is not None else (0.0, 0.0)
+        count_segments(img, vertex, normal, _camera_to_world(pose), dist, math.cos(math.radians(angle)),
+                       cover is not None)
+        scan_segments(img, self.totals)
         totals = self.totals.to_numpy()
         new, merged, self.covered = int(totals[0]), int(totals[1]), int(totals[4])
         self.ensure_capacity(self.count + new)  # before any write: grow or raise
         if new > 0:
-            R, t = _camera_to_world(pose)
-            fx, _, cx, cy = intrinsics.as_tuple()
+            if confidence:
+                img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
             self.totals[2] = 0
-            append_new(self.arrays, self.count, img, vertex, normal, R, t, fx, cx, cy,
-                       _weight_bits(confidence, depth_weighted), sigma, int(has_colour), frame_index, self.totals)
+            append_new(self.arrays, self.count, img, vertex, normal, _camera_to_world(pose), intrinsics.fx,
+                       _weight_bits(confidence, depth_weighted), int(has_colour), frame_index, self.totals)
             lost = int(self.totals[2])
             if lost:  # cannot happen after ensure_capacity; never let it pass silently
                 raise MapCapacityError(f"{lost} new surfels did not fit (capacity {self.capacity}): "
@@ -1039,14 +1121,14 @@ class SurfelMap:
         vertex lies on the pixel's ray, at the depth where the ray meets the disc.
         """
         img = self.scratch(intrinsics.height, intrinsics.width)
-        R, t = _world_to_camera(pose)
+        to_camera = _world_to_camera(pose)
         fx, fy, cx, cy = intrinsics.as_tuple()
         clear_index(img)
         if self.count > 0:
-            project_surfels(self.arrays, self.count, img, R, t, fx, fy, cx, cy, True, float(min_weight))
+            project_surfels(self.arrays, self.count, img, to_camera, fx, fy, cx, cy, True, float(min_weight))
             self._index_map(img)
         self._projected = 0  # proj_* now hold the render's projection, not the fusion step's
-        gather_winners(self.arrays, img, R, t)
+        gather_winners(self.arrays, img, to_camera)
         splat_gather(img, fx, fy, cx, cy, int(max_half),
                      img.vertex if out_vertex is None else out_vertex,
                      img.normal if out_normal is None else out_normal,

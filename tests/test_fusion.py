@@ -384,7 +384,8 @@ def ref_covered(assoc, data, vertex, normal, pose):
     return covered, ambiguous & ~covered
 
 
-def test_covered_pixels_add_nothing(arch, rng):
+@pytest.mark.parametrize("fused", [False, True])
+def test_covered_pixels_add_nothing(arch, rng, fused):
     """A slanted, partly noisy plane with surfels at a third of its pixels: the other pixels are covered
     (neither merged nor added) exactly where a neighbour's merged disc holds their point."""
     pose = random_pose(rng)
@@ -422,15 +423,19 @@ def test_covered_pixels_add_nothing(arch, rng):
     merged = smap.to_numpy()
     assoc = img.assoc.to_numpy()
     assert (assoc >= 0).sum() == n
-    smap.mark_covered(img, fv, fn, pose, DIST, ANGLE)
-    got = img.assoc.to_numpy()
+    if fused:  # the test inside add's counting pass
+        added, n_merged = smap.add(img, fv, fn, pose, K, 1, False, SIGMA, False, cover=(DIST, ANGLE))
+        got = img.assoc.to_numpy()
+    else:  # the kernel on its own, then add
+        smap.mark_covered(img, fv, fn, pose, DIST, ANGLE)
+        got = img.assoc.to_numpy()
+        added, n_merged = smap.add(img, fv, fn, pose, K, 1, False, SIGMA, False)
     want, ambiguous = ref_covered(assoc, merged, vertex, normal, pose)
     got_covered = got == F.COVERED
     np.testing.assert_array_equal(got_covered[~ambiguous], want[~ambiguous])
     np.testing.assert_array_equal(got[got >= 0], assoc[assoc >= 0])  # associations untouched
     unassociated = (assoc == -1) & ~invalid
     assert want.sum() > 50 and (unassociated & ~want).sum() > 50  # both outcomes
-    added, n_merged = smap.add(img, fv, fn, pose, K, 1, False, SIGMA, False)
     assert n_merged == n and added == (unassociated & ~got_covered).sum() and smap.covered == got_covered.sum()
 
 

@@ -100,11 +100,10 @@ class SurfelMapper:
         with stage("merge"):
             self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
                            cfg.confidence_sigma, has_colour, cfg.depth_weighting)
-        with stage("add"):
-            if cfg.skip_covered:
-                self.map.mark_covered(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
+        with stage("add"):  # with skip_covered, covered pixels are marked in the same pass and not added
+            cover = (cfg.dist_threshold, cfg.normal_threshold_deg) if cfg.skip_covered else None
             added, merged = self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
-                                         cfg.confidence_sigma, has_colour, cfg.depth_weighting)
+                                         cfg.confidence_sigma, has_colour, cfg.depth_weighting, cover)
         with stage("remove"):
             removed = self.map.remove(frame_index, cfg.remove_unstable, cfg.unstable_weight, cfg.unstable_age,
                                       cfg.remove_free_space, cfg.free_space_margin, depth)

@@ -183,6 +183,36 @@ def backproject_pixel(depth: ti.template(), v, u, ifx, ify, cx, cy):
     return ti.Vector([(u - cx) * ifx * z, (v - cy) * ify * z, z])
 
 
+@ti.func
+def normal_at(depth: ti.template(), v, u, c, ifx, ify, cx, cy, max_depth_jump):
+    """The normal of pixel (v, u) with vertex c: see ``vertex_normal_maps``; one pixel at a time."""
+    H, W = depth.shape
+    n = ti.Vector([0.0, 0.0, 0.0])
+    if 0 < u < W - 1 and 0 < v < H - 1:
+        if c.z > 0:  # holes are common: skip the four neighbours
+            l = backproject_pixel(depth, v, u - 1, ifx, ify, cx, cy)
+            r = backproject_pixel(depth, v, u + 1, ifx, ify, cx, cy)
+            t = backproject_pixel(depth, v - 1, u, ifx, ify, cx, cy)
+            b = backproject_pixel(depth, v + 1, u, ifx, ify, cx, cy)
+            lo = ti.min(ti.min(l.z, r.z), ti.min(t.z, b.z))
+            hi = ti.max(ti.max(l.z, r.z), ti.max(t.z, b.z))
+            # all neighbours valid, and max |z_neighbour - z_centre| <= max_depth_jump
+            if lo > 0 and hi - c.z <= max_depth_jump and c.z - lo <= max_depth_jump:
+                m = (r - l).cross(b - t)
+                len2 = m.dot(m)
+                if len2 > 0:
+                    s = ti.rsqrt(len2)
+                    n = m * ti.select(m.dot(c) > 0, -s, s)  # face the camera
+    return n
+
+
+@ti.func
+def row_pack(depth: ti.template(), v, u0):
+    """Depths of pixels u0 .. u0 + 7 of row v, invalid (≤ 0 or NaN) as 0."""
+    z = Pack([depth[v, u0 + l] for l in ti.static(range(LANES))])
+    return ti.select(z > 0, z, 0.0)
+
+
 @ti.kernel
 def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.template(), fx: ti.f32, fy: ti.f32,
                        cx: ti.f32, cy: ti.f32, max_depth_jump: ti.f32, with_vertex: ti.template(),
@@ -194,6 +224,9 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
 
     One pass: the neighbours' vertices are back-projected again where they are needed rather than read
     back from the vertex map, so the two maps cost one loop (and one thread-pool dispatch) instead of two.
+    Eight pixels of a row per iteration, as 8-vectors (see ``LANES``): LLVM's SLP vectoriser turns their
+    arithmetic into SIMD, 2x faster than one pixel at a time (0.94 → 0.46 ms at 320×240 on one core).
+    Packs on the image border, where a neighbour would fall outside, take the pixel-at-a-time path.
     ``with_vertex`` False leaves the vertex map alone (the renderer writes its own).
     """
     if ti.static(serial):
@@ -201,27 +234,58 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
     H, W = depth.shape
     ifx = 1.0 / fx  # one division per launch, not two per pixel
     ify = 1.0 / fy
-    for v, u in ti.ndrange(H, W):  # a range-for: ``serialize`` does not apply to a struct-for
-        c = backproject_pixel(depth, v, u, ifx, ify, cx, cy)
-        if ti.static(with_vertex):
-            vertex[v, u] = c
-        n = ti.Vector([0.0, 0.0, 0.0])
-        if 0 < u < W - 1 and 0 < v < H - 1:
-            if c.z > 0:  # holes are common: skip the four neighbours
-                l = backproject_pixel(depth, v, u - 1, ifx, ify, cx, cy)
-                r = backproject_pixel(depth, v, u + 1, ifx, ify, cx, cy)
-                t = backproject_pixel(depth, v - 1, u, ifx, ify, cx, cy)
-                b = backproject_pixel(depth, v + 1, u, ifx, ify, cx, cy)
-                lo = ti.min(ti.min(l.z, r.z), ti.min(t.z, b.z))
-                hi = ti.max(ti.max(l.z, r.z), ti.max(t.z, b.z))
-                # all neighbours valid, and max |z_neighbour - z_centre| <= max_depth_jump
-                if lo > 0 and hi - c.z <= max_depth_jump and c.z - lo <= max_depth_jump:
-                    m = (r - l).cross(b - t)
-                    len2 = m.dot(m)
-                    if len2 > 0:
-                        s = ti.rsqrt(len2)
-                        n = m * ti.select(m.dot(c) > 0, -s, s)  # face the camera
-        normal[v, u] = n
+    for v, b in ti.ndrange(H, (W + LANES - 1) // LANES):  # a range-for: ``serialize`` skips a struct-for
+        u0 = b * LANES
+        if 0 < v < H - 1 and 0 < u0 and u0 + LANES < W:  # every lane has its four neighbours
+            xs = Pack([(u0 + l - cx) * ifx for l in ti.static(range(LANES))])
+            y = (v - cy) * ify
+            zc = row_pack(depth, v, u0)
+            if ti.static(with_vertex):
+                for l in ti.static(range(LANES)):
+                    vertex[v, u0 + l] = ti.Vector([xs[l] * zc[l], y * zc[l], zc[l]])
+            # left and right neighbours: the row pack shifted by one pixel
+            row = ti.Vector([0.0] * (LANES + 2))
+            row[0] = ti.select(depth[v, u0 - 1] > 0, depth[v, u0 - 1], 0.0)
+            row[LANES + 1] = ti.select(depth[v, u0 + LANES] > 0, depth[v, u0 + LANES], 0.0)
+            for l in ti.static(range(LANES)):
+                row[l + 1] = zc[l]
+            zl = Pack([row[l] for l in ti.static(range(LANES))])
+            zr = Pack([row[l + 2] for l in ti.static(range(LANES))])
+            zt = row_pack(depth, v - 1, u0)
+            zb = row_pack(depth, v + 1, u0)
+            xl = Pack([(u0 + l - 1 - cx) * ifx for l in ti.static(range(LANES))])
+            xr = Pack([(u0 + l + 1 - cx) * ifx for l in ti.static(range(LANES))])
+            yt = (v - 1 - cy) * ify
+            yb = (v + 1 - cy) * ify
+            # m = (r − l) × (b − t), with r − l and b − t from the back-projected neighbours
+            ax = xr * zr - xl * zl
+            ay = y * zr - y * zl
+            az = zr - zl
+            bx = xs * zb - xs * zt
+            by = yb * zb - yt * zt
+            bz = zb - zt
+            mx = ay * bz - az * by
+            my = az * bx - ax * bz
+            mz = ax * by - ay * bx
+            lo = ti.min(ti.min(zl, zr), ti.min(zt, zb))
+            hi = ti.max(ti.max(zl, zr), ti.max(zt, zb))
+            len2 = mx * mx + my * my + mz * mz
+            ok = (zc > 0) & (lo > 0) & (hi - zc <= max_depth_jump) & (zc - lo <= max_depth_jump) & (len2 > 0)
+            s = ti.rsqrt(ti.select(ok, len2, 1.0))
+            s = ti.select(mx * xs * zc + my * y * zc + mz * zc > 0, -s, s)  # face the camera
+            nx = ti.select(ok, mx * s, 0.0)
+            ny = ti.select(ok, my * s, 0.0)
+            nz = ti.select(ok, mz * s, 0.0)
+            for l in ti.static(range(LANES)):
+                normal[v, u0 + l] = ti.Vector([nx[l], ny[l], nz[l]])
+        else:
+            for l in ti.static(range(LANES)):
+                u = u0 + l
+                if u < W:
+                    c = backproject_pixel(depth, v, u, ifx, ify, cx, cy)
+                    if ti.static(with_vertex):
+                        vertex[v, u] = c
+                    normal[v, u] = normal_at(depth, v, u, c, ifx, ify, cx, cy, max_depth_jump)
 
 
 @ti.data_oriented

@@ -9,7 +9,8 @@ project, filter passes 1 and 2 in the configured order (Keller's "compatible" by
 nearest-depth index map, merge, add with the covered-pixel test, remove, with the same thresholds),
 then run the next ``--steps`` frames through both, each on its own copy, and print the median
 milliseconds per stage and the ratio, measured in the same run. The first Taichi step of each size
-(kernel compilation) is not timed.
+(kernel compilation) is not timed, and each Taichi step starts 0.2 s after the NumPy one, once
+OpenBLAS's threads have stopped spinning.
 """
 
 from __future__ import annotations
@@ -25,6 +26,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 STAGES = ("project", "filter", "merge", "add", "remove")
+BLAS_SETTLE_S = 0.2  # pause after each NumPy step (see bench_size)
 
 
 class NumpyFusion:
@@ -207,6 +209,9 @@ def bench_size(width: int, height: int, target: int, steps: int) -> dict:
         stats = mapper.integrate(maps, colour, seq.poses[i], frame + k, timer)
         ms = ref.integrate(maps.vertex[0].to_numpy(), maps.normal[0].to_numpy(), depth, colour, seq.poses[i], K,
                            frame + k)
+        # NumPy's matrix products wake OpenBLAS's worker threads, which spin for tens of ms afterwards: the
+        # next Taichi step would share the cores with them. Wait until they sleep again.
+        time.sleep(BLAS_SETTLE_S)
         if k > 0:  # the first Taichi step compiles the kernels
             for s in STAGES:
                 numpy_ms[s].append(ms[s])

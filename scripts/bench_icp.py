@@ -28,7 +28,7 @@ runs this file's worker on the same depth images, within the same benchmark run.
 Then, on real data, both run once from the identity on ``--accuracy-pairs`` pairs ``--accuracy-gap``
 frames apart spread over the sequence, and the table gives median / mean / max pose error of each.
 
-usage: scripts/bench_icp.py [DATA] [--pair S T] [--repeats N] [--open3d-python PY] [--set icp.KEY=VALUE]
+usage: scripts/bench_icp.py [DATA] [--pair S T] [--repeats N (20)] [--open3d-python PY] [--set icp.KEY=VALUE]
                             [--accuracy-pairs N] [--accuracy-gap G]
 """
 
@@ -168,6 +168,7 @@ def load_pair(args, cfg):
     return depth_s, depth_t, seq.intrinsics, G, "synthetic room, 3° and 5 cm apart (no redkitchen data found)"
 
 
+WARMUP_RUNS = 5  # untimed frame pairs of each system before the timed ones
 BLAS_SETTLE_S = 0.2  # pause after a NumPy iteration before timing Taichi (see bench_resolution)
 ITERATIONS_PER_RUN = 5  # Taichi iterations timed back to back, as within one pyramid level of ICP
 
@@ -200,12 +201,14 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
             maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.smooth_radius(K.width))
         return icp.align(src, tgt)
 
-    result = frame_pair()  # compiles every kernel
+    for _ in range(WARMUP_RUNS):  # the first compiles every kernel; the next few were still ~20% slower
+        result = frame_pair()
     o3d = open3d_runner(depth_s, depth_t, K, list(c.iterations), cfg.dataset.depth_max, args.open3d_python)
     # Ours and Open3D alternate, run after run, so that both see the same load on the machine.
     ours, theirs, o3d_pose = [], [], None
     if o3d is not None:
-        o3d.run()  # warm-up
+        for _ in range(WARMUP_RUNS):
+            o3d.run()
     for _ in range(args.repeats):
         ours.append(timed(frame_pair))
         if o3d is not None:
@@ -323,7 +326,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("data", nargs="?", default="", help="7-Scenes folder (default: ../shared/data/redkitchen-7scenes)")
     parser.add_argument("--pair", nargs=2, type=int, default=[100, 110], metavar=("S", "T"))
-    parser.add_argument("--repeats", type=int, default=10, help="timed runs per measurement (median)")
+    parser.add_argument("--repeats", type=int, default=20, help="timed runs per measurement (median)")
     parser.add_argument("--open3d-python", default=None, metavar="PY",
                         help="an interpreter with open3d installed, when this one has none")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE")

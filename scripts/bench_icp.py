@@ -15,8 +15,11 @@ For one frame pair at 640×480 and at 320×240 it prints
 Each table is printed twice: wall-clock, and CPU time of each process (all its threads). The machine
 this was written on is shared by several jobs: with another process on one of its two cores, Taichi's
 two halves of a loop and Open3D's worker threads all share one core and wall-clock ratios swing from run
-to run, while CPU time (the work done) is steadier. Ours and Open3D run alternately, run after run, so
-both see the same load.
+to run, while CPU time (the work done) is steadier. Ours and Open3D run in alternating blocks of 5
+back-to-back frame pairs (each system's threads awake, as when it processes a sequence; the first pair of
+a block untimed), with 0.2 s between blocks so that neither is timed while the other's threads still spin.
+Run one pair at a time right after the other system instead, Open3D (whose OpenMP threads then had to
+wake) took 12.3 ms at 320×240 instead of 7.2: how the runs are interleaved matters as much as the code.
 
 Data: the redkitchen frames ``--pair S T`` (default 100 110) from DATA or ../shared/data when present,
 else two renders of the synthetic room 3° and 5 cm apart.
@@ -170,6 +173,8 @@ def load_pair(args, cfg):
 
 WARMUP_RUNS = 5  # untimed frame pairs of each system before the timed ones
 BLAS_SETTLE_S = 0.2  # pause after a NumPy iteration before timing Taichi (see bench_resolution)
+RUNS_PER_BLOCK = 5  # timed frame pairs per block (see bench_resolution)
+SWITCH_SETTLE_S = 0.2  # pause between blocks of one system and the other
 ITERATIONS_PER_RUN = 5  # Taichi iterations timed back to back, as within one pyramid level of ICP
 
 
@@ -204,16 +209,23 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     for _ in range(WARMUP_RUNS):  # the first compiles every kernel; the next few were still ~20% slower
         result = frame_pair()
     o3d = open3d_runner(depth_s, depth_t, K, list(c.iterations), cfg.dataset.depth_max, args.open3d_python)
-    # Ours and Open3D alternate, run after run, so that both see the same load on the machine.
     ours, theirs, o3d_pose = [], [], None
     if o3d is not None:
         for _ in range(WARMUP_RUNS):
             o3d.run()
-    for _ in range(args.repeats):
-        ours.append(timed(frame_pair))
+    # Each system runs in blocks of back-to-back frame pairs (its threads stay awake, as when processing a
+    # sequence), the first of each block untimed; blocks alternate with a pause between them, so that
+    # neither is timed while the other's threads still spin (OpenMP's do, for a while after each call).
+    for _ in range(max(1, args.repeats // RUNS_PER_BLOCK)):
+        time.sleep(SWITCH_SETTLE_S)
+        frame_pair()
+        ours.extend(timed(frame_pair) for _ in range(RUNS_PER_BLOCK))
         if o3d is not None:
-            ms, cpu, o3d_pose = o3d.run()
-            theirs.append((ms, cpu))
+            time.sleep(SWITCH_SETTLE_S)
+            o3d.run()
+            for _ in range(RUNS_PER_BLOCK):
+                ms, cpu, o3d_pose = o3d.run()
+                theirs.append((ms, cpu))
     result = frame_pair()
     if o3d is not None:
         o3d.close()

@@ -98,32 +98,35 @@ def pyramid_down(fine: ti.template(), coarse: ti.template(), max_diff: ti.f32, p
     for v, b in ti.ndrange((H + 1) // 2, (Wc + LANES - 1) // LANES):
         u0 = b * LANES
         y0 = 2 * v
-        out = Pack(0.0)
         if 0 < y0 < H - 1 and 0 < u0 and 2 * (u0 + LANES - 1) + 1 <= W - 1:  # every window is whole
             c = Pack([fine[y0, 2 * (u0 + l)] for l in ti.static(range(LANES))])
-            totals = ti.Matrix([[0.0] * LANES for _ in ti.static(range(3))])
-            counts = ti.Matrix([[0.0] * LANES for _ in ti.static(range(3))])
+            total = Pack(0.0)
+            count = Pack(0.0)
             for dv in ti.static(range(-1, 2)):
                 row = ti.Vector([fine[y0 + dv, 2 * u0 - 1 + k] for k in ti.static(range(2 * LANES + 1))])
+                row_total = Pack(0.0)  # per window row, as pyramid_pixel adds them
+                row_count = Pack(0.0)
                 for du in ti.static(range(-1, 2)):
                     d = Pack([row[2 * l + 1 + du] for l in ti.static(range(LANES))])
                     ok = (d > 0) & (ti.abs(d - c) < max_diff)
-                    for l in ti.static(range(LANES)):  # per window row, as pyramid_pixel adds them
-                        totals[dv + 1, l] += ti.select(ok[l], d[l], 0.0)
-                        counts[dv + 1, l] += ti.select(ok[l], 1.0, 0.0)
-            total = Pack([totals[0, l] + totals[1, l] + totals[2, l] for l in ti.static(range(LANES))])
-            count = Pack([counts[0, l] + counts[1, l] + counts[2, l] for l in ti.static(range(LANES))])
+                    row_total += ti.select(ok, d, 0.0)
+                    row_count += ti.select(ok, 1.0, 0.0)
+                total += row_total
+                count += row_count
             out = ti.select(c > 0, total / ti.max(count, 1.0), 0.0)
-        else:
-            for l in ti.static(range(LANES)):
-                if u0 + l < Wc:
-                    out[l] = pyramid_pixel(fine, v, u0 + l, max_diff)
-        if ti.static(packed):
-            coarse[v, b] = out
-        else:
-            for l in ti.static(range(LANES)):
-                if u0 + l < Wc:
+            if ti.static(packed):
+                coarse[v, b] = out
+            else:
+                for l in ti.static(range(LANES)):
                     coarse[v, u0 + l] = out[l]
+        else:
+            for l in range(LANES):  # a loop, not unrolled: one copy of the slow path to compile
+                u = u0 + l
+                if u < Wc:
+                    if ti.static(packed):
+                        coarse[v, b][l] = pyramid_pixel(fine, v, u, max_diff)
+                    else:
+                        coarse[v, u] = pyramid_pixel(fine, v, u, max_diff)
 
 
 @ti.func
@@ -177,11 +180,11 @@ def smooth_rows(src: ti.template(), dst: ti.template(), width: ti.i32, radius: t
                 count += ti.select(ok, 1.0, 0.0)
             dst[v, b] = ti.select(c > 0, total / ti.max(count, 1.0), 0.0)
         else:
-            out = Pack(0.0)
-            for l in ti.static(range(LANES)):
+            for l in range(LANES):  # a loop, not unrolled: one copy of the slow path to compile
+                out = 0.0
                 if u0 + l < width:
-                    out[l] = range_mean_at(src, v, u0 + l, radius, width, True, max_diff)
-            dst[v, b] = out
+                    out = range_mean_at(src, v, u0 + l, radius, width, True, max_diff)
+                dst[v, b][l] = out
 
 
 @ti.kernel
@@ -315,7 +318,7 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
             for l in ti.static(range(LANES)):
                 normal[v, u0 + l] = ti.Vector([nx[l], ny[l], nz[l]])
         else:
-            for l in ti.static(range(LANES)):
+            for l in range(LANES):  # a loop, not unrolled: one copy of the slow path to compile
                 u = u0 + l
                 if u < W:
                     c = backproject_pixel(depth, v, u, ifx, ify, cx, cy)

@@ -34,8 +34,8 @@ over every surfel, the step's largest cost) lists the surfels it keeps per block
 the list (about half the map for rendering, a few percent with Keller's order) is gathered in index
 order for the index map's two passes and for the merge.
 
-Determinism elsewhere: new surfels are appended in row-major pixel order (per-row counts, a serial scan
-over rows, then per-row writes), and removal fills the k-th hole below the new count with the k-th
+Determinism elsewhere: new surfels are appended in row-major pixel order (counts per row segment, a
+serial scan over the segments, then per-segment writes), and removal fills the k-th hole below the new count with the k-th
 surviving surfel above it (block counts and scans), so a run gives the same map on every run and
 thread count, not just the same set.
 """
@@ -197,8 +197,9 @@ def is_valid(q, nq):
 @ti.kernel
 def fill_radial(img: ti.template(), cx: ti.f32, cy: ti.f32, sigma: ti.f32):
     """img.radial = Keller's radial confidence exp(−γ²/2σ²) of every pixel, γ its distance from the image
-    centre over the largest such distance. It depends on the pixel only, so it is computed once per
-    image size rather than once per merged or added surfel (an exp each: a quarter of the merge)."""
+    centre over the largest such distance. It depends on the pixel only, so it is computed when the image
+    centre or σ changes (``ImageScratch.radial_confidence``) rather than once per merged or added surfel
+    (an exp each: a quarter of the merge)."""
     for v, u in img.radial:
         gamma2 = ((u - cx) ** 2 + (v - cy) ** 2) / (cx * cx + cy * cy)
         img.radial[v, u] = ti.exp(-gamma2 / (2.0 * sigma * sigma))
@@ -431,7 +432,8 @@ def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), no
     s.weight[i] = w + a
     s.radius[i] = ti.min(s.radius[i], measurement_radius(q.z, nq.z, f))
     s.t_updated[i] = frame_index
-    # the merged surfel at its pixel, for ``mark_covered`` (the render scratch is free during fusion)
+    # the merged surfel at its pixel, for the coverage test of ``count_segments`` (the render scratch is
+    # free during fusion)
     img.pc[v, u] = s.position[i]
     img.nc[v, u] = s.normal[i]
     img.rad[v, u] = s.radius[i]
@@ -491,32 +493,6 @@ def covered_by_neighbour(img: ti.template(), v, u, qw, nw, dist_threshold, cos_t
     return covered
 
 
-@ti.kernel
-def mark_covered(img: ti.template(), vertex: ti.template(), normal: ti.template(),
-                 pose: Rigid, dist_threshold: ti.f32, cos_threshold: ti.f32):
-    """assoc = COVERED for a valid, unassociated pixel whose point lies on the disc of a surfel merged at
-    one of its 8 neighbours (``covered_by_neighbour``). ``pose`` (R, t) maps camera to world.
-
-    Why: surfels project to pixel centres only approximately, so a map as dense as the image still leaves
-    some pixels without a surfel of their own (two surfels round to one pixel, its neighbour gets none).
-    Adding a surfel at every such pixel made the map grow by several percent of the frame at each frame,
-    however often the surface had been seen. Keller et al. search a neighbourhood of a super-sampled index
-    map for the same reason. Pixels only change from -1 to COVERED and only assoc ≥ 0 is read, so the
-    result does not depend on the order the pixels run in.
-
-    ``count_segments`` with ``cover`` does the same test in its pass over the image; this kernel is the
-    test on its own.
-    """
-    for v, u in img.assoc:
-        R, t = rigid(pose)
-        if img.assoc[v, u] == -1:
-            q = vertex[v, u]
-            nq = normal[v, u]
-            if is_valid(q, nq):
-                if covered_by_neighbour(img, v, u, R @ q + t, R @ nq, dist_threshold, cos_threshold):
-                    img.assoc[v, u] = COVERED
-
-
 @ti.func
 def segment_range(g, W):
     """Pixels [begin, end) of segment g of a row of W pixels."""
@@ -528,8 +504,16 @@ def segment_range(g, W):
 def count_segments(img: ti.template(), vertex: ti.template(), normal: ti.template(), pose: Rigid,
                    dist_threshold: ti.f32, cos_threshold: ti.f32, cover: ti.template()):
     """Per row segment: pixels merged, valid pixels without an association (the new surfels), and covered
-    pixels; with ``cover``, the coverage test of ``mark_covered`` first, in the same pass (it reads only
-    the neighbours' merged surfels, which no pixel here changes)."""
+    pixels. With ``cover``, each valid unassociated pixel is first tested against the discs of the surfels
+    merged at its 8 neighbours (``covered_by_neighbour``) and marked COVERED if one holds its point.
+    ``pose`` (R, t) maps camera to world.
+
+    Why: surfels project to pixel centres only approximately, so a map as dense as the image still leaves
+    some pixels without a surfel of their own (two surfels round to one pixel, its neighbour gets none).
+    Adding a surfel at every such pixel made the map grow by several percent of the frame at each frame,
+    however often the surface had been seen. Keller et al. search a neighbourhood of a super-sampled index
+    map for the same reason. Pixels only change from -1 to COVERED and only assoc ≥ 0 is read, so the
+    result does not depend on the order the pixels run in."""
     H, W = img.assoc.shape
     for v, g in ti.ndrange(H, SEGMENTS):
         R, t = rigid(pose)
@@ -1038,10 +1022,10 @@ class SurfelMap:
     def mark_covered(self, img: ImageScratch, vertex, normal, pose: np.ndarray, dist_threshold: float,
                      normal_threshold_deg: float) -> None:
         """After ``merge``: unassociated pixels on the disc of a neighbour's merged surfel are not added
-        (``img.assoc`` = COVERED)."""
-        to_world = _camera_to_world(pose)
-        cos_threshold = math.cos(math.radians(normal_threshold_deg))
-        mark_covered(img, vertex, normal, to_world, dist_threshold, cos_threshold)
+        (``img.assoc`` = COVERED). ``add(..., cover=...)`` does the same in its own pass; this is the test on
+        its own (the counts it also makes are made again by ``add``)."""
+        count_segments(img, vertex, normal, _camera_to_world(pose), dist_threshold,
+                       math.cos(math.radians(normal_threshold_deg)), True)
 
     def pass1_mask(self) -> np.ndarray:
         """Filter pass 1 of the last projection: surfels inside the image with positive depth."""

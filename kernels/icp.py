@@ -50,7 +50,7 @@ import os
 import numpy as np
 import taichi as ti
 
-from ti_fusion.kernels.maps import SERIAL_BELOW
+from ti_fusion.backend import SERIAL_BELOW
 
 STATUS_OK = 0
 STATUS_OUT_OF_IMAGE = 1
@@ -360,7 +360,7 @@ class PointToPlane:
         return min(self.n_chunks, n)
 
     def _serial(self, src_v) -> bool:
-        """Small levels run on the calling thread on the CPU (see ``maps.SERIAL_BELOW``)."""
+        """Small levels run on the calling thread on the CPU (see ``ti_fusion.backend.SERIAL_BELOW``)."""
         return src_v.shape[0] * src_v.shape[1] < self.serial_below
 
     def reduce(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,

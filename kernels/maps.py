@@ -14,24 +14,26 @@ separably (a row pass, then a column pass, each range-checked against its own ce
 central differences of raw Kinect-like depth are noisy enough at full resolution that most of them fail
 ICP's normal-angle test; r = 2 cuts the normal noise several-fold at ~3 ms per 640×480 frame.
 
-Speed (the 2-core CPU, 640×480, CPU time of one call, min of 9 runs): backproject 0.9 ms, normals 5.1 ms,
-pyramid_down to level 1 1.5 ms, smoothing r = 2 (both passes) 4.2 ms; about 15 ms for every level of one
-frame. These kernels are scalar: Taichi's CPU backend does not vectorise the loop over pixels (the
-field's root pointer is reloaded in every iteration, which stops LLVM's loop vectoriser; checked in the
-generated IR), and the normal and back-projection kernels were already at about the speed of the same
-loop in C at -O2: a struct-for, an ndrange-for and a row loop, AoS and SoA layouts, and fewer divisions
-changed them by less than 15%. What did pay is short dependency chains: a 5×5 range mean written as one
-running sum took 22.8 ms, the separable, branch-free version 4.2 ms.
+Speed: Taichi's CPU backend does not vectorise a loop over pixels (the field's root pointer is reloaded
+in every iteration, which stops LLVM's loop vectoriser; checked in the generated IR), but LLVM's SLP
+vectoriser does turn the same operation on the components of a small vector into SIMD. So the smoothing
+passes, the pyramid and the vertex/normal maps take eight pixels of a row per iteration as an 8-vector
+(``LANES``, ``Pack``), which made them 2-3x faster than one pixel at a time; the packs on the image border,
+where a window or a neighbour would fall outside, take a pixel-at-a-time path, written as a loop rather
+than unrolled eight times (unrolled, it was most of the compile time). One 640×480 frame's maps with
+smoothing r = 12 take 7.8 ms on one core of the 2-core machine, a 320×240 frame's with r = 6 1.9 ms.
+Loops over images smaller than ``SERIAL_BELOW`` pixels run on the calling thread.
 
 Compilation: Taichi compiles a kernel once per set of fields it is given, so the first ``compute`` of
-each new FrameMaps costs about 2 s on that machine (0.5 s per kernel); allocate FrameMaps once and reuse
-them. (One fused kernel for all levels compiled slower still, 4.5 s.)
+each new FrameMaps compiles its kernels (about 0.3 s each, 0.1 s from Taichi's kernel cache); allocate
+FrameMaps once and reuse them.
 """
 
 
 import numpy as np
 import taichi as ti
 
+from ti_fusion.backend import serial_for
 from ti_fusion.camera import Intrinsics
 
 
@@ -42,19 +44,6 @@ from ti_fusion.camera import Intrinsics
 # one core than one pixel per iteration.
 LANES = 8
 Pack = ti.types.vector(LANES, ti.f32)
-
-
-# Below this many pixels a loop runs on the calling thread (CPU only): handing a loop to Taichi's thread
-# pool and waiting for it costs about 70 µs on this project's 2-core virtual machine, more than the two
-# threads save on an image this small.
-SERIAL_BELOW = 16384
-
-
-def serial_for(n_pixels: int) -> bool:
-    from ti_fusion.backend import current_backend
-
-    backend = current_backend()
-    return n_pixels < SERIAL_BELOW and (backend is None or backend.arch == "cpu")
 
 
 @ti.func
@@ -254,8 +243,7 @@ def row_pack(depth: ti.template(), v, u0):
 
 @ti.kernel
 def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.template(), fx: ti.f32, fy: ti.f32,
-                       cx: ti.f32, cy: ti.f32, max_depth_jump: ti.f32, with_vertex: ti.template(),
-                       serial: ti.template()):
+                       cx: ti.f32, cy: ti.f32, max_depth_jump: ti.f32, serial: ti.template()):
     """vertex[v, u] = ((u - cx) z / fx, (v - cy) z / fy, z), zero where the depth is invalid (≤ 0 or NaN);
     normal[v, u] = the cross product of central differences of the vertices, facing the camera, zero where
     undefined: on the image border, where the pixel or one of its four neighbours is invalid, or where a
@@ -264,9 +252,9 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
     One pass: the neighbours' vertices are back-projected again where they are needed rather than read
     back from the vertex map, so the two maps cost one loop (and one thread-pool dispatch) instead of two.
     Eight pixels of a row per iteration, as 8-vectors (see ``LANES``): LLVM's SLP vectoriser turns their
-    arithmetic into SIMD, 2x faster than one pixel at a time (0.94 → 0.46 ms at 320×240 on one core).
-    Packs on the image border, where a neighbour would fall outside, take the pixel-at-a-time path.
-    ``with_vertex`` False leaves the vertex map alone (the renderer writes its own).
+    arithmetic into SIMD (at 320×240 on one core, both maps 0.94 → 0.69 ms, the normals alone 0.94 →
+    0.46 ms). Packs on the image border, where a neighbour would fall outside, take the pixel-at-a-time
+    path.
     """
     if ti.static(serial):
         ti.loop_config(serialize=True)
@@ -279,9 +267,8 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
             xs = Pack([(u0 + l - cx) * ifx for l in ti.static(range(LANES))])
             y = (v - cy) * ify
             zc = row_pack(depth, v, u0)
-            if ti.static(with_vertex):
-                for l in ti.static(range(LANES)):
-                    vertex[v, u0 + l] = ti.Vector([xs[l] * zc[l], y * zc[l], zc[l]])
+            for l in ti.static(range(LANES)):
+                vertex[v, u0 + l] = ti.Vector([xs[l] * zc[l], y * zc[l], zc[l]])
             # left and right neighbours: the row pack shifted by one pixel
             row = ti.Vector([0.0] * (LANES + 2))
             row[0] = ti.select(depth[v, u0 - 1] > 0, depth[v, u0 - 1], 0.0)
@@ -322,8 +309,7 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
                 u = u0 + l
                 if u < W:
                     c = backproject_pixel(depth, v, u, ifx, ify, cx, cy)
-                    if ti.static(with_vertex):
-                        vertex[v, u] = c
+                    vertex[v, u] = c
                     normal[v, u] = normal_at(depth, v, u, c, ifx, ify, cx, cy, max_depth_jump)
 
 
@@ -362,6 +348,8 @@ class FrameMaps:
         docstring); ``depth[0]`` then holds the smoothed depth."""
         if depth.shape != self.input_shape:
             raise ValueError(f"depth of shape {depth.shape} given to FrameMaps of shape {self.input_shape}")
+        if not pyramid_max_diff > 0:  # every range check would reject even the centre pixel
+            raise ValueError(f"pyramid_max_diff must be positive, not {pyramid_max_diff}")
         depth = np.ascontiguousarray(depth, dtype=np.float32)
         smooth = smooth_radius > 0
         # the unsmoothed level-0 depth: packed for the smoothing passes, else level 0 itself
@@ -372,10 +360,10 @@ class FrameMaps:
             intrinsics = intrinsics.downsampled(2**self.input_level)
             self._inputs[0].from_numpy(depth)
             targets = self._inputs[1:] + [level0]
-            for k, (fine, coarse) in enumerate(zip(self._inputs, targets)):
-                last = k == len(targets) - 1
-                pyramid_down(fine, coarse, pyramid_max_diff, smooth and last,
-                             serial_for(self.shapes[0][0] * self.shapes[0][1] * 4 ** (len(targets) - 1 - k)))
+            for fine, coarse in zip(self._inputs, targets):
+                h, w = fine.shape
+                packed = smooth and coarse is level0  # the smoothing's packed input
+                pyramid_down(fine, coarse, pyramid_max_diff, packed, serial_for(((h + 1) // 2) * ((w + 1) // 2)))
         if smooth:
             raw, rows = self._packed
             smooth_rows(raw, rows, self.width, int(smooth_radius), pyramid_max_diff)
@@ -407,4 +395,4 @@ class FrameMaps:
         for l in range(0 if level0_maps else 1, self.levels):
             # A depth edge at a coarse level spans 2**l fine pixels: scale the jump threshold with it.
             vertex_normal_maps(self.depth[l], self.vertex[l], self.normal[l], *self.intrinsics[l].as_tuple(),
-                               max_depth_jump * 2**l, True, self._serial[l])
+                               max_depth_jump * 2**l, self._serial[l])

@@ -23,7 +23,9 @@ from ti_fusion.kernels import fusion as F
 from ti_fusion.kernels.maps import FrameMaps
 from ti_fusion.ply import read_ply, write_ply
 
-K = Intrinsics(fx=100.0, fy=104.0, cx=31.5, cy=23.5, width=64, height=48)
+# 70 × 72: a width that is no multiple of the row segments (or of 8), and enough rows that the loops over
+# row segments (72 × 8) split into more than one task of 512 iterations, so they run on two threads
+K = Intrinsics(fx=100.0, fy=104.0, cx=34.5, cy=35.5, width=70, height=72)
 H, W = K.height, K.width
 DIST = 0.03
 ANGLE = 20.0

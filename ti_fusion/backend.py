@@ -4,7 +4,7 @@ One process runs on one backend. ``init_backend("auto")`` tries cuda, then vulka
 itself silently falls back to the CPU when a GPU backend is missing; we check what actually started so
 that asking for an absent backend fails at once with one line that says what is missing.
 
-On the CPU (Linux), Taichi's worker threads are pinned one per core once it has started
+On the CPU (Linux), Taichi's worker threads are pinned one per logical CPU once it has started
 (``pin_cpu_workers``; ``TI_FUSION_PIN_THREADS=0`` turns it off). Unpinned, the scheduler of this
 project's 2-core virtual machine mostly woke both workers on the same core, so a kernel of a few
 milliseconds ran on one core while the other idled: the ICP frame pair at 320×240 took 11 ms with them
@@ -60,7 +60,9 @@ def _try_start(arch: str, **kwargs) -> bool:
     """Start Taichi on ``arch``; False (and Taichi reset) when that backend is absent."""
     import taichi as ti
 
+    global _threads_before_init
     ti.reset()
+    _threads_before_init = _thread_ids()
     try:
         # Taichi prints "[Taichi] Starting on arch=..." itself; we report the backend our own way.
         with contextlib.redirect_stdout(io.StringIO()):
@@ -104,6 +106,27 @@ def init_backend(requested: str = "cpu", **kwargs) -> BackendInfo:
     return _current
 
 
+# Below this many pixels (or surfels) a loop runs on the calling thread (CPU only): handing a loop to
+# Taichi's thread pool and waiting for it costs about 70 µs on this project's 2-core virtual machine,
+# more than the two threads save on an image this small.
+SERIAL_BELOW = 16384
+
+
+def serial_for(n_items: int) -> bool:
+    """Whether a loop over ``n_items`` should run on the calling thread (see SERIAL_BELOW)."""
+    return n_items < SERIAL_BELOW and current_backend().arch == "cpu"
+
+
+_threads_before_init: set[int] = set()  # this process's threads before the last ti.init (Linux)
+
+
+def _thread_ids() -> set[int]:
+    try:
+        return {int(tid) for tid in os.listdir("/proc/self/task")}
+    except OSError:
+        return set()
+
+
 def _thread_run_ns() -> dict[int, int]:
     """CPU time (ns) each thread of this process has run so far (Linux)."""
     out = {}
@@ -117,31 +140,39 @@ def _thread_run_ns() -> dict[int, int]:
 
 
 def pin_cpu_workers() -> str:
-    """Pin the running CPU backend's worker threads one per core; returns a note for the backend's reason
-    ("" when nothing was pinned). The workers are found as the threads that run a short parallel kernel
-    (about 20 ms): Taichi does not name them."""
+    """Pin the running CPU backend's worker threads one per logical CPU; returns a note for the backend's
+    reason ("" when nothing was pinned). Taichi does not name its workers: they are the threads that
+    ``ti.init`` started and that run a short parallel kernel (``kernels.probe.busy``, about 20 ms, run up
+    to three times until every worker has taken part). Threads that were there before, such as a busy
+    Python thread or OpenBLAS's, are left alone."""
     import threading
 
+    import numpy as np
     import taichi as ti
+
+    from .kernels.probe import busy
 
     if os.environ.get("TI_FUSION_PIN_THREADS", "1") == "0" or not hasattr(os, "sched_setaffinity") \
             or not os.path.isdir("/proc/self/task"):
         return ""
     cpus = sorted(os.sched_getaffinity(0))
-    if len(cpus) < 2:
+    expected = min(ti.lang.impl.current_cfg().cpu_max_num_threads, len(cpus))
+    if len(cpus) < 2 or expected < 2:
         return ""
-    import numpy as np
-
-    from .kernels.probe import busy
-
     out = np.zeros(4096, dtype=np.float32)
     busy(out.shape[0], out)  # compiles
-    before = _thread_run_ns()
-    busy(out.shape[0], out)
-    ti.sync()
-    after = _thread_run_ns()
-    main = threading.get_native_id()
-    workers = sorted(tid for tid, ns in after.items() if tid != main and ns - before.get(tid, 0) > 1_000_000)
+    new = _thread_ids() - _threads_before_init - {threading.get_native_id()}
+    ran: dict[int, int] = {}
+    for _ in range(3):
+        before = _thread_run_ns()
+        busy(out.shape[0], out)
+        ti.sync()
+        for tid, ns in _thread_run_ns().items():
+            if tid in new:
+                ran[tid] = ran.get(tid, 0) + ns - before.get(tid, ns)
+        workers = sorted(tid for tid, ns in ran.items() if ns > 1_000_000)
+        if len(workers) >= expected:
+            break
     pinned = []
     for k, tid in enumerate(workers):
         cpu = cpus[k % len(cpus)]
@@ -152,7 +183,7 @@ def pin_cpu_workers() -> str:
             pass
     if not pinned:
         return ""
-    return f"; {len(pinned)} worker threads pinned to cores {', '.join(map(str, pinned))}"
+    return f"; {len(pinned)} worker threads pinned to CPUs {', '.join(map(str, pinned))}"
 
 
 def current_backend() -> BackendInfo:

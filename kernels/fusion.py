@@ -529,12 +529,13 @@ def count_segments(img: ti.template(), vertex: ti.template(), normal: ti.templat
                 q = vertex[v, u]
                 nq = normal[v, u]
                 if is_valid(q, nq):
+                    is_covered = False
                     if ti.static(cover):
-                        if covered_by_neighbour(img, v, u, R @ q + t, R @ nq, dist_threshold, cos_threshold):
-                            img.assoc[v, u] = COVERED
-                            covered += 1
-                        else:
-                            new += 1
+                        is_covered = covered_by_neighbour(img, v, u, R @ q + t, R @ nq, dist_threshold,
+                                                          cos_threshold)
+                    if is_covered:
+                        img.assoc[v, u] = COVERED
+                        covered += 1
                     else:
                         new += 1
             elif a == COVERED:

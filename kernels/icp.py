@@ -325,7 +325,6 @@ class PointToPlane:
         self.real = ti.f64 if has_f64 else ti.f32
         self.np_real = np.float64 if has_f64 else np.float32
         self.max_pixels = int(max_pixels)
-        self.arch = arch
         self.n_chunks = int(n_chunks or default_chunks(arch))
         # GPUs want one short chunk per thread; on the CPU a chunk run serially should outweigh its bookkeeping
         self.min_chunk_pixels = int(min_chunk_pixels or (MIN_CHUNK_PIXELS if arch == "cpu" else 1))

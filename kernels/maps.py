@@ -96,10 +96,10 @@ def pyramid_down(fine: ti.template(), coarse: ti.template(), max_diff: ti.f32, p
                 row_total = Pack(0.0)  # per window row, as pyramid_pixel adds them
                 row_count = Pack(0.0)
                 for du in ti.static(range(-1, 2)):
-                    d = Pack([row[2 * l + 1 + du] for l in ti.static(range(LANES))])
-                    ok = (d > 0) & (ti.abs(d - c) < max_diff)
-                    row_total += ti.select(ok, d, 0.0)
-                    row_count += ti.select(ok, 1.0, 0.0)
+                    value, counted = range_tap(Pack([row[2 * l + 1 + du] for l in ti.static(range(LANES))]), c,
+                                               max_diff)
+                    row_total += value
+                    row_count += counted
                 total += row_total
                 count += row_count
             out = ti.select(c > 0, total / ti.max(count, 1.0), 0.0)
@@ -116,6 +116,14 @@ def pyramid_down(fine: ti.template(), coarse: ti.template(), max_diff: ti.f32, p
                         coarse[v, b][l] = pyramid_pixel(fine, v, u, max_diff)
                     else:
                         coarse[v, u] = pyramid_pixel(fine, v, u, max_diff)
+
+
+@ti.func
+def range_tap(d, c, max_diff):
+    """(value, count) of the taps ``d`` in a range-checked mean about the centres ``c`` (scalars or Packs):
+    a tap counts when it is valid and within ``max_diff`` of its centre."""
+    ok = (d > 0) & (ti.abs(d - c) < max_diff)
+    return ti.select(ok, d, 0.0), ti.select(ok, 1.0, 0.0)
 
 
 @ti.func
@@ -136,10 +144,10 @@ def range_mean_at(src: ti.template(), v, u, radius, n, along_rows: ti.template()
         total = 0.0
         count = 0.0
         for k in range(-fit, fit + 1):
-            d = packed_pixel(src, v, u + k) if ti.static(along_rows) else packed_pixel(src, v + k, u)
-            if d > 0 and ti.abs(d - c) < max_diff:
-                total += d
-                count += 1.0
+            value, counted = range_tap(
+                packed_pixel(src, v, u + k) if ti.static(along_rows) else packed_pixel(src, v + k, u), c, max_diff)
+            total += value
+            count += counted
         out = total / count  # the centre always counts
     return out
 
@@ -163,10 +171,10 @@ def smooth_rows(src: ti.template(), dst: ti.template(), width: ti.i32, radius: t
             total = Pack(0.0)
             count = Pack(0.0)
             for k in ti.static(range(-radius, radius + 1)):
-                d = Pack([window[halo * LANES + l + k] for l in ti.static(range(LANES))])
-                ok = (d > 0) & (ti.abs(d - c) < max_diff)
-                total += ti.select(ok, d, 0.0)
-                count += ti.select(ok, 1.0, 0.0)
+                value, counted = range_tap(Pack([window[halo * LANES + l + k] for l in ti.static(range(LANES))]),
+                                           c, max_diff)
+                total += value
+                count += counted
             dst[v, b] = ti.select(c > 0, total / ti.max(count, 1.0), 0.0)
         else:
             for l in range(LANES):  # a loop, not unrolled: one copy of the slow path to compile
@@ -187,17 +195,15 @@ def smooth_columns(src: ti.template(), dst: ti.template(), radius: ti.template()
         count = Pack(0.0)
         if radius <= v < H - radius:  # the whole window: unrolled
             for k in ti.static(range(-radius, radius + 1)):
-                d = src[v + k, b]
-                ok = (d > 0) & (ti.abs(d - c) < max_diff)
-                total += ti.select(ok, d, 0.0)
-                count += ti.select(ok, 1.0, 0.0)
+                value, counted = range_tap(src[v + k, b], c, max_diff)
+                total += value
+                count += counted
         else:
             fit = ti.min(v, H - 1 - v)
             for k in range(-fit, fit + 1):
-                d = src[v + k, b]
-                ok = (d > 0) & (ti.abs(d - c) < max_diff)
-                total += ti.select(ok, d, 0.0)
-                count += ti.select(ok, 1.0, 0.0)
+                value, counted = range_tap(src[v + k, b], c, max_diff)
+                total += value
+                count += counted
         out = ti.select(c > 0, total / ti.max(count, 1.0), 0.0)
         for l in ti.static(range(LANES)):
             if b * LANES + l < W:

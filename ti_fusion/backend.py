@@ -130,10 +130,10 @@ def _thread_ids() -> set[int]:
 def _thread_run_ns() -> dict[int, int]:
     """CPU time (ns) each thread of this process has run so far (Linux)."""
     out = {}
-    for tid in os.listdir("/proc/self/task"):
+    for tid in _thread_ids():
         try:
             with open(f"/proc/self/task/{tid}/schedstat") as f:
-                out[int(tid)] = int(f.read().split()[0])
+                out[tid] = int(f.read().split()[0])
         except (OSError, ValueError, IndexError):
             pass
     return out

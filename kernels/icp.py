@@ -53,6 +53,9 @@ import taichi as ti
 from ti_fusion.backend import SERIAL_BELOW
 
 STATUS_OK = 0
+# ``reduce``'s per-pixel target scratch: a target pixel index, or one of these
+NO_TARGET = -1
+SOURCE_INVALID = -2
 STATUS_OUT_OF_IMAGE = 1
 STATUS_BEHIND = 2
 STATUS_TARGET_INVALID = 3
@@ -176,6 +179,24 @@ def _build_kernels(real):
         return status, pt, q, nq
 
     @ti.func
+    def _target_pixel(src_v: ti.template(), src_n: ti.template(), Ht, Wt, v, u, params: ti.template()):
+        """``_associate``'s first three tests without branches: the target pixel vi·Wt + ui that source
+        pixel (v, u) projects to, NO_TARGET when it is behind the target camera or outside its image,
+        SOURCE_INVALID when the source pixel has no vertex or normal."""
+        R, t, K = _pose(params)  # read here, per pixel: read once per chunk, the loop ran 3x slower (fusion.py)
+        p = ti.cast(src_v[v, u], real)
+        n = ti.cast(src_n[v, u], real)
+        pt = R @ p + t
+        inv_z = 1.0 / pt.z  # inf or negative where z′ ≤ 0: masked below
+        uf = ti.floor(K[0] * pt.x * inv_z + K[2] + 0.5)
+        vf = ti.floor(K[1] * pt.y * inv_z + K[3] + 0.5)
+        inside = (pt.z > 0) & (0 <= uf) & (uf < Wt) & (0 <= vf) & (vf < Ht)
+        ui = ti.cast(ti.select(inside, uf, 0.0), ti.i32)
+        vi = ti.cast(ti.select(inside, vf, 0.0), ti.i32)
+        valid = (p.z > 0) & (n.dot(n) > 0)
+        return ti.select(valid, ti.select(inside, vi * Wt + ui, NO_TARGET), SOURCE_INVALID)
+
+    @ti.func
     def _weight(r, robust: ti.template(), scale, z, params: ti.template()):
         """The robust weight of residual r at target depth z (robust: ROBUST_CODES, + DEPTH_WEIGHTED).
         The noise model's constants come in ``params`` (a Python float here would be a float32 constant)."""
@@ -206,42 +227,70 @@ def _build_kernels(real):
     @ti.kernel
     def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
-               out: params_t, serial: ti.template()):
+               out: params_t, serial: ti.template(), target: ti.template()):
         """The 30 sums into ``out`` (and the per-chunk partials into ``partials[:n_chunks]``); ``serial``:
-        the chunks run on the calling thread (small levels on the CPU, see ``PointToPlane``)."""
+        the chunks run on the calling thread (small levels on the CPU, see ``PointToPlane``); ``target``:
+        scratch of one int per source pixel.
+
+        Each chunk makes two passes over its pixels: the first projects them (``_target_pixel``: no
+        branches, no reads of the target), the second reads the target pixel, tests and accumulates. The
+        chunk's ``target`` entries are still in cache for the second pass. Fused into one pass (as
+        ``_associate``), the projection and the target read that depends on it ran ~1.4x slower on the CPU
+        (640×480, float64: 6.1 -> 4.4 ms per pass on one core); the sums are the same to the bit."""
         H, W = src_v.shape
+        Ht, Wt = tgt_v.shape
         n_pix = H * W
         chunk = (n_pix + n_chunks - 1) // n_chunks
         if ti.static(serial):
             ti.loop_config(serialize=True)
         for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
-            R, t, K = _pose(params)
-            dist2_thr, cos_thr, scale = params[P_DIST2], params[P_COS], params[P_SCALE]
-            acc = ti.Vector([0.0] * N_SUMS, dt=real)
             begin = ti.min(c * chunk, n_pix)
             end = ti.min(begin + chunk, n_pix)
             v = begin // W
             u = begin - v * W
-            for _ in range(begin, end):
-                status, pt, q, nq = _associate(src_v, src_n, tgt_v, tgt_n, v, u, R, t, K, dist2_thr, cos_thr)
-                if status != STATUS_SOURCE_INVALID:
+            for k in range(begin, end):
+                target[k] = _target_pixel(src_v, src_n, Ht, Wt, v, u, params)
+                u += 1
+                if u == W:
+                    u = 0
+                    v += 1
+            R, t, K = _pose(params)
+            dist2_thr, cos_thr, scale = params[P_DIST2], params[P_COS], params[P_SCALE]
+            acc = ti.Vector([0.0] * N_SUMS, dt=real)
+            v = begin // W
+            u = begin - v * W
+            for k in range(begin, end):
+                tp = target[k]
+                if tp != SOURCE_INVALID:
                     acc[SUM_SOURCE] += 1.0
-                if status == STATUS_OK:
+                ok = False
+                pt = vec3(0.0)
+                q = vec3(0.0)
+                nq = vec3(0.0)
+                if tp >= 0:
+                    q = ti.cast(tgt_v[tp // Wt, tp % Wt], real)
+                    nq = ti.cast(tgt_n[tp // Wt, tp % Wt], real)
+                    if q.z > 0 and nq.dot(nq) > 0:
+                        pt = R @ ti.cast(src_v[v, u], real) + t
+                        d = pt - q
+                        if d.dot(d) < dist2_thr:
+                            ok = (R @ ti.cast(src_n[v, u], real)).dot(nq) > cos_thr
+                if ok:
                     A, r = _row(pt, q, nq)
                     w = _weight(r, robust, scale, q.z, params)
                     wA = w * A
-                    for k in ti.static(range(21)):
-                        acc[k] += wA[UPPER[k][0]] * A[UPPER[k][1]]
-                    for k in ti.static(range(6)):
-                        acc[SUM_ATB + k] += wA[k] * r
+                    for e in ti.static(range(21)):
+                        acc[e] += wA[UPPER[e][0]] * A[UPPER[e][1]]
+                    for e in ti.static(range(6)):
+                        acc[SUM_ATB + e] += wA[e] * r
                     acc[SUM_R2] += r * r
                     acc[SUM_INLIERS] += 1.0
                 u += 1
                 if u == W:
                     u = 0
                     v += 1
-            for k in ti.static(range(N_SUMS)):
-                partials[c, k] = acc[k]
+            for e in ti.static(range(N_SUMS)):
+                partials[c, e] = acc[e]
         # Runs after the loop above has finished: add the partials.
         if ti.static(real == ti.f64):  # cpu: one serial pass, 30 independent running sums in registers
             # on the calling thread: handing even a one-iteration loop to the thread pool costs ~70 µs here
@@ -331,6 +380,7 @@ class PointToPlane:
         self.serial_below = SERIAL_BELOW if arch == "cpu" else 0  # smaller sources run on the calling thread
         self.k = kernels_for(self.real)
         self.partials = ti.field(self.real, shape=(self.n_chunks, N_SUMS))
+        self.target = ti.field(ti.i32, shape=self.max_pixels)  # ``reduce``'s per-pixel scratch
         self.params = np.zeros(N_PARAMS, dtype=self.np_real)
         self.out = np.zeros(N_SUMS, dtype=self.np_real)  # written by the kernel (no copy on cpu)
         self.offsets = None  # allocated on the first rows() call (QR only)
@@ -368,7 +418,7 @@ class PointToPlane:
         n_chunks = self._chunks(src_v)
         params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale)
         self.k["reduce"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, _code(robust), params, self.out,
-                         self._serial(src_v))
+                         self._serial(src_v), self.target)
         return self.out.astype(np.float64)
 
     def chunk_inliers(self, n_chunks: int) -> np.ndarray:

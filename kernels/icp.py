@@ -2,7 +2,7 @@
 
 One ICP iteration at one pyramid level is one pass over the source pixels (``PointToPlane.reduce``):
 
-association (``_associate``, shared by every kernel here)
+association (``_associate``; ``reduce`` makes the same tests in the same order in two loops, see its docstring)
     a source pixel is used when its vertex has z > 0 and its normal is non-zero. p′ = R p + t is
     projected with the target intrinsics of the level and rounded to the nearest pixel,
     u = ⌊fx x′/z′ + cx + ½⌋, v = ⌊fy y′/z′ + cy + ½⌋. The pair (p′, q = target vertex at (u, v)) is a

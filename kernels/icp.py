@@ -39,6 +39,13 @@ reduction
     CPU) missed float64 by more than 1e-5 relative on random inputs.
     The robust weight is a compile-time choice (one kernel per robust mode).
 
+solve (``iterate``, float64 backends)
+    the same kernel can finish the iteration: after the partials are added, on the calling thread, it
+    solves the 6×6 system by Cholesky, applies T ← exp(δξ) T to the pose in ``params`` (in place, so the
+    next launch starts there) and appends a record (the sums, the pose before, ‖δξ‖, the outcome).
+    ``ti_fusion.icp`` replays the records through its checks. One launch per iteration and nothing read
+    back but a flag: the round trip through NumPy cost ~120 µs per iteration, as much as a 320×240 pass.
+
 Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
 (vulkan, cuda), chosen when ``PointToPlane`` is built. Fields stay float32.
 """
@@ -129,7 +136,15 @@ _KERNELS: dict = {}
 
 # Layout of the ``params`` array every kernel takes (float64 on cpu, float32 elsewhere): the pose, the
 # target intrinsics and the thresholds travel as one small array (cheaper to pass than matrix arguments).
-P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE, P_NOISE, N_PARAMS = 0, 9, 12, 16, 17, 18, 19, 23
+P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE, P_NOISE = 0, 9, 12, 16, 17, 18, 19
+# ``iterate`` only: the system's checks, where its record goes, and what it tells the caller
+P_MIN_INLIERS, P_STOP, P_LEVEL, P_ITERATION, P_RECORDS, P_DONE, N_PARAMS = 23, 24, 25, 26, 27, 28, 29
+
+# One ``iterate`` record: the 30 sums, the pose before the update (R row-major, t), level, iteration,
+# ‖δξ‖ and the outcome
+R_SUMS, R_POSE, R_LEVEL, R_ITERATION, R_UPDATE, R_OUTCOME, RECORD_LEN = 0, 30, 42, 43, 44, 45, 46
+UPDATED, TOO_FEW_INLIERS, NOT_POSITIVE_DEFINITE = 0, 1, 2
+STOPPED, FAILED = 1, 2  # ``params[P_DONE]``: the update fell below P_STOP; the system was not solved
 
 
 def _build_kernels(real):
@@ -224,71 +239,78 @@ def _build_kernels(real):
         A = ti.Vector([c.x, c.y, c.z, nq.x, nq.y, nq.z], dt=real)
         return A, nq.dot(pt - q)
 
-    @ti.kernel
-    def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-               partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
-               out: params_t, serial: ti.template(), target: ti.template()):
-        """The 30 sums into ``out`` (and the per-chunk partials into ``partials[:n_chunks]``); ``serial``:
-        the chunks run on the calling thread (small levels on the CPU, see ``PointToPlane``); ``target``:
-        scratch of one int per source pixel.
+    @ti.func
+    def _chunk_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                    c, n_chunks, robust: ti.template(), params: ti.template(), target: ti.template()):
+        """The 30 sums of chunk c of ``n_chunks`` contiguous runs of source pixels, in registers.
 
-        Each chunk makes two passes over its pixels: the first projects them (``_target_pixel``: no
-        branches, no reads of the target), the second reads the target pixel, tests and accumulates. The
-        chunk's ``target`` entries are still in cache for the second pass. Fused into one pass (as
+        Two passes over the chunk's pixels: the first projects them (``_target_pixel``: no branches, no
+        reads of the target), the second reads the target pixel, tests and accumulates. The chunk's
+        ``target`` entries are still in cache for the second pass. Fused into one pass (as
         ``_associate``), the projection and the target read that depends on it ran 1.25x slower on the CPU
         (640×480, float64, one core: 7.4 ms per pass, 5.9 ms split); the sums are the same to the bit."""
         H, W = src_v.shape
         Ht, Wt = tgt_v.shape
         n_pix = H * W
         chunk = (n_pix + n_chunks - 1) // n_chunks
+        begin = ti.min(c * chunk, n_pix)
+        end = ti.min(begin + chunk, n_pix)
+        v = begin // W
+        u = begin - v * W
+        for k in range(begin, end):
+            target[k] = _target_pixel(src_v, src_n, Ht, Wt, v, u, params)
+            u += 1
+            if u == W:
+                u = 0
+                v += 1
+        R, t, K = _pose(params)
+        dist2_thr, cos_thr, scale = params[P_DIST2], params[P_COS], params[P_SCALE]
+        acc = ti.Vector([0.0] * N_SUMS, dt=real)
+        v = begin // W
+        u = begin - v * W
+        for k in range(begin, end):
+            tp = target[k]
+            if tp != SOURCE_INVALID:
+                acc[SUM_SOURCE] += 1.0
+            ok = False
+            pt = vec3(0.0)
+            q = vec3(0.0)
+            nq = vec3(0.0)
+            if tp >= 0:
+                q = ti.cast(tgt_v[tp // Wt, tp % Wt], real)
+                nq = ti.cast(tgt_n[tp // Wt, tp % Wt], real)
+                if q.z > 0 and nq.dot(nq) > 0:
+                    pt = R @ ti.cast(src_v[v, u], real) + t
+                    d = pt - q
+                    if d.dot(d) < dist2_thr:
+                        ok = (R @ ti.cast(src_n[v, u], real)).dot(nq) > cos_thr
+            if ok:
+                A, r = _row(pt, q, nq)
+                w = _weight(r, robust, scale, q.z, params)
+                wA = w * A
+                for e in ti.static(range(21)):
+                    acc[e] += wA[UPPER[e][0]] * A[UPPER[e][1]]
+                for e in ti.static(range(6)):
+                    acc[SUM_ATB + e] += wA[e] * r
+                acc[SUM_R2] += r * r
+                acc[SUM_INLIERS] += 1.0
+            u += 1
+            if u == W:
+                u = 0
+                v += 1
+        return acc
+
+    @ti.kernel
+    def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+               partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
+               out: params_t, serial: ti.template(), target: ti.template()):
+        """The 30 sums into ``out`` (and the per-chunk partials into ``partials[:n_chunks]``); ``serial``:
+        the chunks run on the calling thread (small levels on the CPU, see ``PointToPlane``); ``target``:
+        scratch of one int per source pixel."""
         if ti.static(serial):
             ti.loop_config(serialize=True)
         for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
-            begin = ti.min(c * chunk, n_pix)
-            end = ti.min(begin + chunk, n_pix)
-            v = begin // W
-            u = begin - v * W
-            for k in range(begin, end):
-                target[k] = _target_pixel(src_v, src_n, Ht, Wt, v, u, params)
-                u += 1
-                if u == W:
-                    u = 0
-                    v += 1
-            R, t, K = _pose(params)
-            dist2_thr, cos_thr, scale = params[P_DIST2], params[P_COS], params[P_SCALE]
-            acc = ti.Vector([0.0] * N_SUMS, dt=real)
-            v = begin // W
-            u = begin - v * W
-            for k in range(begin, end):
-                tp = target[k]
-                if tp != SOURCE_INVALID:
-                    acc[SUM_SOURCE] += 1.0
-                ok = False
-                pt = vec3(0.0)
-                q = vec3(0.0)
-                nq = vec3(0.0)
-                if tp >= 0:
-                    q = ti.cast(tgt_v[tp // Wt, tp % Wt], real)
-                    nq = ti.cast(tgt_n[tp // Wt, tp % Wt], real)
-                    if q.z > 0 and nq.dot(nq) > 0:
-                        pt = R @ ti.cast(src_v[v, u], real) + t
-                        d = pt - q
-                        if d.dot(d) < dist2_thr:
-                            ok = (R @ ti.cast(src_n[v, u], real)).dot(nq) > cos_thr
-                if ok:
-                    A, r = _row(pt, q, nq)
-                    w = _weight(r, robust, scale, q.z, params)
-                    wA = w * A
-                    for e in ti.static(range(21)):
-                        acc[e] += wA[UPPER[e][0]] * A[UPPER[e][1]]
-                    for e in ti.static(range(6)):
-                        acc[SUM_ATB + e] += wA[e] * r
-                    acc[SUM_R2] += r * r
-                    acc[SUM_INLIERS] += 1.0
-                u += 1
-                if u == W:
-                    u = 0
-                    v += 1
+            acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, c, n_chunks, robust, params, target)
             for e in ti.static(range(N_SUMS)):
                 partials[c, e] = acc[e]
         # Runs after the loop above has finished: add the partials.
@@ -312,6 +334,104 @@ def _build_kernels(real):
                     comp = (s_new - s) - y
                     s = s_new
                 out[k] = s
+
+    @ti.func
+    def _solve_cholesky(total):
+        """(δξ, ok) with (Σ w AᵀA) δξ = −Σ w Aᵀb from the 30 sums, by Cholesky; ok is False when a pivot is
+        not positive (or not a number): the system is not positive definite."""
+        L = ti.Matrix.zero(real, 6, 6)
+        ok = True
+        for i in ti.static(range(6)):
+            for j in ti.static(range(i + 1)):
+                a = total[ti.static(UPPER.index((j, i)))]  # AᵀA[j, i], upper triangle
+                for k in ti.static(range(j)):
+                    a -= L[i, k] * L[j, k]
+                if ti.static(i == j):
+                    if not a > 0:  # also NaN
+                        ok = False
+                    L[i, i] = ti.sqrt(ti.max(a, 1e-300))
+                else:
+                    L[i, j] = a / L[j, j]
+        y = ti.Vector.zero(real, 6)
+        for i in ti.static(range(6)):
+            a = -total[SUM_ATB + i]
+            for k in ti.static(range(i)):
+                a -= L[i, k] * y[k]
+            y[i] = a / L[i, i]
+        x = ti.Vector.zero(real, 6)
+        for i in ti.static(range(5, -1, -1)):
+            a = y[i]
+            for k in ti.static(range(i + 1, 6)):
+                a -= L[k, i] * x[k]
+            x[i] = a / L[i, i]
+        return x, ok
+
+    @ti.func
+    def _se3_exp(xi):
+        """(R, t) of exp(ξ), ξ = (ω, v) rotation first: ``ti_fusion.geometry.se3_exp`` term by term."""
+        w = ti.Vector([xi[0], xi[1], xi[2]], dt=real)
+        theta = w.norm()
+        W = ti.Matrix([[0.0, -w.z, w.y], [w.z, 0.0, -w.x], [-w.y, w.x, 0.0]], dt=real)
+        WW = W @ W
+        a, b, c = ti.cast(1.0, real), ti.cast(0.5, real), ti.cast(1.0 / 6.0, real)
+        if theta >= 1e-8:
+            a = ti.sin(theta) / theta
+            b = (1.0 - ti.cos(theta)) / (theta * theta)
+            c = (theta - ti.sin(theta)) / (theta * theta * theta)
+        eye = ti.Matrix.identity(real, 3)
+        R = eye + a * W + b * WW
+        J = eye + b * W + c * WW
+        return R, J @ ti.Vector([xi[3], xi[4], xi[5]], dt=real)
+
+    @ti.kernel
+    def iterate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
+                serial: ti.template(), target: ti.template(), records: ti.template()):
+        """One whole ICP iteration in one launch (float64 backends): the sums as ``reduce``, then on the
+        calling thread the checks, the Cholesky solve and the update T ← exp(δξ) T of the pose in
+        ``params`` (written back in place). Appends a record (R_* layout) at ``params[P_RECORDS]`` and
+        sets ``params[P_DONE]`` to FAILED when the system was not solved, STOPPED when ‖δξ‖ fell below
+        ``params[P_STOP]``. The caller replays the records (``ti_fusion.icp``), with the condition-number
+        check of ``ti_fusion.solve`` too, which is why it is not repeated here."""
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
+        for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
+            acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, c, n_chunks, robust, params, target)
+            for e in ti.static(range(N_SUMS)):
+                partials[c, e] = acc[e]
+        ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
+        for _ in range(1):
+            total = ti.Vector([0.0] * N_SUMS, dt=real)
+            for c in range(n_chunks):
+                for e in ti.static(range(N_SUMS)):
+                    total[e] += partials[c, e]
+            k = ti.cast(params[P_RECORDS], ti.i32)
+            for e in ti.static(range(N_SUMS)):
+                records[k, R_SUMS + e] = total[e]
+            for e in ti.static(range(12)):
+                records[k, R_POSE + e] = params[P_R + e]
+            records[k, R_LEVEL] = params[P_LEVEL]
+            records[k, R_ITERATION] = params[P_ITERATION]
+            outcome = TOO_FEW_INLIERS
+            update = ti.cast(0.0, real)
+            if total[SUM_INLIERS] >= params[P_MIN_INLIERS]:
+                xi, ok = _solve_cholesky(total)
+                update = xi.norm()
+                outcome = NOT_POSITIVE_DEFINITE
+                if ok and update < 1e30:  # (a NaN fails the comparison)
+                    outcome = UPDATED
+                    dR, dt = _se3_exp(xi)
+                    R, t, K = _pose(params)
+                    R_new = dR @ R
+                    t_new = dR @ t + dt
+                    for i in ti.static(range(3)):
+                        for j in ti.static(range(3)):
+                            params[P_R + 3 * i + j] = R_new[i, j]
+                        params[P_T + i] = t_new[i]
+            records[k, R_UPDATE] = update
+            records[k, R_OUTCOME] = outcome
+            params[P_RECORDS] = k + 1
+            params[P_DONE] = ti.select(outcome != UPDATED, FAILED, ti.select(update < params[P_STOP], STOPPED, 0.0))
 
     @ti.kernel
     def status_map(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
@@ -352,7 +472,7 @@ def _build_kernels(real):
                     u = 0
                     v += 1
 
-    return {"reduce": reduce, "status_map": status_map, "write_rows": write_rows}
+    return {"reduce": reduce, "iterate": iterate, "status_map": status_map, "write_rows": write_rows}
 
 
 def kernels_for(real):
@@ -381,18 +501,21 @@ class PointToPlane:
         self.k = kernels_for(self.real)
         self.partials = ti.field(self.real, shape=(self.n_chunks, N_SUMS))
         self.target = ti.field(ti.i32, shape=self.max_pixels)  # ``reduce``'s per-pixel scratch
+        self.records = None  # ``iterate``'s records, allocated by ``begin_iterations``
         self.params = np.zeros(N_PARAMS, dtype=self.np_real)
         self.out = np.zeros(N_SUMS, dtype=self.np_real)  # written by the kernel (no copy on cpu)
         self.offsets = None  # allocated on the first rows() call (QR only)
         self.rows_field = None
         self.status_field = {}
 
-    def _set_params(self, T: np.ndarray, K, dist_threshold: float, normal_threshold_deg: float,
+    def _set_params(self, T: np.ndarray | None, K, dist_threshold: float, normal_threshold_deg: float,
                     robust_scale: float = 0.01) -> np.ndarray:
-        T = np.asarray(T, dtype=np.float64)
+        """Fill ``params`` for a pass (T None: keep the pose there, as ``iterate`` leaves it)."""
         p = self.params
-        p[P_R:P_R + 9] = T[:3, :3].ravel()
-        p[P_T:P_T + 3] = T[:3, 3]
+        if T is not None:
+            T = np.asarray(T, dtype=np.float64)
+            p[P_R:P_R + 9] = T[:3, :3].ravel()
+            p[P_T:P_T + 3] = T[:3, 3]
         p[P_K:P_K + 4] = [float(x) for x in K]
         p[P_DIST2] = float(dist_threshold) ** 2
         p[P_COS] = math.cos(math.radians(normal_threshold_deg))
@@ -420,6 +543,52 @@ class PointToPlane:
         self.k["reduce"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, _code(robust), params, self.out,
                          self._serial(src_v), self.target)
         return self.out.astype(np.float64)
+
+    # -- whole iterations in the kernel (float64 backends) ---------------------------------------------
+    @property
+    def solves_in_kernel(self) -> bool:
+        """Whether ``iterate`` is available: the in-kernel solve is float64 (cpu) only; on float32 backends
+        the sums go to NumPy and are solved in float64 there."""
+        return self.real == ti.f64
+
+    def begin_iterations(self, T: np.ndarray, max_records: int) -> None:
+        """Start a run of ``iterate`` calls at pose ``T`` with room for ``max_records`` records."""
+        if self.records is None or self.records.shape[0] < max_records:
+            self.records = ti.field(self.real, shape=(max(64, max_records), RECORD_LEN))
+        T = np.asarray(T, dtype=np.float64)
+        self.params[P_R:P_R + 9] = T[:3, :3].ravel()
+        self.params[P_T:P_T + 3] = T[:3, 3]
+        self.params[P_RECORDS] = 0
+
+    def begin_level(self, src_v, K, dist_threshold: float, normal_threshold_deg: float, robust: str,
+                    robust_scale: float, level: int, min_inliers: int, stop_update: float) -> None:
+        """Settings of the next ``iterate`` calls (one pyramid level, source vertex field ``src_v``); the
+        pose stays as the last call left it."""
+        p = self._set_params(None, K, dist_threshold, normal_threshold_deg, robust_scale)
+        p[P_LEVEL], p[P_MIN_INLIERS], p[P_STOP] = level, min_inliers, stop_update
+        # worked out once per level: a Taichi field's .shape costs microseconds per call
+        self._level = (self._chunks(src_v), _code(robust), self._serial(src_v))
+
+    def iterate(self, src_v, src_n, tgt_v, tgt_n, iteration: int) -> int:
+        """One ICP iteration in one launch (``iterate`` kernel) with the settings of ``begin_level``: 0, or
+        STOPPED / FAILED (stop the level / the run)."""
+        n_chunks, robust, serial = self._level
+        self.params[P_ITERATION] = iteration
+        self.k["iterate"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, robust, self.params, serial,
+                          self.target, self.records)
+        return int(self.params[P_DONE])
+
+    def iteration_records(self) -> np.ndarray:
+        """The records of the iterations since ``begin_iterations`` (float64, one row each, R_* layout)."""
+        n = int(self.params[P_RECORDS])
+        return self.records.to_numpy()[:n].astype(np.float64)
+
+    def pose(self) -> np.ndarray:
+        """The pose ``iterate`` has reached (4×4 float64)."""
+        T = np.eye(4)
+        T[:3, :3] = self.params[P_R:P_R + 9].reshape(3, 3)
+        T[:3, 3] = self.params[P_T:P_T + 3]
+        return T
 
     def chunk_inliers(self, n_chunks: int) -> np.ndarray:
         """Per-chunk inlier counts of the last ``reduce``."""

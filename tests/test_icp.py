@@ -19,7 +19,7 @@ from ti_fusion.backend import current_backend
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import DatasetConfig, ICPConfig, SynthConfig
 from ti_fusion.geometry import invert, make_pose, pose_error, se3_exp, so3_exp
-from ti_fusion.icp import ICP
+from ti_fusion.icp import ICP, ICPResult
 from ti_fusion.kernels import icp as kicp
 from ti_fusion.kernels.maps import FrameMaps
 from ti_fusion.synthetic import SyntheticSequence
@@ -352,6 +352,66 @@ def test_sums_at_convergence_match_reference(arch, rng, sequence, robust):
     assert_sums_close(sums, ref)
 
 
+def _align_in_python(cfg: ICPConfig, src, tgt, init=None):
+    """ICP with every iteration's sums solved in NumPy (the path of LU, QR and float32 backends)."""
+    icp = ICP(cfg)
+    result = ICPResult(pose=np.eye(4) if init is None else init)
+    schedule = list(zip(reversed(range(len(cfg.iterations))), cfg.iterations))
+    icp._align_in_python(icp._kernels(src.width * src.height), src, tgt, schedule, result)
+    return result
+
+
+def assert_same_run(a: ICPResult, b: ICPResult):
+    assert a.failure == b.failure and a.converged == b.converged
+    assert [(r.level, r.iteration, r.inliers) for r in a.iterations] == \
+        [(r.level, r.iteration, r.inliers) for r in b.iterations]
+    np.testing.assert_allclose([r.loss for r in a.iterations], [r.loss for r in b.iterations], rtol=1e-9)
+    np.testing.assert_allclose([r.update_norm for r in a.iterations], [r.update_norm for r in b.iterations],
+                               rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(a.pose, b.pose, rtol=0, atol=1e-12)
+    assert a.inliers == b.inliers and a.condition == pytest.approx(b.condition, rel=1e-9)
+
+
+@pytest.mark.parametrize("stop_update", [1e-4, 0.0])
+def test_solve_in_kernel_matches_solve_in_numpy(cpu, rng, sequence, stop_update):
+    """The default path (Cholesky solve and SE(3) update inside the iteration's kernel, float64) runs the
+    same iterations to the same pose as solving every iteration's sums in NumPy."""
+    cfg = ICPConfig(depth_smooth_radius=2, stop_update=stop_update)
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg)
+    assert pass_for(src.width * src.height).solves_in_kernel
+    in_kernel = ICP(cfg).align(src, tgt)
+    assert len(in_kernel.iterations) == (sum(cfg.iterations) if stop_update == 0 else len(in_kernel.iterations))
+    assert_same_run(in_kernel, _align_in_python(cfg, src, tgt))
+
+
+def test_solve_in_kernel_hands_over_to_numpy(cpu, rng, sequence, monkeypatch):
+    """Where the kernel's Cholesky refuses a system that NumPy's checks accept, the run goes on in NumPy
+    from the pose before that iteration, and ends as a NumPy run does."""
+    cfg = ICPConfig(depth_smooth_radius=2, stop_update=0.0)
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg)
+    kernels = ICP(cfg)._kernels(src.width * src.height)  # the pass every ICP object shares
+    records = kernels.iteration_records
+
+    def refused_at_seventh():
+        r = records()
+        r[6, kicp.R_OUTCOME] = kicp.NOT_POSITIVE_DEFINITE
+        return r[:7]
+
+    starts = []
+    in_python = ICP._align_in_python
+
+    def spy(self, kernels, source, target, schedule, result, start=(0, 0)):
+        starts.append(start)
+        return in_python(self, kernels, source, target, schedule, result, start)
+
+    monkeypatch.setattr(type(kernels), "iteration_records", lambda self: refused_at_seventh())
+    monkeypatch.setattr(ICP, "_align_in_python", spy)
+    handed_over = ICP(cfg).align(src, tgt)
+    monkeypatch.undo()
+    assert starts == [(0, 6)]  # the 7th iteration: stage 0 (level 2, 10 iterations), iteration 6
+    assert_same_run(handed_over, _align_in_python(cfg, src, tgt))
+
+
 def test_single_plane_is_degenerate(cpu):
     K = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
     v, u = np.mgrid[0:K.height, 0:K.width]
@@ -363,6 +423,7 @@ def test_single_plane_is_degenerate(cpu):
     assert result.failure is not None and "AᵀA" in result.failure
     assert not result.converged
     np.testing.assert_allclose(result.pose, init)  # the last good estimate: nothing was solved
+    assert_same_run(result, _align_in_python(ICPConfig(), src, tgt, init))  # found on replay, as in NumPy
 
 
 def test_all_invalid_depth_is_a_failure_not_an_exception(cpu, sequence):
@@ -373,6 +434,8 @@ def test_all_invalid_depth_is_a_failure_not_an_exception(cpu, sequence):
     assert result.failure == "level 2 iteration 0: too few inliers (0 < 100)"
     assert result.inliers == 0 and result.inlier_ratio == 0.0 and not result.converged
     np.testing.assert_array_equal(result.pose, np.eye(4))
+    python = _align_in_python(ICPConfig(), src, tgt)
+    assert python.failure == result.failure and len(python.iterations) == len(result.iterations) == 1
 
 
 # -- real data ---------------------------------------------------------------------------------------

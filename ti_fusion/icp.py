@@ -2,10 +2,15 @@
 
 ``source`` and ``target`` are ``FrameMaps`` (or anything with per-level ``vertex``, ``normal`` fields and
 ``intrinsics``) of two depth frames; the result's ``pose`` maps source-camera points into the target
-camera, p_target = T p_source. Each iteration runs one Taichi pass (association + linearisation +
-reduction, ``ti_fusion.kernels.icp``); only the reduced sums cross to NumPy, where the 6×6 system is
-checked and solved and the pose updated on the left with the exact exponential, T ← exp(δξ) · T, the
-twist δξ = (ω, v) rotation first.
+camera, p_target = T p_source. Each iteration is one Taichi pass (association + linearisation +
+reduction, ``ti_fusion.kernels.icp``), the 6×6 system is checked and solved and the pose updated on the
+left with the exact exponential, T ← exp(δξ) · T, the twist δξ = (ω, v) rotation first.
+
+Where the solve runs: with the default Cholesky solver on a float64 backend (cpu), inside the same kernel
+launch (``PointToPlane.iterate``), and the records of the iterations are replayed here afterwards through
+the same checks (too few inliers, rank, condition number) and bookkeeping, so the result is the same as
+solving in NumPy: a failure found on replay rewinds to the pose before that iteration. Otherwise (LU, QR,
+float32 backends) the sums cross to NumPy every iteration and are solved there in float64.
 """
 
 from __future__ import annotations
@@ -17,7 +22,8 @@ import numpy as np
 from .backend import current_backend
 from .config import ICPConfig
 from .geometry import rigidity_error, se3_exp
-from .kernels.icp import ROBUST_CODES, PointToPlane, unpack_sums
+from .kernels.icp import (FAILED, N_SUMS, R_ITERATION, R_LEVEL, R_OUTCOME, R_POSE, R_SUMS, R_UPDATE,
+                          ROBUST_CODES, UPDATED, PointToPlane, unpack_sums)
 from .solve import SOLVERS, check_system, solve_normal_equations, solve_stacked_qr
 
 
@@ -103,17 +109,83 @@ class ICP:
             raise ValueError(f"initial pose: {problem}")
         kernels = self._kernels(source.shapes[0][0] * source.shapes[0][1])
         result = ICPResult(pose=T)
-        for level, n_iter in zip(reversed(range(n_levels)), cfg.iterations):  # coarse → fine
+        schedule = list(zip(reversed(range(n_levels)), cfg.iterations))  # (level, iterations), coarse → fine
+        resume = (0, 0)
+        if cfg.solver == "cholesky" and kernels.solves_in_kernel:
+            resume = self._align_in_kernel(kernels, source, target, schedule, result)
+        if resume is not None:
+            self._align_in_python(kernels, source, target, schedule, result, resume)
+        return result
+
+    def _align_in_kernel(self, kernels: PointToPlane, source, target, schedule, result: ICPResult):
+        """Every iteration one launch of the ``iterate`` kernel, which solves and updates the pose itself
+        (float64, Cholesky); then its records are replayed here through the same checks and bookkeeping as
+        ``_align_in_python``. Per iteration that saves the round trip through NumPy (the sums out, the
+        check, the solve, the SE(3) update, the pose back in: ~120 µs, as long as a 320×240 pass on two
+        cores). Returns None when done, or the (stage, iteration) to go on from in Python, with
+        ``result.pose`` set, if the kernel refused a system that NumPy's checks accept."""
+        cfg = self.config
+        robust = cfg.robust + ("+depth" if cfg.depth_weighting else "")
+        kernels.begin_iterations(result.pose, sum(n for _, n in schedule))
+        for level, n_iter in schedule:
+            fields = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level])
+            kernels.begin_level(fields[0], target.intrinsics[level].as_tuple(), self.dist_threshold(level),
+                                cfg.normal_threshold_deg, robust, cfg.robust_scale, level, cfg.min_inliers,
+                                cfg.stop_update)
+            done = 0
             for it in range(n_iter):
+                done = kernels.iterate(*fields, it)
+                if done:
+                    break
+            if done == FAILED:
+                break
+        n_levels = len(schedule)
+        for record in kernels.iteration_records():
+            level, it = int(record[R_LEVEL]), int(record[R_ITERATION])
+            result.pose = _pose_of(record[R_POSE:R_POSE + 12])
+            if not self._record(result, level, it, record[R_SUMS:R_SUMS + N_SUMS]):
+                return None  # a failure, reported as the NumPy path reports it
+            if record[R_OUTCOME] != UPDATED:
+                result.iterations.pop()  # recorded again by the NumPy path
+                return n_levels - 1 - level, it
+            result.iterations[-1].update_norm = result.update_norm = float(record[R_UPDATE])
+        result.pose = kernels.pose()
+        result.converged = result.update_norm < cfg.converged_update
+        return None
+
+    def _align_in_python(self, kernels: PointToPlane, source, target, schedule, result: ICPResult,
+                         start: tuple[int, int] = (0, 0)) -> None:
+        """The sums of each iteration to NumPy, checked, solved (``icp.solver``) and applied there; from
+        ``start`` = (stage of ``schedule``, iteration) at ``result.pose``."""
+        cfg = self.config
+        for stage, (level, n_iter) in enumerate(schedule):
+            if stage < start[0]:
+                continue
+            for it in range(start[1] if stage == start[0] else 0, n_iter):
                 delta = self._iteration(kernels, source, target, level, it, result)
                 if delta is None:  # degenerate: keep the last good pose
-                    return result
+                    return
                 result.pose = se3_exp(delta) @ result.pose
                 result.iterations[-1].update_norm = result.update_norm = float(np.linalg.norm(delta))
                 if result.update_norm < cfg.stop_update:
                     break
         result.converged = result.update_norm < cfg.converged_update
-        return result
+
+    def _record(self, result: ICPResult, level: int, it: int, sums: np.ndarray) -> bool:
+        """Record an iteration's sums in ``result`` and check its system; False (with ``result.failure``
+        set) when it is degenerate."""
+        cfg = self.config
+        s = unpack_sums(sums)
+        n = s["inliers"]
+        loss = s["r2"] / n if n else float("nan")
+        result.iterations.append(IterationRecord(level, it, loss, n))
+        result.inliers = n
+        result.inlier_ratio = n / s["sources"] if s["sources"] else 0.0
+        result.residual_rms = float(np.sqrt(loss)) if n else float("nan")
+        failure, result.condition = check_system(s["AtA"], n, cfg.min_inliers, cfg.max_condition)
+        if failure is not None:
+            result.failure = f"level {level} iteration {it}: {failure}"
+        return failure is None
 
     def _iteration(self, kernels: PointToPlane, source, target, level: int, it: int,
                    result: ICPResult) -> np.ndarray | None:
@@ -127,23 +199,25 @@ class ICP:
             sums, rows = kernels.rows(*args)
         else:
             sums, rows = kernels.reduce(*args), None
+        if not self._record(result, level, it, sums):
+            return None
         s = unpack_sums(sums)
-        n = s["inliers"]
-        loss = s["r2"] / n if n else float("nan")
-        result.iterations.append(IterationRecord(level, it, loss, n))
-        result.inliers = n
-        result.inlier_ratio = n / s["sources"] if s["sources"] else 0.0
-        result.residual_rms = float(np.sqrt(loss)) if n else float("nan")
-        failure, result.condition = check_system(s["AtA"], n, cfg.min_inliers, cfg.max_condition)
-        delta = None
-        if failure is None:
-            try:
-                delta = solve_stacked_qr(rows) if rows is not None else \
-                    solve_normal_equations(s["AtA"], s["Atb"], cfg.solver)
-                if not np.all(np.isfinite(delta)):
-                    failure, delta = "non-finite update", None
-            except np.linalg.LinAlgError as exc:
-                failure = f"solver failed ({exc})"
+        failure = delta = None
+        try:
+            delta = solve_stacked_qr(rows) if rows is not None else \
+                solve_normal_equations(s["AtA"], s["Atb"], cfg.solver)
+            if not np.all(np.isfinite(delta)):
+                failure, delta = "non-finite update", None
+        except np.linalg.LinAlgError as exc:
+            failure = f"solver failed ({exc})"
         if failure is not None:
             result.failure = f"level {level} iteration {it}: {failure}"
         return delta
+
+
+def _pose_of(r12: np.ndarray) -> np.ndarray:
+    """4×4 pose of 12 numbers: R row-major, then t."""
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(r12[:9], dtype=np.float64).reshape(3, 3)
+    T[:3, 3] = r12[9:12]
+    return T

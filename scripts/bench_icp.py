@@ -3,8 +3,9 @@
 
 For one frame pair at 640×480 and at 320×240 it prints
 - ms per ICP iteration at the finest level (association + linearisation + reduction + the 6×6 solve):
-  the Taichi pass on the CPU backend against the vectorised NumPy float64 version of the same math
-  (``ti_fusion.icp_numpy``), and their ratio. Taichi is timed over 5 iterations back to back (as within
+  the iteration as ``ICP.align`` runs it (on the CPU one launch of ``PointToPlane.iterate``, which also
+  solves and updates the pose) against the vectorised NumPy float64 version of the same math
+  (``ti_fusion.icp_numpy`` and the NumPy solve), and their ratio. Taichi is timed over 5 iterations back to back (as within
   one pyramid level), NumPy one at a time, alternately, with a pause after each NumPy iteration so that
   OpenBLAS's spinning threads are not timed as part of Taichi's iteration;
 - ms per frame pair (maps of both frames + coarse-to-fine ICP with ``icp.iterations``) against Open3D's
@@ -190,7 +191,7 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     import numpy as np
 
     from ti_fusion import icp_numpy
-    from ti_fusion.geometry import pose_error
+    from ti_fusion.geometry import invert, pose_error, se3_log
     from ti_fusion.icp import ICP
     from ti_fusion.kernels.icp import unpack_sums
     from ti_fusion.kernels.maps import FrameMaps
@@ -236,7 +237,21 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     fields = (src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0])
     Kt = tgt.intrinsics[0].as_tuple()
 
+    in_kernel = kernels.solves_in_kernel and c.solver == "cholesky"  # as ICP.align decides
+
+    def start_iterations():
+        """Back to the converged pose (``iterate`` moves it, by little there)."""
+        if in_kernel:
+            kernels.begin_iterations(pose, ITERATIONS_PER_RUN + 1)
+            kernels.begin_level(fields[0], Kt, *thresholds, 0, c.min_inliers, 0.0)
+
     def taichi_iteration():
+        """One iteration as ICP.align runs it here: on the CPU one launch that also solves and updates the
+        pose (``PointToPlane.iterate``), on float32 backends the sums and a NumPy solve. Returns δξ."""
+        if in_kernel:
+            before = kernels.pose()
+            kernels.iterate(*fields, 0)
+            return se3_log(kernels.pose() @ invert(before))
         s = unpack_sums(kernels.reduce(*fields, pose, Kt, *thresholds))
         return solve_normal_equations(s["AtA"], s["Atb"])
 
@@ -247,6 +262,7 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
         s = unpack_sums(sums)
         return solve_normal_equations(s["AtA"], s["Atb"])
 
+    start_iterations()
     taichi_iteration()
     numpy_iteration()
     ti_t, np_t = [], []
@@ -256,8 +272,10 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
         # here: 12 ms of CPU in a 10 ms sleep right after one): timed in that window, Taichi's threads
         # share the cores with them and one iteration took twice as long. Wait until they sleep again.
         time.sleep(BLAS_SETTLE_S)
+        start_iterations()
         ti_t.append(timed(taichi_iteration, ITERATIONS_PER_RUN))
     (ms_taichi, cpu_taichi), (ms_numpy, cpu_numpy) = np.median(ti_t, axis=0), np.median(np_t, axis=0)
+    start_iterations()
     delta_t, delta_n = taichi_iteration(), numpy_iteration()
     out = {
         "resolution": f"{K.width}x{K.height}",

@@ -22,6 +22,10 @@ a block untimed), with 0.2 s between blocks so that neither is timed while the o
 Run one pair at a time right after the other system instead, Open3D (whose OpenMP threads then had to
 wake) took 12.3 ms at 320×240 instead of 7.2: how the runs are interleaved matters as much as the code.
 
+Freed memory is kept for reuse (``ti_fusion.timing.keep_freed_memory``): by default glibc unmaps NumPy's
+large temporaries when they are freed, in some processes and not in others, and the page faults of the
+next call made one NumPy iteration 17.5 instead of 13 ms at 320×240 (70 instead of 52 at 640×480).
+
 Data: the redkitchen frames ``--pair S T`` (default 100 110) from DATA or ../shared/data when present,
 else two renders of the synthetic room 3° and 5 cm apart.
 
@@ -371,6 +375,9 @@ def main(argv=None) -> int:
     parser.add_argument("--accuracy-gap", type=int, default=10, help="frames between the two of a pair")
     parser.add_argument("--open3d-worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
+    from ti_fusion.timing import keep_freed_memory
+
+    kept = keep_freed_memory()  # NumPy (and Open3D) at their best: see keep_freed_memory
     if args.open3d_worker:
         _worker(args.open3d_worker)
         return 0
@@ -383,7 +390,8 @@ def main(argv=None) -> int:
     backend = init_backend("cpu")
     depth_s, depth_t, K, reference, what = load_pair(args, cfg)
     print(f"ICP benchmark: {what}; backend {backend.arch}, {os.cpu_count()} CPUs; iterations {cfg.icp.iterations} "
-          f"(coarse → fine), depth smoothing r = {cfg.icp.smooth_radius(K.width)} at {K.width} px (half at half); medians of {args.repeats}+ runs")
+          f"(coarse → fine), depth smoothing r = {cfg.icp.smooth_radius(K.width)} at {K.width} px (half at half); medians of {args.repeats}+ runs; "
+          f"freed memory {'kept (glibc): NumPy timed at its best' if kept else 'returned to the system (not glibc)'}")
     rows = []
     for f in (1, 2):
         Kf = K.downsampled(f)

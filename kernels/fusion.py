@@ -322,19 +322,20 @@ def associate(s: ti.template(), img: ti.template(), vertex: ti.template(), norma
         img.assoc[v, u] = a
 
 
-FAR = 1e10  # world vertex of an invalid pixel: no surfel is within any distance threshold of it
+FAR = 1e10  # world vertex of an invalid pixel (whose world normal is zero, which is what the test checks)
 
 
 @ti.kernel
 def world_measurements(img: ti.template(), vertex: ti.template(), normal: ti.template(), pose: Rigid):
     """img.world_vertex, world_normal = the frame's vertex and normal maps in the world frame ((R, t) maps
-    camera to world); FAR where the pixel has no vertex or no normal."""
+    camera to world); where the pixel has no vertex or no normal, FAR and zero."""
     for v, u in vertex:
         R, t = rigid(pose)
         q = vertex[v, u]
         nq = normal[v, u]
-        img.world_vertex[v, u] = ti.select(is_valid(q, nq), R @ q + t, Vec3(FAR, FAR, FAR))
-        img.world_normal[v, u] = R @ nq
+        valid = is_valid(q, nq)
+        img.world_vertex[v, u] = ti.select(valid, R @ q + t, Vec3(FAR, FAR, FAR))
+        img.world_normal[v, u] = ti.select(valid, R @ nq, Vec3(0.0, 0.0, 0.0))
 
 
 @ti.kernel
@@ -379,8 +380,9 @@ def project_compatible(s: ti.template(), n: ti.i32, img: ti.template(), pose: Ri
             at = ti.max(pix, 0)  # pixel (0, 0) when outside: read, and masked
             v, u = at // W, at % W
             d = s.position[i] - img.world_vertex[v, u]
-            ok = (pix >= 0) & (d.norm_sqr() <= dist_threshold * dist_threshold) \
-                & (s.normal[i].dot(img.world_normal[v, u]) >= cos_threshold)
+            nw = img.world_normal[v, u]
+            ok = (pix >= 0) & (nw.norm_sqr() > 0) & (d.norm_sqr() <= dist_threshold * dist_threshold) \
+                & (s.normal[i].dot(nw) >= cos_threshold)
             found = list_if(s, b, found, i, ok)
         s.block_candidates[b] = found
 

@@ -2,7 +2,8 @@
 
 One ICP iteration at one pyramid level is one pass over the source pixels (``PointToPlane.reduce``):
 
-association (``_associate``; ``reduce`` makes the same tests in the same order in two loops, see its docstring)
+association (``_associate``; ``reduce``, ``iterate`` and ``write_rows`` make the same tests in the same order in
+two passes per chunk, see ``_project_chunk``)
     a source pixel is used when its vertex has z > 0 and its normal is non-zero. p′ = R p + t is
     projected with the target intrinsics of the level and rounded to the nearest pixel,
     u = ⌊fx x′/z′ + cx + ½⌋, v = ⌊fy y′/z′ + cy + ½⌋. The pair (p′, q = target vertex at (u, v)) is a
@@ -240,21 +241,27 @@ def _build_kernels(real):
         return A, nq.dot(pt - q)
 
     @ti.func
-    def _chunk_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                    c, n_chunks, robust: ti.template(), params: ti.template(), target: ti.template()):
-        """The 30 sums of chunk c of ``n_chunks`` contiguous runs of source pixels, in registers.
-
-        Two passes over the chunk's pixels: the first projects them (``_target_pixel``: no branches, no
-        reads of the target), the second reads the target pixel, tests and accumulates. The chunk's
-        ``target`` entries are still in cache for the second pass. Fused into one pass (as
-        ``_associate``), the projection and the target read that depends on it ran 1.25x slower on the CPU
-        (640×480, float64, one core: 7.4 ms per pass, 5.9 ms split); the sums are the same to the bit."""
+    def _chunk_range(src_v: ti.template(), c, n_chunks):
+        """Pixels [begin, end) of chunk c of ``n_chunks`` contiguous runs of the source's pixels."""
         H, W = src_v.shape
-        Ht, Wt = tgt_v.shape
         n_pix = H * W
         chunk = (n_pix + n_chunks - 1) // n_chunks
         begin = ti.min(c * chunk, n_pix)
-        end = ti.min(begin + chunk, n_pix)
+        return begin, ti.min(begin + chunk, n_pix)
+
+    @ti.func
+    def _project_chunk(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), begin, end,
+                       params: ti.template(), target: ti.template()):
+        """First pass over a chunk: ``target[k]`` = ``_target_pixel`` of each of its pixels k.
+
+        Every kernel that tests correspondences makes two passes over a chunk: this one projects (no
+        branches, no reads of the target), the second reads the target pixel and tests
+        (``_correspondence``), while the chunk's ``target`` entries are still in cache. Fused into one
+        pass (as ``_associate``), the projection and the target read that depends on it ran 1.25x slower
+        on the CPU (640×480, float64, one core: 7.4 ms per pass, 5.9 ms split); the sums are the same to
+        the bit. ``reduce`` and ``write_rows`` share both passes, so they find the same correspondences."""
+        W = src_v.shape[1]
+        Ht, Wt = tgt_v.shape
         v = begin // W
         u = begin - v * W
         for k in range(begin, end):
@@ -263,6 +270,34 @@ def _build_kernels(real):
             if u == W:
                 u = 0
                 v += 1
+
+    @ti.func
+    def _correspondence(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                        tp, v, u, R, t, dist2_thr, cos_thr):
+        """Second pass, for source pixel (v, u) with target pixel ``tp`` (``_target_pixel``): (ok, p′, q,
+        n_q), ok when the pair passes the remaining tests of ``_associate``, in its order."""
+        Wt = tgt_v.shape[1]
+        ok = False
+        pt = vec3(0.0)
+        q = vec3(0.0)
+        nq = vec3(0.0)
+        if tp >= 0:
+            q = ti.cast(tgt_v[tp // Wt, tp % Wt], real)
+            nq = ti.cast(tgt_n[tp // Wt, tp % Wt], real)
+            if q.z > 0 and nq.dot(nq) > 0:
+                pt = R @ ti.cast(src_v[v, u], real) + t
+                d = pt - q
+                if d.dot(d) < dist2_thr:
+                    ok = (R @ ti.cast(src_n[v, u], real)).dot(nq) > cos_thr
+        return ok, pt, q, nq
+
+    @ti.func
+    def _chunk_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                    c, n_chunks, robust: ti.template(), params: ti.template(), target: ti.template()):
+        """The 30 sums of chunk c of ``n_chunks``, in registers (two passes: ``_project_chunk``)."""
+        W = src_v.shape[1]
+        begin, end = _chunk_range(src_v, c, n_chunks)
+        _project_chunk(src_v, src_n, tgt_v, begin, end, params, target)
         R, t, K = _pose(params)
         dist2_thr, cos_thr, scale = params[P_DIST2], params[P_COS], params[P_SCALE]
         acc = ti.Vector([0.0] * N_SUMS, dt=real)
@@ -272,18 +307,7 @@ def _build_kernels(real):
             tp = target[k]
             if tp != SOURCE_INVALID:
                 acc[SUM_SOURCE] += 1.0
-            ok = False
-            pt = vec3(0.0)
-            q = vec3(0.0)
-            nq = vec3(0.0)
-            if tp >= 0:
-                q = ti.cast(tgt_v[tp // Wt, tp % Wt], real)
-                nq = ti.cast(tgt_n[tp // Wt, tp % Wt], real)
-                if q.z > 0 and nq.dot(nq) > 0:
-                    pt = R @ ti.cast(src_v[v, u], real) + t
-                    d = pt - q
-                    if d.dot(d) < dist2_thr:
-                        ok = (R @ ti.cast(src_n[v, u], real)).dot(nq) > cos_thr
+            ok, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, tp, v, u, R, t, dist2_thr, cos_thr)
             if ok:
                 A, r = _row(pt, q, nq)
                 w = _weight(r, robust, scale, q.z, params)
@@ -444,23 +468,22 @@ def _build_kernels(real):
     @ti.kernel
     def write_rows(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                    offsets: ti.template(), rows: ti.template(), n_chunks: ti.i32, robust: ti.template(),
-                   params: params_t):
+                   params: params_t, target: ti.template()):
         """Rows √w [A | r] of the correspondences, compact and in pixel order: chunk c writes from
-        ``offsets[c]`` (the exclusive prefix sum of the per-chunk inlier counts of ``reduce``)."""
-        H, W = src_v.shape
-        n_pix = H * W
-        chunk = (n_pix + n_chunks - 1) // n_chunks
+        ``offsets[c]`` (the exclusive prefix sum of the per-chunk inlier counts of ``reduce``, whose two
+        passes it shares, so each chunk writes exactly its count)."""
+        W = src_v.shape[1]
         for c in range(n_chunks):
+            begin, end = _chunk_range(src_v, c, n_chunks)
+            _project_chunk(src_v, src_n, tgt_v, begin, end, params, target)
             R, t, K = _pose(params)
-            begin = ti.min(c * chunk, n_pix)
-            end = ti.min(begin + chunk, n_pix)
             v = begin // W
             u = begin - v * W
             k = offsets[c]
-            for _ in range(begin, end):
-                status, pt, q, nq = _associate(src_v, src_n, tgt_v, tgt_n, v, u, R, t, K, params[P_DIST2],
-                                               params[P_COS])
-                if status == STATUS_OK:
+            for i in range(begin, end):
+                ok, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, target[i], v, u, R, t,
+                                                params[P_DIST2], params[P_COS])
+                if ok:
                     A, r = _row(pt, q, nq)
                     sw = ti.sqrt(_weight(r, robust, params[P_SCALE], q.z, params))
                     for j in ti.static(range(6)):
@@ -500,7 +523,7 @@ class PointToPlane:
         self.serial_below = SERIAL_BELOW if arch == "cpu" else 0  # smaller sources run on the calling thread
         self.k = kernels_for(self.real)
         self.partials = ti.field(self.real, shape=(self.n_chunks, N_SUMS))
-        self.target = ti.field(ti.i32, shape=self.max_pixels)  # ``reduce``'s per-pixel scratch
+        self.target = ti.field(ti.i32, shape=self.max_pixels)  # per-pixel scratch (``_project_chunk``)
         self.records = None  # ``iterate``'s records, allocated by ``begin_iterations``
         self.params = np.zeros(N_PARAMS, dtype=self.np_real)
         self.out = np.zeros(N_SUMS, dtype=self.np_real)  # written by the kernel (no copy on cpu)
@@ -573,6 +596,8 @@ class PointToPlane:
         """One ICP iteration in one launch (``iterate`` kernel) with the settings of ``begin_level``: 0, or
         STOPPED / FAILED (stop the level / the run)."""
         n_chunks, robust, serial = self._level
+        if self.params[P_RECORDS] >= self.records.shape[0]:  # the kernel would write past the records
+            raise ValueError(f"more than {self.records.shape[0]} iterations since begin_iterations")
         self.params[P_ITERATION] = iteration
         self.k["iterate"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, robust, self.params, serial,
                           self.target, self.records)
@@ -613,7 +638,7 @@ class PointToPlane:
         self.offsets.from_numpy(offsets)
         params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale)
         self.k["write_rows"](src_v, src_n, tgt_v, tgt_n, self.offsets, self.rows_field, n_chunks,
-                             _code(robust), params)
+                             _code(robust), params, self.target)
         n = int(counts.sum())
         return sums, self.rows_field.to_numpy()[:n].astype(np.float64)
 

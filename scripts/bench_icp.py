@@ -4,7 +4,8 @@
 For one frame pair at 640×480 and at 320×240 it prints
 - ms per ICP iteration at the finest level (association + linearisation + reduction + the 6×6 solve):
   the iteration as ``ICP.align`` runs it (on the CPU one launch of ``PointToPlane.iterate``, which also
-  solves and updates the pose) against the vectorised NumPy float64 version of the same math
+  solves and updates the pose; the replay of the checks afterwards, about 12 µs per iteration, is not
+  timed) against the vectorised NumPy float64 version of the same math
   (``ti_fusion.icp_numpy`` and the NumPy solve), and their ratio. Taichi is timed over 5 iterations back to back (as within
   one pyramid level), NumPy one at a time, alternately, with a pause after each NumPy iteration so that
   OpenBLAS's spinning threads are not timed as part of Taichi's iteration;

@@ -370,33 +370,13 @@ def assert_same_run(a: ICPResult, b: ICPResult):
                                rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(a.pose, b.pose, rtol=0, atol=1e-12)
     assert a.inliers == b.inliers and a.condition == pytest.approx(b.condition, rel=1e-9)
+    assert a.inlier_ratio == b.inlier_ratio
+    np.testing.assert_allclose([a.residual_rms, a.update_norm], [b.residual_rms, b.update_norm], rtol=1e-6,
+                               atol=1e-12)
 
 
-@pytest.mark.parametrize("stop_update", [1e-4, 0.0])
-def test_solve_in_kernel_matches_solve_in_numpy(cpu, rng, sequence, stop_update):
-    """The default path (Cholesky solve and SE(3) update inside the iteration's kernel, float64) runs the
-    same iterations to the same pose as solving every iteration's sums in NumPy."""
-    cfg = ICPConfig(depth_smooth_radius=2, stop_update=stop_update)
-    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg)
-    assert pass_for(src.width * src.height).solves_in_kernel
-    in_kernel = ICP(cfg).align(src, tgt)
-    assert len(in_kernel.iterations) == (sum(cfg.iterations) if stop_update == 0 else len(in_kernel.iterations))
-    assert_same_run(in_kernel, _align_in_python(cfg, src, tgt))
-
-
-def test_solve_in_kernel_hands_over_to_numpy(cpu, rng, sequence, monkeypatch):
-    """Where the kernel's Cholesky refuses a system that NumPy's checks accept, the run goes on in NumPy
-    from the pose before that iteration, and ends as a NumPy run does."""
-    cfg = ICPConfig(depth_smooth_radius=2, stop_update=0.0)
-    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg)
-    kernels = ICP(cfg)._kernels(src.width * src.height)  # the pass every ICP object shares
-    records = kernels.iteration_records
-
-    def refused_at_seventh():
-        r = records()
-        r[6, kicp.R_OUTCOME] = kicp.NOT_POSITIVE_DEFINITE
-        return r[:7]
-
+def spy_on_python_path(monkeypatch) -> list:
+    """The start points of every ``ICP._align_in_python`` call from now on."""
     starts = []
     in_python = ICP._align_in_python
 
@@ -404,12 +384,63 @@ def test_solve_in_kernel_hands_over_to_numpy(cpu, rng, sequence, monkeypatch):
         starts.append(start)
         return in_python(self, kernels, source, target, schedule, result, start)
 
-    monkeypatch.setattr(type(kernels), "iteration_records", lambda self: refused_at_seventh())
     monkeypatch.setattr(ICP, "_align_in_python", spy)
+    return starts
+
+
+@pytest.mark.parametrize("stop_update", [1e-4, 0.0])
+def test_solve_in_kernel_matches_solve_in_numpy(cpu, rng, sequence, stop_update, monkeypatch):
+    """The default path (Cholesky solve and SE(3) update inside the iteration's kernel, float64) runs the
+    same iterations to the same pose as solving every iteration's sums in NumPy."""
+    cfg = ICPConfig(depth_smooth_radius=2, stop_update=stop_update)
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg)
+    kernels = ICP(cfg)._kernels(src.width * src.height)
+    assert kernels.solves_in_kernel
+    starts = spy_on_python_path(monkeypatch)
+    in_kernel = ICP(cfg).align(src, tgt)
+    records = kernels.iteration_records()
+    monkeypatch.undo()
+    assert starts == []  # solved in the kernel throughout: no hand-over to NumPy
+    assert len(records) == len(in_kernel.iterations) and (records[:, kicp.R_OUTCOME] == kicp.UPDATED).all()
+    if stop_update == 0:
+        assert len(in_kernel.iterations) == sum(cfg.iterations)
+    else:  # the stop criterion ended a level early somewhere
+        assert len(in_kernel.iterations) < sum(cfg.iterations)
+    assert_same_run(in_kernel, _align_in_python(cfg, src, tgt))
+
+
+@pytest.mark.parametrize("refused, resume", [(6, (0, 6)), (10, (1, 0)), (17, (2, 2))])
+def test_solve_in_kernel_hands_over_to_numpy(cpu, rng, sequence, monkeypatch, refused, resume):
+    """Where the kernel's Cholesky refuses a system that NumPy's checks accept, the run goes on in NumPy
+    from the pose before that iteration (at that stage and iteration), and ends as a NumPy run does."""
+    cfg = ICPConfig(depth_smooth_radius=2, stop_update=0.0)
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg)
+    kernels = ICP(cfg)._kernels(src.width * src.height)  # the pass every ICP object shares
+    records = kernels.iteration_records
+
+    def refused_there():
+        r = records()
+        r[refused, kicp.R_OUTCOME] = kicp.NOT_POSITIVE_DEFINITE
+        return r[:refused + 1]
+
+    monkeypatch.setattr(type(kernels), "iteration_records", lambda self: refused_there())
+    starts = spy_on_python_path(monkeypatch)
     handed_over = ICP(cfg).align(src, tgt)
     monkeypatch.undo()
-    assert starts == [(0, 6)]  # the 7th iteration: stage 0 (level 2, 10 iterations), iteration 6
+    assert starts == [resume]  # e.g. the 7th iteration is stage 0 (level 2, 10 iterations), iteration 6
     assert_same_run(handed_over, _align_in_python(cfg, src, tgt))
+
+
+def test_iterate_refuses_more_iterations_than_records(cpu, rng, sequence):
+    src, tgt, G = synthetic_pair(sequence, rng, noise=False)
+    kernels = ICP(ICPConfig())._kernels(src.width * src.height)
+    kernels.begin_iterations(np.eye(4), 1)
+    kernels.begin_level(src.vertex[0], tgt.intrinsics[0].as_tuple(), 0.1, 30.0, "huber", 0.01, 0, 100, 0.0)
+    capacity = kernels.records.shape[0]
+    for it in range(capacity):
+        kernels.iterate(src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0], it)
+    with pytest.raises(ValueError, match="iterations since begin_iterations"):
+        kernels.iterate(src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0], capacity)
 
 
 def test_single_plane_is_degenerate(cpu):

@@ -48,6 +48,7 @@ import taichi as ti
 from taichi.lang import impl
 
 from ti_fusion.errors import MapCapacityError
+from ti_fusion.geometry import flatten_pose
 
 INT_MAX = 2147483647  # "no surfel" in the index maps and "no depth" in the depth keys
 # Surfels per block of the per-block lists and compaction scans. Small enough that the loops over blocks
@@ -887,7 +888,7 @@ def _weight_bits(radial: bool, depth: bool) -> int:
 
 def _rigid(T: np.ndarray) -> np.ndarray:
     """A 4×4 rigid transform as a ``Rigid`` kernel argument: R row-major, then t, float32."""
-    return np.concatenate([T[:3, :3].ravel(), T[:3, 3]]).astype(np.float32)
+    return flatten_pose(T).astype(np.float32)
 
 
 def _world_to_camera(pose: np.ndarray) -> np.ndarray:

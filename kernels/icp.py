@@ -59,6 +59,7 @@ import numpy as np
 import taichi as ti
 
 from ti_fusion.backend import SERIAL_BELOW
+from ti_fusion.geometry import flatten_pose, unflatten_pose
 
 STATUS_OK = 0
 # ``reduce``'s per-pixel target scratch: a target pixel index, or one of these
@@ -324,6 +325,28 @@ def _build_kernels(real):
                 v += 1
         return acc
 
+    @ti.func
+    def _partial_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                      partials: ti.template(), n_chunks, robust: ti.template(), params: ti.template(),
+                      serial: ti.template(), target: ti.template()):
+        """``partials[c, :]`` = the sums of chunk c, for every chunk. Call it at a kernel's top level: its
+        loop is then the kernel's parallel loop over chunks (on the calling thread with ``serial``)."""
+        if ti.static(serial):
+            ti.loop_config(serialize=True)
+        for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
+            acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, c, n_chunks, robust, params, target)
+            for e in ti.static(range(N_SUMS)):
+                partials[c, e] = acc[e]
+
+    @ti.func
+    def _total(partials: ti.template(), n_chunks):
+        """The partials of ``n_chunks`` chunks added, serially: 30 independent running sums in registers."""
+        total = ti.Vector([0.0] * N_SUMS, dt=real)
+        for c in range(n_chunks):
+            for e in ti.static(range(N_SUMS)):
+                total[e] += partials[c, e]
+        return total
+
     @ti.kernel
     def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
@@ -331,21 +354,13 @@ def _build_kernels(real):
         """The 30 sums into ``out`` (and the per-chunk partials into ``partials[:n_chunks]``); ``serial``:
         the chunks run on the calling thread (small levels on the CPU, see ``PointToPlane``); ``target``:
         scratch of one int per source pixel."""
-        if ti.static(serial):
-            ti.loop_config(serialize=True)
-        for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
-            acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, c, n_chunks, robust, params, target)
-            for e in ti.static(range(N_SUMS)):
-                partials[c, e] = acc[e]
+        _partial_sums(src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, params, serial, target)
         # Runs after the loop above has finished: add the partials.
         if ti.static(real == ti.f64):  # cpu: one serial pass, 30 independent running sums in registers
             # on the calling thread: handing even a one-iteration loop to the thread pool costs ~70 µs here
             ti.loop_config(serialize=True)
             for _ in range(1):
-                total = ti.Vector([0.0] * N_SUMS, dt=real)
-                for c in range(n_chunks):
-                    for k in ti.static(range(N_SUMS)):
-                        total[k] += partials[c, k]
+                total = _total(partials, n_chunks)
                 for k in ti.static(range(N_SUMS)):
                     out[k] = total[k]
         else:  # float32 (GPU backends): one thread per sum, Kahan-compensated to stay near float64
@@ -417,18 +432,10 @@ def _build_kernels(real):
         sets ``params[P_DONE]`` to FAILED when the system was not solved, STOPPED when ‖δξ‖ fell below
         ``params[P_STOP]``. The caller replays the records (``ti_fusion.icp``), with the condition-number
         check of ``ti_fusion.solve`` too, which is why it is not repeated here."""
-        if ti.static(serial):
-            ti.loop_config(serialize=True)
-        for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
-            acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, c, n_chunks, robust, params, target)
-            for e in ti.static(range(N_SUMS)):
-                partials[c, e] = acc[e]
+        _partial_sums(src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, params, serial, target)
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
         for _ in range(1):
-            total = ti.Vector([0.0] * N_SUMS, dt=real)
-            for c in range(n_chunks):
-                for e in ti.static(range(N_SUMS)):
-                    total[e] += partials[c, e]
+            total = _total(partials, n_chunks)
             k = ti.cast(params[P_RECORDS], ti.i32)
             for e in ti.static(range(N_SUMS)):
                 records[k, R_SUMS + e] = total[e]
@@ -536,9 +543,7 @@ class PointToPlane:
         """Fill ``params`` for a pass (T None: keep the pose there, as ``iterate`` leaves it)."""
         p = self.params
         if T is not None:
-            T = np.asarray(T, dtype=np.float64)
-            p[P_R:P_R + 9] = T[:3, :3].ravel()
-            p[P_T:P_T + 3] = T[:3, 3]
+            p[P_R:P_T + 3] = flatten_pose(T)
         p[P_K:P_K + 4] = [float(x) for x in K]
         p[P_DIST2] = float(dist_threshold) ** 2
         p[P_COS] = math.cos(math.radians(normal_threshold_deg))
@@ -578,9 +583,7 @@ class PointToPlane:
         """Start a run of ``iterate`` calls at pose ``T`` with room for ``max_records`` records."""
         if self.records is None or self.records.shape[0] < max_records:
             self.records = ti.field(self.real, shape=(max(64, max_records), RECORD_LEN))
-        T = np.asarray(T, dtype=np.float64)
-        self.params[P_R:P_R + 9] = T[:3, :3].ravel()
-        self.params[P_T:P_T + 3] = T[:3, 3]
+        self.params[P_R:P_T + 3] = flatten_pose(T)
         self.params[P_RECORDS] = 0
 
     def begin_level(self, src_v, K, dist_threshold: float, normal_threshold_deg: float, robust: str,
@@ -610,10 +613,7 @@ class PointToPlane:
 
     def pose(self) -> np.ndarray:
         """The pose ``iterate`` has reached (4×4 float64)."""
-        T = np.eye(4)
-        T[:3, :3] = self.params[P_R:P_R + 9].reshape(3, 3)
-        T[:3, 3] = self.params[P_T:P_T + 3]
-        return T
+        return unflatten_pose(self.params[P_R:P_T + 3])
 
     def chunk_inliers(self, n_chunks: int) -> np.ndarray:
         """Per-chunk inlier counts of the last ``reduce``."""

@@ -87,6 +87,18 @@ def make_pose(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     return T
 
 
+def flatten_pose(T: np.ndarray) -> np.ndarray:
+    """The 12 numbers the kernels take a pose as (float64): R row-major, then t."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.concatenate([T[:3, :3].ravel(), T[:3, 3]])
+
+
+def unflatten_pose(p12: np.ndarray) -> np.ndarray:
+    """4×4 float64 pose of the 12 numbers of ``flatten_pose``."""
+    p12 = np.asarray(p12, dtype=np.float64)
+    return make_pose(p12[:9].reshape(3, 3), p12[9:12])
+
+
 def invert(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform, using Rᵀ rather than a general inverse."""
     R, t = T[:3, :3], T[:3, 3]

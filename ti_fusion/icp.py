@@ -21,7 +21,7 @@ import numpy as np
 
 from .backend import current_backend
 from .config import ICPConfig
-from .geometry import rigidity_error, se3_exp
+from .geometry import rigidity_error, se3_exp, unflatten_pose
 from .kernels.icp import (FAILED, N_SUMS, R_ITERATION, R_LEVEL, R_OUTCOME, R_POSE, R_SUMS, R_UPDATE,
                           ROBUST_CODES, UPDATED, PointToPlane, unpack_sums)
 from .solve import SOLVERS, check_system, solve_normal_equations, solve_stacked_qr
@@ -142,8 +142,8 @@ class ICP:
         n_levels = len(schedule)
         for record in kernels.iteration_records():
             level, it = int(record[R_LEVEL]), int(record[R_ITERATION])
-            result.pose = _pose_of(record[R_POSE:R_POSE + 12])
-            if not self._record(result, level, it, record[R_SUMS:R_SUMS + N_SUMS]):
+            result.pose = unflatten_pose(record[R_POSE:R_POSE + 12])
+            if self._record(result, level, it, record[R_SUMS:R_SUMS + N_SUMS]) is None:
                 return None  # a failure, reported as the NumPy path reports it
             if record[R_OUTCOME] != UPDATED:
                 result.iterations.pop()  # recorded again by the NumPy path
@@ -171,9 +171,9 @@ class ICP:
                     break
         result.converged = result.update_norm < cfg.converged_update
 
-    def _record(self, result: ICPResult, level: int, it: int, sums: np.ndarray) -> bool:
-        """Record an iteration's sums in ``result`` and check its system; False (with ``result.failure``
-        set) when it is degenerate."""
+    def _record(self, result: ICPResult, level: int, it: int, sums: np.ndarray) -> dict | None:
+        """Record an iteration's sums in ``result`` and check its system: the unpacked sums, or None (with
+        ``result.failure`` set) when it is degenerate."""
         cfg = self.config
         s = unpack_sums(sums)
         n = s["inliers"]
@@ -185,7 +185,8 @@ class ICP:
         failure, result.condition = check_system(s["AtA"], n, cfg.min_inliers, cfg.max_condition)
         if failure is not None:
             result.failure = f"level {level} iteration {it}: {failure}"
-        return failure is None
+            return None
+        return s
 
     def _iteration(self, kernels: PointToPlane, source, target, level: int, it: int,
                    result: ICPResult) -> np.ndarray | None:
@@ -199,9 +200,9 @@ class ICP:
             sums, rows = kernels.rows(*args)
         else:
             sums, rows = kernels.reduce(*args), None
-        if not self._record(result, level, it, sums):
+        s = self._record(result, level, it, sums)
+        if s is None:
             return None
-        s = unpack_sums(sums)
         failure = delta = None
         try:
             delta = solve_stacked_qr(rows) if rows is not None else \
@@ -214,10 +215,3 @@ class ICP:
             result.failure = f"level {level} iteration {it}: {failure}"
         return delta
 
-
-def _pose_of(r12: np.ndarray) -> np.ndarray:
-    """4×4 pose of 12 numbers: R row-major, then t."""
-    T = np.eye(4)
-    T[:3, :3] = np.asarray(r12[:9], dtype=np.float64).reshape(3, 3)
-    T[:3, 3] = r12[9:12]
-    return T

@@ -56,9 +56,9 @@ def keep_freed_memory() -> bool:
     """Ask glibc to keep freed blocks of up to 32 MiB for reuse instead of returning them to the system
     (benchmarks call this before timing the NumPy references). By default blocks above a threshold that
     glibc adapts at run time are mmap-ed and unmapped on free, so NumPy's large temporaries page-fault
-    afresh on every call, in some processes and not in others: one 320×240 NumPy ICP iteration took 17.5 ms that way and 13 ms with the
-    memory kept (640×480: 70 vs 52 ms). Kept, NumPy is timed at its best, every run alike. Returns whether
-    it took effect (False off glibc)."""
+    afresh on every call, in some processes and not in others: one 320×240 NumPy ICP iteration took
+    17.5 ms that way and 13 ms with the memory kept (640×480: 70 vs 52 ms). Kept, NumPy is timed at its
+    best, every run alike. Returns whether it took effect (False off glibc)."""
     name = ctypes.util.find_library("c")
     if not name:
         return False

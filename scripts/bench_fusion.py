@@ -64,11 +64,15 @@ class NumpyFusion:
         nq = normal.reshape(-1, 3)
         valid = (q[:, 2] > 0) & np.any(nq != 0, axis=1)
         cos_thr = math.cos(math.radians(cfg.normal_threshold_deg))
+        # the frame's measurements in the world frame, once per frame (as the kernels' world_measurements)
+        q_world = q @ R.T + t
+        n_world = nq @ R.T
         if cfg.association == "compatible":
-            # Keller's order: filter pass 2 for every surfel of pass 1, then the nearest that passed
-            qp = q[pix]
-            ok = valid[pix] & (np.linalg.norm(pc[ids] - qp, axis=1) <= cfg.dist_threshold) & \
-                (np.einsum("ij,ij->i", a["normal"][ids] @ Rw.T, nq[pix]) >= cos_thr)
+            # Keller's order: filter pass 2 for every surfel of pass 1, in the world frame, then the
+            # nearest that passed
+            d = a["position"][ids] - q_world[pix]
+            ok = valid[pix] & (np.einsum("ij,ij->i", d, d) <= cfg.dist_threshold ** 2) & \
+                (np.einsum("ij,ij->i", a["normal"][ids], n_world[pix]) >= cos_thr)
             ids, pix, zi = ids[ok], pix[ok], zi[ok]
         # the kernels' two passes: nearest depth per pixel, then the smallest index at that depth
         # (np.minimum.at is NumPy's unbuffered scatter-min: ~10× faster here than sorting by depth)
@@ -83,8 +87,8 @@ class NumpyFusion:
         # filter pass 2 (in the projection above for Keller's order)
         cand = np.flatnonzero((index >= 0) & valid)
         i = index[cand]
-        qw = q[cand] @ R.T + t
-        nw = nq[cand] @ R.T
+        qw = q_world[cand]
+        nw = n_world[cand]
         if cfg.association == "compatible":
             px = cand
         else:

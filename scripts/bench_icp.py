@@ -5,10 +5,12 @@ For one frame pair at 640×480 and at 320×240 it prints
 - ms per ICP iteration at the finest level (association + linearisation + reduction + the 6×6 solve):
   the iteration as ``ICP.align`` runs it (on the CPU one launch of ``PointToPlane.iterate``, which also
   solves and updates the pose; the replay of the checks afterwards, about 12 µs per iteration, is not
-  timed) against the vectorised NumPy float64 version of the same math
-  (``ti_fusion.icp_numpy`` and the NumPy solve), and their ratio. Taichi is timed over 5 iterations back to back (as within
-  one pyramid level), NumPy one at a time, alternately, with a pause after each NumPy iteration so that
-  OpenBLAS's spinning threads are not timed as part of Taichi's iteration;
+  timed) against a lean vectorised NumPy float64 version of the same math (``icp_numpy.LevelIteration``:
+  the source masked once per level, no status image, then the NumPy solve), and their ratio, both with the
+  robust weights ``ICP.align`` uses. Taichi is timed over 5 iterations back to back (as within one pyramid
+  level), NumPy one at a time, alternately, each after one untimed call (threads awake, as within ICP),
+  with a pause after each NumPy iteration so that OpenBLAS's spinning threads are not timed as part of
+  Taichi's iteration;
 - ms per frame pair (maps of both frames + coarse-to-fine ICP with ``icp.iterations``) against Open3D's
   ``t.pipelines.odometry.rgbd_odometry_multi_scale`` with ``Method.PointToPlane`` and the same iteration
   counts (Open3D builds its own pyramids, vertex and normal maps inside that call), with both errors
@@ -238,7 +240,7 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
 
     pose = result.pose  # one iteration is timed at the converged pose: the association of the last iterations
     kernels = icp._kernels(K.width * K.height)
-    thresholds = (icp.dist_threshold(0), c.normal_threshold_deg, c.robust, c.robust_scale)
+    thresholds = (icp.dist_threshold(0), c.normal_threshold_deg, icp.robust, c.robust_scale)
     fields = (src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0])
     Kt = tgt.intrinsics[0].as_tuple()
 
@@ -266,23 +268,25 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
         taichi_iteration()
         return se3_log(kernels.pose() @ invert(pose))
 
-    arrays = [f.to_numpy() for f in fields]
+    numpy_level = icp_numpy.LevelIteration(*(f.to_numpy() for f in fields), Kt, *thresholds)
 
     def numpy_iteration():
-        _, sums = icp_numpy.icp_pass(*arrays, pose, Kt, *thresholds)
-        s = unpack_sums(sums)
+        s = unpack_sums(numpy_level.sums(pose))
         return solve_normal_equations(s["AtA"], s["Atb"])
 
     start_iterations()
     taichi_iteration()
     numpy_iteration()
     ti_t, np_t = [], []
-    for _ in range(max(3, args.repeats // 2)):  # alternate, as above
+    for _ in range(max(3, args.repeats // 2)):  # alternate, as above; each after one untimed call
+        numpy_iteration()
         np_t.append(timed(numpy_iteration, 1))
         # NumPy's matrix products wake OpenBLAS's worker threads, which then spin for tens of ms (measured
         # here: 12 ms of CPU in a 10 ms sleep right after one): timed in that window, Taichi's threads
         # share the cores with them and one iteration took twice as long. Wait until they sleep again.
         time.sleep(BLAS_SETTLE_S)
+        start_iterations()
+        taichi_iteration()
         start_iterations()
         ti_t.append(timed(taichi_iteration, ITERATIONS_PER_RUN))
     (ms_taichi, cpu_taichi), (ms_numpy, cpu_numpy) = np.median(ti_t, axis=0), np.median(np_t, axis=0)

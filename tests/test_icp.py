@@ -152,6 +152,20 @@ def test_status_and_sums_match_reference(arch, rng, robust, chunks):
     assert_sums_close(sums, ref_sums)
 
 
+@pytest.mark.parametrize("robust", ["none", "tukey", "huber+depth"])
+def test_benchmark_numpy_iteration_matches_reference(rng, robust):
+    """The lean NumPy iteration of scripts/bench_icp.py (source masked once) gives icp_pass's sums."""
+    T = random_pose(rng, 0.1)
+    K_t = Intrinsics(120.0, 110.0, 27.3, 20.6, 56, 40)
+    P, N, Vt, Nt = random_pass_inputs(rng, T, K_t)
+    level = icp_numpy.LevelIteration(P, N, Vt, Nt, K_t.as_tuple(), THR, THETA, robust, 0.05)
+    _, ref = icp_numpy.icp_pass(P, N, Vt, Nt, T, K_t.as_tuple(), THR, THETA, robust, 0.05)
+    assert ref[kicp.SUM_INLIERS] >= 20
+    got = level.sums(T)
+    np.testing.assert_array_equal(got[kicp.SUM_INLIERS:], ref[kicp.SUM_INLIERS:])
+    assert np.all(np.abs(got - ref) <= 1e-12 * cs_scale(ref))  # the same float64 math, rows in the same order
+
+
 def boundary_case(K_t: Intrinsics, T: np.ndarray):
     """Source points placed a hair inside and outside every association boundary. Returns the maps and
     the expected status code per source pixel (one row of the source image per case). The point on the

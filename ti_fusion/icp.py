@@ -96,6 +96,11 @@ class ICP:
         correspondences further apart (``level_dist_scale`` ** level)."""
         return self.config.dist_threshold * self.config.level_dist_scale ** level
 
+    @property
+    def robust(self) -> str:
+        """The kernels' robust mode: ``icp.robust``, with "+depth" when ``icp.depth_weighting`` is on."""
+        return self.config.robust + ("+depth" if self.config.depth_weighting else "")
+
     def align(self, source, target, init: np.ndarray | None = None) -> ICPResult:
         """Align ``source`` to ``target`` starting from ``init`` (identity when None)."""
         cfg = self.config
@@ -125,7 +130,7 @@ class ICP:
         cores). Returns None when done, or the (stage, iteration) to go on from in Python, with
         ``result.pose`` set, if the kernel refused a system that NumPy's checks accept."""
         cfg = self.config
-        robust = cfg.robust + ("+depth" if cfg.depth_weighting else "")
+        robust = self.robust
         kernels.begin_iterations(result.pose, sum(n for _, n in schedule))
         for level, n_iter in schedule:
             fields = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level])
@@ -195,7 +200,7 @@ class ICP:
         cfg = self.config
         args = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level],
                 result.pose, target.intrinsics[level].as_tuple(), self.dist_threshold(level),
-                cfg.normal_threshold_deg, cfg.robust + ("+depth" if cfg.depth_weighting else ""), cfg.robust_scale)
+                cfg.normal_threshold_deg, self.robust, cfg.robust_scale)
         if cfg.solver == "qr":
             sums, rows = kernels.rows(*args)
         else:

@@ -1,9 +1,11 @@
 """Vectorised NumPy float64 version of one ICP pass: association, linearisation, reduction.
 
-The same math as ``ti_fusion.kernels.icp`` (read its docstring for the conventions): the reference the
-kernel tests compare against, and the NumPy baseline of ``scripts/bench_icp.py``. Inputs are H×W×3
-vertex and normal maps (any float dtype; computed in float64), a 4×4 pose mapping source points into the
-target camera and the target level's (fx, fy, cx, cy).
+The same math as ``ti_fusion.kernels.icp`` (read its docstring for the conventions). ``icp_pass`` is the
+reference the kernel tests compare against: it also returns every pixel's status code. ``LevelIteration``
+is the baseline of ``scripts/bench_icp.py``: the same sums with nothing else, as a NumPy ICP would run
+them (the source masked once per level, no status image). Inputs are H×W×3 vertex and normal maps (any
+float dtype; computed in float64), a 4×4 pose mapping source points into the target camera and the target
+level's (fx, fy, cx, cy).
 """
 
 from __future__ import annotations
@@ -112,3 +114,47 @@ def stacked_rows(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal
     A, r = linearise(c["p"], c["q"], c["nq"])
     sw = np.sqrt(robust_weights(r, robust, robust_scale, c["q"][:, 2]))
     return np.concatenate([A, r[:, None]], axis=1) * sw[:, None]
+
+
+class LevelIteration:
+    """One ICP iteration at one pyramid level as a lean NumPy ICP runs it: the valid source points are
+    gathered once per level (they do not change between its iterations), and each call transforms them,
+    associates, linearises and reduces, with no per-pixel status. ``sums(T)`` equals ``icp_pass``'s sums.
+    """
+
+    def __init__(self, src_v, src_n, tgt_v, tgt_n, K, dist_threshold: float, normal_threshold_deg: float,
+                 robust: str = "none", robust_scale: float = 0.01):
+        P = src_v.reshape(-1, 3)
+        N = src_n.reshape(-1, 3)
+        valid = (P[:, 2] > 0) & np.any(N != 0, axis=1)
+        self.p = P[valid].astype(np.float64)
+        self.n = N[valid].astype(np.float64)
+        self.tgt_v = tgt_v.reshape(-1, 3)
+        self.tgt_n = tgt_n.reshape(-1, 3)
+        self.Ht, self.Wt = tgt_v.shape[:2]
+        self.K = tuple(float(k) for k in K)
+        self.dist2 = float(dist_threshold) ** 2
+        self.cos = float(np.cos(np.radians(normal_threshold_deg)))
+        self.robust, self.robust_scale = robust, robust_scale
+
+    def sums(self, T) -> np.ndarray:
+        T = np.asarray(T, dtype=np.float64)
+        R, t = T[:3, :3], T[:3, 3]
+        fx, fy, cx, cy = self.K
+        p = self.p @ R.T + t
+        z = p[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            u = np.floor(fx * p[:, 0] / z + cx + 0.5)
+            v = np.floor(fy * p[:, 1] / z + cy + 0.5)
+        sel = np.flatnonzero((z > 0) & (u >= 0) & (u < self.Wt) & (v >= 0) & (v < self.Ht))
+        p = p[sel]
+        flat = v[sel].astype(np.int64) * self.Wt + u[sel].astype(np.int64)
+        q = self.tgt_v[flat].astype(np.float64)
+        nq = self.tgt_n[flat].astype(np.float64)
+        d = p - q
+        ok = (q[:, 2] > 0) & np.any(nq != 0, axis=1) & (np.einsum("ij,ij->i", d, d) < self.dist2)
+        ok &= np.einsum("ij,ij->i", self.n[sel] @ R.T, nq) > self.cos
+        p, q, nq = p[ok], q[ok], nq[ok]
+        A, r = linearise(p, q, nq)
+        w = robust_weights(r, self.robust, self.robust_scale, q[:, 2])
+        return reduce_sums(A, r, w, self.p.shape[0])

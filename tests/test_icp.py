@@ -9,6 +9,9 @@ convergence) may be close to zero while their rounding is not.
 """
 
 import math
+import shutil
+import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -25,6 +28,7 @@ from ti_fusion.kernels.maps import FrameMaps
 from ti_fusion.synthetic import SyntheticSequence
 from ti_fusion.solve import check_system, solve_normal_equations, solve_stacked_qr
 
+ROOT = Path(__file__).resolve().parents[1]
 THR = 0.1
 THETA = 30.0
 
@@ -164,6 +168,30 @@ def test_benchmark_numpy_iteration_matches_reference(rng, robust):
     got = level.sums(T)
     np.testing.assert_array_equal(got[kicp.SUM_INLIERS:], ref[kicp.SUM_INLIERS:])
     assert np.all(np.abs(got - ref) <= 1e-12 * cs_scale(ref))  # the same float64 math, rows in the same order
+
+
+@pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
+@pytest.mark.parametrize("robust", ["none", "tukey", "huber+depth"])
+def test_c_pass_of_ceiling_benchmark_matches_reference(rng, tmp_path, robust):
+    """scripts/icp_pass.c (the C pass of scripts/bench_icp_ceiling.py) gives icp_pass's sums."""
+    K_t = Intrinsics(120.0, 110.0, 27.3, 20.6, 56, 40)
+    T = random_pose(rng, 0.1)
+    P, N, Vt, Nt = random_pass_inputs(rng, T, K_t, src_shape=(K_t.height, K_t.width))
+    name, _, depth = robust.partition("+")
+    exe = tmp_path / "icp_pass"
+    subprocess.run(["cc", "-O2", f"-DROBUST={kicp.ROBUST_CODES[name]}", f"-DDEPTH_WEIGHTED={int(depth == 'depth')}",
+                    "-o", str(exe), str(ROOT / "scripts" / "icp_pass.c"), "-lm"], check=True)
+    for fname, a in zip(("sv", "sn", "tv", "tn"), (P, N, Vt, Nt)):
+        a.astype(np.float32).tofile(tmp_path / f"{fname}.bin")
+    params = np.concatenate([T[:3, :3].ravel(), T[:3, 3], K_t.as_tuple(), [THR ** 2, np.cos(np.radians(THETA)), 0.05]])
+    params.tofile(tmp_path / "params.bin")
+    out = subprocess.run([str(exe), str(tmp_path), str(K_t.height), str(K_t.width), "1"], capture_output=True,
+                         text=True, check=True).stdout.split()
+    got = np.array([float(x) for x in out[1:]])
+    _, ref = icp_numpy.icp_pass(P, N, Vt, Nt, T, K_t.as_tuple(), THR, THETA, robust, 0.05)
+    assert ref[kicp.SUM_INLIERS] >= 20
+    np.testing.assert_array_equal(got[kicp.SUM_INLIERS:], ref[kicp.SUM_INLIERS:])
+    assert np.all(np.abs(got - ref) <= 1e-9 * cs_scale(ref))
 
 
 def boundary_case(K_t: Intrinsics, T: np.ndarray):

@@ -1,0 +1,186 @@
+#!/usr/bin/env python
+"""How far can one ICP iteration go on this machine? The Taichi kernel, the lean NumPy baseline and the
+same pass in plain C, on the same frames, in one run.
+
+    .venv/bin/python scripts/bench_icp_ceiling.py [DATA] [--pair S T] [--repeats N] [--cc gcc]
+
+For the frame pair of ``scripts/bench_icp.py`` (converged pose, finest level, 640×480 and 320×240) it
+times one iteration of
+- Taichi: ``PointToPlane.iterate`` as ``ICP.align`` runs it, on the machine's cores;
+- NumPy: ``icp_numpy.LevelIteration`` and the 6×6 solve (the baseline of ``bench_icp.py``);
+- C: ``scripts/icp_pass.c``, the same float64 pass (association and the 30 sums, no solve) on one
+  thread, compiled with ``-O3 -march=x86-64`` (SSE2: what Taichi 1.7 emits on a CPU its LLVM does not
+  know) and ``-O3 -march=native`` (every vector extension of this CPU), best of ``--repeats``.
+Each is timed at its best (the fastest of ``--repeats`` runs: this machine is noisy, and the
+minimum is what each code can do). It checks that C's sums are NumPy's and prints NumPy ÷ each. "C native ÷ 2" is an upper bound for a
+perfect two-thread split of the native pass (no thread start-up, no solve): how fast NumPy's ratio could
+get with the best code this compiler makes of the pass, e.g. against the 20× target of issue 3.
+
+Needs a C compiler (``--cc``, default ``cc``); without one the C columns are skipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from bench_icp import BLAS_SETTLE_S, ITERATIONS_PER_RUN, load_pair  # noqa: E402
+
+C_SOURCE = Path(__file__).resolve().parent / "icp_pass.c"
+MARCH = ("x86-64", "native")
+ROBUST_C = {"none": 0, "huber": 1, "tukey": 2}
+
+
+def compile_c(cc: str, robust: str, workdir: Path) -> dict[str, Path]:
+    """{march: executable} for each -march that compiles, for the robust mode (e.g. "huber+depth")."""
+    name, _, depth = robust.partition("+")
+    defines = [f"-DROBUST={ROBUST_C[name]}", f"-DDEPTH_WEIGHTED={int(depth == 'depth')}"]
+    out = {}
+    for march in MARCH:
+        exe = workdir / f"icp_pass_{march}"
+        run = subprocess.run([cc, "-O3", f"-march={march}", *defines, "-o", str(exe), str(C_SOURCE), "-lm"],
+                             capture_output=True, text=True)
+        if run.returncode == 0:
+            out[march] = exe
+        else:
+            print(f"bench_icp_ceiling: {cc} -march={march} failed: {run.stderr.strip().splitlines()[-1:]}")
+    return out
+
+
+def best_ms(fn, repeats: int, per_call: int = 1, before=None, after=None) -> float:
+    """The fastest of ``repeats`` timed runs (each the mean of ``per_call`` calls, after one untimed call):
+    every system at its best, as the C program reports its best pass. This machine is noisy (one NumPy
+    iteration at 640×480 took 32 to 57 ms within one run), and the minimum is what each code can do."""
+    times = []
+    for _ in range(repeats):
+        if before:
+            before()
+        fn()  # untimed: threads awake, as within ICP
+        if before:
+            before()
+        t0 = time.perf_counter()
+        for _ in range(per_call):
+            fn()
+        times.append((time.perf_counter() - t0) / per_call)
+        if after:
+            after()
+    return 1e3 * float(np.min(times))
+
+
+def bench_size(depth_s, depth_t, K, cfg, executables, repeats: int, workdir: Path) -> dict:
+    from ti_fusion import icp_numpy
+    from ti_fusion.icp import ICP
+    from ti_fusion.kernels.icp import unpack_sums
+    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.solve import solve_normal_equations
+
+    c = cfg.icp
+    src, tgt = FrameMaps(K.height, K.width, len(c.iterations)), FrameMaps(K.height, K.width, len(c.iterations))
+    for maps, depth in ((src, depth_s), (tgt, depth_t)):
+        maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.smooth_radius(K.width))
+    icp = ICP(c)
+    pose = icp.align(src, tgt).pose
+    fields = (src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0])
+    Kt = tgt.intrinsics[0].as_tuple()
+    thresholds = (icp.dist_threshold(0), c.normal_threshold_deg, icp.robust, c.robust_scale)
+    arrays = [f.to_numpy().astype(np.float32) for f in fields]
+
+    level = icp_numpy.LevelIteration(*arrays, Kt, *thresholds)
+
+    def numpy_iteration():
+        s = unpack_sums(level.sums(pose))
+        return solve_normal_equations(s["AtA"], s["Atb"])
+
+    kernels = icp._kernels(K.width * K.height)
+    in_kernel = kernels.solves_in_kernel and c.solver == "cholesky"
+
+    def start():
+        if in_kernel:
+            kernels.begin_iterations(pose, ITERATIONS_PER_RUN + 1)
+            kernels.begin_level(fields[0], Kt, *thresholds, 0, c.min_inliers, 0.0)
+
+    def taichi_iteration():
+        if in_kernel:
+            return kernels.iterate(*fields, 0)
+        s = unpack_sums(kernels.reduce(*fields, pose, Kt, *thresholds))
+        return solve_normal_equations(s["AtA"], s["Atb"])
+
+    ref = level.sums(pose)
+    row = {"size": f"{K.width}x{K.height}",
+           "numpy": best_ms(numpy_iteration, repeats, after=lambda: time.sleep(BLAS_SETTLE_S)),
+           "taichi": best_ms(taichi_iteration, repeats, ITERATIONS_PER_RUN, before=start)}
+    R, t = pose[:3, :3], pose[:3, 3]
+    params = np.concatenate([R.ravel(), t, Kt, [thresholds[0] ** 2, np.cos(np.radians(thresholds[1])), c.robust_scale]])
+    for fname, a in zip(("sv", "sn", "tv", "tn"), arrays):
+        a.tofile(workdir / f"{fname}.bin")
+    params.astype(np.float64).tofile(workdir / "params.bin")
+    for march, exe in executables.items():
+        out = subprocess.run([str(exe), str(workdir), str(K.height), str(K.width), str(max(50, 10 * repeats))],
+                             capture_output=True, text=True, check=True).stdout.split()
+        ms, sums = float(out[0]), np.array([float(x) for x in out[1:]])
+        agree = float(np.max(np.abs(sums - ref)) / np.max(np.abs(ref)))
+        if agree > 1e-9:
+            print(f"bench_icp_ceiling: C ({march}) sums differ from NumPy's by {agree:.1e} of the largest")
+        row[f"c_{march}"] = ms
+    return row
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("data", nargs="?", default="", help="7-Scenes folder (default: ../shared/data/redkitchen-7scenes)")
+    parser.add_argument("--pair", nargs=2, type=int, default=[100, 110], metavar=("S", "T"))
+    parser.add_argument("--repeats", type=int, default=15, help="timed runs per measurement (best; C: best of 10×)")
+    parser.add_argument("--cc", default="cc", help="C compiler (default cc)")
+    args = parser.parse_args(argv)
+    from ti_fusion.timing import keep_freed_memory
+
+    keep_freed_memory()
+    os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")
+    from ti_fusion.backend import init_backend
+    from ti_fusion.config import load_config
+    from ti_fusion.icp import ICP
+
+    cfg = load_config(None, [])
+    backend = init_backend("cpu")
+    depth_s, depth_t, K, _, what = load_pair(args, cfg)
+    with tempfile.TemporaryDirectory(prefix="icp_ceiling_") as tmp:
+        workdir = Path(tmp)
+        robust = ICP(cfg.icp).robust
+        executables = compile_c(args.cc, robust, workdir) if shutil.which(args.cc) else {}
+        if not executables:
+            print(f"bench_icp_ceiling: no C compiler ({args.cc}): C columns skipped")
+        rows = [bench_size(depth_s[::f, ::f].copy(), depth_t[::f, ::f].copy(), K.downsampled(f), cfg, executables,
+                           args.repeats, workdir) for f in (1, 2)]
+    print(f"one ICP iteration at the finest level, {what}; {backend.arch} backend, {os.cpu_count()} CPUs; "
+          f"robust {robust}; best ms of each (NumPy ÷ each)")
+    head = f"{'':>8} | {'NumPy':>7} | {'Taichi, all cores':>17}"
+    for march in executables:
+        head += f" | {'C ' + march + ', 1 thread':>24}"
+    if "native" in executables:
+        head += f" | {'C native ÷ 2 (ideal)':>20}"
+    print(head)
+    for r in rows:
+        line = f"{r['size']:>8} | {r['numpy']:7.2f} | {r['taichi']:6.2f} ({r['numpy'] / r['taichi']:5.1f}×)   "
+        for march in executables:
+            ms = r[f"c_{march}"]
+            line += f" | {ms:12.2f} ({r['numpy'] / ms:5.1f}×)    "
+        if "native" in executables:
+            half = r["c_native"] / 2
+            line += f" | {half:9.2f} ({r['numpy'] / half:5.1f}×)"
+        print(line)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

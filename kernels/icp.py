@@ -205,8 +205,9 @@ def _build_kernels(real):
         n = ti.cast(src_n[v, u], real)
         pt = R @ p + t
         inv_z = 1.0 / pt.z  # inf or negative where z′ ≤ 0: masked below
-        # ⌊x⌋ in [0, W) exactly when x in [0, W), and there truncation is the floor (ti.floor is a libm
-        # call on the CPU: Taichi 1.7 compiles for plain SSE2, which has no rounding instruction)
+        # ⌊x⌋ in [0, W) exactly when x in [0, W), and there truncation is the floor (ti.floor was a libm
+        # call where Taichi 1.7 optimises for generic x86-64, on a CPU its LLVM 15 does not know: SSE2 has
+        # no rounding instruction)
         uf = K[0] * pt.x * inv_z + K[2] + 0.5
         vf = K[1] * pt.y * inv_z + K[3] + 0.5
         inside = (pt.z > 0) & (0 <= uf) & (uf < Wt) & (0 <= vf) & (vf < Ht)  # NaN compares false

@@ -64,12 +64,11 @@ class NumpyFusion:
         nq = normal.reshape(-1, 3)
         valid = (q[:, 2] > 0) & np.any(nq != 0, axis=1)
         cos_thr = math.cos(math.radians(cfg.normal_threshold_deg))
-        # the frame's measurements in the world frame, once per frame (as the kernels' world_measurements)
-        q_world = q @ R.T + t
-        n_world = nq @ R.T
         if cfg.association == "compatible":
-            # Keller's order: filter pass 2 for every surfel of pass 1, in the world frame, then the
-            # nearest that passed
+            # Keller's order: filter pass 2 for every surfel of pass 1, in the world frame (the frame's
+            # measurements turned once, as the kernels' world_measurements), then the nearest that passed
+            q_world = q @ R.T + t
+            n_world = nq @ R.T
             d = a["position"][ids] - q_world[pix]
             ok = valid[pix] & (np.einsum("ij,ij->i", d, d) <= cfg.dist_threshold ** 2) & \
                 (np.einsum("ij,ij->i", a["normal"][ids], n_world[pix]) >= cos_thr)
@@ -87,8 +86,10 @@ class NumpyFusion:
         # filter pass 2 (in the projection above for Keller's order)
         cand = np.flatnonzero((index >= 0) & valid)
         i = index[cand]
-        qw = q_world[cand]
-        nw = n_world[cand]
+        if cfg.association == "compatible":
+            qw, nw = q_world[cand], n_world[cand]
+        else:
+            qw, nw = q[cand] @ R.T + t, nq[cand] @ R.T
         if cfg.association == "compatible":
             px = cand
         else:

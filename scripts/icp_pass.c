@@ -1,10 +1,12 @@
 /* One projective point-to-plane ICP pass (association + the 30 sums) in plain C, one thread: the same
  * float64 math, tests and order as kernels/icp.py (`_target_pixel`, then `_correspondence` and the
  * accumulation), for scripts/bench_icp_ceiling.py, which compiles it with -march=x86-64 and
- * -march=native to see what a compiler does with this pass on this CPU.
+ * -march=native, and with the floating-point freedoms Taichi gives its kernels by default (fast_math:
+ * reassociation, no signed zeros), to see what a compiler does with this pass on this CPU.
  *
  * usage: icp_pass DIR H W REPEATS
- * DIR holds sv.bin sn.bin tv.bin tn.bin (float32 H×W×3: source / target vertex and normal maps) and
+ * DIR holds sv.bin sn.bin tv.bin tn.bin (float32 H×W×3: source / target vertex and normal maps, both of
+ * the same size here) and
  * params.bin (float64: R row-major 9, t 3, fx fy cx cy, d_thr², cos θ, robust scale). The robust weight
  * is chosen when compiling, as the kernels' is: -DROBUST=0 none, 1 Huber, 2 Tukey; -DDEPTH_WEIGHTED=1
  * for the depth-noise weighting. Prints the best milliseconds over REPEATS passes and the 30 sums (the
@@ -69,7 +71,8 @@ static void icp_pass(int H, int W, const float *restrict sv, const float *restri
         double x = R[0] * px + R[1] * py + R[2] * pz + t[0];
         double y = R[3] * px + R[4] * py + R[5] * pz + t[1];
         double z = R[6] * px + R[7] * py + R[8] * pz + t[2];
-        double uf = K[0] * x / z + K[2] + 0.5, vf = K[1] * y / z + K[3] + 0.5;
+        double inv_z = 1.0 / z; /* as the kernel: one division, then products */
+        double uf = K[0] * x * inv_z + K[2] + 0.5, vf = K[1] * y * inv_z + K[3] + 0.5;
         int inside = z > 0 && uf >= 0 && uf < W && vf >= 0 && vf < H;
         int valid = pz > 0 && nx * nx + ny * ny + nz * nz > 0;
         target[k] = !valid ? -2 : inside ? (int)vf * W + (int)uf : -1;
@@ -113,6 +116,10 @@ int main(int argc, char **argv) {
     }
     const char *dir = argv[1];
     int H = atoi(argv[2]), W = atoi(argv[3]), repeats = atoi(argv[4]);
+    if (H <= 0 || W <= 0 || repeats <= 0) {
+        fprintf(stderr, "icp_pass: H, W and REPEATS must be positive integers\n");
+        return 2;
+    }
     size_t n = (size_t)H * W * 3;
     float *sv = read_file(dir, "sv.bin", n * sizeof(float)), *sn = read_file(dir, "sn.bin", n * sizeof(float));
     float *tv = read_file(dir, "tv.bin", n * sizeof(float)), *tn = read_file(dir, "tn.bin", n * sizeof(float));

@@ -2,8 +2,8 @@
 
 One ICP iteration at one pyramid level is one pass over the source pixels (``PointToPlane.reduce``):
 
-association (``_associate``; ``reduce``, ``iterate`` and ``write_rows`` make the same tests in the same order in
-two passes per chunk, see ``_project_chunk``)
+association (``_target_pixel`` then ``_correspondence``, shared by every kernel here; the reductions run
+them as two passes per chunk, see ``_project_chunk``)
     a source pixel is used when its vertex has z > 0 and its normal is non-zero. p′ = R p + t is
     projected with the target intrinsics of the level and rounded to the nearest pixel,
     u = ⌊fx x′/z′ + cx + ½⌋, v = ⌊fy y′/z′ + cy + ½⌋. The pair (p′, q = target vertex at (u, v)) is a
@@ -62,9 +62,10 @@ from ti_fusion.backend import SERIAL_BELOW
 from ti_fusion.geometry import flatten_pose, unflatten_pose
 
 STATUS_OK = 0
-# ``reduce``'s per-pixel target scratch: a target pixel index, or one of these
-NO_TARGET = -1
+# ``_target_pixel``: a target pixel index, or one of these (the first three tests' failures)
+NO_TARGET = -1  # outside the target image
 SOURCE_INVALID = -2
+BEHIND_TARGET = -3  # z′ ≤ 0
 STATUS_OUT_OF_IMAGE = 1
 STATUS_BEHIND = 2
 STATUS_TARGET_INVALID = 3
@@ -162,44 +163,10 @@ def _build_kernels(real):
         return R, t, K
 
     @ti.func
-    def _associate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                   v, u, R, t, K, dist2_thr, cos_thr):
-        """(status, p′, q, n_q) of the source pixel (v, u); see the module docstring for the codes."""
-        Ht, Wt = tgt_v.shape
-        status = STATUS_SOURCE_INVALID
-        pt = vec3(0.0)
-        q = vec3(0.0)
-        nq = vec3(0.0)
-        p = ti.cast(src_v[v, u], real)
-        n = ti.cast(src_n[v, u], real)
-        if p.z > 0 and n.dot(n) > 0:
-            status = STATUS_BEHIND
-            pt = R @ p + t
-            if pt.z > 0:
-                status = STATUS_OUT_OF_IMAGE
-                inv_z = 1.0 / pt.z
-                uf = ti.floor(K[0] * pt.x * inv_z + K[2] + 0.5)
-                vf = ti.floor(K[1] * pt.y * inv_z + K[3] + 0.5)
-                if 0 <= uf and uf < Wt and 0 <= vf and vf < Ht:
-                    status = STATUS_TARGET_INVALID
-                    ui = ti.cast(uf, ti.i32)
-                    vi = ti.cast(vf, ti.i32)
-                    q = ti.cast(tgt_v[vi, ui], real)
-                    nq = ti.cast(tgt_n[vi, ui], real)
-                    if q.z > 0 and nq.dot(nq) > 0:
-                        status = STATUS_TOO_FAR
-                        d = pt - q
-                        if d.dot(d) < dist2_thr:
-                            status = STATUS_NORMAL_ANGLE
-                            if (R @ n).dot(nq) > cos_thr:
-                                status = STATUS_OK
-        return status, pt, q, nq
-
-    @ti.func
     def _target_pixel(src_v: ti.template(), src_n: ti.template(), Ht, Wt, v, u, params: ti.template()):
-        """``_associate``'s first three tests without branches: the target pixel vi·Wt + ui that source
-        pixel (v, u) projects to, NO_TARGET when it is behind the target camera or outside its image,
-        SOURCE_INVALID when the source pixel has no vertex or normal."""
+        """The first three tests of the association, without branches: the target pixel vi·Wt + ui that
+        source pixel (v, u) projects to; else, the first test it fails: SOURCE_INVALID (no vertex or
+        normal), BEHIND_TARGET (z′ ≤ 0), NO_TARGET (outside the target image)."""
         R, t, K = _pose(params)  # per pixel, as fusion.py's projection loops (read per block, those ran 3x slower)
         p = ti.cast(src_v[v, u], real)
         n = ti.cast(src_n[v, u], real)
@@ -210,11 +177,13 @@ def _build_kernels(real):
         # no rounding instruction)
         uf = K[0] * pt.x * inv_z + K[2] + 0.5
         vf = K[1] * pt.y * inv_z + K[3] + 0.5
-        inside = (pt.z > 0) & (0 <= uf) & (uf < Wt) & (0 <= vf) & (vf < Ht)  # NaN compares false
+        front = pt.z > 0
+        inside = front & (0 <= uf) & (uf < Wt) & (0 <= vf) & (vf < Ht)  # NaN compares false
         ui = ti.cast(ti.select(inside, uf, 0.0), ti.i32)
         vi = ti.cast(ti.select(inside, vf, 0.0), ti.i32)
         valid = (p.z > 0) & (n.dot(n) > 0)
-        return ti.select(valid, ti.select(inside, vi * Wt + ui, NO_TARGET), SOURCE_INVALID)
+        return ti.select(valid, ti.select(inside, vi * Wt + ui, ti.select(front, NO_TARGET, BEHIND_TARGET)),
+                         SOURCE_INVALID)
 
     @ti.func
     def _weight(r, robust: ti.template(), scale, z, params: ti.template()):
@@ -261,7 +230,7 @@ def _build_kernels(real):
         Every kernel that tests correspondences makes two passes over a chunk: this one projects (no
         branches, no reads of the target), the second reads the target pixel and tests
         (``_correspondence``), while the chunk's ``target`` entries are still in cache. Fused into one
-        pass (as ``_associate``), the projection and the target read that depends on it ran 1.25x slower
+        pass, the projection and the target read that depends on it ran 1.25x slower
         on the CPU (640×480, float64, one core: 7.4 ms per pass, 5.9 ms split). The sums agree with the
         fused pass's to rounding (within 6e-16 relative on redkitchen frames, not bit for bit: the compiler
         orders the float64 operations of the two differently). ``reduce``, ``iterate`` and ``write_rows``
@@ -280,22 +249,23 @@ def _build_kernels(real):
     @ti.func
     def _correspondence(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                         tp, v, u, R, t, dist2_thr, cos_thr):
-        """Second pass, for source pixel (v, u) with target pixel ``tp`` (``_target_pixel``): (ok, p′, q,
-        n_q), ok when the pair passes the remaining tests of ``_associate``, in its order."""
+        """Second pass, for source pixel (v, u) with target pixel ``tp`` ≥ 0 (``_target_pixel``): (status,
+        p′, q, n_q), status the first of the remaining tests it fails (STATUS_TARGET_INVALID,
+        STATUS_TOO_FAR, STATUS_NORMAL_ANGLE) or STATUS_OK."""
         Wt = tgt_v.shape[1]
-        ok = False
+        status = STATUS_TARGET_INVALID
         pt = vec3(0.0)
-        q = vec3(0.0)
-        nq = vec3(0.0)
-        if tp >= 0:
-            q = ti.cast(tgt_v[tp // Wt, tp % Wt], real)
-            nq = ti.cast(tgt_n[tp // Wt, tp % Wt], real)
-            if q.z > 0 and nq.dot(nq) > 0:
-                pt = R @ ti.cast(src_v[v, u], real) + t
-                d = pt - q
-                if d.dot(d) < dist2_thr:
-                    ok = (R @ ti.cast(src_n[v, u], real)).dot(nq) > cos_thr
-        return ok, pt, q, nq
+        q = ti.cast(tgt_v[tp // Wt, tp % Wt], real)
+        nq = ti.cast(tgt_n[tp // Wt, tp % Wt], real)
+        if q.z > 0 and nq.dot(nq) > 0:
+            status = STATUS_TOO_FAR
+            pt = R @ ti.cast(src_v[v, u], real) + t
+            d = pt - q
+            if d.dot(d) < dist2_thr:
+                status = STATUS_NORMAL_ANGLE
+                if (R @ ti.cast(src_n[v, u], real)).dot(nq) > cos_thr:
+                    status = STATUS_OK
+        return status, pt, q, nq
 
     @ti.func
     def _chunk_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
@@ -313,17 +283,19 @@ def _build_kernels(real):
             tp = target[k]
             if tp != SOURCE_INVALID:
                 acc[SUM_SOURCE] += 1.0
-            ok, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, tp, v, u, R, t, dist2_thr, cos_thr)
-            if ok:
-                A, r = _row(pt, q, nq)
-                w = _weight(r, robust, scale, q.z, params)
-                wA = w * A
-                for e in ti.static(range(21)):
-                    acc[e] += wA[UPPER[e][0]] * A[UPPER[e][1]]
-                for e in ti.static(range(6)):
-                    acc[SUM_ATB + e] += wA[e] * r
-                acc[SUM_R2] += r * r
-                acc[SUM_INLIERS] += 1.0
+            if tp >= 0:
+                status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, tp, v, u, R, t, dist2_thr,
+                                                    cos_thr)
+                if status == STATUS_OK:
+                    A, r = _row(pt, q, nq)
+                    w = _weight(r, robust, scale, q.z, params)
+                    wA = w * A
+                    for e in ti.static(range(21)):
+                        acc[e] += wA[UPPER[e][0]] * A[UPPER[e][1]]
+                    for e in ti.static(range(6)):
+                        acc[SUM_ATB + e] += wA[e] * r
+                    acc[SUM_R2] += r * r
+                    acc[SUM_INLIERS] += 1.0
             u += 1
             if u == W:
                 u = 0
@@ -472,9 +444,15 @@ def _build_kernels(real):
     @ti.kernel
     def status_map(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                    status: ti.template(), params: params_t):
+        Ht, Wt = tgt_v.shape
         for v, u in src_v:
-            R, t, K = _pose(params)
-            s, pt, q, nq = _associate(src_v, src_n, tgt_v, tgt_n, v, u, R, t, K, params[P_DIST2], params[P_COS])
+            tp = _target_pixel(src_v, src_n, Ht, Wt, v, u, params)
+            s = ti.select(tp == SOURCE_INVALID, STATUS_SOURCE_INVALID,
+                          ti.select(tp == BEHIND_TARGET, STATUS_BEHIND, STATUS_OUT_OF_IMAGE))
+            if tp >= 0:
+                R, t, K = _pose(params)
+                s, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, tp, v, u, R, t, params[P_DIST2],
+                                               params[P_COS])
             status[v, u] = s
 
     @ti.kernel
@@ -493,15 +471,17 @@ def _build_kernels(real):
             u = begin - v * W
             k = offsets[c]
             for i in range(begin, end):
-                ok, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, target[i], v, u, R, t,
-                                                params[P_DIST2], params[P_COS])
-                if ok:
-                    A, r = _row(pt, q, nq)
-                    sw = ti.sqrt(_weight(r, robust, params[P_SCALE], q.z, params))
-                    for j in ti.static(range(6)):
-                        rows[k, j] = sw * A[j]
-                    rows[k, 6] = sw * r
-                    k += 1
+                tp = target[i]
+                if tp >= 0:
+                    status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, tp, v, u, R, t,
+                                                        params[P_DIST2], params[P_COS])
+                    if status == STATUS_OK:
+                        A, r = _row(pt, q, nq)
+                        sw = ti.sqrt(_weight(r, robust, params[P_SCALE], q.z, params))
+                        for j in ti.static(range(6)):
+                            rows[k, j] = sw * A[j]
+                        rows[k, 6] = sw * r
+                        k += 1
                 u += 1
                 if u == W:
                     u = 0

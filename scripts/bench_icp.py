@@ -194,15 +194,70 @@ def timed(fn, repeats: int = 1) -> tuple[float, float]:
     return 1e3 * (time.perf_counter() - t0) / repeats, 1e3 * (time.process_time() - c0) / repeats
 
 
+def compute_maps(src, tgt, depth_s, depth_t, K, icp_cfg) -> None:
+    """The source and target ``FrameMaps`` of a pair, as the pipeline computes them for ICP."""
+    for maps, depth in ((src, depth_s), (tgt, depth_t)):
+        maps.compute(depth, K, icp_cfg.normal_max_depth_jump, 3 * icp_cfg.pyramid_depth_sigma,
+                     icp_cfg.smooth_radius(K.width))
+
+
+class FinestIteration:
+    """One ICP iteration at the finest level of a pair, from ``pose`` (the converged pose: the association
+    of the last iterations), as each system runs it. ``taichi()``: as ``ICP.align`` runs it here (on the
+    CPU one launch that also solves and updates the pose, ``PointToPlane.iterate``; on float32 backends
+    the sums and a NumPy solve), after ``start()``, which goes back to ``pose`` (``iterate`` moves it, by
+    little there). ``numpy()``: ``icp_numpy.LevelIteration`` and the NumPy solve."""
+
+    def __init__(self, icp, src, tgt, pose):
+        from ti_fusion import icp_numpy
+
+        c = icp.config
+        self.icp, self.pose = icp, pose
+        self.fields = (src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0])
+        self.K = tgt.intrinsics[0].as_tuple()
+        self.thresholds = (icp.dist_threshold(0), c.normal_threshold_deg, icp.robust, c.robust_scale)
+        self.kernels = icp._kernels(src.shapes[0][0] * src.shapes[0][1])
+        self.in_kernel = self.kernels.solves_in_kernel and c.solver == "cholesky"  # as ICP.align decides
+        self.numpy_level = icp_numpy.LevelIteration(*(f.to_numpy() for f in self.fields), self.K, *self.thresholds)
+
+    def start(self) -> None:
+        if self.in_kernel:
+            self.kernels.begin_iterations(self.pose, ITERATIONS_PER_RUN + 1)
+            self.kernels.begin_level(self.fields[0], self.K, *self.thresholds, 0, self.icp.config.min_inliers, 0.0)
+
+    def taichi(self):
+        if self.in_kernel:
+            return self.kernels.iterate(*self.fields, 0)
+        return self._solve(self.kernels.reduce(*self.fields, self.pose, self.K, *self.thresholds))
+
+    def numpy(self):
+        return self._solve(self.numpy_level.sums(self.pose))
+
+    def taichi_delta(self):
+        """δξ of one Taichi iteration from ``pose`` (for the agreement check, not timed)."""
+        from ti_fusion.geometry import invert, se3_log
+
+        self.start()
+        if not self.in_kernel:
+            return self.taichi()
+        self.taichi()
+        return se3_log(self.kernels.pose() @ invert(self.pose))
+
+    @staticmethod
+    def _solve(sums):
+        from ti_fusion.kernels.icp import unpack_sums
+        from ti_fusion.solve import solve_normal_equations
+
+        s = unpack_sums(sums)
+        return solve_normal_equations(s["AtA"], s["Atb"])
+
+
 def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     import numpy as np
 
-    from ti_fusion import icp_numpy
-    from ti_fusion.geometry import invert, pose_error, se3_log
+    from ti_fusion.geometry import pose_error
     from ti_fusion.icp import ICP
-    from ti_fusion.kernels.icp import unpack_sums
     from ti_fusion.kernels.maps import FrameMaps
-    from ti_fusion.solve import solve_normal_equations
 
     c = cfg.icp
     levels = len(c.iterations)
@@ -210,8 +265,7 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     icp = ICP(c)
 
     def frame_pair():
-        for maps, depth in ((src, depth_s), (tgt, depth_t)):
-            maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.smooth_radius(K.width))
+        compute_maps(src, tgt, depth_s, depth_t, K, c)
         return icp.align(src, tgt)
 
     for _ in range(WARMUP_RUNS):  # the first compiles every kernel; the next few were still ~20% slower
@@ -238,59 +292,24 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     if o3d is not None:
         o3d.close()
 
-    pose = result.pose  # one iteration is timed at the converged pose: the association of the last iterations
-    kernels = icp._kernels(K.width * K.height)
-    thresholds = (icp.dist_threshold(0), c.normal_threshold_deg, icp.robust, c.robust_scale)
-    fields = (src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0])
-    Kt = tgt.intrinsics[0].as_tuple()
-
-    in_kernel = kernels.solves_in_kernel and c.solver == "cholesky"  # as ICP.align decides
-
-    def start_iterations():
-        """Back to the converged pose (``iterate`` moves it, by little there)."""
-        if in_kernel:
-            kernels.begin_iterations(pose, ITERATIONS_PER_RUN + 1)
-            kernels.begin_level(fields[0], Kt, *thresholds, 0, c.min_inliers, 0.0)
-
-    def taichi_iteration():
-        """One iteration as ICP.align runs it here: on the CPU one launch that also solves and updates the
-        pose (``PointToPlane.iterate``), on float32 backends the sums and a NumPy solve."""
-        if in_kernel:
-            return kernels.iterate(*fields, 0)
-        s = unpack_sums(kernels.reduce(*fields, pose, Kt, *thresholds))
-        return solve_normal_equations(s["AtA"], s["Atb"])
-
-    def taichi_delta():
-        """δξ of one iteration from the converged pose (for the agreement check, not timed)."""
-        start_iterations()
-        if not in_kernel:
-            return taichi_iteration()
-        taichi_iteration()
-        return se3_log(kernels.pose() @ invert(pose))
-
-    numpy_level = icp_numpy.LevelIteration(*(f.to_numpy() for f in fields), Kt, *thresholds)
-
-    def numpy_iteration():
-        s = unpack_sums(numpy_level.sums(pose))
-        return solve_normal_equations(s["AtA"], s["Atb"])
-
-    start_iterations()
-    taichi_iteration()
-    numpy_iteration()
+    one = FinestIteration(icp, src, tgt, result.pose)
+    one.start()
+    one.taichi()
+    one.numpy()
     ti_t, np_t = [], []
     for _ in range(max(3, args.repeats // 2)):  # alternate, as above; each after one untimed call
-        numpy_iteration()
-        np_t.append(timed(numpy_iteration, 1))
+        one.numpy()
+        np_t.append(timed(one.numpy, 1))
         # NumPy's matrix products wake OpenBLAS's worker threads, which then spin for tens of ms (measured
         # here: 12 ms of CPU in a 10 ms sleep right after one): timed in that window, Taichi's threads
         # share the cores with them and one iteration took twice as long. Wait until they sleep again.
         time.sleep(BLAS_SETTLE_S)
-        start_iterations()
-        taichi_iteration()
-        start_iterations()
-        ti_t.append(timed(taichi_iteration, ITERATIONS_PER_RUN))
+        one.start()
+        one.taichi()
+        one.start()
+        ti_t.append(timed(one.taichi, ITERATIONS_PER_RUN))
     (ms_taichi, cpu_taichi), (ms_numpy, cpu_numpy) = np.median(ti_t, axis=0), np.median(np_t, axis=0)
-    delta_t, delta_n = taichi_delta(), numpy_iteration()
+    delta_t, delta_n = one.taichi_delta(), one.numpy()
     out = {
         "resolution": f"{K.width}x{K.height}",
         "iteration_ms": {"taichi": ms_taichi, "numpy": ms_numpy, "ratio": ms_numpy / ms_taichi},

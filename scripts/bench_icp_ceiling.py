@@ -39,7 +39,7 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench_icp import BLAS_SETTLE_S, ITERATIONS_PER_RUN, load_pair  # noqa: E402
+from bench_icp import BLAS_SETTLE_S, FinestIteration, compute_maps, load_pair  # noqa: E402
 
 C_SOURCE = Path(__file__).resolve().parent / "icp_pass.c"
 MARCH = ("x86-64", "native")
@@ -88,52 +88,26 @@ def best_ms(fn, repeats: int, before=None, after=None) -> float:
 
 
 def bench_size(depth_s, depth_t, K, cfg, executables, repeats: int, workdir: Path) -> dict:
-    from ti_fusion import icp_numpy
+    from ti_fusion.geometry import flatten_pose
     from ti_fusion.icp import ICP
-    from ti_fusion.kernels.icp import unpack_sums
     from ti_fusion.kernels.maps import FrameMaps
-    from ti_fusion.solve import solve_normal_equations
 
     c = cfg.icp
     src, tgt = FrameMaps(K.height, K.width, len(c.iterations)), FrameMaps(K.height, K.width, len(c.iterations))
-    for maps, depth in ((src, depth_s), (tgt, depth_t)):
-        maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.smooth_radius(K.width))
+    compute_maps(src, tgt, depth_s, depth_t, K, c)
     icp = ICP(c)
     pose = icp.align(src, tgt).pose
-    fields = (src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0])
-    Kt = tgt.intrinsics[0].as_tuple()
-    thresholds = (icp.dist_threshold(0), c.normal_threshold_deg, icp.robust, c.robust_scale)
-    arrays = [f.to_numpy().astype(np.float32) for f in fields]
-
-    level = icp_numpy.LevelIteration(*arrays, Kt, *thresholds)
-
-    def numpy_iteration():
-        s = unpack_sums(level.sums(pose))
-        return solve_normal_equations(s["AtA"], s["Atb"])
-
-    kernels = icp._kernels(K.width * K.height)
-    in_kernel = kernels.solves_in_kernel and c.solver == "cholesky"
-
-    def start():
-        if in_kernel:
-            kernels.begin_iterations(pose, ITERATIONS_PER_RUN + 1)
-            kernels.begin_level(fields[0], Kt, *thresholds, 0, c.min_inliers, 0.0)
-
-    def taichi_iteration():
-        if in_kernel:
-            return kernels.iterate(*fields, 0)
-        s = unpack_sums(kernels.reduce(*fields, pose, Kt, *thresholds))
-        return solve_normal_equations(s["AtA"], s["Atb"])
-
-    ref = level.sums(pose)
+    one = FinestIteration(icp, src, tgt, pose)
+    ref = one.numpy_level.sums(pose)
     row = {"size": f"{K.width}x{K.height}",
-           "numpy": best_ms(numpy_iteration, repeats, after=lambda: time.sleep(BLAS_SETTLE_S)),
-           "taichi": best_ms(taichi_iteration, repeats, before=start)}
-    R, t = pose[:3, :3], pose[:3, 3]
-    params = np.concatenate([R.ravel(), t, Kt, [thresholds[0] ** 2, np.cos(np.radians(thresholds[1])), c.robust_scale]])
-    for fname, a in zip(("sv", "sn", "tv", "tn"), arrays):
-        a.tofile(workdir / f"{fname}.bin")
+           "numpy": best_ms(one.numpy, repeats, after=lambda: time.sleep(BLAS_SETTLE_S)),
+           "taichi": best_ms(one.taichi, repeats, before=one.start)}
+    # the C program's inputs (see scripts/icp_pass.c)
+    dist, angle, _, scale = one.thresholds
+    params = np.concatenate([flatten_pose(pose), one.K, [dist ** 2, np.cos(np.radians(angle)), scale]])
     params.astype(np.float64).tofile(workdir / "params.bin")
+    for fname, f in zip(("sv", "sn", "tv", "tn"), one.fields):
+        f.to_numpy().astype(np.float32).tofile(workdir / f"{fname}.bin")
     for march, exe in executables.items():
         out = subprocess.run([str(exe), str(workdir), str(K.height), str(K.width), str(repeats)],
                              capture_output=True, text=True, check=True).stdout.split()

@@ -22,7 +22,7 @@ from ti_fusion import icp_numpy
 from ti_fusion.backend import current_backend
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import DatasetConfig, ICPConfig, SynthConfig
-from ti_fusion.geometry import invert, make_pose, pose_error, se3_exp, so3_exp
+from ti_fusion.geometry import flatten_pose, invert, make_pose, pose_error, se3_exp, so3_exp
 from ti_fusion.icp import ICP, ICPResult
 from ti_fusion.kernels import icp as kicp
 from ti_fusion.kernels.maps import FrameMaps
@@ -191,7 +191,7 @@ def test_c_pass_of_ceiling_benchmark_matches_reference(rng, tmp_path, robust, ma
     subprocess.run(ceiling_script().c_command("cc", march, robust, exe), check=True)
     for fname, a in zip(("sv", "sn", "tv", "tn"), (P, N, Vt, Nt)):
         a.astype(np.float32).tofile(tmp_path / f"{fname}.bin")
-    params = np.concatenate([T[:3, :3].ravel(), T[:3, 3], K_t.as_tuple(), [THR ** 2, np.cos(np.radians(THETA)), 0.05]])
+    params = np.concatenate([flatten_pose(T), K_t.as_tuple(), [THR ** 2, np.cos(np.radians(THETA)), 0.05]])
     params.tofile(tmp_path / "params.bin")
     out = subprocess.run([str(exe), str(tmp_path), str(K_t.height), str(K_t.width), "1"], capture_output=True,
                          text=True, check=True).stdout.split()

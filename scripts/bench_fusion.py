@@ -87,12 +87,9 @@ class NumpyFusion:
         cand = np.flatnonzero((index >= 0) & valid)
         i = index[cand]
         if cfg.association == "compatible":
-            qw, nw = q_world[cand], n_world[cand]
+            px, qw, nw = cand, q_world[cand], n_world[cand]
         else:
             qw, nw = q[cand] @ R.T + t, nq[cand] @ R.T
-        if cfg.association == "compatible":
-            px = cand
-        else:
             ok = (np.linalg.norm(qw - a["position"][i], axis=1) <= cfg.dist_threshold) & \
                  (np.einsum("ij,ij->i", nw, a["normal"][i]) >= cos_thr)
             px, i, qw, nw = cand[ok], i[ok], qw[ok], nw[ok]

@@ -219,4 +219,3 @@ class ICP:
         if failure is not None:
             result.failure = f"level {level} iteration {it}: {failure}"
         return delta
-

@@ -127,14 +127,18 @@ class NumpyFusion:
         n += k
         t4 = time.perf_counter()
         ms["add"] = (t4 - t3) * 1e3
-        # remove unstable surfels, compact
+        # remove unstable surfels and compact as the kernels do: the k-th survivor at or above the new count
+        # m moves into the k-th hole below m, so only the holes are written, not the whole map (copying every
+        # survivor, as a boolean mask does, made this stage 6x slower at 320×240)
         drop = (a["weight"][:n] < cfg.unstable_weight) & (frame - a["t_updated"][:n] >= cfg.unstable_age)
-        removed = int(drop.sum())
+        removed = int(np.count_nonzero(drop))
         if removed:
-            keep = ~drop
-            for name, arr in a.items():
-                arr[: n - removed] = arr[:n][keep]
-            n -= removed
+            m = n - removed
+            holes = np.flatnonzero(drop[:m])
+            movers = m + np.flatnonzero(~drop[m:])
+            for arr in a.values():
+                arr[holes] = arr[movers]
+            n = m
         self.n = n
         ms["remove"] = (time.perf_counter() - t4) * 1e3
         return ms

@@ -508,6 +508,41 @@ def test_compaction_across_blocks(arch, rng, pattern):
     np.testing.assert_array_equal(got["t_created"][holes], movers)
 
 
+@pytest.mark.parametrize("pattern", ["all", "tail only", "one per block"])
+def test_compaction_edge_cases(arch, rng, pattern):
+    """Removal where nothing survives, where only the tail goes (no holes below the new count: nothing
+    moves), and where every block loses exactly one surfel (every block has a hole to list)."""
+    n = 4 * F.BLOCK + 7
+    data = {
+        "position": rng.normal(size=(n, 3)).astype(np.float32),
+        "normal": rng.normal(size=(n, 3)).astype(np.float32),
+        "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+        "weight": np.full(n, 5.0, np.float32),
+        "radius": rng.uniform(0, 0.1, n).astype(np.float32),
+        "t_created": np.arange(n, dtype=np.int32),
+        "t_updated": np.zeros(n, np.int32),
+    }
+    drop = np.zeros(n, bool)
+    if pattern == "all":
+        drop[:] = True
+    elif pattern == "tail only":
+        drop[n - F.BLOCK // 2:] = True
+    else:
+        starts = np.arange(0, n, F.BLOCK)  # the last block holds 7 surfels
+        drop[starts + rng.integers(0, 7, len(starts))] = True
+    data["weight"][drop] = 1.0
+    smap = F.SurfelMap(8 * F.BLOCK)
+    smap.from_numpy(data)
+    removed = smap.remove(100, True, 3.0, 30)
+    m = n - drop.sum()
+    assert removed == drop.sum() and smap.count == m
+    got = smap.to_numpy()
+    stay = ~drop[:m]
+    np.testing.assert_array_equal(got["t_created"][:m][stay], np.arange(m)[stay])
+    holes = np.flatnonzero(drop[:m])
+    np.testing.assert_array_equal(got["t_created"][holes], m + np.flatnonzero(~drop[m:]))
+
+
 def ref_render(data, pose, half, min_weight=0.0):
     """Point z-buffer of the front-facing, confident surfels, then per pixel the nearest disc hit among
     the neighbourhood's front surfels (the kernel's screen-space splatting), in float64."""

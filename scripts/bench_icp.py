@@ -399,7 +399,7 @@ def main(argv=None) -> int:
     parser.add_argument("--accuracy-gap", type=int, default=10, help="frames between the two of a pair")
     parser.add_argument("--open3d-worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    from ti_fusion.timing import keep_freed_memory
+    from ti_fusion.timing import keep_freed_memory, numpy_conditions
 
     kept = keep_freed_memory()  # NumPy (and Open3D) at their best: see keep_freed_memory
     if args.open3d_worker:
@@ -415,7 +415,7 @@ def main(argv=None) -> int:
     depth_s, depth_t, K, reference, what = load_pair(args, cfg)
     print(f"ICP benchmark: {what}; backend {backend.arch}, {os.cpu_count()} CPUs; iterations {cfg.icp.iterations} "
           f"(coarse → fine), depth smoothing r = {cfg.icp.smooth_radius(K.width)} at {K.width} px (half at half); medians of {args.repeats}+ runs; "
-          f"freed memory {'kept (glibc): NumPy timed at its best' if kept else 'returned to the system (not glibc)'}")
+          f"{numpy_conditions(kept)}")
     rows = []
     for f in (1, 2):
         Kf = K.downsampled(f)

@@ -49,25 +49,37 @@ C_FLAGS = ("-O3", "-fassociative-math", "-fno-signed-zeros", "-fno-trapping-math
 ROBUST_C = {"none": 0, "huber": 1, "tukey": 2}
 
 
+def build_command(cc: str, march: str, source: Path, exe: Path, defines: tuple[str, ...] = ()) -> list[str]:
+    """The compiler command for one C program of the ceiling benchmarks at one -march."""
+    return [cc, *C_FLAGS, f"-march={march}", *defines, "-o", str(exe), str(source), "-lm"]
+
+
 def c_command(cc: str, march: str, robust: str, exe: Path) -> list[str]:
-    """The compiler command for one -march and robust mode (e.g. "huber+depth")."""
+    """The compiler command of the ICP pass for one -march and robust mode (e.g. "huber+depth")."""
     name, _, depth = robust.partition("+")
-    return [cc, *C_FLAGS, f"-march={march}", f"-DROBUST={ROBUST_C[name]}", f"-DDEPTH_WEIGHTED={int(depth == 'depth')}",
-            "-o", str(exe), str(C_SOURCE), "-lm"]
+    return build_command(cc, march, C_SOURCE, exe,
+                         (f"-DROBUST={ROBUST_C[name]}", f"-DDEPTH_WEIGHTED={int(depth == 'depth')}"))
 
 
-def compile_c(cc: str, robust: str, workdir: Path) -> dict[str, Path]:
-    """{march: executable} for each -march that compiles."""
+def compile_each_march(command, name: str, workdir: Path, script: str) -> dict[str, Path]:
+    """{march: executable} for each -march that compiles; ``command(march, exe)`` gives the command."""
     out = {}
     for march in MARCH:
-        exe = workdir / f"icp_pass_{march}"
-        run = subprocess.run(c_command(cc, march, robust, exe), capture_output=True, text=True)
+        exe = workdir / f"{name}_{march}"
+        cmd = command(march, exe)
+        run = subprocess.run(cmd, capture_output=True, text=True)
         if run.returncode == 0:
             out[march] = exe
         else:
             last = run.stderr.strip().splitlines()[-1] if run.stderr.strip() else f"exit code {run.returncode}"
-            print(f"bench_icp_ceiling: {cc} -march={march} failed: {last}")
+            print(f"{script}: {cmd[0]} -march={march} failed: {last}")
     return out
+
+
+def compile_c(cc: str, robust: str, workdir: Path) -> dict[str, Path]:
+    """{march: executable} of the ICP pass for each -march that compiles."""
+    return compile_each_march(lambda march, exe: c_command(cc, march, robust, exe), "icp_pass", workdir,
+                              "bench_icp_ceiling")
 
 
 def best_ms(fn, repeats: int, before=None, after=None) -> float:
@@ -130,9 +142,9 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
-    from ti_fusion.timing import keep_freed_memory
+    from ti_fusion.timing import keep_freed_memory, numpy_conditions
 
-    keep_freed_memory()
+    kept = keep_freed_memory()
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")
     from ti_fusion.backend import init_backend
     from ti_fusion.config import load_config
@@ -154,7 +166,7 @@ def main(argv=None) -> int:
         rows = [bench_size(depth_s[::f, ::f].copy(), depth_t[::f, ::f].copy(), K.downsampled(f), cfg, executables,
                            args.repeats, workdir) for f in (1, 2)]
     print(f"one ICP iteration at the finest level, {what}; {backend.arch} backend, {os.cpu_count()} CPUs; "
-          f"robust {robust}; best ms of each (NumPy ÷ each)")
+          f"robust {robust}; best ms of each (NumPy ÷ each); {numpy_conditions(kept)}")
     head = f"{'':>8} | {'NumPy':>7} | {'Taichi, all cores':>17}"
     for march in executables:
         head += f" | {'C ' + march + ', 1 thread':>24}"

@@ -9,7 +9,9 @@ tests by backend and Taichi is re-initialised only when the backend changes.
 
 from __future__ import annotations
 
+import importlib.util
 import os
+import sys
 import zlib
 from pathlib import Path
 
@@ -19,6 +21,7 @@ import pytest
 from ti_fusion.backend import current_backend, init_backend, vulkan_available
 
 REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen-7scenes"
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 
 _vulkan_ok: bool | None = None
 
@@ -62,3 +65,25 @@ def redkitchen():
     if not (REDKITCHEN / "frame-000000.depth.png").is_file():
         pytest.skip(f"real data not found at {REDKITCHEN}")
     return REDKITCHEN
+
+
+@pytest.fixture(scope="session")
+def script():
+    """``script("bench_fusion")``: a benchmark of scripts/ as a module, for the tests that check that what it
+    times is the computation it claims (scripts/ is on the path while it loads, for the scripts that
+    import each other)."""
+    loaded = {}
+
+    def load(name: str):
+        if name not in loaded:
+            spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
+            module = importlib.util.module_from_spec(spec)
+            sys.path.insert(0, str(SCRIPTS))
+            try:
+                spec.loader.exec_module(module)
+            finally:
+                sys.path.remove(str(SCRIPTS))
+            loaded[name] = module
+        return loaded[name]
+
+    return load

@@ -867,3 +867,53 @@ def test_fuse_command_on_the_synthetic_default(cpu, tmp_path):
 def test_fuse_command_on_redkitchen(cpu, tmp_path, redkitchen):
     summary = _run_fuse(tmp_path, str(redkitchen), "--frames", "3", "--stride", "5", "--downsample", "4")
     assert summary["frames"] == 3 and summary["compression_ratio"] < 0.8
+
+
+def _benchmark_step(script, rng):
+    """The fusion benchmarks' setting, small: a 160×120 map of ~40 k surfels built along the synthetic
+    sequence, 5% of its surfels made weak and stale (so that the step removes them), and the kernels'
+    step on the next frame. Returns (cfg, the map before the step, frame maps, colour, pose, frame, the
+    step's stats, the map after it)."""
+    cfg = FusionConfig(level=0)
+    mapper, maps, seq, frame = script("bench_fusion").build_map(160, 120, 40_000, cfg, quiet=True)
+    before = mapper.to_numpy()
+    stale = rng.random(len(before["weight"])) < 0.05
+    before["weight"][stale] = 1.0
+    before["t_updated"][stale] = frame - cfg.unstable_age - 3
+    mapper.map.from_numpy(before)
+    depth, rgb = seq.frame(frame)
+    maps.compute(depth, seq.intrinsics)
+    stats = mapper.integrate(maps, rgb, seq.poses[frame], frame)
+    assert stats.merged > 1000 and stats.added > 100 and stats.covered > 100 and stats.removed > 1000
+    return cfg, before, maps, depth, rgb, seq, frame, stats, mapper
+
+
+def test_numpy_step_of_fusion_benchmark_matches_kernels(cpu, rng, script):
+    """bench_fusion's NumpyFusion, the baseline of the 20× ratio, does the kernels' step: the same surfels
+    merged, appended and removed, in the same places of the map."""
+    cfg, before, maps, depth, rgb, seq, frame, stats, mapper = _benchmark_step(script, rng)
+    bench = script("bench_fusion")
+    ref = bench.NumpyFusion(before, cfg, capacity=len(before["position"]) + depth.size)
+    ref.integrate(maps.vertex[0].to_numpy(), maps.normal[0].to_numpy(), depth, rgb, seq.poses[frame],
+                  seq.intrinsics, frame)
+    assert ref.n == stats.surfels
+    got = {name: arr[: ref.n] for name, arr in ref.a.items()}
+    assert script("bench_fusion_ceiling").matching_rows(got, mapper.to_numpy()) > 0.999
+
+
+@pytest.mark.skipif(__import__("shutil").which("cc") is None, reason="no C compiler")
+@pytest.mark.parametrize("march", ["x86-64", "native"])
+def test_c_step_of_ceiling_benchmark_matches_kernels(cpu, rng, tmp_path, march, script):
+    """scripts/fusion_step.c, built as scripts/bench_fusion_ceiling.py builds it, does the kernels' step:
+    the same merges, appends, covered pixels and removals, and the same map afterwards."""
+    import subprocess
+
+    ceiling = script("bench_fusion_ceiling")
+    cfg, before, maps, depth, rgb, seq, frame, stats, mapper = _benchmark_step(script, rng)
+    radial = mapper.map.scratch(*depth.shape).radial.to_numpy()
+    ceiling.write_inputs(tmp_path, before, maps, rgb, seq.poses[frame], seq.intrinsics, frame, cfg, radial)
+    exe = tmp_path / "fusion_step"
+    subprocess.run(ceiling.build_command("cc", march, ceiling.C_SOURCE, exe), check=True)
+    _, counts = ceiling.run_c(exe, tmp_path, 1)
+    assert counts == (stats.merged, stats.added, stats.covered, stats.removed, stats.surfels)
+    assert ceiling.matching_rows(ceiling.read_outputs(tmp_path, counts[-1]), mapper.to_numpy()) > 0.999

@@ -8,7 +8,6 @@ the scale is the Cauchy–Schwarz bound of the entry, because entries that are s
 convergence) may be close to zero while their rounding is not.
 """
 
-import importlib.util
 import math
 import shutil
 import subprocess
@@ -171,24 +170,16 @@ def test_benchmark_numpy_iteration_matches_reference(rng, robust):
     assert np.all(np.abs(got - ref) <= 1e-12 * cs_scale(ref))  # the same float64 math, rows in the same order
 
 
-def ceiling_script():
-    """scripts/bench_icp_ceiling.py as a module (for its compiler command)."""
-    spec = importlib.util.spec_from_file_location("bench_icp_ceiling", ROOT / "scripts" / "bench_icp_ceiling.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.mark.skipif(shutil.which("cc") is None, reason="no C compiler")
 @pytest.mark.parametrize("march", ["x86-64", "native"])
 @pytest.mark.parametrize("robust", ["none", "tukey", "huber+depth"])
-def test_c_pass_of_ceiling_benchmark_matches_reference(rng, tmp_path, robust, march):
+def test_c_pass_of_ceiling_benchmark_matches_reference(rng, tmp_path, robust, march, script):
     """scripts/icp_pass.c, built as scripts/bench_icp_ceiling.py builds it, gives icp_pass's sums."""
     K_t = Intrinsics(120.0, 110.0, 27.3, 20.6, 56, 40)
     T = random_pose(rng, 0.1)
     P, N, Vt, Nt = random_pass_inputs(rng, T, K_t, src_shape=(K_t.height, K_t.width))
     exe = tmp_path / "icp_pass"
-    subprocess.run(ceiling_script().c_command("cc", march, robust, exe), check=True)
+    subprocess.run(script("bench_icp_ceiling").c_command("cc", march, robust, exe), check=True)
     for fname, a in zip(("sv", "sn", "tv", "tn"), (P, N, Vt, Nt)):
         a.astype(np.float32).tofile(tmp_path / f"{fname}.bin")
     params = np.concatenate([flatten_pose(T), K_t.as_tuple(), [THR ** 2, np.cos(np.radians(THETA)), 0.05]])

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import os
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -68,3 +69,19 @@ def keep_freed_memory() -> bool:
             bool(libc.mallopt(_M_TRIM_THRESHOLD, 1 << 30))
     except (OSError, AttributeError):
         return False
+
+
+# Environment settings that change how fast NumPy's BLAS runs. Some machines set OPENBLAS_CORETYPE (to an
+# older core's kernels, as a guard against OpenBLAS bugs on newer CPUs); a benchmark names them beside
+# its ratios. (On the project's machines, with OPENBLAS_CORETYPE=Haswell and OPENBLAS_L2_SIZE=512 unset,
+# the NumPy ICP iteration took 33.7 and 7.3 ms at 640×480 and 320×240, against 33.1 and 7.6 ms with them.)
+BLAS_SETTINGS = ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")
+
+
+def numpy_conditions(kept_freed_memory: bool) -> str:
+    """How NumPy runs in a benchmark, for its header: freed memory kept or not (``keep_freed_memory``) and
+    the BLAS settings in the environment."""
+    text = ("freed memory kept (glibc): NumPy timed at its best" if kept_freed_memory
+            else "freed memory returned to the system (not glibc)")
+    blas = [f"{k}={os.environ[k]}" for k in BLAS_SETTINGS if k in os.environ]
+    return text + (f"; NumPy's BLAS under {', '.join(blas)}" if blas else "")

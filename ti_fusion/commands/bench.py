@@ -1,4 +1,4 @@
-"""``ti-fusion bench NAME``: run one of the benchmarks in scripts/ (icp, icp_ceiling, fusion, slam, backends)."""
+"""``ti-fusion bench NAME``: run one of the benchmarks in scripts/ (icp, icp_ceiling, fusion, fusion_ceiling, slam, backends)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from pathlib import Path
 
 from ..errors import InputError
 
-HELP = "run a benchmark from scripts/ (icp, icp_ceiling, fusion, slam, backends); options after -- go to the script"
+HELP = "run a benchmark from scripts/ (icp, icp_ceiling, fusion, fusion_ceiling, slam, backends); options after -- go to the script"
 USES_DATASET = False
 USES_TAICHI = False
-NAMES = ("icp", "icp_ceiling", "fusion", "slam", "backends")
+NAMES = ("icp", "icp_ceiling", "fusion", "fusion_ceiling", "slam", "backends")
 
 
 def add_arguments(parser) -> None:

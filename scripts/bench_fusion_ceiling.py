@@ -27,7 +27,6 @@ from __future__ import annotations
 import argparse
 import math
 import os
-import shutil
 import subprocess
 import sys
 import tempfile
@@ -40,7 +39,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench_fusion import BLAS_SETTLE_S, NumpyFusion, build_map  # noqa: E402
-from bench_icp_ceiling import build_command, compile_each_march  # noqa: E402
+from bench_icp_ceiling import build_command, c_executables, compile_each_march, print_table  # noqa: E402
 
 C_SOURCE = Path(__file__).resolve().parent / "fusion_step.c"
 ATTRIBUTES = ("position", "normal", "colour", "weight", "radius", "t_created", "t_updated")
@@ -173,36 +172,17 @@ def main(argv=None) -> int:
     backend = init_backend("cpu")
     with tempfile.TemporaryDirectory(prefix="fusion_ceiling_") as tmp:
         workdir = Path(tmp)
-        executables = {}
-        if shutil.which(args.cc):
-            executables = compile_each_march(lambda march, exe: build_command(args.cc, march, C_SOURCE, exe),
-                                             "fusion_step", workdir, "bench_fusion_ceiling")
-            if not executables:
-                print("bench_fusion_ceiling: the C step did not compile: C columns skipped")
-        else:
-            print(f"bench_fusion_ceiling: no C compiler ({args.cc}): C columns skipped")
+        executables = c_executables(
+            args.cc, lambda: compile_each_march(lambda march, exe: build_command(args.cc, march, C_SOURCE, exe),
+                                                "fusion_step", workdir, "bench_fusion_ceiling"),
+            "bench_fusion_ceiling", "step")
         rows = []
         for size in args.sizes.split(","):
             w, h = (int(x) for x in size.lower().split("x"))
             rows.append(bench_size(w, h, args.surfels, args.repeats, executables, workdir))
     print(f"\none fusion step (synthetic sequence, default settings); {backend.arch} backend, {os.cpu_count()} CPUs; "
           f"best ms of {args.repeats} (NumPy ÷ each); {numpy_conditions(kept)}")
-    head = f"{'':>8} | {'surfels':>9} | {'NumPy':>7} | {'Taichi, all cores':>17}"
-    for march in executables:
-        head += f" | {'C ' + march + ', 1 thread':>24}"
-    if "native" in executables:
-        head += f" | {'C native ÷ 2 (ideal)':>20}"
-    print(head)
-    for r in rows:
-        line = (f"{r['size']:>8} | {r['surfels']:>9,} | {r['numpy']:7.2f} | "
-                f"{r['taichi']:6.2f} ({r['numpy'] / r['taichi']:5.1f}×)   ")
-        for march in executables:
-            ms = r[f"c_{march}"]
-            line += f" | {ms:12.2f} ({r['numpy'] / ms:5.1f}×)    "
-        if "native" in executables:
-            half = r["c_native"] / 2
-            line += f" | {half:9.2f} ({r['numpy'] / half:5.1f}×)"
-        print(line)
+    print_table(rows, executables, lead=("surfels",))
     for r in rows:
         merged, added, covered, removed, kept_n = r["counts"]
         match = ", ".join(f"{march} {r[f'match_{march}']}" for march in executables)

@@ -82,6 +82,40 @@ def compile_c(cc: str, robust: str, workdir: Path) -> dict[str, Path]:
                               "bench_icp_ceiling")
 
 
+def c_executables(cc: str, compile_all, script: str, what: str) -> dict[str, Path]:
+    """``compile_all()`` ({march: executable}) where the compiler ``cc`` exists; else, or if nothing
+    compiled, {} after saying that the C columns are skipped."""
+    if not shutil.which(cc):
+        print(f"{script}: no C compiler ({cc}): C columns skipped")
+        return {}
+    executables = compile_all()
+    if not executables:
+        print(f"{script}: the C {what} did not compile: C columns skipped")
+    return executables
+
+
+def print_table(rows: list[dict], executables: dict, lead: tuple[str, ...] = ()) -> None:
+    """The ceiling table: per row its size, the ``lead`` columns (e.g. "surfels"), then the best ms of
+    NumPy, Taichi and C at each -march (``row["numpy"]``, ``row["taichi"]``, ``row["c_<march>"]``), with
+    NumPy ÷ each, and C native ÷ 2, the perfect two-thread split."""
+    head = f"{'':>8} |" + "".join(f" {name:>9} |" for name in lead) + f" {'NumPy':>7} | {'Taichi, all cores':>17}"
+    for march in executables:
+        head += f" | {'C ' + march + ', 1 thread':>24}"
+    if "native" in executables:
+        head += f" | {'C native ÷ 2 (ideal)':>20}"
+    print(head)
+    for r in rows:
+        line = (f"{r['size']:>8} |" + "".join(f" {r[name]:>9,} |" for name in lead)
+                + f" {r['numpy']:7.2f} | {r['taichi']:6.2f} ({r['numpy'] / r['taichi']:5.1f}×)   ")
+        for march in executables:
+            ms = r[f"c_{march}"]
+            line += f" | {ms:12.2f} ({r['numpy'] / ms:5.1f}×)    "
+        if "native" in executables:
+            half = r["c_native"] / 2
+            line += f" | {half:9.2f} ({r['numpy'] / half:5.1f}×)"
+        print(line)
+
+
 def best_ms(fn, repeats: int, before=None, after=None) -> float:
     """The fastest of ``repeats`` single timed calls, each after an untimed one (see the docstring)."""
     times = []
@@ -156,32 +190,12 @@ def main(argv=None) -> int:
     with tempfile.TemporaryDirectory(prefix="icp_ceiling_") as tmp:
         workdir = Path(tmp)
         robust = ICP(cfg.icp).robust
-        if shutil.which(args.cc):
-            executables = compile_c(args.cc, robust, workdir)
-            if not executables:
-                print("bench_icp_ceiling: the C pass did not compile: C columns skipped")
-        else:
-            executables = {}
-            print(f"bench_icp_ceiling: no C compiler ({args.cc}): C columns skipped")
+        executables = c_executables(args.cc, lambda: compile_c(args.cc, robust, workdir), "bench_icp_ceiling", "pass")
         rows = [bench_size(depth_s[::f, ::f].copy(), depth_t[::f, ::f].copy(), K.downsampled(f), cfg, executables,
                            args.repeats, workdir) for f in (1, 2)]
     print(f"one ICP iteration at the finest level, {what}; {backend.arch} backend, {os.cpu_count()} CPUs; "
           f"robust {robust}; best ms of each (NumPy ÷ each); {numpy_conditions(kept)}")
-    head = f"{'':>8} | {'NumPy':>7} | {'Taichi, all cores':>17}"
-    for march in executables:
-        head += f" | {'C ' + march + ', 1 thread':>24}"
-    if "native" in executables:
-        head += f" | {'C native ÷ 2 (ideal)':>20}"
-    print(head)
-    for r in rows:
-        line = f"{r['size']:>8} | {r['numpy']:7.2f} | {r['taichi']:6.2f} ({r['numpy'] / r['taichi']:5.1f}×)   "
-        for march in executables:
-            ms = r[f"c_{march}"]
-            line += f" | {ms:12.2f} ({r['numpy'] / ms:5.1f}×)    "
-        if "native" in executables:
-            half = r["c_native"] / 2
-            line += f" | {half:9.2f} ({r['numpy'] / half:5.1f}×)"
-        print(line)
+    print_table(rows, executables)
     return 0
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ti_fusion.backend import current_backend, init_backend, vulkan_available
+from ti_fusion.backend import init_backend, vulkan_available
 
 REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen-7scenes"
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"

@@ -284,6 +284,23 @@ def test_inspect_ate_matches_a_known_offset(tmp_path, rng):
     assert n == 20 and rmse == pytest.approx(0.01, abs=2e-3)
 
 
+def test_inspect_ate_needs_three_poses(tmp_path, rng):
+    """One or two poses fit any ground truth exactly after a rigid alignment: no ATE, and inspect says why
+    (the log of a run stopped after its first frames)."""
+    poses = _trajectory(rng, 2)
+    path = tmp_path / "log.mcap"
+    with RunLogger(path) as log:
+        for i, T in enumerate(poses):
+            log.log_pose(i, T, se3_exp([0.1, 0, 0, 0, 0, 0.5]) @ T)
+    from ti_fusion.commands.inspect import _ate_rmse, format_report, summarise
+
+    contents = read_log(path)
+    assert _ate_rmse(contents) == (None, 2)
+    summary = summarise(contents)
+    assert summary["ate_rmse_m"] is None and summary["ate_poses"] == 2
+    assert "ATE: not computed from 2 pose pair(s)" in format_report(contents, summary)
+
+
 def test_inspect_bad_input(tmp_path, capsys):
     missing = tmp_path / "nope.mcap"
     assert main(["inspect", str(missing), "--out", str(tmp_path / "o")]) == 2

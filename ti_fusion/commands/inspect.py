@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ..evaluation import associate_trajectories, ate_errors
 from ..mcap_log import LogContents, read_log
 
 HELP = "summarise an MCAP run log (channels, time range, ms per stage, failures, ATE); --plot for a PNG"
@@ -47,7 +48,7 @@ def summarise(log: LogContents) -> dict:
     ms = stage_ms(log.stats)
     failures = [(s.get("frame", i), s.get("status")) for i, s in enumerate(log.stats)
                 if "status" in s and s["status"] != "ok"]
-    ate = _ate_rmse(log) if len(log.gt_times) else None
+    ate_rmse, ate_poses = _ate_rmse(log)
     return {
         "frames": len(log.stats),
         "log": str(log.path),
@@ -63,8 +64,8 @@ def summarise(log: LogContents) -> dict:
                          for k, v in ms.items()},
         "tracking_failures": len(failures),
         "failed_frames": [{"frame": f, "status": s} for f, s in failures],
-        "ate_rmse_m": None if ate is None else round(ate[0], 6),
-        "ate_poses": None if ate is None else ate[1],
+        "ate_rmse_m": None if ate_rmse is None else round(ate_rmse, 6),
+        "ate_poses": ate_poses,
     }
 
 
@@ -97,6 +98,9 @@ def format_report(log: LogContents, summary: dict) -> str:
     if summary["ate_rmse_m"] is not None:
         lines.append(f"ATE RMSE: {summary['ate_rmse_m']:.4f} m over {summary['ate_poses']} poses "
                      "(rigidly aligned to ground truth)")
+    elif summary["ate_poses"]:
+        lines.append(f"ATE: not computed from {summary['ate_poses']} pose pair(s) with the ground truth: a rigid "
+                     f"alignment of fewer than {MIN_ATE_POSES} fits them exactly")
     elif len(log.gt_times):
         lines.append("ATE: no estimated pose shares a time with the ground truth")
     return "\n".join(lines)
@@ -117,24 +121,22 @@ def stage_ms(stats: list[dict]) -> dict[str, np.ndarray]:
     return out
 
 
-def _ate_rmse(log: LogContents) -> tuple[float, int] | None:
-    """ATE RMSE after the rigid (SE(3), no scale) Umeyama alignment, poses matched by log time.
+# A rigid alignment fits one or two positions exactly: their "error" would be zero whatever the tracking did
+MIN_ATE_POSES = 3
 
-    Private stand-in until ti_fusion.evaluation provides the project-wide ATE.
-    """
-    gt_at = {round(t * 1e6): p for t, p in zip(log.gt_times, log.gt_poses)}
-    pairs = [(p[:3, 3], gt_at[round(t * 1e6)][:3, 3]) for t, p in zip(log.est_times, log.est_poses)
-             if round(t * 1e6) in gt_at]
-    if len(pairs) < 3:
-        return None
-    est = np.array([e for e, _ in pairs])
-    gt = np.array([g for _, g in pairs])
-    mu_e, mu_g = est.mean(0), gt.mean(0)
-    U, _, Vt = np.linalg.svd((gt - mu_g).T @ (est - mu_e))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    err = gt - (est @ R.T + (mu_g - R @ mu_e))
-    return float(np.sqrt((err**2).sum(1).mean())), len(pairs)
+
+def _ate_rmse(log: LogContents) -> tuple[float | None, int]:
+    """(ATE RMSE of /camera/pose against /gt/pose after the rigid alignment of ``evaluation``, or None
+    with fewer than MIN_ATE_POSES pairs; the number of pose pairs), poses paired by log time."""
+    if not len(log.gt_times) or not len(log.est_times):
+        return None, 0
+    # both are logged at the frame's time: pair equal times only
+    _, est, gt = associate_trajectories(log.est_times, log.est_poses, log.gt_times, log.gt_poses,
+                                        max_difference=1e-6)
+    if len(est) < MIN_ATE_POSES:
+        return None, len(est)
+    errors, _ = ate_errors(est, gt)
+    return float(np.sqrt(np.mean(errors**2))), len(est)
 
 
 # --------------------------------------------------------------------------------------------------

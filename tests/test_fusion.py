@@ -872,8 +872,8 @@ def test_fuse_command_on_redkitchen(cpu, tmp_path, redkitchen):
 def _benchmark_step(script, rng):
     """The fusion benchmarks' setting, small: a 160×120 map of ~40 k surfels built along the synthetic
     sequence, 5% of its surfels made weak and stale (so that the step removes them), and the kernels'
-    step on the next frame. Returns (cfg, the map before the step, frame maps, colour, pose, frame, the
-    step's stats, the map after it)."""
+    step on the next frame. Returns (cfg, the map before the step as arrays, the frame maps, the frame's
+    depth and colour, the sequence, the frame's index, the step's stats, the mapper after the step)."""
     cfg = FusionConfig(level=0)
     mapper, maps, seq, frame = script("bench_fusion").build_map(160, 120, 40_000, cfg, quiet=True)
     before = mapper.to_numpy()

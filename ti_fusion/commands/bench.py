@@ -8,10 +8,10 @@ from pathlib import Path
 
 from ..errors import InputError
 
-HELP = "run a benchmark from scripts/ (icp, icp_ceiling, fusion, fusion_ceiling, slam, backends); options after -- go to the script"
+NAMES = ("icp", "icp_ceiling", "fusion", "fusion_ceiling", "slam", "backends")
+HELP = f"run a benchmark from scripts/ ({', '.join(NAMES)}); options after -- go to the script"
 USES_DATASET = False
 USES_TAICHI = False
-NAMES = ("icp", "icp_ceiling", "fusion", "fusion_ceiling", "slam", "backends")
 
 
 def add_arguments(parser) -> None:

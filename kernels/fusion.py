@@ -5,7 +5,7 @@ it was created and last updated in. The map keeps them as a structure of arrays 
 ``SurfelMap.ensure_capacity`` grows it (reallocate ×2 and copy, on the Taichi side) or raises
 ``MapCapacityError`` before a write could go past the end.
 
-One fusion step for a frame with camera-to-world pose T = [R | t] (``ti_fusion.fusion.SurfelMapper``
+One fusion step for a frame with camera-to-world pose T = [R | t] (``ti_fusion.mapping.mapper.SurfelMapper``
 strings the stages together):
 
 1. project    every surfel into the frame; per pixel, the surfel nearest in depth (the index map);

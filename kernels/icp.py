@@ -44,7 +44,7 @@ solve (``iterate``, float64 backends)
     the same kernel can finish the iteration: after the partials are added, on the calling thread, it
     solves the 6×6 system by Cholesky, applies T ← exp(δξ) T to the pose in ``params`` (in place, so the
     next launch starts there) and appends a record (the sums, the pose before, ‖δξ‖, the outcome).
-    ``ti_fusion.icp`` replays the records through its checks. One launch per iteration and nothing read
+    ``ti_fusion.tracking.icp`` replays the records through its checks. One launch per iteration and nothing read
     back but a flag: the round trip through NumPy cost ~120 µs per iteration, as much as a 320×240 pass.
 
 Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
@@ -407,8 +407,8 @@ def _build_kernels(real):
         calling thread the checks, the Cholesky solve and the update T ← exp(δξ) T of the pose in
         ``params`` (written back in place). Appends a record (R_* layout) at ``params[P_RECORDS]`` and
         sets ``params[P_DONE]`` to FAILED when the system was not solved, STOPPED when ‖δξ‖ fell below
-        ``params[P_STOP]``. The caller replays the records (``ti_fusion.icp``), with the condition-number
-        check of ``ti_fusion.solve`` too, which is why it is not repeated here."""
+        ``params[P_STOP]``. The caller replays the records (``ti_fusion.tracking.icp``), with the condition-number
+        check of ``ti_fusion.tracking.solve`` too, which is why it is not repeated here."""
         _partial_sums(src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, params, serial, target)
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
         for _ in range(1):

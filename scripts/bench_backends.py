@@ -41,11 +41,11 @@ def _time(fn, repeats: int) -> float:
 def worker(args) -> dict:
     from ti_fusion.backend import init_backend
     from ti_fusion.config import Config
-    from ti_fusion.datasets import open_dataset
+    from ti_fusion.io.datasets import open_dataset
     from ti_fusion.errors import BackendUnavailable
-    from ti_fusion.fusion import SurfelMapper
+    from ti_fusion.mapping.mapper import SurfelMapper
     from ti_fusion.geometry import invert
-    from ti_fusion.icp import ICP
+    from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.maps import FrameMaps
 
     try:

@@ -10,7 +10,7 @@ nearest-depth index map, merge, add with the covered-pixel test, remove, with th
 then run the next ``--steps`` frames through both, each on its own copy, and print the median
 milliseconds per stage and the ratio, measured in the same run. The first Taichi step of each size
 (kernel compilation) is not timed, and each Taichi step starts 0.2 s after the NumPy one, once
-OpenBLAS's threads have stopped spinning. Freed memory is kept for reuse (``ti_fusion.timing.keep_freed_memory``)
+OpenBLAS's threads have stopped spinning. Freed memory is kept for reuse (``ti_fusion.slam.timing.keep_freed_memory``)
 so that NumPy's large temporaries do not page-fault afresh at every step.
 """
 
@@ -55,7 +55,7 @@ def _rigid(p, R, t):
 
 
 class NumpyFusion:
-    """The fusion step of ``ti_fusion.fusion.SurfelMapper`` in vectorised NumPy (float32 arrays).
+    """The fusion step of ``ti_fusion.mapping.mapper.SurfelMapper`` in vectorised NumPy (float32 arrays).
 
     NumPy at its best, so that the ratio to the kernels is an honest one; the maps it makes are bit for bit
     those of the plain formulation (fancy indexing, boolean masks, einsum, the whole map at once). Measured
@@ -277,9 +277,9 @@ def build_map(width: int, height: int, target: int, cfg, quiet: bool = False):
     """Fuse frames of the synthetic sequence (noise on) at width×height until the map holds ``target``
     surfels: (mapper, frame maps, sequence, index of the next frame)."""
     from ti_fusion.config import SynthConfig
-    from ti_fusion.fusion import SurfelMapper
+    from ti_fusion.mapping.mapper import SurfelMapper
     from ti_fusion.kernels.maps import FrameMaps
-    from ti_fusion.synthetic import SyntheticSequence
+    from ti_fusion.synthetic.scene import SyntheticSequence
 
     fx = 525.0 * width / 640.0
     seq = SyntheticSequence(SynthConfig(frames=600, width=width, height=height, fx=fx, noise=True))
@@ -299,7 +299,7 @@ def build_map(width: int, height: int, target: int, cfg, quiet: bool = False):
 
 def bench_size(width: int, height: int, target: int, steps: int) -> dict:
     from ti_fusion.config import FusionConfig
-    from ti_fusion.timing import StageTimer
+    from ti_fusion.slam.timing import StageTimer
 
     cfg = FusionConfig(level=0)  # the step at this resolution (the SLAM default fuses 640×480 input at 320×240)
     mapper, maps, seq, frame = build_map(width, height, target, cfg)
@@ -339,7 +339,7 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=10, help="timed steps per size (after one warm-up)")
     parser.add_argument("--sizes", default="320x240,640x480", help="comma-separated WxH")
     args = parser.parse_args()
-    from ti_fusion.timing import keep_freed_memory, numpy_conditions
+    from ti_fusion.slam.timing import keep_freed_memory, numpy_conditions
 
     kept = keep_freed_memory()  # NumPy at its best: see keep_freed_memory
 

@@ -163,7 +163,7 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
-    from ti_fusion.timing import keep_freed_memory, numpy_conditions
+    from ti_fusion.slam.timing import keep_freed_memory, numpy_conditions
 
     kept = keep_freed_memory()
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")

@@ -25,7 +25,7 @@ a block untimed), with 0.2 s between blocks so that neither is timed while the o
 Run one pair at a time right after the other system instead, Open3D (whose OpenMP threads then had to
 wake) took 12.3 ms at 320×240 instead of 7.2: how the runs are interleaved matters as much as the code.
 
-Freed memory is kept for reuse (``ti_fusion.timing.keep_freed_memory``): by default glibc unmaps NumPy's
+Freed memory is kept for reuse (``ti_fusion.slam.timing.keep_freed_memory``): by default glibc unmaps NumPy's
 large temporaries when they are freed, in some processes and not in others, and the page faults of the
 next call made one NumPy iteration 17.5 instead of 13 ms at 320×240 (70 instead of 52 at 640×480).
 
@@ -162,13 +162,13 @@ def load_pair(args, cfg):
         raise SystemExit(f"bench_icp: {args.data}: not a folder")
     data = Path(args.data) if args.data else DEFAULT_DATA
     if data.is_dir():
-        from ti_fusion.datasets import open_dataset
+        from ti_fusion.io.datasets import open_dataset
 
         dataset = open_dataset(DatasetConfig(path=str(data), depth_max=cfg.dataset.depth_max))
         s, t = (dataset.frame_by_raw_index(i) for i in args.pair)
         reference = invert(t.gt_pose) @ s.gt_pose if s.gt_pose is not None and t.gt_pose is not None else None
         return s.depth, t.depth, s.intrinsics, reference, f"{data.name} frames {args.pair[0]} → {args.pair[1]}"
-    from ti_fusion.synthetic import SyntheticSequence
+    from ti_fusion.synthetic.scene import SyntheticSequence
 
     seq = SyntheticSequence(SynthConfig())
     G = make_pose(so3_exp(np.radians(3.0) * np.array([0.3, -0.8, 0.5]) / np.linalg.norm([0.3, -0.8, 0.5])),
@@ -209,7 +209,7 @@ class FinestIteration:
     little there). ``numpy()``: ``icp_numpy.LevelIteration`` and the NumPy solve."""
 
     def __init__(self, icp, src, tgt, pose):
-        from ti_fusion import icp_numpy
+        from ti_fusion.reference import icp as icp_numpy
 
         c = icp.config
         self.icp, self.pose = icp, pose
@@ -246,7 +246,7 @@ class FinestIteration:
     @staticmethod
     def _solve(sums):
         from ti_fusion.kernels.icp import unpack_sums
-        from ti_fusion.solve import solve_normal_equations
+        from ti_fusion.tracking.solve import solve_normal_equations
 
         s = unpack_sums(sums)
         return solve_normal_equations(s["AtA"], s["Atb"])
@@ -256,7 +256,7 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     import numpy as np
 
     from ti_fusion.geometry import pose_error
-    from ti_fusion.icp import ICP
+    from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.maps import FrameMaps
 
     c = cfg.icp
@@ -336,9 +336,9 @@ def accuracy_over_pairs(cfg, args) -> dict | None:
     import numpy as np
 
     from ti_fusion.config import DatasetConfig
-    from ti_fusion.datasets import open_dataset
+    from ti_fusion.io.datasets import open_dataset
     from ti_fusion.geometry import invert, pose_error
-    from ti_fusion.icp import ICP
+    from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.maps import FrameMaps
 
     data = Path(args.data) if args.data else DEFAULT_DATA
@@ -399,7 +399,7 @@ def main(argv=None) -> int:
     parser.add_argument("--accuracy-gap", type=int, default=10, help="frames between the two of a pair")
     parser.add_argument("--open3d-worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    from ti_fusion.timing import keep_freed_memory, numpy_conditions
+    from ti_fusion.slam.timing import keep_freed_memory, numpy_conditions
 
     kept = keep_freed_memory()  # NumPy (and Open3D) at their best: see keep_freed_memory
     if args.open3d_worker:

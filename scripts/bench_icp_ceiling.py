@@ -135,7 +135,7 @@ def best_ms(fn, repeats: int, before=None, after=None) -> float:
 
 def bench_size(depth_s, depth_t, K, cfg, executables, repeats: int, workdir: Path) -> dict:
     from ti_fusion.geometry import flatten_pose
-    from ti_fusion.icp import ICP
+    from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.maps import FrameMaps
 
     c = cfg.icp
@@ -176,13 +176,13 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
-    from ti_fusion.timing import keep_freed_memory, numpy_conditions
+    from ti_fusion.slam.timing import keep_freed_memory, numpy_conditions
 
     kept = keep_freed_memory()
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")
     from ti_fusion.backend import init_backend
     from ti_fusion.config import load_config
-    from ti_fusion.icp import ICP
+    from ti_fusion.tracking.icp import ICP
 
     cfg = load_config(None, args.set)
     backend = init_backend("cpu")

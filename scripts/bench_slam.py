@@ -33,7 +33,7 @@ def _peak_mb() -> float:
 
 def _dataset(args):
     from ti_fusion.config import Config
-    from ti_fusion.datasets import open_dataset
+    from ti_fusion.io.datasets import open_dataset
 
     cfg = Config()
     cfg.dataset.path = args.data
@@ -45,8 +45,8 @@ def _dataset(args):
 
 def run_ti_fusion(args) -> dict:
     from ti_fusion.backend import init_backend
-    from ti_fusion.outputs import RunDir
-    from ti_fusion.pipeline import SLAMPipeline
+    from ti_fusion.io.outputs import RunDir
+    from ti_fusion.slam.pipeline import SLAMPipeline
 
     backend = init_backend(args.arch)
     cfg, dataset = _dataset(args)
@@ -63,7 +63,7 @@ def run_open3d(args) -> dict:
         import open3d.core as o3c
     except ImportError:
         return {"system": "Open3D", "error": "not installed (pip install open3d-cpu)"}
-    from ti_fusion.evaluation import trajectory_metrics
+    from ti_fusion.evaluation.metrics import trajectory_metrics
 
     _, dataset = _dataset(args)
     K = dataset.intrinsics

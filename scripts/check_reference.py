@@ -54,14 +54,14 @@ def main() -> int:
 
     from ti_fusion.backend import current_backend, init_backend
     from ti_fusion.config import load_config
-    from ti_fusion.datasets import open_dataset
-    from ti_fusion.trajectory import read_tum
+    from ti_fusion.io.datasets import open_dataset
+    from ti_fusion.io.trajectory import read_tum
 
     cfg = load_config(None, args.set)
     cfg.dataset.path, cfg.dataset.stop = args.data, args.frames
     init_backend("cpu")
     from ti_fusion.geometry import invert
-    from ti_fusion.icp import ICP
+    from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.icp import PointToPlane, unpack_sums
     from ti_fusion.kernels.maps import FrameMaps
 

@@ -45,7 +45,7 @@ def test_cli_missing_backend_exits_with_one_line(tmp_path):
     if _has_cuda():
         pytest.skip("this machine has CUDA")
     proc = subprocess.run(
-        [sys.executable, "-m", "ti_fusion.cli", "icp", "--arch", "cuda", "--out", str(tmp_path)],
+        [sys.executable, "-m", "ti_fusion", "icp", "--arch", "cuda", "--out", str(tmp_path)],
         capture_output=True, text=True, timeout=120,
     )
     if "invalid choice" in proc.stderr:

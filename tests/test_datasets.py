@@ -12,13 +12,13 @@ import numpy as np
 import pytest
 
 from ti_fusion.config import DatasetConfig
-from ti_fusion.datasets import detect_format, open_dataset
-from ti_fusion.datasets.iclnuim import ICLNUIMDataset
-from ti_fusion.datasets.sevenscenes import SevenScenesDataset
-from ti_fusion.datasets.tum import TUMDataset, freiburg_camera, interpolate_pose
+from ti_fusion.io.datasets import detect_format, open_dataset
+from ti_fusion.io.datasets.iclnuim import ICLNUIMDataset
+from ti_fusion.io.datasets.sevenscenes import SevenScenesDataset
+from ti_fusion.io.datasets.tum import TUMDataset, freiburg_camera, interpolate_pose
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import make_pose, rigidity_error, rot_to_quat, se3_exp, so3_exp
-from ti_fusion.trajectory import read_tum
+from ti_fusion.io.trajectory import read_tum
 
 W, H = 40, 30
 

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 
 from ti_fusion.errors import InputError
-from ti_fusion.evaluation import (align_rigid, ate_errors, evaluate, evaluate_files, rotation_angles_deg,
+from ti_fusion.evaluation.metrics import (align_rigid, ate_errors, evaluate, evaluate_files, rotation_angles_deg,
                                   rpe_errors, rpe_pairs, trajectory_metrics)
 from ti_fusion.geometry import invert, make_pose, rigidity_error, se3_exp, so3_exp
-from ti_fusion.plots import plot_trajectory
-from ti_fusion.trajectory import associate, read_tum, write_tum
+from ti_fusion.evaluation.plots import plot_trajectory
+from ti_fusion.io.trajectory import associate, read_tum, write_tum
 
 evo_core = pytest.importorskip("evo.core")
 from evo.core import metrics as evo_metrics  # noqa: E402
@@ -286,7 +286,7 @@ def test_keep_freed_memory_takes_effect_on_glibc():
     import subprocess
     import sys
 
-    code = ("import numpy as np; from ti_fusion.timing import keep_freed_memory; kept = keep_freed_memory(); "
+    code = ("import numpy as np; from ti_fusion.slam.timing import keep_freed_memory; kept = keep_freed_memory(); "
             "a = np.ones(5_000_000); del a; assert float(np.ones(5_000_000).sum()) == 5e6; print(kept)")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
     assert out == ("True" if platform.libc_ver()[0] == "glibc" else out)

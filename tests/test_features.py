@@ -14,11 +14,11 @@ import pytest
 
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import SynthConfig, VOConfig
-from ti_fusion.datasets.base import Frame
-from ti_fusion.features import (FEW_INLIERS, FEW_MATCHES, LARGE_MOTION, NO_COLOR, NO_DEPTH, FeatureOdometry,
+from ti_fusion.io.datasets.base import Frame
+from ti_fusion.tracking.features import (FEW_INLIERS, FEW_MATCHES, LARGE_MOTION, NO_COLOR, NO_DEPTH, FeatureOdometry,
                                 estimate_relative_pose, motion_norm, relocalise)
 from ti_fusion.geometry import invert, make_pose, pose_error, se3_exp, so3_exp
-from ti_fusion.pointcloud import VoxelCloud, backproject, transform, voxel_downsample
+from ti_fusion.mapping.pointcloud import VoxelCloud, backproject, transform, voxel_downsample
 
 N_FRAMES = 30
 ELSEWHERE = 39  # a frame 1.3 s later: same scene, ≈ 12° and 28 cm from frame 9 (motion norm ≈ 0.45)
@@ -35,7 +35,7 @@ def _start_cpu():
 @pytest.fixture(scope="module")
 def synth():
     _start_cpu()
-    from ti_fusion.synthetic import SyntheticSequence
+    from ti_fusion.synthetic.scene import SyntheticSequence
 
     seq = SyntheticSequence(SynthConfig(frames=ELSEWHERE + 1, width=W, height=H, fx=FX, noise=True))
 
@@ -55,7 +55,7 @@ def _path_length(poses) -> float:
 # The tracker
 # --------------------------------------------------------------------------------------------------
 def test_trajectory_on_synthetic_sequence(synth):
-    from ti_fusion.evaluation import trajectory_metrics
+    from ti_fusion.evaluation.metrics import trajectory_metrics
 
     _, frames, _ = synth
     vo = FeatureOdometry()
@@ -266,10 +266,10 @@ def _write_sevenscenes(root, frames, blank: int | None = None):
 
 
 def test_vo_command_writes_all_outputs(synth, tmp_path):
-    from ti_fusion.cli import main
-    from ti_fusion.mcap_log import read_log
-    from ti_fusion.ply import read_ply
-    from ti_fusion.trajectory import read_tum
+    from ti_fusion.cli.main import main
+    from ti_fusion.io.mcap_log import read_log
+    from ti_fusion.io.ply import read_ply
+    from ti_fusion.io.trajectory import read_tum
 
     _, frames, _ = synth
     data = _write_sevenscenes(tmp_path / "seq", frames[:12], blank=5)
@@ -301,9 +301,9 @@ def test_vo_command_writes_all_outputs(synth, tmp_path):
 
 
 def test_vo_command_keeps_the_trajectory_and_log_when_interrupted(synth, tmp_path, monkeypatch):
-    from ti_fusion.cli import main
-    from ti_fusion.mcap_log import read_log
-    from ti_fusion.trajectory import read_tum
+    from ti_fusion.cli.main import main
+    from ti_fusion.io.mcap_log import read_log
+    from ti_fusion.io.trajectory import read_tum
 
     _, frames, _ = synth
     data = _write_sevenscenes(tmp_path / "seq", frames[:8])
@@ -329,7 +329,7 @@ def test_vo_command_keeps_the_trajectory_and_log_when_interrupted(synth, tmp_pat
 def test_feature_initialised_icp_recovers_a_large_motion(synth):
     """≈ 20° and 30 cm between two noise-free frames: ICP from the identity fails, from ORB + PnP it converges."""
     from ti_fusion.config import ICPConfig
-    from ti_fusion.icp import ICP
+    from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.maps import FrameMaps
 
     seq, _, _ = synth
@@ -365,7 +365,7 @@ def test_feature_initialised_icp_recovers_a_large_motion(synth):
 
 
 def test_vo_command_on_the_synthetic_default(synth, tmp_path):
-    from ti_fusion.cli import main
+    from ti_fusion.cli.main import main
 
     out = tmp_path / "out"
     assert main(["vo", "--frames", "6", "--downsample", "2", "--out", str(out), "--quiet"]) == 0
@@ -376,7 +376,7 @@ def test_vo_command_on_the_synthetic_default(synth, tmp_path):
 
 
 def test_icp_command_with_feature_initialisation(synth, tmp_path):
-    from ti_fusion.cli import main
+    from ti_fusion.cli.main import main
 
     out = tmp_path / "out"
     assert main(["icp", "--downsample", "2", "--source", "0", "--target", "30", "--init", "features",

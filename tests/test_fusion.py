@@ -17,11 +17,11 @@ import taichi as ti
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import FusionConfig
 from ti_fusion.errors import MapCapacityError
-from ti_fusion.fusion import SurfelMapper, pack_colour
+from ti_fusion.mapping.mapper import SurfelMapper, pack_colour
 from ti_fusion.geometry import se3_exp
 from ti_fusion.kernels import fusion as F
 from ti_fusion.kernels.maps import FrameMaps
-from ti_fusion.ply import read_ply, write_ply
+from ti_fusion.io.ply import read_ply, write_ply
 
 # 70 × 72: a width that is no multiple of the row segments (or of 8), and enough rows that the loops over
 # row segments (72 × 8) split into more than one task of 512 iterations, so they run on two threads
@@ -782,7 +782,7 @@ def test_ply_round_trip(tmp_path, rng):
 def fuse_synthetic(noise, frames, stride=3):
     """Fuse every stride-th frame at its true pose; also return the first frame's world points (H×W×3,
     NaN where invalid) and its pose, to compare a single frame with the fused map at the same places."""
-    synthetic = pytest.importorskip("ti_fusion.synthetic")
+    synthetic = pytest.importorskip("ti_fusion.synthetic.scene")
     from ti_fusion.config import SynthConfig
 
     seq = synthetic.SyntheticSequence(SynthConfig(frames=frames * stride, width=160, height=120, fx=131.25,
@@ -841,7 +841,7 @@ def test_fusion_reduces_noise(cpu):
 def _run_fuse(tmp_path, *args):
     import json
 
-    from ti_fusion.cli import main
+    from ti_fusion.cli.main import main
 
     assert main(["fuse", *args, "--out", str(tmp_path), "--quiet"]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
@@ -859,7 +859,7 @@ def _run_fuse(tmp_path, *args):
 
 
 def test_fuse_command_on_the_synthetic_default(cpu, tmp_path):
-    pytest.importorskip("ti_fusion.datasets.synthetic")
+    pytest.importorskip("ti_fusion.io.datasets.synthetic")
     summary = _run_fuse(tmp_path, "--frames", "4", "--downsample", "4")
     assert summary["frames"] == 4 and summary["naive_points"] > 4 * 160 * 120 * 0.5
 

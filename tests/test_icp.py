@@ -17,16 +17,16 @@ import numpy as np
 import pytest
 import taichi as ti
 
-from ti_fusion import icp_numpy
+from ti_fusion.reference import icp as icp_numpy
 from ti_fusion.backend import current_backend
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import DatasetConfig, ICPConfig, SynthConfig
 from ti_fusion.geometry import flatten_pose, invert, make_pose, pose_error, se3_exp, so3_exp
-from ti_fusion.icp import ICP, ICPResult
+from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels import icp as kicp
 from ti_fusion.kernels.maps import FrameMaps
-from ti_fusion.synthetic import SyntheticSequence
-from ti_fusion.solve import check_system, solve_normal_equations, solve_stacked_qr
+from ti_fusion.synthetic.scene import SyntheticSequence
+from ti_fusion.tracking.solve import check_system, solve_normal_equations, solve_stacked_qr
 
 ROOT = Path(__file__).resolve().parents[1]
 THR = 0.1
@@ -410,7 +410,11 @@ def assert_same_run(a: ICPResult, b: ICPResult):
     np.testing.assert_allclose([r.update_norm for r in a.iterations], [r.update_norm for r in b.iterations],
                                rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(a.pose, b.pose, rtol=0, atol=1e-12)
-    assert a.inliers == b.inliers and a.condition == pytest.approx(b.condition, rel=1e-9)
+    assert a.inliers == b.inliers
+    # Two summation orders perturb the 6×6 system by ~eps of its scale, and its condition number moves by
+    # about condition × eps relative: a singular system's (~1e10) differs in the 7th digit, a good one's not.
+    rel = max(1e-9, 1e3 * np.finfo(np.float64).eps * max(a.condition, b.condition))
+    assert a.condition == pytest.approx(b.condition, rel=rel)
     assert a.inlier_ratio == b.inlier_ratio
     np.testing.assert_allclose([a.residual_rms, a.update_norm], [b.residual_rms, b.update_norm], rtol=1e-6,
                                atol=1e-12)
@@ -524,7 +528,7 @@ REAL_PAIRS = [(10, 20), (40, 50)]
 @pytest.mark.realdata
 @pytest.mark.parametrize("source, target", REAL_PAIRS)
 def test_redkitchen_pair_from_identity(cpu, redkitchen, source, target):
-    from ti_fusion.datasets import open_dataset
+    from ti_fusion.io.datasets import open_dataset
 
     data = open_dataset(DatasetConfig(path=str(redkitchen)))
     fs, ft = data.frame_by_raw_index(source), data.frame_by_raw_index(target)
@@ -541,7 +545,7 @@ def test_redkitchen_pair_from_identity(cpu, redkitchen, source, target):
 def test_icp_command_on_the_synthetic_sequence(cpu, tmp_path, capsys):
     import json
 
-    from ti_fusion.cli import main
+    from ti_fusion.cli.main import main
 
     assert main(["icp", "--source", "3", "--target", "8", "--downsample", "2", "--quiet", "--out", str(tmp_path)]) == 0
     out = capsys.readouterr().out
@@ -556,7 +560,7 @@ def test_icp_command_on_the_synthetic_sequence(cpu, tmp_path, capsys):
 
 
 def test_icp_command_rejects_a_missing_frame(cpu, redkitchen, tmp_path, capsys):
-    from ti_fusion.cli import main
+    from ti_fusion.cli.main import main
 
     assert main(["icp", str(redkitchen), "--source", "10", "--target", "100000", "--quiet", "--out", str(tmp_path)]) == 2
     assert "no frame 100000" in capsys.readouterr().err

@@ -13,10 +13,10 @@ from mcap.reader import make_reader
 from mcap_protobuf.decoder import DecoderFactory
 
 from ti_fusion.camera import Intrinsics
-from ti_fusion.cli import main
+from ti_fusion.cli.main import main
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import se3_exp
-from ti_fusion.mcap_log import (RunLogger, depth_from_msg, points_from_msg, pose_from_msg, read_log,
+from ti_fusion.io.mcap_log import (RunLogger, depth_from_msg, points_from_msg, pose_from_msg, read_log,
                                 software_versions)
 
 T0 = 1305031102.175304  # a TUM-style unix timestamp: the ns conversion must keep µs
@@ -278,7 +278,7 @@ def test_inspect_ate_matches_a_known_offset(tmp_path, rng):
             G = offset @ T
             G[:3, 3] += offset[:3, :3] @ [0.01 * (-1) ** i, 0, 0]  # ±1 cm, zero mean
             log.log_pose(i, T, G)
-    from ti_fusion.commands.inspect import _ate_rmse
+    from ti_fusion.cli.inspect import _ate_rmse
 
     rmse, n = _ate_rmse(read_log(path))
     assert n == 20 and rmse == pytest.approx(0.01, abs=2e-3)
@@ -292,7 +292,7 @@ def test_inspect_ate_needs_three_poses(tmp_path, rng):
     with RunLogger(path) as log:
         for i, T in enumerate(poses):
             log.log_pose(i, T, se3_exp([0.1, 0, 0, 0, 0, 0.5]) @ T)
-    from ti_fusion.commands.inspect import _ate_rmse, format_report, summarise
+    from ti_fusion.cli.inspect import _ate_rmse, format_report, summarise
 
     contents = read_log(path)
     assert _ate_rmse(contents) == (None, 2)

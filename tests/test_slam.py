@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 
 from ti_fusion.backend import current_backend
-from ti_fusion.cli import main
+from ti_fusion.cli.main import main
 from ti_fusion.config import Config
-from ti_fusion.datasets import open_dataset
-from ti_fusion.mcap_log import read_log
-from ti_fusion.outputs import RunDir
-from ti_fusion.pipeline import SLAMPipeline
-from ti_fusion.trajectory import read_tum
+from ti_fusion.io.datasets import open_dataset
+from ti_fusion.io.mcap_log import read_log
+from ti_fusion.io.outputs import RunDir
+from ti_fusion.slam.pipeline import SLAMPipeline
+from ti_fusion.io.trajectory import read_tum
 
 FRAMES = 24
 
@@ -54,7 +54,7 @@ def test_slam_command_on_synthetic_default(cpu, tmp_path):
     from mcap.reader import make_reader
     from mcap_protobuf.decoder import DecoderFactory
 
-    from ti_fusion.mcap_log import points_from_msg
+    from ti_fusion.io.mcap_log import points_from_msg
 
     with open(out / "log.mcap", "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])

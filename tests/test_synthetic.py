@@ -16,7 +16,7 @@ import pytest
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import DatasetConfig, SynthConfig
 from ti_fusion.geometry import invert, rigidity_error, rotation_angle_deg, so3_log
-from ti_fusion.synthetic import (ROOM_MAX, ROOM_MIN, Box, Cylinder, Material, Plane, Scene, Sphere,
+from ti_fusion.synthetic.scene import (ROOM_MAX, ROOM_MIN, Box, Cylinder, Material, Plane, Scene, Sphere,
                                  SyntheticSequence, default_scene, look_at)
 
 SMALL = SynthConfig(frames=120, width=160, height=120, fx=131.25)
@@ -318,8 +318,8 @@ def test_colour_is_shaded_by_geometry_not_viewpoint(cpu):
 # Dataset and command
 # --------------------------------------------------------------------------------------------------
 def test_synthetic_dataset(cpu, tmp_path):
-    from ti_fusion.datasets import open_dataset
-    from ti_fusion.datasets.synthetic import SyntheticDataset
+    from ti_fusion.io.datasets import open_dataset
+    from ti_fusion.io.datasets.synthetic import SyntheticDataset
 
     cfg = replace(SMALL, frames=12)
     ds = SyntheticDataset.from_config(cfg, downsample=2, start=2, stride=3)
@@ -339,8 +339,8 @@ def test_synthetic_dataset(cpu, tmp_path):
 
 
 def test_synth_command_writes_a_tum_folder(cpu, tmp_path):
-    from ti_fusion.cli import main
-    from ti_fusion.trajectory import read_tum
+    from ti_fusion.cli.main import main
+    from ti_fusion.io.trajectory import read_tum
 
     out = tmp_path / "seq"
     assert main(["synth", str(out), "--frames", "3", "--width", "160", "--seed", "2", "--quiet"]) == 0
@@ -365,7 +365,7 @@ def test_synth_command_writes_a_tum_folder(cpu, tmp_path):
     np.testing.assert_allclose(poses, seq.poses, atol=1e-8)
     assert np.loadtxt(out / "intrinsics.txt") == pytest.approx([131.25, 131.25, 79.5, 59.5])
     # the project's TUM loader reads the folder back: same depth, colour, intrinsics and poses
-    from ti_fusion.datasets import open_dataset
+    from ti_fusion.io.datasets import open_dataset
 
     ds = open_dataset(DatasetConfig(path=str(out), depth_max=0.0))
     assert ds.format == "tum" and len(ds) == 3

@@ -18,7 +18,7 @@ import io
 import os
 from dataclasses import dataclass
 
-from .errors import BackendUnavailable
+from ti_fusion.errors import BackendUnavailable
 
 ARCH_CHOICES = ("cpu", "cuda", "vulkan", "auto")
 
@@ -150,7 +150,7 @@ def pin_cpu_workers() -> str:
     import numpy as np
     import taichi as ti
 
-    from .kernels.probe import busy
+    from ti_fusion.kernels.probe import busy
 
     if os.environ.get("TI_FUSION_PIN_THREADS", "1") == "0" or not hasattr(os, "sched_setaffinity") \
             or not os.path.isdir("/proc/self/task"):

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from .errors import InputError
+from ti_fusion.errors import InputError
 
 
 MAP_WIDTH = 320  # fusion.level = -1: the map is built at the finest pyramid level at most this wide

@@ -1,0 +1,5 @@
+"""The ``ti-fusion`` command line: ``main`` parses and dispatches; one module per sub-command."""
+
+from ti_fusion.cli.main import main
+
+__all__ = ["main"]

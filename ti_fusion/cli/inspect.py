@@ -1,0 +1,227 @@
+"""``ti-fusion inspect LOG.mcap``: what a run log holds, and how the run went.
+
+Prints the channels (topic, schema, encoding, message count), the time range, the metadata records
+and a summary of the per-frame stats: median and max milliseconds per stage (the ``ms`` dict of each
+stats message), tracking failures (``status`` other than "ok") and, when ground truth was logged, the
+ATE of /camera/pose against /gt/pose. ``--plot`` draws the stats over the frames to a PNG.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ti_fusion.evaluation.metrics import associate_trajectories, ate_errors
+from ti_fusion.io.mcap_log import LogContents, read_log
+
+HELP = "summarise an MCAP run log (channels, time range, ms per stage, failures, ATE); --plot for a PNG"
+USES_DATASET = False
+USES_TAICHI = False
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("log", metavar="LOG", help="an MCAP log written by slam or vo (log.mcap)")
+    parser.add_argument("--plot", metavar="PNG", nargs="?", const="stats.png", default=None,
+                        help="plot the stats over the frames to this PNG (default name stats.png; "
+                             "a relative path goes into the --out folder)")
+
+
+def run(ctx) -> dict:
+    log = read_log(ctx.args.log)
+    summary = summarise(log)
+    print(format_report(log, summary), flush=True)
+    if ctx.args.plot:
+        plot = Path(ctx.args.plot)
+        plot = plot if plot.is_absolute() else ctx.out.file(str(plot))
+        plot_stats(log, plot)
+        summary["plot"] = str(plot)
+        print(f"plot: {plot}", flush=True)
+    return summary
+
+
+# --------------------------------------------------------------------------------------------------
+
+
+def summarise(log: LogContents) -> dict:
+    """The figures inspect prints, as summary.json fields."""
+    ms = stage_ms(log.stats)
+    failures = [(s.get("frame", i), s.get("status")) for i, s in enumerate(log.stats)
+                if "status" in s and s["status"] != "ok"]
+    ate_rmse, ate_poses = _ate_rmse(log)
+    return {
+        "frames": len(log.stats),
+        "log": str(log.path),
+        "complete": log.complete,
+        "channels": {t: {"schema": c.schema_name, "encoding": c.message_encoding, "count": c.count}
+                     for t, c in log.channels.items()},
+        "messages": log.message_count,
+        "time_range_s": None if log.start_s is None else [log.start_s, log.end_s],
+        "duration_s": None if log.start_s is None else round(log.end_s - log.start_s, 6),
+        "metadata": sorted(log.metadata),
+        "stats_topic": log.stats_topic,
+        "ms_per_stage": {k: {"median": round(float(np.median(v)), 3), "max": round(float(np.max(v)), 3)}
+                         for k, v in ms.items()},
+        "tracking_failures": len(failures),
+        "failed_frames": [{"frame": f, "status": s} for f, s in failures],
+        "ate_rmse_m": None if ate_rmse is None else round(ate_rmse, 6),
+        "ate_poses": ate_poses,
+    }
+
+
+def format_report(log: LogContents, summary: dict) -> str:
+    lines = [f"log: {log.path}" + ("" if log.complete else
+             "  (NOT finalised: the run was killed; read up to the last whole chunk)")]
+    width = max([len(t) for t in log.channels] + [5])
+    swidth = max([len(c.schema_name) for c in log.channels.values()] + [6])
+    lines.append(f"  {'topic':<{width}}  {'schema':<{swidth}}  {'encoding':<9} {'count':>7}")
+    for c in log.channels.values():
+        lines.append(f"  {c.topic:<{width}}  {c.schema_name:<{swidth}}  {c.message_encoding:<9} {c.count:>7}")
+    if log.start_s is None:
+        lines.append("time range: no messages")
+    else:
+        lines.append(f"time range: {log.start_s:.6f} .. {log.end_s:.6f} s ({log.end_s - log.start_s:.3f} s)")
+    if log.metadata:
+        lines.append("metadata: " + ", ".join(sorted(log.metadata)))
+    if log.stats_topic:
+        lines.append(f"stats ({log.stats_topic}, {len(log.stats)} frames):")
+        if summary["ms_per_stage"]:
+            lines.append(f"  {'stage':<12} {'median ms':>10} {'max ms':>10}")
+            for stage, v in summary["ms_per_stage"].items():
+                lines.append(f"  {stage:<12} {v['median']:>10.2f} {v['max']:>10.2f}")
+        failed = summary["failed_frames"]
+        shown = ", ".join(f"{f['frame']} ({f['status']})" for f in failed[:10])
+        more = f", ... {len(failed) - 10} more" if len(failed) > 10 else ""
+        lines.append(f"tracking failures: {len(failed)}" + (f": {shown}{more}" if failed else ""))
+    else:
+        lines.append("stats: none logged")
+    if summary["ate_rmse_m"] is not None:
+        lines.append(f"ATE RMSE: {summary['ate_rmse_m']:.4f} m over {summary['ate_poses']} poses "
+                     "(rigidly aligned to ground truth)")
+    elif summary["ate_poses"]:
+        lines.append(f"ATE: not computed from {summary['ate_poses']} pose pair(s) with the ground truth: a rigid "
+                     f"alignment of fewer than {MIN_ATE_POSES} fits them exactly")
+    elif len(log.gt_times):
+        lines.append("ATE: no estimated pose shares a time with the ground truth")
+    return "\n".join(lines)
+
+
+def stage_ms(stats: list[dict]) -> dict[str, np.ndarray]:
+    """{stage: ms per frame} from the ``ms`` dict of each stats message, plus their ``total``."""
+    stages: dict[str, list[float]] = {}
+    for s in stats:
+        for k, v in (s.get("ms") or {}).items():
+            if isinstance(v, (int, float)) and not isinstance(v, bool):
+                stages.setdefault(k, []).append(float(v))
+    out = {k: np.asarray(v) for k, v in stages.items()}
+    if out and "total" not in out:
+        totals = [sum(float(v) for v in (s.get("ms") or {}).values()
+                      if isinstance(v, (int, float)) and not isinstance(v, bool)) for s in stats if s.get("ms")]
+        out["total"] = np.asarray(totals)
+    return out
+
+
+# A rigid alignment fits one or two positions exactly: their "error" would be zero whatever the tracking did
+MIN_ATE_POSES = 3
+
+
+def _ate_rmse(log: LogContents) -> tuple[float | None, int]:
+    """(ATE RMSE of /camera/pose against /gt/pose after the rigid alignment of ``evaluation``, or None
+    with fewer than MIN_ATE_POSES pairs; the number of pose pairs), poses paired by log time."""
+    if not len(log.gt_times) or not len(log.est_times):
+        return None, 0
+    # both are logged at the frame's time: pair equal times only
+    _, est, gt = associate_trajectories(log.est_times, log.est_poses, log.gt_times, log.gt_poses,
+                                        max_difference=1e-6)
+    if len(est) < MIN_ATE_POSES:
+        return None, len(est)
+    errors, _ = ate_errors(est, gt)
+    return float(np.sqrt(np.mean(errors**2))), len(est)
+
+
+# --------------------------------------------------------------------------------------------------
+
+# Panels after the ms one: (title, test on a flattened stats key). First match wins.
+_PANELS = [
+    ("inlier ratio", lambda k: "inlier" in k and "ratio" in k),
+    ("inliers", lambda k: "inlier" in k),
+    ("residual", lambda k: "residual" in k),
+    ("surfels", lambda k: "surfel" in k),
+    ("features", lambda k: "match" in k or "keypoint" in k),
+]
+
+
+def _flatten(d: dict, prefix: str = "") -> dict[str, float]:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict):
+            out.update(_flatten(v, key + "."))
+        elif isinstance(v, (int, float)) and not isinstance(v, bool):
+            out[key] = float(v)
+    return out
+
+
+def plot_stats(log: LogContents, path: Path) -> Path:
+    """ms per stage (stacked), then inliers, residual, surfel count... over the frames; failures in red."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    stats = log.stats
+    frames = np.array([s.get("frame", i) for i, s in enumerate(stats)], dtype=float)
+    flat = [_flatten(s) for s in stats]
+    series: dict[str, dict[str, np.ndarray]] = {}
+    for key in sorted({k for f in flat for k in f}):
+        if key == "frame" or key.startswith("ms."):
+            continue
+        for title, wanted in _PANELS:
+            if wanted(key.lower()):
+                series.setdefault(title, {})[key] = np.array([f.get(key, np.nan) for f in flat])
+                break
+    titles = [t for t, _ in _PANELS if t in series]
+    fig, axes = plt.subplots(1 + len(titles), 1, figsize=(10, 2.6 * (1 + len(titles))), sharex=True,
+                             squeeze=False)
+    axes = axes[:, 0]
+
+    ms = {k: v for k, v in stage_ms(stats).items() if k != "total"}
+    ax = axes[0]
+    if ms and all(len(v) == len(frames) for v in ms.values()):
+        ax.stackplot(frames, *ms.values(), labels=list(ms), alpha=0.85)
+        ax.legend(loc="upper right", fontsize=8, ncol=min(len(ms), 6))
+    elif ms:
+        for k, v in ms.items():
+            ax.plot(np.arange(len(v)), v, label=k)
+        ax.legend(loc="upper right", fontsize=8)
+    else:
+        ax.text(0.5, 0.5, "no per-stage timings logged", ha="center", va="center", transform=ax.transAxes)
+    total = stage_ms(stats).get("total")
+    if total is not None and len(total) == len(frames) > 5:
+        # The first frame's kernel compilation can dwarf the rest: clip it and say so.
+        top = 1.25 * float(np.percentile(total, 98))
+        if total.max() > 2 * top:
+            ax.set_ylim(0, top)
+            i = int(np.argmax(total))
+            ax.annotate(f"frame {frames[i]:g}: {total[i]:.0f} ms (clipped)", xy=(frames[i], top),
+                        xytext=(5, -12), textcoords="offset points", fontsize=8)
+    ax.set_ylabel("ms per frame")
+    ax.set_title(f"{log.path.name}: {len(stats)} frames" + ("" if log.complete else " (not finalised)"))
+
+    for ax, title in zip(axes[1:], titles):
+        for key, values in series[title].items():
+            ax.plot(frames, values, marker=".", markersize=3, linewidth=1, label=key)
+        ax.set_ylabel(title)
+        ax.legend(loc="upper right", fontsize=8)
+
+    failed = [frames[i] for i, s in enumerate(stats) if "status" in s and s["status"] != "ok"]
+    for ax in axes:
+        ax.grid(True, alpha=0.3)
+        for f in failed:
+            ax.axvline(f, color="red", alpha=0.5, linewidth=1)
+    axes[-1].set_xlabel("frame" + (" (red: tracking failure)" if failed else ""))
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

@@ -1,0 +1,42 @@
+"""``ti-fusion slam DATA``: frame-to-model dense SLAM over a sequence."""
+
+from __future__ import annotations
+
+HELP = "dense SLAM (frame-to-model ICP + surfel fusion): trajectory, map, MCAP log, plots, ATE/RPE"
+USES_DATASET = True
+USES_TAICHI = True
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--tracking", choices=("model", "frame"), default=None,
+                        help="reference for ICP: the fused model rendered at the last pose (default), or "
+                             "the previous frame (for comparison)")
+    parser.add_argument("--no-relocalise", action="store_true",
+                        help="after a tracking failure, do not re-initialise with ORB + PnP features")
+
+
+def run(ctx) -> dict:
+    from ti_fusion.io.datasets import open_dataset
+    from ti_fusion.slam.pipeline import SLAMPipeline
+
+    cfg = ctx.config
+    if ctx.args.tracking:
+        cfg.slam.tracking = ctx.args.tracking
+    if ctx.args.no_relocalise:
+        cfg.slam.relocalise = "none"
+    dataset = open_dataset(cfg.dataset, cfg.synth)
+    if not ctx.quiet:
+        d = dataset.describe()
+        ctx.log(f"dataset: {d['name']} ({d['format']}), {d['frames']} frames at {d['width']}x{d['height']}")
+    summary = SLAMPipeline(dataset, cfg, ctx.out, ctx.backend, show_progress=not ctx.quiet).run()
+    _print_summary(ctx, summary)
+    return summary
+
+
+def _print_summary(ctx, s: dict) -> None:
+    line = f"{s['frames']} frames, {s['surfels']} surfels, {s['fps_processing']} fps (after warm-up)"
+    if "ate_rmse_m" in s:
+        line += (f", ATE {s['ate_rmse_m'] * 100:.2f} cm ({s['ate_percent_of_path']:.2f}% of "
+                 f"{s['path_length_m']:.2f} m), RPE {s['rpe_trans_m'] * 1000:.1f} mm")
+    line += f", tracking failures: {s['tracking_failures']}"
+    ctx.log(line)

@@ -1,0 +1,1 @@
+"""Trajectory accuracy (ATE, RPE, as evo computes them) and trajectory plots."""

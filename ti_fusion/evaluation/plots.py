@@ -1,0 +1,99 @@
+"""Trajectory plots as PNG (matplotlib's Agg renderer through ``Figure``: no display, no pyplot state)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from matplotlib.figure import Figure
+
+from ti_fusion.evaluation.metrics import align_rigid, trajectory_metrics
+
+_AXES = "xyz"
+
+
+def _top_view_axes(positions: np.ndarray) -> tuple[int, int]:
+    """The two world axes along which the camera moved most (x–z for a camera carried level)."""
+    extent = positions.max(axis=0) - positions.min(axis=0)
+    a, b = sorted(np.argsort(extent)[-2:])
+    return int(a), int(b)
+
+
+def metrics_line(metrics: dict) -> str:
+    parts = [f"ATE RMSE {metrics['ate_rmse_m']:.4f} m"]
+    if metrics.get("rpe_trans_m") is not None:
+        delta = metrics.get("rpe_delta", 1)
+        per = "frame" if delta == 1 else f"{delta} frames"
+        parts.append(f"RPE {metrics['rpe_trans_m']:.4f} m, {metrics['rpe_rot_deg']:.3f}° per {per}")
+    return "  ·  ".join(parts)
+
+
+def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=None,
+                    title: str = "Camera trajectory", metrics: dict | None = None) -> Path:
+    """Write a PNG: top view (the plane of most motion) and x, y, z over time.
+
+    ``est_poses`` and ``gt_poses`` are camera-to-world N×4×4, already paired (same length, same
+    timestamps). With ground truth, the estimate is drawn after rigid alignment to it (as ATE measures
+    it) and ATE/RPE go in the title (computed here unless ``metrics`` is given).
+    """
+    est = np.asarray(est_poses, dtype=np.float64).reshape(-1, 4, 4)
+    gt = None if gt_poses is None else np.asarray(gt_poses, dtype=np.float64).reshape(-1, 4, 4)
+    if gt is not None and len(gt) != len(est):
+        raise ValueError(f"{len(est)} estimated poses for {len(gt)} ground-truth poses: associate them first")
+    est_xyz = est[:, :3, 3]
+    est_label = "estimate"
+    if gt is not None and len(gt) > 0:
+        metrics = metrics or trajectory_metrics(est, gt)
+        S = align_rigid(est_xyz, gt[:, :3, 3])
+        est_xyz = est_xyz @ S[:3, :3].T + S[:3, 3]
+        est_label = "estimate (rigidly aligned)"
+        title = f"{title}\n{metrics_line(metrics)}"
+    elif metrics:
+        title = f"{title}\n{metrics_line(metrics)}"
+
+    if timestamps is None:
+        t, t_label = np.arange(len(est), dtype=np.float64), "frame"
+    else:
+        t = np.asarray(timestamps, dtype=np.float64).reshape(-1)
+        if np.all(t == np.round(t)) and (len(t) < 2 or np.median(np.diff(t)) >= 1):
+            t_label = "frame number (timestamp)"  # 7-Scenes, ICL-NUIM: frame numbers, not seconds
+        else:
+            t, t_label = t - t[0], "time [s] (from the first frame)"
+
+    fig = Figure(figsize=(13, 6.5), dpi=100, layout="constrained")
+    grid = fig.add_gridspec(3, 2, width_ratios=[1.1, 1.0])
+    top = fig.add_subplot(grid[:, 0])
+    series = [(est_xyz, est_label, "tab:blue", "-")]
+    if gt is not None:
+        series.insert(0, (gt[:, :3, 3], "ground truth", "0.2", "--"))
+    a, b = _top_view_axes(series[0][0] if len(series[0][0]) else est_xyz)
+    for xyz, label, color, style in series:
+        top.plot(xyz[:, a], xyz[:, b], style, color=color, lw=1.5, label=label)
+        if len(xyz):
+            top.plot(xyz[0, a], xyz[0, b], "o", color=color, ms=6)
+    top.plot([], [], "o", color="0.5", label="start")
+    top.set_xlabel(f"{_AXES[a]} [m]")
+    top.set_ylabel(f"{_AXES[b]} [m]")
+    top.set_aspect("equal", adjustable="datalim")
+    top.set_title(f"top view ({_AXES[a]}–{_AXES[b]} plane)")
+    top.grid(True, alpha=0.3)
+    top.legend(loc="best")
+
+    for k in range(3):
+        ax = fig.add_subplot(grid[k, 1])
+        for xyz, label, color, style in series:
+            ax.plot(t, xyz[:, k], style, color=color, lw=1.2, label=label)
+        ax.set_ylabel(f"{_AXES[k]} [m]")
+        ax.grid(True, alpha=0.3)
+        if k == 0:
+            ax.set_title("position per axis")
+            ax.legend(loc="best", fontsize="small")
+        if k == 2:
+            ax.set_xlabel(t_label)
+        else:
+            ax.tick_params(labelbottom=False)
+    fig.suptitle(title)
+    path_png = Path(path_png)
+    path_png.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path_png)
+    return path_png

@@ -1,0 +1,1 @@
+"""Everything read or written: dataset loaders, MCAP logs, PLY, TUM trajectories, a run's output folder."""

@@ -1,0 +1,171 @@
+"""The one interface every dataset loader implements."""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+
+from ti_fusion.camera import Intrinsics
+
+
+@dataclass
+class Frame:
+    """One RGB-D frame as every loader yields it.
+
+    depth: float32 H×W in metres, 0 = invalid.
+    color: uint8 H×W×3 RGB, or None when the set has no colour.
+    gt_pose: float64 4×4 camera-to-world ground truth, or None.
+    """
+
+    index: int
+    timestamp: float
+    depth: np.ndarray
+    intrinsics: Intrinsics
+    color: np.ndarray | None = None
+    gt_pose: np.ndarray | None = None
+    meta: dict = field(default_factory=dict)
+
+
+class Dataset(ABC):
+    """A sequence of RGB-D frames with intrinsics and, where it has them, ground-truth poses.
+
+    Subclasses implement ``_num_raw_frames`` and ``_load_raw(i)`` at full resolution; the base class
+    applies frame selection (start/stop/stride) and integer downsampling (``img[::f, ::f]``: plain
+    subsampling, so no depth is averaged across an edge, and the intrinsics scale exactly).
+    """
+
+    name: str = "dataset"
+    format: str = "?"
+
+    def __init__(self, root: str | Path, downsample: int = 1, start: int = 0,
+                 stop: int | None = None, stride: int = 1):
+        self.root = Path(root)
+        if downsample < 1 or stride < 1:
+            raise ValueError("downsample and stride must be positive integers")
+        self.downsample = int(downsample)
+        self._selection = (start, stop, stride)
+        self._indices: list[int] | None = None
+
+    # -- implemented by each format -------------------------------------------------------------
+    @abstractmethod
+    def _num_raw_frames(self) -> int: ...
+
+    @abstractmethod
+    def _load_raw(self, raw_index: int) -> Frame:
+        """Frame ``raw_index`` at full resolution (its ``index`` is the raw index)."""
+
+    @property
+    @abstractmethod
+    def raw_intrinsics(self) -> Intrinsics: ...
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return False
+
+    # -- shared behaviour -----------------------------------------------------------------------
+    @property
+    def indices(self) -> list[int]:
+        if self._indices is None:
+            start, stop, stride = self._selection
+            self._indices = list(range(self._num_raw_frames()))[start:stop:stride]
+        return self._indices
+
+    @property
+    def intrinsics(self) -> Intrinsics:
+        return self.raw_intrinsics.downsampled(self.downsample)
+
+    def __len__(self) -> int:
+        return len(self.indices)
+
+    def __getitem__(self, i: int) -> Frame:
+        frame = self._load_raw(self.indices[i])
+        f = self.downsample
+        if f > 1:
+            frame.depth = np.ascontiguousarray(frame.depth[::f, ::f])
+            if frame.color is not None:
+                frame.color = np.ascontiguousarray(frame.color[::f, ::f])
+            frame.intrinsics = frame.intrinsics.downsampled(f)
+        return frame
+
+    def __iter__(self) -> Iterator[Frame]:
+        for i in range(len(self)):
+            yield self[i]
+
+    def frame_by_raw_index(self, raw_index: int) -> Frame:
+        """The frame with dataset index ``raw_index`` (as in ``--source 10``), ignoring the stride."""
+        saved = self._indices
+        self._indices = [raw_index]
+        try:
+            return self[0]
+        finally:
+            self._indices = saved
+
+    def describe(self) -> dict:
+        K = self.intrinsics
+        return {
+            "name": self.name,
+            "format": self.format,
+            "root": str(self.root),
+            "frames": len(self),
+            "width": K.width,
+            "height": K.height,
+            "downsample": self.downsample,
+            "ground_truth": self.has_ground_truth,
+        }
+
+
+class ImageFileDataset(Dataset):
+    """A sequence stored as one depth image (and optionally one colour image) per frame.
+
+    A subclass's ``__init__`` fills, one entry per frame: ``_depth_files``, ``_color_files`` (None where a
+    frame has no colour), ``_stamps`` (float timestamps), ``_gt_poses`` (4×4 or None), and sets
+    ``_intrinsics`` and ``config``; the class attributes give the depth PNG's units per metre and the raw
+    values that mean "no depth".
+    """
+
+    depth_scale: float = 1000.0
+    invalid_depth: tuple[int, ...] = (0,)
+
+    def __init__(self, root, config=None, downsample: int = 1, start: int = 0, stop: int | None = None,
+                 stride: int = 1):
+        from ti_fusion.config import DatasetConfig
+        from ti_fusion.errors import InputError
+
+        super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)
+        self.config = config or DatasetConfig()
+        self.name = self.root.name
+        if not self.root.is_dir():
+            raise InputError(self.root, "dataset folder does not exist")
+
+    @property
+    def raw_intrinsics(self) -> Intrinsics:
+        return self._intrinsics
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return any(T is not None for T in self._gt_poses)
+
+    def _num_raw_frames(self) -> int:
+        return len(self._depth_files)
+
+    def _load_raw(self, raw_index: int) -> Frame:
+        from ti_fusion.io.datasets.imageio import read_rgbd
+
+        depth_path, color_path = self._depth_files[raw_index], self._color_files[raw_index]
+        K = self._intrinsics
+        depth, color = read_rgbd(depth_path, color_path, self.depth_scale, self.config.depth_max,
+                                 (K.width, K.height), self.invalid_depth)
+        gt = self._gt_poses[raw_index]
+        return Frame(index=raw_index, timestamp=float(self._stamps[raw_index]), depth=depth, intrinsics=K,
+                     color=color, gt_pose=None if gt is None else gt.copy(),
+                     meta={"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
+
+    def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps, camera-to-world poses N×4×4) of the selected frames that have ground truth."""
+        keep = [i for i in self.indices if self._gt_poses[i] is not None]
+        stamps = np.array([self._stamps[i] for i in keep], dtype=np.float64)
+        return stamps, np.array([self._gt_poses[i] for i in keep]).reshape(-1, 4, 4)

@@ -1,0 +1,160 @@
+"""Readers shared by the dataset loaders: images, depth conversion, small text files.
+
+Every reader raises ``InputError`` naming the file and the problem, so a bad dataset ends in one
+clear line rather than a traceback from inside OpenCV or NumPy.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ti_fusion.camera import Intrinsics
+from ti_fusion.errors import InputError
+
+
+def _imread(path: Path, flags: int) -> np.ndarray:
+    if not path.is_file():
+        raise InputError(path, "image file not found")
+    # cv2.imread does not understand every path on every platform; decoding the bytes always works.
+    data = np.fromfile(str(path), dtype=np.uint8)
+    image = None
+    if data.size:
+        # Our InputError says it in one line; OpenCV's own log lines about a broken file would be noise.
+        level = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+        try:
+            image = cv2.imdecode(data, flags)
+        finally:
+            cv2.utils.logging.setLogLevel(level)
+    if image is None:
+        raise InputError(path, "unreadable or corrupt image")
+    return image
+
+
+def read_depth_png(path: str | Path) -> np.ndarray:
+    """The raw 16-bit depth image (H×W uint16), refusing 8-bit and multi-channel files."""
+    path = Path(path)
+    raw = _imread(path, cv2.IMREAD_UNCHANGED)
+    if raw.ndim != 2:
+        raise InputError(path, f"depth image has {raw.shape[2]} channels, expected a single-channel 16-bit PNG")
+    if raw.dtype != np.uint16:
+        bits = raw.dtype.itemsize * 8
+        raise InputError(path, f"depth image is {bits}-bit ({raw.dtype}), expected a 16-bit PNG")
+    return raw
+
+
+def read_color(path: str | Path) -> np.ndarray:
+    """The colour image as H×W×3 uint8 RGB (OpenCV decodes to BGR; we swap)."""
+    path = Path(path)
+    bgr = _imread(path, cv2.IMREAD_COLOR)
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def depth_to_metres(raw: np.ndarray, scale: float, depth_max: float | None,
+                    invalid: tuple[int, ...] = (0,)) -> np.ndarray:
+    """float32 metres from raw integer depth: ``raw / scale``, 0 where invalid or beyond ``depth_max``.
+
+    ``invalid`` lists raw values that mean "no measurement" (0 everywhere, 65535 in 7-Scenes).
+    ``depth_max`` ≤ 0 or None keeps every range.
+    """
+    depth = raw.astype(np.float32) / np.float32(scale)
+    bad = np.isin(raw, invalid)
+    if depth_max is not None and depth_max > 0:
+        bad |= depth > depth_max
+    depth[bad] = 0.0
+    return depth
+
+
+def check_same_size(color: np.ndarray, color_path: Path, depth: np.ndarray, depth_path: Path) -> None:
+    if color.shape[:2] != depth.shape[:2]:
+        ch, cw = color.shape[:2]
+        dh, dw = depth.shape[:2]
+        raise InputError(color_path, f"colour image is {cw}x{ch} but its depth image {Path(depth_path).name} is {dw}x{dh}")
+
+
+def read_table(path: str | Path, what: str = "file") -> list[tuple[int, list[str]]]:
+    """Whitespace-separated rows of a text file as (line number, fields), skipping blanks and # comments."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, f"{what} not found")
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read {what}: {exc}") from None
+    rows = []
+    for lineno, line in enumerate(text.splitlines(), start=1):
+        line = line.strip()
+        if line and not line.startswith("#"):
+            rows.append((lineno, line.replace(",", " ").split()))
+    return rows
+
+
+def parse_floats(fields: list[str], path: Path, lineno: int) -> np.ndarray:
+    try:
+        values = np.array([float(f) for f in fields], dtype=np.float64)
+    except ValueError:
+        raise InputError(path, f"line {lineno}: expected numbers, got {' '.join(fields)!r}") from None
+    if not np.all(np.isfinite(values)):
+        raise InputError(path, f"line {lineno}: contains NaN or infinite values")
+    return values
+
+
+def read_numbers(path: str | Path, what: str) -> np.ndarray:
+    """All numbers of a small text file, in reading order (errors name the offending line)."""
+    path = Path(path)
+    rows = read_table(path, what)
+    parsed = [parse_floats(fields, path, lineno) for lineno, fields in rows]
+    return np.concatenate(parsed) if parsed else np.zeros(0)
+
+
+def read_intrinsics_file(path: str | Path, width: int, height: int) -> Intrinsics:
+    """Intrinsics from a text file holding either "fx fy cx cy" or a 3×3 K matrix (9 numbers)."""
+    path = Path(path)
+    values = read_numbers(path, "intrinsics file")
+    if values.size == 4:
+        fx, fy, cx, cy = values
+    elif values.size == 9:
+        K = values.reshape(3, 3)
+        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
+            raise InputError(path, "3x3 intrinsics matrix must have last row [0 0 1] and K[1,0] = 0")
+    else:
+        raise InputError(path, f"expected 4 numbers (fx fy cx cy) or 9 (3x3 K), found {values.size}")
+    if fx <= 0 or fy <= 0:
+        raise InputError(path, f"focal lengths must be positive (fx={fx}, fy={fy})")
+    return Intrinsics(float(fx), float(fy), float(cx), float(cy), int(width), int(height))
+
+
+def read_pose_matrix(path: str | Path) -> np.ndarray:
+    """A 4×4 rigid transform from a text file of 16 numbers (7-Scenes ``pose.txt``), re-orthonormalised."""
+    from ti_fusion.geometry import orthonormalize, rigidity_error
+
+    path = Path(path)
+    values = read_numbers(path, "pose file")
+    if values.size != 16:
+        raise InputError(path, f"expected a 4x4 matrix (16 numbers), found {values.size}")
+    T = values.reshape(4, 4)
+    problem = rigidity_error(T)
+    if problem:
+        raise InputError(path, f"pose is not a rigid transform: {problem}")
+    T[:3, :3] = orthonormalize(T[:3, :3])
+    return T
+
+
+def read_rgbd(depth_path: Path, color_path: Path | None, scale: float, depth_max: float | None,
+              size: tuple[int, int], invalid: tuple[int, ...] = (0,)) -> tuple[np.ndarray, np.ndarray | None]:
+    """(depth in metres, RGB colour or None) of one frame, checking both against ``size`` = (width, height)."""
+    raw = read_depth_png(depth_path)
+    width, height = size
+    if raw.shape != (height, width):
+        raise InputError(depth_path, f"depth image is {raw.shape[1]}x{raw.shape[0]}, "
+                                     f"the sequence's first is {width}x{height}")
+    depth = depth_to_metres(raw, scale, depth_max, invalid)
+    color = None
+    if color_path is not None:
+        color = read_color(color_path)
+        check_same_size(color, color_path, depth, depth_path)
+    return depth, color

@@ -1,0 +1,140 @@
+"""TUM RGB-D benchmark sequences (``rgbd_dataset_freiburg*``).
+
+Layout: ``depth.txt`` and ``rgb.txt`` list "timestamp filename" per image, ``groundtruth.txt`` holds
+the motion-capture trajectory "timestamp tx ty tz qx qy qz qw" (camera-to-world, ~100 Hz). Depth PNGs
+are 16-bit with 5000 units per metre.
+
+- Frames are the depth images. Each is paired with the rgb image found by TUM's associate.py rule
+  (greedy by smallest time difference, at most ``DatasetConfig.max_time_difference`` = 0.02 s);
+  a depth image with no rgb partner is dropped, as associate.py drops it. Without ``rgb.txt`` the
+  sequence is depth-only (colour None).
+- The frame timestamp is the depth timestamp.
+- Ground truth is INTERPOLATED at the depth timestamp: linear in translation, slerp in rotation,
+  between the two motion-capture samples around it when both lie within the tolerance of it;
+  otherwise the nearest sample within the tolerance; otherwise the frame has no ground truth (None).
+- Intrinsics, first match wins: ``DatasetConfig.intrinsics_file``; ``intrinsics.txt`` in the folder
+  ("fx fy cx cy" or a 3×3 K); the freiburg1/2/3 calibration guessed from the folder name; else the
+  ROS default 525, 525, 319.5, 239.5. Image size from the first depth image.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+
+from ti_fusion.camera import Intrinsics
+from ti_fusion.config import DatasetConfig
+from ti_fusion.errors import InputError
+from ti_fusion.geometry import make_pose, so3_exp, so3_log
+from ti_fusion.io.trajectory import associate, read_tum
+from ti_fusion.io.datasets.base import ImageFileDataset
+from ti_fusion.io.datasets.imageio import parse_floats, read_depth_png, read_intrinsics_file, read_rgbd, read_table
+
+DEPTH_SCALE = 5000.0
+
+# (fx, fy, cx, cy) of the TUM benchmark's per-camera calibrations.
+FREIBURG_INTRINSICS = {
+    "freiburg1": (517.3, 516.5, 318.6, 255.3),
+    "freiburg2": (520.9, 521.0, 325.1, 249.7),
+    "freiburg3": (535.4, 539.2, 320.1, 247.6),
+}
+DEFAULT_INTRINSICS = (525.0, 525.0, 319.5, 239.5)
+
+
+def freiburg_camera(name: str) -> str | None:
+    """"freiburg1" etc. when a folder name says which TUM camera recorded it ("freiburg2", "fr3_...")."""
+    m = re.search(r"(?<![a-z])(?:freiburg|fr)([123])(?![0-9])", name.lower())
+    return f"freiburg{m.group(1)}" if m else None
+
+
+def read_image_list(path: Path) -> tuple[np.ndarray, list[Path]]:
+    """(timestamps, files) of a TUM "timestamp filename" list; every listed file must exist."""
+    stamps, files = [], []
+    for lineno, fields in read_table(path, path.name):
+        if len(fields) < 2:
+            raise InputError(path, f"line {lineno}: expected 'timestamp filename'")
+        stamps.append(parse_floats(fields[:1], path, lineno)[0])
+        file = path.parent / fields[1]
+        if not file.is_file():
+            raise InputError(file, f"image listed in {path.name} (line {lineno}) does not exist")
+        files.append(file)
+    return np.asarray(stamps, dtype=np.float64), files
+
+
+def interpolate_pose(stamps: np.ndarray, poses: np.ndarray, t: float, tolerance: float) -> np.ndarray | None:
+    """The pose at time ``t`` from a sorted trajectory: interpolated (slerp) between the samples around
+    ``t`` when both are within ``tolerance``, else the nearest sample within it, else None."""
+    k = int(np.searchsorted(stamps, t, side="left"))
+    if k < len(stamps) and stamps[k] == t:
+        return poses[k].copy()
+    before, after = k - 1, k
+    ok_before = before >= 0 and t - stamps[before] <= tolerance
+    ok_after = after < len(stamps) and stamps[after] - t <= tolerance
+    if ok_before and ok_after:
+        s = (t - stamps[before]) / (stamps[after] - stamps[before])
+        T0, T1 = poses[before], poses[after]
+        R = T0[:3, :3] @ so3_exp(s * so3_log(T0[:3, :3].T @ T1[:3, :3]))
+        return make_pose(R, (1.0 - s) * T0[:3, 3] + s * T1[:3, 3])
+    if ok_before or ok_after:
+        nearest = before if not ok_after or (ok_before and t - stamps[before] <= stamps[after] - t) else after
+        return poses[nearest].copy()
+    return None
+
+
+class TUMDataset(ImageFileDataset):
+    """A TUM RGB-D sequence folder (see the module docstring for association, ground truth, intrinsics)."""
+
+    format = "tum"
+
+    depth_scale = DEPTH_SCALE
+
+    def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
+                 stop: int | None = None, stride: int = 1):
+        super().__init__(root, config, downsample, start, stop, stride)
+        tolerance = self.config.max_time_difference
+
+        depth_stamps, depth_files = read_image_list(self.root / "depth.txt")
+        if not depth_files:
+            raise InputError(self.root / "depth.txt", "empty sequence: no depth images listed")
+        self._color_files: list[Path | None]
+        if (self.root / "rgb.txt").is_file():
+            rgb_stamps, rgb_files = read_image_list(self.root / "rgb.txt")
+            i_depth, i_rgb = associate(depth_stamps, rgb_stamps, tolerance)
+            if len(i_depth) == 0:
+                raise InputError(self.root / "rgb.txt",
+                                 f"empty sequence: no rgb image within {tolerance} s of any depth image")
+            self._color_files = [rgb_files[j] for j in i_rgb]
+        else:
+            i_depth = np.arange(len(depth_files))
+            self._color_files = [None] * len(depth_files)
+        self._depth_files = [depth_files[i] for i in i_depth]
+        self._stamps = depth_stamps[i_depth]
+
+        self._gt_poses: list[np.ndarray | None] = [None] * len(self._stamps)
+        gt_path = self.root / "groundtruth.txt"
+        if gt_path.is_file():
+            gt_stamps, gt_poses = read_tum(gt_path)
+            order = np.argsort(gt_stamps, kind="stable")
+            gt_stamps, gt_poses = gt_stamps[order], gt_poses[order]
+            self._gt_poses = [interpolate_pose(gt_stamps, gt_poses, t, tolerance) for t in self._stamps]
+
+        height, width = read_depth_png(self._depth_files[0]).shape
+        self._intrinsics = self._find_intrinsics(width, height)
+
+    def _find_intrinsics(self, width: int, height: int) -> Intrinsics:
+        if self.config.intrinsics_file:
+            self.intrinsics_source = str(self.config.intrinsics_file)
+            return read_intrinsics_file(self.config.intrinsics_file, width, height)
+        if (self.root / "intrinsics.txt").is_file():
+            self.intrinsics_source = "intrinsics.txt"
+            return read_intrinsics_file(self.root / "intrinsics.txt", width, height)
+        camera = freiburg_camera(self.root.resolve().name)
+        self.intrinsics_source = camera or "default"
+        fx, fy, cx, cy = FREIBURG_INTRINSICS[camera] if camera else DEFAULT_INTRINSICS
+        return Intrinsics(fx, fy, cx, cy, width, height)
+
+    @staticmethod
+    def detect(root: Path) -> bool:
+        return (Path(root) / "depth.txt").is_file()

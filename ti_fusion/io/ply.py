@@ -1,0 +1,86 @@
+"""Point clouds as binary little-endian PLY: x y z nx ny nz (float32) red green blue (uint8).
+
+The layout MeshLab, CloudCompare and Open3D (``o3d.io.read_point_cloud``) read without options.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ti_fusion.errors import InputError
+
+VERTEX_DTYPE = np.dtype([
+    ("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+    ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
+    ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+])
+
+_PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8", "uchar": "u1",
+              "uint8": "u1", "char": "i1", "int8": "i1", "ushort": "<u2", "uint16": "<u2", "short": "<i2",
+              "int16": "<i2", "uint": "<u4", "uint32": "<u4", "int": "<i4", "int32": "<i4"}
+
+
+def write_ply(path: str | Path, position: np.ndarray, normal: np.ndarray | None = None,
+              colour: np.ndarray | None = None) -> Path:
+    """Write N points; ``colour`` is RGB in [0, 255] (any numeric dtype, rounded and clipped)."""
+    path = Path(path)
+    n = len(position)
+    data = np.zeros(n, dtype=VERTEX_DTYPE)
+    data["x"], data["y"], data["z"] = np.asarray(position, dtype=np.float32).T
+    if normal is not None:
+        data["nx"], data["ny"], data["nz"] = np.asarray(normal, dtype=np.float32).T
+    if colour is not None:
+        rgb = np.clip(np.rint(np.asarray(colour, dtype=np.float64)), 0, 255).astype(np.uint8)
+    else:
+        rgb = np.full((n, 3), 200, dtype=np.uint8)
+    data["red"], data["green"], data["blue"] = rgb.T
+    header = ["ply", "format binary_little_endian 1.0", "comment written by ti-fusion",
+              f"element vertex {n}"]
+    header += [f"property {'float' if VERTEX_DTYPE[name].kind == 'f' else 'uchar'} {name}"
+               for name in VERTEX_DTYPE.names]
+    header.append("end_header")
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode("ascii"))
+        f.write(data.tobytes())
+    return path
+
+
+def read_ply(path: str | Path) -> np.ndarray:
+    """The vertex element of a binary little-endian PLY as a NumPy structured array (fields by name)."""
+    path = Path(path)
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            raise InputError(path, "not a PLY file")
+        fmt, count, fields, in_vertex = None, None, [], False
+        while True:
+            line = f.readline()
+            if not line:
+                raise InputError(path, "PLY header has no end_header")
+            words = line.decode("ascii", "replace").split()
+            if not words or words[0] in ("comment", "obj_info"):
+                continue
+            if words[0] == "end_header":
+                break
+            if words[0] == "format":
+                fmt = words[1]
+            elif words[0] == "element":
+                in_vertex = words[1] == "vertex"
+                if in_vertex:
+                    count = int(words[2])
+                elif count is not None:
+                    break  # vertex data comes first: later elements are not needed
+            elif words[0] == "property" and in_vertex:
+                if words[1] == "list" or words[1] not in _PLY_TYPES:
+                    raise InputError(path, f"unsupported vertex property {' '.join(words[1:])}")
+                fields.append((words[2], _PLY_TYPES[words[1]]))
+        if fmt != "binary_little_endian" or count is None:
+            raise InputError(path, f"expected a binary_little_endian PLY with vertices (format {fmt})")
+        while line and line.strip() != b"end_header":
+            line = f.readline()
+        dtype = np.dtype(fields)
+        data = np.frombuffer(f.read(dtype.itemsize * count), dtype=dtype)
+    if len(data) != count:
+        raise InputError(path, f"PLY truncated: {len(data)} of {count} vertices")
+    return data

@@ -1,0 +1,197 @@
+"""Point-based fusion: a surfel map that frames with known poses are integrated into.
+
+    mapper = SurfelMapper(config.fusion)
+    stats = mapper.integrate(frame_maps, frame.color, pose, frame_index)   # merged, added, removed, surfels
+    mapper.render(pose, intrinsics, maps.vertex[0], maps.normal[0], maps.depth[0])  # prediction for ICP
+    mapper.export_ply("map.ply")
+
+The kernels and the stage-by-stage map live in ``ti_fusion.kernels.fusion``; this layer holds the
+configuration, uploads the frame's colour, times the stages and reports what changed.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import taichi as ti
+
+from ti_fusion.camera import Intrinsics
+from ti_fusion.config import FusionConfig
+from ti_fusion.kernels.fusion import SurfelMap
+from ti_fusion.slam.timing import StageTimer
+
+STAGES = ("project", "filter", "merge", "add", "remove")
+
+
+@dataclass
+class FusionStats:
+    """What one ``integrate`` call did."""
+
+    merged: int  # pixels averaged into an existing surfel
+    added: int  # new surfels
+    removed: int  # surfels dropped (unstable or free-space violations)
+    surfels: int  # live surfels afterwards
+    valid_pixels: int  # pixels with a valid vertex and normal (the naive map would add them all)
+    covered: int = 0  # unassociated pixels not added: a neighbour's merged surfel covers them
+    ms: dict[str, float] = field(default_factory=dict)  # per stage (only with a timer)
+
+
+def pack_colour(color: np.ndarray) -> np.ndarray:
+    """uint8 H×W×3 RGB → int32 H×W as r | g << 8 | b << 16 (one 32-bit word per pixel on every backend)."""
+    c = np.asarray(color).astype(np.int32)
+    return c[..., 0] | (c[..., 1] << 8) | (c[..., 2] << 16)
+
+
+class SurfelMapper:
+    """Integrates RGB-D frames with known camera-to-world poses into a surfel map (Keller et al. 2013)."""
+
+    def __init__(self, config: FusionConfig | None = None):
+        self.config = config or FusionConfig()
+        self.map = SurfelMap(self.config.capacity, self.config.grow)
+
+    @property
+    def count(self) -> int:
+        return self.map.count
+
+    def integrate(self, frame_maps, color: np.ndarray | None, pose: np.ndarray, frame_index: int,
+                  timer: StageTimer | None = None) -> FusionStats:
+        """Fuse one frame: project, filter (pass 1 and 2), merge, add, remove.
+
+        frame_maps: a computed ``FrameMaps`` (level 0 is used); color: uint8 H×W×3 RGB or None;
+        pose: 4×4 camera-to-world; frame_index: the time stamp stored in the surfels (frames since start).
+        With a ``timer``, every stage is synchronised and timed (ms in the stats and in the timer).
+        """
+        cfg = self.config
+        input_width = frame_maps.input_shape[1]
+        map_level = cfg.map_level(input_width)  # counted from the input resolution
+        level = map_level - frame_maps.input_level  # the same level, counted in these maps
+        if not 0 <= level < frame_maps.levels:
+            raise ValueError(f"fusion.level {map_level} (for {input_width} px wide frames) needs frame maps "
+                             f"with level {map_level} of the input; these have levels {frame_maps.input_level}"
+                             f"..{frame_maps.input_level + frame_maps.levels - 1}")
+        vertex, normal, depth = frame_maps.vertex[level], frame_maps.normal[level], frame_maps.depth[level]
+        K: Intrinsics = frame_maps.intrinsics[level]
+        H, W = frame_maps.shapes[level]
+        if color is not None and map_level > 0:
+            color = color[:: 2**map_level, :: 2**map_level]
+        pose = np.asarray(pose, dtype=np.float64)
+        ms: dict[str, float] = {}
+        stage = _Stages(timer, ms)
+
+        keller = cfg.association == "compatible"
+        if cfg.association not in ("nearest", "compatible"):
+            raise ValueError(f"fusion.association must be nearest or compatible, not {cfg.association!r}")
+        with stage("project"):  # with Keller's order, filter pass 2 runs inside the projection
+            if keller:
+                img = self.map.associate_compatible(pose, K, vertex, normal, cfg.dist_threshold,
+                                                    cfg.normal_threshold_deg)
+            else:
+                img = self.map.project(pose, K, H, W)
+            has_colour = color is not None
+            if has_colour:
+                if color.shape[:2] != (H, W):
+                    raise ValueError(f"colour of shape {color.shape[:2]} for a depth map of shape {(H, W)}")
+                img.colour.from_numpy(pack_colour(color))
+        with stage("filter"):
+            if not keller:
+                self.map.associate(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
+        with stage("merge"):
+            self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
+                           cfg.confidence_sigma, has_colour, cfg.depth_weighting)
+        with stage("add"):  # with skip_covered, covered pixels are marked in the same pass and not added
+            cover = (cfg.dist_threshold, cfg.normal_threshold_deg) if cfg.skip_covered else None
+            added, merged = self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
+                                         cfg.confidence_sigma, has_colour, cfg.depth_weighting, cover)
+        with stage("remove"):
+            removed = self.map.remove(frame_index, cfg.remove_unstable, cfg.unstable_weight, cfg.unstable_age,
+                                      cfg.remove_free_space, cfg.free_space_margin, depth)
+        covered = self.map.covered
+        return FusionStats(merged, added, removed, self.map.count, merged + added + covered, covered, ms)
+
+    # -- rendering -----------------------------------------------------------------------------------------
+    def render(self, pose: np.ndarray, intrinsics: Intrinsics, out_vertex, out_normal, out_depth) -> None:
+        """Predicted camera-frame vertex / normal / depth maps at ``pose`` (zero where no surfel)."""
+        self.map.render(pose, intrinsics, out_vertex, out_normal, out_depth, self.config.render_min_weight,
+                        self.config.render_max_half)
+
+    def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics, max_depth_jump: float = 0.05,
+                    pyramid_max_diff: float = 0.09, min_weight: float | None = None) -> None:
+        """Fill a ``FrameMaps`` with the prediction: every pyramid level from the rendered depth (the last two
+        arguments as in ``FrameMaps.compute``), and level 0's vertex and normal maps straight from the
+        surfels (averaged normals, smoother than normals from depth differences). Surfels below
+        ``min_weight`` (default ``fusion.render_min_weight``) are left out."""
+        if min_weight is None:
+            min_weight = self.config.render_min_weight
+        self.map.render(pose, intrinsics, frame_maps.vertex[0], frame_maps.normal[0], frame_maps.depth[0],
+                        min_weight, self.config.render_max_half)
+        frame_maps.compute_from_field(intrinsics, max_depth_jump, pyramid_max_diff, level0_maps=False)
+
+    def render_image(self, pose: np.ndarray, intrinsics: Intrinsics, by_normal: bool = False) -> np.ndarray:
+        """uint8 RGB view of the map from ``pose`` (surfel colour, or world normal as (n + 1) / 2)."""
+        return self.map.render_image(pose, intrinsics, by_normal)
+
+    # -- export --------------------------------------------------------------------------------------------
+    def to_numpy(self) -> dict[str, np.ndarray]:
+        return self.map.to_numpy()
+
+    def sample_points(self, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+        """(positions, uint8 RGB colours) of at most ``max_points`` surfels: every k-th, for log snapshots."""
+        stride = max(1, -(-self.count // max(1, int(max_points))))
+        data = self.map.to_numpy(("position", "colour"), stride)
+        # surfel colours are floats in [0, 255]; log_points reads float colours as [0, 1]
+        return data["position"], np.clip(np.rint(data["colour"]), 0, 255).astype(np.uint8)
+
+    def export_ply(self, path: str | Path) -> Path:
+        from ti_fusion.io.ply import write_ply
+
+        data = self.map.to_numpy()
+        return write_ply(path, data["position"], data["normal"], data["colour"])
+
+
+Fusion = SurfelMapper  # the name the issue uses
+
+
+class _Stages:
+    """``with stage("x"):`` times a stage when there is a timer (synchronising the backend first)."""
+
+    def __init__(self, timer: StageTimer | None, ms: dict[str, float]):
+        self.timer, self.ms = timer, ms
+
+    def __call__(self, name: str):
+        if self.timer is None:
+            return _NULL
+        return _Timed(self.timer, self.ms, name)
+
+
+class _Null:
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return False
+
+
+_NULL = _Null()
+
+
+class _Timed:
+    def __init__(self, timer: StageTimer, ms: dict[str, float], name: str):
+        self.timer, self.ms, self.name = timer, ms, name
+
+    def __enter__(self):
+        import time
+
+        ti.sync()
+        self.t0 = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc):
+        import time
+
+        ti.sync()
+        elapsed = (time.perf_counter() - self.t0) * 1e3
+        self.ms[self.name] = elapsed
+        self.timer.add(self.name, elapsed)
+        return False

@@ -1,0 +1,1 @@
+"""NumPy float64 references of the Taichi kernels: the tests' oracles and the benchmarks' baselines."""

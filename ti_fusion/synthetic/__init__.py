@@ -1,0 +1,1 @@
+"""The embedded synthetic RGB-D sequence: scene, camera path and renderer."""

@@ -5,10 +5,9 @@ itself silently falls back to the CPU when a GPU backend is missing; we check wh
 that asking for an absent backend fails at once with one line that says what is missing.
 
 On the CPU (Linux), Taichi's worker threads are pinned one per logical CPU once it has started
-(``pin_cpu_workers``; ``TI_FUSION_PIN_THREADS=0`` turns it off). Unpinned, the scheduler of this
-project's 2-core virtual machine mostly woke both workers on the same core, so a kernel of a few
-milliseconds ran on one core while the other idled: the ICP frame pair at 320×240 took 11 ms with them
-unpinned, 7 ms pinned (median of 20, three runs each); kernels of tens of milliseconds were not affected.
+(``pin_cpu_workers``; ``TI_FUSION_PIN_THREADS=0`` turns it off): left to the scheduler, both workers can
+be woken on the same core, so a kernel of a few milliseconds runs on one core while the other idles
+(docs/PERFORMANCE.md has the measurements).
 """
 
 from __future__ import annotations
@@ -107,8 +106,7 @@ def init_backend(requested: str = "cpu", **kwargs) -> BackendInfo:
 
 
 # Below this many pixels (or surfels) a loop runs on the calling thread (CPU only): handing a loop to
-# Taichi's thread pool and waiting for it costs about 70 µs on this project's 2-core virtual machine,
-# more than the two threads save on an image this small.
+# Taichi's thread pool and waiting for it costs more than the other threads save on so few items.
 SERIAL_BELOW = 16384
 
 
@@ -142,8 +140,8 @@ def _thread_run_ns() -> dict[int, int]:
 def pin_cpu_workers() -> str:
     """Pin the running CPU backend's worker threads one per logical CPU; returns a note for the backend's
     reason ("" when nothing was pinned). Taichi does not name its workers: they are the threads that
-    ``ti.init`` started and that run a short parallel kernel (``kernels.probe.busy``, about 20 ms, run up
-    to three times until every worker has taken part). Threads that were there before, such as a busy
+    ``ti.init`` started and that run a short parallel kernel (``kernels.probe.busy``, run up to three
+    times until every worker has taken part). Threads that were there before, such as a busy
     Python thread or OpenBLAS's, are left alone."""
     import threading
 

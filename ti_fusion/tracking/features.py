@@ -22,10 +22,9 @@ slightly different surface point (the cameras sit a few centimetres apart), so (
 keypoint can take the background's or the foreground's depth: an outlier, which RANSAC mostly
 rejects; (b) elsewhere every lifted point is displaced by a smooth, depth-dependent offset, which
 RANSAC cannot reject and which biases each estimate. Both frames of a pair share the offset, so the
-bias is second order: on redkitchen (200 frames, ATE 31 mm), moving the depth lookup by ±8 pixels
-changes the ATE by −3 to +2.5 mm, and mapping colour pixels to depth pixels as if the colour camera had
-the nominal 525-pixel focal length (scale 585/525 about the centre) makes it worse (37 mm). The drift is dominated instead by keypoint noise (ORB keypoints on coarser
-pyramid levels are localised to about a pixel) through PnP's rotation/translation ambiguity.
+bias is second order, and neither shifting the depth lookup nor rescaling colour pixels to depth pixels
+corrects it (docs/BENCHMARKS.md). The drift is dominated instead by keypoint noise (ORB keypoints on
+coarser pyramid levels are localised to about a pixel) through PnP's rotation/translation ambiguity.
 Dense ICP on depth alone suffers from neither, which is why the estimate initialises ICP rather
 than replacing it.
 """

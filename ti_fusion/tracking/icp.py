@@ -126,8 +126,8 @@ class ICP:
         """Every iteration one launch of the ``iterate`` kernel, which solves and updates the pose itself
         (float64, Cholesky); then its records are replayed here through the same checks and bookkeeping as
         ``_align_in_python``. Per iteration that saves the round trip through NumPy (the sums out, the
-        check, the solve, the SE(3) update, the pose back in: ~120 µs, as long as a 320×240 pass on two
-        cores). Returns None when done, or the (stage, iteration) to go on from in Python, with
+        check, the solve, the SE(3) update, the pose back in), which takes as long as a small pass itself.
+        Returns None when done, or the (stage, iteration) to go on from in Python, with
         ``result.pose`` set, if the kernel refused a system that NumPy's checks accept."""
         cfg = self.config
         robust = self.robust

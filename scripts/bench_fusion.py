@@ -4,305 +4,37 @@
     .venv/bin/python scripts/bench_fusion.py [--arch cpu] [--surfels 1000000] [--steps 10] [--sizes 320x240,640x480]
 
 For each resolution: fuse frames of the synthetic sequence (noise on) with the Taichi mapper until the
-map holds ``--surfels`` surfels, copy that map into a NumPy implementation of the same step (below:
-project, filter passes 1 and 2 in the configured order (Keller's "compatible" by default), the
-nearest-depth index map, merge, add with the covered-pixel test, remove, with the same thresholds),
-then run the next ``--steps`` frames through both, each on its own copy, and print the median
-milliseconds per stage and the ratio, measured in the same run. The first Taichi step of each size
-(kernel compilation) is not timed, and each Taichi step starts 0.2 s after the NumPy one, once
-OpenBLAS's threads have stopped spinning. Freed memory is kept for reuse (``ti_fusion.slam.timing.keep_freed_memory``)
-so that NumPy's large temporaries do not page-fault afresh at every step.
+map holds ``--surfels`` surfels, copy that map into a NumPy implementation of the same step
+(``ti_fusion.reference.fusion.NumpyFusion``: project, filter passes 1 and 2 in the configured order
+(Keller's "compatible" by default), the nearest-depth index map, merge, add with the covered-pixel test,
+remove, with the same thresholds), then run the next ``--steps`` frames through both, each on its own
+copy, and print the median milliseconds per stage and the ratio, measured in the same run. The first
+Taichi step of each size (kernel compilation) is not timed, and each Taichi step starts 0.2 s after the
+NumPy one, once OpenBLAS's threads have stopped spinning. Freed memory is kept for reuse
+(``benchlib.keep_freed_memory``) so that NumPy's large temporaries do not page-fault afresh at every step.
 """
 
 from __future__ import annotations
 
 import argparse
-import math
 import sys
 import time
-from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from benchlib import BLAS_SETTLE_S, keep_freed_memory, numpy_conditions
 
 STAGES = ("project", "filter", "merge", "add", "remove")
-BLAS_SETTLE_S = 0.2  # pause after each NumPy step (see bench_size)
-
-
-def _dot(a, b):
-    """Row-wise dot products of two (m, 3) arrays, a column at a time: the sums of np.einsum("ij,ij->i", a, b)
-    (and of np.linalg.norm), in the same order, in a quarter to a half of the time."""
-    return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
-
-
-def _put_rows(arr, idx, rows):
-    """arr[idx] = rows, a column at a time for an (n, 3) array: half the time of the row assignment."""
-    if arr.ndim == 1:
-        arr[idx] = rows
-    else:
-        for c in range(arr.shape[1]):
-            arr[:, c][idx] = rows[:, c]
-
-
-def _rigid(p, R, t):
-    """p @ R.T + t for (m, 3) rows, t added a column at a time: broadcast over rows of three, the addition took
-    three times as long as the product."""
-    out = p @ R.T
-    for c in range(3):
-        out[:, c] += t[c]
-    return out
-
-
-class NumpyFusion:
-    """The fusion step of ``ti_fusion.mapping.mapper.SurfelMapper`` in vectorised NumPy (float32 arrays).
-
-    NumPy at its best, so that the ratio to the kernels is an honest one; the maps it makes are bit for bit
-    those of the plain formulation (fancy indexing, boolean masks, einsum, the whole map at once). Measured
-    on this step (NumPy 2.x):
-    - rows of the (m, 3) arrays are gathered with ``np.take(arr, idx, axis=0)`` (3-4× faster than
-      ``arr[idx]``), subsets are selected through index lists (``np.flatnonzero``; a boolean mask took ~10×
-      longer), dot products and row assignments go a column at a time (``_dot``, ``_put_rows``);
-    - the projection runs over blocks of surfels (``BLOCK``), so that its temporaries stay in the cache;
-    - of the tests that decide together, the selective one runs first and the others only on what it keeps:
-      on the benchmark's frames the normal test keeps ~15-20% (of the surfels in the image, of the merged
-      neighbours of a pixel), the distance and disc tests ~80%;
-    - as in the kernels, the radial confidence is a per-pixel table computed once, the coverage test reads
-      the merged surfels from the merge's results rather than from the map, and the map's memory is
-      written once when it is allocated.
-    """
-
-    # Surfels per block of the projection. On the whole map at once, its temporaries (tens of MB) left the
-    # cache and, growing with the map, page-faulted afresh at each step: the stage took 40-43 ms at 640×480
-    # against 23-27 ms in blocks of 2^16 (2^14: 28-31 ms, 2^18: 28 ms)
-    BLOCK = 1 << 16
-    # Keller's radial confidence per pixel, by (shape, cx, cy, σ): computed once, as the kernels' fill_radial
-    _radial_tables: dict = {}
-
-    def __init__(self, data: dict, cfg, capacity: int):
-        self.cfg = cfg
-        self.n = len(data["position"])
-        self.a = {}
-        for name, arr in data.items():
-            # zeros written now, not np.zeros, whose pages are mapped at their first write: the surfels added at
-            # each step page-faulted in the timed add stage (22 vs 10 ms at 640×480). The kernels' fields are
-            # resident from their allocation
-            full = np.empty((capacity,) + arr.shape[1:], arr.dtype)
-            full[: self.n] = arr
-            full[self.n:] = 0
-            self.a[name] = full
-
-    def integrate(self, vertex, normal, depth, colour, pose, K, frame) -> dict:
-        cfg, a, n = self.cfg, self.a, self.n
-        H, W = depth.shape
-        keller = cfg.association == "compatible"
-        ms = {}
-        t0 = time.perf_counter()
-        # project + filter pass 1 + nearest surfel per pixel
-        inv = np.linalg.inv(pose)
-        Rw, tw = inv[:3, :3].astype(np.float32), inv[:3, 3].astype(np.float32)
-        R, t = pose[:3, :3].astype(np.float32), pose[:3, 3].astype(np.float32)
-        q = vertex.reshape(-1, 3)
-        nq = normal.reshape(-1, 3)
-        # positive depth and a non-zero normal (np.any(nq != 0, axis=1) took 8× as long as the three columns)
-        valid = (q[:, 2] > 0) & ((nq[:, 0] != 0) | (nq[:, 1] != 0) | (nq[:, 2] != 0))
-        cos_thr = math.cos(math.radians(cfg.normal_threshold_deg))
-        if keller:  # the frame's measurements in the world frame, as the kernels' world_measurements
-            q_world = _rigid(q, R, t)
-            n_world = nq @ R.T
-        found = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))]  # (an empty map)
-        for s in range(0, n, self.BLOCK):
-            # the camera-frame coordinates as three contiguous rows (the same sums as position @ Rw.T + tw): the
-            # product and the projection below took 4× as long on (m, 3) rows (tw broadcast over rows of three,
-            # strided columns)
-            x, y, z = Rw @ a["position"][s:min(s + self.BLOCK, n)].T + tw[:, None]
-            with np.errstate(divide="ignore", invalid="ignore"):
-                uf = K.fx * x / z + K.cx + 0.5
-                vf = K.fy * y / z + K.cy + 0.5
-                inside = (z > 0) & (uf >= 0) & (uf < W) & (vf >= 0) & (vf < H)
-            ids = np.flatnonzero(inside)
-            pix = vf[ids].astype(np.int64) * W + uf[ids].astype(np.int64)
-            zi = z[ids]
-            ids += s
-            if keller:
-                # Keller's order: filter pass 2 for every surfel of pass 1, in the world frame, then (below) the
-                # nearest that passed. The normal test first, the distance for the surfels it keeps
-                ok = np.flatnonzero(_dot(np.take(a["normal"], ids, axis=0), np.take(n_world, pix, axis=0)) >= cos_thr)
-                ids, pix, zi = ids[ok], pix[ok], zi[ok]
-                d = np.take(a["position"], ids, axis=0) - np.take(q_world, pix, axis=0)
-                ok = np.flatnonzero(valid[pix] & (_dot(d, d) <= cfg.dist_threshold ** 2))
-                ids, pix, zi = ids[ok], pix[ok], zi[ok]
-            found.append((ids, pix, zi))
-        ids, pix, zi = (np.concatenate(v) for v in zip(*found))
-        # the kernels' two passes: nearest depth per pixel, then the smallest index at that depth
-        # (np.minimum.at, NumPy's unbuffered scatter-min, takes 0.1-0.2 ms here; sorting by pixel then depth
-        # took 4-11 ms, np.lexsort 8-23 ms)
-        nearest = np.full(H * W, np.inf, np.float32)
-        np.minimum.at(nearest, pix, zi)
-        won = np.flatnonzero(zi == nearest[pix])
-        index = np.full(H * W, np.iinfo(np.int64).max, np.int64)
-        np.minimum.at(index, pix[won], ids[won])
-        index[index == np.iinfo(np.int64).max] = -1
-        t1 = time.perf_counter()
-        ms["project"] = (t1 - t0) * 1e3
-        # filter pass 2 (in the projection above for Keller's order). In pixel order: listing the surfels in
-        # index order instead, as the kernels' merge does, made the step 1-4 ms slower (the frame's arrays read
-        # at random pixels, and the coverage test's reads of the merged surfels scattered)
-        px = np.flatnonzero((index >= 0) & valid)
-        i = index[px]
-        if keller:
-            qw, nw = np.take(q_world, px, axis=0), np.take(n_world, px, axis=0)
-        else:
-            qw, nw = _rigid(np.take(q, px, axis=0), R, t), np.take(nq, px, axis=0) @ R.T
-            d = qw - np.take(a["position"], i, axis=0)
-            ok = np.flatnonzero((np.sqrt(_dot(d, d)) <= cfg.dist_threshold) &
-                                (_dot(nw, np.take(a["normal"], i, axis=0)) >= cos_thr))
-            px, i, qw, nw = px[ok], i[ok], np.take(qw, ok, axis=0), np.take(nw, ok, axis=0)
-        t2 = time.perf_counter()
-        ms["filter"] = (t2 - t1) * 1e3
-        # merge
-        rgb = colour.reshape(-1, 3)  # uint8: only the rows used are converted
-        alpha = self._alpha(px, q[:, 2][px], K, (H, W))[:, None]
-        w = a["weight"][i][:, None]
-        wa = w + alpha
-        p_new = (w * np.take(a["position"], i, axis=0) + alpha * qw) / wa
-        nn = w * np.take(a["normal"], i, axis=0) + alpha * nw
-        n_new = nn / np.sqrt(_dot(nn, nn))[:, None]
-        r_new = np.minimum(a["radius"][i], self._radius(q[:, 2][px], nq[:, 2][px], K))
-        _put_rows(a["position"], i, p_new)
-        _put_rows(a["normal"], i, n_new)
-        _put_rows(a["colour"], i, (w * np.take(a["colour"], i, axis=0) +
-                                   alpha * np.take(rgb, px, axis=0).astype(np.float32)) / wa)
-        a["weight"][i] = wa[:, 0]
-        a["radius"][i] = r_new
-        a["t_updated"][i] = frame
-        t3 = time.perf_counter()
-        ms["merge"] = (t3 - t2) * 1e3
-        # add (skipping pixels covered by the disc of a surfel merged at a neighbouring pixel)
-        merged_at = np.full(H * W, -1, np.int64)  # the surfel merged at each pixel, as a row of p_new, n_new, r_new
-        merged_at[px] = np.arange(len(px))
-        new = np.flatnonzero(valid & (merged_at < 0))
-        if keller:  # the frame's measurements were turned into the world frame in the projection
-            qw, nw = np.take(q_world, new, axis=0), np.take(n_world, new, axis=0)
-        else:
-            qw, nw = _rigid(np.take(q, new, axis=0), R, t), np.take(nq, new, axis=0) @ R.T
-        if cfg.skip_covered:
-            keep = np.flatnonzero(~self._covered(new, qw, nw, merged_at.reshape(H, W), p_new, n_new, r_new, cos_thr))
-            new, qw, nw = new[keep], np.take(qw, keep, axis=0), np.take(nw, keep, axis=0)
-        k = len(new)
-        sl = slice(n, n + k)
-        a["position"][sl] = qw
-        a["normal"][sl] = nw
-        a["colour"][sl] = np.take(rgb, new, axis=0)
-        a["weight"][sl] = self._alpha(new, q[:, 2][new], K, (H, W))
-        a["radius"][sl] = self._radius(q[:, 2][new], nq[:, 2][new], K)
-        a["t_created"][sl] = frame
-        a["t_updated"][sl] = frame
-        n += k
-        t4 = time.perf_counter()
-        ms["add"] = (t4 - t3) * 1e3
-        # remove unstable surfels and compact as the kernels do: the k-th survivor at or above the new count
-        # m moves into the k-th hole below m, so only the holes are written, not the whole map (copying every
-        # survivor, as a boolean mask does, made this stage 6x slower at 320×240)
-        drop = (a["weight"][:n] < cfg.unstable_weight) & (a["t_updated"][:n] <= frame - cfg.unstable_age)
-        removed = int(np.count_nonzero(drop))
-        if removed:
-            m = n - removed
-            holes = np.flatnonzero(drop[:m])
-            movers = m + np.flatnonzero(~drop[m:])
-            for arr in a.values():
-                _put_rows(arr, holes, np.take(arr, movers, axis=0))
-            n = m
-        self.n = n
-        ms["remove"] = (time.perf_counter() - t4) * 1e3
-        return ms
-
-    def _covered(self, pixels, qw, nw, merged_at, position, normal, radius, cos_thr) -> np.ndarray:
-        """Whether the point qw (normal nw), world frame, of each pixel lies on the disc of a surfel merged at
-        one of its 8 neighbours. ``merged_at``: H×W, the row of ``position``, ``normal``, ``radius`` (the merged
-        surfels as the merge left them) of the surfel merged at each pixel, -1 where none."""
-        H, W = merged_at.shape
-        # a border of -1 (no surfel) around the image: the neighbours of edge pixels need no bounds test
-        padded = np.full((H + 2, W + 2), -1, np.int64)
-        padded[1:-1, 1:-1] = merged_at
-        padded = padded.ravel()
-        centre = (pixels // W + 1) * (W + 2) + pixels % W + 1
-        covered = np.zeros(len(pixels), bool)
-        for dv in (-1, 0, 1):
-            for du in (-1, 0, 1):
-                if dv == 0 and du == 0:
-                    continue
-                j = padded[centre + dv * (W + 2) + du]
-                k = np.flatnonzero((j >= 0) & ~covered)
-                # the normal test first, the disc for the pixels it keeps
-                k = k[_dot(np.take(normal, j[k], axis=0), np.take(nw, k, axis=0)) >= cos_thr]
-                jk = j[k]
-                d = np.take(qw, k, axis=0) - np.take(position, jk, axis=0)
-                along = _dot(np.take(normal, jk, axis=0), d)
-                hit = (np.abs(along) <= self.cfg.dist_threshold) & (_dot(d, d) - along ** 2 <= radius[jk] ** 2)
-                covered[k[hit]] = True
-        return covered
-
-    def _alpha(self, pixels, z, K, shape):
-        """Measurement weights of the given pixels (flat indices, depths z): 1 or Keller's radial confidence,
-        times the depth weight."""
-        if self.cfg.confidence_weighting:
-            a = self._radial(K, shape)[pixels]
-        else:
-            a = np.ones(len(pixels), np.float32)
-        if self.cfg.depth_weighting:
-            from ti_fusion.kernels import fusion as F
-
-            s = F.NOISE_1M / (F.NOISE_A + F.NOISE_B * (z - F.NOISE_Z0) ** 2)
-            a = a * np.minimum(s * s, F.DEPTH_WEIGHT_MAX).astype(np.float32)
-        return a
-
-    def _radial(self, K, shape):
-        """Keller's radial confidence exp(−γ²/2σ²) of every pixel (flat index), γ its distance from the image
-        centre over the largest such distance."""
-        sigma = self.cfg.confidence_sigma
-        key = (shape, K.cx, K.cy, sigma)
-        if key not in self._radial_tables:
-            v, u = np.divmod(np.arange(shape[0] * shape[1]), shape[1])
-            g2 = ((u - K.cx) ** 2 + (v - K.cy) ** 2) / (K.cx ** 2 + K.cy ** 2)
-            self._radial_tables[key] = np.exp(-g2 / (2 * sigma ** 2)).astype(np.float32)
-        return self._radial_tables[key]
-
-    @staticmethod
-    def _radius(z, nz, K):
-        return (math.sqrt(2.0) * z / (K.fx * np.maximum(np.abs(nz), 0.2))).astype(np.float32)
-
-
-def build_map(width: int, height: int, target: int, cfg, quiet: bool = False):
-    """Fuse frames of the synthetic sequence (noise on) at width×height until the map holds ``target``
-    surfels: (mapper, frame maps, sequence, index of the next frame)."""
-    from ti_fusion.config import SynthConfig
-    from ti_fusion.mapping.mapper import SurfelMapper
-    from ti_fusion.kernels.maps import FrameMaps
-    from ti_fusion.synthetic.scene import SyntheticSequence
-
-    fx = 525.0 * width / 640.0
-    seq = SyntheticSequence(SynthConfig(frames=600, width=width, height=height, fx=fx, noise=True))
-    K = seq.intrinsics
-    mapper = SurfelMapper(cfg)
-    maps = FrameMaps(height, width, levels=1)
-    frame = 0
-    while mapper.count < target:  # build the map along the camera path
-        depth, colour = seq.frame(frame)
-        maps.compute(depth, K)
-        mapper.integrate(maps, colour, seq.poses[frame], frame)
-        frame += 1
-    if not quiet:
-        print(f"  {width}×{height}: map of {mapper.count:,} surfels after {frame} frames", flush=True)
-    return mapper, maps, seq, frame
 
 
 def bench_size(width: int, height: int, target: int, steps: int) -> dict:
     from ti_fusion.config import FusionConfig
+    from ti_fusion.reference.fusion import NumpyFusion, build_map
     from ti_fusion.slam.timing import StageTimer
 
     cfg = FusionConfig(level=0)  # the step at this resolution (the SLAM default fuses 640×480 input at 320×240)
     mapper, maps, seq, frame = build_map(width, height, target, cfg)
+    print(f"  {width}×{height}: map of {mapper.count:,} surfels after {frame} frames", flush=True)
     K = seq.intrinsics
     ref = NumpyFusion(mapper.to_numpy(), cfg, capacity=mapper.map.capacity)
     timer = StageTimer()
@@ -315,9 +47,7 @@ def bench_size(width: int, height: int, target: int, steps: int) -> dict:
         stats = mapper.integrate(maps, colour, seq.poses[i], frame + k, timer)
         ms = ref.integrate(maps.vertex[0].to_numpy(), maps.normal[0].to_numpy(), depth, colour, seq.poses[i], K,
                            frame + k)
-        # NumPy's matrix products wake OpenBLAS's worker threads, which spin for tens of ms afterwards: the
-        # next Taichi step would share the cores with them. Wait until they sleep again.
-        time.sleep(BLAS_SETTLE_S)
+        time.sleep(BLAS_SETTLE_S)  # OpenBLAS's threads asleep before the next Taichi step
         if k > 0:  # the first Taichi step compiles the kernels
             for s in STAGES:
                 numpy_ms[s].append(ms[s])
@@ -339,8 +69,6 @@ def main() -> int:
     parser.add_argument("--steps", type=int, default=10, help="timed steps per size (after one warm-up)")
     parser.add_argument("--sizes", default="320x240,640x480", help="comma-separated WxH")
     args = parser.parse_args()
-    from ti_fusion.slam.timing import keep_freed_memory, numpy_conditions
-
     kept = keep_freed_memory()  # NumPy at its best: see keep_freed_memory
 
     from ti_fusion.backend import init_backend

@@ -8,7 +8,7 @@ For each size it builds a map of about ``--surfels`` surfels along the synthetic
 ``bench_fusion.py``), then times one step (the next frame, ground-truth pose, the default FusionConfig)
 ``--repeats`` times, each on a fresh copy of the map, for
 - Taichi: ``SurfelMapper.integrate`` on the machine's cores;
-- NumPy: ``bench_fusion.NumpyFusion.integrate``, the baseline of ``bench_fusion.py``;
+- NumPy: ``ti_fusion.reference.fusion.NumpyFusion.integrate``, the baseline of ``bench_fusion.py``;
 - C: ``scripts/fusion_step.c``, the same step on one thread, built as ``bench_icp_ceiling.py`` builds
   its C (``-O3`` and the floating-point freedoms of Taichi's kernels), for ``-march=x86-64`` (SSE2, the
   shape of what Taichi 1.7 emits on a CPU its LLVM does not know) and ``-march=native``.
@@ -35,14 +35,10 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench_fusion import BLAS_SETTLE_S, NumpyFusion, build_map  # noqa: E402
-from bench_icp_ceiling import build_command, c_executables, compile_each_march, print_table  # noqa: E402
+# The sibling scripts (bench_icp_ceiling, benchlib) are imported in the functions that use them: the tests
+# load this file alone, for the C program's inputs and outputs
 
 C_SOURCE = Path(__file__).resolve().parent / "fusion_step.c"
-ATTRIBUTES = ("position", "normal", "colour", "weight", "radius", "t_created", "t_updated")
 
 
 def check_config(cfg) -> None:
@@ -54,7 +50,7 @@ def check_config(cfg) -> None:
 
 def write_inputs(workdir: Path, data: dict, maps, rgb, pose, K, frame: int, cfg, radial) -> None:
     """The C program's inputs (see scripts/fusion_step.c)."""
-    from ti_fusion.kernels.fusion import _camera_to_world, _world_to_camera
+    from ti_fusion.kernels.fusion import ATTRIBUTES, _camera_to_world, _world_to_camera
 
     H, W = rgb.shape[:2]
     ints = np.array([W, H, len(data["position"]), frame, cfg.unstable_age], np.int32)
@@ -72,6 +68,8 @@ def write_inputs(workdir: Path, data: dict, maps, rgb, pose, K, frame: int, cfg,
 
 
 def read_outputs(workdir: Path, n: int) -> dict:
+    from ti_fusion.kernels.fusion import ATTRIBUTES
+
     out = {}
     for name in ATTRIBUTES:
         dtype = np.int32 if name.startswith("t_") else np.float32
@@ -88,24 +86,17 @@ def run_c(exe: Path, workdir: Path, repeats: int) -> tuple[float, tuple[int, ...
     return float(out[0]), tuple(int(x) for x in out[1:])
 
 
-def matching_rows(a: dict, b: dict, tol: float = 1e-4) -> float:
-    """Fraction of surfels whose every attribute agrees to ``tol`` (relative to the attribute's scale)."""
-    same = np.ones(len(a["position"]), bool)
-    for name in ATTRIBUTES:
-        x, y = a[name].astype(np.float64), b[name].astype(np.float64)
-        err = np.abs(x - y).reshape(len(x), -1).max(axis=1)
-        same &= err <= tol * max(1.0, float(np.abs(y).max()))
-    return float(same.mean())
-
-
 def bench_size(width: int, height: int, target: int, repeats: int, executables: dict, workdir: Path) -> dict:
     import taichi as ti
 
+    from benchlib import BLAS_SETTLE_S
     from ti_fusion.config import FusionConfig
+    from ti_fusion.reference.fusion import NumpyFusion, build_map, matching_rows
 
     cfg = FusionConfig(level=0)
     check_config(cfg)
     mapper, maps, seq, frame = build_map(width, height, target, cfg)
+    print(f"  {width}×{height}: map of {mapper.count:,} surfels after {frame} frames", flush=True)
     K = seq.intrinsics
     depth, rgb = seq.frame(frame)
     maps.compute(depth, K)
@@ -163,7 +154,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
-    from ti_fusion.slam.timing import keep_freed_memory, numpy_conditions
+    from bench_icp_ceiling import build_command, c_executables, compile_each_march, print_table
+    from benchlib import keep_freed_memory, numpy_conditions
 
     kept = keep_freed_memory()
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")

@@ -25,8 +25,8 @@ a block untimed), with 0.2 s between blocks so that neither is timed while the o
 Run one pair at a time right after the other system instead, Open3D (whose OpenMP threads then had to
 wake) took 12.3 ms at 320×240 instead of 7.2: how the runs are interleaved matters as much as the code.
 
-Freed memory is kept for reuse (``ti_fusion.slam.timing.keep_freed_memory``): by default glibc unmaps NumPy's
-large temporaries when they are freed, in some processes and not in others, and the page faults of the
+Freed memory is kept for reuse (``benchlib.keep_freed_memory``): by default glibc unmaps NumPy's large
+temporaries when they are freed, in some processes and not in others, and the page faults of the
 next call made one NumPy iteration 17.5 instead of 13 ms at 320×240 (70 instead of 52 at 640×480).
 
 Data: the redkitchen frames ``--pair S T`` (default 100 110) from DATA or ../shared/data when present,
@@ -53,6 +53,8 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from benchlib import BLAS_SETTLE_S, keep_freed_memory, numpy_conditions
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen-7scenes"
 
@@ -180,7 +182,6 @@ def load_pair(args, cfg):
 
 
 WARMUP_RUNS = 5  # untimed frame pairs of each system before the timed ones
-BLAS_SETTLE_S = 0.2  # pause after a NumPy iteration before timing Taichi (see bench_resolution)
 RUNS_PER_BLOCK = 5  # timed frame pairs per block (see bench_resolution)
 SWITCH_SETTLE_S = 0.2  # pause between blocks of one system and the other
 ITERATIONS_PER_RUN = 5  # Taichi iterations timed back to back, as within one pyramid level of ICP
@@ -399,8 +400,6 @@ def main(argv=None) -> int:
     parser.add_argument("--accuracy-gap", type=int, default=10, help="frames between the two of a pair")
     parser.add_argument("--open3d-worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    from ti_fusion.slam.timing import keep_freed_memory, numpy_conditions
-
     kept = keep_freed_memory()  # NumPy (and Open3D) at their best: see keep_freed_memory
     if args.open3d_worker:
         _worker(args.open3d_worker)

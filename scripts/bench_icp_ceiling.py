@@ -36,10 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from bench_icp import BLAS_SETTLE_S, FinestIteration, compute_maps, load_pair  # noqa: E402
+# The sibling scripts (bench_icp, benchlib) are imported in the functions that use them: the tests load this
+# file alone, for how it builds the C programs (build_command, c_command)
 
 C_SOURCE = Path(__file__).resolve().parent / "icp_pass.c"
 MARCH = ("x86-64", "native")
@@ -134,6 +132,9 @@ def best_ms(fn, repeats: int, before=None, after=None) -> float:
 
 
 def bench_size(depth_s, depth_t, K, cfg, executables, repeats: int, workdir: Path) -> dict:
+    from bench_icp import FinestIteration, compute_maps
+    from benchlib import BLAS_SETTLE_S
+
     from ti_fusion.geometry import flatten_pose
     from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.maps import FrameMaps
@@ -176,7 +177,8 @@ def main(argv=None) -> int:
     args = parser.parse_args(argv)
     if args.repeats < 1:
         parser.error("--repeats must be at least 1")
-    from ti_fusion.slam.timing import keep_freed_memory, numpy_conditions
+    from bench_icp import load_pair
+    from benchlib import keep_freed_memory, numpy_conditions
 
     kept = keep_freed_memory()
     os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")

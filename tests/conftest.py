@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import importlib.util
 import os
-import sys
 import zlib
 from pathlib import Path
 
@@ -69,20 +68,16 @@ def redkitchen():
 
 @pytest.fixture(scope="session")
 def script():
-    """``script("bench_fusion")``: a benchmark of scripts/ as a module, for the tests that check that what it
-    times is the computation it claims (scripts/ is on the path while it loads, for the scripts that
-    import each other)."""
+    """``script("bench_icp_ceiling")``: a script of scripts/ loaded from its file (scripts/ stays off the
+    path), for the tests that check that a benchmark times the computation it claims. A script loaded
+    this way imports its sibling scripts only inside the functions that use them."""
     loaded = {}
 
     def load(name: str):
         if name not in loaded:
             spec = importlib.util.spec_from_file_location(name, SCRIPTS / f"{name}.py")
             module = importlib.util.module_from_spec(spec)
-            sys.path.insert(0, str(SCRIPTS))
-            try:
-                spec.loader.exec_module(module)
-            finally:
-                sys.path.remove(str(SCRIPTS))
+            spec.loader.exec_module(module)
             loaded[name] = module
         return loaded[name]
 

@@ -280,13 +280,16 @@ def test_plot_trajectory_writes_png(tmp_path, rng):
 
 
 def test_keep_freed_memory_takes_effect_on_glibc():
-    """The benchmarks' allocator setting, in a child process (it would stay set for the rest of this one):
-    True on glibc, and NumPy still works after it."""
+    """The benchmarks' allocator setting (scripts/benchlib.py), in a child process (it would stay set for the
+    rest of this one): True on glibc, and NumPy still works after it."""
     import platform
     import subprocess
     import sys
+    from pathlib import Path
 
-    code = ("import numpy as np; from ti_fusion.slam.timing import keep_freed_memory; kept = keep_freed_memory(); "
+    benchlib = Path(__file__).resolve().parents[1] / "scripts" / "benchlib.py"
+    code = ("import runpy, sys; import numpy as np; kept = runpy.run_path(sys.argv[1])['keep_freed_memory'](); "
             "a = np.ones(5_000_000); del a; assert float(np.ones(5_000_000).sum()) == 5e6; print(kept)")
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.strip()
+    out = subprocess.run([sys.executable, "-c", code, str(benchlib)], capture_output=True, text=True,
+                         check=True).stdout.strip()
     assert out == ("True" if platform.libc_ver()[0] == "glibc" else out)

@@ -22,6 +22,7 @@ from ti_fusion.geometry import se3_exp
 from ti_fusion.kernels import fusion as F
 from ti_fusion.kernels.maps import FrameMaps
 from ti_fusion.io.ply import read_ply, write_ply
+from ti_fusion.reference import fusion as fusion_numpy
 
 # 70 × 72: a width that is no multiple of the row segments (or of 8), and enough rows that the loops over
 # row segments (72 × 8) split into more than one task of 512 iterations, so they run on two threads
@@ -869,13 +870,13 @@ def test_fuse_command_on_redkitchen(cpu, tmp_path, redkitchen):
     assert summary["frames"] == 3 and summary["compression_ratio"] < 0.8
 
 
-def _benchmark_step(script, rng):
+def _benchmark_step(rng):
     """The fusion benchmarks' setting, small: a 160×120 map of ~40 k surfels built along the synthetic
     sequence, 5% of its surfels made weak and stale (so that the step removes them), and the kernels'
     step on the next frame. Returns (cfg, the map before the step as arrays, the frame maps, the frame's
     depth and colour, the sequence, the frame's index, the step's stats, the mapper after the step)."""
     cfg = FusionConfig(level=0)
-    mapper, maps, seq, frame = script("bench_fusion").build_map(160, 120, 40_000, cfg, quiet=True)
+    mapper, maps, seq, frame = fusion_numpy.build_map(160, 120, 40_000, cfg)
     before = mapper.to_numpy()
     stale = rng.random(len(before["weight"])) < 0.05
     before["weight"][stale] = 1.0
@@ -888,17 +889,16 @@ def _benchmark_step(script, rng):
     return cfg, before, maps, depth, rgb, seq, frame, stats, mapper
 
 
-def test_numpy_step_of_fusion_benchmark_matches_kernels(cpu, rng, script):
-    """bench_fusion's NumpyFusion, the baseline of the 20× ratio, does the kernels' step: the same surfels
+def test_numpy_step_of_fusion_benchmark_matches_kernels(cpu, rng):
+    """NumpyFusion, the baseline of bench_fusion's 20× ratio, does the kernels' step: the same surfels
     merged, appended and removed, in the same places of the map."""
-    cfg, before, maps, depth, rgb, seq, frame, stats, mapper = _benchmark_step(script, rng)
-    bench = script("bench_fusion")
-    ref = bench.NumpyFusion(before, cfg, capacity=len(before["position"]) + depth.size)
+    cfg, before, maps, depth, rgb, seq, frame, stats, mapper = _benchmark_step(rng)
+    ref = fusion_numpy.NumpyFusion(before, cfg, capacity=len(before["position"]) + depth.size)
     ref.integrate(maps.vertex[0].to_numpy(), maps.normal[0].to_numpy(), depth, rgb, seq.poses[frame],
                   seq.intrinsics, frame)
     assert ref.n == stats.surfels
     got = {name: arr[: ref.n] for name, arr in ref.a.items()}
-    assert script("bench_fusion_ceiling").matching_rows(got, mapper.to_numpy()) > 0.999
+    assert fusion_numpy.matching_rows(got, mapper.to_numpy()) > 0.999
 
 
 @pytest.mark.skipif(__import__("shutil").which("cc") is None, reason="no C compiler")
@@ -909,11 +909,11 @@ def test_c_step_of_ceiling_benchmark_matches_kernels(cpu, rng, tmp_path, march, 
     import subprocess
 
     ceiling = script("bench_fusion_ceiling")
-    cfg, before, maps, depth, rgb, seq, frame, stats, mapper = _benchmark_step(script, rng)
+    cfg, before, maps, depth, rgb, seq, frame, stats, mapper = _benchmark_step(rng)
     radial = mapper.map.scratch(*depth.shape).radial.to_numpy()
     ceiling.write_inputs(tmp_path, before, maps, rgb, seq.poses[frame], seq.intrinsics, frame, cfg, radial)
     exe = tmp_path / "fusion_step"
-    subprocess.run(ceiling.build_command("cc", march, ceiling.C_SOURCE, exe), check=True)
+    subprocess.run(script("bench_icp_ceiling").build_command("cc", march, ceiling.C_SOURCE, exe), check=True)
     _, counts = ceiling.run_c(exe, tmp_path, 1)
     assert counts == (stats.merged, stats.added, stats.covered, stats.removed, stats.surfels)
-    assert ceiling.matching_rows(ceiling.read_outputs(tmp_path, counts[-1]), mapper.to_numpy()) > 0.999
+    assert fusion_numpy.matching_rows(ceiling.read_outputs(tmp_path, counts[-1]), mapper.to_numpy()) > 0.999

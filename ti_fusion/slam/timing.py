@@ -1,11 +1,7 @@
-"""Per-stage wall-clock timing: ``with timer.stage("track"): ...``; and ``keep_freed_memory`` for the
-benchmarks."""
+"""Per-stage wall-clock timing: ``with timer.stage("track"): ...``."""
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import os
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -47,41 +43,3 @@ class StageTimer:
             }
         return out
 
-
-# glibc's mallopt parameters
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-_MMAP_THRESHOLD_MAX = 32 * 1024 * 1024  # the ceiling of glibc's own adaptive threshold on 64-bit
-
-
-def keep_freed_memory() -> bool:
-    """Ask glibc to keep freed blocks of up to 32 MiB for reuse instead of returning them to the system
-    (benchmarks call this before timing the NumPy references). By default blocks above a threshold that
-    glibc adapts at run time are mmap-ed and unmapped on free, so NumPy's large temporaries page-fault
-    afresh on every call, in some processes and not in others: one 320×240 NumPy ICP iteration took
-    17.5 ms that way and 13 ms with the memory kept (640×480: 70 vs 52 ms). Kept, NumPy is timed at its
-    best, every run alike. Returns whether it took effect (False off glibc)."""
-    name = ctypes.util.find_library("c")
-    if not name:
-        return False
-    try:
-        libc = ctypes.CDLL(name)
-        return bool(libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD_MAX)) and \
-            bool(libc.mallopt(_M_TRIM_THRESHOLD, 1 << 30))
-    except (OSError, AttributeError):
-        return False
-
-
-# Environment settings that change how fast NumPy's BLAS runs. Some machines set OPENBLAS_CORETYPE (to an
-# older core's kernels, as a guard against OpenBLAS bugs on newer CPUs); a benchmark names them beside
-# its ratios. (On the project's machines, with OPENBLAS_CORETYPE=Haswell and OPENBLAS_L2_SIZE=512 unset,
-# the NumPy ICP iteration took 33.7 and 7.3 ms at 640×480 and 320×240, against 33.1 and 7.6 ms with them.)
-BLAS_SETTINGS = ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")
-
-
-def numpy_conditions(kept_freed_memory: bool) -> str:
-    """How NumPy runs in a benchmark, for its header: freed memory kept or not (``keep_freed_memory``) and
-    the BLAS settings in the environment."""
-    text = ("freed memory kept (glibc): NumPy timed at its best" if kept_freed_memory
-            else "freed memory returned to the system (not glibc)")
-    blas = [f"{k}={os.environ[k]}" for k in BLAS_SETTINGS if k in os.environ]
-    return text + (f"; NumPy's BLAS under {', '.join(blas)}" if blas else "")

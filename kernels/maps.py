@@ -8,7 +8,7 @@ pixel u' stays exactly at fine pixel 2u' (intrinsics of level l are ``Intrinsics
 On the image border the window is the symmetric part that fits (a one-sided window would bend slanted
 surfaces there, and that bend, fixed to the image, would hold ICP back from sliding along a plane).
 
-Smoothing (``smooth_radius`` > 0, the role of KinectFusion's bilateral filter): the level-0 depth is
+Smoothing (``maps.depth_smooth_radius`` > 0, the role of KinectFusion's bilateral filter): the level-0 depth is
 replaced by the mean of the (2r+1)×(2r+1) neighbours within the same range of the centre depth, computed
 separably (a row pass, then a column pass, each range-checked against its own centre). Normals from
 central differences of raw Kinect-like depth are noisy enough at full resolution that most of them fail
@@ -35,6 +35,8 @@ import taichi as ti
 
 from ti_fusion.backend import serial_for
 from ti_fusion.camera import Intrinsics
+from ti_fusion.config import MapsConfig
+from ti_fusion.errors import InputError
 
 
 # Pixels per pack in the packed depth images of the smoothing. Taichi's CPU backend does not vectorise a
@@ -321,12 +323,18 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
 
 @ti.data_oriented
 class FrameMaps:
-    """Depth, vertex and normal maps of one frame at every pyramid level (camera frame, metres)."""
+    """Depth, vertex and normal maps of one frame at every pyramid level (camera frame, metres).
 
-    def __init__(self, height: int, width: int, levels: int = 3, input_level: int = 0):
-        """Maps of ``levels`` levels for depth images of ``height`` × ``width``. With ``input_level`` L > 0
-        the input is first averaged down L times (``pyramid_down``) and level 0 is that 2**L times smaller
-        image: the fine resolution is never smoothed or back-projected, which is what makes it cheaper."""
+        maps = FrameMaps(config.maps, height, width, levels, input_level)
+        maps.compute(depth, intrinsics)
+    """
+
+    def __init__(self, settings: MapsConfig, height: int, width: int, levels: int = 3, input_level: int = 0):
+        """Maps of ``levels`` levels for depth images of ``height`` × ``width``, built with ``settings``
+        (resolved here, once: the smoothing radius for this size, the range check of the depth means).
+        With ``input_level`` L > 0 the input is first averaged down L times (``pyramid_down``) and level 0
+        is that 2**L times smaller image: the fine resolution is never smoothed or back-projected, which is
+        what makes it cheaper."""
         self.input_shape = (height, width)
         self.input_level = int(input_level)
         self._inputs = []  # input_level > 0: the input and the intermediate averaged images
@@ -334,6 +342,11 @@ class FrameMaps:
             self._inputs.append(ti.field(ti.f32, shape=(height, width)))
             height, width = (height + 1) // 2, (width + 1) // 2
         self.height, self.width, self.levels = height, width, levels
+        self.max_depth_jump = float(settings.normal_max_depth_jump)
+        self.max_depth_diff = 3.0 * float(settings.pyramid_depth_sigma)  # the range check of the depth means
+        if not self.max_depth_diff > 0:  # every range check would reject even the centre pixel
+            raise InputError(None, f"maps.pyramid_depth_sigma must be positive, not {settings.pyramid_depth_sigma}")
+        self.smooth_radius = int(settings.smooth_radius(width))
         self.shapes = []
         h, w = height, width
         for _ in range(levels):
@@ -346,18 +359,15 @@ class FrameMaps:
         self._serial = [serial_for(h * w) for h, w in self.shapes]  # per level: loops on the calling thread
         self._packed = None  # when smoothing: the level-0 depth before and after the row pass, packed
 
-    def compute(self, depth: np.ndarray, intrinsics: Intrinsics, max_depth_jump: float = 0.05,
-                pyramid_max_diff: float = 0.09, smooth_radius: int = 0) -> None:
+    def compute(self, depth: np.ndarray, intrinsics: Intrinsics) -> None:
         """Upload a float32 depth image (metres, 0 = invalid) and build every level's maps.
 
-        ``smooth_radius`` r > 0 first replaces the depth by its range-checked (2r+1)² mean (see the module
-        docstring); ``depth[0]`` then holds the smoothed depth."""
+        With a smoothing radius r > 0 the depth is first replaced by its range-checked (2r+1)² mean (see the
+        module docstring); ``depth[0]`` then holds the smoothed depth."""
         if depth.shape != self.input_shape:
             raise ValueError(f"depth of shape {depth.shape} given to FrameMaps of shape {self.input_shape}")
-        if not pyramid_max_diff > 0:  # every range check would reject even the centre pixel
-            raise ValueError(f"pyramid_max_diff must be positive, not {pyramid_max_diff}")
         depth = np.ascontiguousarray(depth, dtype=np.float32)
-        smooth = smooth_radius > 0
+        smooth = self.smooth_radius > 0
         # the unsmoothed level-0 depth: packed for the smoothing passes, else level 0 itself
         level0 = self._packed_fields()[0] if smooth else self.depth[0]
         if self.input_level == 0:
@@ -369,12 +379,13 @@ class FrameMaps:
             for fine, coarse in zip(self._inputs, targets):
                 h, w = fine.shape
                 packed = smooth and coarse is level0  # the smoothing's packed input
-                pyramid_down(fine, coarse, pyramid_max_diff, packed, serial_for(((h + 1) // 2) * ((w + 1) // 2)))
+                pyramid_down(fine, coarse, self.max_depth_diff, packed,
+                             serial_for(((h + 1) // 2) * ((w + 1) // 2)))
         if smooth:
             raw, rows = self._packed
-            smooth_rows(raw, rows, self.width, int(smooth_radius), pyramid_max_diff)
-            smooth_columns(rows, self.depth[0], int(smooth_radius), pyramid_max_diff)
-        self.compute_from_field(intrinsics, max_depth_jump, pyramid_max_diff)
+            smooth_rows(raw, rows, self.width, self.smooth_radius, self.max_depth_diff)
+            smooth_columns(rows, self.depth[0], self.smooth_radius, self.max_depth_diff)
+        self.compute_from_field(intrinsics)
 
     def _packed_fields(self):
         """The packed level-0 images of the smoothing (allocated when smoothing is first asked for)."""
@@ -391,14 +402,13 @@ class FrameMaps:
             depth = np.pad(depth, ((0, 0), (0, packs * LANES - W)))
         return depth.reshape(H, packs, LANES)
 
-    def compute_from_field(self, intrinsics: Intrinsics, max_depth_jump: float = 0.05,
-                           pyramid_max_diff: float = 0.09, level0_maps: bool = True) -> None:
+    def compute_from_field(self, intrinsics: Intrinsics, level0_maps: bool = True) -> None:
         """Build every level from ``self.depth[0]`` already on the Taichi side (without level 0's vertex
-        and normal maps when ``level0_maps`` is False: a renderer that writes them itself)."""
+        and normal maps when ``level0_maps`` is False: a renderer that writes them itself). No smoothing."""
         self.intrinsics = [intrinsics.downsampled(2**l) for l in range(self.levels)]
         for l in range(1, self.levels):
-            pyramid_down(self.depth[l - 1], self.depth[l], pyramid_max_diff, False, self._serial[l])
+            pyramid_down(self.depth[l - 1], self.depth[l], self.max_depth_diff, False, self._serial[l])
         for l in range(0 if level0_maps else 1, self.levels):
             # A depth edge at a coarse level spans 2**l fine pixels: scale the jump threshold with it.
             vertex_normal_maps(self.depth[l], self.vertex[l], self.normal[l], *self.intrinsics[l].as_tuple(),
-                               max_depth_jump * 2**l, self._serial[l])
+                               self.max_depth_jump * 2**l, self._serial[l])

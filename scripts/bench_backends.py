@@ -40,7 +40,7 @@ def _time(fn, repeats: int) -> float:
 
 def worker(args) -> dict:
     from ti_fusion.backend import init_backend
-    from ti_fusion.config import Config
+    from ti_fusion.config import Config, MapsConfig
     from ti_fusion.io.datasets import open_dataset
     from ti_fusion.errors import BackendUnavailable
     from ti_fusion.mapping.mapper import SurfelMapper
@@ -60,7 +60,8 @@ def worker(args) -> dict:
     dataset = open_dataset(cfg.dataset, cfg.synth)
     K = dataset.intrinsics
     frames = [dataset[i] for i in range(len(dataset))]
-    source, target = FrameMaps(K.height, K.width, 3), FrameMaps(K.height, K.width, 3)
+    raw = MapsConfig(depth_smooth_radius=0)
+    source, target = FrameMaps(raw, K.height, K.width, 3), FrameMaps(raw, K.height, K.width, 3)
     source.compute(frames[0].depth, K)
     target.compute(frames[1].depth, K)
 
@@ -74,7 +75,7 @@ def worker(args) -> dict:
 
     cfg.fusion.level = 0  # the kernels at this resolution, whatever level the SLAM default fuses at
     mapper = SurfelMapper(cfg.fusion)
-    maps = FrameMaps(K.height, K.width, 1)
+    maps = FrameMaps(raw, K.height, K.width, 1)
     for i, frame in enumerate(frames[:-1]):
         maps.compute(frame.depth, K)
         mapper.integrate(maps, frame.color, frame.gt_pose, i)
@@ -87,7 +88,7 @@ def worker(args) -> dict:
         step[0] += 1
 
     ms["fusion_step"] = _time(fuse, args.repeats)
-    prediction = FrameMaps(K.height, K.width, 3)
+    prediction = FrameMaps(raw, K.height, K.width, 3)
     ms["render"] = _time(lambda: mapper.render_maps(prediction, last.gt_pose, K), args.repeats)
     return {"arch": info.arch, "ms": ms, "surfels": mapper.count, "size": f"{K.width}x{K.height}"}
 

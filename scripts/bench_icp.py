@@ -198,8 +198,7 @@ def timed(fn, repeats: int = 1) -> tuple[float, float]:
 def compute_maps(src, tgt, depth_s, depth_t, K, icp_cfg) -> None:
     """The source and target ``FrameMaps`` of a pair, as the pipeline computes them for ICP."""
     for maps, depth in ((src, depth_s), (tgt, depth_t)):
-        maps.compute(depth, K, icp_cfg.normal_max_depth_jump, 3 * icp_cfg.pyramid_depth_sigma,
-                     icp_cfg.smooth_radius(K.width))
+        maps.compute(depth, K)
 
 
 class FinestIteration:
@@ -262,7 +261,7 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
 
     c = cfg.icp
     levels = len(c.iterations)
-    src, tgt = FrameMaps(K.height, K.width, levels), FrameMaps(K.height, K.width, levels)
+    src, tgt = FrameMaps(cfg.maps, K.height, K.width, levels), FrameMaps(cfg.maps, K.height, K.width, levels)
     icp = ICP(c)
 
     def frame_pair():
@@ -350,14 +349,14 @@ def accuracy_over_pairs(cfg, args) -> dict | None:
     starts = np.linspace(0, len(dataset) - 1 - gap, args.accuracy_pairs).round().astype(int)
     c = cfg.icp
     K = dataset[0].intrinsics
-    src, tgt = FrameMaps(K.height, K.width, len(c.iterations)), FrameMaps(K.height, K.width, len(c.iterations))
+    src, tgt = (FrameMaps(cfg.maps, K.height, K.width, len(c.iterations)) for _ in range(2))
     icp = ICP(c)
     ours, theirs = [], []
     for s in starts:
         a, b = dataset[int(s)], dataset[int(s) + gap]
         reference = invert(b.gt_pose) @ a.gt_pose
         for maps, depth in ((src, a.depth), (tgt, b.depth)):
-            maps.compute(depth, K, c.normal_max_depth_jump, 3 * c.pyramid_depth_sigma, c.smooth_radius(K.width))
+            maps.compute(depth, K)
         ours.append(pose_error(icp.align(src, tgt).pose, reference))
         o3d = open3d_runner(a.depth, b.depth, K, list(c.iterations), cfg.dataset.depth_max, args.open3d_python)
         if o3d is not None:
@@ -413,7 +412,7 @@ def main(argv=None) -> int:
     backend = init_backend("cpu")
     depth_s, depth_t, K, reference, what = load_pair(args, cfg)
     print(f"ICP benchmark: {what}; backend {backend.arch}, {os.cpu_count()} CPUs; iterations {cfg.icp.iterations} "
-          f"(coarse → fine), depth smoothing r = {cfg.icp.smooth_radius(K.width)} at {K.width} px (half at half); medians of {args.repeats}+ runs; "
+          f"(coarse → fine), depth smoothing r = {cfg.maps.smooth_radius(K.width)} at {K.width} px (half at half); medians of {args.repeats}+ runs; "
           f"{numpy_conditions(kept)}")
     rows = []
     for f in (1, 2):

@@ -140,7 +140,7 @@ def bench_size(depth_s, depth_t, K, cfg, executables, repeats: int, workdir: Pat
     from ti_fusion.kernels.maps import FrameMaps
 
     c = cfg.icp
-    src, tgt = FrameMaps(K.height, K.width, len(c.iterations)), FrameMaps(K.height, K.width, len(c.iterations))
+    src, tgt = (FrameMaps(cfg.maps, K.height, K.width, len(c.iterations)) for _ in range(2))
     compute_maps(src, tgt, depth_s, depth_t, K, c)
     icp = ICP(c)
     pose = icp.align(src, tgt).pose

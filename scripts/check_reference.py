@@ -79,15 +79,14 @@ def main() -> int:
 
     K, icp_cfg = dataset.intrinsics, cfg.icp
     level = cfg.frame_input_level(K.width)
-    maps = [FrameMaps(K.height, K.width, len(icp_cfg.iterations), input_level=level) for _ in range(2)]
+    maps = [FrameMaps(cfg.maps, K.height, K.width, len(icp_cfg.iterations), input_level=level) for _ in range(2)]
     icp = ICP(icp_cfg)
     backend = current_backend()
     kernels = PointToPlane(maps[0].shapes[0][0] * maps[0].shapes[0][1], backend.has_f64, backend.arch)
 
     def compute(m, i):
         frame = dataset[i]
-        m.compute(frame.depth, frame.intrinsics, icp_cfg.normal_max_depth_jump, 3 * icp_cfg.pyramid_depth_sigma,
-                  icp_cfg.smooth_radius(m.width))
+        m.compute(frame.depth, frame.intrinsics)
 
     def residual_mm(T, a, b) -> float:
         s = unpack_sums(kernels.reduce(a.vertex[0], a.normal[0], b.vertex[0], b.normal[0], T,

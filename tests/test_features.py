@@ -328,7 +328,7 @@ def test_vo_command_keeps_the_trajectory_and_log_when_interrupted(synth, tmp_pat
 # --------------------------------------------------------------------------------------------------
 def test_feature_initialised_icp_recovers_a_large_motion(synth):
     """≈ 20° and 30 cm between two noise-free frames: ICP from the identity fails, from ORB + PnP it converges."""
-    from ti_fusion.config import ICPConfig
+    from ti_fusion.config import ICPConfig, MapsConfig
     from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.maps import FrameMaps
 
@@ -348,8 +348,8 @@ def test_feature_initialised_icp_recovers_a_large_motion(synth):
     cfg = ICPConfig()
     maps = []
     for f in frames:
-        m = FrameMaps(H, W, levels=len(cfg.iterations))
-        m.compute(f.depth, f.intrinsics, cfg.normal_max_depth_jump, cfg.pyramid_depth_sigma)
+        m = FrameMaps(MapsConfig(depth_smooth_radius=0), H, W, levels=len(cfg.iterations))
+        m.compute(f.depth, f.intrinsics)
         maps.append(m)
     icp = ICP(cfg)
     from_identity = icp.align(maps[0], maps[1], None)

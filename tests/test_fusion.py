@@ -15,7 +15,7 @@ import pytest
 import taichi as ti
 
 from ti_fusion.camera import Intrinsics
-from ti_fusion.config import FusionConfig
+from ti_fusion.config import FusionConfig, MapsConfig
 from ti_fusion.errors import MapCapacityError
 from ti_fusion.mapping.mapper import SurfelMapper, pack_colour
 from ti_fusion.geometry import se3_exp
@@ -28,6 +28,7 @@ from ti_fusion.reference import fusion as fusion_numpy
 # row segments (72 × 8) split into more than one task of 512 iterations, so they run on two threads
 K = Intrinsics(fx=100.0, fy=104.0, cx=34.5, cy=35.5, width=70, height=72)
 H, W = K.height, K.width
+RAW = MapsConfig(depth_smooth_radius=0)  # frame maps without depth smoothing
 DIST = 0.03
 ANGLE = 20.0
 SIGMA = 0.6
@@ -625,7 +626,7 @@ def plane_frame(tilt=0.002):
     _, u = np.mgrid[0:H, 0:W]
     depth = (2.0 + tilt * u).astype(np.float32)
     depth[:5, :7] = 0.0  # a hole
-    maps = FrameMaps(H, W, levels=1)
+    maps = FrameMaps(RAW, H, W, levels=1)
     maps.compute(depth, K)
     return maps, depth
 
@@ -652,18 +653,17 @@ def test_same_frame_twice_adds_nothing(cpu, rng, confidence, association):
 
 
 def test_auto_map_level_and_smoothing_follow_the_width():
-    from ti_fusion.config import ICPConfig
     assert [FusionConfig().map_level(w) for w in (160, 320, 321, 640, 1280)] == [0, 0, 1, 1, 2]
     assert FusionConfig(level=0).map_level(640) == 0
-    assert [ICPConfig().smooth_radius(w) for w in (32, 320, 640)] == [1, 6, 12]
-    assert ICPConfig(depth_smooth_radius=0).smooth_radius(640) == 0
+    assert [MapsConfig().smooth_radius(w) for w in (32, 320, 640)] == [1, 6, 12]
+    assert RAW.smooth_radius(640) == 0
 
 
 def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
     """fusion.level = 1: the surfels are level 1's vertices (colour subsampled alike), not level 0's."""
     _, u = np.mgrid[0:H, 0:W]
     depth = (2.0 + 0.002 * u).astype(np.float32)
-    maps = FrameMaps(H, W, levels=2)
+    maps = FrameMaps(RAW, H, W, levels=2)
     maps.compute(depth, K)
     colour = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
     pose = random_pose(rng)
@@ -677,9 +677,9 @@ def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
     assert_close(fused["position"], expected, 1e-5)
     assert_close(fused["colour"], colour[::2, ::2][valid].astype(np.float64), 1e-4)
     with pytest.raises(ValueError, match="fusion.level 1"):
-        mapper.integrate(FrameMaps(H, W, levels=1), None, pose, 1)
+        mapper.integrate(FrameMaps(RAW, H, W, levels=1), None, pose, 1)
     # Maps averaged down to level 1 on input (as the SLAM builds them) give the same surfels
-    decimated = FrameMaps(H, W, levels=1, input_level=1)
+    decimated = FrameMaps(RAW, H, W, levels=1, input_level=1)
     decimated.compute(depth, K)
     again = SurfelMapper(FusionConfig(capacity=10_000, level=1))
     again.integrate(decimated, colour, pose, 0)
@@ -692,7 +692,7 @@ def test_render_maps_reproduces_the_fused_frame(cpu, rng):
     pose = random_pose(rng)
     mapper = SurfelMapper(FusionConfig(capacity=10_000))
     mapper.integrate(maps, None, pose, 0)
-    predicted = FrameMaps(H, W, levels=2)
+    predicted = FrameMaps(RAW, H, W, levels=2)
     mapper.render_maps(predicted, pose, K)
     got = predicted.depth[0].to_numpy()
     fused = np.abs(maps.normal[0].to_numpy()).sum(-1) > 0  # the pixels that became surfels
@@ -789,7 +789,7 @@ def fuse_synthetic(noise, frames, stride=3):
     seq = synthetic.SyntheticSequence(SynthConfig(frames=frames * stride, width=160, height=120, fx=131.25,
                                                   noise=noise, seed=3))
     Ks = seq.intrinsics
-    maps = FrameMaps(Ks.height, Ks.width, levels=1)
+    maps = FrameMaps(RAW, Ks.height, Ks.width, levels=1)
     mapper = SurfelMapper(FusionConfig(capacity=200_000))
     first = None
     for k, i in enumerate(range(0, frames * stride, stride)):

@@ -20,7 +20,7 @@ import taichi as ti
 from ti_fusion.reference import icp as icp_numpy
 from ti_fusion.backend import current_backend
 from ti_fusion.camera import Intrinsics
-from ti_fusion.config import DatasetConfig, ICPConfig, SynthConfig
+from ti_fusion.config import DatasetConfig, ICPConfig, MapsConfig, SynthConfig
 from ti_fusion.geometry import flatten_pose, invert, make_pose, pose_error, se3_exp, so3_exp
 from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels import icp as kicp
@@ -314,7 +314,7 @@ def sequence():
     return SyntheticSequence(SYNTH)
 
 
-def synthetic_pair(sequence, rng, noise, deg=3.0, metres=0.05, cfg: ICPConfig = ICPConfig()):
+def synthetic_pair(sequence, rng, noise, deg=3.0, metres=0.05, cfg: ICPConfig = ICPConfig(), smooth: int = -1):
     """Maps of the synthetic room seen from a pose of the camera path and from that pose moved by
     ``deg`` degrees about a random axis and ``metres`` along a random direction, and the true relative
     pose G (p_target = G p_source)."""
@@ -325,27 +325,28 @@ def synthetic_pair(sequence, rng, noise, deg=3.0, metres=0.05, cfg: ICPConfig = 
     depth_s, _ = sequence.render(pose, noise=noise, seed=int(seeds[0]))
     depth_t, _ = sequence.render(pose @ invert(G), noise=noise, seed=int(seeds[1]))
     K = sequence.intrinsics
-    return maps_of(depth_s, K, cfg), maps_of(depth_t, K, cfg, slot="target"), G
+    return maps_of(depth_s, K, cfg, smooth=smooth), maps_of(depth_t, K, cfg, slot="target", smooth=smooth), G
 
 
 _MAPS: dict = {}
 
 
-def maps_of(depth: np.ndarray, K: Intrinsics, cfg: ICPConfig = ICPConfig(), slot: str = "source") -> FrameMaps:
-    """The maps of one depth image as the ICP command builds them (smoothing and thresholds of ``cfg``).
+def maps_of(depth: np.ndarray, K: Intrinsics, cfg: ICPConfig = ICPConfig(), slot: str = "source",
+            smooth: int = -1) -> FrameMaps:
+    """The maps of one depth image as the ICP command builds them (``cfg``'s levels, smoothing radius ``smooth``).
     One FrameMaps per (backend, size, slot) is reused: Taichi compiles its kernels once per set of fields."""
-    key = (depth.shape, len(cfg.iterations), slot)
+    key = (depth.shape, len(cfg.iterations), slot, smooth)
     backend, maps = _MAPS.get(key, (None, None))
     if backend is not current_backend():  # fields do not survive a change of backend
-        maps = FrameMaps(K.height, K.width, len(cfg.iterations))
+        maps = FrameMaps(MapsConfig(depth_smooth_radius=smooth), K.height, K.width, len(cfg.iterations))
         _MAPS[key] = (current_backend(), maps)
-    maps.compute(depth, K, cfg.normal_max_depth_jump, 3 * cfg.pyramid_depth_sigma, cfg.smooth_radius(K.width))
+    maps.compute(depth, K)
     return maps
 
 
 def test_synthetic_motion_recovered_without_noise(arch, rng, sequence):
     # Exact depth needs no smoothing, and smoothing is view-dependent at corners (a floor on the residual)
-    src, tgt, G = synthetic_pair(sequence, rng, noise=False, cfg=ICPConfig(depth_smooth_radius=0))
+    src, tgt, G = synthetic_pair(sequence, rng, noise=False, smooth=0)
     result = ICP(ICPConfig()).align(src, tgt)
     rot, trans = pose_error(result.pose, G)
     assert result.failure is None and result.converged
@@ -362,9 +363,8 @@ def test_synthetic_motion_recovered_with_noise(cpu, rng, sequence, solver, robus
     # Light smoothing (r = 2): the default's heavier, image-relative smoothing pays on real Kinect depth
     # (redkitchen ATE) but rounds the synthetic room's sharp corners differently in the two views, which
     # costs a frame pair ~0.3 mm here (median over 12 pairs 0.13 → 0.39 mm).
-    config = ICPConfig(solver=solver, robust=robust, robust_scale=scale, depth_weighting=depth == "depth",
-                       depth_smooth_radius=2)
-    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=config)
+    config = ICPConfig(solver=solver, robust=robust, robust_scale=scale, depth_weighting=depth == "depth")
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=config, smooth=2)
     result = ICP(config).align(src, tgt)
     rot, trans = pose_error(result.pose, G)
     assert result.failure is None
@@ -378,9 +378,8 @@ def test_sums_at_convergence_match_reference(arch, rng, sequence, robust):
     """At the converged pose Aᵀb's signed terms cancel (Aᵀb → 0): the case where float32 accumulation
     would lose it. On cpu every one of the 30 sums still agrees with float64 NumPy to 1e-5 relative."""
     name, _, depth = robust.partition("+")
-    cfg = ICPConfig(depth_smooth_radius=2, robust=name, robust_scale=0.03, depth_weighting=depth == "depth",
-                    stop_update=1e-7)
-    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg)
+    cfg = ICPConfig(robust=name, robust_scale=0.03, depth_weighting=depth == "depth", stop_update=1e-7)
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg, smooth=2)
     pose = ICP(cfg).align(src, tgt).pose
     fields = (src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0])
     K_t = tgt.intrinsics[0].as_tuple()
@@ -437,8 +436,8 @@ def spy_on_python_path(monkeypatch) -> list:
 def test_solve_in_kernel_matches_solve_in_numpy(cpu, rng, sequence, stop_update, monkeypatch):
     """The default path (Cholesky solve and SE(3) update inside the iteration's kernel, float64) runs the
     same iterations to the same pose as solving every iteration's sums in NumPy."""
-    cfg = ICPConfig(depth_smooth_radius=2, stop_update=stop_update)
-    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg)
+    cfg = ICPConfig(stop_update=stop_update)
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg, smooth=2)
     kernels = ICP(cfg)._kernels(src.width * src.height)
     assert kernels.solves_in_kernel
     starts = spy_on_python_path(monkeypatch)
@@ -458,8 +457,8 @@ def test_solve_in_kernel_matches_solve_in_numpy(cpu, rng, sequence, stop_update,
 def test_solve_in_kernel_hands_over_to_numpy(cpu, rng, sequence, monkeypatch, refused, resume):
     """Where the kernel's Cholesky refuses a system that NumPy's checks accept, the run goes on in NumPy
     from the pose before that iteration (at that stage and iteration), and ends as a NumPy run does."""
-    cfg = ICPConfig(depth_smooth_radius=2, stop_update=0.0)
-    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg)
+    cfg = ICPConfig(stop_update=0.0)
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg, smooth=2)
     kernels = ICP(cfg)._kernels(src.width * src.height)  # the pass every ICP object shares
     records = kernels.iteration_records
 

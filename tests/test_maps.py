@@ -9,11 +9,17 @@ import pytest
 
 from ti_fusion import backend
 from ti_fusion.camera import Intrinsics
+from ti_fusion.config import MapsConfig
 from ti_fusion.kernels.maps import FrameMaps
 
 K = Intrinsics(fx=150.0, fy=140.0, cx=39.5, cy=30.25, width=80, height=60)
 JUMP = 0.05 + 1 / 4096  # never equal to a difference of two depths on the 1/1024 grid
 PYR = 0.09 + 1 / 4096
+
+
+def settings(jump=JUMP, max_diff=PYR, radius=0) -> MapsConfig:
+    """FrameMaps settings: normals up to depth jumps of ``jump``, depth means over ``max_diff`` (3σ)."""
+    return MapsConfig(normal_max_depth_jump=jump, pyramid_depth_sigma=max_diff / 3, depth_smooth_radius=radius)
 
 
 def random_depth(rng, shape=(60, 80), invalid=0.15):
@@ -74,8 +80,8 @@ def pyramid_ref(fine, max_diff):
 
 def test_backprojection_matches_reference(arch, rng):
     depth = random_depth(rng)
-    maps = FrameMaps(*depth.shape, levels=1)
-    maps.compute(depth, K, JUMP, PYR)
+    maps = FrameMaps(settings(), *depth.shape, levels=1)
+    maps.compute(depth, K)
     V = maps.vertex[0].to_numpy()
     np.testing.assert_allclose(V, backproject_ref(depth, K), rtol=2e-6, atol=1e-7)
     assert np.all(V[depth == 0] == 0)
@@ -94,8 +100,8 @@ def loops(request, monkeypatch):
 def test_normals_match_reference(arch, rng, loops, shape):
     depth = random_depth(rng, shape)
     Ks = Intrinsics(150.0, 140.0, shape[1] / 2, shape[0] / 2, shape[1], shape[0])
-    maps = FrameMaps(*depth.shape, levels=1)
-    maps.compute(depth, Ks, JUMP, PYR)
+    maps = FrameMaps(settings(), *depth.shape, levels=1)
+    maps.compute(depth, Ks)
     N = maps.normal[0].to_numpy()
     # The reference starts from the kernel's float32 vertices, so only the normal arithmetic is compared.
     ref = normals_ref(maps.vertex[0].to_numpy().astype(np.float64), np.float32(JUMP))
@@ -114,8 +120,8 @@ def test_normals_invalid_neighbours_depth_jumps_and_border(arch):
     depth[5, 5] = 0.0                       # a hole: its 4 neighbours lose their normal
     depth[2, 10] = 1.0 + 0.05               # a jump just below max_depth_jump: still a normal
     depth[8, 10] = 1.0 + 0.0625             # a jump just above: no normal around it
-    maps = FrameMaps(H, W, levels=1)
-    maps.compute(depth, Intrinsics(100.0, 100.0, 7.5, 5.5, W, H), max_depth_jump=0.0546875, pyramid_max_diff=0.09)
+    maps = FrameMaps(settings(jump=0.0546875, max_diff=0.09), H, W, levels=1)
+    maps.compute(depth, Intrinsics(100.0, 100.0, 7.5, 5.5, W, H))
     N = maps.normal[0].to_numpy()
     has = np.any(N != 0, axis=-1)
     assert not has[0].any() and not has[-1].any() and not has[:, 0].any() and not has[:, -1].any()
@@ -138,8 +144,8 @@ def test_normal_faces_the_camera_on_a_slanted_plane(arch):
     n /= np.linalg.norm(n)
     rays = np.stack([(u - Kp.cx) / Kp.fx, (v - Kp.cy) / Kp.fy, np.ones_like(u, dtype=float)], -1)
     z = -1.5 / (rays @ n)
-    maps = FrameMaps(H, W, levels=1)
-    maps.compute(z.astype(np.float32), Kp, max_depth_jump=1.0)
+    maps = FrameMaps(settings(jump=1.0, max_diff=0.09), H, W, levels=1)
+    maps.compute(z.astype(np.float32), Kp)
     N = maps.normal[0].to_numpy()[1:-1, 1:-1].reshape(-1, 3)
     np.testing.assert_allclose(N, np.broadcast_to(n, N.shape), atol=2e-4)
 
@@ -169,8 +175,8 @@ def smooth_ref(depth, radius, max_diff):
 def test_smoothing_and_pyramid_keep_a_ramp_up_to_the_border(arch):
     u = np.arange(40, dtype=np.float64)
     depth = np.broadcast_to(1.0 + 0.004 * u + 0.002 * u[:, None][:30], (30, 40)).astype(np.float32)
-    maps = FrameMaps(30, 40, levels=3)
-    maps.compute(depth, Intrinsics(50.0, 50.0, 19.5, 14.5, 40, 30), smooth_radius=2)
+    maps = FrameMaps(settings(jump=0.05, max_diff=0.09, radius=2), 30, 40, levels=3)
+    maps.compute(depth, Intrinsics(50.0, 50.0, 19.5, 14.5, 40, 30))
     np.testing.assert_allclose(maps.depth[0].to_numpy(), depth, rtol=1e-6)
     np.testing.assert_allclose(maps.depth[1].to_numpy(), depth[::2, ::2], rtol=1e-6)
     np.testing.assert_allclose(maps.depth[2].to_numpy(), depth[::4, ::4], rtol=1e-6)
@@ -181,8 +187,8 @@ def test_smoothing_matches_reference(arch, rng, loops, radius, shape):
     """Also widths that are no multiple of the 8-pixel packs, and radii whose window spans several packs."""
     depth = random_depth(rng, shape)
     K = Intrinsics(150.0, 140.0, shape[1] / 2, shape[0] / 2, shape[1], shape[0])
-    maps = FrameMaps(*depth.shape, levels=2)
-    maps.compute(depth, K, JUMP, PYR, smooth_radius=radius)
+    maps = FrameMaps(settings(radius=radius), *depth.shape, levels=2)
+    maps.compute(depth, K)
     got = maps.depth[0].to_numpy()
     expected = smooth_ref(depth, radius, np.float32(PYR))
     np.testing.assert_array_equal(got > 0, depth > 0)
@@ -193,8 +199,8 @@ def test_smoothing_matches_reference(arch, rng, loops, radius, shape):
 
 def test_pyramid_matches_reference(arch, rng, loops):
     depth = random_depth(rng, shape=(61, 81))  # odd sizes: the last coarse pixel sees a clipped window
-    maps = FrameMaps(*depth.shape, levels=3)
-    maps.compute(depth, Intrinsics(150.0, 140.0, 40.0, 30.0, 81, 61), JUMP, PYR)
+    maps = FrameMaps(settings(), *depth.shape, levels=3)
+    maps.compute(depth, Intrinsics(150.0, 140.0, 40.0, 30.0, 81, 61))
     assert maps.shapes == [(61, 81), (31, 41), (16, 21)]
     expected = depth
     for level in range(1, 3):
@@ -217,8 +223,8 @@ def test_input_level_averages_down_first(arch, rng, loops, input_level, radius):
     maps as level L of full-resolution maps built without smoothing."""
     depth = random_depth(rng, shape=(61, 81))
     K_in = Intrinsics(150.0, 140.0, 40.0, 30.0, 81, 61)
-    maps = FrameMaps(*depth.shape, levels=2, input_level=input_level)
-    maps.compute(depth, K_in, JUMP, PYR, smooth_radius=radius)
+    maps = FrameMaps(settings(radius=radius), *depth.shape, levels=2, input_level=input_level)
+    maps.compute(depth, K_in)
     expected = depth
     for _ in range(input_level):
         expected = pyramid_ref(expected, np.float32(PYR)).astype(np.float32)
@@ -238,7 +244,7 @@ def test_input_level_averages_down_first(arch, rng, loops, input_level, radius):
 def test_pyramid_does_not_average_across_an_edge(arch):
     depth = np.full((8, 8), 1.0, dtype=np.float32)
     depth[:, 3:] = 2.0  # the coarse pixel at u = 1 (fine u = 2) has fine neighbours on both sides
-    maps = FrameMaps(8, 8, levels=2)
+    maps = FrameMaps(settings(jump=0.05, max_diff=0.09), 8, 8, levels=2)
     maps.compute(depth, Intrinsics(10.0, 10.0, 3.5, 3.5, 8, 8))
     coarse = maps.depth[1].to_numpy()
     np.testing.assert_array_equal(coarse[:, :2], 1.0)
@@ -246,6 +252,6 @@ def test_pyramid_does_not_average_across_an_edge(arch):
 
 
 def test_wrong_depth_shape_is_refused(cpu):
-    maps = FrameMaps(10, 12, levels=1)
+    maps = FrameMaps(settings(), 10, 12, levels=1)
     with pytest.raises(ValueError, match="shape"):
         maps.compute(np.zeros((12, 10), np.float32), Intrinsics(10.0, 10.0, 5.0, 5.0, 12, 10))

@@ -6,6 +6,9 @@ A config file holds one table per section, e.g.::
     iterations = [10, 5, 4]      # coarse to fine
     dist_threshold = 0.10
 
+    [maps]
+    depth_smooth_radius = 6
+
     [fusion]
     capacity = 4_000_000
 
@@ -73,16 +76,26 @@ class ICPConfig:
     stop_update: float = 1e-4        # stop a level when ‖δξ‖ (rad, m) falls below this: 0.1 mm, below the
                                      # noise (redkitchen 500 frames: 1e-5 → 1e-4 gave the same ATE with 13.3 →
                                      # 10.1 iterations per frame)
-    normal_max_depth_jump: float = 0.05  # metres: neighbours further apart in depth give no normal
-    pyramid_depth_sigma: float = 0.03    # metres: depth averaging in the pyramid ignores larger jumps
     level_dist_scale: float = 2.0    # d_thr at pyramid level l is dist_threshold · level_dist_scale**l (coarse levels gate wider)
-    depth_smooth_radius: int = -1    # FrameMaps.compute(smooth_radius=): edge-preserving (2r+1)² depth mean; 0 = raw;
-                                     # -1 = auto, width // 50 (12 px at 640, 6 at 320). Redkitchen 500 frames,
-                                     # 640×480 with the map at 320×240: r = 2 → 3.95 cm, 6 → 2.98, 12 → 2.67, 24 → 2.69
     converged_update: float = 1e-4   # result.converged: the last ‖δξ‖ (rad, m) fell below this
 
+
+@dataclass
+class MapsConfig:
+    """The per-frame maps (``kernels/maps.py`` FrameMaps) that ICP aligns and fusion merges: depth
+    smoothing, pyramid, vertex and normal maps. How far the input is averaged down first is
+    ``Config.frame_input_level`` (``fusion.level`` and ``slam.track_at_map_level``)."""
+
+    normal_max_depth_jump: float = 0.05  # metres: neighbours further apart in depth give no normal
+                                         # (× 2**l at pyramid level l)
+    pyramid_depth_sigma: float = 0.03    # metres: the pyramid's and the smoothing's depth means count only
+                                         # neighbours within 3σ of the centre depth (no mixing across edges)
+    depth_smooth_radius: int = -1    # edge-preserving (2r+1)² depth mean before the maps; 0 = raw; -1 = auto,
+                                     # width // 50 (12 px at 640, 6 at 320). Redkitchen 500 frames, 640×480 with
+                                     # the map at 320×240: r = 2 → 3.95 cm, 6 → 2.98, 12 → 2.67, 24 → 2.69
+
     def smooth_radius(self, width: int) -> int:
-        """``depth_smooth_radius`` for frames ``width`` pixels wide (resolves -1 = auto)."""
+        """``depth_smooth_radius`` for maps ``width`` pixels wide (resolves -1 = auto)."""
         return max(1, width // 50) if self.depth_smooth_radius < 0 else self.depth_smooth_radius
 
 
@@ -171,6 +184,7 @@ class LogConfig:
 class Config:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     synth: SynthConfig = field(default_factory=SynthConfig)
+    maps: MapsConfig = field(default_factory=MapsConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     slam: SLAMConfig = field(default_factory=SLAMConfig)
@@ -228,12 +242,18 @@ def _set_field(section_obj: Any, key: str, value: Any, where: str) -> None:
     setattr(section_obj, key, value)
 
 
+# Settings that moved to another section: the old name still sets the new one.
+MOVED = {("icp", name): ("maps", name)
+         for name in ("normal_max_depth_jump", "pyramid_depth_sigma", "depth_smooth_radius")}
+
+
 def apply_dict(config: Config, data: dict, where: str = "config") -> Config:
     for section, values in data.items():
         if not hasattr(config, section) or not isinstance(values, dict):
             raise InputError(None, f"{where}: unknown section {section!r}")
         for key, value in values.items():
-            _set_field(getattr(config, section), key, value, f"{where} [{section}]")
+            to_section, to_key = MOVED.get((section, key), (section, key))
+            _set_field(getattr(config, to_section), to_key, value, f"{where} [{section}]")
     return config
 
 

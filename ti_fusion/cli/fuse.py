@@ -38,7 +38,7 @@ def run(ctx) -> dict:
     K = dataset.intrinsics
     # The frame maps the SLAM loop fuses from: averaged down to the map's level on input (by default)
     input_level = cfg.frame_input_level(K.width)
-    maps = FrameMaps(K.height, K.width, levels=cfg.fusion.map_level(K.width) - input_level + 1,
+    maps = FrameMaps(cfg.maps, K.height, K.width, levels=cfg.fusion.map_level(K.width) - input_level + 1,
                      input_level=input_level)
     mapper = SurfelMapper(cfg.fusion)
     timer = StageTimer()
@@ -52,8 +52,7 @@ def run(ctx) -> dict:
             first_pose = frame.gt_pose
         with timer.stage("maps"):
             # The same maps the SLAM loop fuses: edge-preserving smoothed depth, normals from it.
-            maps.compute(frame.depth, frame.intrinsics, cfg.icp.normal_max_depth_jump, 3 * cfg.icp.pyramid_depth_sigma,
-                         cfg.icp.smooth_radius(maps.width))
+            maps.compute(frame.depth, frame.intrinsics)
         stats = mapper.integrate(maps, frame.color, frame.gt_pose, i, timer)
         timer.add("fuse", sum(stats.ms.values()))
         naive += int((frame.depth > 0).sum())

@@ -64,8 +64,8 @@ def _frame(dataset, index: int) -> Frame:
 
 def _maps(frame: Frame, cfg) -> FrameMaps:
     K = frame.intrinsics
-    maps = FrameMaps(K.height, K.width, len(cfg.iterations))
-    maps.compute(frame.depth, K, cfg.normal_max_depth_jump, 3 * cfg.pyramid_depth_sigma, cfg.smooth_radius(K.width))
+    maps = FrameMaps(cfg.maps, K.height, K.width, len(cfg.icp.iterations))
+    maps.compute(frame.depth, K)
     return maps
 
 
@@ -147,7 +147,7 @@ def run(ctx) -> dict:
     init = np.asarray(INITIALISERS[args.init](source, target, ctx), dtype=np.float64)
 
     t0 = time.perf_counter()
-    src_maps, tgt_maps = _maps(source, cfg.icp), _maps(target, cfg.icp)
+    src_maps, tgt_maps = _maps(source, cfg), _maps(target, cfg)
     t1 = time.perf_counter()
     result = ICP(cfg.icp).align(src_maps, tgt_maps, init)
     t2 = time.perf_counter()

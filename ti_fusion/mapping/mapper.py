@@ -116,17 +116,17 @@ class SurfelMapper:
         self.map.render(pose, intrinsics, out_vertex, out_normal, out_depth, self.config.render_min_weight,
                         self.config.render_max_half)
 
-    def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics, max_depth_jump: float = 0.05,
-                    pyramid_max_diff: float = 0.09, min_weight: float | None = None) -> None:
-        """Fill a ``FrameMaps`` with the prediction: every pyramid level from the rendered depth (the last two
-        arguments as in ``FrameMaps.compute``), and level 0's vertex and normal maps straight from the
+    def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics,
+                    min_weight: float | None = None) -> None:
+        """Fill a ``FrameMaps`` with the prediction: every pyramid level from the rendered depth (with the
+        maps' own settings), and level 0's vertex and normal maps straight from the
         surfels (averaged normals, smoother than normals from depth differences). Surfels below
         ``min_weight`` (default ``fusion.render_min_weight``) are left out."""
         if min_weight is None:
             min_weight = self.config.render_min_weight
         self.map.render(pose, intrinsics, frame_maps.vertex[0], frame_maps.normal[0], frame_maps.depth[0],
                         min_weight, self.config.render_max_half)
-        frame_maps.compute_from_field(intrinsics, max_depth_jump, pyramid_max_diff, level0_maps=False)
+        frame_maps.compute_from_field(intrinsics, level0_maps=False)
 
     def render_image(self, pose: np.ndarray, intrinsics: Intrinsics, by_normal: bool = False) -> np.ndarray:
         """uint8 RGB view of the map from ``pose`` (surfel colour, or world normal as (n + 1) / 2)."""

@@ -263,7 +263,7 @@ class NumpyFusion:
 def build_map(width: int, height: int, target: int, cfg):
     """Fuse frames of the synthetic sequence (noise on) at width×height until the map holds ``target``
     surfels: (mapper, frame maps, sequence, index of the next frame)."""
-    from ti_fusion.config import SynthConfig
+    from ti_fusion.config import MapsConfig, SynthConfig
     from ti_fusion.mapping.mapper import SurfelMapper
     from ti_fusion.kernels.maps import FrameMaps
     from ti_fusion.synthetic.scene import SyntheticSequence
@@ -272,7 +272,7 @@ def build_map(width: int, height: int, target: int, cfg):
     seq = SyntheticSequence(SynthConfig(frames=600, width=width, height=height, fx=fx, noise=True))
     K = seq.intrinsics
     mapper = SurfelMapper(cfg)
-    maps = FrameMaps(height, width, levels=1)
+    maps = FrameMaps(MapsConfig(depth_smooth_radius=0), height, width, levels=1)
     frame = 0
     while mapper.count < target:  # build the map along the camera path
         depth, colour = seq.frame(frame)

@@ -73,13 +73,14 @@ class DenseSLAM:
         self.map_level = map_level = config.fusion.map_level(W)
         # The incoming frame: ICP target (averaged down to the map's level first, by default).
         frame_level = config.frame_input_level(W)
-        self.frame_maps = FrameMaps(H, W, max(levels, map_level - frame_level + 1), input_level=frame_level)
+        self.frame_maps = FrameMaps(config.maps, H, W, max(levels, map_level - frame_level + 1),
+                                    input_level=frame_level)
         # The map rendered at the last pose: ICP source, at the map's resolution. Level l of the model is
         # aligned to level l of the frame maps: the same resolution by default, or with
         # slam.track_at_map_level off and fusion.level 1, each model point to a twice finer frame.
         self.model_intrinsics = intrinsics.downsampled(2**map_level)
-        self.model_maps = FrameMaps(self.model_intrinsics.height, self.model_intrinsics.width, levels)
-        self.previous_maps = FrameMaps(H, W, levels, input_level=frame_level) \
+        self.model_maps = FrameMaps(config.maps, self.model_intrinsics.height, self.model_intrinsics.width, levels)
+        self.previous_maps = FrameMaps(config.maps, H, W, levels, input_level=frame_level) \
             if config.slam.tracking == "frame" else None
         self.icp = ICP(config.icp)
         self.mapper = SurfelMapper(config.fusion)
@@ -92,9 +93,7 @@ class DenseSLAM:
     def register_frame(self, frame: Frame) -> FrameResult:
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
         with timer.stage("maps"):
-            icp = self.config.icp
-            self.frame_maps.compute(frame.depth, frame.intrinsics, icp.normal_max_depth_jump,
-                                    3 * icp.pyramid_depth_sigma, icp.smooth_radius(self.frame_maps.width))
+            self.frame_maps.compute(frame.depth, frame.intrinsics)
         if not self.poses:
             pose = frame.gt_pose if frame.gt_pose is not None and self.config.slam.anchor_to_ground_truth \
                 else np.eye(4)
@@ -129,8 +128,7 @@ class DenseSLAM:
         # once the map has had time to confirm any: at first every surfel is new, and a prediction
         # without them would be empty, every frame lost and never fused.
         warm = self._frames_fused >= fusion.unstable_age
-        self.mapper.render_maps(self.model_maps, last, self.model_intrinsics, self.config.icp.normal_max_depth_jump,
-                                3 * self.config.icp.pyramid_depth_sigma,
+        self.mapper.render_maps(self.model_maps, last, self.model_intrinsics,
                                 min_weight=fusion.render_min_weight if warm else 0.0)
         return self.model_maps, last
 
@@ -200,4 +198,4 @@ class DenseSLAM:
         model, frame = self.model_intrinsics, self.frame_maps
         return {"map_level": self.map_level,
                 "map_size": [model.width, model.height], "tracked_at": [frame.width, frame.height],
-                "depth_smooth_radius": self.config.icp.smooth_radius(frame.width)}
+                "depth_smooth_radius": frame.smooth_radius}

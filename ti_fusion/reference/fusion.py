@@ -19,12 +19,12 @@ from ti_fusion.kernels.fusion import ATTRIBUTES
 
 def _dot(a, b):
     """Row-wise dot products of two (m, 3) arrays, a column at a time: the sums of np.einsum("ij,ij->i", a, b)
-    (and of np.linalg.norm), in the same order, in a quarter to a half of the time."""
+    (and of np.linalg.norm), in the same order, without their per-row overhead."""
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
 
 
 def _put_rows(arr, idx, rows):
-    """arr[idx] = rows, a column at a time for an (n, 3) array: half the time of the row assignment."""
+    """arr[idx] = rows, a column at a time for an (n, 3) array (faster than assigning rows of three)."""
     if arr.ndim == 1:
         arr[idx] = rows
     else:
@@ -33,8 +33,8 @@ def _put_rows(arr, idx, rows):
 
 
 def _rigid(p, R, t):
-    """p @ R.T + t for (m, 3) rows, t added a column at a time: broadcast over rows of three, the addition took
-    three times as long as the product."""
+    """p @ R.T + t for (m, 3) rows, t added a column at a time: broadcast over rows of three, the addition
+    costs more than the product."""
     out = p @ R.T
     for c in range(3):
         out[:, c] += t[c]
@@ -45,23 +45,21 @@ class NumpyFusion:
     """The fusion step of ``ti_fusion.mapping.mapper.SurfelMapper`` in vectorised NumPy (float32 arrays).
 
     NumPy at its best, so that the ratio to the kernels is an honest one; the maps it makes are bit for bit
-    those of the plain formulation (fancy indexing, boolean masks, einsum, the whole map at once). Measured
-    on this step (NumPy 2.x):
-    - rows of the (m, 3) arrays are gathered with ``np.take(arr, idx, axis=0)`` (3-4× faster than
-      ``arr[idx]``), subsets are selected through index lists (``np.flatnonzero``; a boolean mask took ~10×
-      longer), dot products and row assignments go a column at a time (``_dot``, ``_put_rows``);
+    those of the plain formulation (fancy indexing, boolean masks, einsum, the whole map at once), with the
+    forms that were fastest on this step:
+    - rows of the (m, 3) arrays are gathered with ``np.take(arr, idx, axis=0)`` rather than ``arr[idx]``,
+      subsets are selected through index lists (``np.flatnonzero``) rather than boolean masks, dot products
+      and row assignments go a column at a time (``_dot``, ``_put_rows``);
     - the projection runs over blocks of surfels (``BLOCK``), so that its temporaries stay in the cache;
-    - of the tests that decide together, the selective one runs first and the others only on what it keeps:
-      on the benchmark's frames the normal test keeps ~15-20% (of the surfels in the image, of the merged
-      neighbours of a pixel), the distance and disc tests ~80%;
+    - of the tests that decide together, the selective one (the normal test) runs first and the others only
+      on what it keeps;
     - as in the kernels, the radial confidence is a per-pixel table computed once, the coverage test reads
       the merged surfels from the merge's results rather than from the map, and the map's memory is
       written once when it is allocated.
     """
 
-    # Surfels per block of the projection. On the whole map at once, its temporaries (tens of MB) left the
-    # cache and, growing with the map, page-faulted afresh at each step: the stage took 40-43 ms at 640×480
-    # against 23-27 ms in blocks of 2^16 (2^14: 28-31 ms, 2^18: 28 ms)
+    # Surfels per block of the projection: on the whole map at once, its temporaries (tens of MB) leave the
+    # cache and, growing with the map, page-fault afresh at each step
     BLOCK = 1 << 16
     # Keller's radial confidence per pixel, by (shape, cx, cy, σ): computed once, as the kernels' fill_radial
     _radial_tables: dict = {}
@@ -72,8 +70,8 @@ class NumpyFusion:
         self.a = {}
         for name, arr in data.items():
             # zeros written now, not np.zeros, whose pages are mapped at their first write: the surfels added at
-            # each step page-faulted in the timed add stage (22 vs 10 ms at 640×480). The kernels' fields are
-            # resident from their allocation
+            # each step would page-fault in the timed add stage, while the kernels' fields are resident from
+            # their allocation
             full = np.empty((capacity,) + arr.shape[1:], arr.dtype)
             full[: self.n] = arr
             full[self.n:] = 0
@@ -91,7 +89,7 @@ class NumpyFusion:
         R, t = pose[:3, :3].astype(np.float32), pose[:3, 3].astype(np.float32)
         q = vertex.reshape(-1, 3)
         nq = normal.reshape(-1, 3)
-        # positive depth and a non-zero normal (np.any(nq != 0, axis=1) took 8× as long as the three columns)
+        # positive depth and a non-zero normal (three column tests: np.any(nq != 0, axis=1) is much slower)
         valid = (q[:, 2] > 0) & ((nq[:, 0] != 0) | (nq[:, 1] != 0) | (nq[:, 2] != 0))
         cos_thr = math.cos(math.radians(cfg.normal_threshold_deg))
         if keller:  # the frame's measurements in the world frame, as the kernels' world_measurements
@@ -99,9 +97,9 @@ class NumpyFusion:
             n_world = nq @ R.T
         found = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))]  # (an empty map)
         for s in range(0, n, self.BLOCK):
-            # the camera-frame coordinates as three contiguous rows (the same sums as position @ Rw.T + tw): the
-            # product and the projection below took 4× as long on (m, 3) rows (tw broadcast over rows of three,
-            # strided columns)
+            # the camera-frame coordinates as three contiguous rows (the same sums as position @ Rw.T + tw): on
+            # (m, 3) rows the product and the projection below are several times slower (tw broadcast over rows
+            # of three, strided columns)
             x, y, z = Rw @ a["position"][s:min(s + self.BLOCK, n)].T + tw[:, None]
             with np.errstate(divide="ignore", invalid="ignore"):
                 uf = K.fx * x / z + K.cx + 0.5
@@ -121,9 +119,8 @@ class NumpyFusion:
                 ids, pix, zi = ids[ok], pix[ok], zi[ok]
             found.append((ids, pix, zi))
         ids, pix, zi = (np.concatenate(v) for v in zip(*found))
-        # the kernels' two passes: nearest depth per pixel, then the smallest index at that depth
-        # (np.minimum.at, NumPy's unbuffered scatter-min, takes 0.1-0.2 ms here; sorting by pixel then depth
-        # took 4-11 ms, np.lexsort 8-23 ms)
+        # the kernels' two passes: nearest depth per pixel, then the smallest index at that depth (with
+        # np.minimum.at, NumPy's unbuffered scatter-min, far faster here than sorting by pixel then depth)
         nearest = np.full(H * W, np.inf, np.float32)
         np.minimum.at(nearest, pix, zi)
         won = np.flatnonzero(zi == nearest[pix])
@@ -132,9 +129,9 @@ class NumpyFusion:
         index[index == np.iinfo(np.int64).max] = -1
         t1 = time.perf_counter()
         ms["project"] = (t1 - t0) * 1e3
-        # filter pass 2 (in the projection above for Keller's order). In pixel order: listing the surfels in
-        # index order instead, as the kernels' merge does, made the step 1-4 ms slower (the frame's arrays read
-        # at random pixels, and the coverage test's reads of the merged surfels scattered)
+        # filter pass 2 (in the projection above for Keller's order). In pixel order, not in index order as the
+        # kernels' merge: the frame's arrays are then read in order, and so are the coverage test's reads of
+        # the merged surfels
         px = np.flatnonzero((index >= 0) & valid)
         i = index[px]
         if keller:
@@ -189,8 +186,8 @@ class NumpyFusion:
         t4 = time.perf_counter()
         ms["add"] = (t4 - t3) * 1e3
         # remove unstable surfels and compact as the kernels do: the k-th survivor at or above the new count
-        # m moves into the k-th hole below m, so only the holes are written, not the whole map (copying every
-        # survivor, as a boolean mask does, made this stage 6x slower at 320×240)
+        # m moves into the k-th hole below m, so only the holes are written, not the whole map (as copying
+        # every survivor through a boolean mask would)
         drop = (a["weight"][:n] < cfg.unstable_weight) & (a["t_updated"][:n] <= frame - cfg.unstable_age)
         removed = int(np.count_nonzero(drop))
         if removed:

@@ -25,9 +25,8 @@ def keep_freed_memory() -> bool:
     """Ask glibc to keep freed blocks of up to 32 MiB for reuse instead of returning them to the system
     (benchmarks call this before timing the NumPy references). By default blocks above a threshold that
     glibc adapts at run time are mmap-ed and unmapped on free, so NumPy's large temporaries page-fault
-    afresh on every call, in some processes and not in others: one 320×240 NumPy ICP iteration took
-    17.5 ms that way and 13 ms with the memory kept (640×480: 70 vs 52 ms). Kept, NumPy is timed at its
-    best, every run alike. Returns whether it took effect (False off glibc)."""
+    afresh on every call, in some processes and not in others (docs/BENCHMARKS.md says by how much). Kept,
+    NumPy is timed at its best, every run alike. Returns whether it took effect (False off glibc)."""
     name = ctypes.util.find_library("c")
     if not name:
         return False
@@ -41,8 +40,7 @@ def keep_freed_memory() -> bool:
 
 # Environment settings that change how fast NumPy's BLAS runs. Some machines set OPENBLAS_CORETYPE (to an
 # older core's kernels, as a guard against OpenBLAS bugs on newer CPUs); a benchmark names them beside
-# its ratios. (On the project's machines, with OPENBLAS_CORETYPE=Haswell and OPENBLAS_L2_SIZE=512 unset,
-# the NumPy ICP iteration took 33.7 and 7.3 ms at 640×480 and 320×240, against 33.1 and 7.6 ms with them.)
+# its ratios.
 BLAS_SETTINGS = ("OPENBLAS_CORETYPE", "OPENBLAS_L2_SIZE", "OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS")
 
 

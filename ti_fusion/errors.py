@@ -18,6 +18,15 @@ class InputError(TiFusionError):
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
 
 
+class OutputError(TiFusionError):
+    """An output that cannot be written: the run folder is taken or not writable, the disk is full, ..."""
+
+    def __init__(self, path: str | Path, problem: str):
+        self.path = Path(path)
+        self.problem = problem
+        super().__init__(f"{self.path}: {problem}")
+
+
 class BackendUnavailable(TiFusionError):
     """The requested Taichi backend is absent on this machine."""
 

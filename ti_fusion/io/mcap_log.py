@@ -61,7 +61,7 @@ from mcap.writer import Writer as McapWriter
 from mcap_protobuf.decoder import DecoderFactory
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from ti_fusion.errors import InputError
+from ti_fusion.errors import InputError, OutputError
 from ti_fusion.geometry import quat_to_rot, rot_to_quat
 from ti_fusion.io.outputs import jsonable
 
@@ -104,7 +104,7 @@ class RunLogger:
                  chunk_size: int = DEFAULT_CHUNK_SIZE):
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = open(self.path, "wb")
+        self._file = _LogFile(self.path)
         self._writer = McapWriter(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self._writer.start(profile="", library=f"ti-fusion {_package_version()}")
         self._channels: dict[str, tuple[int, str]] = {}  # topic → (channel id, schema name)
@@ -273,6 +273,36 @@ class RunLogger:
         elif entry[1] != name:
             raise ValueError(f"topic {topic} carries {entry[1]}, cannot write a {name}")
         self._writer.add_message(entry[0], log_time=ns, data=message.SerializeToString(), publish_time=ns)
+
+
+class _LogFile:
+    """The log's file as the MCAP writer uses it (write, tell, flush, close), with an ``OSError`` (a full
+    disk) turned into an ``OutputError`` that names the log."""
+
+    def __init__(self, path: Path):
+        self.path = path
+        try:
+            self._file = open(path, "wb")
+        except OSError as exc:
+            raise OutputError(path, f"cannot be written: {exc.strerror or exc}") from None
+
+    def _call(self, name: str, *args):
+        try:
+            return getattr(self._file, name)(*args)
+        except OSError as exc:
+            raise OutputError(self.path, f"cannot be written: {exc.strerror or exc}") from exc
+
+    def write(self, data) -> int:
+        return self._call("write", data)
+
+    def tell(self) -> int:
+        return self._file.tell()
+
+    def flush(self) -> None:
+        self._call("flush")
+
+    def close(self) -> None:
+        self._call("close")
 
 
 def _finish(writer: McapWriter, file) -> None:

@@ -1,39 +1,290 @@
-"""Where a run writes: its output folder, ``summary.json`` and the terminal progress bar."""
+"""Where a run writes: its own output folder, files written whole or not at all, ``summary.json`` and
+the terminal progress bar."""
 
 from __future__ import annotations
 
 import json
+import os
+import secrets
+import shutil
+import socket
 import sys
 import time
+import weakref
+from contextlib import contextmanager, suppress
 from datetime import datetime
 from pathlib import Path
-from typing import Iterable, Iterator, TypeVar
+from typing import IO, Iterable, Iterator, TypeVar
 
 import numpy as np
 
+from ti_fusion.errors import OutputError
+
+try:
+    import fcntl
+except ImportError:  # Windows has none: there the marker is written but not locked
+    fcntl = None
+
 T = TypeVar("T")
 
+# The file that marks a folder as a run's and that the run holds locked while it writes there.
+MARKER = ".ti-fusion-run"
 
-def default_out_dir(command: str) -> Path:
-    return Path("logs") / f"{command}-{datetime.now().strftime('%Y%m%d-%H%M%S')}"
+
+def default_out_dir(command: str, now: datetime | None = None) -> Path:
+    """``logs/<command>-<YYYYmmdd-HHMMSS-mmm>``; RunDir adds ``-2``, ``-3``, ... when it is taken."""
+    now = now or datetime.now()
+    return Path("logs") / f"{command}-{now:%Y%m%d-%H%M%S}-{now.microsecond // 1000:03d}"
 
 
 class RunDir:
-    """The output folder of one run (``--out``, default ``logs/<command>-<timestamp>/``)."""
+    """The output folder of one run (``--out``, default ``logs/<command>-<YYYYmmdd-HHMMSS-mmm>/``).
 
-    def __init__(self, command: str, out: str | Path | None = None):
+    A run owns its folder:
+    - the default folder is created exclusively: a name another run took in the same millisecond gets
+      ``-2``, ``-3``, ...;
+    - a given folder is created if missing; an existing one must be empty, or hold an earlier run and
+      ``overwrite`` be set, and then the earlier run's files are removed before anything is written. A
+      non-empty folder that holds no run is never emptied;
+    - the marker file ``.ti-fusion-run`` (command, process, start time) is kept locked while the run
+      lives (``flock``: the kernel releases it however the process ends, so a killed run leaves no
+      stale lock), and a second run given the same folder stops at once with ``OutputError``.
+    ``release()`` (or the end of a ``with`` block) unlocks it; a run that wrote nothing leaves no trace.
+    """
+
+    def __init__(self, command: str, out: str | Path | None = None, overwrite: bool = False):
         self.command = command
-        self.path = Path(out) if out else default_out_dir(command)
-        self.path.mkdir(parents=True, exist_ok=True)
         self.t_start = time.perf_counter()
+        self._fd: int | None = None
+        self._created = False
+        for _ in range(5):  # another run may remove the folder it emptied between our steps: start again
+            if out:
+                self.path = Path(out)
+                self._created = _make_folder(self.path)
+            else:
+                self.path = _make_default_folder(command)
+                self._created = True
+            if self._lock(overwrite):
+                break
+        else:
+            raise OutputError(self.path, "the folder keeps disappearing (another process is removing it)")
+        self._finalizer = weakref.finalize(self, os.close, self._fd)
+
+    def __enter__(self) -> "RunDir":
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        self.release()
+        return False
 
     def file(self, name: str) -> Path:
         return self.path / name
 
     def write_summary(self, summary: dict) -> Path:
         path = self.file("summary.json")
-        path.write_text(json.dumps(jsonable(summary), indent=2) + "\n")
+        with atomic_write(path, "w") as f:
+            f.write(json.dumps(jsonable(summary), indent=2) + "\n")
         return path
+
+    def release(self) -> None:
+        """Unlock the folder. If the run wrote nothing there, leave no trace: the marker goes, and the
+        folder too when this run created it (idempotent)."""
+        if self._fd is None:
+            return
+        try:
+            if _entries(self.path) == []:
+                with suppress(OSError):
+                    (self.path / MARKER).unlink()
+                    if self._created:
+                        self.path.rmdir()
+        finally:
+            self._finalizer()
+            self._fd = None
+
+    # -- internals --------------------------------------------------------------------------------
+    def _lock(self, overwrite: bool) -> bool:
+        """Take the marker's lock and check what the folder holds; False if the folder went away."""
+        marker = self.path / MARKER
+        new_marker = True
+        try:
+            try:
+                fd = os.open(marker, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                new_marker = False
+                fd = os.open(marker, os.O_RDWR)
+        except FileNotFoundError:
+            return False
+        except OSError as exc:
+            raise OutputError(self.path, f"cannot write in this folder: {exc.strerror}") from None
+        try:
+            if fcntl is not None:
+                try:
+                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                except OSError:
+                    raise OutputError(self.path, f"in use by another run ({_describe_run(_read_marker(fd))}): "
+                                                 "choose another --out") from None
+                try:
+                    if os.stat(marker).st_ino != os.fstat(fd).st_ino:
+                        raise FileNotFoundError
+                except FileNotFoundError:  # the run that held it removed it with its empty folder
+                    os.close(fd)
+                    return False
+            try:
+                self._check_contents(fd, new_marker, overwrite)
+            except BaseException:
+                if new_marker:  # we hold the lock: nobody else uses the marker we made
+                    with suppress(OSError):
+                        marker.unlink()
+                raise
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, json.dumps({"command": self.command, "pid": os.getpid(), "host": socket.gethostname(),
+                                      "started": datetime.now().isoformat(timespec="seconds")}).encode(), 0)
+        except BaseException:
+            with suppress(OSError):
+                os.close(fd)
+            raise
+        self._fd = fd
+        return True
+
+    def _check_contents(self, fd: int, new_marker: bool, overwrite: bool) -> None:
+        entries = _entries(self.path)
+        if not entries:
+            return
+        earlier = _legacy_run(self.path) if new_marker else (_read_marker(fd) or {})
+        if earlier is None:
+            shown = ", ".join(sorted(entries)[:3]) + (", ..." if len(entries) > 3 else "")
+            raise OutputError(self.path, f"is not empty ({shown}) and holds no earlier ti-fusion run: "
+                                         "choose another --out")
+        if not overwrite:
+            raise OutputError(self.path, f"holds an earlier run ({_describe_run(earlier)}): pass --overwrite "
+                                         "to replace it, or choose another --out")
+        for name in entries:
+            entry = self.path / name
+            try:
+                if entry.is_dir() and not entry.is_symlink():
+                    shutil.rmtree(entry)
+                else:
+                    entry.unlink()
+            except OSError as exc:
+                raise OutputError(entry, f"cannot remove the earlier run's file: {exc.strerror}") from None
+
+
+def _make_folder(path: Path) -> bool:
+    """Create ``path`` if missing; True if this call created it."""
+    if path.exists() and not path.is_dir():
+        raise OutputError(path, "exists and is not a folder: choose another --out")
+    try:
+        path.mkdir(parents=True)
+        return True
+    except FileExistsError:
+        if not path.is_dir():
+            raise OutputError(path, "exists and is not a folder: choose another --out") from None
+        return False
+    except OSError as exc:
+        raise OutputError(path, f"cannot create the output folder: {exc.strerror}") from None
+
+
+def _make_default_folder(command: str) -> Path:
+    base = default_out_dir(command)
+    for k in range(1, 1000):
+        path = base if k == 1 else base.with_name(f"{base.name}-{k}")
+        try:
+            path.mkdir(parents=True)
+            return path
+        except FileExistsError:
+            continue
+        except OSError as exc:
+            raise OutputError(path, f"cannot create the output folder: {exc.strerror}") from None
+    raise OutputError(base, "no free output folder name: pass --out")
+
+
+def _entries(path: Path) -> list[str]:
+    """The names in a run folder other than the marker."""
+    return [name for name in os.listdir(path) if name != MARKER]
+
+
+def _read_marker(fd: int) -> dict | None:
+    try:
+        record = json.loads(os.pread(fd, 4096, 0).decode())
+        return record if isinstance(record, dict) else None
+    except (OSError, ValueError):
+        return None
+
+
+def _legacy_run(path: Path) -> dict | None:
+    """A run folder written before runs left a marker: its summary.json names a command."""
+    try:
+        summary = json.loads((path / "summary.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return {"command": summary["command"]} if isinstance(summary, dict) and "command" in summary else None
+
+
+def _describe_run(record: dict | None) -> str:
+    if not record:
+        return "a ti-fusion run"
+    words = [str(record.get("command", "ti-fusion"))]
+    if "pid" in record:
+        words.append(f"process {record['pid']}" + (f" on {record['host']}" if "host" in record else ""))
+    if "started" in record:
+        words.append(f"started {record['started']}")
+    return ", ".join(words)
+
+
+# --------------------------------------------------------------------------------------------------
+# Files written whole or not at all
+
+
+@contextmanager
+def atomic_path(path: str | Path) -> Iterator[Path]:
+    """A temporary name in ``path``'s folder to write to; when the block ends it replaces ``path``.
+
+    So ``path`` is either absent (or the earlier file) or the complete new file, never a truncated one,
+    whatever stops the write (a full disk, Ctrl-C, SIGTERM). The temporary name keeps the suffix, so
+    writers that choose the format by it (OpenCV, Matplotlib) work. An ``OSError`` on the way becomes
+    an ``OutputError`` naming ``path`` and the reason.
+    """
+    path = Path(path)
+    tmp = path.with_name(f".{path.stem}.{secrets.token_hex(4)}.tmp{path.suffix}")
+    try:
+        yield tmp
+        fd = os.open(tmp, os.O_RDONLY)
+        try:
+            os.fsync(fd)  # a write error the page cache still holds surfaces here, not after the rename
+        finally:
+            os.close(fd)
+        os.replace(tmp, path)
+    except BaseException as exc:
+        with suppress(OSError):
+            tmp.unlink()
+        if isinstance(exc, OSError):
+            raise OutputError(path, f"cannot be written: {exc.strerror or exc}") from exc
+        raise
+
+
+@contextmanager
+def atomic_write(path: str | Path, mode: str = "w") -> Iterator[IO]:
+    """``open(path, mode)`` ("w" or "wb") through ``atomic_path``."""
+    with atomic_path(path) as tmp:
+        with open(tmp, mode) as f:
+            yield f
+
+
+def write_image(path: str | Path, image: np.ndarray) -> Path:
+    """An image in OpenCV's channel order (BGR, or one channel), encoded by its suffix, written atomically."""
+    import cv2
+
+    path = Path(path)
+    ok, buf = cv2.imencode(path.suffix, np.ascontiguousarray(image))
+    if not ok:
+        raise OutputError(path, f"cannot encode a {image.dtype} {'x'.join(map(str, image.shape))} image as {path.suffix}")
+    with atomic_write(path, "wb") as f:
+        f.write(buf.tobytes())
+    return path
+
+
+# --------------------------------------------------------------------------------------------------
+# summary.json and the progress bar
 
 
 def base_summary(command: str, frames: int, wall_s: float, ms_per_stage: dict) -> dict:

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from ti_fusion.errors import InputError
+from ti_fusion.io.outputs import atomic_write
 
 VERTEX_DTYPE = np.dtype([
     ("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
@@ -24,7 +25,10 @@ _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8
 
 def write_ply(path: str | Path, position: np.ndarray, normal: np.ndarray | None = None,
               colour: np.ndarray | None = None) -> Path:
-    """Write N points; ``colour`` is RGB in [0, 255] (any numeric dtype, rounded and clipped)."""
+    """Write N points; ``colour`` is RGB in [0, 255] (any numeric dtype, rounded and clipped).
+
+    The file appears whole or not at all (``outputs.atomic_path``); a failed write raises ``OutputError``.
+    """
     path = Path(path)
     n = len(position)
     data = np.zeros(n, dtype=VERTEX_DTYPE)
@@ -41,7 +45,7 @@ def write_ply(path: str | Path, position: np.ndarray, normal: np.ndarray | None 
     header += [f"property {'float' if VERTEX_DTYPE[name].kind == 'f' else 'uchar'} {name}"
                for name in VERTEX_DTYPE.names]
     header.append("end_header")
-    with open(path, "wb") as f:
+    with atomic_write(path, "wb") as f:  # never a truncated map that looks complete
         f.write(("\n".join(header) + "\n").encode("ascii"))
         f.write(data.tobytes())
     return path

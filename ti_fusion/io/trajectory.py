@@ -13,6 +13,7 @@ import numpy as np
 
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import make_pose, orthonormalize, quat_to_rot, rigidity_error, rot_to_quat
+from ti_fusion.io.outputs import atomic_write
 
 _QUAT_NORM_TOL = 1e-2  # files with 4-6 printed decimals have norms within ~1e-4 of 1
 
@@ -43,6 +44,7 @@ def write_tum(path: str | Path, timestamps, poses) -> Path:
 
     Each rotation is projected onto SO(3) before conversion, so slightly non-orthonormal input (e.g.
     accumulated float error) writes a clean unit quaternion; a pose that is not rigid at all is refused.
+    The file appears whole or not at all; a failed write raises ``OutputError``.
     """
     path = Path(path)
     stamps = np.asarray(timestamps, dtype=np.float64).reshape(-1)
@@ -62,7 +64,8 @@ def write_tum(path: str | Path, timestamps, poses) -> Path:
         tx, ty, tz = T[:3, 3]
         lines.append(f"{t:.6f} {tx:.9f} {ty:.9f} {tz:.9f} {q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}")
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
+    with atomic_write(path, "w") as f:
+        f.write("\n".join(lines) + "\n")
     return path
 
 

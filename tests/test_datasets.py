@@ -5,6 +5,8 @@ No Taichi needed. Images are tiny (40×30) so the whole file runs in a few secon
 
 from __future__ import annotations
 
+import json
+import logging
 from pathlib import Path
 
 import cv2
@@ -12,7 +14,7 @@ import numpy as np
 import pytest
 
 from ti_fusion.config import DatasetConfig
-from ti_fusion.io.datasets import detect_format, open_dataset
+from ti_fusion.io.datasets import detect, detect_format, open_dataset
 from ti_fusion.io.datasets.iclnuim import ICLNUIMDataset
 from ti_fusion.io.datasets.sevenscenes import SevenScenesDataset
 from ti_fusion.io.datasets.tum import TUMDataset, freiburg_camera, interpolate_pose
@@ -549,3 +551,177 @@ def test_redkitchen_loads_with_poses(redkitchen):
         assert 0.3 < valid.min() and valid.max() <= 5.0
         assert 0.5 < np.median(valid) < 4.0
         np.testing.assert_array_equal(f.gt_pose, poses[i])
+
+
+# --------------------------------------------------------------------------------------------------
+# What a user needs to trust the frames: detection by evidence, the scale and intrinsics in use,
+# frames reordered or dropped said aloud, selections that select nothing refused
+# --------------------------------------------------------------------------------------------------
+def _numbered_folder(root: Path, rng, n: int = 3) -> Path:
+    """rgb/N.png + depth/N.png and nothing else: the layout of many recordings, not only ICL-NUIM's."""
+    for k in range(n):
+        write_depth(root / "depth" / f"{k}.png", random_depth(rng, 1000.0))
+        write_color(root / "rgb" / f"{k}.png", random_color(rng))
+    return root
+
+
+def test_numbered_pngs_alone_are_not_taken_for_iclnuim(tmp_path, rng):
+    root = _numbered_folder(tmp_path / "realsense", rng)
+    with pytest.raises(InputError) as info:
+        open_dataset(DatasetConfig(path=str(root)))
+    message = str(info.value)
+    assert message.startswith(str(root)) and "depth scale and intrinsics are unknown" in message
+    assert "--format iclnuim" in message
+    # Said explicitly, it is read as ICL-NUIM, and the format line says it was given, not detected.
+    ds = open_dataset(DatasetConfig(path=str(root), format="iclnuim"))
+    assert isinstance(ds, ICLNUIMDataset) and ds.describe()["format_from"] == "given by --format or dataset.format"
+    # ICL-NUIM's ground-truth file is what identifies it.
+    (root / "livingRoom2.gt.freiburg").write_text("1 0 0 0 0 0 0 1\n")
+    assert detect(root) == ("iclnuim", "livingRoom2.gt.freiburg")
+
+
+def test_a_folder_with_two_formats_files_is_refused(tmp_path, rng):
+    root = make_tum(tmp_path, rng, n=2)["root"]
+    write_depth(root / "frame-000000.depth.png", random_depth(rng, 1000.0))
+    with pytest.raises(InputError, match="more than one format: tum \\(depth.txt\\), 7scenes "
+                                         "\\(frame-000000.depth.png files\\); pass --format tum or --format 7scenes"):
+        open_dataset(DatasetConfig(path=str(root)))
+    assert isinstance(open_dataset(DatasetConfig(path=str(root), format="tum")), TUMDataset)
+    (root / "living.gt.freiburg").write_text("")
+    with pytest.raises(InputError, match="--format tum or --format iclnuim or --format 7scenes"):
+        detect_format(root)
+
+
+def test_detection_evidence(tmp_path, rng):
+    assert detect(make_tum(tmp_path / "a", rng, n=2)["root"]) == ("tum", "depth.txt")
+    assert detect(make_icl(tmp_path / "b", rng, n=2)["root"]) == ("iclnuim", "livingRoom0.gt.freiburg")
+    assert detect(make_7scenes(tmp_path / "c", rng, n=2)["root"]) == ("7scenes", "frame-000000.depth.png files")
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "rgb.txt").write_text("")
+    with pytest.raises(InputError, match="unrecognised dataset layout.*or pass --format"):
+        detect(tmp_path / "d")
+
+
+def test_describe_and_the_format_line_say_scale_intrinsics_and_their_source(tmp_path, rng, caplog):
+    tum = make_tum(tmp_path / "a", rng, n=3)["root"]  # rgbd_dataset_freiburg1_fake
+    with caplog.at_level(logging.INFO, logger="ti_fusion"):
+        ds = open_dataset(DatasetConfig(path=str(tum)))
+    d = ds.describe()
+    assert d["format"] == "tum" and d["format_from"] == "detected from depth.txt"
+    assert d["depth_scale"] == 5000.0
+    assert d["intrinsics"] == {"fx": 517.3, "fy": 516.5, "cx": 318.6, "cy": 255.3, "width": W, "height": H,
+                               "source": "the TUM freiburg1 calibration, named by the folder name"}
+    assert d["ground_truth_frames"] == 2 and d["dropped_frames"] == 1 and d["colour"] is True
+    json.dumps(d)  # goes into summary.json and the log's metadata as it is
+    assert ("format: tum (detected from depth.txt); depth 5000 units per metre; intrinsics fx 517.3 fy 516.5 "
+            f"cx 318.6 cy 255.3 at {W}x{H} (the TUM freiburg1 calibration, named by the folder name)") in caplog.messages
+    icl = open_dataset(DatasetConfig(path=str(make_icl(tmp_path / "b", rng, n=2)["root"]))).describe()
+    assert icl["depth_scale"] == 5000.0 and icl["intrinsics"]["source"] == "ICL-NUIM's published intrinsics"
+    seven = open_dataset(DatasetConfig(path=str(make_7scenes(tmp_path / "c", rng, n=2)["root"]))).describe()
+    assert seven["depth_scale"] == 1000.0 and seven["intrinsics"]["source"] == "camera-intrinsics.txt in the dataset folder"
+    assert seven["intrinsics"]["fx"] == 580.0
+
+
+def test_tum_default_intrinsics_are_a_warned_guess(tmp_path, rng, caplog):
+    root = make_tum(tmp_path, rng, n=2, name="my_recording")["root"]
+    with caplog.at_level(logging.WARNING, logger="ti_fusion"):
+        ds = TUMDataset(root)
+    assert ds.intrinsics_source == "the ROS default: a guess"
+    assert any("ROS default 525, 525, 319.5, 239.5" in m and "intrinsics.txt" in m for m in caplog.messages)
+
+
+def test_tum_depth_list_out_of_time_order_is_sorted_and_said(tmp_path, rng, caplog):
+    fake = make_tum(tmp_path, rng, n=5)
+    depth_txt = fake["root"] / "depth.txt"
+    header, *lines = [l for l in depth_txt.read_text().splitlines() if not l.startswith("# timestamp")]
+    depth_txt.write_text("\n".join([header, lines[3], lines[0], lines[4], lines[2], lines[1]]) + "\n")
+    with caplog.at_level(logging.WARNING, logger="ti_fusion"):
+        ds = TUMDataset(fake["root"])
+    stamps = [f.timestamp for f in ds]
+    assert stamps == sorted(stamps) and len(stamps) == 4  # the last depth image has no rgb partner
+    for k, f in enumerate(ds):
+        np.testing.assert_array_equal(f.depth, fake["raws"][k].astype(np.float32) / 5000.0 * (fake["raws"][k] <= 20000))
+    note = "depth.txt lists its 5 images out of time order: they are taken in timestamp order"
+    assert note in ds.describe()["notes"] and any(note in m for m in caplog.messages)
+
+
+def test_tum_depth_list_with_a_repeated_timestamp_is_refused(tmp_path, rng):
+    fake = make_tum(tmp_path, rng, n=3)
+    depth_txt = fake["root"] / "depth.txt"
+    first = [l for l in depth_txt.read_text().splitlines() if not l.startswith("#")][0]
+    depth_txt.write_text(depth_txt.read_text() + first + "\n")
+    with pytest.raises(InputError, match=r"depth.txt: timestamp 1305031102.000000 is listed twice \(lines 3 and 6\)"):
+        TUMDataset(fake["root"])
+
+
+def test_tum_depth_images_without_rgb_are_counted_and_named(tmp_path, rng, caplog):
+    fake = make_tum(tmp_path, rng, n=5)  # the last depth image has no rgb image within 0.02 s
+    with caplog.at_level(logging.WARNING, logger="ti_fusion"):
+        ds = TUMDataset(fake["root"])
+    d = ds.describe()
+    assert len(ds) == 4 and d["frames"] == 4 and d["dropped_frames"] == 1
+    note = f"1 of 5 depth images have no rgb image within 0.02 s and are left out (timestamps {fake['depth_stamps'][4]:.6f})"
+    assert d["notes"] == [note] and any(note in m for m in caplog.messages)
+    assert TUMDataset(make_tum(tmp_path / "b", rng, n=2)["root"]).describe()["dropped_frames"] == 1
+
+
+def test_a_missing_colour_image_stops_every_format(tmp_path, rng):
+    """A file missing from a sequence that has one per frame stops the loader, in each format (no frame
+    quietly without colour, no frame quietly left out); a sequence with no colour at all is depth-only."""
+    seven = make_7scenes(tmp_path / "a", rng, n=4)["root"]
+    (seven / "frame-000002.color.png").unlink()
+    with pytest.raises(InputError, match="frame-000002.color.png: colour image of frame-000002.depth.png does not exist"):
+        SevenScenesDataset(seven)
+    for p in seven.glob("*.color.png"):
+        p.unlink()
+    ds = SevenScenesDataset(seven)
+    assert len(ds) == 4 and ds[0].color is None and ds.describe()["colour"] is False
+    icl = make_icl(tmp_path / "b", rng, n=3)["root"]
+    (icl / "rgb" / "1.png").unlink()
+    with pytest.raises(InputError, match="1.png: colour image for depth/1.png does not exist"):
+        ICLNUIMDataset(icl)
+    tum = make_tum(tmp_path / "c", rng, n=3)["root"]
+    sorted((tum / "rgb").iterdir())[1].unlink()
+    with pytest.raises(InputError, match="image listed in rgb.txt \\(line 3\\) does not exist"):
+        TUMDataset(tum)
+    for cls, root in ((SevenScenesDataset, seven), (ICLNUIMDataset, make_icl(tmp_path / "d", rng, n=2)["root"])):
+        assert open_dataset(DatasetConfig(path=str(root))).describe()["dropped_frames"] == 0
+
+
+@pytest.mark.parametrize("selection, message", [
+    (dict(start=6), "no frames selected: the sequence has 6 frames (0 to 5), and start 6, stride 1 select none"),
+    (dict(start=2, stop=2), "start 2, stop 2, stride 1 select none"),
+    (dict(downsample=6), "--downsample 6 turns the 40x30 frames into 7x5: at least 8 pixels per side are "
+                         "needed, so at most --downsample 4"),
+    (dict(start=-1), "dataset.start = -1: must be an integer of at least 0"),
+    (dict(stop=-2), "dataset.stop = -2: must be an integer of at least 0"),
+    (dict(stride=0), "dataset.stride = 0: must be an integer of at least 1"),
+    (dict(downsample=0), "dataset.downsample = 0: must be an integer of at least 1"),
+])
+def test_selections_that_select_nothing_are_refused(tmp_path, rng, selection, message):
+    root = make_7scenes(tmp_path, rng, n=6)["root"]
+    with pytest.raises(InputError) as info:
+        open_dataset(DatasetConfig(path=str(root), **selection))
+    assert message in str(info.value)
+    assert len(open_dataset(DatasetConfig(path=str(root), downsample=4))) == 6  # 10x8: the smallest allowed
+
+
+def test_frame_numbers_are_never_counted_from_the_end(tmp_path, rng):
+    ds = SevenScenesDataset(make_7scenes(tmp_path, rng, n=3)["root"])
+    for i in (-1, 3):
+        with pytest.raises(IndexError):
+            ds.frame_by_raw_index(i)
+    assert ds.frame_by_raw_index(2).index == 2
+
+
+def test_a_corrupt_image_is_one_line_and_nothing_else(tmp_path, rng, capfd):
+    """libpng writes its own 'libpng error: ...' straight to the process's stderr; only our line remains."""
+    root = make_7scenes(tmp_path, rng, n=2)["root"]
+    depth = root / "frame-000001.depth.png"
+    data = depth.read_bytes()
+    for broken in (data[:-12], data[:40] + bytes([data[40] ^ 0xFF]) + data[41:]):
+        depth.write_bytes(broken)
+        with pytest.raises(InputError, match="frame-000001.depth.png: unreadable or corrupt image"):
+            SevenScenesDataset(root)[1]
+    out, err = capfd.readouterr()
+    assert out == "" and err == ""

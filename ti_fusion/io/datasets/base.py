@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from abc import ABC, abstractmethod
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -10,6 +11,13 @@ from typing import Iterator
 import numpy as np
 
 from ti_fusion.camera import Intrinsics
+from ti_fusion.errors import InputError
+
+log = logging.getLogger(__name__)
+
+# Pixels per side of the smallest frame a loader hands out (after --downsample): a frame of a few pixels
+# has nothing to track, and OpenCV's ORB fails outright on one of 1x1.
+MIN_FRAME_SIZE = 8
 
 
 @dataclass
@@ -34,21 +42,33 @@ class Dataset(ABC):
     """A sequence of RGB-D frames with intrinsics and, where it has them, ground-truth poses.
 
     Subclasses implement ``_num_raw_frames`` and ``_load_raw(i)`` at full resolution; the base class
-    applies frame selection (start/stop/stride) and integer downsampling (``img[::f, ::f]``: plain
-    subsampling, so no depth is averaged across an edge, and the intrinsics scale exactly).
+    applies frame selection (start/stop/stride: positions from the first frame, never counted from the
+    end) and integer downsampling (``img[::f, ::f]``: plain subsampling, so no depth is averaged across
+    an edge, and the intrinsics scale exactly).
+
+    What a user needs to trust the frames is in ``describe()``: how the format was chosen, the depth
+    scale and intrinsics in use and where they come from, and what the loader dropped or reordered
+    (``note``: also logged as a warning, which the CLI prints).
     """
 
     name: str = "dataset"
     format: str = "?"
+    depth_scale: float | None = None  # raw depth units per metre; None where depth is not read from images
 
     def __init__(self, root: str | Path, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
         self.root = Path(root)
-        if downsample < 1 or stride < 1:
-            raise ValueError("downsample and stride must be positive integers")
+        for key, value, least in (("downsample", downsample, 1), ("stride", stride, 1), ("start", start, 0),
+                                  ("stop", 0 if stop is None else stop, 0)):
+            if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < least:
+                raise InputError(None, f"dataset.{key} = {value}: must be an integer of at least {least}")
         self.downsample = int(downsample)
         self._selection = (start, stop, stride)
         self._indices: list[int] | None = None
+        self.format_from = "given"           # how the format was chosen: open_dataset says "detected from ..."
+        self.intrinsics_source = "default"   # where the intrinsics come from (a file, a calibration table, ...)
+        self.notes: list[str] = []           # what the loader changed in or dropped from the sequence
+        self.dropped_frames = 0              # frames left out of the sequence (``notes`` say which and why)
 
     # -- implemented by each format -------------------------------------------------------------
     @abstractmethod
@@ -96,7 +116,12 @@ class Dataset(ABC):
             yield self[i]
 
     def frame_by_raw_index(self, raw_index: int) -> Frame:
-        """The frame with dataset index ``raw_index`` (as in ``--source 10``), ignoring the stride."""
+        """The frame with dataset index ``raw_index`` (as in ``--source 10``), ignoring the stride.
+
+        IndexError when there is no such frame: a negative index is not counted from the end.
+        """
+        if raw_index < 0 or raw_index >= self._num_raw_frames():
+            raise IndexError(raw_index)
         saved = self._indices
         self._indices = [raw_index]
         try:
@@ -104,17 +129,55 @@ class Dataset(ABC):
         finally:
             self._indices = saved
 
+    def check_selection(self) -> None:
+        """InputError when the selection holds no frame or ``downsample`` leaves frames too small to use."""
+        start, stop, stride = self._selection
+        n = self._num_raw_frames()
+        if not self.indices:
+            synthetic = self.format == "synthetic"
+            stop_text = f", stop {stop}" if stop is not None else ""
+            raise InputError(None if synthetic else self.root,
+                             f"no frames selected: the {'synthetic ' * synthetic}sequence has {n} frame"
+                             f"{'s' * (n != 1)} (0 to {n - 1}), and start {start}{stop_text}, stride {stride} "
+                             "select none")
+        K, f = self.raw_intrinsics, self.downsample
+        small = K.downsampled(f)
+        if min(small.width, small.height) < MIN_FRAME_SIZE:
+            most = (min(K.width, K.height) - 1) // (MIN_FRAME_SIZE - 1)  # ceil(side / f) >= MIN_FRAME_SIZE
+            raise InputError(None, f"--downsample {f} turns the {K.width}x{K.height} frames into {small.width}x"
+                                   f"{small.height}: at least {MIN_FRAME_SIZE} pixels per side are needed, so "
+                                   f"at most --downsample {max(most, 1)}")
+
+    def note(self, message: str) -> None:
+        """Record something the user must know about the frames (a reordering, dropped frames) and warn."""
+        self.notes.append(message)
+        log.warning("%s: %s", self.root, message)
+
+    def describe_format(self) -> str:
+        """One line: the format and how it was chosen, the depth scale, the intrinsics and their source."""
+        K = self.raw_intrinsics
+        scale = f"depth {self.depth_scale:g} units per metre; " if self.depth_scale else ""
+        return (f"format: {self.format} ({self.format_from}); {scale}intrinsics fx {K.fx:g} fy {K.fy:g} "
+                f"cx {K.cx:g} cy {K.cy:g} at {K.width}x{K.height} ({self.intrinsics_source})")
+
     def describe(self) -> dict:
         K = self.intrinsics
+        raw = self.raw_intrinsics
         return {
             "name": self.name,
             "format": self.format,
+            "format_from": self.format_from,
             "root": str(self.root),
             "frames": len(self),
             "width": K.width,
             "height": K.height,
             "downsample": self.downsample,
+            "depth_scale": self.depth_scale,
+            "intrinsics": {"fx": raw.fx, "fy": raw.fy, "cx": raw.cx, "cy": raw.cy, "width": raw.width,
+                           "height": raw.height, "source": self.intrinsics_source},
             "ground_truth": self.has_ground_truth,
+            "dropped_frames": self.dropped_frames,
+            "notes": list(self.notes),
         }
 
 
@@ -133,7 +196,6 @@ class ImageFileDataset(Dataset):
     def __init__(self, root, config=None, downsample: int = 1, start: int = 0, stop: int | None = None,
                  stride: int = 1):
         from ti_fusion.config import DatasetConfig
-        from ti_fusion.errors import InputError
 
         super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)
         self.config = config or DatasetConfig()
@@ -163,6 +225,12 @@ class ImageFileDataset(Dataset):
         return Frame(index=raw_index, timestamp=float(self._stamps[raw_index]), depth=depth, intrinsics=K,
                      color=color, gt_pose=None if gt is None else gt.copy(),
                      meta={"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
+
+    def describe(self) -> dict:
+        info = super().describe()
+        info["ground_truth_frames"] = sum(self._gt_poses[i] is not None for i in self.indices)
+        info["colour"] = any(c is not None for c in self._color_files)
+        return info
 
     def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:
         """(timestamps, camera-to-world poses N×4×4) of the selected frames that have ground truth."""

@@ -10,6 +10,15 @@ Intrinsics: fx 481.20, fy 480.0, cx 319.5, cy 239.5. The original POV-Ray render
 (y up in the image); the TUM-compatible PNGs and the .gt.freiburg poses are given for the flipped,
 y-down camera, so fy = +480.0 and the poses are used as they are (camera-to-world, x right, y down,
 z forward). ``DatasetConfig.intrinsics_file`` overrides the intrinsics.
+
+Detection: only the ``*.gt.freiburg`` file identifies a folder as ICL-NUIM. ``rgb/N.png`` and
+``depth/N.png`` alone are the layout of many recordings whose depth is not in ICL-NUIM's units (a
+RealSense's millimetres read at 5000 units per metre come out 5 times too near), so such a folder is
+read as ICL-NUIM only when ``--format iclnuim`` says so.
+
+Missing files: when ``rgb/`` holds colour images, every depth image needs its own; one that is missing
+stops the loader (``InputError``), as in every format, rather than leaving a frame without colour or
+out of the sequence. No frame is dropped (``describe()["dropped_frames"]`` is 0).
 """
 
 from __future__ import annotations
@@ -92,15 +101,14 @@ class ICLNUIMDataset(ImageFileDataset):
 
         height, width = read_depth_png(self._depth_files[0]).shape
         if self.config.intrinsics_file:
+            self.intrinsics_source = f"{self.config.intrinsics_file} (dataset.intrinsics_file)"
             self._intrinsics = read_intrinsics_file(self.config.intrinsics_file, width, height)
         else:
+            self.intrinsics_source = "ICL-NUIM's published intrinsics"
             self._intrinsics = Intrinsics(*ICL_INTRINSICS, width, height)
 
     @staticmethod
-    def detect(root: Path) -> bool:
-        """rgb/ and depth/ with numbered PNGs, and a *.gt.freiburg file or at least no TUM depth.txt
-        (a TUM folder whose images happen to have integer names stays TUM)."""
-        root = Path(root)
-        if not (root / "rgb").is_dir() or not numbered_pngs(root / "depth"):
-            return False
-        return any(root.glob("*.gt.freiburg")) or not (root / "depth.txt").is_file()
+    def detect(root: Path) -> str | None:
+        """The file that identifies an ICL-NUIM folder (its ``*.gt.freiburg`` ground truth), or None."""
+        found = sorted(Path(root).glob("*.gt.freiburg"))
+        return found[0].name if found else None

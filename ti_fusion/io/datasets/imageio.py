@@ -6,6 +6,9 @@ clear line rather than a traceback from inside OpenCV or NumPy.
 
 from __future__ import annotations
 
+import os
+import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 import cv2
@@ -22,16 +25,39 @@ def _imread(path: Path, flags: int) -> np.ndarray:
     data = np.fromfile(str(path), dtype=np.uint8)
     image = None
     if data.size:
-        # Our InputError says it in one line; OpenCV's own log lines about a broken file would be noise.
+        # Our InputError says it in one line; OpenCV's log lines and libpng's and libjpeg's own messages
+        # about a broken file (written straight to the process's stderr) would be noise.
         level = cv2.utils.logging.getLogLevel()
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
         try:
-            image = cv2.imdecode(data, flags)
+            with _stderr_silenced():
+                image = cv2.imdecode(data, flags)
         finally:
             cv2.utils.logging.setLogLevel(level)
     if image is None:
         raise InputError(path, "unreadable or corrupt image")
     return image
+
+
+@contextmanager
+def _stderr_silenced():
+    """File descriptor 2 pointed at the null device for the duration (C libraries write there directly)."""
+    try:
+        sys.stderr.flush()
+        saved = os.dup(2)
+    except (OSError, ValueError):
+        yield
+        return
+    try:
+        null = os.open(os.devnull, os.O_WRONLY)
+        try:
+            os.dup2(null, 2)
+        finally:
+            os.close(null)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def read_depth_png(path: str | Path) -> np.ndarray:

@@ -11,6 +11,11 @@ Layout: ``frame-XXXXXX.depth.png`` (16-bit, millimetres; 0 and 65535 invalid),
   nominal 585, 585, 320, 240.
 - Colour is NOT registered to depth (a different camera, uncalibrated against depth): use depth for
   geometry and tracking, colour only for display or, with that caveat, for features.
+- Missing files: a folder without any colour image is depth-only (colour None). When some frames have
+  colour, a frame whose colour image is missing stops the loader (``InputError`` naming the file), as a
+  missing file does in every format, rather than passing silently as a frame without colour. A frame
+  without a pose file keeps its depth and has no ground truth. No frame is dropped
+  (``describe()["dropped_frames"]`` is 0).
 """
 
 from __future__ import annotations
@@ -55,6 +60,12 @@ class SevenScenesDataset(ImageFileDataset):
         self._depth_files = [numbered[n] for n in self._numbers]
         self._stamps = [float(n) for n in self._numbers]  # frame numbers are the timestamps
         self._color_files = [self._color_file(p) for p in self._depth_files]
+        missing = [p for p, c in zip(self._depth_files, self._color_files) if c is None]
+        if missing and len(missing) < len(self._depth_files):
+            name = missing[0].name.replace(".depth.png", ".color.png")
+            more = f" ({len(missing)} frames have none)" if len(missing) > 1 else ""
+            raise InputError(self.root / name, f"colour image of {missing[0].name} does not exist (neither .png "
+                                               f"nor .jpg), while other frames have one{more}")
         # Poses are small text files: read and check them all now, so a bad one fails on opening.
         self._gt_poses = []
         for p in self._depth_files:
@@ -63,10 +74,13 @@ class SevenScenesDataset(ImageFileDataset):
 
         height, width = read_depth_png(self._depth_files[0]).shape
         if self.config.intrinsics_file:
+            self.intrinsics_source = f"{self.config.intrinsics_file} (dataset.intrinsics_file)"
             self._intrinsics = read_intrinsics_file(self.config.intrinsics_file, width, height)
         elif (self.root / "camera-intrinsics.txt").is_file():
+            self.intrinsics_source = "camera-intrinsics.txt in the dataset folder"
             self._intrinsics = read_intrinsics_file(self.root / "camera-intrinsics.txt", width, height)
         else:
+            self.intrinsics_source = "7-Scenes' published nominal intrinsics"
             self._intrinsics = Intrinsics(*DEFAULT_INTRINSICS, width, height)
 
     @staticmethod
@@ -78,5 +92,7 @@ class SevenScenesDataset(ImageFileDataset):
         return None
 
     @staticmethod
-    def detect(root: Path) -> bool:
-        return next(Path(root).glob("frame-*.depth.png"), None) is not None
+    def detect(root: Path) -> str | None:
+        """The files that identify a 7-Scenes folder (``frame-XXXXXX.depth.png``), or None."""
+        found = min((p.name for p in Path(root).glob("frame-*.depth.png") if _DEPTH_NAME.match(p.name)), default=None)
+        return f"{found} files" if found else None

@@ -25,6 +25,8 @@ class SyntheticDataset(Dataset):
         super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)
         self.synth = synth or SynthConfig()
         self._sequence = None
+        self.format_from = "no DATA given"
+        self.intrinsics_source = "the synthetic camera (synth.fx, synth.width, synth.height)"
 
     @classmethod
     def from_config(cls, synth_cfg: SynthConfig, downsample: int = 1, start: int = 0,
@@ -32,8 +34,8 @@ class SyntheticDataset(Dataset):
         return cls("synthetic", synth=synth_cfg, downsample=downsample, start=start, stop=stop, stride=stride)
 
     @staticmethod
-    def detect(root: Path) -> bool:
-        return False  # never a folder
+    def detect(root: Path) -> str | None:
+        return None  # never a folder
 
     @property
     def sequence(self):

@@ -325,3 +325,38 @@ def test_inspect_on_an_unfinalised_log(tmp_path, capsys):
         f.truncate(path.stat().st_size // 2)
     assert main(["inspect", str(torn), "--out", str(tmp_path / "o"), "--quiet"]) == 0
     assert "NOT finalised" in capsys.readouterr().out
+
+
+def test_inspect_counts_failures_as_the_runs_summary_does(tmp_path, capsys):
+    """A relocalised frame was tracked (slam's summary.json does not count it), an accepted vo frame is not a
+    failure: inspect's count agrees with the run's own."""
+    path = tmp_path / "log.mcap"
+    statuses = ["ok", "ok", "relocalised", "lost: too few inliers", "ok"]
+    with RunLogger(path) as log:
+        for i, status in enumerate(statuses):
+            log.log_stats(i, {"frame": i, "status": status, "ms": {"track": 1.0}})
+    assert main(["inspect", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 0
+    assert "tracking failures: 1: 3 (lost: too few inliers)" in capsys.readouterr().out
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["tracking_failures"] == 1
+
+
+def test_inspect_on_a_vo_log(tmp_path, capsys):
+    """vo logs its frame time as one number and its status as accepted / rejected: ...: inspect reads both."""
+    run = tmp_path / "vo"
+    assert main(["vo", "--frames", "4", "--downsample", "4", "--out", str(run), "--quiet"]) == 0
+    vo = json.loads((run / "summary.json").read_text())
+    out = tmp_path / "inspect"
+    assert main(["inspect", str(run / "log.mcap"), "--out", str(out), "--quiet", "--plot"]) == 0
+    text = capsys.readouterr().out
+    assert "stats (/vo/stats, 4 frames)" in text and "total" in text
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["tracking_failures"] == vo["rejected_total"] and "total" in summary["ms_per_stage"]
+    assert (out / "stats.png").is_file()
+    path = tmp_path / "rejected.mcap"
+    with RunLogger(path) as log:  # the frame's time as a plain number
+        for i, status in enumerate(["accepted", "rejected: few_matches", "accepted"]):
+            log.log_stats(i, {"frame": i, "status": status, "ms": 2.0 + i}, channel="/vo/stats")
+    assert main(["inspect", str(path), "--out", str(tmp_path / "o2"), "--quiet"]) == 0
+    assert "tracking failures: 1: 1 (rejected: few_matches)" in capsys.readouterr().out
+    ms = json.loads((tmp_path / "o2" / "summary.json").read_text())["ms_per_stage"]
+    assert ms == {"total": {"median": 3.0, "max": 4.0}}

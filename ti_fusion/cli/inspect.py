@@ -2,8 +2,9 @@
 
 Prints the channels (topic, schema, encoding, message count), the time range, the metadata records
 and a summary of the per-frame stats: median and max milliseconds per stage (the ``ms`` dict of each
-stats message), tracking failures (``status`` other than "ok") and, when ground truth was logged, the
-ATE of /camera/pose against /gt/pose. ``--plot`` draws the stats over the frames to a PNG.
+stats message; a plain number is the frame's total, as ``vo`` logs it), tracking failures (a ``status``
+that is not a success: ``failed``) and, when ground truth was logged, the ATE of /camera/pose against
+/gt/pose. ``--plot`` draws the stats over the frames to a PNG.
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import numpy as np
 
 from ti_fusion.evaluation.metrics import associate_trajectories, ate_errors
 from ti_fusion.io.mcap_log import LogContents, read_log
+from ti_fusion.io.outputs import atomic_path
 
 HELP = "summarise an MCAP run log (channels, time range, ms per stage, failures, ATE); --plot for a PNG"
 USES_DATASET = False
@@ -43,11 +45,21 @@ def run(ctx) -> dict:
 # --------------------------------------------------------------------------------------------------
 
 
+# Statuses of a frame that was tracked: slam's "ok" (and "relocalised", a frame recovered by feature
+# matching, which its summary.json does not count as a failure either), vo's "accepted".
+SUCCESS_STATUSES = ("ok", "init", "relocalised", "accepted")
+
+
+def failed(stats: dict) -> bool:
+    """Whether a stats message reports a tracking failure (slam's "lost: ...", vo's "rejected: ...")."""
+    status = stats.get("status")
+    return status is not None and status not in SUCCESS_STATUSES
+
+
 def summarise(log: LogContents) -> dict:
     """The figures inspect prints, as summary.json fields."""
     ms = stage_ms(log.stats)
-    failures = [(s.get("frame", i), s.get("status")) for i, s in enumerate(log.stats)
-                if "status" in s and s["status"] != "ok"]
+    failures = [(s.get("frame", i), s.get("status")) for i, s in enumerate(log.stats) if failed(s)]
     ate_rmse, ate_poses = _ate_rmse(log)
     return {
         "frames": len(log.stats),
@@ -106,18 +118,30 @@ def format_report(log: LogContents, summary: dict) -> str:
     return "\n".join(lines)
 
 
+def _stage_dict(stats: dict) -> dict[str, float]:
+    """A stats message's ``ms`` as {stage: ms}: a dict's numeric entries, or a plain number as the total."""
+    ms = stats.get("ms")
+    if _is_number(ms):
+        return {"total": float(ms)}
+    if isinstance(ms, dict):
+        return {k: float(v) for k, v in ms.items() if _is_number(v)}
+    return {}
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
 def stage_ms(stats: list[dict]) -> dict[str, np.ndarray]:
-    """{stage: ms per frame} from the ``ms`` dict of each stats message, plus their ``total``."""
+    """{stage: ms per frame} from the ``ms`` of each stats message, plus their ``total``."""
     stages: dict[str, list[float]] = {}
-    for s in stats:
-        for k, v in (s.get("ms") or {}).items():
-            if isinstance(v, (int, float)) and not isinstance(v, bool):
-                stages.setdefault(k, []).append(float(v))
+    per_frame = [_stage_dict(s) for s in stats]
+    for ms in per_frame:
+        for k, v in ms.items():
+            stages.setdefault(k, []).append(v)
     out = {k: np.asarray(v) for k, v in stages.items()}
     if out and "total" not in out:
-        totals = [sum(float(v) for v in (s.get("ms") or {}).values()
-                      if isinstance(v, (int, float)) and not isinstance(v, bool)) for s in stats if s.get("ms")]
-        out["total"] = np.asarray(totals)
+        out["total"] = np.asarray([sum(ms.values()) for ms in per_frame if ms])
     return out
 
 
@@ -185,7 +209,8 @@ def plot_stats(log: LogContents, path: Path) -> Path:
                              squeeze=False)
     axes = axes[:, 0]
 
-    ms = {k: v for k, v in stage_ms(stats).items() if k != "total"}
+    all_ms = stage_ms(stats)
+    ms = {k: v for k, v in all_ms.items() if k != "total"} or all_ms  # vo logs only a total
     ax = axes[0]
     if ms and all(len(v) == len(frames) for v in ms.values()):
         ax.stackplot(frames, *ms.values(), labels=list(ms), alpha=0.85)
@@ -196,7 +221,7 @@ def plot_stats(log: LogContents, path: Path) -> Path:
         ax.legend(loc="upper right", fontsize=8)
     else:
         ax.text(0.5, 0.5, "no per-stage timings logged", ha="center", va="center", transform=ax.transAxes)
-    total = stage_ms(stats).get("total")
+    total = all_ms.get("total")
     if total is not None and len(total) == len(frames) > 5:
         # The first frame's kernel compilation can dwarf the rest: clip it and say so.
         top = 1.25 * float(np.percentile(total, 98))
@@ -214,14 +239,15 @@ def plot_stats(log: LogContents, path: Path) -> Path:
         ax.set_ylabel(title)
         ax.legend(loc="upper right", fontsize=8)
 
-    failed = [frames[i] for i, s in enumerate(stats) if "status" in s and s["status"] != "ok"]
+    failures = [frames[i] for i, s in enumerate(stats) if failed(s)]
     for ax in axes:
         ax.grid(True, alpha=0.3)
-        for f in failed:
+        for f in failures:
             ax.axvline(f, color="red", alpha=0.5, linewidth=1)
-    axes[-1].set_xlabel("frame" + (" (red: tracking failure)" if failed else ""))
+    axes[-1].set_xlabel("frame" + (" (red: tracking failure)" if failures else ""))
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
     return path

@@ -1,9 +1,19 @@
 """``ti-fusion``: the command-line entry point.
 
 Every sub-command shares the conventions: ``--out DIR`` (default ``logs/<command>-<timestamp>/``)
-receives everything the run writes, ``summary.json`` holds its headline figures, ``--quiet`` turns off
-the progress bar, ``--arch`` picks the Taichi backend, ``--config FILE`` and ``--set SECTION.KEY=VALUE``
-change the typed config. Bad input ends the run with exit code 2 and one line naming the file and problem.
+receives everything the run writes and belongs to that run alone (an existing non-empty folder is
+refused unless ``--overwrite`` replaces the earlier run in it; two runs cannot share one), ``summary.json``
+holds its headline figures, ``--quiet`` turns off the progress bar and the informational lines,
+``--arch`` picks the Taichi backend, ``--config FILE`` and ``--set SECTION.KEY=VALUE`` change the typed
+config.
+
+How a run ends, and its exit code:
+    0        done; the last line says where the outputs are
+    2        bad input or an output that cannot be written: one line on stderr naming the file or option
+    130      Ctrl-C (SIGINT)
+    128 + n  stopped by signal n: SIGTERM (143) and SIGHUP (129) are handled as Ctrl-C is, so the run
+             keeps what it has done (``slam`` and ``vo``: the trajectory so far and a finalised log)
+    141      the reader of the output went away (``ti-fusion inspect LOG | head``): nothing more is said
 """
 
 from __future__ import annotations
@@ -14,8 +24,12 @@ os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")  # keep stdout for 
 
 import argparse
 import importlib
+import logging
+import signal
 import sys
+import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 from types import ModuleType
@@ -23,7 +37,7 @@ from types import ModuleType
 from ti_fusion import __version__
 from ti_fusion.backend import ARCH_CHOICES, BackendInfo, init_backend
 from ti_fusion.config import Config, load_config
-from ti_fusion.errors import TiFusionError
+from ti_fusion.errors import InputError, OutputError, TiFusionError
 from ti_fusion.io.outputs import RunDir, base_summary
 
 
@@ -31,9 +45,23 @@ from ti_fusion.io.outputs import RunDir, base_summary
 #     HELP: str                         one line for ``ti-fusion --help``
 #     USES_DATASET: bool                takes a DATA argument and the dataset options
 #     USES_TAICHI: bool                 needs a Taichi backend (``--arch``)
+#     OUT_FROM_POSITIONAL: str          (optional) the positional that names the output folder, instead of --out
 #     add_arguments(parser) -> None     its own options
 #     run(ctx) -> dict                  does the work; returns the command's own summary fields
 COMMAND_NAMES = ("synth", "icp", "fuse", "slam", "vo", "inspect")
+
+# Signals that stop a run the way Ctrl-C does: what kill, timeout, systemd and container runtimes send
+# (SIGTERM), and a closed terminal (SIGHUP).
+STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+
+class Stopped(KeyboardInterrupt):
+    """Raised in the main thread by SIGTERM or SIGHUP, so every ``finally`` and ``except KeyboardInterrupt``
+    that keeps a Ctrl-C'd run's work keeps a stopped run's too."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
 
 
 @dataclass
@@ -64,8 +92,14 @@ def _available_commands() -> dict[str, ModuleType]:
 
 def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
     g = parser.add_argument_group("common options")
-    g.add_argument("--out", metavar="DIR", help="output folder (default: logs/<command>-<YYYYmmdd-HHMMSS>/)")
-    g.add_argument("--quiet", action="store_true", help="no progress bar")
+    positional = getattr(module, "OUT_FROM_POSITIONAL", None)
+    if positional is None:
+        g.add_argument("--out", metavar="DIR",
+                       help="output folder, new or empty (default: logs/<command>-<YYYYmmdd-HHMMSS-mmm>/)")
+    g.add_argument("--overwrite", action="store_true",
+                   help=f"replace the earlier run in {positional.upper() if positional else '--out'} "
+                        "(its files are removed first)")
+    g.add_argument("--quiet", action="store_true", help="no progress bar and no informational lines")
     g.add_argument("--config", metavar="FILE", help="config file (.toml, .yaml or .json)")
     g.add_argument("--set", metavar="SECTION.KEY=VALUE", action="append", default=[],
                    help="override one config value, e.g. --set icp.dist_threshold=0.05 (repeatable)")
@@ -77,9 +111,9 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
         d.add_argument("data", nargs="?", default="", metavar="DATA",
                        help="dataset folder (TUM, ICL-NUIM or 7-Scenes); omitted: the embedded synthetic sequence")
         d.add_argument("--format", choices=("auto", "tum", "iclnuim", "7scenes", "synthetic"), default=None,
-                       help="dataset format (default: detected from the folder)")
+                       help="dataset format (default: detected from the files that identify it)")
         d.add_argument("--downsample", type=int, default=None, help="integer subsampling factor (2 → 320×240)")
-        d.add_argument("--start", type=int, default=None, help="first frame")
+        d.add_argument("--start", type=int, default=None, help="first frame (0 = the first)")
         d.add_argument("--stop", type=int, default=None, help="one past the last frame")
         d.add_argument("--stride", type=int, default=None, help="take every N-th frame")
         d.add_argument("--frames", type=int, default=None, help="number of frames (from --start)")
@@ -100,7 +134,21 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
     return parser, modules
 
 
+def _check_dataset_args(args: argparse.Namespace) -> None:
+    """Frame options are counts and positions, never Python's from-the-end indices."""
+    minimum = {"downsample": 1, "start": 0, "stop": 1, "stride": 1, "frames": 1}
+    for name, least in minimum.items():
+        value = getattr(args, name, None)
+        if value is not None and value < least:
+            raise InputError(None, f"--{name} {value}: must be at least {least}")
+    if args.start is not None and args.stop is not None and args.stop <= args.start:
+        raise InputError(None, f"--stop {args.stop} must be greater than --start {args.start}")
+    if args.frames is not None and args.stop is not None:
+        raise InputError(None, "give --frames or --stop, not both")
+
+
 def _apply_dataset_args(args: argparse.Namespace, config: Config) -> None:
+    _check_dataset_args(args)
     ds = config.dataset
     if getattr(args, "data", ""):
         ds.path = args.data
@@ -113,42 +161,154 @@ def _apply_dataset_args(args: argparse.Namespace, config: Config) -> None:
         config.synth.frames = max(config.synth.frames, ds.stop) if ds.path == "" else config.synth.frames
 
 
+def _check_out_holds_no_input(out: str | None, inputs: list[str], option: str) -> None:
+    """The output folder must not be an input or hold one (the dataset, the log to inspect): replacing an
+    earlier run there would delete it."""
+    if not out:
+        return
+    out_path = Path(out).resolve()
+    for given in filter(None, inputs):
+        path = Path(given).resolve()
+        if path == out_path or out_path in path.parents:
+            raise InputError(None, f"{option} {out} holds the input {given}: choose another {option}")
+
+
+class _TerminalHandler(logging.Handler):
+    """Shows the package's log records: warnings on stderr always, information on stdout unless --quiet."""
+
+    def __init__(self, command: str, quiet: bool):
+        super().__init__(logging.INFO)
+        self.command, self.quiet = command, quiet
+
+    def emit(self, record: logging.LogRecord) -> None:
+        message = record.getMessage()
+        if record.levelno >= logging.WARNING:
+            print(f"ti-fusion {self.command}: warning: {message}", file=sys.stderr, flush=True)
+        elif not self.quiet:
+            print(message, flush=True)
+
+
+@contextmanager
+def _terminal_logging(command: str, quiet: bool):
+    logger = logging.getLogger("ti_fusion")
+    handler = _TerminalHandler(command, quiet)
+    level = logger.level
+    logger.addHandler(handler)
+    logger.setLevel(logging.INFO)
+    try:
+        yield
+    finally:
+        logger.removeHandler(handler)
+        logger.setLevel(level)
+
+
+@contextmanager
+def _stop_signals_raise():
+    """SIGTERM and SIGHUP raise ``Stopped`` in the main thread; later ones are ignored while the run
+    writes what it has (SIGKILL still ends it at once). Handlers are restored afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def stop(signum, frame):
+        for s in STOP_SIGNALS:
+            signal.signal(s, signal.SIG_IGN)
+        raise Stopped(signum)
+
+    previous = {s: signal.signal(s, stop) for s in STOP_SIGNALS}
+    try:
+        yield
+    finally:
+        for s, handler in previous.items():
+            signal.signal(s, handler)
+
+
+def _os_error_line(exc: OSError) -> str:
+    reason = exc.strerror or str(exc)
+    return f"{exc.filename}: {reason}" if exc.filename else reason
+
+
+def _first_cause(exc: BaseException) -> BaseException:
+    """The first of a chain of write failures: a full disk fails every later write too (the trajectory and
+    the log's footer written on the way out), and the first one says where it began."""
+    if not isinstance(exc, (OutputError, OSError)):
+        return exc
+    first, e, seen = exc, exc, set()
+    while e is not None and id(e) not in seen:
+        seen.add(id(e))
+        if isinstance(e, OutputError):
+            first = e
+        e = e.__cause__ or e.__context__
+    return first
+
+
 def main(argv: list[str] | None = None) -> int:
     parser, modules = build_parser()
     args = parser.parse_args(argv)
     if not args.command:
         parser.print_help()
         return 0
-    module = modules[args.command]
+    with _stop_signals_raise(), _terminal_logging(args.command, args.quiet):
+        return _run(args, modules[args.command])
+
+
+def _run(args: argparse.Namespace, module: ModuleType) -> int:
+    command = args.command
+    out: RunDir | None = None
     try:
-        config = load_config(args.config, args.set)
-        if getattr(module, "USES_DATASET", False):
-            _apply_dataset_args(args, config)
-        if args.quiet:
-            config.log.progress = False
-        backend = init_backend(args.arch) if getattr(module, "USES_TAICHI", False) else None
-        if backend is not None and not args.quiet:
-            print(f"backend: {backend.arch} ({backend.reason})", flush=True)
-        positional = getattr(module, "OUT_FROM_POSITIONAL", None)  # a command whose positional names its output
-        out = RunDir(args.command, getattr(args, positional) if positional else args.out)
-        ctx = RunContext(args.command, args, config, out, backend, args.quiet)
-        t0 = time.perf_counter()
-        result = module.run(ctx) or {}
-        wall = time.perf_counter() - t0
-        summary = base_summary(args.command, result.pop("frames", 0), result.pop("wall_s", wall),
-                               result.pop("ms_per_stage", {}))
-        if backend is not None:
-            summary["backend"] = backend.arch
-        summary.update(result)
-        path = out.write_summary(summary)
-        print(f"outputs written to {out.path}/ (summary: {path})", flush=True)
-        return 0
+        try:
+            config = load_config(args.config, args.set)
+            if getattr(module, "USES_DATASET", False):
+                _apply_dataset_args(args, config)
+            if args.quiet:
+                config.log.progress = False
+            positional = getattr(module, "OUT_FROM_POSITIONAL", None)  # a command whose positional names its output
+            out_arg = getattr(args, positional) if positional else args.out
+            inputs = [config.dataset.path if getattr(module, "USES_DATASET", False) else "", getattr(args, "log", "")]
+            _check_out_holds_no_input(out_arg, inputs, positional.upper() if positional else "--out")
+            out = RunDir(command, out_arg, overwrite=args.overwrite)
+            backend = init_backend(args.arch) if getattr(module, "USES_TAICHI", False) else None
+            if backend is not None and not args.quiet:
+                print(f"backend: {backend.arch} ({backend.reason})", flush=True)
+            ctx = RunContext(command, args, config, out, backend, args.quiet)
+            t0 = time.perf_counter()
+            result = module.run(ctx) or {}
+            wall = time.perf_counter() - t0
+            summary = base_summary(command, result.pop("frames", 0), result.pop("wall_s", wall),
+                                   result.pop("ms_per_stage", {}))
+            if backend is not None:
+                summary["backend"] = backend.arch
+            summary.update(result)
+            path = out.write_summary(summary)
+            print(f"outputs written to {out.path}/ (summary: {path})", flush=True)
+            return 0
+        finally:
+            if out is not None:
+                out.release()
+    except BrokenPipeError:
+        # Whoever read our output stopped reading (| head): say nothing more, and let the interpreter's
+        # final flush of stdout go nowhere instead of failing again.
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+            os.close(devnull)
+        except (OSError, ValueError):  # stdout is not a file (captured in-process)
+            pass
+        return 128 + 13  # as a process killed by SIGPIPE (13)
     except TiFusionError as exc:
-        print(f"ti-fusion {args.command}: error: {exc}", file=sys.stderr)
+        print(f"ti-fusion {command}: error: {_first_cause(exc)}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        print(f"ti-fusion {args.command}: interrupted", file=sys.stderr)
-        return 130
+    except OSError as exc:
+        cause = _first_cause(exc)
+        line = _os_error_line(cause) if isinstance(cause, OSError) else str(cause)
+        print(f"ti-fusion {command}: error: {line}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt as exc:
+        how = f"stopped by {signal.Signals(exc.signum).name}" if isinstance(exc, Stopped) else "interrupted"
+        kept = (f"; what was written is in {out.path}/" if out is not None and out.path.is_dir()
+                else "; nothing was written")
+        print(f"ti-fusion {command}: {how}{kept}", file=sys.stderr, flush=True)
+        return 128 + exc.signum if isinstance(exc, Stopped) else 130
 
 
 if __name__ == "__main__":

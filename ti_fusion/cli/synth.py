@@ -1,6 +1,7 @@
 """``ti-fusion synth OUT_DIR``: the embedded synthetic sequence written to disk in TUM RGB-D format.
 
-Writes to OUT_DIR (which TUM's tools, evo and Open3D read as a TUM sequence):
+Writes to OUT_DIR, which must be new or empty (or hold an earlier run, replaced with --overwrite), a
+folder that TUM's tools, evo and Open3D read as a TUM sequence:
     rgb/<timestamp>.png      8-bit RGB
     depth/<timestamp>.png    16-bit, 5000 units per metre, 0 = invalid
     rgb.txt, depth.txt       "timestamp filename" lists with the usual three comment lines
@@ -16,12 +17,12 @@ from __future__ import annotations
 from dataclasses import replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import rot_to_quat
-from ti_fusion.io.outputs import progress
+from ti_fusion.io.datasets.base import MIN_FRAME_SIZE
+from ti_fusion.io.outputs import atomic_write, progress, write_image
 from ti_fusion.slam.timing import StageTimer
 
 HELP = "write the synthetic RGB-D sequence to OUT_DIR in TUM format (rgb/, depth/, groundtruth.txt, ...)"
@@ -33,7 +34,8 @@ DEPTH_SCALE = 5000.0
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("out_dir", metavar="OUT_DIR", help="folder to write the sequence to (created if missing)")
+    parser.add_argument("out_dir", metavar="OUT_DIR",
+                        help="folder to write the sequence to: new or empty (or an earlier run's, with --overwrite)")
     parser.add_argument("--frames", type=int, default=None, help="number of frames (default: synth.frames, 120)")
     parser.add_argument("--no-noise", action="store_true", help="ideal depth: no sensor noise, quantisation or drop-outs")
     parser.add_argument("--seed", type=int, default=None, help="noise seed (default: synth.seed, 0)")
@@ -46,6 +48,10 @@ def synth_config(ctx):
     """The SynthConfig of the config file/--set, with this command's options applied."""
     cfg = ctx.config.synth
     args = ctx.args
+    for name, least in (("frames", 1), ("width", MIN_FRAME_SIZE), ("height", MIN_FRAME_SIZE)):
+        value = getattr(args, name)
+        if value is not None and value < least:
+            raise InputError(None, f"--{name} {value}: must be at least {least}")
     if args.frames is not None:
         cfg = replace(cfg, frames=args.frames)
     if args.no_noise:
@@ -53,12 +59,12 @@ def synth_config(ctx):
     if args.seed is not None:
         cfg = replace(cfg, seed=args.seed)
     if args.width is not None or args.height is not None:
-        width = args.width or round(args.height * cfg.width / cfg.height)
-        height = args.height or round(args.width * cfg.height / cfg.width)
+        width = args.width if args.width is not None else round(args.height * cfg.width / cfg.height)
+        height = args.height if args.height is not None else round(args.width * cfg.height / cfg.width)
         cfg = replace(cfg, width=width, height=height, fx=cfg.fx * width / cfg.width)
-    if cfg.frames < 1 or cfg.width < 8 or cfg.height < 8:
-        raise InputError(None, f"synth: need at least 1 frame and 8×8 pixels (got {cfg.frames} frames, "
-                               f"{cfg.width}×{cfg.height})")
+    if cfg.frames < 1 or cfg.width < MIN_FRAME_SIZE or cfg.height < MIN_FRAME_SIZE:
+        raise InputError(None, f"synth: need at least 1 frame and {MIN_FRAME_SIZE}×{MIN_FRAME_SIZE} pixels (got {cfg.frames} "
+                               f"frames, {cfg.width}×{cfg.height})")
     return cfg
 
 
@@ -105,9 +111,8 @@ def write_tum_sequence(seq, folder: Path, timer: StageTimer | None = None, show_
         with timer.stage("write"):
             raw = np.round(depth.astype(np.float64) * DEPTH_SCALE)
             raw[(raw > 65535) | ~np.isfinite(raw)] = 0  # beyond the format's 13.1 m: invalid
-            for name, image in ((f"rgb/{stamp}.png", color[..., ::-1]), (f"depth/{stamp}.png", raw.astype(np.uint16))):
-                if not cv2.imwrite(str(folder / name), image):
-                    raise InputError(folder / name, "cannot write image")
+            write_image(folder / f"rgb/{stamp}.png", color[..., ::-1])
+            write_image(folder / f"depth/{stamp}.png", raw.astype(np.uint16))
         T = seq.poses[i]
         q = rot_to_quat(T[:3, :3])
         tx, ty, tz = T[:3, 3]
@@ -124,4 +129,5 @@ def write_tum_sequence(seq, folder: Path, timer: StageTimer | None = None, show_
         "intrinsics.txt": [f"{K.fx:.6f} {K.fy:.6f} {K.cx:.6f} {K.cy:.6f}"],
     }
     for name, lines in files.items():
-        (folder / name).write_text("\n".join(lines) + "\n")
+        with atomic_write(folder / name, "w") as f:
+            f.write("\n".join(lines) + "\n")

@@ -1,0 +1,307 @@
+"""The command line as a user meets it: one line for every bad argument and unusable output folder, a
+run that owns its folder, SIGTERM and SIGHUP handled as Ctrl-C, a full disk named in one line, the
+dataset's format, scale and intrinsics said aloud.
+
+Runs ``ti_fusion.cli.main.main`` in-process (the Taichi commands on tiny frames) and, where the process
+boundary is the point (a signal from outside, a closed pipe), ``python -m ti_fusion`` in a subprocess.
+"""
+
+from __future__ import annotations
+
+import errno
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ti_fusion.cli.main import main
+from ti_fusion.io import outputs
+from ti_fusion.io.mcap_log import RunLogger, read_log
+from ti_fusion.io.outputs import MARKER, RunDir
+from ti_fusion.io.trajectory import read_tum
+
+TINY = ["--frames", "3", "--downsample", "4", "--quiet"]  # 160x120 synthetic frames
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    return lines[0]
+
+
+def _small_log(path: Path) -> Path:
+    with RunLogger(path) as log:
+        for i in range(4):
+            log.log_pose(i, np.eye(4), np.eye(4))
+            log.log_stats(i, {"frame": i, "status": "ok", "ms": {"track": 1.0}})
+    return path
+
+
+# --------------------------------------------------------------------------------------------------
+# Bad arguments: one line, exit code 2, no folder left behind
+# --------------------------------------------------------------------------------------------------
+BAD_ARGUMENTS = [
+    (["vo", "--frames", "-5"], "ti-fusion vo: error: --frames -5: must be at least 1"),
+    (["vo", "--frames", "0"], "--frames 0: must be at least 1"),
+    (["vo", "--start", "-5"], "--start -5: must be at least 0"),
+    (["vo", "--stop", "-1"], "--stop -1: must be at least 1"),
+    (["vo", "--start", "20", "--stop", "10"], "--stop 10 must be greater than --start 20"),
+    (["vo", "--downsample", "0"], "--downsample 0: must be at least 1"),
+    (["vo", "--stride", "0"], "--stride 0: must be at least 1"),
+    (["vo", "--frames", "5", "--stop", "9"], "give --frames or --stop, not both"),
+    (["vo", "--downsample", "1000"], "--downsample 1000 turns the 640x480 frames into 1x1: at least 8 pixels "
+                                     "per side are needed, so at most --downsample 68"),
+    (["vo", "--start", "500", "--stop", "510"], "no frames selected: the synthetic sequence has 120 frames "
+                                                "(0 to 119), and start 500, stop 510, stride 1 select none"),
+    (["vo", "--set", "dataset.start=-3"], "dataset.start = -3: must be an integer of at least 0"),
+    (["slam", "--frames", "0"], "ti-fusion slam: error: --frames 0: must be at least 1"),
+    (["slam", "--start", "200", "--downsample", "4"], "no frames selected"),
+    (["icp", "--source", "-1", "--downsample", "4"], "no frame -1 in this sequence"),
+    (["synth", "{out}", "--width", "0"], "ti-fusion synth: error: --width 0: must be at least 8"),
+    (["synth", "{out}", "--height", "3"], "--height 3: must be at least 8"),
+    (["synth", "{out}", "--frames", "-2"], "--frames -2: must be at least 1"),
+]
+
+
+@pytest.mark.parametrize("argv, expected", BAD_ARGUMENTS, ids=[" ".join(a) for a, _ in BAD_ARGUMENTS])
+def test_bad_arguments_are_one_line(tmp_path, capsys, argv, expected):
+    out = tmp_path / "run"
+    argv = [a.replace("{out}", str(out)) for a in argv]
+    if argv[0] != "synth":
+        argv += ["--out", str(out)]
+    assert main(argv + ["--quiet"]) == 2
+    assert expected in _one_line(capsys)
+    assert not out.exists()  # a run that wrote nothing leaves no folder
+
+
+def test_synth_names_its_output_with_its_positional_only(tmp_path, capsys):
+    with pytest.raises(SystemExit) as info:
+        main(["synth", str(tmp_path / "seq"), "--out", str(tmp_path / "other")])
+    assert info.value.code == 2 and "unrecognized arguments: --out" in capsys.readouterr().err
+
+
+# --------------------------------------------------------------------------------------------------
+# A run owns its folder
+# --------------------------------------------------------------------------------------------------
+def test_out_that_is_a_file_or_cannot_be_written(tmp_path, capsys, monkeypatch):
+    log = _small_log(tmp_path / "log.mcap")
+    file = tmp_path / "notes.txt"
+    file.write_text("x")
+    assert main(["inspect", str(log), "--out", str(file)]) == 2
+    assert _one_line(capsys) == f"ti-fusion inspect: error: {file}: exists and is not a folder: choose another --out"
+    assert main(["inspect", str(log), "--out", str(file / "run")]) == 2
+    assert "cannot create the output folder: Not a directory" in _one_line(capsys)
+
+    read_only = tmp_path / "read-only"
+    read_only.mkdir()
+    real_open = os.open
+
+    def refusing_open(path, flags, *args, **kwargs):  # a read-only folder, even when the tests run as root
+        if Path(path).parent == read_only and flags & os.O_CREAT:
+            raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(path))
+        return real_open(path, flags, *args, **kwargs)
+
+    monkeypatch.setattr(os, "open", refusing_open)
+    assert main(["inspect", str(log), "--out", str(read_only)]) == 2
+    assert _one_line(capsys) == (f"ti-fusion inspect: error: {read_only}: cannot write in this folder: "
+                                 "Permission denied")
+
+
+def test_an_earlier_run_is_refused_then_replaced_with_overwrite(tmp_path, capsys):
+    log = _small_log(tmp_path / "log.mcap")
+    out = tmp_path / "run"
+    assert main(["inspect", str(log), "--out", str(out), "--plot"]) == 0
+    assert (out / "stats.png").is_file()
+    capsys.readouterr()
+    assert main(["inspect", str(log), "--out", str(out)]) == 2
+    line = _one_line(capsys)
+    assert f"{out}: holds an earlier run (inspect, process" in line and "pass --overwrite to replace it" in line
+    assert (out / "stats.png").is_file()  # refused: nothing touched
+    assert main(["inspect", str(log), "--out", str(out), "--overwrite"]) == 0
+    assert sorted(os.listdir(out)) == [MARKER, "summary.json"]  # the old run's plot is gone
+    # --overwrite never deletes an input: the log inspected lives in the output folder
+    assert main(["inspect", str(out / "summary.json"), "--out", str(out), "--overwrite"]) == 2
+    assert "holds the input" in _one_line(capsys) and (out / "summary.json").is_file()
+
+
+def test_a_folder_in_use_by_another_run_stops_the_second(tmp_path, capsys):
+    log = _small_log(tmp_path / "log.mcap")
+    holder = RunDir("slam", tmp_path / "run")  # a run still writing there (another process would do the same)
+    try:
+        for extra in ([], ["--overwrite"]):
+            assert main(["inspect", str(log), "--out", str(tmp_path / "run"), *extra]) == 2
+            assert "run: in use by another run (slam, process" in _one_line(capsys)
+    finally:
+        holder.release()
+
+
+def test_default_folders_are_unique_within_one_second(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    log = _small_log(tmp_path / "log.mcap")
+    same = Path("logs") / "inspect-20261125-030405-678"
+    monkeypatch.setattr(outputs, "default_out_dir", lambda command: same)  # two runs in one millisecond
+    assert main(["inspect", str(log)]) == 0 and main(["inspect", str(log)]) == 0
+    assert sorted(os.listdir("logs")) == [same.name, same.name + "-2"]
+    monkeypatch.undo()
+    monkeypatch.chdir(tmp_path)
+    assert main(["inspect", str(log)]) == 0
+    newest = max(Path("logs").iterdir(), key=lambda p: p.stat().st_mtime)
+    assert newest.name.startswith("inspect-") and len(newest.name.split("-")) == 4  # ...-HHMMSS-mmm
+
+
+def test_synth_out_dir_follows_the_same_rules(tmp_path, capsys):
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    (seq / "mine.txt").write_text("x")
+    args = ["--frames", "1", "--width", "16", "--quiet"]
+    assert main(["synth", str(seq), *args]) == 2
+    assert "is not empty (mine.txt) and holds no earlier ti-fusion run" in _one_line(capsys)
+    (seq / "mine.txt").unlink()
+    assert main(["synth", str(seq), *args]) == 0
+    assert main(["synth", str(seq), *args]) == 2
+    assert "holds an earlier run (synth" in _one_line(capsys)
+    assert main(["synth", str(seq), "--overwrite", "--seed", "3", *args]) == 0
+    assert json.loads((seq / "summary.json").read_text())["seed"] == 3
+
+
+# --------------------------------------------------------------------------------------------------
+# SIGTERM and SIGHUP: handled as Ctrl-C
+# --------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
+def test_sigterm_and_sighup_keep_what_was_done(cpu, tmp_path, capsys, monkeypatch, signum):
+    from ti_fusion.io.datasets.synthetic import SyntheticDataset
+
+    original = SyntheticDataset.__getitem__
+
+    def signalled(self, i):
+        if i == 3:
+            os.kill(os.getpid(), signum)  # as `kill`, `timeout` or systemd would, at the fourth frame
+        return original(self, i)
+
+    monkeypatch.setattr(SyntheticDataset, "__getitem__", signalled)
+    handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
+    out = tmp_path / "run"
+    assert main(["slam", "--frames", "8", "--downsample", "4", "--out", str(out), "--quiet"]) == 128 + signum
+    name = signal.Signals(signum).name
+    assert _one_line(capsys) == f"ti-fusion slam: stopped by {name}; what was written is in {out}/"
+    stamps, _ = read_tum(out / "trajectory.tum")
+    assert len(stamps) == 3
+    log = read_log(out / "log.mcap")
+    assert log.complete and len(log.stats) == 3
+    assert {s: signal.getsignal(s) for s in handlers} == handlers  # restored for whoever called main
+
+
+def test_sigterm_from_outside_the_process(tmp_path):
+    out = tmp_path / "run"
+    proc = subprocess.Popen([sys.executable, "-m", "ti_fusion", "vo", "--frames", "5000", "--downsample", "4",
+                             "--set", "log.map_every=1", "--out", str(out), "--quiet"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        deadline = time.monotonic() + 300  # a bound for a broken run, not a timing the test depends on
+        while time.monotonic() < deadline and proc.poll() is None:
+            log = out / "log.mcap"
+            if log.is_file() and len(read_log(log).stats) >= 3:
+                break
+            time.sleep(0.2)
+        proc.send_signal(signal.SIGTERM)
+        stdout, stderr = proc.communicate(timeout=300)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, stderr
+    assert stderr.strip() == f"ti-fusion vo: stopped by SIGTERM; what was written is in {out}/"
+    stamps, _ = read_tum(out / "trajectory.tum")
+    log = read_log(out / "log.mcap")
+    assert log.complete and len(stamps) >= 3 and len(log.stats) >= len(stamps)
+
+
+# --------------------------------------------------------------------------------------------------
+# Output errors: one line naming the file
+# --------------------------------------------------------------------------------------------------
+def test_a_full_disk_is_one_line_and_leaves_no_truncated_map(cpu, tmp_path, capsys, monkeypatch):
+    real_open = open
+
+    def full_for_the_map(path, mode="r", *args, **kwargs):
+        if Path(path).name.startswith(".map.") and "w" in mode:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_open(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(outputs, "open", full_for_the_map, raising=False)
+    out = tmp_path / "run"
+    assert main(["slam", *TINY, "--out", str(out)]) == 2
+    assert _one_line(capsys) == f"ti-fusion slam: error: {out / 'map.ply'}: cannot be written: No space left on device"
+    assert not (out / "map.ply").exists() and not [p for p in os.listdir(out) if ".tmp" in p]
+    assert len(read_tum(out / "trajectory.tum")[0]) == 3 and read_log(out / "log.mcap").complete
+
+
+def test_inspect_into_a_closed_pipe_says_nothing(tmp_path):
+    """``ti-fusion inspect LOG | head``: the reader goes away; no BrokenPipeError traceback."""
+    log = _small_log(tmp_path / "log.mcap")
+    read_end, write_end = os.pipe()
+    os.close(read_end)  # the reader is gone before the first line
+    try:
+        proc = subprocess.run([sys.executable, "-m", "ti_fusion", "inspect", str(log), "--out", str(tmp_path / "o")],
+                              stdout=write_end, stderr=subprocess.PIPE, text=True, timeout=300)
+    finally:
+        os.close(write_end)
+    assert proc.returncode == 128 + signal.SIGPIPE and proc.stderr == ""
+
+
+# --------------------------------------------------------------------------------------------------
+# The dataset: format, scale and intrinsics said; a folder that says nothing refused
+# --------------------------------------------------------------------------------------------------
+def test_numbered_pngs_without_evidence_are_refused(tmp_path, capsys):
+    import cv2
+
+    data = tmp_path / "realsense"
+    for k in range(3):
+        (data / "depth").mkdir(parents=True, exist_ok=True)
+        (data / "rgb").mkdir(exist_ok=True)
+        cv2.imwrite(str(data / "depth" / f"{k}.png"), np.full((48, 64), 1500, np.uint16))  # millimetres
+        cv2.imwrite(str(data / "rgb" / f"{k}.png"), np.zeros((48, 64, 3), np.uint8))
+    assert main(["vo", str(data), "--out", str(tmp_path / "run")]) == 2
+    line = _one_line(capsys)
+    assert line.startswith(f"ti-fusion vo: error: {data}: ") and "pass --format iclnuim" in line
+    assert not (tmp_path / "run").exists()
+
+
+def test_the_format_line_warnings_and_summary_say_what_was_read(cpu, tmp_path, capsys):
+    seq = tmp_path / "seq"
+    assert main(["synth", str(seq), "--frames", "4", "--width", "160", "--quiet"]) == 0
+    depth_txt = seq / "depth.txt"
+    lines = depth_txt.read_text().splitlines()
+    comments, entries = lines[:3], lines[3:]
+    depth_txt.write_text("\n".join(comments + [entries[2], entries[0], entries[3], entries[1]]) + "\n")
+    rgb_txt = seq / "rgb.txt"
+    rgb_txt.write_text("\n".join(rgb_txt.read_text().splitlines()[:-1]) + "\n")  # the last frame loses its rgb
+    capsys.readouterr()
+
+    out = tmp_path / "run"
+    assert main(["vo", str(seq), "--out", str(out)]) == 0
+    captured = capsys.readouterr()
+    assert ("format: tum (detected from depth.txt); depth 5000 units per metre; intrinsics fx 131.25 fy 131.25 "
+            "cx 79.5 cy 59.5 at 160x120 (intrinsics.txt in the dataset folder)") in captured.out.splitlines()
+    warnings = captured.err.splitlines()
+    assert len(warnings) == 2 and all(w.startswith(f"ti-fusion vo: warning: {seq}: ") for w in warnings)
+    assert "depth.txt lists its 4 images out of time order: they are taken in timestamp order" in warnings[0]
+    assert "1 of 4 depth images have no rgb image within 0.02 s and are left out (timestamps 1.100000)" in warnings[1]
+    stamps, _ = read_tum(out / "trajectory.tum")
+    assert list(stamps) == sorted(stamps) and len(stamps) == 3  # in time order, whatever the file's order
+    dataset = json.loads((out / "summary.json").read_text())["dataset"]
+    assert dataset["format_from"] == "detected from depth.txt" and dataset["depth_scale"] == 5000.0
+    assert dataset["intrinsics"]["source"] == "intrinsics.txt in the dataset folder"
+    assert dataset["dropped_frames"] == 1 and len(dataset["notes"]) == 2
+    metadata = read_log(out / "log.mcap").metadata["dataset"]
+    assert json.loads(metadata["intrinsics"])["fx"] == 131.25 and json.loads(metadata["depth_scale"]) == 5000.0
+
+    # --quiet: no format line, but warnings still
+    assert main(["vo", str(seq), "--out", str(tmp_path / "quiet"), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "format:" not in captured.out and len(captured.err.splitlines()) == 2

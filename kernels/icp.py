@@ -60,6 +60,7 @@ import taichi as ti
 
 from ti_fusion.backend import SERIAL_BELOW
 from ti_fusion.geometry import flatten_pose, unflatten_pose
+from ti_fusion.kernels.common import depth_noise_scale
 
 STATUS_OK = 0
 # ``_target_pixel``: a target pixel index, or one of these (the first three tests' failures)
@@ -91,12 +92,10 @@ UPPER = [(i, j) for i in range(6) for j in range(i, 6)]  # order of the 21 AᵀA
 _UPPER_IDX = tuple(np.array(UPPER).T)
 
 ROBUST_CODES = {"none": 0, "huber": 1, "tukey": 2}
-# Added to a robust code: residuals weighted by the depth noise at the target point, Kinect's axial
-# σ(z) = SIGMA_A + SIGMA_B (z − SIGMA_Z0)² (Nguyen et al. 2012): a point at 3 m is ~10× noisier than one
-# at 1 m, and weighting all alike lets the far, noisy ones pull the pose. Scaled so the weight is 1 at 1 m.
+# Added to a robust code: residuals weighted by the depth noise σ(z) at the target point (``ti_fusion.sensor``):
+# a point at 3 m is ~10× noisier than one at 1 m, and weighting all alike lets the far, noisy ones pull the
+# pose. Scaled so the weight is 1 at 1 m.
 DEPTH_WEIGHTED = 4
-SIGMA_A, SIGMA_B, SIGMA_Z0 = 0.0012, 0.0019, 0.4
-SIGMA_1M = SIGMA_A + SIGMA_B * (1.0 - SIGMA_Z0) ** 2
 
 
 def robust_code(robust: str, depth_weighted: bool = False) -> int:
@@ -139,9 +138,9 @@ _KERNELS: dict = {}
 
 # Layout of the ``params`` array every kernel takes (float64 on cpu, float32 elsewhere): the pose, the
 # target intrinsics and the thresholds travel as one small array (cheaper to pass than matrix arguments).
-P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE, P_NOISE = 0, 9, 12, 16, 17, 18, 19
+P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE = 0, 9, 12, 16, 17, 18
 # ``iterate`` only: the system's checks, where its record goes, and what it tells the caller
-P_MIN_INLIERS, P_STOP, P_LEVEL, P_ITERATION, P_RECORDS, P_DONE, N_PARAMS = 23, 24, 25, 26, 27, 28, 29
+P_MIN_INLIERS, P_STOP, P_LEVEL, P_ITERATION, P_RECORDS, P_DONE, N_PARAMS = 19, 20, 21, 22, 23, 24, 25
 
 # One ``iterate`` record: the 30 sums, the pose before the update (R row-major, t), level, iteration,
 # ‖δξ‖ and the outcome
@@ -186,13 +185,11 @@ def _build_kernels(real):
                          SOURCE_INVALID)
 
     @ti.func
-    def _weight(r, robust: ti.template(), scale, z, params: ti.template()):
-        """The robust weight of residual r at target depth z (robust: ROBUST_CODES, + DEPTH_WEIGHTED).
-        The noise model's constants come in ``params`` (a Python float here would be a float32 constant)."""
+    def _weight(r, robust: ti.template(), scale, z):
+        """The robust weight of residual r at target depth z (robust: ROBUST_CODES, + DEPTH_WEIGHTED)."""
         s = ti.cast(1.0, real)
         if ti.static(robust >= DEPTH_WEIGHTED):  # r in units of the noise at 1 m, weight 1/σ(z)² likewise
-            dz = z - params[P_NOISE + 2]
-            s = params[P_NOISE + 3] / (params[P_NOISE] + params[P_NOISE + 1] * dz * dz)
+            s = depth_noise_scale(z, real)
         rn = r * s
         w = ti.cast(1.0, real)
         if ti.static(robust % DEPTH_WEIGHTED == 1):  # Huber: quadratic up to k, linear beyond
@@ -288,7 +285,7 @@ def _build_kernels(real):
                                                     cos_thr)
                 if status == STATUS_OK:
                     A, r = _row(pt, q, nq)
-                    w = _weight(r, robust, scale, q.z, params)
+                    w = _weight(r, robust, scale, q.z)
                     wA = w * A
                     for e in ti.static(range(21)):
                         acc[e] += wA[UPPER[e][0]] * A[UPPER[e][1]]
@@ -477,7 +474,7 @@ def _build_kernels(real):
                                                         params[P_DIST2], params[P_COS])
                     if status == STATUS_OK:
                         A, r = _row(pt, q, nq)
-                        sw = ti.sqrt(_weight(r, robust, params[P_SCALE], q.z, params))
+                        sw = ti.sqrt(_weight(r, robust, params[P_SCALE], q.z))
                         for j in ti.static(range(6)):
                             rows[k, j] = sw * A[j]
                         rows[k, 6] = sw * r
@@ -533,7 +530,6 @@ class PointToPlane:
         p[P_DIST2] = float(dist_threshold) ** 2
         p[P_COS] = math.cos(math.radians(normal_threshold_deg))
         p[P_SCALE] = float(robust_scale)
-        p[P_NOISE:P_NOISE + 4] = (SIGMA_A, SIGMA_B, SIGMA_Z0, SIGMA_1M)
         return p
 
     def _chunks(self, src_v) -> int:

@@ -8,7 +8,7 @@ light, a sky term and ambient, so colours depend on the geometry and not on the 
 
 Rays go through pixel centres exactly as ``Intrinsics`` back-projects them, so with noise off a depth
 pixel back-projects onto the surface it hit. With noise on, the depth gets a Kinect-like sensor model:
-axial Gaussian noise σ(z) = 0.0012 + 0.0019 (z − 0.4)² m (Nguyen et al. 2012), disparity quantised to
+axial Gaussian noise of ``ti_fusion.sensor``'s σ(z) (Nguyen et al. 2012), disparity quantised to
 1/subpixel pixel (of a 640-pixel-wide sensor) for a projector baseline, and drop-outs outside [min_range, max_range] and at grazing
 angles. The noise comes from an integer hash of (seed, full-resolution pixel, channel), so a frame is
 the same for a seed on every backend and a subsampled render equals the subsampled full render.
@@ -21,6 +21,7 @@ import numpy as np
 import taichi as ti
 
 from ti_fusion.camera import Intrinsics
+from ti_fusion.kernels.common import depth_sigma
 
 # Primitive kinds.
 PLANE, BOX, SPHERE, CYLINDER = 0, 1, 2, 3
@@ -374,8 +375,7 @@ def render_kernel(
                 if z < min_range or z > max_range or cos_inc < cos_grazing:
                     z = 0.0
                 else:
-                    x = z - 0.4
-                    zn = z + (0.0012 + 0.0019 * x * x) * gaussian(pixel, seed)
+                    zn = z + depth_sigma(z, ti.f32) * gaussian(pixel, seed)
                     disparity = ti.round(fx_baseline / zn * subpixel) / subpixel
                     z = fx_baseline / disparity if disparity > 0 else 0.0
             # colour: a cheap near-Gaussian (sum of four uniform bytes of one hash, unit variance)

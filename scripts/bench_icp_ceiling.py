@@ -49,7 +49,9 @@ ROBUST_C = {"none": 0, "huber": 1, "tukey": 2}
 
 def build_command(cc: str, march: str, source: Path, exe: Path, defines: tuple[str, ...] = ()) -> list[str]:
     """The compiler command for one C program of the ceiling benchmarks at one -march."""
-    return [cc, *C_FLAGS, f"-march={march}", *defines, "-o", str(exe), str(source), "-lm"]
+    from ti_fusion.sensor import c_defines  # the depth noise model's constants, which icp_pass.c reads
+
+    return [cc, *C_FLAGS, *c_defines(), f"-march={march}", *defines, "-o", str(exe), str(source), "-lm"]
 
 
 def c_command(cc: str, march: str, robust: str, exe: Path) -> list[str]:

@@ -24,8 +24,10 @@
 #define DEPTH_WEIGHTED 1
 #endif
 
-/* Kinect's depth noise, as SIGMA_* in kernels/icp.py */
-static const double SIGMA_A = 0.0012, SIGMA_B = 0.0019, SIGMA_Z0 = 0.4;
+/* Kinect's depth noise model: its constants come from the build (ti_fusion.sensor.c_defines) */
+#if !defined(SIGMA_A) || !defined(SIGMA_B) || !defined(SIGMA_Z0) || !defined(SIGMA_1M)
+#error "build with the flags of ti_fusion.sensor.c_defines() (-DSIGMA_A=... -DSIGMA_B=... -DSIGMA_Z0=... -DSIGMA_1M=...)"
+#endif
 
 static void *read_file(const char *dir, const char *name, size_t bytes) {
     char path[4096];
@@ -43,8 +45,8 @@ static void *read_file(const char *dir, const char *name, size_t bytes) {
 static inline double robust_weight(double r, double qz, double scale) {
     double s = 1.0;
     if (DEPTH_WEIGHTED) {
-        double dz = qz - SIGMA_Z0, s1m = SIGMA_A + SIGMA_B * (1.0 - SIGMA_Z0) * (1.0 - SIGMA_Z0);
-        s = s1m / (SIGMA_A + SIGMA_B * dz * dz);
+        double dz = qz - SIGMA_Z0;
+        s = SIGMA_1M / (SIGMA_A + SIGMA_B * dz * dz);
     }
     double rn = r * s, w = 1.0;
     if (ROBUST == 1 && fabs(rn) > scale) w = scale / fabs(rn);

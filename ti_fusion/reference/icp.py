@@ -12,9 +12,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ti_fusion.kernels.icp import (SIGMA_1M, SIGMA_A, SIGMA_B, SIGMA_Z0, N_SUMS, STATUS_BEHIND, STATUS_NORMAL_ANGLE, STATUS_OK, STATUS_OUT_OF_IMAGE,
-                          STATUS_SOURCE_INVALID, STATUS_TARGET_INVALID, STATUS_TOO_FAR, SUM_ATB, SUM_INLIERS,
-                          SUM_R2, SUM_SOURCE, UPPER)
+from ti_fusion.kernels.icp import (N_SUMS, STATUS_BEHIND, STATUS_NORMAL_ANGLE, STATUS_OK, STATUS_OUT_OF_IMAGE,
+                                   STATUS_SOURCE_INVALID, STATUS_TARGET_INVALID, STATUS_TOO_FAR, SUM_ATB,
+                                   SUM_INLIERS, SUM_R2, SUM_SOURCE, UPPER)
+from ti_fusion.sensor import SIGMA_1M, depth_sigma
 
 
 def robust_weights(r: np.ndarray, robust: str, scale: float, z: np.ndarray | None = None) -> np.ndarray:
@@ -24,7 +25,7 @@ def robust_weights(r: np.ndarray, robust: str, scale: float, z: np.ndarray | Non
     name, _, depth = robust.partition("+")
     s = np.ones_like(r)
     if depth == "depth":
-        s = SIGMA_1M / (SIGMA_A + SIGMA_B * (np.asarray(z, np.float64) - SIGMA_Z0) ** 2)
+        s = SIGMA_1M / depth_sigma(z)
     a = np.abs(r * s)
     if name == "huber":
         w = np.where(a > scale, scale / np.maximum(a, 1e-300), 1.0)

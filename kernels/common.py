@@ -1,0 +1,81 @@
+"""Types, constants and small functions shared by the kernel files, and the sensor model on the Taichi side.
+
+Poses travel to kernels as ``Rigid`` arguments: a flat float32 array of 12 numbers (R row-major, then t),
+unpacked by ``rigid``; a small array is cheaper to pass than matrix and vector arguments. Depths are
+compared as the int32 bit patterns of positive float32 values (``depth_bits``), which order exactly like
+the values, so that 32-bit atomics can take a nearest depth on every backend.
+"""
+
+import numpy as np
+import taichi as ti
+
+from ti_fusion.geometry import flatten_pose
+from ti_fusion.sensor import SIGMA_1M, SIGMA_A, SIGMA_B, SIGMA_Z0
+
+Vec3 = ti.types.vector(3, ti.f32)
+Mat3 = ti.types.matrix(3, 3, ti.f32)
+Rigid = ti.types.ndarray(dtype=ti.f32, ndim=1)  # R row-major, then t: see ``rigid`` and ``rigid_arg``
+
+INT_MAX = 2147483647  # "no surfel" in index maps and "no depth" in depth keys
+# Surfels per block of the per-block lists and scans. Small, so that a loop over the blocks of a map of
+# a few hundred thousand surfels still has enough iterations to run on several threads (see
+# docs/KERNELS.md).
+BLOCK = 128
+
+
+@ti.func
+def rigid(pose: ti.template()):
+    """(R, t) of a ``Rigid`` argument."""
+    R = Mat3([[pose[3 * i + j] for j in ti.static(range(3))] for i in ti.static(range(3))])
+    t = Vec3(pose[9], pose[10], pose[11])
+    return R, t
+
+
+def rigid_arg(T: np.ndarray) -> np.ndarray:
+    """A 4×4 rigid transform as a ``Rigid`` kernel argument: R row-major, then t, float32."""
+    return flatten_pose(T).astype(np.float32)
+
+
+def world_to_camera(pose: np.ndarray) -> np.ndarray:
+    """The inverse of a 4×4 camera-to-world pose, as a ``Rigid`` argument."""
+    return rigid_arg(np.linalg.inv(np.asarray(pose, dtype=np.float64)))
+
+
+def camera_to_world(pose: np.ndarray) -> np.ndarray:
+    """A 4×4 camera-to-world pose as a ``Rigid`` argument."""
+    return rigid_arg(np.asarray(pose, dtype=np.float64))
+
+
+@ti.func
+def depth_bits(z):
+    """int32 bit pattern of a positive float32: ordered exactly like the floats themselves."""
+    return ti.bit_cast(ti.cast(z, ti.f32), ti.i32)
+
+
+@ti.func
+def bits_depth(k):
+    return ti.bit_cast(k, ti.f32)
+
+
+@ti.func
+def is_valid(q, nq):
+    """Whether a pixel of a vertex map ``q`` and normal map ``nq`` holds a measurement."""
+    return q.z > 0 and nq.norm_sqr() > 0
+
+
+# -- the sensor model (``ti_fusion.sensor``) --------------------------------------------------------------
+# The constants are built as ``real`` values: a bare Python float in a kernel is a float32 constant, which
+# would round them in the float64 kernels.
+
+
+@ti.func
+def depth_sigma(z, real: ti.template()):
+    """Kinect's axial depth noise σ(z) = A + B (z − Z0)² at depth z, in arithmetic type ``real``."""
+    dz = z - real(SIGMA_Z0)
+    return real(SIGMA_A) + real(SIGMA_B) * dz * dz
+
+
+@ti.func
+def depth_noise_scale(z, real: ti.template()):
+    """σ(1 m) / σ(z): 1 at 1 m, smaller farther away (a residual times this is in units of the noise at 1 m)."""
+    return real(SIGMA_1M) / depth_sigma(z, real)

@@ -518,6 +518,10 @@ def test_missing_folder(tmp_path, cls):
     for fmt in ("auto", "tum"):
         with pytest.raises(InputError, match="no_such_sequence"):
             open_dataset(DatasetConfig(path=str(missing), format=fmt))
+        file = tmp_path / "depth.png"
+        file.write_bytes(b"")
+        with pytest.raises(InputError, match="depth.png: not a folder"):
+            open_dataset(DatasetConfig(path=str(file), format=fmt))
 
 
 def test_tum_missing_depth_txt_names_file(tmp_path):
@@ -704,6 +708,15 @@ def test_selections_that_select_nothing_are_refused(tmp_path, rng, selection, me
         open_dataset(DatasetConfig(path=str(root), **selection))
     assert message in str(info.value)
     assert len(open_dataset(DatasetConfig(path=str(root), downsample=4))) == 6  # 10x8: the smallest allowed
+
+
+def test_a_selection_past_the_end_says_how_many_frames_it_takes(tmp_path, rng, caplog):
+    root = make_7scenes(tmp_path, rng, n=6)["root"]
+    with caplog.at_level(logging.WARNING, logger="ti_fusion"):
+        ds = open_dataset(DatasetConfig(path=str(root), start=2, stop=600))
+    note = "the selection runs to frame 599, the sequence ends at frame 5: 4 frames are taken"
+    assert len(ds) == 4 and ds.describe()["notes"] == [note] and any(note in m for m in caplog.messages)
+    assert open_dataset(DatasetConfig(path=str(root), stop=6)).describe()["notes"] == []
 
 
 def test_frame_numbers_are_never_counted_from_the_end(tmp_path, rng):

@@ -95,7 +95,8 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
         how = f"detected from {evidence}"
     else:
         if not root.is_dir():
-            raise InputError(root, "dataset folder does not exist")
+            raise InputError(root, "not a folder (give the dataset's folder)" if root.exists()
+                             else "dataset folder does not exist")
         loader_class(fmt)  # an unknown name fails here, before the folder is read
         how = "given by --format or dataset.format"
     dataset = loader_class(fmt)(root, config=cfg, **common)

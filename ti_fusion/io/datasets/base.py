@@ -130,7 +130,8 @@ class Dataset(ABC):
             self._indices = saved
 
     def check_selection(self) -> None:
-        """InputError when the selection holds no frame or ``downsample`` leaves frames too small to use."""
+        """InputError when the selection holds no frame or ``downsample`` leaves frames too small to use; a
+        note when it asks for frames past the end."""
         start, stop, stride = self._selection
         n = self._num_raw_frames()
         if not self.indices:
@@ -140,6 +141,9 @@ class Dataset(ABC):
                              f"no frames selected: the {'synthetic ' * synthetic}sequence has {n} frame"
                              f"{'s' * (n != 1)} (0 to {n - 1}), and start {start}{stop_text}, stride {stride} "
                              "select none")
+        if stop is not None and stop > n:
+            self.note(f"the selection runs to frame {stop - 1}, the sequence ends at frame {n - 1}: "
+                      f"{len(self.indices)} frames are taken")
         K, f = self.raw_intrinsics, self.downsample
         small = K.downsampled(f)
         if min(small.width, small.height) < MIN_FRAME_SIZE:

@@ -8,6 +8,7 @@ import pytest
 from ti_fusion.backend import current_backend
 from ti_fusion.cli.main import main
 from ti_fusion.config import Config
+from ti_fusion.errors import InputError
 from ti_fusion.io.datasets import open_dataset
 from ti_fusion.io.mcap_log import read_log
 from ti_fusion.io.outputs import RunDir
@@ -131,6 +132,56 @@ def test_interrupted_run_leaves_log_and_trajectory(cpu, tmp_path):
     assert len(stamps) == 6
     log = read_log(run.file("log.mcap"))
     assert log.complete and len(log.stats) == 6
+
+
+def test_bad_input_in_a_frame_keeps_the_frames_before(cpu, tmp_path):
+    """An unreadable frame 5 ends the run with its one-line error; frames 0..4 leave trajectory.tum and a
+    finalised log, as an interrupted run does."""
+    cfg = _config()
+    cfg.dataset.stop = 8
+
+    class Unreadable(BlankFrame):
+        def __getitem__(self, i):
+            if i == 5:
+                raise InputError("frame-000005.depth.png", "cannot read the image")
+            return self.dataset[i]
+
+    run = RunDir("slam", tmp_path / "run")
+    with pytest.raises(InputError, match="cannot read"):
+        SLAMPipeline(Unreadable(open_dataset(cfg.dataset, cfg.synth), -1), cfg, run, current_backend(),
+                     show_progress=False).run()
+    stamps, _ = read_tum(run.file("trajectory.tum"))
+    assert len(stamps) == 5
+    log = read_log(run.file("log.mcap"))
+    assert log.complete and len(log.stats) == 5 and log.channels["/map/points"].count == 1
+
+
+def test_fuse_runs_in_the_same_pipeline(cpu, tmp_path):
+    """fuse (at ground-truth poses) gets the pipeline's log and trajectory too, and stops at the first
+    frame without a ground-truth pose, keeping the frames before it."""
+    from ti_fusion.slam.fuse_step import FuseStep
+    from ti_fusion.slam.pipeline import Pipeline
+
+    cfg = _config()
+    cfg.dataset.stop = 6
+
+    class NoPose(BlankFrame):
+        def __getitem__(self, i):
+            frame = self.dataset[i]
+            if i == 4:
+                frame.gt_pose = None
+            return frame
+
+    dataset = NoPose(open_dataset(cfg.dataset, cfg.synth), -1)
+    run = RunDir("fuse", tmp_path / "run")
+    with pytest.raises(InputError, match="frame 4 has no ground-truth pose"):
+        Pipeline(dataset, cfg, run, FuseStep(cfg, dataset), current_backend(), show_progress=False).run()
+    stamps, poses = read_tum(run.file("trajectory.tum"))
+    assert len(stamps) == 4
+    np.testing.assert_allclose(poses[3], dataset[3].gt_pose, atol=1e-6)
+    log = read_log(run.file("log.mcap"))
+    assert log.complete and log.stats_topic == "/fuse/stats" and len(log.stats) == 4
+    assert log.stats[-1]["surfels"] > 0 and {"maps", "fuse", "log", "load"} <= set(log.stats[-1]["ms"])
 
 
 def _run_small(tmp_path, arch_name: str) -> dict:

@@ -1,4 +1,4 @@
-"""``ti-fusion slam DATA``: frame-to-model dense SLAM over a sequence."""
+"""``ti-fusion slam DATA``: frame-to-model dense SLAM over a sequence (the pipeline with ``SLAMStep``)."""
 
 from __future__ import annotations
 

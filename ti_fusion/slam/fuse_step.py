@@ -1,0 +1,102 @@
+"""``ti-fusion fuse``'s step in the pipeline: point-based fusion of each frame at its ground-truth pose.
+
+The classic assignment's fusion experiment: integrate every frame at its ground-truth pose, then report
+the surfel count against the naive count (every valid input point concatenated) and their ratio. Writes
+``map.ply`` (positions, normals, colours), and unless told not to ``map_color.png`` and
+``map_normals.png`` (the map from the first camera pulled back ``fusion.view_back`` metres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ti_fusion.config import Config
+from ti_fusion.errors import InputError
+from ti_fusion.io.datasets.base import Dataset, Frame
+from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
+from ti_fusion.mapping.views import save_views, view_pose
+from ti_fusion.slam.timing import StageTimer
+
+
+@dataclass
+class FuseFrame:
+    """What the step did with one frame."""
+
+    index: int
+    timestamp: float
+    pose: np.ndarray  # the ground-truth camera-to-world pose it was fused at
+    fusion: FusionStats
+    ms: dict[str, float] = field(default_factory=dict)
+
+
+class FuseStep:
+    """Fuses each frame at its ground-truth pose into a surfel map; writes map.ply and the map's views."""
+
+    name = "fuse"
+    stats_channel = "/fuse/stats"
+    stages = ("maps", "fuse")  # "fuse" is the sum of the mapper's stages (project ... remove)
+    warmup_frames = 1  # the first frame compiles the kernels
+    estimates_poses = False
+
+    def __init__(self, config: Config, dataset: Dataset, views: bool = True):
+        if not dataset.has_ground_truth:
+            raise InputError(dataset.root, "this sequence has no ground-truth poses, which fuse needs "
+                                           "(ti-fusion slam estimates poses instead)")
+        self.config = config
+        self.root = dataset.root
+        self.views = views
+        K = self.intrinsics = dataset.intrinsics
+        # The frame maps that the SLAM loop fuses: averaged down to the map's level on input (by default),
+        # the same smoothed depth and normals.
+        input_level = config.frame_input_level(K.width)
+        self.maps = FrameMaps(config.maps, K.height, K.width, config.fusion.map_level(K.width) - input_level + 1,
+                              input_level)
+        self.mapper = SurfelMapper(config.fusion)
+        self.fused = 0  # frames fused so far: the time stamp the surfels store
+        self.naive = 0  # valid depth pixels of every frame: the points a map without fusion would hold
+
+    def register_frame(self, frame: Frame) -> FuseFrame:
+        if frame.gt_pose is None:
+            raise InputError(self.root, f"frame {frame.index} has no ground-truth pose")
+        timer = StageTimer()  # this frame's stages, each synchronised with the backend
+        with timer.stage("maps"):
+            self.maps.compute(frame.depth, frame.intrinsics)
+        stats = self.mapper.integrate(self.maps, frame.color, frame.gt_pose, self.fused, timer)
+        self.fused += 1
+        self.naive += int((frame.depth > 0).sum())
+        return FuseFrame(frame.index, frame.timestamp, frame.gt_pose, stats,
+                         {**timer.last, "fuse": sum(stats.ms.values())})
+
+    def stats(self, result: FuseFrame) -> dict:
+        f = result.fusion
+        return {"frame": result.index, "status": "ok", "surfels": f.surfels, "merged": f.merged, "added": f.added,
+                "covered": f.covered, "removed": f.removed, "ms": {k: round(v, 3) for k, v in result.ms.items()}}
+
+    def map_points(self, max_points: int):
+        return self.mapper.sample_points(max_points) if self.mapper.count else None
+
+    def plot_title(self, run) -> str:
+        return f"ti-fusion fuse: {run.dataset.name}"
+
+    def outputs(self, run) -> dict:
+        mapper, results = self.mapper, run.results
+        ply = mapper.export_ply(run.out.file("map.ply"))
+        views = save_views(mapper.map, view_pose(results[0].pose, self.config.fusion.view_back), run.out.path) \
+            if self.views else {}
+        surfels = mapper.count
+        all_pixels = len(results) * self.intrinsics.width * self.intrinsics.height
+        total = {k: sum(getattr(r.fusion, k) for r in results) for k in ("merged", "added", "removed", "covered")}
+        return {
+            "surfels": surfels,
+            "naive_points": self.naive,
+            "compression_ratio": surfels / self.naive if self.naive else None,
+            "all_pixels": all_pixels,
+            "compression_ratio_all_pixels": surfels / all_pixels,
+            **total,
+            "capacity": mapper.map.capacity,
+            "ply": str(ply),
+            "views": {k: str(v) for k, v in views.items()},
+        }

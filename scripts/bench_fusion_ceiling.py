@@ -50,11 +50,12 @@ def check_config(cfg) -> None:
 
 def write_inputs(workdir: Path, data: dict, maps, rgb, pose, K, frame: int, cfg, radial) -> None:
     """The C program's inputs (see scripts/fusion_step.c)."""
-    from ti_fusion.kernels.fusion import ATTRIBUTES, _camera_to_world, _world_to_camera
+    from ti_fusion.kernels.common import camera_to_world, world_to_camera
+    from ti_fusion.kernels.surfels import ATTRIBUTES
 
     H, W = rgb.shape[:2]
     ints = np.array([W, H, len(data["position"]), frame, cfg.unstable_age], np.int32)
-    params = np.concatenate([_world_to_camera(pose), _camera_to_world(pose), K.as_tuple(),
+    params = np.concatenate([world_to_camera(pose), camera_to_world(pose), K.as_tuple(),
                              [cfg.dist_threshold, math.cos(math.radians(cfg.normal_threshold_deg)),
                               cfg.unstable_weight]]).astype(np.float32)
     ints.tofile(workdir / "ints.bin")
@@ -68,7 +69,7 @@ def write_inputs(workdir: Path, data: dict, maps, rgb, pose, K, frame: int, cfg,
 
 
 def read_outputs(workdir: Path, n: int) -> dict:
-    from ti_fusion.kernels.fusion import ATTRIBUTES
+    from ti_fusion.kernels.surfels import ATTRIBUTES
 
     out = {}
     for name in ATTRIBUTES:
@@ -114,7 +115,7 @@ def bench_size(width: int, height: int, target: int, repeats: int, executables: 
     taichi_step()  # compiles, fills the radial table
     taichi_times, stats = zip(*(taichi_step() for _ in range(repeats)))
     result = mapper.to_numpy()
-    radial = mapper.map.scratch(height, width).radial.to_numpy()
+    radial = mapper.map.fusion_images(height, width).radial.to_numpy()
 
     vertex, normal = maps.vertex[0].to_numpy(), maps.normal[0].to_numpy()
     numpy_times = []

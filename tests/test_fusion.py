@@ -20,9 +20,13 @@ from ti_fusion.errors import MapCapacityError
 from ti_fusion.mapping.mapper import SurfelMapper, pack_colour
 from ti_fusion.geometry import se3_exp
 from ti_fusion.kernels import fusion as F
+from ti_fusion.kernels.common import BLOCK, INT_MAX
 from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.kernels.surfel_map import SurfelMap
+from ti_fusion.kernels.surfels import ATTRIBUTES
 from ti_fusion.io.ply import read_ply, write_ply
 from ti_fusion.reference import fusion as fusion_numpy
+from ti_fusion.sensor import SIGMA_1M, depth_sigma
 
 # 70 × 72: a width that is no multiple of the row segments (or of 8), and enough rows that the loops over
 # row segments (72 × 8) split into more than one task of 512 iterations, so they run on two threads
@@ -202,7 +206,7 @@ def ref_alpha(u, v, confidence, z=None):
         gamma2 = ((u - K.cx) ** 2 + (v - K.cy) ** 2) / (K.cx ** 2 + K.cy ** 2)
         a = np.exp(-gamma2 / (2 * SIGMA ** 2))
     if confidence == "radial+depth":
-        s = F.NOISE_1M / (F.NOISE_A + F.NOISE_B * (np.asarray(z, np.float64) - F.NOISE_Z0) ** 2)
+        s = SIGMA_1M / depth_sigma(z)
         a = a * np.minimum(s * s, F.DEPTH_WEIGHT_MAX)
     return a
 
@@ -248,7 +252,7 @@ def ref_new_surfels(assoc, vertex, normal, colour, pose, frame, confidence):
 def sorted_rows(data):
     """Surfels as rows of one float64 matrix, sorted lexicographically: compare sets, not orders."""
     rows = np.column_stack([np.asarray(data[k], np.float64).reshape(len(data["position"]), -1)
-                            for k in F.ATTRIBUTES])
+                            for k in ATTRIBUTES])
     return rows[np.lexsort(rows.T[::-1])]
 
 
@@ -269,7 +273,7 @@ def setup(rng, capacity=4096):
     pose = random_pose(rng)
     vertex, normal, depth, colour = random_frame(rng)
     data = random_map(rng, vertex, normal, pose)
-    smap = F.SurfelMap(capacity)
+    smap = SurfelMap(capacity)
     smap.from_numpy(data)
     return pose, vertex, normal, depth, colour, data, smap
 
@@ -289,7 +293,7 @@ def test_index_map_and_pass1(arch, rng):
     assert (pix < 0).sum() >= 40 and (pix >= 0).sum() > 500  # both sides of pass 1 exercised
     want = ref_index_map(pix, z)
     got = img.index.to_numpy()
-    got[got == F.INT_MAX] = -1
+    got[got == INT_MAX] = -1
     np.testing.assert_array_equal(got, want)
     # the test drew exact duplicates: they tie, and the smaller index won
     _, counts = np.unique(pix[pix >= 0], return_counts=True)
@@ -304,7 +308,9 @@ def test_filter_pass2(arch, rng):
     pix, z = ref_project(data["position"].astype(np.float64), pose)
     index = ref_index_map(pix, z)
     want = ref_associate(index, data, vertex, normal, pose)
-    np.testing.assert_array_equal(img.index.to_numpy(), index)
+    got_index = img.index.to_numpy()
+    got_index[got_index == INT_MAX] = -1
+    np.testing.assert_array_equal(got_index, index)
     np.testing.assert_array_equal(img.assoc.to_numpy(), want)
     # both outcomes of pass 2 occur, for in-image surfels on valid pixels
     valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
@@ -337,7 +343,7 @@ def test_merge_and_add(arch, rng, confidence, association):
     depth_weighted = confidence == "radial+depth"
     smap.merge(img, fv, fn, pose, K, frame, bool(confidence), SIGMA, True, depth_weighted)
     n0 = smap.count
-    added, merged = smap.add(img, fv, fn, pose, K, frame, bool(confidence), SIGMA, True, depth_weighted)
+    added, merged, _ = smap.add(img, fv, fn, pose, K, frame, bool(confidence), SIGMA, True, depth_weighted)
 
     pix, z = ref_project(data["position"].astype(np.float64), pose)
     if association == "nearest":
@@ -349,7 +355,7 @@ def test_merge_and_add(arch, rng, confidence, association):
     got = smap.to_numpy()
     assert merged == (assoc >= 0).sum() and added == len(new["position"]) and smap.count == n0 + added
     tolerances = {"position": 2e-5, "normal": 2e-5, "colour": 1e-3, "weight": 1e-5, "radius": 1e-7}
-    for name in F.ATTRIBUTES:  # merge: in place, same order
+    for name in ATTRIBUTES:  # merge: in place, same order
         if name in tolerances:
             assert_close(got[name][:n0], want[name], tolerances[name])
         else:
@@ -357,7 +363,7 @@ def test_merge_and_add(arch, rng, confidence, association):
     # add: the new surfels in row-major pixel order (compared in order: sorting float32 rows against
     # float64 ones can swap two rows whose first columns differ by rounding)
     got_new = {k: a[n0:] for k, a in got.items()}
-    for name in F.ATTRIBUTES:
+    for name in ATTRIBUTES:
         assert_close(got_new[name], new[name], tolerances.get(name, 0.0), rtol=1e-5 if name in tolerances else 0)
 
 
@@ -419,7 +425,7 @@ def test_covered_pixels_add_nothing(arch, rng, fused):
         "t_created": np.zeros(n, np.int32),
         "t_updated": np.zeros(n, np.int32),
     }
-    smap = F.SurfelMap(4096)
+    smap = SurfelMap(4096)
     smap.from_numpy(data)
     fv, fn, fd = frame_fields(vertex, normal, depth.astype(np.float32))
     img = smap.associate_compatible(pose, K, fv, fn, DIST, ANGLE)
@@ -428,19 +434,19 @@ def test_covered_pixels_add_nothing(arch, rng, fused):
     assoc = img.assoc.to_numpy()
     assert (assoc >= 0).sum() == n
     if fused:  # the test inside add's counting pass
-        added, n_merged = smap.add(img, fv, fn, pose, K, 1, False, SIGMA, False, cover=(DIST, ANGLE))
+        added, n_merged, n_covered = smap.add(img, fv, fn, pose, K, 1, False, SIGMA, False, cover=(DIST, ANGLE))
         got = img.assoc.to_numpy()
     else:  # the kernel on its own, then add
         smap.mark_covered(img, fv, fn, pose, DIST, ANGLE)
         got = img.assoc.to_numpy()
-        added, n_merged = smap.add(img, fv, fn, pose, K, 1, False, SIGMA, False)
+        added, n_merged, n_covered = smap.add(img, fv, fn, pose, K, 1, False, SIGMA, False)
     want, ambiguous = ref_covered(assoc, merged, vertex, normal, pose)
     got_covered = got == F.COVERED
     np.testing.assert_array_equal(got_covered[~ambiguous], want[~ambiguous])
     np.testing.assert_array_equal(got[got >= 0], assoc[assoc >= 0])  # associations untouched
     unassociated = (assoc == -1) & ~invalid
     assert want.sum() > 50 and (unassociated & ~want).sum() > 50  # both outcomes
-    assert n_merged == n and added == (unassociated & ~got_covered).sum() and smap.covered == got_covered.sum()
+    assert n_merged == n and added == (unassociated & ~got_covered).sum() and n_covered == got_covered.sum()
 
 
 @pytest.mark.parametrize("free_space", [False, True])
@@ -476,7 +482,7 @@ def test_remove(arch, rng, free_space):
 def test_compaction_across_blocks(arch, rng, pattern):
     """Removal over several compaction blocks: holes in blocks wholly below the new count, survivors in
     blocks wholly above it, and the block straddling it."""
-    n = 5 * F.BLOCK + F.BLOCK // 3
+    n = 5 * BLOCK + BLOCK // 3
     data = {
         "position": rng.normal(size=(n, 3)).astype(np.float32),
         "normal": rng.normal(size=(n, 3)).astype(np.float32),
@@ -489,9 +495,9 @@ def test_compaction_across_blocks(arch, rng, pattern):
     if pattern == "clustered":  # removals only in blocks 1 and 4 (as after a burst of new surfels)
         data["weight"][:] = 5.0
         for b in (1, 4):
-            sl = slice(b * F.BLOCK + F.BLOCK // 10, b * F.BLOCK + 9 * F.BLOCK // 10)
+            sl = slice(b * BLOCK + BLOCK // 10, b * BLOCK + 9 * BLOCK // 10)
             data["weight"][sl] = rng.uniform(0, 6, sl.stop - sl.start)
-    smap = F.SurfelMap(8 * F.BLOCK)
+    smap = SurfelMap(8 * BLOCK)
     smap.from_numpy(data)
     frame, w_min, age = 100, 3.0, 30
     removed = smap.remove(frame, True, w_min, age)
@@ -499,7 +505,7 @@ def test_compaction_across_blocks(arch, rng, pattern):
     assert removed == drop.sum() > n // 20
     got = smap.to_numpy()
     m = n - removed
-    assert smap.count == m and m // F.BLOCK >= 2
+    assert smap.count == m and m // BLOCK >= 2
     np.testing.assert_array_equal(np.sort(got["t_created"]), np.flatnonzero(~drop))  # t_created = old index
     np.testing.assert_array_equal(sorted_rows(got), sorted_rows({k: a[~drop] for k, a in data.items()}))
     stay = ~drop[:m]
@@ -514,7 +520,7 @@ def test_compaction_across_blocks(arch, rng, pattern):
 def test_compaction_edge_cases(arch, rng, pattern):
     """Removal where nothing survives, where only the tail goes (no holes below the new count: nothing
     moves), and where every block loses exactly one surfel (every block has a hole to list)."""
-    n = 4 * F.BLOCK + 7
+    n = 4 * BLOCK + 7
     data = {
         "position": rng.normal(size=(n, 3)).astype(np.float32),
         "normal": rng.normal(size=(n, 3)).astype(np.float32),
@@ -528,12 +534,12 @@ def test_compaction_edge_cases(arch, rng, pattern):
     if pattern == "all":
         drop[:] = True
     elif pattern == "tail only":
-        drop[n - F.BLOCK // 2:] = True
+        drop[n - BLOCK // 2:] = True
     else:
-        starts = np.arange(0, n, F.BLOCK)  # the last block holds 7 surfels
+        starts = np.arange(0, n, BLOCK)  # the last block holds 7 surfels
         drop[starts + rng.integers(0, 7, len(starts))] = True
     data["weight"][drop] = 1.0
-    smap = F.SurfelMap(8 * F.BLOCK)
+    smap = SurfelMap(8 * BLOCK)
     smap.from_numpy(data)
     removed = smap.remove(100, True, 3.0, 30)
     m = n - drop.sum()
@@ -590,7 +596,7 @@ def test_render_matches_reference(arch, rng):
         img = smap.render(pose, K, out_v, out_n, out_d, min_weight=1.0, max_half=half)
         want_i, want_z, nc = ref_render(data, pose, half, min_weight=1.0)
         got_i = img.view_index.to_numpy()
-        got_i[got_i == F.INT_MAX] = -1
+        got_i[got_i == INT_MAX] = -1
         same = got_i == want_i
         assert same.mean() > 0.995, f"half={half}: {same.mean():.4f} of pixels agree"
         assert (want_i >= 0).sum() > 300
@@ -609,9 +615,9 @@ def test_render_image_colours(arch, rng):
     pose, vertex, normal, depth, colour, data, smap = setup(rng)
     rgb = smap.render_image(pose, K, by_normal=False, max_half=1)
     nrm = smap.render_image(pose, K, by_normal=True, max_half=1)
-    img = smap.scratch(H, W)
+    img = smap.prediction_images(H, W)
     idx = img.view_index.to_numpy()
-    hit = idx != F.INT_MAX
+    hit = idx != INT_MAX
     assert rgb.shape == (H, W, 3) and rgb.dtype == np.uint8 and hit.sum() > 300
     np.testing.assert_allclose(rgb[hit], np.rint(data["colour"][idx[hit]]), atol=1)
     np.testing.assert_allclose(nrm[hit], np.rint((data["normal"][idx[hit]] + 1) / 2 * 255), atol=1)
@@ -724,9 +730,9 @@ def test_export_copies_the_live_surfels_or_every_kth(cpu, rng):
     colour = rng.integers(0, 256, size=maps.input_shape + (3,), dtype=np.uint8)
     mapper.integrate(maps, colour, np.eye(4), 0)
     full = {name: field.to_numpy()[: mapper.count] for name, field in
-            zip(F.ATTRIBUTES, mapper.map.arrays.attributes)}  # the whole capacity, cut: the slow way
+            zip(ATTRIBUTES, mapper.map.arrays.attributes)}  # the whole capacity, cut: the slow way
     got = mapper.to_numpy()
-    for name in F.ATTRIBUTES:
+    for name in ATTRIBUTES:
         np.testing.assert_array_equal(got[name], full[name], err_msg=name)
     xyz, rgb = mapper.sample_points(max_points=mapper.count // 3)
     k = -(-mapper.count // (mapper.count // 3))
@@ -910,7 +916,7 @@ def test_c_step_of_ceiling_benchmark_matches_kernels(cpu, rng, tmp_path, march, 
 
     ceiling = script("bench_fusion_ceiling")
     cfg, before, maps, depth, rgb, seq, frame, stats, mapper = _benchmark_step(rng)
-    radial = mapper.map.scratch(*depth.shape).radial.to_numpy()
+    radial = mapper.map.fusion_images(*depth.shape).radial.to_numpy()
     ceiling.write_inputs(tmp_path, before, maps, rgb, seq.poses[frame], seq.intrinsics, frame, cfg, radial)
     exe = tmp_path / "fusion_step"
     subprocess.run(script("bench_icp_ceiling").build_command("cc", march, ceiling.C_SOURCE, exe), check=True)

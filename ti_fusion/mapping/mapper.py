@@ -5,8 +5,9 @@
     mapper.render(pose, intrinsics, maps.vertex[0], maps.normal[0], maps.depth[0])  # prediction for ICP
     mapper.export_ply("map.ply")
 
-The kernels and the stage-by-stage map live in ``ti_fusion.kernels.fusion``; this layer holds the
-configuration, uploads the frame's colour, times the stages and reports what changed.
+The map and its stages live in ``ti_fusion.kernels.surfel_map`` (kernels in ``ti_fusion.kernels.fusion`` and
+``ti_fusion.kernels.prediction``); this layer holds the configuration, uploads the frame's colour, times the
+stages and reports what changed.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ import taichi as ti
 
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import FusionConfig
-from ti_fusion.kernels.fusion import SurfelMap
+from ti_fusion.kernels.surfel_map import SurfelMap
 from ti_fusion.slam.timing import StageTimer
 
 STAGES = ("project", "filter", "merge", "add", "remove")
@@ -102,13 +103,13 @@ class SurfelMapper:
                            cfg.confidence_sigma, has_colour, cfg.depth_weighting)
         with stage("add"):  # with skip_covered, covered pixels are marked in the same pass and not added
             cover = (cfg.dist_threshold, cfg.normal_threshold_deg) if cfg.skip_covered else None
-            added, merged = self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
-                                         cfg.confidence_sigma, has_colour, cfg.depth_weighting, cover)
+            counts = self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
+                                  cfg.confidence_sigma, has_colour, cfg.depth_weighting, cover)
         with stage("remove"):
             removed = self.map.remove(frame_index, cfg.remove_unstable, cfg.unstable_weight, cfg.unstable_age,
                                       cfg.remove_free_space, cfg.free_space_margin, depth)
-        covered = self.map.covered
-        return FusionStats(merged, added, removed, self.map.count, merged + added + covered, covered, ms)
+        return FusionStats(counts.merged, counts.new, removed, self.map.count,
+                           counts.merged + counts.new + counts.covered, counts.covered, ms)
 
     # -- rendering -----------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics: Intrinsics, out_vertex, out_normal, out_depth) -> None:

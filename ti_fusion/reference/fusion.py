@@ -14,7 +14,7 @@ import time
 
 import numpy as np
 
-from ti_fusion.kernels.fusion import ATTRIBUTES
+from ti_fusion.kernels.surfels import ATTRIBUTES
 
 
 def _dot(a, b):
@@ -235,10 +235,11 @@ class NumpyFusion:
         else:
             a = np.ones(len(pixels), np.float32)
         if self.cfg.depth_weighting:
-            from ti_fusion.kernels import fusion as F
+            from ti_fusion.kernels.fusion import DEPTH_WEIGHT_MAX
+            from ti_fusion.sensor import SIGMA_1M, depth_sigma
 
-            s = F.NOISE_1M / (F.NOISE_A + F.NOISE_B * (z - F.NOISE_Z0) ** 2)
-            a = a * np.minimum(s * s, F.DEPTH_WEIGHT_MAX).astype(np.float32)
+            s = SIGMA_1M / depth_sigma(z)
+            a = a * np.minimum(s * s, DEPTH_WEIGHT_MAX).astype(np.float32)
         return a
 
     def _radial(self, K, shape):

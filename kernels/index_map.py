@@ -1,0 +1,131 @@
+"""Projection of the surfels into an image, and the index map: per pixel, the surfel nearest in depth.
+
+Both the fusion step (to find each pixel's surfel) and the prediction (as a z-buffer) start here.
+``project_surfels`` projects every surfel (pixel u = ⌊fx x/z + cx + ½⌋, v likewise: rounded to the
+nearest, so a frame vertex at pixel u projects back to u) and lists, per block of BLOCK surfels, those it
+keeps; ``gather_listed`` joins the lists in index order, and the index map's two passes run over that list
+only (about half the map when rendering, a few percent with Keller's association order).
+
+Why two passes: Vulkan guarantees only 32-bit atomics, so a 64-bit key (depth << 32 | index) is out, and
+a packed 32-bit key would leave too few bits for either (4 M surfels need 22 bits, leaving 10 bits of
+depth: 4 mm steps over 4 m, so surfels a few millimetres apart would tie and be ranked by index). So pass 1
+(``nearest_listed``) takes an atomic min of the depth's float bits (``depth_bits``) per pixel, and pass 2
+(``claim_listed``) lets every surfel whose depth bits equal its pixel's minimum take an atomic min of its
+index. The winner is the nearest surfel, exact ties broken by the smallest index: deterministic on every
+backend.
+"""
+
+import taichi as ti
+
+from ti_fusion.kernels.common import BLOCK, INT_MAX, Rigid, depth_bits, rigid
+
+
+@ti.data_oriented
+class IndexMap:
+    """The index map of one resolution."""
+
+    def __init__(self, height: int, width: int):
+        shape = (height, width)
+        self.depth_key = ti.field(ti.i32, shape=shape)  # float bits of the nearest depth, INT_MAX = none
+        self.index = ti.field(ti.i32, shape=shape)  # the nearest surfel, INT_MAX = none
+
+
+@ti.kernel
+def clear(imap: ti.template()):
+    for v, u in imap.index:
+        imap.depth_key[v, u] = INT_MAX
+        imap.index[v, u] = INT_MAX
+
+
+@ti.func
+def project_to_pixel(pc, fx, fy, cx, cy, H, W):
+    """(inside, u, v) of a camera-frame point, without branches: inside = z > 0 and the pixel
+    u = ⌊fx x/z + cx + ½⌋, v likewise (round to nearest), is in the image; (u, v) = (0, 0) when not."""
+    inv_z = 1.0 / pc.z  # inf or negative where z ≤ 0: masked below
+    uf = fx * pc.x * inv_z + cx + 0.5
+    vf = fy * pc.y * inv_z + cy + 0.5
+    inside = (pc.z > 0) & (uf >= 0.0) & (uf < W) & (vf >= 0.0) & (vf < H)  # NaN compares false
+    u = ti.min(ti.cast(ti.select(inside, uf, 0.0), ti.i32), W - 1)  # uf ≥ 0: truncation is the floor
+    v = ti.min(ti.cast(ti.select(inside, vf, 0.0), ti.i32), H - 1)
+    return inside, u, v
+
+
+@ti.func
+def list_if(s: ti.template(), b, found, i, keep):
+    """Append surfel i to block b's list when ``keep``: written always, kept by the count (no branch)."""
+    s.listed_by_block[b * BLOCK + found] = i
+    return found + ti.select(keep, 1, 0)
+
+
+@ti.kernel
+def project_surfels(s: ti.template(), n: ti.i32, imap: ti.template(), pose: Rigid, fx: ti.f32, fy: ti.f32,
+                    cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32):
+    """``proj_pixel`` ≥ 0 (and a listing per block) for the surfels inside the image of ``imap`` with
+    z > 0: filter pass 1 of the fusion step. With ``render``, surfels below ``min_weight`` or facing away
+    are left out too. ``pose`` (R, t) maps world to camera. Branch-free, as ``fusion.project_compatible``.
+    """
+    H, W = imap.index.shape
+    for b in range((n + BLOCK - 1) // BLOCK):  # parallel over blocks, serial inside one
+        found = 0
+        for j in range(ti.min(BLOCK, n - b * BLOCK)):  # a trip count, not a break at n
+            i = b * BLOCK + j
+            R, t = rigid(pose)  # per surfel: see docs/KERNELS.md
+            pc = R @ s.position[i] + t
+            keep, u, v = project_to_pixel(pc, fx, fy, cx, cy, H, W)
+            if ti.static(render):
+                keep = keep & (s.weight[i] >= min_weight) & ((R @ s.normal[i]).dot(pc) < 0)
+            s.proj_pixel[i] = ti.select(keep, v * W + u, -1)
+            s.proj_depth[i] = depth_bits(ti.abs(pc.z))
+            found = list_if(s, b, found, i, keep)
+        s.block_listed[b] = found
+
+
+@ti.kernel
+def gather_listed(s: ti.template(), n: ti.i32):
+    """The per-block lists of the last projection (``project_surfels`` or ``fusion.project_compatible``)
+    into one list in index order, ``listed[:n_listed]``: a serial scan over the blocks, then one parallel
+    copy per block."""
+    total = 0
+    ti.loop_config(serialize=True)
+    for b in range((n + BLOCK - 1) // BLOCK):
+        s.listed_offset[b] = total
+        total += s.block_listed[b]
+    s.n_listed[None] = total
+    for b in range((n + BLOCK - 1) // BLOCK):
+        for k in range(s.block_listed[b]):
+            s.listed[s.listed_offset[b] + k] = s.listed_by_block[b * BLOCK + k]
+
+
+@ti.kernel
+def nearest_listed(s: ti.template(), imap: ti.template()):
+    """Pass 1 of the index map, over the listed surfels: the nearest depth per pixel."""
+    W = imap.index.shape[1]
+    for k in range(s.n_listed[None]):
+        i = s.listed[k]
+        pix = s.proj_pixel[i]
+        v, u = pix // W, pix % W
+        key = s.proj_depth[i]
+        if key < imap.depth_key[v, u]:  # plain read first: most lose, and skip the atomic
+            ti.atomic_min(imap.depth_key[v, u], key)
+
+
+@ti.kernel
+def claim_listed(s: ti.template(), imap: ti.template()):
+    """Pass 2 of the index map, over the listed surfels: among those at a pixel's nearest depth, the
+    smallest index wins."""
+    W = imap.index.shape[1]
+    for k in range(s.n_listed[None]):
+        i = s.listed[k]
+        pix = s.proj_pixel[i]
+        v, u = pix // W, pix % W
+        if s.proj_depth[i] == imap.depth_key[v, u]:
+            ti.atomic_min(imap.index[v, u], i)
+
+
+def build(s, n: int, imap: IndexMap, with_index: bool = True) -> None:
+    """After a projection of the first ``n`` surfels of arrays ``s``: list the surfels it kept in index
+    order and, with ``with_index``, fill ``imap`` from them (``clear`` it before the projection)."""
+    gather_listed(s, n)
+    if with_index:
+        nearest_listed(s, imap)
+        claim_listed(s, imap)

@@ -1,0 +1,139 @@
+"""The model prediction: vertex, normal and depth maps of the surfel map seen from a pose (what ICP
+tracks against), and RGB views of it. Screen-space surfel splatting with a z-test.
+
+Splatting every surfel's disc over its pixel footprint costs an atomic per covered pixel per surfel, far
+too slow for maps of millions of surfels. Instead the renderer (1) projects the surfels as points into a
+z-buffer (``index_map``, leaving out back faces and unstable surfels), then (2) lets every pixel gather the
+front surfels of its (2h+1)² neighbourhood and keep the nearest disc its ray meets (``splat_gather``). A
+disc thus covers up to h pixels around its centre, as a splat would; the one difference is that only the
+front surfel of each pixel's point projection can spill into neighbours.
+"""
+
+import taichi as ti
+
+from ti_fusion.kernels.common import INT_MAX, Rigid, Vec3, depth_sigma, rigid
+from ti_fusion.kernels.index_map import IndexMap
+
+
+@ti.data_oriented
+class PredictionImages:
+    """The renderer's per-pixel images at one resolution."""
+
+    def __init__(self, height: int, width: int):
+        self.height, self.width = height, width
+        shape = (height, width)
+        self.index_map = IndexMap(height, width)
+        # the front surfel of each pixel's point projection, camera frame (``gather_front``)
+        self.front_position = ti.Vector.field(3, ti.f32, shape=shape)
+        self.front_normal = ti.Vector.field(3, ti.f32, shape=shape)
+        self.front_radius = ti.field(ti.f32, shape=shape)  # -1 = no surfel
+        # the splat result: the surfel seen at the pixel (INT_MAX = none) and the default outputs
+        self.view_index = ti.field(ti.i32, shape=shape)
+        self.vertex = ti.Vector.field(3, ti.f32, shape=shape)
+        self.normal = ti.Vector.field(3, ti.f32, shape=shape)
+        self.depth = ti.field(ti.f32, shape=shape)
+        self.image = ti.Vector.field(3, ti.f32, shape=shape)  # RGB in [0, 1] (``shade``)
+
+
+@ti.kernel
+def gather_front(s: ti.template(), img: ti.template(), pose: Rigid):
+    """Camera-frame position, normal and radius of each pixel's front surfel (radius -1: none)."""
+    for v, u in img.front_radius:
+        R, t = rigid(pose)
+        i = img.index_map.index[v, u]
+        r = -1.0
+        if i != INT_MAX:
+            img.front_position[v, u] = R @ s.position[i] + t
+            img.front_normal[v, u] = R @ s.normal[i]
+            r = s.radius[i]
+        img.front_radius[v, u] = r
+
+
+@ti.func
+def ray_disc_depth(pc, nc, r, d):
+    """Depth along the pixel ray ``d`` (z = 1) where it meets the disc (centre pc, normal nc, radius r); 0 if not."""
+    z = 0.0
+    denom = nc.dot(d)
+    if ti.abs(denom) > 1e-6:
+        zz = nc.dot(pc) / denom
+        if zz > 0 and (zz * d - pc).norm_sqr() <= r * r:
+            z = zz
+    return z
+
+
+@ti.func
+def occlusion_margin(z):
+    """Three sigma of the sensor's depth noise at depth z, at least 1 cm."""
+    return ti.max(0.01, 3.0 * depth_sigma(z, ti.f32))
+
+
+@ti.kernel
+def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, half: ti.template(),
+                 out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
+    """Per pixel: the pixel's own front surfel, unless a neighbour's disc that the ray meets lies clearly
+    in front of it (an occluding edge), or the pixel has none (a hole, filled by the nearest neighbour disc).
+
+    Why not simply the nearest disc of the neighbourhood: with noisy surfels the minimum depth over
+    (2h+1)² overlapping discs is biased towards the camera by about the noise level, and ICP against such
+    a prediction drifts by that much every frame. A neighbour therefore wins only when it is nearer by
+    more than ``occlusion_margin``.
+
+    A surfel always covers its own pixel (at its centre depth if the ray misses the disc), so surfels
+    small on screen still show as points. Ties in depth go to the smaller surfel index. Outputs are in
+    the camera frame; ``img.view_index`` gets the surfel (INT_MAX = none). ``half`` is a compile-time
+    constant, so the neighbourhood is unrolled.
+    """
+    H, W = img.front_radius.shape
+    for v, u in ti.ndrange(H, W):
+        d = Vec3((u - cx) / fx, (v - cy) / fy, 1.0)
+        own_z = 0.0
+        best_z = 0.0
+        best_i = INT_MAX
+        best_n = Vec3(0.0, 0.0, 0.0)
+        # The pixel's own front surfel first: it is the reference the neighbours must beat.
+        if img.front_radius[v, u] >= 0:
+            pc = img.front_position[v, u]
+            nc = img.front_normal[v, u]
+            z = ray_disc_depth(pc, nc, img.front_radius[v, u], d)
+            if z == 0.0:
+                z = pc.z
+            if z > 0:
+                own_z = z
+                best_z = z
+                best_i = img.index_map.index[v, u]
+                best_n = nc
+        margin = occlusion_margin(own_z)
+        for dv in ti.static(range(-half, half + 1)):
+            for du in ti.static(range(-half, half + 1)):
+                if ti.static(dv != 0 or du != 0):
+                    y = v + dv
+                    x = u + du
+                    if 0 <= y < H and 0 <= x < W:
+                        r = img.front_radius[y, x]
+                        if r >= 0:
+                            pc = img.front_position[y, x]
+                            z = ray_disc_depth(pc, img.front_normal[y, x], r, d)
+                            if z > 0 and (own_z == 0.0 or z < own_z - margin):
+                                j = img.index_map.index[y, x]
+                                if best_i == INT_MAX or best_z == own_z or z < best_z or (z == best_z and j < best_i):
+                                    best_z = z
+                                    best_i = j
+                                    best_n = img.front_normal[y, x]
+        img.view_index[v, u] = best_i
+        out_vertex[v, u] = best_z * d
+        out_normal[v, u] = best_n
+        out_depth[v, u] = best_z
+
+
+@ti.kernel
+def shade(s: ti.template(), img: ti.template(), by_normal: ti.i32, background: Vec3):
+    """RGB in [0, 1]: the surfel's colour, or its world normal mapped as (n + 1) / 2."""
+    for v, u in img.view_index:
+        i = img.view_index[v, u]
+        c = background
+        if i != INT_MAX:
+            if by_normal:
+                c = 0.5 * (s.normal[i] + 1.0)
+            else:
+                c = s.colour[i] / 255.0
+        img.image[v, u] = c

@@ -1,0 +1,192 @@
+"""The surfel map on the Taichi side: storage (``surfels``) with the stages of a fusion step (``fusion``) and
+the prediction (``prediction``) as methods.
+
+This is the Python edge of the kernels: each method converts poses and thresholds into kernel arguments,
+runs a stage's kernels in order, and keeps what must survive between stages (the surfel count, which
+surfels the per-surfel projection scratch is current for). Stage methods take the frame's fields at the
+map's level (``FrameMaps.vertex[l]`` etc.) and 4×4 camera-to-world poses (float64 NumPy).
+"""
+
+import math
+from typing import NamedTuple
+
+import numpy as np
+import taichi as ti
+
+from ti_fusion.errors import MapCapacityError
+from ti_fusion.kernels import fusion, index_map, prediction
+from ti_fusion.kernels.common import camera_to_world, world_to_camera
+from ti_fusion.kernels.fusion import FusionImages
+from ti_fusion.kernels.prediction import PredictionImages
+from ti_fusion.kernels.surfels import Pool, SurfelStore
+
+
+class AddCounts(NamedTuple):
+    """What ``SurfelMap.add`` did, in pixels."""
+
+    new: int  # pixels that became surfels
+    merged: int  # pixels merged into a surfel (by the ``merge`` before)
+    covered: int  # unassociated pixels not added: a neighbour's merged surfel covers them
+
+
+class SurfelMap(SurfelStore):
+    """A growable surfel map with the stages of one fusion step and the renderer.
+
+    ``count`` surfels are live, at indices [0, count).
+    """
+
+    def __init__(self, capacity: int = 4_000_000, grow: bool = True):
+        super().__init__(capacity, grow)
+        # per-call results, read by name (one field serves every map)
+        self.counts = Pool.field("step_counts", lambda: fusion.StepCounts.field(shape=()))
+
+    def fusion_images(self, height: int, width: int) -> FusionImages:
+        """The fusion step's work images at this resolution: shared by all maps, overwritten by the next
+        step at this resolution."""
+        return Pool.image_set(FusionImages, height, width)
+
+    def prediction_images(self, height: int, width: int) -> PredictionImages:
+        """The renderer's images at this resolution: shared by all maps, overwritten by the next render."""
+        return Pool.image_set(PredictionImages, height, width)
+
+    # -- 1-3: project, filter pass 1, filter pass 2 ------------------------------------------------------
+    def project(self, pose: np.ndarray, intrinsics, height: int, width: int, with_index: bool = True) -> FusionImages:
+        """Filter pass 1 of the surfels in the frame with camera-to-world ``pose`` and, with ``with_index``,
+        the index map (per pixel the surfel nearest in depth, ties to the smaller index)."""
+        img = self.fusion_images(height, width)
+        index_map.clear(img.index_map)
+        if self.count > 0:
+            index_map.project_surfels(self.arrays, self.count, img.index_map, world_to_camera(pose),
+                                      *intrinsics.as_tuple(), False, 0.0)
+            index_map.build(self.arrays, self.count, img.index_map, with_index)
+        self._projected = self.count
+        return img
+
+    def associate(self, img: FusionImages, vertex, normal, pose: np.ndarray, dist_threshold: float,
+                  normal_threshold_deg: float) -> None:
+        """Filter pass 2 into ``img.assoc``."""
+        cos_threshold = math.cos(math.radians(normal_threshold_deg))
+        fusion.associate(self.arrays, img, vertex, normal, camera_to_world(pose), dist_threshold, cos_threshold)
+
+    def associate_compatible(self, pose: np.ndarray, intrinsics, vertex, normal, dist_threshold: float,
+                             normal_threshold_deg: float) -> FusionImages:
+        """Keller's order instead of ``project`` + ``associate``: filter passes 1 and 2 for every surfel in
+        one projection, then per pixel the nearest surfel that passed: ``img.assoc`` holds it or -1."""
+        H, W = vertex.shape
+        img = self.fusion_images(H, W)
+        cos_threshold = math.cos(math.radians(normal_threshold_deg))
+        index_map.clear(img.index_map)
+        if self.count > 0:
+            fusion.world_measurements(img, vertex, normal, camera_to_world(pose))
+            fusion.project_compatible(self.arrays, self.count, img, world_to_camera(pose), *intrinsics.as_tuple(),
+                                      dist_threshold, cos_threshold)
+            index_map.build(self.arrays, self.count, img.index_map)
+        self._projected = self.count
+        fusion.assoc_from_index(img)
+        return img
+
+    def mark_covered(self, img: FusionImages, vertex, normal, pose: np.ndarray, dist_threshold: float,
+                     normal_threshold_deg: float) -> None:
+        """After ``merge``: unassociated pixels on the disc of a neighbour's merged surfel are not added
+        (``img.assoc`` = COVERED). ``add(..., cover=...)`` does the same in its own pass; this is the test on
+        its own (the counts it also makes are made again by ``add``)."""
+        fusion.count_segments(img, vertex, normal, camera_to_world(pose), dist_threshold,
+                              math.cos(math.radians(normal_threshold_deg)), True)
+
+    def pass1_mask(self) -> np.ndarray:
+        """Filter pass 1 of the last projection: surfels inside the image with positive depth."""
+        return self.arrays.proj_pixel.to_numpy()[: self._projected] >= 0
+
+    # -- 4-5: merge and add --------------------------------------------------------------------------------
+    def merge(self, img: FusionImages, vertex, normal, pose, intrinsics, frame_index: int,
+              confidence: bool, sigma: float, has_colour: bool, depth_weighted: bool = False) -> None:
+        if self._projected > 0:
+            if confidence:
+                img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
+            fusion.merge_listed(self.arrays, img, vertex, normal, camera_to_world(pose), intrinsics.fx,
+                                fusion.weight_bits(confidence, depth_weighted), int(has_colour), frame_index)
+
+    def add(self, img: FusionImages, vertex, normal, pose, intrinsics, frame_index: int, confidence: bool,
+            sigma: float, has_colour: bool, depth_weighted: bool = False,
+            cover: tuple[float, float] | None = None) -> AddCounts:
+        """Append the valid unassociated pixels as surfels. With ``cover`` = (dist_threshold,
+        normal_threshold_deg), pixels that ``mark_covered`` would mark are marked first, in the same pass,
+        and not added."""
+        dist, angle = cover if cover is not None else (0.0, 0.0)
+        to_world = camera_to_world(pose)
+        fusion.count_segments(img, vertex, normal, to_world, dist, math.cos(math.radians(angle)), cover is not None)
+        fusion.scan_segments(img, self.counts)
+        counts = AddCounts(int(self.counts.new[None]), int(self.counts.merged[None]),
+                           int(self.counts.covered[None]))
+        self.ensure_capacity(self.count + counts.new)  # before any write: grow or raise
+        if counts.new > 0:
+            if confidence:
+                img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
+            self.counts.lost[None] = 0
+            fusion.append_new(self.arrays, self.count, img, vertex, normal, to_world, intrinsics.fx,
+                              fusion.weight_bits(confidence, depth_weighted), int(has_colour), frame_index,
+                              self.counts)
+            lost = int(self.counts.lost[None])
+            if lost:  # cannot happen after ensure_capacity; never let it pass silently
+                raise MapCapacityError(f"{lost} new surfels did not fit (capacity {self.capacity}): "
+                                       f"raise fusion.capacity")
+            self.count += counts.new
+        return counts
+
+    # -- 6: remove ------------------------------------------------------------------------------------------
+    def remove(self, frame_index: int, unstable: bool, unstable_weight: float, unstable_age: int,
+               free_space: bool = False, free_space_margin: float = 0.05, depth=None) -> int:
+        """Drop unstable / free-space-violating surfels and compact in place; returns how many went."""
+        n = self.count
+        if n == 0 or not (unstable or free_space):
+            return 0
+        if free_space and depth is None:
+            raise ValueError("free-space removal needs the frame's depth field")
+        if depth is None:
+            depth = Pool.field("no_depth", lambda: ti.field(ti.f32, shape=(1, 1)))  # never read
+        fusion.mark_removal(self.arrays, n, min(self._projected, n), frame_index, int(unstable), unstable_weight,
+                            unstable_age, bool(free_space), free_space_margin, depth)
+        fusion.sum_removals(self.arrays, n, self.counts)
+        removed = int(self.counts.removed[None])
+        if removed > 0:
+            m = n - removed
+            fusion.scan_blocks(self.arrays, n, m)
+            fusion.list_holes(self.arrays, m)
+            fusion.fill_holes(self.arrays, n, m)
+            self.count = m
+            self._projected = 0  # indices moved: the projection scratch is stale
+        return removed
+
+    # -- prediction -----------------------------------------------------------------------------------------
+    def render(self, pose: np.ndarray, intrinsics, out_vertex=None, out_normal=None, out_depth=None,
+               min_weight: float = 0.0, max_half: int = 1) -> PredictionImages:
+        """Predicted vertex / normal / depth maps in the camera frame of ``pose`` (zero = no surfel).
+
+        Outputs are Taichi fields of shape (intrinsics.height, intrinsics.width), e.g. a FrameMaps' level
+        0; left out, they are the returned images' ``vertex``, ``normal``, ``depth`` fields (valid until
+        the next render at this resolution). Surfels with weight ≥ ``min_weight`` that face the camera
+        are splatted as discs reaching at most ``max_half`` pixels from their centre pixel; the vertex lies
+        on the pixel's ray, at the depth where the ray meets the disc.
+        """
+        img = self.prediction_images(intrinsics.height, intrinsics.width)
+        to_camera = world_to_camera(pose)
+        fx, fy, cx, cy = intrinsics.as_tuple()
+        index_map.clear(img.index_map)
+        if self.count > 0:
+            index_map.project_surfels(self.arrays, self.count, img.index_map, to_camera, fx, fy, cx, cy, True,
+                                      float(min_weight))
+            index_map.build(self.arrays, self.count, img.index_map)
+        self._projected = 0  # the projection scratch now holds the render's projection, not the fusion step's
+        prediction.gather_front(self.arrays, img, to_camera)
+        prediction.splat_gather(img, fx, fy, cx, cy, int(max_half),
+                                img.vertex if out_vertex is None else out_vertex,
+                                img.normal if out_normal is None else out_normal,
+                                img.depth if out_depth is None else out_depth)
+        return img
+
+    def render_image(self, pose: np.ndarray, intrinsics, by_normal: bool = False, min_weight: float = 0.0,
+                     max_half: int = 3, background=(0.12, 0.12, 0.12)) -> np.ndarray:
+        """uint8 RGB view of the map from ``pose``: surfel colours, or world normals as (n + 1) / 2."""
+        img = self.render(pose, intrinsics, min_weight=min_weight, max_half=max_half)
+        prediction.shade(self.arrays, img, int(by_normal), np.asarray(background, dtype=np.float32))
+        return (np.clip(img.image.to_numpy(), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)

@@ -36,8 +36,8 @@ reduction
     pass with 30 independent running sums; in float32 one thread per sum adds them Kahan-compensated,
     which keeps the float32 path within the stated tolerance of float64.
     Every product and sum is in the arithmetic type, AᵀA's included: its off-diagonal entries are sums of
-    signed terms that can cancel as well as Aᵀb's, and float32 products for them (a quarter faster on the
-    CPU) missed float64 by more than 1e-5 relative on random inputs.
+    signed terms that can cancel as well as Aᵀb's, so float32 products for them would miss float64 by
+    more than the float32 path's tolerance (docs/KERNELS.md).
     The robust weight is a compile-time choice (one kernel per robust mode).
 
 solve (``iterate``, float64 backends)
@@ -45,7 +45,7 @@ solve (``iterate``, float64 backends)
     solves the 6×6 system by Cholesky, applies T ← exp(δξ) T to the pose in ``params`` (in place, so the
     next launch starts there) and appends a record (the sums, the pose before, ‖δξ‖, the outcome).
     ``ti_fusion.tracking.icp`` replays the records through its checks. One launch per iteration and nothing read
-    back but a flag: the round trip through NumPy cost ~120 µs per iteration, as much as a 320×240 pass.
+    back but a flag: a round trip through NumPy per iteration costs as much as a coarse level's pass.
 
 Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
 (vulkan, cuda), chosen when ``PointToPlane`` is built. Fields stay float32.
@@ -118,10 +118,9 @@ def _code(robust: str) -> int:
     return robust_code(name, depth == "depth")
 
 
-# cpu, small sources (run on the calling thread): at least this many pixels per chunk. On a coarse level
-# (80×60) 1024 chunks were 5 pixels each, and initialising, writing and adding 1024 × 30 partial sums cost
-# more than the pixels themselves. (A parallel loop keeps 1024 chunks: Taichi's CPU backend hands out a
-# range-for in tasks of 512 iterations, so fewer chunks would run on one thread.)
+# cpu, small sources (run on the calling thread): at least this many pixels per chunk, so that the 30
+# partial sums of a chunk cost less than its pixels. (A parallel loop keeps its many chunks: Taichi's CPU
+# backend hands out a range-for in tasks of 512 iterations, so fewer chunks would run on one thread.)
 MIN_CHUNK_PIXELS = 256
 
 
@@ -166,14 +165,13 @@ def _build_kernels(real):
         """The first three tests of the association, without branches: the target pixel vi·Wt + ui that
         source pixel (v, u) projects to; else, the first test it fails: SOURCE_INVALID (no vertex or
         normal), BEHIND_TARGET (z′ ≤ 0), NO_TARGET (outside the target image)."""
-        R, t, K = _pose(params)  # per pixel, as fusion.py's projection loops (read per block, those ran 3x slower)
+        R, t, K = _pose(params)  # per pixel, as the surfel projections (hoisted, it ran slower: docs/KERNELS.md)
         p = ti.cast(src_v[v, u], real)
         n = ti.cast(src_n[v, u], real)
         pt = R @ p + t
         inv_z = 1.0 / pt.z  # inf or negative where z′ ≤ 0: masked below
-        # ⌊x⌋ in [0, W) exactly when x in [0, W), and there truncation is the floor (ti.floor was a libm
-        # call where Taichi 1.7 optimises for generic x86-64, on a CPU its LLVM 15 does not know: SSE2 has
-        # no rounding instruction)
+        # ⌊x⌋ in [0, W) exactly when x in [0, W), and there truncation is the floor: one conversion,
+        # where ti.floor was found to compile to a library call (docs/KERNELS.md)
         uf = K[0] * pt.x * inv_z + K[2] + 0.5
         vf = K[1] * pt.y * inv_z + K[3] + 0.5
         front = pt.z > 0
@@ -226,12 +224,9 @@ def _build_kernels(real):
 
         Every kernel that tests correspondences makes two passes over a chunk: this one projects (no
         branches, no reads of the target), the second reads the target pixel and tests
-        (``_correspondence``), while the chunk's ``target`` entries are still in cache. Fused into one
-        pass, the projection and the target read that depends on it ran 1.25x slower
-        on the CPU (640×480, float64, one core: 7.4 ms per pass, 5.9 ms split). The sums agree with the
-        fused pass's to rounding (within 6e-16 relative on redkitchen frames, not bit for bit: the compiler
-        orders the float64 operations of the two differently). ``reduce``, ``iterate`` and ``write_rows``
-        share both passes, so they find the same correspondences."""
+        (``_correspondence``), while the chunk's ``target`` entries are still in cache: fused into one
+        pass, the projection and the target read that depends on it ran slower (docs/KERNELS.md).
+        ``reduce``, ``iterate`` and ``write_rows`` share both passes, so they find the same correspondences."""
         W = src_v.shape[1]
         Ht, Wt = tgt_v.shape
         v = begin // W
@@ -331,7 +326,7 @@ def _build_kernels(real):
         _partial_sums(src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, params, serial, target)
         # Runs after the loop above has finished: add the partials.
         if ti.static(real == ti.f64):  # cpu: one serial pass, 30 independent running sums in registers
-            # on the calling thread: handing even a one-iteration loop to the thread pool costs ~70 µs here
+            # on the calling thread: handing even a one-iteration loop to the thread pool costs more
             ti.loop_config(serialize=True)
             for _ in range(1):
                 total = _total(partials, n_chunks)

@@ -10,8 +10,9 @@ For each size it builds a map of about ``--surfels`` surfels along the synthetic
 - Taichi: ``SurfelMapper.integrate`` on the machine's cores;
 - NumPy: ``ti_fusion.reference.fusion.NumpyFusion.integrate``, the baseline of ``bench_fusion.py``;
 - C: ``scripts/fusion_step.c``, the same step on one thread, built as ``bench_icp_ceiling.py`` builds
-  its C (``-O3`` and the floating-point freedoms of Taichi's kernels), for ``-march=x86-64`` (SSE2, the
-  shape of what Taichi 1.7 emits on a CPU its LLVM does not know) and ``-march=native``.
+  its C (``-O3`` and the floating-point freedoms of Taichi's kernels), for ``-march=x86-64`` (SSE2, no
+  FMA: a point of comparison, not Taichi's code; Taichi 1.7.4 here emits AVX/AVX-512 encodings, but no
+  FMA and little wide vectorisation, see docs/PERFORMANCE.md) and ``-march=native``.
 Each is timed at its best (the fastest of the repeats). "C native ÷ 2" is the time a perfect two-thread
 split of the native step would take, with no thread start-up: a bound on how far NumPy's ratio could go
 with the code this compiler makes of this (scalar, interleaved-array) C source, e.g. against the 20×

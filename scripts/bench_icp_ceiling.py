@@ -10,8 +10,9 @@ times one iteration of
 - NumPy: ``icp_numpy.LevelIteration`` and the 6×6 solve (the baseline of ``bench_icp.py``);
 - C: ``scripts/icp_pass.c``, the same float64 pass (association and the 30 sums, no solve) on one
   thread, compiled with ``-O3`` and the floating-point freedoms Taichi's kernels have by default
-  (``fast_math``: reassociation, no signed zeros; ``C_FLAGS``), for ``-march=x86-64`` (SSE2: the shape of
-  what Taichi 1.7 emits on a CPU its LLVM does not know) and ``-march=native``.
+  (``fast_math``: reassociation, no signed zeros; ``C_FLAGS``), for ``-march=x86-64`` (SSE2, no FMA: a
+  point of comparison, not Taichi's code; Taichi 1.7.4 here emits AVX/AVX-512 encodings, but no FMA and
+  mostly scalar or 2-wide double, see docs/PERFORMANCE.md) and ``-march=native``.
 Each is timed at its best: the fastest single iteration of ``--repeats`` (each after an untimed one, so
 threads are awake as within ICP). This machine is noisy (one NumPy iteration at 640×480 took 32 to 57
 ms within one run) and the minimum is what each code can do; ``bench_icp.py`` reports medians instead,

@@ -29,3 +29,102 @@ def test_non_positive_range_check_is_refused(cpu):
 
     with pytest.raises(InputError, match="maps.pyramid_depth_sigma"):
         FrameMaps(MapsConfig(pyramid_depth_sigma=0.0), 8, 8, levels=1)
+
+
+# --------------------------------------------------------------------------------------------------
+# Every value is checked against its field's rule when the config is built
+# --------------------------------------------------------------------------------------------------
+def test_every_field_of_every_section_has_a_rule():
+    """A field added without a rule (a Range, OneOf, Text or Length in its annotation) fails here."""
+    import dataclasses
+
+    from ti_fusion.config import rules
+
+    for section in dataclasses.fields(Config):
+        section_type = type(getattr(Config(), section.name))
+        assert set(rules(section_type)) == {f.name for f in dataclasses.fields(section_type)}, section.name
+
+
+def test_a_field_without_a_rule_is_caught():
+    from dataclasses import dataclass
+    from typing import Annotated
+
+    from ti_fusion.config import Range, rules
+
+    @dataclass
+    class Section:
+        checked: Annotated[int, Range(ge=0)] = 1
+        flag: bool = True          # a bool is true or false: no more rule needed
+        unchecked: int = 3         # a number without a range
+        words: str = ""            # text without choices or Text()
+
+    with pytest.raises(TypeError, match="Section: no rule for unchecked, words"):
+        rules(Section)
+
+
+def test_the_defaults_follow_their_rules():
+    from ti_fusion.config import check_config
+
+    assert check_config(Config()) == Config()
+
+
+@pytest.mark.parametrize("override, line", [
+    ("icp.dist_threshold=-0.1", "--set: icp.dist_threshold = -0.1: must be a number > 0"),
+    ("fusion.dist_threshold=-0.03", "--set: fusion.dist_threshold = -0.03: must be a number > 0"),
+    ("icp.depth_weighting=maybe", "--set: icp.depth_weighting = 'maybe': must be true or false"),
+    ("icp.min_inliers=2.7", "--set: icp.min_inliers = 2.7: must be an integer >= 6"),
+    ("slam.relocalise=featurs", "--set: slam.relocalise = 'featurs': must be one of features, none"),
+    ("icp.robust=hubber", "--set: icp.robust = 'hubber': must be one of none, huber, tukey"),
+    ("icp.iterations=[]", "--set: icp.iterations = []: must be a list of integers >= 0 (at least 1)"),
+    ("icp.iterations=5", "--set: icp.iterations = 5: must be a list of integers >= 0 (at least 1)"),
+    ("icp.iterations=[10,-1]", "--set: icp.iterations = [10, -1]: must be a list of integers >= 0 (at least 1)"),
+    ("slam.min_inlier_ratio=1.5", "--set: slam.min_inlier_ratio = 1.5: must be a number in [0, 1]"),
+    ("dataset.stop=0", "--set: dataset.stop = 0: must be an integer >= 1, or None"),
+    ("fusion.level=-2", "--set: fusion.level = -2: must be an integer >= -1"),
+    ("log.map_every=True", "--set: log.map_every = True: must be an integer >= 0"),
+    ("vo.voxel_size=nan", "--set: vo.voxel_size = 'nan': must be a number > 0"),
+    ("dataset.format=icl", "--set: dataset.format = 'icl': must be one of auto, tum, iclnuim, 7scenes"),
+])
+def test_a_value_against_its_rule_is_one_line_naming_key_value_and_rule(override, line):
+    with pytest.raises(InputError) as info:
+        load_config(None, [override])
+    message = str(info.value)
+    assert message.startswith(line) and "\n" not in message
+
+
+def test_values_are_read_as_their_field_type():
+    cfg = load_config(None, ["icp.depth_weighting=no", "fusion.grow=1", "icp.iterations=(3, 2.0)",
+                             "fusion.capacity=1e6", "dataset.stop=None", "icp.dist_threshold=1",
+                             "dataset.path=2023", "dataset.intrinsics_file=1,2"])
+    assert cfg.icp.depth_weighting is False and cfg.fusion.grow is True
+    assert cfg.icp.iterations == [3, 2] and all(type(n) is int for n in cfg.icp.iterations)
+    assert cfg.fusion.capacity == 1_000_000 and type(cfg.fusion.capacity) is int
+    assert cfg.dataset.stop is None
+    assert cfg.icp.dist_threshold == 1.0 and type(cfg.icp.dist_threshold) is float
+    assert cfg.dataset.path == "2023"  # a text field takes the text as written
+    assert cfg.dataset.intrinsics_file == "1,2"
+
+
+def test_a_file_value_against_its_rule_names_the_file(tmp_path):
+    path = tmp_path / "run.toml"
+    path.write_text("[icp]\nsolver = \"cholesky\"\nrobust = \"hubber\"\n")
+    with pytest.raises(InputError, match=r"run\.toml: icp\.robust = 'hubber': must be one of none, huber, tukey"):
+        load_config(path)
+    # YAML reads 1e-4 (no dot) as text: a number written as text is still that number
+    path = tmp_path / "run.json"
+    path.write_text('{"icp": {"stop_update": "1e-4", "iterations": [4, 2]}, "slam": {"motion_model": false}}')
+    cfg = load_config(path)
+    assert cfg.icp.stop_update == 1e-4 and cfg.icp.iterations == [4, 2] and cfg.slam.motion_model is False
+
+
+def test_choices_match_the_code_that_uses_them():
+    from ti_fusion.config import rules, ICPConfig
+    from ti_fusion.io.datasets import FORMATS
+    from ti_fusion.kernels.icp import ROBUST_CODES
+    from ti_fusion.tracking.solve import SOLVERS
+    from ti_fusion.config import DatasetConfig
+
+    icp = rules(ICPConfig)
+    assert icp["solver"].choices.choices == SOLVERS
+    assert set(icp["robust"].choices.choices) == set(ROBUST_CODES)
+    assert rules(DatasetConfig)["format"].choices.choices == ("auto", *FORMATS)

@@ -12,19 +12,227 @@ A config file holds one table per section, e.g.::
     [fusion]
     capacity = 4_000_000
 
-and any field can be overridden from the command line with ``--set icp.dist_threshold=0.05``.
+and any field can be overridden from the command line with ``--set icp.dist_threshold=0.05``. Every
+field says what it allows (a type, and a range or a set of choices, in its annotation); a value from a
+file or ``--set`` that breaks its rule is refused with one line naming the key, the value and what is
+allowed.
 """
 
 from __future__ import annotations
 
 import ast
 import dataclasses
+import functools
 import json
+import math
+import numbers
+import types
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any, Callable, Iterable
 
 from ti_fusion.errors import InputError
+
+# --------------------------------------------------------------------------------------------------
+# What a field allows, written beside it: ``name: Annotated[type, rule, ...] = default``. A bool is true
+# or false and needs no rule; a number has a ``Range``, text a ``OneOf`` or ``Text``, a list its items'
+# ``Range`` and a ``Length``. ``check_value`` applies them to every value a file or ``--set`` gives, so
+# a wrong value stops the run at once with one line instead of running with it (or crashing later).
+
+
+def _num(x: float) -> str:
+    return f"{x:g}" if isinstance(x, float) else str(x)
+
+
+@dataclass(frozen=True)
+class Range:
+    """A number, or every item of a list of numbers, within bounds: ``Range(gt=0)``, ``Range(ge=0, le=1)``."""
+
+    ge: float | None = None
+    gt: float | None = None
+    le: float | None = None
+    lt: float | None = None
+
+    def allows(self, x: float) -> bool:
+        return ((self.ge is None or x >= self.ge) and (self.gt is None or x > self.gt)
+                and (self.le is None or x <= self.le) and (self.lt is None or x < self.lt))
+
+    def __str__(self) -> str:
+        low = f"[{_num(self.ge)}" if self.ge is not None else f"({_num(self.gt)}" if self.gt is not None else None
+        high = f"{_num(self.le)}]" if self.le is not None else f"{_num(self.lt)})" if self.lt is not None else None
+        if low and high:
+            return f"in {low}, {high}"
+        if low:
+            return (">= " if low[0] == "[" else "> ") + low[1:]
+        if high:
+            return ("<= " if high[-1] == "]" else "< ") + high[:-1]
+        return ""
+
+
+class OneOf:
+    """Text from a set of choices: ``OneOf("none", "huber")``, or ``OneOf(source=f)`` to ask ``f()`` for
+    them when checking (choices that live with their code, such as the dataset formats)."""
+
+    def __init__(self, *choices: str, source: Callable[[], Iterable[str]] | None = None):
+        self._choices, self.source = tuple(choices), source
+
+    @property
+    def choices(self) -> tuple[str, ...]:
+        return tuple(self.source()) if self.source is not None else self._choices
+
+    def __str__(self) -> str:
+        return "one of " + ", ".join(self.choices)
+
+
+@dataclass(frozen=True)
+class Text:
+    """Free text: a path, a topic name (``what`` says which, in the error line)."""
+
+    what: str = "text"
+
+
+@dataclass(frozen=True)
+class Length:
+    """A list of at least ``ge`` items."""
+
+    ge: int = 1
+
+
+_KINDS = {bool: "true or false", int: "an integer", float: "a number", str: "text"}
+_PLURAL = {int: "integers", float: "numbers"}
+_TRUE, _FALSE = ("true", "yes", "on", "1"), ("false", "no", "off", "0")
+
+
+@dataclass(frozen=True)
+class Rule:
+    """A field's type and constraints, read from its annotation (see ``rules``)."""
+
+    kind: type                      # bool, int, float, str or list
+    item: type | None = None        # a list's item type
+    optional: bool = False          # None is allowed too
+    range: Range | None = None
+    choices: OneOf | None = None
+    text: Text | None = None
+    length: Length | None = None
+
+    def describe(self) -> str:
+        """What the field allows, as the error line says it: "a number > 0", "one of none, huber, tukey"."""
+        if self.kind is list:
+            what = f"a list of {_PLURAL[self.item]}" + (f" {self.range}" if self.range and str(self.range) else "")
+            what += f" (at least {self.length.ge})" if self.length else ""
+        elif self.choices is not None:
+            what = str(self.choices)
+        elif self.text is not None:
+            what = self.text.what
+        else:
+            what = _KINDS[self.kind] + (f" {self.range}" if self.range and str(self.range) else "")
+        return what + (", or None" if self.optional else "")
+
+    def check(self, value: Any) -> Any:
+        """``value`` as the field's type (an integral 3.0 as 3, "yes" as True, a tuple as a list), or
+        ValueError when the rule refuses it."""
+        if value is None and self.optional:
+            return None
+        if self.kind is list:
+            if not isinstance(value, (list, tuple)) or (self.length and len(value) < self.length.ge):
+                raise ValueError
+            return [self._scalar(self.item, v) for v in value]
+        return self._scalar(self.kind, value)
+
+    def _scalar(self, kind: type, value: Any) -> Any:
+        value = _as_kind(kind, value)
+        if self.range is not None and not self.range.allows(value):
+            raise ValueError
+        if self.choices is not None and value not in self.choices.choices:
+            raise ValueError
+        return value
+
+
+def _as_kind(kind: type, value: Any) -> Any:
+    if kind is bool:
+        if isinstance(value, (bool, numbers.Integral)) and value in (0, 1):
+            return bool(value)
+        if isinstance(value, str) and value.strip().lower() in _TRUE + _FALSE:
+            return value.strip().lower() in _TRUE
+        raise ValueError
+    if kind is str:
+        if isinstance(value, str):
+            return value
+        raise ValueError
+    if isinstance(value, str):  # YAML reads 1e-4 as text; a number written as text is still that number
+        try:
+            value = int(value)
+        except ValueError:
+            try:
+                value = float(value)
+            except ValueError:
+                raise ValueError from None
+    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
+        raise ValueError
+    if kind is int:
+        if value != int(value):
+            raise ValueError
+        return int(value)
+    return float(value)
+
+
+@functools.cache
+def rules(section: type) -> dict[str, Rule]:
+    """The ``Rule`` of every field of a config section; TypeError names the fields that have none."""
+    hints = typing.get_type_hints(section, include_extras=True)
+    out, missing = {}, []
+    for f in dataclasses.fields(section):
+        rule = _rule_of(hints[f.name])
+        if rule is None:
+            missing.append(f.name)
+        else:
+            out[f.name] = rule
+    if missing:
+        raise TypeError(f"{section.__name__}: no rule for {', '.join(missing)} (see ti_fusion/config.py: Range, "
+                        "OneOf, Text, Length)")
+    return out
+
+
+def _rule_of(hint: Any) -> Rule | None:
+    meta: tuple = ()
+    if typing.get_origin(hint) is Annotated:
+        hint, *meta = typing.get_args(hint)
+    optional = False
+    if typing.get_origin(hint) in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(hint) if a is not type(None)]
+        optional, hint = len(args) < len(typing.get_args(hint)), args[0] if len(args) == 1 else hint
+    item = None
+    if typing.get_origin(hint) is list:
+        (item,) = typing.get_args(hint)
+        hint = list
+    if hint not in (bool, int, float, str, list) or (item is not None and item not in (int, float)):
+        return None
+    found = {type(m): m for m in meta}
+    rule = Rule(hint, item, optional, found.get(Range), found.get(OneOf), found.get(Text), found.get(Length))
+    numeric = hint in (int, float) or item is not None
+    if (numeric and rule.range is None) or (hint is str and rule.choices is None and rule.text is None) \
+            or (hint is list and rule.length is None):
+        return None
+    return rule
+
+
+def _dataset_formats() -> tuple[str, ...]:
+    from ti_fusion.io.datasets import FORMATS  # the loaders' list (imported late: it imports this module)
+
+    return ("auto", *FORMATS)
+
+
+
+# The rules most fields have.
+Positive = Annotated[float, Range(gt=0)]
+NonNegative = Annotated[float, Range(ge=0)]
+Fraction = Annotated[float, Range(ge=0, le=1)]
+Degrees = Annotated[float, Range(gt=0, le=180)]
+Count = Annotated[int, Range(ge=1)]
+NonNegativeInt = Annotated[int, Range(ge=0)]
+FilePath = Annotated[str, Text("a file path")]
+Topic = Annotated[str, Text("a topic name")]
 
 
 MAP_WIDTH = 320  # fusion.level = -1: the map is built at the finest pyramid level at most this wide
@@ -32,52 +240,58 @@ MAP_WIDTH = 320  # fusion.level = -1: the map is built at the finest pyramid lev
 
 @dataclass
 class DatasetConfig:
-    path: str = ""             # dataset folder; "" = the embedded synthetic sequence
-    format: str = "auto"       # auto | tum | iclnuim | 7scenes | synthetic
-    downsample: int = 1        # integer subsampling factor (2 → 320×240 from 640×480)
-    start: int = 0             # first frame (index into the sequence)
-    stop: int | None = None    # one past the last frame; None = to the end
-    stride: int = 1            # take every stride-th frame
-    depth_max: float = 4.0     # depth beyond this (metres) is treated as invalid; 0 = keep every range
-    intrinsics_file: str = ""  # a file with "fx fy cx cy" (or a 3x3 K) overriding the format's intrinsics
-    max_time_difference: float = 0.02  # seconds: TUM rgb↔depth association and ground-truth lookup tolerance
+    path: Annotated[str, Text("a folder or file path")] = ""
+                                    # the dataset; "" = the embedded synthetic sequence
+    format: Annotated[str, OneOf(source=_dataset_formats)] = "auto"
+                                    # auto | tum | iclnuim | 7scenes | synthetic
+    downsample: Count = 1           # integer subsampling factor (2 → 320×240 from 640×480)
+    start: NonNegativeInt = 0       # first frame (index into the sequence)
+    stop: Annotated[int | None, Range(ge=1)] = None  # one past the last frame; None = to the end
+    stride: Count = 1               # take every stride-th frame
+    depth_max: NonNegative = 4.0    # depth beyond this (metres) is treated as invalid; 0 = keep every range
+    intrinsics_file: FilePath = ""  # a file with "fx fy cx cy" (or a 3x3 K) overriding the format's intrinsics
+    max_time_difference: NonNegative = 0.02  # seconds: TUM rgb↔depth association and ground-truth lookup tolerance
 
 
 @dataclass
 class SynthConfig:
-    frames: int = 120          # frames in the embedded synthetic sequence (~4 s at 30 Hz)
-    width: int = 640
-    height: int = 480
-    fx: float = 525.0          # fx = fy; principal point at the image centre
-    noise: bool = True         # Kinect-like depth noise (axial Gaussian, quantisation, dropouts)
-    seed: int = 0              # same seed → same frames
-    min_range: float = 0.4     # metres: nearer depth is dropped (noise on)
-    max_range: float = 4.0     # metres: farther depth is dropped (noise on)
-    grazing_deg: float = 80.0  # depth dropped where the ray is more than this from the surface normal (noise on)
-    baseline: float = 0.075    # metres: projector–camera baseline of the disparity quantisation
-    subpixel: float = 8.0      # disparity quantised to 1/subpixel pixel ...
-    sensor_width: int = 640    # ... of a sensor this wide with the same field of view (fx · sensor_width / width)
-    color_noise: float = 2.0   # grey levels: Gaussian noise per colour channel (noise on)
+    frames: Count = 120             # frames in the embedded synthetic sequence (~4 s at 30 Hz)
+    width: Count = 640
+    height: Count = 480
+    fx: Positive = 525.0            # fx = fy; principal point at the image centre
+    noise: bool = True              # Kinect-like depth noise (axial Gaussian, quantisation, dropouts)
+    seed: NonNegativeInt = 0        # same seed → same frames
+    min_range: NonNegative = 0.4    # metres: nearer depth is dropped (noise on)
+    max_range: Positive = 4.0       # metres: farther depth is dropped (noise on)
+    grazing_deg: Annotated[float, Range(gt=0, le=90)] = 80.0  # depth dropped where the ray is more than this
+                                                              # from the surface normal (noise on)
+    baseline: Positive = 0.075      # metres: projector–camera baseline of the disparity quantisation
+    subpixel: Positive = 8.0        # disparity quantised to 1/subpixel pixel ...
+    sensor_width: Count = 640       # ... of a sensor this wide with the same field of view (fx · sensor_width / width)
+    color_noise: NonNegative = 2.0  # grey levels: Gaussian noise per colour channel (noise on)
 
 
 @dataclass
 class ICPConfig:
-    iterations: list[int] = field(default_factory=lambda: [10, 5, 4])  # per pyramid level, coarse → fine
-    dist_threshold: float = 0.10     # metres: max ‖p′ − q‖ for a correspondence (finest level)
-    normal_threshold_deg: float = 30.0  # max angle between the source and target normals
-    solver: str = "cholesky"         # cholesky | lu | qr (QR solves the stacked n×6 system)
-    robust: str = "huber"            # none | huber | tukey: weights on the point-to-plane residual
-    robust_scale: float = 0.01       # metres: Huber's k or Tukey's c (at 1 m depth with depth_weighting)
+    iterations: Annotated[list[int], Range(ge=0), Length(ge=1)] = field(default_factory=lambda: [10, 5, 4])
+                                     # per pyramid level, coarse → fine
+    dist_threshold: Positive = 0.10  # metres: max ‖p′ − q‖ for a correspondence (finest level)
+    normal_threshold_deg: Degrees = 30.0  # max angle between the source and target normals
+    solver: Annotated[str, OneOf("cholesky", "lu", "qr")] = "cholesky"  # QR solves the stacked n×6 system
+    robust: Annotated[str, OneOf("none", "huber", "tukey")] = "huber"  # weights on the point-to-plane residual
+    robust_scale: Positive = 0.01    # metres: Huber's k or Tukey's c (at 1 m depth with depth_weighting)
     depth_weighting: bool = True     # weight residuals by Kinect's depth noise σ(z) at the target point:
                                      # residual / σ(z) into the robust weight, times 1/σ(z)² (both relative
                                      # to 1 m); redkitchen 500 frames: ATE 6.9 → 4.7 cm
-    min_inliers: int = 100           # fewer correspondences → degenerate, reported as a failure
-    max_condition: float = 1e7       # cond(AᵀA) above this → degenerate
-    stop_update: float = 1e-4        # stop a level when ‖δξ‖ (rad, m) falls below this: 0.1 mm, below the
+    min_inliers: Annotated[int, Range(ge=6)] = 100  # fewer correspondences → degenerate, reported as a failure
+                                     # (the 6×6 system needs six at the very least)
+    max_condition: Annotated[float, Range(ge=1)] = 1e7  # cond(AᵀA) above this → degenerate (cond is >= 1)
+    stop_update: NonNegative = 1e-4  # stop a level when ‖δξ‖ (rad, m) falls below this: 0.1 mm, below the
                                      # noise (redkitchen 500 frames: 1e-5 → 1e-4 gave the same ATE with 13.3 →
                                      # 10.1 iterations per frame)
-    level_dist_scale: float = 2.0    # d_thr at pyramid level l is dist_threshold · level_dist_scale**l (coarse levels gate wider)
-    converged_update: float = 1e-4   # result.converged: the last ‖δξ‖ (rad, m) fell below this
+    level_dist_scale: Positive = 2.0  # d_thr at pyramid level l is dist_threshold · level_dist_scale**l (coarse
+                                      # levels gate wider)
+    converged_update: Positive = 1e-4  # result.converged: the last ‖δξ‖ (rad, m) fell below this
 
 
 @dataclass
@@ -86,11 +300,12 @@ class MapsConfig:
     smoothing, pyramid, vertex and normal maps. How far the input is averaged down first is
     ``Config.frame_input_level`` (``fusion.level`` and ``slam.track_at_map_level``)."""
 
-    normal_max_depth_jump: float = 0.05  # metres: neighbours further apart in depth give no normal
-                                         # (× 2**l at pyramid level l)
-    pyramid_depth_sigma: float = 0.03    # metres: the pyramid's and the smoothing's depth means count only
-                                         # neighbours within 3σ of the centre depth (no mixing across edges)
-    depth_smooth_radius: int = -1    # edge-preserving (2r+1)² depth mean before the maps; 0 = raw; -1 = auto,
+    normal_max_depth_jump: Positive = 0.05  # metres: neighbours further apart in depth give no normal
+                                            # (× 2**l at pyramid level l)
+    pyramid_depth_sigma: Positive = 0.03    # metres: the pyramid's and the smoothing's depth means count only
+                                            # neighbours within 3σ of the centre depth (no mixing across edges)
+    depth_smooth_radius: Annotated[int, Range(ge=-1)] = -1
+                                     # edge-preserving (2r+1)² depth mean before the maps; 0 = raw; -1 = auto,
                                      # width // 50 (12 px at 640, 6 at 320). Redkitchen 500 frames, 640×480 with
                                      # the map at 320×240: r = 2 → 3.95 cm, 6 → 2.98, 12 → 2.67, 24 → 2.69
 
@@ -101,33 +316,35 @@ class MapsConfig:
 
 @dataclass
 class FusionConfig:
-    capacity: int = 4_000_000        # surfels preallocated
-    level: int = -1                  # pyramid level the map is fused from and rendered at for tracking: 0 = the
+    capacity: Count = 4_000_000      # surfels preallocated
+    level: Annotated[int, Range(ge=-1)] = -1
+                                     # pyramid level the map is fused from and rendered at for tracking: 0 = the
                                      # input resolution, 1 = half (range-checked 3×3 mean, ¼ the surfels); -1 =
                                      # auto, the finest level at most 320 px wide. Redkitchen 500 frames at
                                      # 640×480: level 0 → 4.6 cm at 3.0 fps, level 1 → 4.0 cm at 9.4 fps
     grow: bool = True                # when full: reallocate ×2 (True) or stop with an error (False)
-    dist_threshold: float = 0.03     # metres: stricter than ICP association
-    normal_threshold_deg: float = 20.0
+    dist_threshold: Positive = 0.03  # metres: stricter than ICP association
+    normal_threshold_deg: Degrees = 20.0
     confidence_weighting: bool = True  # weight measurements by radial distance from the image centre
     remove_unstable: bool = True     # drop surfels with low confidence not seen for `unstable_age` frames
-    unstable_weight: float = 3.0
-    unstable_age: int = 20
+    unstable_weight: NonNegative = 3.0
+    unstable_age: NonNegativeInt = 20
     remove_free_space: bool = False  # drop surfels observed clearly in front of the measured surface
-    free_space_margin: float = 0.05  # metres
+    free_space_margin: NonNegative = 0.05  # metres
     depth_weighting: bool = False    # measurement weight also × (σ(1 m)/σ(z))², capped at 4 (Kinect depth noise)
-    confidence_sigma: float = 0.6    # Keller's σ: measurement weight exp(−γ²/2σ²), γ = radial distance / max
-    association: str = "compatible"     # a pixel merges into: nearest = its nearest surfel if that one passes
+    confidence_sigma: Positive = 0.6  # Keller's σ: measurement weight exp(−γ²/2σ²), γ = radial distance / max
+    association: Annotated[str, OneOf("nearest", "compatible")] = "compatible"
+                                     # a pixel merges into: nearest = its nearest surfel if that one passes
                                      # filter 2 | compatible = the nearest of its surfels that pass (Keller)
     skip_covered: bool = True        # a pixel on the disc of a surfel merged at a neighbouring pixel adds no
                                      # surfel (keeps the map from growing at every frame)
-    render_min_weight: float = 0.0   # rendering for tracking: only surfels at least this confident (Keller's
+    render_min_weight: NonNegative = 0.0  # rendering for tracking: only surfels at least this confident (Keller's
                                      # stable points; from frame unstable_age on, before that all surfels).
                                      # Redkitchen 500 frames: 1 / 2 / 4 → ATE 2.77 / 2.81 / 2.80 cm vs 2.73 at 0
-    render_max_half: int = 0         # rendering for tracking: a surfel's disc reaches at most this many pixels
+    render_max_half: NonNegativeInt = 0  # rendering for tracking: a surfel's disc reaches at most this many pixels
                                      # from its centre. 0: each pixel shows its own front surfel; 1 dilated
                                      # occluding edges by a pixel and cost ATE (redkitchen 320×240: 4.5 → 3.4 cm)
-    view_back: float = 1.0           # PNG views: metres the first camera is pulled back along its axis
+    view_back: Annotated[float, Range()] = 1.0  # PNG views: metres the first camera is pulled back along its axis
 
     def map_level(self, width: int) -> int:
         """``level`` for frames ``width`` pixels wide (resolves -1 = auto)."""
@@ -141,13 +358,15 @@ class FusionConfig:
 
 @dataclass
 class SLAMConfig:
-    tracking: str = "model"          # model: align to the map rendered at the last pose | frame: previous frame
+    tracking: Annotated[str, OneOf("model", "frame")] = "model"
+                                     # model: align to the map rendered at the last pose | frame: previous frame
     motion_model: bool = True        # constant-velocity initialisation
-    min_inlier_ratio: float = 0.15   # below → tracking failure (frame not fused)
-    max_residual: float = 0.02       # metres RMS: above → tracking failure
-    max_update_deg: float = 20.0     # pose change against the motion model above this → failure
-    max_update_m: float = 0.3
-    relocalise: str = "features"     # features | none: after a failure, re-initialise with ORB+PnP
+    min_inlier_ratio: Fraction = 0.15  # below → tracking failure (frame not fused)
+    max_residual: Positive = 0.02    # metres RMS: above → tracking failure
+    max_update_deg: Positive = 20.0  # pose change against the motion model above this → failure
+    max_update_m: Positive = 0.3
+    relocalise: Annotated[str, OneOf("features", "none")] = "features"
+                                     # after a failure, re-initialise with ORB+PnP (features) or not (none)
     anchor_to_ground_truth: bool = True  # start at the first frame's GT pose (same frame as GT in viewers)
     track_at_map_level: bool = True  # with fusion.level > 0, average the frame down to the map's resolution
                                      # before smoothing and tracking (False: smooth and track at the input
@@ -157,26 +376,27 @@ class SLAMConfig:
 
 @dataclass
 class VOConfig:
-    n_features: int = 1000           # ORB keypoints per frame at most (cv2.ORB_create(n_features))
-    match: str = "min_distance"      # min_distance: d < max(4·d_min, floor) | ratio: Lowe's ratio test
-    min_distance_factor: float = 4.0  # min_distance mode: good = Hamming distance < factor · d_min ...
-    min_distance_floor: float = 30.0  # ... or below this floor (so near-identical frames keep matches)
-    ratio: float = 0.8               # ratio mode: best distance < ratio · second best (knnMatch k=2)
-    min_good_match: int = 10         # fewer good matches → frame rejected
-    min_inliers: int = 5             # fewer RANSAC inliers → frame rejected
-    min_inliers_init: int = 20       # ICP initialiser / re-localisation (no motion-size check): fewer → no estimate
-    max_norm: float = 0.3            # ‖Δt‖ + min(2π − ‖r‖, ‖r‖) above this → frame rejected
-    ransac_reprojection_px: float = 3.0  # RANSAC inlier threshold on the reprojection error (pixels)
-    ransac_iterations: int = 300     # RANSAC hypotheses at most (fewer once 0.99 confidence is reached)
-    voxel_size: float = 0.02         # metres: downsampling of the joined cloud
-    cloud_stride: int = 4            # joined cloud: back-project every N-th pixel in u and v of each frame
+    n_features: Count = 1000         # ORB keypoints per frame at most (cv2.ORB_create(n_features))
+    match: Annotated[str, OneOf("min_distance", "ratio")] = "min_distance"
+                                     # min_distance: d < max(4·d_min, floor) | ratio: Lowe's ratio test
+    min_distance_factor: Positive = 4.0  # min_distance mode: good = Hamming distance < factor · d_min ...
+    min_distance_floor: NonNegative = 30.0  # ... or below this floor (so near-identical frames keep matches)
+    ratio: Annotated[float, Range(gt=0, le=1)] = 0.8  # ratio mode: best distance < ratio · second best (knnMatch k=2)
+    min_good_match: NonNegativeInt = 10  # fewer good matches → frame rejected
+    min_inliers: NonNegativeInt = 5  # fewer RANSAC inliers → frame rejected
+    min_inliers_init: NonNegativeInt = 20  # ICP initialiser / re-localisation (no motion-size check): fewer → none
+    max_norm: Positive = 0.3         # ‖Δt‖ + min(2π − ‖r‖, ‖r‖) above this → frame rejected
+    ransac_reprojection_px: Positive = 3.0  # RANSAC inlier threshold on the reprojection error (pixels)
+    ransac_iterations: Count = 300   # RANSAC hypotheses at most (fewer once 0.99 confidence is reached)
+    voxel_size: Positive = 0.02      # metres: downsampling of the joined cloud
+    cloud_stride: Count = 4          # joined cloud: back-project every N-th pixel in u and v of each frame
 
 
 @dataclass
 class LogConfig:
-    map_every: int = 30              # frames between /map/points messages (and one at the end)
-    map_max_points: int = 200_000    # /map/points is downsampled to at most this many points
-    depth_every: int = 10            # frames between /camera/depth images
+    map_every: NonNegativeInt = 30   # frames between /map/points messages (and one at the end); 0 = at the end only
+    map_max_points: Count = 200_000  # /map/points is downsampled to at most this many points
+    depth_every: NonNegativeInt = 10  # frames between /camera/depth images; 0 = none
     progress: bool = True            # progress bar on the terminal
 
 
@@ -226,20 +446,38 @@ def _read_file(path: Path) -> dict:
     raise InputError(path, "config must be .toml, .yaml/.yml or .json")
 
 
-def _set_field(section_obj: Any, key: str, value: Any, where: str) -> None:
+def _show(value: Any) -> str:
+    """A value as the user wrote it, near enough: text quoted, None as None."""
+    return repr(value) if isinstance(value, str) else json.dumps(value) if isinstance(value, list) else str(value)
+
+
+def check_value(section: str, key: str, value: Any, where: str = "config") -> Any:
+    """``value`` for ``section.key`` as its field's type, or InputError: one line naming the key, the value
+    and what the field allows (``where``: the file, or --set)."""
+    rule = rules(type(getattr(Config(), section)))[key]
+    try:
+        return rule.check(value)
+    except ValueError:
+        raise InputError(None, f"{where}: {section}.{key} = {_show(value)}: must be {rule.describe()}") from None
+
+
+def check_config(config: Config, where: str = "config") -> Config:
+    """Every field of ``config`` checked against its rule (for a config built in Python)."""
+    for section in dataclasses.fields(config):
+        values = getattr(config, section.name)
+        for key in rules(type(values)):
+            setattr(values, key, check_value(section.name, key, getattr(values, key), where))
+    return config
+
+
+def _set_field(config: Config, section: str, key: str, value: Any, where: str) -> None:
+    """Set ``section.key`` (or the setting it moved to) to ``value`` checked against its rule."""
+    to_section, to_key = MOVED.get((section, key), (section, key))
+    section_obj = getattr(config, to_section)
     names = {f.name for f in dataclasses.fields(section_obj)}
-    if key not in names:
-        raise InputError(None, f"{where}: unknown setting {key!r} (known: {', '.join(sorted(names))})")
-    current = getattr(section_obj, key)
-    if isinstance(current, bool):
-        if isinstance(value, str):
-            value = value.lower() in ("1", "true", "yes", "on")
-        value = bool(value)
-    elif isinstance(current, int) and not isinstance(value, bool) and isinstance(value, (int, float)):
-        value = int(value)
-    elif isinstance(current, float) and isinstance(value, (int, float)):
-        value = float(value)
-    setattr(section_obj, key, value)
+    if to_key not in names:
+        raise InputError(None, f"{where} [{section}]: unknown setting {key!r} (known: {', '.join(sorted(names))})")
+    setattr(section_obj, to_key, check_value(to_section, to_key, value, where))
 
 
 # Settings that moved to another section: the old name still sets the new one.
@@ -252,26 +490,38 @@ def apply_dict(config: Config, data: dict, where: str = "config") -> Config:
         if not hasattr(config, section) or not isinstance(values, dict):
             raise InputError(None, f"{where}: unknown section {section!r}")
         for key, value in values.items():
-            to_section, to_key = MOVED.get((section, key), (section, key))
-            _set_field(getattr(config, to_section), to_key, value, f"{where} [{section}]")
+            _set_field(config, section, key, value, where)
     return config
 
 
 def parse_override(text: str) -> tuple[str, str, Any]:
-    """``"icp.iterations=[10,5,4]"`` → ("icp", "iterations", [10, 5, 4])."""
+    """``"icp.iterations=[10,5,4]"`` → ("icp", "iterations", [10, 5, 4]). A text field takes the text as
+    written (``dataset.path=2023`` is the folder "2023", not a number)."""
     if "=" not in text or "." not in text.split("=", 1)[0]:
         raise InputError(None, f"--set {text!r}: expected SECTION.KEY=VALUE, e.g. icp.dist_threshold=0.05")
     lhs, rhs = text.split("=", 1)
-    section, key = lhs.strip().split(".", 1)
+    section, key = (part.strip() for part in lhs.split(".", 1))
+    rhs = rhs.strip()
     try:
-        value = ast.literal_eval(rhs.strip())
+        value = ast.literal_eval(rhs)
     except (ValueError, SyntaxError):
-        value = rhs.strip()
+        value = rhs
+    if not isinstance(value, str) and _kind(*MOVED.get((section, key), (section, key))) is str:
+        value = rhs
     return section, key, value
 
 
+def _kind(section: str, key: str) -> type | None:
+    """The type of field ``section.key`` (None when there is no such field)."""
+    section_type = type(getattr(Config(), section, None))
+    if not dataclasses.is_dataclass(section_type):
+        return None
+    rule = rules(section_type).get(key)
+    return rule.kind if rule else None
+
+
 def load_config(path: str | Path | None = None, overrides: list[str] | None = None) -> Config:
-    """Defaults, then the file (if any), then ``--set`` overrides."""
+    """Defaults, then the file (if any), then ``--set`` overrides; every value checked as it is set."""
     config = Config()
     if path:
         apply_dict(config, _read_file(Path(path)), where=str(path))

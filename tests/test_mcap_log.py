@@ -1,5 +1,6 @@
 """The MCAP run log: written, read back with the mcap reader, every channel decoded; crash safety;
-``ti-fusion inspect`` on it."""
+the stats schemas declared complete (every message of a slam, vo and fuse run validates against them,
+and docs/LOGS.md names their fields); ``ti-fusion inspect`` on it."""
 
 from __future__ import annotations
 
@@ -132,6 +133,8 @@ def test_every_channel_decodes_with_its_values(written):
     source = {tuple(p): tuple(c) for p, c in zip(w["xyz"][finite], w["rgb"][finite])}
     assert all(source[tuple(p)] == tuple(c[:3]) for p, c in zip(xyz, rgba))  # a subset, colours kept
     assert np.all(rgba[:, 3] == 255)
+    assert cloud.pose.HasField("position") and cloud.pose.HasField("orientation")  # the full identity pose
+    assert cloud.pose.orientation.w == 1.0
 
     depths = [m for _, _, m in msgs["/camera/depth"]]
     assert len(depths) == 3 and depths[0].encoding == "16UC1" and depths[0].frame_id == "camera"
@@ -360,3 +363,136 @@ def test_inspect_on_a_vo_log(tmp_path, capsys):
     assert "tracking failures: 1: 1 (rejected: few_matches)" in capsys.readouterr().out
     ms = json.loads((tmp_path / "o2" / "summary.json").read_text())["ms_per_stage"]
     assert ms == {"total": {"median": 3.0, "max": 4.0}}
+
+
+# --------------------------------------------------------------------------------------------------
+# Declared stats schemas
+
+
+DOCS = Path(__file__).resolve().parents[1] / "docs" / "LOGS.md"
+
+
+def test_declared_schema_is_the_channels_schema(tmp_path):
+    from ti_fusion.io.mcap_log import json_field, json_object
+
+    declared = json_object({"frame": json_field("integer", "index"), "late": json_field("number", "seconds")},
+                           required=("frame",))
+    path = tmp_path / "log.mcap"
+    with RunLogger(path) as log:
+        log.declare_json("/x/stats", declared)
+        log.log_stats(0, {"frame": 0}, "/x/stats")  # the first message lacks "late": the schema still has it
+        log.log_stats(1, {"frame": 1, "late": 0.5}, "/x/stats")
+        with pytest.raises(ValueError, match="declared already"):
+            log.declare_json("/x/stats", declared)
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    (schema,) = summary.schemas.values()
+    assert schema.name == "ti_fusion.XStats" and schema.encoding == "jsonschema"
+    assert json.loads(schema.data) == {"$schema": "https://json-schema.org/draft/2020-12/schema",
+                                       "title": "/x/stats", **declared}
+
+
+def _steps():
+    from ti_fusion.slam.fuse_step import STATS_SCHEMA as FUSE
+    from ti_fusion.slam.slam_step import STATS_SCHEMA as SLAM
+    from ti_fusion.slam.vo_step import STATS_SCHEMA as VO
+
+    return {"/slam/stats": SLAM, "/vo/stats": VO, "/fuse/stats": FUSE}
+
+
+def _field_names(schema: dict, prefix: str = "") -> list[str]:
+    """Every property of a schema as a message path: frame, ms.track, icp.inlier_ratio, ..."""
+    names = []
+    for name, sub in schema.get("properties", {}).items():
+        names.append(prefix + name)
+        names += _field_names(sub, prefix + name + ".")
+    return names
+
+
+def test_docs_name_every_stats_field():
+    docs = DOCS.read_text()
+    for topic, schema in _steps().items():
+        assert f"`{topic}`" in docs
+        for name in _field_names(schema):
+            assert f"`{name}`" in docs, f"docs/LOGS.md does not describe {topic} field {name}"
+
+
+class _BlankDepth:
+    """The dataset with no valid depth in frame ``blank``: a lost frame, with its ICP's nulls."""
+
+    def __init__(self, dataset, blank: int):
+        self.dataset, self.blank = dataset, blank
+
+    def __getattr__(self, name):
+        return getattr(self.dataset, name)
+
+    def __len__(self):
+        return len(self.dataset)
+
+    def __getitem__(self, i):
+        frame = self.dataset[i]
+        if i == self.blank:
+            frame.depth = np.zeros_like(frame.depth)
+        return frame
+
+
+def _run(command: str, out: Path) -> None:
+    from ti_fusion.backend import current_backend
+    from ti_fusion.config import Config
+    from ti_fusion.io.datasets import open_dataset
+    from ti_fusion.io.outputs import RunDir
+    from ti_fusion.slam.pipeline import Pipeline
+
+    cfg = Config()
+    cfg.dataset.downsample, cfg.dataset.stop = 4, 7
+    cfg.log.progress, cfg.log.depth_every, cfg.log.map_every = False, 3, 4
+    dataset = _BlankDepth(open_dataset(cfg.dataset, cfg.synth), blank=5 if command == "slam" else -1)
+    if command == "slam":
+        from ti_fusion.slam.slam_step import SLAMStep as Step
+    elif command == "vo":
+        from ti_fusion.slam.vo_step import VOStep as Step
+    else:
+        from ti_fusion.slam.fuse_step import FuseStep as Step
+    backend = None if command == "vo" else current_backend()
+    Pipeline(dataset, cfg, RunDir(command, out), Step(cfg, dataset), backend, show_progress=False).run()
+
+
+@pytest.mark.parametrize("command", ["slam", "vo", "fuse"])
+def test_every_stats_message_validates_against_the_declared_schema(cpu, tmp_path, command):
+    """Every message of a run (a lost frame included for slam) against its channel's schema, which is the
+    step's, complete from the first message on; colour and calibration are written beside depth."""
+    import cv2
+    import jsonschema
+
+    _run(command, tmp_path / command)
+    msgs = _decode_all(tmp_path / command / "log.mcap")
+    topic = f"/{command}/stats"
+    with open(tmp_path / command / "log.mcap", "rb") as f:
+        summary = make_reader(f).get_summary()
+    (schema,) = [json.loads(s.data) for s in summary.schemas.values() if s.encoding == "jsonschema"]
+    jsonschema.Draft202012Validator.check_schema(schema)
+    declared = _steps()[topic]
+    assert {k: v for k, v in schema.items() if k not in ("$schema", "title")} == {
+        **declared, "properties": {**declared["properties"], "ms": schema["properties"]["ms"]}}
+    assert set(declared["properties"]["ms"]["properties"]) | {"load", "log"} == set(
+        schema["properties"]["ms"]["properties"])
+    validator = jsonschema.Draft202012Validator(schema)
+    stats = [m for _, _, m in msgs[topic]]
+    assert len(stats) == 7
+    for message in stats:
+        errors = [f"{'.'.join(map(str, e.absolute_path))}: {e.message}" for e in validator.iter_errors(message)]
+        assert not errors, (message, errors)
+    if command == "slam":
+        assert stats[5]["status"].startswith("lost") and "icp" in stats[5] and "fuse" not in stats[5]["ms"]
+        assert "icp" not in stats[0] and "track" in stats[1]["ms"]
+
+    depth_times = [t for t, _, _ in msgs["/camera/depth"]]
+    assert depth_times == [t for t, _, _ in msgs["/camera/color"]] and len(depth_times) == 3
+    jpeg = msgs["/camera/color"][0][2]
+    assert jpeg.format == "jpeg" and jpeg.frame_id == "camera"
+    depth = msgs["/camera/depth"][0][2]
+    assert cv2.imdecode(np.frombuffer(jpeg.data, np.uint8), cv2.IMREAD_COLOR).shape == (depth.height,
+                                                                                           depth.width, 3)
+    ((t_calib, _, calib),) = msgs["/camera/calibration"]  # once: the intrinsics do not change
+    assert t_calib == depth_times[0] and (calib.width, calib.height) == (depth.width, depth.height)
+    assert calib.frame_id == "camera" and calib.K[0] > 0 and calib.K[8] == 1

@@ -5,22 +5,29 @@ Channels (log time = the frame's dataset timestamp; ``docs/LOGS.md`` has the ful
     /tf                 foxglove.FrameTransforms   protobuf  world → camera, once per frame
     /camera/pose        foxglove.PoseInFrame       protobuf  estimated camera-to-world pose, frame "world"
     /gt/pose            foxglove.PoseInFrame       protobuf  ground truth, when the dataset has it
-    /slam/stats         ti_fusion.SlamStats        json      one free-form dict per frame
+    /slam/stats         ti_fusion.SlamStats        json      one dict per frame, its JSON Schema declared
     /map/points         foxglove.PointCloud        protobuf  x,y,z float32 + red,green,blue,alpha uint8
     /camera/depth       foxglove.RawImage          protobuf  16UC1, millimetres, 0 = no depth
-    /camera/color       foxglove.CompressedImage   protobuf  jpeg or png (optional)
-    /camera/calibration foxglove.CameraCalibration protobuf  pinhole K, P (optional)
+    /camera/color       foxglove.CompressedImage   protobuf  jpeg (or png)
+    /camera/calibration foxglove.CameraCalibration protobuf  pinhole K, P
 
 Why this encoding. The geometry channels use Foxglove's official protobuf schemas from
 ``foxglove-schemas-protobuf``: the schema names are the ones Foxglove recognises, the messages are
 compact binary (a 200 000-point cloud is 3.2 MB of packed floats, not base64 text inside JSON), the
 file carries the FileDescriptorSet so any reader can decode it without our code, and the generated
-classes catch field typos when we write. The stats channel is different: its fields change as the
-SLAM loop and the feature odometry grow, and a protobuf message for it would have to be defined,
-compiled and versioned each time. It is plain JSON (message encoding ``json``, schema encoding
-``jsonschema``, a JSON Schema inferred from the first message so Foxglove can autocomplete message
-paths in the Plot panel). MCAP allows a different encoding per channel, so one file mixes both.
+classes catch field typos when we write. The stats channels are different: their fields change as the
+SLAM loop and the feature odometry grow, and a protobuf message for them would have to be compiled and
+versioned each time. They are plain JSON (message encoding ``json``, schema encoding ``jsonschema``):
+the command declares each one's JSON Schema before its first message (``declare_json``), so Foxglove
+autocompletes every message path in the Plot panel and a test validates every message against it. MCAP
+allows a different encoding per channel, so one file mixes both.
 Depth is 16UC1 millimetres: half the size of 32FC1, lossless for 7-Scenes (TUM's 0.2 mm steps round to 1 mm).
+
+Two sinks, one path. With a live sink (``ti_fusion.io.live.LiveServer``) every message that goes into
+the file also goes, as the same bytes on a channel with the same schema, to the Foxglove WebSocket
+clients subscribed to its topic; with no client subscribed a message costs the live sink one set
+look-up. Map clouds are the exception: the live view gets its own, smaller and at a bounded rate
+(``log_points(..., file=False)``), so that watching a run does not slow it.
 
 Crash safety. ``RunLogger`` is a context manager that writes the summary and footer on normal exit,
 on an exception and on Ctrl-C (KeyboardInterrupt passes through ``__exit__``); a logger left open
@@ -68,6 +75,7 @@ from ti_fusion.io.outputs import jsonable
 WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
 STATS_TOPIC = "/slam/stats"
+JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
 # Small chunks: a run killed with SIGKILL loses at most one open chunk (about 90 frames of poses and
@@ -88,6 +96,21 @@ def software_versions() -> dict[str, str]:
     return out
 
 
+def json_object(properties: dict[str, dict], required: tuple[str, ...] = (), description: str = "") -> dict:
+    """A JSON Schema object with these properties and no others (a field that a message gains without its
+    schema fails validation), the ``required`` ones in every message."""
+    schema = {"type": "object", "properties": properties, "required": list(required),
+              "additionalProperties": False}
+    return {"description": description, **schema} if description else schema
+
+
+def json_field(kind: str | list[str], description: str, **extra) -> dict:
+    """A JSON Schema leaf: ``kind`` "integer", "number", "string", "boolean", or a list such as ["number",
+    "null"] (a float that may be NaN or infinite, which JSON writes as null); units go in the description
+    unless the name has them."""
+    return {"type": kind, "description": description, **extra}
+
+
 # --------------------------------------------------------------------------------------------------
 # Writing
 
@@ -98,17 +121,20 @@ class RunLogger:
     ``metadata`` maps a record name ("config", "dataset", "backend", "versions") to a dict; MCAP
     metadata is str → str, so values that are not strings are stored JSON-encoded.
     Times ``t`` are in seconds (the frame's dataset timestamp); they become nanosecond log times.
+    ``live``: a second sink (``ti_fusion.io.live.LiveServer``) that gets every message too, and is closed
+    with the log.
     """
 
     def __init__(self, path: str | Path, metadata: dict[str, dict] | None = None,
-                 chunk_size: int = DEFAULT_CHUNK_SIZE):
+                 chunk_size: int = DEFAULT_CHUNK_SIZE, live=None):
+        self.live = live
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = _LogFile(self.path)
         self._writer = McapWriter(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
         self._writer.start(profile="", library=f"ti-fusion {_package_version()}")
         self._channels: dict[str, tuple[int, str]] = {}  # topic → (channel id, schema name)
-        self._schemas: dict[str, int] = {}               # protobuf schema name → schema id
+        self._schemas: dict[tuple[str, str], int] = {}   # (schema name, encoding) → schema id
         self._last_ns = 0
         self._warned_time = False
         self.closed = False
@@ -126,10 +152,14 @@ class RunLogger:
         return False  # let the exception (or Ctrl-C) continue
 
     def close(self) -> None:
-        """Write the summary and footer and close the file (idempotent)."""
+        """Write the summary and footer and close the file, and stop the live sink (idempotent)."""
         if not self.closed:
             self.closed = True
-            self._finalizer()  # runs _finish once, then detaches
+            try:
+                self._finalizer()  # runs _finish once, then detaches
+            finally:
+                if self.live is not None:
+                    self.live.close()
 
     # -- channels ---------------------------------------------------------------------------------
     def log_metadata(self, name: str, record: dict) -> None:
@@ -154,43 +184,61 @@ class RunLogger:
                 self._write_proto("/gt/pose", _pose_in_frame(ns, gt_pose), ns)
         self._file.flush()
 
+    def declare_json(self, topic: str, schema: dict) -> None:
+        """Declare a JSON channel and its JSON Schema before its first message (the schema record is named
+        after the topic: /slam/stats → ti_fusion.SlamStats)."""
+        if topic in self._channels:
+            raise ValueError(f"{topic} is declared already")
+        schema = {"$schema": JSON_SCHEMA_DIALECT, "title": topic, **schema}
+        self._add_channel(topic, _stats_schema_name(topic), SchemaEncoding.JSONSchema,
+                          json.dumps(schema).encode(), MessageEncoding.JSON)
+        self._file.flush()
+
     def log_stats(self, t: float, stats: dict, channel: str = STATS_TOPIC) -> None:
-        """One JSON message: any dict of numbers, strings, lists, nested dicts (NumPy values welcome)."""
+        """One JSON message: any dict of numbers, strings, lists, nested dicts (NumPy values welcome; NaN
+        and infinities become null). A channel that was not declared gets a schema inferred from its first
+        message."""
         if not isinstance(stats, dict):
             raise TypeError(f"stats must be a dict, got {type(stats).__name__}")
         ns = self._ns(t)
         message = jsonable(stats)
-        channel_id = self._channels.get(channel, (None,))[0]
-        if channel_id is None:
-            schema = {"$schema": "https://json-schema.org/draft/2020-12/schema",
-                      "title": channel, **_json_schema_of(message)}
-            schema_id = self._writer.register_schema(
-                name=_stats_schema_name(channel), encoding=SchemaEncoding.JSONSchema,
-                data=json.dumps(schema).encode())
-            channel_id = self._writer.register_channel(channel, MessageEncoding.JSON, schema_id)
-            self._channels[channel] = (channel_id, _stats_schema_name(channel))
+        if channel not in self._channels:
+            self.declare_json(channel, _json_schema_of(message))
         data = json.dumps(message, separators=(",", ":"), allow_nan=False).encode()
-        self._writer.add_message(channel_id, log_time=ns, data=data, publish_time=ns)
+        self._write(channel, data, ns)
         self._file.flush()
 
     def log_points(self, t: float, xyz: np.ndarray, rgb: np.ndarray | None = None,
-                   topic: str = "/map/points", max_points: int = 200_000) -> int:
-        """A world-frame point cloud; at most ``max_points`` (a fixed-seed random subset). Returns the count.
+                   topic: str = "/map/points", max_points: int = 200_000, file: bool = True,
+                   live: bool = True) -> int:
+        """A world-frame point cloud; at most ``max_points`` (a fixed-seed random subset). Returns the count
+        written to the file (``file=False``: sent to the live sink).
 
-        ``rgb``: N×3 (or N×4) uint8 0–255, or floats in 0–1.
+        ``rgb``: N×3 (or N×4) uint8 0–255, or floats in 0–1. The live sink gets the cloud only while a
+        client subscribes to ``topic``, and at most its own ``max_points`` of it.
         """
         ns = self._ns(t)
         xyz = np.asarray(xyz).reshape(-1, 3)
         if rgb is not None and len(rgb) != len(xyz):
             raise ValueError(f"rgb has {len(rgb)} rows for {len(xyz)} points")
-        idx = np.flatnonzero(np.isfinite(xyz[:, 0] + xyz[:, 1] + xyz[:, 2]))  # NaN/inf anywhere → dropped
-        if len(idx) > max_points:  # select first, convert only the points kept
-            idx = np.sort(np.random.default_rng(_POINTS_SEED).choice(idx, max_points, replace=False))
-        colours = None if rgb is None else _as_rgba8(np.asarray(rgb)[idx], len(idx))
-        xyz = xyz[idx].astype(np.float32)
-        self._write_proto(topic, _point_cloud(ns, xyz, colours), ns)
-        self._file.flush()
-        return len(xyz)
+        finite = np.flatnonzero(np.isfinite(xyz[:, 0] + xyz[:, 1] + xyz[:, 2]))  # NaN/inf anywhere → dropped
+        self._proto_channel(topic, PointCloud)  # advertised to live clients even when no cloud is sent
+        to_live = live and self.live is not None and self.live.subscribed(topic)
+        kept = {}  # sink → the indices it gets; both sinks share one message when they get the same
+        if file:
+            kept["file"] = _subset(finite, max_points)
+        if to_live:
+            kept["live"] = _subset(finite, min(max_points, self.live.max_points))
+        shared = file and to_live and len(kept["file"]) == len(kept["live"])
+        if shared:
+            del kept["live"]
+        for sink, idx in kept.items():
+            colours = None if rgb is None else _as_rgba8(np.asarray(rgb)[idx], len(idx))
+            cloud = _point_cloud(ns, xyz[idx].astype(np.float32), colours)
+            self._write_proto(topic, cloud, ns, file=sink == "file", live=sink == "live" or shared)
+        if file:
+            self._file.flush()
+        return len(kept.get("file", kept.get("live", ())))
 
     def log_depth(self, t: float, depth: np.ndarray, topic: str = "/camera/depth") -> None:
         """A depth image in the camera frame as 16UC1 millimetres (0 = no depth).
@@ -258,21 +306,37 @@ class RunLogger:
         self._last_ns = int(round(t * 1e9))
         return self._last_ns
 
-    def _write_proto(self, topic: str, message, ns: int) -> None:
-        name = message.DESCRIPTOR.full_name
+    def _write_proto(self, topic: str, message, ns: int, file: bool = True, live: bool = True) -> None:
+        self._proto_channel(topic, type(message))
+        self._write(topic, message.SerializeToString(), ns, file, live)
+
+    def _proto_channel(self, topic: str, message_type) -> None:
+        name = message_type.DESCRIPTOR.full_name
         entry = self._channels.get(topic)
         if entry is None:
-            schema_id = self._schemas.get(name)
-            if schema_id is None:
-                schema_id = self._writer.register_schema(
-                    name=name, encoding=SchemaEncoding.Protobuf,
-                    data=build_file_descriptor_set(type(message)).SerializeToString())
-                self._schemas[name] = schema_id
-            entry = (self._writer.register_channel(topic, MessageEncoding.Protobuf, schema_id), name)
-            self._channels[topic] = entry
+            self._add_channel(topic, name, SchemaEncoding.Protobuf,
+                              build_file_descriptor_set(message_type).SerializeToString(), MessageEncoding.Protobuf)
         elif entry[1] != name:
             raise ValueError(f"topic {topic} carries {entry[1]}, cannot write a {name}")
-        self._writer.add_message(entry[0], log_time=ns, data=message.SerializeToString(), publish_time=ns)
+
+    def _add_channel(self, topic: str, schema_name: str, schema_encoding: str, schema_data: bytes,
+                     message_encoding: str) -> None:
+        """A new topic: its channel (and its schema, unless another topic has it) in both sinks."""
+        schema_id = self._schemas.get((schema_name, schema_encoding))
+        if schema_id is None:
+            schema_id = self._writer.register_schema(name=schema_name, encoding=schema_encoding, data=schema_data)
+            self._schemas[(schema_name, schema_encoding)] = schema_id
+        channel_id = self._writer.register_channel(topic, message_encoding, schema_id)
+        self._channels[topic] = (channel_id, schema_name)
+        if self.live is not None:
+            self.live.add_channel(topic, message_encoding, schema_name, schema_encoding, schema_data)
+
+    def _write(self, topic: str, data: bytes, ns: int, file: bool = True, live: bool = True) -> None:
+        """One message to the file and to the live sink (which drops it unless a client subscribes)."""
+        if file:
+            self._writer.add_message(self._channels[topic][0], log_time=ns, data=data, publish_time=ns)
+        if live and self.live is not None:
+            self.live.log(topic, data, ns)
 
 
 class _LogFile:
@@ -372,11 +436,20 @@ def _point_cloud(ns: int, xyz: np.ndarray, rgba: np.ndarray | None) -> PointClou
         packed["red"], packed["green"], packed["blue"], packed["alpha"] = rgba.T
     msg = PointCloud(frame_id=WORLD_FRAME, point_stride=packed.dtype.itemsize, data=packed.tobytes())
     _set_stamp(msg.timestamp, ns)
-    msg.pose.orientation.w = 1.0  # the cloud's origin is the world origin
+    msg.pose.position.SetInParent()  # the cloud's origin is the world origin: position (0, 0, 0) ...
+    msg.pose.orientation.w = 1.0     # ... and the identity rotation, both set
     for name, _ in names:
         kind = PackedElementField.FLOAT32 if name in "xyz" else PackedElementField.UINT8
         msg.fields.add(name=name, offset=packed.dtype.fields[name][1], type=kind)
     return msg
+
+
+def _subset(idx: np.ndarray, max_points: int) -> np.ndarray:
+    """At most ``max_points`` of ``idx``: a fixed-seed random subset in order, so the same cloud always gives
+    the same points."""
+    if len(idx) <= max_points:
+        return idx
+    return np.sort(np.random.default_rng(_POINTS_SEED).choice(idx, max_points, replace=False))
 
 
 def _json_schema_of(value) -> dict:
@@ -577,5 +650,5 @@ def depth_from_msg(msg: RawImage) -> np.ndarray:
     raise ValueError(f"not a depth encoding: {msg.encoding}")
 
 
-__all__ = ["RunLogger", "read_log", "LogContents", "ChannelInfo", "software_versions",
+__all__ = ["RunLogger", "read_log", "LogContents", "ChannelInfo", "software_versions", "json_object", "json_field",
            "pose_from_msg", "points_from_msg", "depth_from_msg", "STATS_TOPIC"]

@@ -15,10 +15,37 @@ import numpy as np
 from ti_fusion.config import Config
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets.base import Dataset, Frame
+from ti_fusion.io.mcap_log import json_field, json_object
 from ti_fusion.kernels.maps import FrameMaps
 from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
 from ti_fusion.mapping.views import save_views, view_pose
 from ti_fusion.slam.timing import StageTimer
+
+
+_MS = "milliseconds, a part of fuse"
+
+# The /fuse/stats message, every field (the pipeline adds ms.load and ms.log).
+STATS_SCHEMA = json_object({
+    "frame": json_field("integer", "index of the frame in the run (0 = the first frame selected)"),
+    "status": json_field("string", '"ok": every frame is fused, at its ground-truth pose'),
+    "surfels": json_field("integer", "surfels in the map after this frame", minimum=0),
+    "merged": json_field("integer", "pixels averaged into an existing surfel", minimum=0),
+    "added": json_field("integer", "new surfels", minimum=0),
+    "covered": json_field("integer", "valid pixels neither merged nor added, because a neighbour's merged surfel "
+                                     "covers them", minimum=0),
+    "removed": json_field("integer", "surfels removed (unstable, or in front of the measured surface)",
+                          minimum=0),
+    "ms": json_object({
+        "maps": json_field("number", "the frame's depth, vertex and normal pyramids, milliseconds"),
+        "project": json_field("number", "projecting the map into the frame and associating, " + _MS),
+        "filter": json_field("number", "the second association pass (nearest association only), " + _MS),
+        "merge": json_field("number", "averaging associated pixels into their surfels, " + _MS),
+        "add": json_field("number", "adding unassociated pixels as new surfels, " + _MS),
+        "remove": json_field("number", "removing unstable and free-space surfels, " + _MS),
+        "fuse": json_field("number", "fusing the frame into the map (project to remove), milliseconds"),
+    }, required=("maps", "project", "filter", "merge", "add", "remove", "fuse"),
+        description="time per stage, milliseconds"),
+}, required=("frame", "status", "surfels", "merged", "added", "covered", "removed", "ms"))
 
 
 @dataclass
@@ -37,6 +64,7 @@ class FuseStep:
 
     name = "fuse"
     stats_channel = "/fuse/stats"
+    stats_schema = STATS_SCHEMA
     stages = ("maps", "fuse")  # "fuse" is the sum of the mapper's stages (project ... remove)
     warmup_frames = 1  # the first frame compiles the kernels
     estimates_poses = False

@@ -11,6 +11,7 @@ finalised ``log.mcap`` and a ``trajectory.tum``.
 
 from __future__ import annotations
 
+import copy
 import time
 from typing import Any, Protocol
 
@@ -36,6 +37,7 @@ class Step(Protocol):
 
     name: str                 # the command: the progress bar's label
     stats_channel: str        # the log channel of the per-frame stats, e.g. "/slam/stats"
+    stats_schema: dict        # the JSON Schema of its messages, every field (the pipeline adds ms.load, ms.log)
     stages: tuple[str, ...]   # the keys of ``result.ms`` that fps_processing counts (with the pipeline's "log")
     warmup_frames: int        # the first frames, which compile kernels: left out of fps_processing and ms_per_stage
     estimates_poses: bool     # poses are estimates: evaluated against ground truth and plotted
@@ -62,8 +64,9 @@ class Pipeline:
     """Runs a ``Step`` over every frame of a dataset and writes the run's outputs into ``run_dir``."""
 
     def __init__(self, dataset: Dataset, config: Config, run_dir: RunDir, step: Step,
-                 backend: BackendInfo | None = None, show_progress: bool = True):
+                 backend: BackendInfo | None = None, show_progress: bool = True, live=None):
         self.dataset = dataset
+        self.live = live  # a LiveServer (ti_fusion.io.live) that the log feeds too, or None
         self.config = config
         self.out = run_dir
         self.step = step
@@ -72,12 +75,14 @@ class Pipeline:
         self.timer = StageTimer()
         self.results: list = []  # the step's result of every frame done
         self.gt: list[np.ndarray | None] = []  # and the frame's ground-truth pose
+        self._calibration = None  # the intrinsics last logged on /camera/calibration
 
     def run(self) -> dict:
         if len(self.dataset) == 0:
             raise InputError(self.dataset.root, "no frames selected (check --start/--stop/--frames)")
         t_start = time.perf_counter()
-        with RunLogger(self.out.file("log.mcap"), self._metadata()) as log:
+        with RunLogger(self.out.file("log.mcap"), self._metadata(), live=self.live) as log:
+            log.declare_json(self.step.stats_channel, self._stats_schema())
             try:
                 self._loop(log)
             finally:  # whatever ended the loop: keep the trajectory so far, and the map in the log
@@ -111,17 +116,36 @@ class Pipeline:
 
     def _log_frame(self, log: RunLogger, i: int, frame: Frame, result) -> None:
         cfg = self.config.log
+        if frame.intrinsics != self._calibration:
+            log.log_calibration(frame.timestamp, frame.intrinsics)
+            self._calibration = frame.intrinsics
         if result.pose is not None:
             log.log_pose(frame.timestamp, result.pose, frame.gt_pose)
         if cfg.depth_every > 0 and i % cfg.depth_every == 0:
             log.log_depth(frame.timestamp, frame.depth)
-        if cfg.map_every > 0 and i > 0 and i % cfg.map_every == 0:
-            self._log_map(log, frame.timestamp)
+            if frame.color is not None:
+                log.log_image(frame.timestamp, frame.color)
+        to_file = cfg.map_every > 0 and i > 0 and i % cfg.map_every == 0
+        to_live = self.live is not None and self.live.map_due()
+        if to_file or to_live:
+            self._log_map(log, frame.timestamp, to_file, to_live)
 
-    def _log_map(self, log: RunLogger, t: float) -> None:
-        points = self.step.map_points(self.config.log.map_max_points)
+    def _log_map(self, log: RunLogger, t: float, file: bool = True, live: bool = True) -> None:
+        max_points = self.config.log.map_max_points if file else min(self.config.log.map_max_points,
+                                                                      self.live.max_points)
+        points = self.step.map_points(max_points)
         if points is not None:
-            log.log_points(t, *points, max_points=self.config.log.map_max_points)
+            log.log_points(t, *points, max_points=self.config.log.map_max_points, file=file, live=live)
+
+    def _stats_schema(self) -> dict:
+        """The step's stats schema with the two stages the pipeline times itself."""
+        schema = copy.deepcopy(self.step.stats_schema)
+        schema["properties"]["ms"]["properties"].update(
+            load={"type": "number", "description": "reading the frame from the dataset, milliseconds"},
+            log={"type": "number", "description": "logging the frame's poses, images and map (to the file and "
+                                                  "any live view), milliseconds"})
+        return schema
+
 
     def _metadata(self) -> dict:
         backend = NO_BACKEND if self.backend is None else {
@@ -185,7 +209,7 @@ class SLAMPipeline(Pipeline):
     """The run of ``ti-fusion slam``: the pipeline with dense SLAM (``SLAMStep``) as its step."""
 
     def __init__(self, dataset: Dataset, config: Config, run_dir: RunDir, backend: BackendInfo | None,
-                 show_progress: bool = True):
+                 show_progress: bool = True, live=None):
         from ti_fusion.slam.slam_step import SLAMStep  # Taichi: imported by the commands that use it only
 
-        super().__init__(dataset, config, run_dir, SLAMStep(config, dataset), backend, show_progress)
+        super().__init__(dataset, config, run_dir, SLAMStep(config, dataset), backend, show_progress, live)

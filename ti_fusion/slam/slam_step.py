@@ -5,27 +5,64 @@ from __future__ import annotations
 
 from ti_fusion.config import Config
 from ti_fusion.io.datasets.base import Dataset, Frame
+from ti_fusion.io.mcap_log import json_field, json_object
 from ti_fusion.mapping.views import save_views, view_pose
 from ti_fusion.slam.dense import DenseSLAM, FrameResult
 
 
+# The /slam/stats message, every field (docs/LOGS.md shows one; the pipeline adds ms.load and ms.log).
+STATS_SCHEMA = json_object({
+    "frame": json_field("integer", "index of the frame in the run (0 = the first frame selected)"),
+    "status": json_field("string", '"ok" (a tracked frame, the first one included), "relocalised", or '
+                                   '"lost: <reason>" (not fused; its pose is the motion model\'s)'),
+    "tracking": json_field("string", 'the tracker\'s own word: "init" for the first frame, else as status'),
+    "surfels": json_field("integer", "surfels in the map after this frame"),
+    "ms": json_object({
+        "maps": json_field("number", "the frame's depth, vertex and normal pyramids, milliseconds"),
+        "track": json_field("number", "rendering the model and ICP (with feature relocalisation when it runs), "
+                                      "milliseconds; every frame but the first"),
+        "fuse": json_field("number", "fusing the frame into the map, milliseconds; fused frames only"),
+    }, required=("maps",), description="time per stage, milliseconds"),
+    "icp": json_object({
+        "iterations": json_field("array", "iterations run at each pyramid level, index = level (0 = finest)",
+                                 items={"type": "integer", "minimum": 0}),
+        "residual_rms_m": json_field(["number", "null"], "RMS point-to-plane residual of the inliers, metres "
+                                                         "(null: no inliers)"),
+        "inliers": json_field("integer", "correspondences of the last iteration", minimum=0),
+        "inlier_ratio": json_field("number", "inliers / valid pixels of the rendered model, 0 to 1",
+                                   minimum=0, maximum=1),
+        "condition": json_field(["number", "null"], "condition number of AᵀA, dimensionless (null: not "
+                                                    "computed or infinite)"),
+        "update_norm": json_field(["number", "null"], "norm of the last se(3) update (radians and metres "
+                                                      "together), the convergence test's value"),
+    }, required=("iterations", "residual_rms_m", "inliers", "inlier_ratio", "condition", "update_norm"),
+        description="the frame's ICP against the model, of its last iteration; every frame but the first"),
+    "merged": json_field("integer", "pixels averaged into an existing surfel; fused frames only", minimum=0),
+    "added": json_field("integer", "new surfels; fused frames only", minimum=0),
+    "covered": json_field("integer", "valid pixels neither merged nor added, because a neighbour's merged surfel "
+                                     "covers them; fused frames only", minimum=0),
+    "removed": json_field("integer", "surfels removed (unstable, or in front of the measured surface); fused "
+                                     "frames only", minimum=0),
+}, required=("frame", "status", "tracking", "surfels", "ms"))
+
+
 def frame_stats(result: FrameResult, surfels: int) -> dict:
-    """The /slam/stats message of one frame (field names as docs/LOGS.md lists them)."""
+    """The /slam/stats message of one frame (``STATS_SCHEMA``)."""
     stats = {"frame": result.index, "status": "ok" if result.status in ("ok", "init") else result.status,
              "tracking": result.status, "surfels": surfels, "ms": {k: round(v, 3) for k, v in result.ms.items()}}
     icp = result.icp
     if icp is not None:
-        per_level: dict[int, int] = {}
+        per_level = [0] * (max((it.level for it in icp.iterations), default=-1) + 1)
         for it in icp.iterations:
-            per_level[it.level] = per_level.get(it.level, 0) + 1
-        stats.update({
-            "icp_iterations": [per_level.get(level, 0) for level in sorted(per_level)],
+            per_level[it.level] += 1
+        stats["icp"] = {
+            "iterations": per_level,
             "residual_rms_m": icp.residual_rms,
             "inliers": icp.inliers,
             "inlier_ratio": icp.inlier_ratio,
             "condition": icp.condition,
             "update_norm": icp.update_norm,
-        })
+        }
     if result.fusion is not None:
         stats.update({"merged": result.fusion.merged, "added": result.fusion.added,
                       "covered": result.fusion.covered, "removed": result.fusion.removed})
@@ -37,6 +74,7 @@ class SLAMStep:
 
     name = "slam"
     stats_channel = "/slam/stats"
+    stats_schema = STATS_SCHEMA
     stages = ("maps", "track", "fuse")
     warmup_frames = 2  # frame 0 compiles the maps and fusion kernels, frame 1 rendering and ICP
     estimates_poses = True

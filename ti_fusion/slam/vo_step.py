@@ -17,9 +17,32 @@ import numpy as np
 from ti_fusion.config import Config
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets.base import Dataset, Frame
+from ti_fusion.io.mcap_log import json_field, json_object
 from ti_fusion.io.ply import write_ply
 from ti_fusion.mapping.pointcloud import VoxelCloud, backproject
 from ti_fusion.tracking.features import REASONS, FeatureOdometry, VOResult
+
+
+# The /vo/stats message, every field (VOResult.stats() and the step's ms; the pipeline adds ms.load and ms.log).
+STATS_SCHEMA = json_object({
+    "frame": json_field("integer", "index of the frame in the run (0 = the first frame selected)"),
+    "keyframe": json_field("integer", "the frame matched against (the last accepted frame); -1: none yet"),
+    "keypoints": json_field("integer", "ORB keypoints of the frame", minimum=0),
+    "matches": json_field("integer", "keypoint matches with the keyframe", minimum=0),
+    "good": json_field("integer", "matches that pass the match test (vo.match: distance or ratio)", minimum=0),
+    "inliers": json_field("integer", "PnP RANSAC inliers", minimum=0),
+    "motion_norm": json_field("number", "size of the motion from the keyframe, ‖Δt‖ in metres + rotation "
+                                        "angle in radians; -1: no motion estimated"),
+    "accepted": json_field("boolean", "the frame got a pose"),
+    "status": json_field("string", '"accepted" or "rejected: <reason>"'),
+    "reason": json_field("string", 'why the frame was rejected ("" when accepted)'),
+    "ms": json_object({
+        "track": json_field("number", "ORB features, matching and PnP RANSAC, milliseconds"),
+        "cloud": json_field("number", "back-projecting the frame into the joined cloud, milliseconds; accepted "
+                                      "frames only"),
+    }, required=("track",), description="time per stage, milliseconds"),
+}, required=("frame", "keyframe", "keypoints", "matches", "good", "inliers", "motion_norm", "accepted", "status",
+             "reason", "ms"))
 
 
 @dataclass
@@ -47,6 +70,7 @@ class VOStep:
 
     name = "vo"
     stats_channel = "/vo/stats"
+    stats_schema = STATS_SCHEMA
     stages = ("track", "cloud")
     warmup_frames = 0  # OpenCV: nothing to compile
     estimates_poses = True

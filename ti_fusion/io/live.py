@@ -1,0 +1,137 @@
+"""The live view: a run's log served over the Foxglove WebSocket protocol while the run goes on.
+
+    live = LiveServer("127.0.0.1:8765")                 # "0" picks a free port; live.url says where
+    with RunLogger(path, metadata, live=live) as log:   # every message goes to the file and to the clients
+        ...
+
+``RunLogger`` is the one logging path: it hands every message it writes, as the same bytes, on a channel
+with the same schema, to this sink too. The server is the one of Foxglove's SDK (``foxglove-sdk``): it
+runs on its own threads outside the interpreter, and a channel that no client subscribes to drops a
+message at once, so a live run with no client costs nothing measurable. Each client gets a bounded queue
+(the oldest message is dropped when it is full), so a slow client never holds the run up. The map is the
+one message that costs the run to make: the pipeline asks ``map_due()`` and sends a cloud of at most
+``max_points`` points at most every ``map_period_s`` seconds, and only while a client watches it.
+
+The SDK speaks the protocol under the sub-protocol name ``foxglove.sdk.v1``, the same protocol as
+``foxglove.websocket.v1`` renamed; current Foxglove offers both names.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+
+from ti_fusion.errors import InputError
+
+DEFAULT_HOST = "127.0.0.1"  # loopback: a run is not served to the network unless a host is given
+DEFAULT_PORT = 8765         # Foxglove's default for a WebSocket connection
+MAP_TOPIC = "/map/points"
+MAP_PERIOD_S = 1.0          # at most one live map a second ...
+MAP_MAX_POINTS = 50_000     # ... of at most this many points (0.8 MB)
+BACKLOG = 256               # messages queued per client before the oldest is dropped
+LINGER_S = 0.25             # on closing, time for the clients' queues to drain (stopping drops what is queued)
+LATCHED = ("/camera/calibration",)  # logged once: sent again to a client that subscribes later
+
+
+def parse_address(text: str) -> tuple[str, int]:
+    """``[HOST:]PORT`` → (host, port); the host defaults to loopback, port 0 picks a free one."""
+    host, sep, port = str(text).strip().rpartition(":")
+    host = host.strip("[]") if sep else DEFAULT_HOST
+    if not port.isdigit() or int(port) > 65535 or (sep and not host):
+        raise InputError(None, f"--live {text}: expected [HOST:]PORT, e.g. 8765 or 0.0.0.0:8765")
+    return host, int(port)
+
+
+class LiveServer:
+    """A Foxglove WebSocket server fed by ``RunLogger``: channels are advertised as the log creates them."""
+
+    def __init__(self, address: str = str(DEFAULT_PORT), map_period_s: float = MAP_PERIOD_S,
+                 max_points: int = MAP_MAX_POINTS, name: str = "ti-fusion"):
+        import foxglove  # the SDK's native module: loaded by live runs only
+
+        self._foxglove = foxglove
+        self.map_period_s = map_period_s
+        self.max_points = max_points
+        self._context = foxglove.Context()  # this server's channels, apart from any other SDK user's
+        self._channels: dict = {}  # topic → foxglove.Channel
+        self._latched: dict[str, tuple[bytes, int]] = {}  # topic → its last message and log time
+        self._resend: set[str] = set()  # latched topics a client subscribed to since their last message
+        self._map_sent = -float("inf")
+        self._lock = threading.Lock()  # the server's threads call the listener
+        host, port = parse_address(address)
+        try:
+            self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
+                                                 server_listener=_Listener(self), message_backlog_size=BACKLOG)
+        except Exception as exc:  # noqa: BLE001 - the SDK raises a RuntimeError with the OS's reason
+            raise InputError(None, f"--live {address}: cannot serve on {host}:{port}: {exc}") from None
+        self.host, self.port = host, self._server.port
+        self.closed = False
+
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"ws://{host}:{self.port}"
+
+    # -- what RunLogger calls ---------------------------------------------------------------------
+    def add_channel(self, topic: str, message_encoding: str, schema_name: str, schema_encoding: str,
+                    schema_data: bytes) -> None:
+        schema = self._foxglove.Schema(name=schema_name, encoding=schema_encoding, data=schema_data)
+        self._channels[topic] = self._foxglove.Channel(topic, schema=schema, message_encoding=message_encoding,
+                                                       context=self._context)
+
+    def log(self, topic: str, data: bytes, ns: int) -> None:
+        """One message to the clients subscribed to ``topic`` (none: dropped at once)."""
+        if self.closed:
+            return
+        if topic in LATCHED:
+            self._latched[topic] = (data, ns)
+        elif topic == MAP_TOPIC:
+            self._map_sent = time.monotonic()
+        if self._resend:
+            self._send_latched()
+        self._channels[topic].log(data, log_time=ns)
+
+    def subscribed(self, topic: str) -> bool:
+        """Whether a client subscribes to ``topic`` now."""
+        channel = self._channels.get(topic)
+        return channel is not None and not self.closed and channel.has_sinks()
+
+    def map_due(self) -> bool:
+        """Whether to send a live map now: a client watches it and the last one is ``map_period_s`` old."""
+        if self.closed or time.monotonic() - self._map_sent < self.map_period_s:
+            return False
+        channel = self._channels.get(MAP_TOPIC)
+        return channel is None or channel.has_sinks()  # not advertised yet: the first call advertises it
+
+    def close(self) -> None:
+        """Stop serving: clients get what is queued for them (when any subscribes), then see the connection
+        close (idempotent)."""
+        if not self.closed:
+            self.closed = True
+            if any(channel.has_sinks() for channel in self._channels.values()):
+                time.sleep(LINGER_S)  # the SDK has no flush: its sender threads drain the queues meanwhile
+            self._server.stop()
+
+    # -- internals --------------------------------------------------------------------------------
+    def _subscribed(self, topic: str) -> None:
+        if topic in LATCHED:
+            with self._lock:
+                self._resend.add(topic)
+
+    def _send_latched(self) -> None:
+        with self._lock:
+            topics, self._resend = self._resend, set()
+        for topic in topics:
+            if topic in self._latched:
+                data, ns = self._latched[topic]
+                self._channels[topic].log(data, log_time=ns)
+
+
+class _Listener:
+    """The server's callbacks (on its own threads): a subscription to a latched topic asks for a resend."""
+
+    def __init__(self, server: LiveServer):
+        self._server = server
+
+    def on_subscribe(self, client, channel) -> None:
+        self._server._subscribed(channel.topic)

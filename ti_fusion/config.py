@@ -243,7 +243,7 @@ class DatasetConfig:
     path: Annotated[str, Text("a folder or file path")] = ""
                                     # the dataset; "" = the embedded synthetic sequence
     format: Annotated[str, OneOf(source=_dataset_formats)] = "auto"
-                                    # auto | tum | iclnuim | 7scenes | synthetic
+                                    # auto | tum | iclnuim | 7scenes | folder | rosbag | synthetic
     downsample: Count = 1           # integer subsampling factor (2 → 320×240 from 640×480)
     start: NonNegativeInt = 0       # first frame (index into the sequence)
     stop: Annotated[int | None, Range(ge=1)] = None  # one past the last frame; None = to the end
@@ -251,6 +251,16 @@ class DatasetConfig:
     depth_max: NonNegative = 4.0    # depth beyond this (metres) is treated as invalid; 0 = keep every range
     intrinsics_file: FilePath = ""  # a file with "fx fy cx cy" (or a 3x3 K) overriding the format's intrinsics
     max_time_difference: NonNegative = 0.02  # seconds: TUM rgb↔depth association and ground-truth lookup tolerance
+    depth_scale: NonNegative = 0.0  # raw depth units per metre (1000 = millimetres): required by --format folder;
+                                    # 0 = the format's own (bags: REP 118, 16UC1 in mm, 32FC1 in metres)
+    intrinsics: Annotated[str, Text("fx,fy,cx,cy or a file path")] = ""
+                                    # "fx,fy,cx,cy" or a calibration file (fx fy cx cy, a 3x3 K, a camera_info or
+                                    # OpenCV YAML): overrides the format's; a folder needs it or camera.yaml/intrinsics.txt
+    ground_truth: FilePath = ""     # a TUM trajectory file of the camera's ground-truth poses (folder, bag)
+    depth_topic: Topic = ""         # bags: the depth image topic; "" = the only one
+    color_topic: Topic = ""         # bags: the colour image topic; "" = the only one, "none" = no colour
+    camera_info_topic: Topic = ""   # bags: CameraInfo of the depth images; "" = the depth topic's camera_info, or the only one
+    gt_topic: Topic = ""            # bags: a PoseStamped or Odometry topic of ground truth; "" = none
 
 
 @dataclass

@@ -109,9 +109,27 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
     if getattr(module, "USES_DATASET", False):
         d = parser.add_argument_group("dataset options")
         d.add_argument("data", nargs="?", default="", metavar="DATA",
-                       help="dataset folder (TUM, ICL-NUIM or 7-Scenes); omitted: the embedded synthetic sequence")
-        d.add_argument("--format", choices=("auto", "tum", "iclnuim", "7scenes", "synthetic"), default=None,
+                       help="dataset folder (TUM, ICL-NUIM, 7-Scenes, or a plain folder with --format folder) or "
+                            "ROS 2 bag (a rosbag2 folder or an .mcap file); omitted: the embedded synthetic sequence")
+        from ti_fusion.io.datasets import FORMATS
+
+        d.add_argument("--format", choices=("auto", *FORMATS), default=None,
                        help="dataset format (default: detected from the files that identify it)")
+        d.add_argument("--depth-scale", type=float, default=None, metavar="UNITS_PER_METRE",
+                       help="raw depth units per metre: 1000 for millimetres (RealSense, Azure Kinect), 5000 for "
+                            "TUM's (needed by --format folder)")
+        d.add_argument("--intrinsics", default=None, metavar="fx,fy,cx,cy|FILE",
+                       help="camera intrinsics: four numbers, or a file (fx fy cx cy, a 3x3 K, a camera_info or "
+                            "OpenCV YAML)")
+        d.add_argument("--ground-truth", default=None, metavar="FILE",
+                       help="ground-truth poses in TUM format (plain folder or bag)")
+        d.add_argument("--depth-topic", default=None, metavar="TOPIC", help="bag: the depth image topic")
+        d.add_argument("--color-topic", default=None, metavar="TOPIC",
+                       help="bag: the colour image topic ('none': depth only)")
+        d.add_argument("--camera-info-topic", default=None, metavar="TOPIC",
+                       help="bag: the CameraInfo topic of the depth images")
+        d.add_argument("--gt-topic", default=None, metavar="TOPIC",
+                       help="bag: a PoseStamped or Odometry topic of ground-truth poses")
         d.add_argument("--downsample", type=int, default=None, help="integer subsampling factor (2 → 320×240)")
         d.add_argument("--start", type=int, default=None, help="first frame (0 = the first)")
         d.add_argument("--stop", type=int, default=None, help="one past the last frame")
@@ -145,6 +163,9 @@ def _check_dataset_args(args: argparse.Namespace) -> None:
         raise InputError(None, f"--stop {args.stop} must be greater than --start {args.start}")
     if args.frames is not None and args.stop is not None:
         raise InputError(None, "give --frames or --stop, not both")
+    depth_scale = getattr(args, "depth_scale", None)
+    if depth_scale is not None and not depth_scale > 0:
+        raise InputError(None, f"--depth-scale {depth_scale:g}: must be a positive number of units per metre")
 
 
 def _apply_dataset_args(args: argparse.Namespace, config: Config) -> None:
@@ -152,7 +173,8 @@ def _apply_dataset_args(args: argparse.Namespace, config: Config) -> None:
     ds = config.dataset
     if getattr(args, "data", ""):
         ds.path = args.data
-    for name in ("format", "downsample", "start", "stop", "stride"):
+    for name in ("format", "downsample", "start", "stop", "stride", "depth_scale", "intrinsics", "ground_truth",
+                 "depth_topic", "color_topic", "camera_info_topic", "gt_topic"):
         value = getattr(args, name, None)
         if value is not None:
             setattr(ds, name, value)

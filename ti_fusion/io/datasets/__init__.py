@@ -1,9 +1,14 @@
 """Dataset loaders: one per format, one interface (``Dataset``), and format detection.
 
 A format is detected only from files that identify it: TUM RGB-D from ``depth.txt``, ICL-NUIM from its
-``*.gt.freiburg`` ground truth, 7-Scenes from its ``frame-XXXXXX.depth.png`` names. A folder with none of
-them, or with the files of two formats, is refused with a line naming the ``--format`` to pass: the
-format fixes the depth scale and the intrinsics, and a wrong guess gives wrong depths without any error.
+``*.gt.freiburg`` ground truth, 7-Scenes from its ``frame-XXXXXX.depth.png`` names, a ROS 2 bag from its
+``metadata.yaml`` or ``.mcap`` file. A folder with none of them, or with the files of two formats, is
+refused with a line naming the ``--format`` to pass: the format fixes the depth scale and the
+intrinsics, and a wrong guess gives wrong depths without any error. A plain folder of numbered depth
+PNGs (``--format folder``) is never detected: its units and camera are the user's to state.
+
+Frames from one's own code need no format: ``rgbd_frame`` makes a ``Frame`` from arrays and
+``FrameList`` holds frames as a ``Dataset`` (``ti_fusion.io.datasets.arrays``).
 """
 
 from __future__ import annotations
@@ -16,9 +21,10 @@ from ti_fusion.config import DatasetConfig, SynthConfig
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets.base import Dataset, Frame
 
-__all__ = ["Dataset", "Frame", "open_dataset", "detect_format", "loader_class", "FORMATS"]
+__all__ = ["Dataset", "Frame", "open_dataset", "detect_format", "loader_class", "FORMATS", "rgbd_frame",
+           "FrameList"]
 
-FORMATS = ("tum", "iclnuim", "7scenes", "synthetic")
+FORMATS = ("tum", "iclnuim", "7scenes", "folder", "rosbag", "synthetic")
 
 log = logging.getLogger(__name__)
 
@@ -28,8 +34,16 @@ _LOADERS = {
     "tum": (".tum", "TUMDataset"),
     "iclnuim": (".iclnuim", "ICLNUIMDataset"),
     "7scenes": (".sevenscenes", "SevenScenesDataset"),
+    "folder": (".folder", "FolderDataset"),
+    "rosbag": (".rosbag", "RosbagDataset"),
     "synthetic": (".synthetic", "SyntheticDataset"),
 }
+
+# Formats whose input may be a single file rather than a folder (an .mcap or .db3 bag file).
+FILE_FORMATS = ("rosbag",)
+
+# Formats with intrinsics of their own that ``dataset.intrinsics`` replaces after loading.
+_BENCHMARK_FORMATS = ("tum", "iclnuim", "7scenes")
 
 
 def loader_class(fmt: str) -> type:
@@ -41,14 +55,14 @@ def loader_class(fmt: str) -> type:
 
 
 def detect(root: Path) -> tuple[str, str]:
-    """(format, the file that identifies it) of a dataset folder; InputError when none or several match."""
+    """(format, the file that identifies it) of a dataset folder or bag file; InputError when none or
+    several match."""
     root = Path(root)
     if not root.exists():
         raise InputError(root, "dataset folder does not exist")
-    if not root.is_dir():
-        raise InputError(root, "not a folder (give the dataset's folder)")
+    candidates = _LOADERS if root.is_dir() else FILE_FORMATS
     found = {}
-    for fmt in _LOADERS:
+    for fmt in candidates:
         evidence = loader_class(fmt).detect(root)
         if evidence:
             found[fmt] = evidence
@@ -58,14 +72,18 @@ def detect(root: Path) -> tuple[str, str]:
         which = ", ".join(f"{fmt} ({evidence})" for fmt, evidence in found.items())
         raise InputError(root, f"holds the files of more than one format: {which}; pass "
                                + " or ".join(f"--format {fmt}" for fmt in found))
+    if not root.is_dir():
+        raise InputError(root, "not a folder, nor a ROS 2 bag file (.mcap or .db3): give the dataset's folder")
     from ti_fusion.io.datasets.iclnuim import numbered_pngs
 
-    if numbered_pngs(root / "depth"):
-        raise InputError(root, "depth/ holds numbered PNGs, but no file says which dataset they come from, so "
-                               "their depth scale and intrinsics are unknown: if it is ICL-NUIM (5000 units per "
-                               "metre, its published intrinsics), pass --format iclnuim")
-    raise InputError(root, "unrecognised dataset layout: expected TUM (depth.txt), ICL-NUIM (*.gt.freiburg) "
-                           "or 7-Scenes (frame-XXXXXX.depth.png); or pass --format")
+    if numbered_pngs(root / "depth") or (root / "depth").is_dir():
+        raise InputError(root, "depth/ holds depth images, but no file says which dataset they come from, so "
+                               "their depth scale and intrinsics are unknown: pass --format folder --depth-scale "
+                               "UNITS_PER_METRE --intrinsics fx,fy,cx,cy (or FILE); or --format iclnuim if it "
+                               "is ICL-NUIM (5000 units per metre, its published intrinsics)")
+    raise InputError(root, "unrecognised dataset layout: expected TUM (depth.txt), ICL-NUIM (*.gt.freiburg), "
+                           "7-Scenes (frame-XXXXXX.depth.png) or a ROS 2 bag (metadata.yaml, *.mcap); or pass "
+                           "--format")
 
 
 def detect_format(root: Path) -> str:
@@ -83,6 +101,9 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
     if not cfg.path:
         if cfg.format not in ("auto", "synthetic"):
             raise InputError(None, f"format {cfg.format} needs a dataset folder (DATA)")
+        if cfg.intrinsics or cfg.depth_scale:
+            raise InputError(None, "--intrinsics and --depth-scale are for data read from files: the synthetic "
+                                   "sequence's camera is set by synth.fx, synth.width and synth.height")
         dataset = loader_class("synthetic").from_config(synth or SynthConfig(), **common)
         dataset.check_selection()
         return dataset
@@ -90,17 +111,45 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
     fmt = cfg.format
     if fmt == "synthetic":
         raise InputError(root, "format synthetic is the embedded sequence: give no DATA folder with it")
+    if cfg.intrinsics and cfg.intrinsics_file:
+        raise InputError(None, "dataset.intrinsics and dataset.intrinsics_file both give the intrinsics: keep one")
     if fmt == "auto":
         fmt, evidence = detect(root)
         how = f"detected from {evidence}"
     else:
-        if not root.is_dir():
-            raise InputError(root, "not a folder (give the dataset's folder)" if root.exists()
-                             else "dataset folder does not exist")
         loader_class(fmt)  # an unknown name fails here, before the folder is read
+        if not root.exists():
+            raise InputError(root, "dataset folder does not exist")
+        if not root.is_dir() and fmt not in FILE_FORMATS:
+            raise InputError(root, "not a folder (give the dataset's folder)")
         how = "given by --format or dataset.format"
     dataset = loader_class(fmt)(root, config=cfg, **common)
     dataset.format_from = how
+    if fmt in _BENCHMARK_FORMATS:
+        if cfg.intrinsics:
+            _replace_intrinsics(dataset, cfg.intrinsics)
+        if cfg.depth_scale:
+            dataset.depth_scale = float(cfg.depth_scale)  # read by ImageFileDataset for every frame
     dataset.check_selection()
     log.info(dataset.describe_format())
     return dataset
+
+
+def _replace_intrinsics(dataset: Dataset, spec) -> None:
+    """``dataset.intrinsics`` in place of a benchmark format's own (its calibration, or the file beside
+    its frames), for the images' size that the loader read."""
+    from ti_fusion.io.datasets.imageio import parse_intrinsics
+
+    K = dataset.raw_intrinsics
+    dataset._intrinsics = parse_intrinsics(spec, K.width, K.height)
+    text = ",".join(str(v) for v in spec) if isinstance(spec, (list, tuple)) else spec
+    dataset.intrinsics_source = f"{text} (--intrinsics / dataset.intrinsics)"
+
+
+def __getattr__(name: str):
+    # The in-memory dataset and frame maker: imported on first use, like the loaders.
+    if name in ("rgbd_frame", "FrameList"):
+        from ti_fusion.io.datasets import arrays
+
+        return getattr(arrays, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

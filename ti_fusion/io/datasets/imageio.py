@@ -137,21 +137,122 @@ def read_numbers(path: str | Path, what: str) -> np.ndarray:
 
 
 def read_intrinsics_file(path: str | Path, width: int, height: int) -> Intrinsics:
-    """Intrinsics from a text file holding either "fx fy cx cy" or a 3×3 K matrix (9 numbers)."""
+    """Intrinsics from a calibration file: a text file holding "fx fy cx cy" or a 3×3 K matrix (9 numbers),
+    or a YAML file (``.yaml``/``.yml``): a ROS ``camera_info`` (``k``/``K``: 9 numbers, or ``camera_matrix``
+    with ``data``) or an OpenCV calibration (``camera_matrix: !!opencv-matrix``). A YAML file that states
+    the image size must state the depth images' ``width`` × ``height``."""
     path = Path(path)
+    if path.suffix.lower() in (".yaml", ".yml"):
+        return _intrinsics_from_yaml(path, width, height)
     values = read_numbers(path, "intrinsics file")
+    if values.size not in (4, 9):
+        raise InputError(path, f"expected 4 numbers (fx fy cx cy) or 9 (3x3 K), found {values.size}")
+    return intrinsics_from_numbers(values, width, height, path)
+
+
+def intrinsics_from_numbers(values, width: int, height: int, where: str | Path | None) -> Intrinsics:
+    """Intrinsics from (fx, fy, cx, cy) or a 3×3 K given row by row; ``where`` names the source in errors."""
+    values = np.asarray(values, dtype=np.float64).reshape(-1)
     if values.size == 4:
         fx, fy, cx, cy = values
     elif values.size == 9:
         K = values.reshape(3, 3)
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
-            raise InputError(path, "3x3 intrinsics matrix must have last row [0 0 1] and K[1,0] = 0")
+            raise InputError(where, "3x3 intrinsics matrix must have last row [0 0 1] and K[1,0] = 0")
     else:
-        raise InputError(path, f"expected 4 numbers (fx fy cx cy) or 9 (3x3 K), found {values.size}")
+        raise InputError(where, f"expected 4 numbers (fx fy cx cy) or 9 (3x3 K), found {values.size}")
+    if not np.all(np.isfinite(values)):
+        raise InputError(where, "intrinsics contain NaN or infinite values")
     if fx <= 0 or fy <= 0:
-        raise InputError(path, f"focal lengths must be positive (fx={fx}, fy={fy})")
+        raise InputError(where, f"focal lengths must be positive (fx={fx:g}, fy={fy:g})")
     return Intrinsics(float(fx), float(fy), float(cx), float(cy), int(width), int(height))
+
+
+def parse_intrinsics(spec, width: int, height: int, option: str = "--intrinsics") -> Intrinsics:
+    """Intrinsics from ``--intrinsics`` (or ``dataset.intrinsics``): four numbers "fx,fy,cx,cy" (a list of
+    them from a config file), or a calibration file (see ``read_intrinsics_file``)."""
+    if isinstance(spec, (list, tuple)):
+        spec = ",".join(str(v) for v in spec)
+    text = str(spec).strip()
+    fields = text.replace(",", " ").split()
+    if len(fields) == 4 and not Path(text).is_file():
+        try:
+            values = [float(f) for f in fields]
+        except ValueError:
+            values = None
+        if values is not None:
+            return intrinsics_from_numbers(values, width, height, f"{option} {text}")
+    path = Path(text)
+    if not path.is_file():
+        raise InputError(None, f"{option} {text}: neither four numbers fx,fy,cx,cy nor an existing file")
+    return read_intrinsics_file(path, width, height)
+
+
+def _intrinsics_from_yaml(path: Path, width: int, height: int) -> Intrinsics:
+    try:
+        text = path.read_text()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InputError(path, f"cannot read intrinsics file: {exc}") from None
+    if text.lstrip().startswith("%YAML:1") or "!!opencv-matrix" in text:
+        return _intrinsics_from_opencv(path, width, height)
+    import yaml
+
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        raise InputError(path, f"cannot parse YAML: {' '.join(str(exc).split())}") from None
+    if not isinstance(data, dict):
+        raise InputError(path, "expected a YAML mapping with camera_matrix or k (a camera_info)")
+    if isinstance(data.get("camera_matrix"), dict):
+        values = data["camera_matrix"].get("data")
+    elif "k" in data or "K" in data:
+        values = data.get("k", data.get("K"))
+    elif all(key in data for key in ("fx", "fy", "cx", "cy")):
+        values = [data[key] for key in ("fx", "fy", "cx", "cy")]
+    else:
+        raise InputError(path, "no camera_matrix, k or fx/fy/cx/cy in this YAML file")
+    try:
+        numbers = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(path, f"camera matrix is not a list of numbers: {values!r}") from None
+    size = (data.get("image_width", data.get("width")), data.get("image_height", data.get("height")))
+    _check_calibration_size(path, size, width, height)
+    return intrinsics_from_numbers(numbers, width, height, path)
+
+
+def _intrinsics_from_opencv(path: Path, width: int, height: int) -> Intrinsics:
+    """An OpenCV FileStorage calibration (``cv::FileStorage`` YAML with ``camera_matrix``)."""
+    level = cv2.utils.logging.getLogLevel()
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
+    try:
+        with _stderr_silenced():
+            storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except cv2.error:
+        raise InputError(path, "cannot parse OpenCV calibration file") from None
+    finally:
+        cv2.utils.logging.setLogLevel(level)
+    try:
+        if not storage.isOpened():
+            raise InputError(path, "cannot parse OpenCV calibration file")
+        K = storage.getNode("camera_matrix").mat()
+        if K is None:
+            raise InputError(path, "no camera_matrix in this OpenCV calibration file")
+        size = tuple(storage.getNode(k).real() if not storage.getNode(k).empty() else None
+                     for k in ("image_width", "image_height"))
+    finally:
+        storage.release()
+    _check_calibration_size(path, size, width, height)
+    return intrinsics_from_numbers(K, width, height, path)
+
+
+def _check_calibration_size(path: Path, size, width: int, height: int) -> None:
+    """A calibration made for another image size does not fit these images (it would need scaling, and a
+    crop cannot be told from a scale)."""
+    w, h = size
+    if w and h and (int(w), int(h)) != (int(width), int(height)):
+        raise InputError(path, f"calibration is for {int(w)}x{int(h)} images, the depth images are "
+                               f"{width}x{height}")
 
 
 def read_pose_matrix(path: str | Path) -> np.ndarray:

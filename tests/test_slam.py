@@ -255,3 +255,73 @@ def test_map_at_half_resolution_tracks(cpu, tmp_path):
     assert summary["tracking_failures"] == 0 and summary["ate_rmse_m"] < 0.01
     assert summary["resolution"] == {"map_level": 1, "map_size": [160, 120], "tracked_at": [160, 120],
                                      "depth_smooth_radius": 3}
+
+
+class BlankFirst(BlankFrame):
+    """The first ``blank`` frames have no valid depth; frame ``sparse`` (if any) only a 5×5 patch of it."""
+
+    def __init__(self, dataset, blank: int, sparse: int = -1):
+        super().__init__(dataset, blank=-1)
+        self.first, self.sparse = blank, sparse
+
+    def __getitem__(self, i):
+        frame = self.dataset[i]
+        if i < self.first:
+            frame.depth = np.zeros_like(frame.depth)
+        elif i == self.sparse:
+            patch = frame.depth[50:55, 50:55].copy()
+            frame.depth = np.zeros_like(frame.depth)
+            frame.depth[50:55, 50:55] = patch
+        return frame
+
+
+def test_the_map_starts_at_the_first_usable_frame(cpu, tmp_path):
+    """Blank first frames (a sensor that starts dark) used to leave the map empty and lose every later
+    frame; now they are skipped (no pose, status "skipped: ...") and the map starts at the first frame with
+    depth enough for ICP to track the next one against."""
+    cfg = _config()
+    cfg.dataset.stop = 12
+    dataset = BlankFirst(open_dataset(cfg.dataset, cfg.synth), blank=2, sparse=2)
+    run = RunDir("slam", tmp_path / "run")
+    summary = SLAMPipeline(dataset, cfg, run, current_backend(), show_progress=False).run()
+    assert summary["map_started_at"] == 3
+    assert [s["frame"] for s in summary["skipped_frames"]] == [0, 1, 2]
+    assert summary["skipped_frames"][0]["reason"] == "no valid depth"
+    assert summary["skipped_frames"][2]["reason"].startswith("25 pixels with depth, fewer than the 100")
+    assert summary["tracking_failures"] == 0 and summary["surfels"] > 0
+    assert summary["ate_rmse_m"] < 0.01 and summary["gt_frames"] == 9
+    stamps, _ = read_tum(run.file("trajectory.tum"))
+    assert len(stamps) == 9  # skipped frames have no pose
+    log = read_log(run.file("log.mcap"))
+    assert [s["status"] for s in log.stats[:4]] == ["skipped: no valid depth"] * 2 + [
+        "skipped: " + summary["skipped_frames"][2]["reason"], "ok"]
+    assert log.channels["/camera/pose"].count == 9
+
+
+def test_a_sequence_without_usable_depth_leaves_an_empty_map_and_says_so(cpu, tmp_path, caplog):
+    cfg = _config()
+    cfg.dataset.stop = 3
+    run = RunDir("slam", tmp_path / "run")
+    summary = SLAMPipeline(BlankFirst(open_dataset(cfg.dataset, cfg.synth), blank=3), cfg, run, current_backend(),
+                           show_progress=False).run()
+    assert summary["surfels"] == 0 and summary["map_started_at"] is None and len(summary["skipped_frames"]) == 3
+    assert "no frame had depth enough to start the map (no valid depth in the first)" in caplog.text
+    assert not run.file("trajectory.tum").exists() and read_log(run.file("log.mcap")).complete
+
+
+class SomeWithoutGroundTruth(BlankFrame):
+    def __getitem__(self, i):
+        frame = self.dataset[i]
+        if 3 <= i < 7:
+            frame.gt_pose = None
+        return frame
+
+
+def test_ate_over_the_frames_with_ground_truth_says_how_many(cpu, tmp_path):
+    cfg = _config()
+    cfg.dataset.stop = 12
+    run = RunDir("slam", tmp_path / "run")
+    summary = SLAMPipeline(SomeWithoutGroundTruth(open_dataset(cfg.dataset, cfg.synth), -1), cfg, run,
+                           current_backend(), show_progress=False).run()
+    assert summary["gt_frames"] == 8 and summary["pairs"] == 8 and summary["ate_rmse_m"] < 0.01
+    assert summary["gt_note"] == "ATE and RPE are over the 8 of 12 posed frames that have ground truth"

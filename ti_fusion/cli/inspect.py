@@ -51,9 +51,10 @@ SUCCESS_STATUSES = ("ok", "init", "relocalised", "accepted")
 
 
 def failed(stats: dict) -> bool:
-    """Whether a stats message reports a tracking failure (slam's "lost: ...", vo's "rejected: ...")."""
+    """Whether a stats message reports a tracking failure (slam's "lost: ...", vo's "rejected: ..."; not slam's
+    "skipped: ...", a frame before the map started, which its summary.json counts apart)."""
     status = stats.get("status")
-    return status is not None and status not in SUCCESS_STATUSES
+    return status is not None and status not in SUCCESS_STATUSES and not status.startswith("skipped")
 
 
 def summarise(log: LogContents) -> dict:

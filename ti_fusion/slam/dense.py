@@ -23,6 +23,8 @@ default the frame is averaged down to that level before it is smoothed and track
 at 320×240 tracked better than one at 640×480 (more measurements averaged into each surfel, so a less
 noisy prediction) at a quarter of the surfels.
 
+The map starts at the first usable frame: one with depth enough for ICP to track the next frame against
+(``usable``); frames before it (a sensor that starts blank) are skipped: no pose, status "skipped: ...".
 The pose is initialised by a constant-velocity motion model. A frame whose tracking is unhealthy (few
 inliers, large residual, ill-conditioned system, implausible jump) is not fused; the failure is logged,
 and the next frame is tracked from the motion model, or re-localised with ORB + PnP features against the
@@ -31,18 +33,25 @@ last well-tracked frame when ``slam.relocalise = "features"``.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from ti_fusion.camera import Intrinsics
-from ti_fusion.config import Config
+from ti_fusion.config import Config, ICPConfig
 from ti_fusion.io.datasets.base import Frame
 from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
 from ti_fusion.geometry import invert, pose_error, renormalize, se3_log
 from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.maps import FrameMaps
 from ti_fusion.slam.timing import StageTimer
+
+log = logging.getLogger(__name__)
+
+# ICP's coarsest level must hold many times icp.min_inliers pixels: at small sizes only a fifth to a third of
+# them find a correspondence (image borders, depth edges and missing normals take a larger share).
+COARSE_PIXELS_PER_INLIER = 6
 
 
 @dataclass
@@ -51,15 +60,24 @@ class FrameResult:
 
     index: int
     timestamp: float
-    pose: np.ndarray  # camera-to-world estimate
-    status: str  # "init", "ok", "relocalised", or "lost: <reason>"
+    pose: np.ndarray | None  # camera-to-world estimate; None for a frame skipped before the map starts
+    status: str  # "init", "ok", "relocalised", "lost: <reason>" or "skipped: <reason>"
     icp: ICPResult | None = None
     fusion: FusionStats | None = None
     ms: dict[str, float] = field(default_factory=dict)
 
     @property
     def tracked(self) -> bool:
-        return not self.status.startswith("lost")
+        """The frame got a pose (tracked, or the first of the map) and was fused."""
+        return not self.status.startswith(("lost", "skipped"))
+
+    @property
+    def lost(self) -> bool:
+        return self.status.startswith("lost")
+
+    @property
+    def skipped(self) -> bool:
+        return self.status.startswith("skipped")
 
 
 class DenseSLAM:
@@ -84,7 +102,12 @@ class DenseSLAM:
             if config.slam.tracking == "frame" else None
         self.icp = ICP(config.icp)
         self.mapper = SurfelMapper(config.fusion)
+        warning = coarse_level_warning(config.icp, self.model_maps.shapes[-1], (self.frame_maps.height,
+                                                                               self.frame_maps.width))
+        if warning:
+            log.warning(warning)
         self.poses: list[np.ndarray] = []
+        self.skipped: list[tuple[int, str]] = []  # (frame, reason) of the frames before the map started
         self.last_good: tuple[Frame, np.ndarray] | None = None  # for feature re-localisation
         self._velocity = np.eye(4)  # last inter-frame motion, camera-to-camera
         self._frames_fused = 0
@@ -94,10 +117,18 @@ class DenseSLAM:
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
         with timer.stage("maps"):
             self.frame_maps.compute(frame.depth, frame.intrinsics)
+        if not self.poses and (problem := self.unusable(frame)):
+            self.skipped.append((frame.index, problem))
+            return FrameResult(frame.index, frame.timestamp, None, f"skipped: {problem}", ms=dict(timer.last))
         if not self.poses:
             pose = frame.gt_pose if frame.gt_pose is not None and self.config.slam.anchor_to_ground_truth \
                 else np.eye(4)
             result = FrameResult(frame.index, frame.timestamp, pose.copy(), "init")
+            if self.skipped:
+                (first, reason), n = self.skipped[0], len(self.skipped)
+                which = f"frame {first} was" if n == 1 else \
+                    f"the first {n} frames ({first} to {self.skipped[-1][0]}) were"
+                log.warning(f"{which} skipped ({reason}): the map starts at frame {frame.index}")
         else:
             with timer.stage("track"):
                 result = self._track(frame)
@@ -112,6 +143,18 @@ class DenseSLAM:
             self.frame_maps, self.previous_maps = self.previous_maps, self.frame_maps
         result.ms = dict(timer.last)
         return result
+
+    def unusable(self, frame: Frame) -> str | None:
+        """Why the map cannot start at ``frame`` (None: it can). The first frame's surfels are what the next
+        frame is tracked against: a map with fewer than ``icp.min_inliers`` of them loses every later frame."""
+        valid = int(np.count_nonzero(frame.depth > 0))
+        needed = self.config.icp.min_inliers * 4**self.map_level  # pixels, for min_inliers at the map's level
+        if valid == 0:
+            return "no valid depth"
+        if valid < needed:
+            return (f"{valid} pixels with depth, fewer than the {needed} the map needs to start "
+                    f"(icp.min_inliers = {self.config.icp.min_inliers} at its resolution)")
+        return None
 
     # -- tracking -------------------------------------------------------------------------------
     def _predicted_pose(self) -> np.ndarray:
@@ -199,3 +242,15 @@ class DenseSLAM:
         return {"map_level": self.map_level,
                 "map_size": [model.width, model.height], "tracked_at": [frame.width, frame.height],
                 "depth_smooth_radius": frame.smooth_radius}
+
+
+def coarse_level_warning(icp: ICPConfig, coarsest: tuple[int, int], tracked: tuple[int, int]) -> str | None:
+    """A line saying that frames tracked at ``tracked`` (height, width) leave ICP's coarsest level
+    (``coarsest``) too few pixels for ``icp.min_inliers`` correspondences, so frames will be lost; or None."""
+    (h, w), (H, W) = coarsest, tracked
+    if h * w >= COARSE_PIXELS_PER_INLIER * icp.min_inliers:
+        return None
+    return (f"tracking at {W}x{H} leaves ICP's coarsest level ({len(icp.iterations)} levels in icp.iterations) "
+            f"{w}x{h} = {h * w} pixels, too few for icp.min_inliers = {icp.min_inliers} correspondences (at this "
+            "size a fifth to a third of the pixels find one): expect lost frames. Use a smaller --downsample, "
+            "fewer levels in icp.iterations or a lower icp.min_inliers")

@@ -180,7 +180,8 @@ class Pipeline:
                 "dataset": self.dataset.describe()}
 
     def _evaluate(self) -> dict:
-        """ATE/RPE of the posed frames that have ground truth, and trajectory.png."""
+        """ATE/RPE of the posed frames that have ground truth (``gt_frames`` of them; ``gt_note`` says so when
+        that is not every posed frame), and trajectory.png."""
         if not self.step.estimates_poses:
             return {}
         stamps, poses = self.trajectory()
@@ -188,20 +189,25 @@ class Pipeline:
             return {}
         gt = [g for r, g in zip(self.results, self.gt) if r.pose is not None]
         pairs = [(p, g) for p, g in zip(poses, gt) if g is not None]
-        fields, metrics = {}, None
+        fields, metrics = {"gt_frames": len(pairs)}, None
         if len(pairs) >= 2:
             est, ref = (np.stack(x) for x in zip(*pairs))
             metrics = trajectory_metrics(est, ref)
-            fields = {k: metrics[k] for k in ("ate_rmse_m", "ate_mean_m", "ate_max_m", "rpe_trans_m", "rpe_rot_deg",
-                                              "pairs")}
+            fields.update({k: metrics[k] for k in ("ate_rmse_m", "ate_mean_m", "ate_max_m", "rpe_trans_m",
+                                                   "rpe_rot_deg", "pairs")})
             path_length = float(np.linalg.norm(np.diff(ref[:, :3, 3], axis=0), axis=1).sum())
             fields["path_length_m"] = round(path_length, 3)
             fields["ate_percent_of_path"] = round(100 * metrics["ate_rmse_m"] / max(path_length, 1e-9), 3)
+        if pairs and len(pairs) < len(poses):  # some frames lack ground truth: say what the figures are over
+            fields["gt_note"] = (f"ATE and RPE are over the {len(pairs)} of {len(poses)} posed frames that have "
+                                 "ground truth" if metrics is not None else
+                                 f"no ATE or RPE: 1 of the {len(poses)} posed frames has ground truth, they need 2")
         from ti_fusion.evaluation.plots import plot_trajectory  # Matplotlib: only once there is a plot to draw
 
         with_gt = len(pairs) == len(poses) and metrics is not None  # else the estimate alone
+        title = self.step.plot_title(self) + (f"\n({fields['gt_note']})" if "gt_note" in fields else "")
         plot_trajectory(self.out.file("trajectory.png"), np.stack(poses), np.stack(gt) if with_gt else None,
-                        timestamps=stamps, title=self.step.plot_title(self), metrics=metrics)
+                        timestamps=stamps, title=title, metrics=metrics)
         return fields
 
 

@@ -3,19 +3,24 @@ the /slam/stats message, the surfel map for /map/points, and the map's files aft
 
 from __future__ import annotations
 
+import logging
+
 from ti_fusion.config import Config
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import json_field, json_object
 from ti_fusion.mapping.views import save_views, view_pose
 from ti_fusion.slam.dense import DenseSLAM, FrameResult
 
+log = logging.getLogger(__name__)
+
 
 # The /slam/stats message, every field (docs/LOGS.md shows one; the pipeline adds ms.load and ms.log).
 STATS_SCHEMA = json_object({
     "frame": json_field("integer", "index of the frame in the run (0 = the first frame selected)"),
-    "status": json_field("string", '"ok" (a tracked frame, the first one included), "relocalised", or '
-                                   '"lost: <reason>" (not fused; its pose is the motion model\'s)'),
-    "tracking": json_field("string", 'the tracker\'s own word: "init" for the first frame, else as status'),
+    "status": json_field("string", '"ok" (a tracked frame, the map\'s first one included), "relocalised", '
+                                   '"lost: <reason>" (not fused; its pose is the motion model\'s) or "skipped: '
+                                   '<reason>" (before the map started: no depth enough to start it on; no pose)'),
+    "tracking": json_field("string", 'the tracker\'s own word: "init" for the map\'s first frame, else as status'),
     "surfels": json_field("integer", "surfels in the map after this frame"),
     "ms": json_object({
         "maps": json_field("number", "the frame's depth, vertex and normal pyramids, milliseconds"),
@@ -76,13 +81,18 @@ class SLAMStep:
     stats_channel = "/slam/stats"
     stats_schema = STATS_SCHEMA
     stages = ("maps", "track", "fuse")
-    warmup_frames = 2  # frame 0 compiles the maps and fusion kernels, frame 1 rendering and ICP
     estimates_poses = True
 
     def __init__(self, config: Config, dataset: Dataset):
         self.config = config
         self.dataset_name = dataset.name
         self.slam = DenseSLAM(config, dataset.intrinsics)
+
+    @property
+    def warmup_frames(self) -> int:
+        """The map's first frame compiles the maps and fusion kernels, the next one rendering and ICP; frames
+        skipped before the map started come first."""
+        return len(self.slam.skipped) + 2
 
     def register_frame(self, frame: Frame) -> FrameResult:
         return self.slam.register_frame(frame)
@@ -99,12 +109,19 @@ class SLAMStep:
     def outputs(self, run) -> dict:
         slam = self.slam
         slam.mapper.export_ply(run.out.file("map.ply"))
-        save_views(slam.mapper, view_pose(run.results[0].pose, self.config.fusion.view_back), run.out.path)
-        lost = [r for r in run.results if not r.tracked]
+        first = next((r for r in run.results if r.pose is not None), None)
+        if first is not None:
+            save_views(slam.mapper, view_pose(first.pose, self.config.fusion.view_back), run.out.path)
+        else:
+            log.warning(f"no frame had depth enough to start the map ({slam.skipped[0][1]} in the first): the map "
+                        "is empty, and there are no views of it")
+        lost = [r for r in run.results if r.lost]
         return {
             "surfels": slam.surfels,
             "resolution": slam.resolution(),
             "tracking_failures": len(lost),
             "failed_frames": [{"frame": r.index, "reason": r.status} for r in lost][:50],
             "relocalised": sum(r.status == "relocalised" for r in run.results),
+            "map_started_at": None if first is None else first.index,
+            "skipped_frames": [{"frame": f, "reason": reason} for f, reason in slam.skipped][:50],
         }

@@ -13,6 +13,9 @@ def add_arguments(parser) -> None:
                              "the previous frame (for comparison)")
     parser.add_argument("--no-relocalise", action="store_true",
                         help="after a tracking failure, do not re-initialise with ORB + PnP features")
+    parser.add_argument("--live", metavar="[HOST:]PORT", default=None,
+                        help="serve the run to Foxglove while it runs (Open connection > Foxglove WebSocket, "
+                             "ws://HOST:PORT); HOST defaults to 127.0.0.1, PORT 0 picks a free port")
 
 
 def run(ctx) -> dict:
@@ -28,9 +31,24 @@ def run(ctx) -> dict:
     if not ctx.quiet:
         d = dataset.describe()
         ctx.log(f"dataset: {d['name']} ({d['format']}), {d['frames']} frames at {d['width']}x{d['height']}")
-    summary = SLAMPipeline(dataset, cfg, ctx.out, ctx.backend, show_progress=not ctx.quiet).run()
+    live = _live_server(ctx)
+    try:
+        summary = SLAMPipeline(dataset, cfg, ctx.out, ctx.backend, show_progress=not ctx.quiet, live=live).run()
+    finally:  # the log closes the server; this covers a run that stops before its log is open
+        if live is not None:
+            live.close()
     _print_summary(ctx, summary)
     return summary
+
+
+def _live_server(ctx):
+    if ctx.args.live is None:
+        return None
+    from ti_fusion.io.live import LiveServer
+
+    live = LiveServer(ctx.args.live)
+    ctx.log(f"live: {live.url} (in Foxglove: Open connection > Foxglove WebSocket)")  # even with --quiet
+    return live
 
 
 def _print_summary(ctx, s: dict) -> None:

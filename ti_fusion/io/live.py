@@ -68,6 +68,11 @@ class LiveServer:
         self.closed = False
 
     @property
+    def topics(self) -> list[str]:
+        """The channels advertised so far."""
+        return list(self._channels)
+
+    @property
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
         return f"ws://{host}:{self.port}"

@@ -1,0 +1,286 @@
+"""The live view (``slam --live``): a WebSocket client connected to a run on the synthetic sequence gets
+the log's channels with the log's schemas, and the messages it decodes are the log's; with no client the
+log is the same as without ``--live``; SIGTERM closes the server and finalises the log. Loopback only,
+every wait bounded."""
+
+from __future__ import annotations
+
+import base64
+import json
+import os
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+from mcap.records import Schema
+from mcap_protobuf.decoder import DecoderFactory
+
+from ti_fusion.backend import current_backend
+from ti_fusion.cli.main import main
+from ti_fusion.config import Config
+from ti_fusion.errors import InputError
+from ti_fusion.io.datasets import open_dataset
+from ti_fusion.io.live import LiveServer, parse_address
+from ti_fusion.io.mcap_log import points_from_msg, pose_from_msg, read_log
+from ti_fusion.io.outputs import RunDir
+from ti_fusion.slam.pipeline import SLAMPipeline
+
+websockets = pytest.importorskip("websockets.sync.client")
+
+# Foxglove's app offers both names; the SDK's server takes the second, the same protocol renamed.
+SUBPROTOCOLS = ["foxglove.websocket.v1", "foxglove.sdk.v1"]
+WAIT_S = 120  # the most any one wait below takes before the test fails (compiling kernels: seconds)
+
+
+class Client(threading.Thread):
+    """A Foxglove WebSocket client: subscribes to every channel it is told of (or to ``topics``), keeps
+    what arrives as (topic, log time ns, payload bytes)."""
+
+    def __init__(self, url: str, topics: tuple[str, ...] | None = None):
+        super().__init__(daemon=True)
+        self.url, self.topics = url, topics
+        self.channels: dict[int, dict] = {}  # channel id → the advertised channel
+        self.messages: list[tuple[str, int, bytes]] = []
+        self.subprotocol = None
+        self.closed = threading.Event()
+        self.error: BaseException | None = None
+        self._subscriptions: dict[int, str] = {}  # subscription id → topic
+        self._changed = threading.Condition()
+
+    def run(self) -> None:
+        try:
+            with websockets.connect(self.url, subprotocols=SUBPROTOCOLS, max_size=None, open_timeout=WAIT_S) as ws:
+                self.subprotocol = ws.subprotocol
+                for frame in ws:
+                    if isinstance(frame, str):
+                        self._control(ws, json.loads(frame))
+                    elif frame[0] == 1:  # message data: subscription id u32, log time u64, payload
+                        sub, ns = struct.unpack_from("<IQ", frame, 1)
+                        with self._changed:
+                            self.messages.append((self._subscriptions[sub], ns, bytes(frame[13:])))
+                            self._changed.notify_all()
+        except websockets.ConnectionClosed:
+            pass
+        except BaseException as exc:  # noqa: BLE001 - reported by the test
+            self.error = exc
+        finally:
+            self.closed.set()
+            with self._changed:
+                self._changed.notify_all()
+
+    def _control(self, ws, message: dict) -> None:
+        if message["op"] != "advertise":
+            return
+        subscribe = []
+        for channel in message["channels"]:
+            self.channels[channel["id"]] = channel
+            if self.topics is None or channel["topic"] in self.topics:
+                sub = len(self._subscriptions) + 1
+                self._subscriptions[sub] = channel["topic"]
+                subscribe.append({"id": sub, "channelId": channel["id"]})
+        if subscribe:
+            ws.send(json.dumps({"op": "subscribe", "subscriptions": subscribe}))
+
+    def wait_for(self, condition, what: str) -> None:
+        deadline = time.monotonic() + WAIT_S
+        with self._changed:
+            while not condition():
+                left = deadline - time.monotonic()
+                if left <= 0 or self.closed.is_set():
+                    raise AssertionError(f"the live client: no {what} within {WAIT_S} s (error: {self.error!r})")
+                self._changed.wait(min(left, 0.05))
+
+    def received(self, topic: str) -> list[tuple[int, bytes]]:
+        return [(ns, data) for t, ns, data in self.messages if t == topic]
+
+    def stats_frames(self, topic: str = "/slam/stats") -> set[int]:
+        return {json.loads(data)["frame"] for _, data in self.received(topic)}
+
+    def schema(self, topic: str) -> Schema:
+        """The advertised schema as an MCAP schema record (protobuf schemas travel base64-encoded)."""
+        (channel,) = [c for c in self.channels.values() if c["topic"] == topic]
+        data = channel["schema"].encode()
+        if channel["schemaEncoding"] == "protobuf":
+            data = base64.b64decode(data)
+        return Schema(id=channel["id"], name=channel["schemaName"], encoding=channel["schemaEncoding"], data=data)
+
+
+def _config(frames: int) -> Config:
+    cfg = Config()
+    cfg.dataset.downsample, cfg.dataset.stop = 4, frames
+    cfg.log.progress, cfg.log.depth_every, cfg.log.map_every = False, 3, 4
+    return cfg
+
+
+def _file_messages(path: Path) -> dict[str, dict[int, bytes]]:
+    """topic → {log time ns: payload} of a log, and its schemas by topic."""
+    out: dict[str, dict[int, bytes]] = {}
+    schemas: dict[str, Schema] = {}
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            out.setdefault(channel.topic, {})[message.log_time] = message.data
+            schemas[channel.topic] = schema
+    return out, schemas
+
+
+def test_parse_address():
+    assert parse_address("8765") == ("127.0.0.1", 8765)
+    assert parse_address("0") == ("127.0.0.1", 0)
+    assert parse_address("0.0.0.0:9000") == ("0.0.0.0", 9000)
+    assert parse_address("localhost:1") == ("localhost", 1)
+    assert parse_address("[::1]:8765") == ("::1", 8765)
+    for bad in ("", "abc", "host:", ":80", "70000", "1.2.3.4:-1"):
+        with pytest.raises(InputError, match="expected \\[HOST:\\]PORT"):
+            parse_address(bad)
+
+
+def test_a_taken_port_is_one_line(tmp_path, capsys):
+    first = LiveServer("127.0.0.1:0")
+    try:
+        with pytest.raises(InputError, match=f"cannot serve on 127.0.0.1:{first.port}"):
+            LiveServer(f"127.0.0.1:{first.port}")
+    finally:
+        first.close()
+    assert main(["slam", "--live", "nope", "--frames", "2", "--downsample", "8", "--quiet",
+                 "--out", str(tmp_path / "run")]) == 2
+    assert "--live nope: expected [HOST:]PORT" in capsys.readouterr().err
+
+
+def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
+    """A client subscribed to every channel decodes the run's messages: the same schemas as the file, the
+    same bytes at the same log times, the calibration sent again after it subscribed, and live maps of
+    at most the live bound. The run waits for the client before each frame (its subscriptions and the
+    last frame's stats), so what arrives does not depend on timing; the last frame and the final map,
+    sent as the run closes, are checked when they arrive."""
+    frames = 8
+    cfg = _config(frames)
+    dataset = open_dataset(cfg.dataset, cfg.synth)
+    live = LiveServer("127.0.0.1:0", max_points=500)
+    client = Client(live.url)
+    client.start()
+    run = RunDir("slam", tmp_path / "run")
+    pipeline = SLAMPipeline(dataset, cfg, run, current_backend(), show_progress=False, live=live)
+    register = pipeline.step.register_frame
+
+    def after_the_client(frame):
+        client.wait_for(lambda: all(live.subscribed(t) for t in live.topics), "subscription to every channel")
+        if frame.index > 0:
+            client.wait_for(lambda: frame.index - 1 in client.stats_frames(), f"stats of frame {frame.index - 1}")
+        return register(frame)
+
+    pipeline.step.register_frame = after_the_client
+    pipeline.run()
+    client.join(WAIT_S)
+    assert not client.is_alive() and client.error is None  # the server closed the connection
+    assert client.subprotocol == "foxglove.sdk.v1"
+    assert live.closed
+
+    in_file, schemas = _file_messages(run.file("log.mcap"))
+    advertised = {c["topic"] for c in client.channels.values()}
+    assert advertised == set(in_file) == {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points",
+                                          "/camera/depth", "/camera/color", "/camera/calibration"}
+    for topic in advertised:  # the same schema records: name, encoding and bytes
+        schema = client.schema(topic)
+        assert (schema.name, schema.encoding, schema.data) == (
+            schemas[topic].name, schemas[topic].encoding, schemas[topic].data), topic
+
+    times = [int(round(t * 1e9)) for t in read_log(run.file("log.mcap")).stats_times]
+    for topic in advertised - {"/map/points"}:  # every message received is the file's, at its time
+        for ns, data in client.received(topic):
+            assert in_file[topic].get(ns) == data, (topic, ns)
+    assert set(range(frames - 1)) <= client.stats_frames()  # from frame 0: declared before the loop
+    for topic in ("/tf", "/camera/pose", "/gt/pose"):  # from frame 1: advertised by frame 0's messages
+        assert set(times[1:-1]) <= {ns for ns, _ in client.received(topic)}, topic
+    assert {times[3], times[6]} <= {ns for ns, _ in client.received("/camera/depth")}
+    assert {times[3], times[6]} <= {ns for ns, _ in client.received("/camera/color")}
+    assert times[0] in {ns for ns, _ in client.received("/camera/calibration")}  # sent again on subscribing
+
+    # Decoded with the advertised schemas alone: stats as the file has them, poses as read_log reads them.
+    log = read_log(run.file("log.mcap"))
+    stats = {json.loads(d)["frame"]: json.loads(d) for _, d in client.received("/slam/stats")}
+    for frame, message in stats.items():
+        assert message == log.stats[frame]
+    decode = DecoderFactory().decoder_for("protobuf", client.schema("/camera/pose"))
+    for ns, data in client.received("/camera/pose"):
+        np.testing.assert_array_equal(pose_from_msg(decode(data)), log.est_poses[times.index(ns)])
+    decode = DecoderFactory().decoder_for("protobuf", client.schema("/map/points"))
+    clouds = [decode(data) for _, data in client.received("/map/points")]
+    assert clouds and client.received("/map/points")[0][0] == times[1]  # the first live map: frame 1
+    for cloud in clouds:
+        xyz, rgba = points_from_msg(cloud)
+        assert 0 < len(xyz) <= 500 and rgba is not None and cloud.frame_id == "world"
+        assert cloud.pose.HasField("position") and cloud.pose.orientation.w == 1.0
+
+
+def test_no_client_costs_no_map_and_changes_no_log(cpu, tmp_path):
+    """With --live and nobody connected, the map is sampled for the file only (once more at frame 0, which
+    advertises the channel), and the log holds what a run without --live writes."""
+    counts = {}
+    for name, live in (("plain", None), ("live", LiveServer("127.0.0.1:0"))):
+        cfg = _config(6)
+        run = RunDir("slam", tmp_path / name)
+        pipeline = SLAMPipeline(open_dataset(cfg.dataset, cfg.synth), cfg, run, current_backend(),
+                                show_progress=False, live=live)
+        sample = pipeline.step.map_points
+        calls = []
+        pipeline.step.map_points = lambda n: calls.append(n) or sample(n)
+        pipeline.run()
+        log = read_log(run.file("log.mcap"))
+        counts[name] = ({t: c.count for t, c in log.channels.items()}, len(calls))
+    assert counts["live"][0] == counts["plain"][0]
+    assert counts["live"][1] == counts["plain"][1] + 1
+
+
+@pytest.mark.slow
+def test_sigterm_closes_the_server_and_finalises_the_log(tmp_path):
+    """``ti-fusion slam --live``: a client gets stats while the run goes; SIGTERM ends the run with 143, the
+    client sees the connection close, and the log is finalised with what the client got."""
+    out = tmp_path / "run"
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen([sys.executable, "-m", "ti_fusion", "slam", "--live", "127.0.0.1:0", "--frames", "1000",
+                             "--downsample", "4", "--quiet", "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    try:
+        line = _read_line(proc, "live: ", WAIT_S)
+        client = Client(line.split()[1], topics=("/slam/stats",))
+        client.start()
+        client.wait_for(lambda: len(client.stats_frames()) >= 2, "two stats messages")
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(WAIT_S) == 128 + signal.SIGTERM
+        client.join(WAIT_S)
+        assert not client.is_alive() and client.error is None
+        assert "stopped by SIGTERM" in proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    log = read_log(out / "log.mcap")
+    assert log.complete and len(log.stats) < 1000
+    in_file, _ = _file_messages(out / "log.mcap")
+    for ns, data in client.received("/slam/stats"):
+        assert in_file["/slam/stats"][ns] == data
+
+
+def _read_line(proc: subprocess.Popen, prefix: str, timeout: float) -> str:
+    """The first line of the process's stdout that starts with ``prefix`` (read on a thread: bounded)."""
+    found: list[str] = []
+
+    def read():
+        for line in proc.stdout:
+            if line.startswith(prefix):
+                found.append(line.strip())
+                return
+
+    reader = threading.Thread(target=read, daemon=True)
+    reader.start()
+    reader.join(timeout)
+    if not found:
+        raise AssertionError(f"no '{prefix}' line within {timeout} s; stderr: {proc.stderr.read() if proc.poll() is not None else ''}")
+    return found[0]

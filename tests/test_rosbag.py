@@ -1,0 +1,395 @@
+"""ROS 2 bags as input: bags written here with rosbags' writer from the synthetic sequence track as its
+TUM-format copy does; topics, encodings, stamps and damaged bags on small hand-made bags (no Taichi)."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ti_fusion.cli.main import main
+from ti_fusion.config import Config, DatasetConfig, SynthConfig
+from ti_fusion.errors import InputError
+from ti_fusion.geometry import make_pose, rot_to_quat, so3_exp
+from ti_fusion.io.datasets import detect, open_dataset
+from ti_fusion.io.datasets.rosbag import RosbagDataset, depth_image
+from ti_fusion.io.trajectory import read_tum
+from rosbags.rosbag2 import StoragePlugin, Writer
+from rosbags.typesys import Stores, get_typestore
+
+STORE = get_typestore(Stores.LATEST)
+MSG = STORE.types
+FRAMES = 20
+K = (262.5, 262.5, 159.5, 119.5)  # the synthetic camera at 320×240
+DEPTH = "/camera/depth/image_rect_raw"
+COLOR = "/camera/color/image_raw"
+INFO = "/camera/depth/camera_info"
+GT = "/ground_truth/pose"
+
+
+# --------------------------------------------------------------------------------------------------
+# Writing bags
+# --------------------------------------------------------------------------------------------------
+@dataclass
+class Shot:
+    """One frame to write: depth in metres (float32), RGB colour or None, header stamp, camera-to-world pose."""
+
+    t: float
+    depth: np.ndarray
+    color: np.ndarray | None
+    pose: np.ndarray
+
+
+def _time(t: float):
+    ns = round(t * 1e9)
+    return MSG["builtin_interfaces/msg/Time"](sec=ns // 10**9, nanosec=ns % 10**9)
+
+
+def _header(t: float, frame: str):
+    return MSG["std_msgs/msg/Header"](stamp=_time(t), frame_id=frame)
+
+
+def image_msg(t: float, array: np.ndarray, encoding: str, frame: str = "camera_optical"):
+    a = np.ascontiguousarray(array)
+    return MSG["sensor_msgs/msg/Image"](header=_header(t, frame), height=a.shape[0], width=a.shape[1],
+                                         encoding=encoding, is_bigendian=0, step=a.strides[0],
+                                         data=a.view(np.uint8).reshape(-1))
+
+
+def info_msg(t: float, width: int, height: int, k=K, frame: str = "camera_optical"):
+    fx, fy, cx, cy = k
+    roi = MSG["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
+    return MSG["sensor_msgs/msg/CameraInfo"](
+        header=_header(t, frame), height=height, width=width, distortion_model="plumb_bob", d=np.zeros(5),
+        k=np.array([fx, 0, cx, 0, fy, cy, 0, 0, 1.0]), r=np.eye(3).reshape(-1),
+        p=np.array([fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1.0, 0]), binning_x=0, binning_y=0, roi=roi)
+
+
+def pose_msg(t: float, T: np.ndarray, kind: str):
+    q, p = rot_to_quat(T[:3, :3]), T[:3, 3]
+    pose = MSG["geometry_msgs/msg/Pose"](position=MSG["geometry_msgs/msg/Point"](x=p[0], y=p[1], z=p[2]),
+                                         orientation=MSG["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2], w=q[3]))
+    if kind == "pose":
+        return MSG["geometry_msgs/msg/PoseStamped"](header=_header(t, "world"), pose=pose)
+    cov = MSG["geometry_msgs/msg/PoseWithCovariance"](pose=pose, covariance=np.zeros(36))
+    zero = MSG["geometry_msgs/msg/Vector3"](x=0.0, y=0.0, z=0.0)
+    twist = MSG["geometry_msgs/msg/TwistWithCovariance"](twist=MSG["geometry_msgs/msg/Twist"](linear=zero, angular=zero),
+                                                         covariance=np.zeros(36))
+    return MSG["nav_msgs/msg/Odometry"](header=_header(t, "world"), child_frame_id="camera_optical", pose=cov,
+                                        twist=twist)
+
+
+def write_bag(path: Path, shots: list[Shot], depth_encoding: str = "32FC1", color_encoding: str | None = "rgb8",
+              color_lag: float = 0.0, gt: str | None = "pose", info: bool = True, depth_topics=(DEPTH,),
+              storage: str = "mcap", color_frame: str = "camera_optical") -> Path:
+    """A rosbag2 folder of ``shots`` (log time = header stamp, as a recorder close to the driver writes it).
+    ``depth_encoding`` 16UC1 writes millimetres; ``color_encoding`` is rgb8, bgr8, mono8 or "jpeg"
+    (CompressedImage); ``color_lag`` delays colour's stamps; ``gt`` is "pose", "odom" or None."""
+    plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
+    image_type, compressed_type = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
+    with Writer(path, version=9, storage_plugin=plugin) as w:
+        depth_conns = [w.add_connection(t, image_type, typestore=STORE) for t in depth_topics]
+        color_conn = None if color_encoding is None else w.add_connection(
+            COLOR, compressed_type if color_encoding == "jpeg" else image_type, typestore=STORE)
+        info_conn = w.add_connection(INFO, "sensor_msgs/msg/CameraInfo", typestore=STORE) if info else None
+        gt_type = {"pose": "geometry_msgs/msg/PoseStamped", "odom": "nav_msgs/msg/Odometry"}.get(gt)
+        gt_conn = w.add_connection(GT, gt_type, typestore=STORE) if gt else None
+        records = []
+        for s in shots:
+            h, wd = s.depth.shape
+            depth = s.depth if depth_encoding == "32FC1" else np.round(s.depth * 1000).astype(np.uint16)
+            for conn in depth_conns:
+                records.append((s.t, conn, image_type, image_msg(s.t, depth, depth_encoding)))
+            if info_conn:
+                records.append((s.t, info_conn, "sensor_msgs/msg/CameraInfo", info_msg(s.t, wd, h)))
+            if color_conn is not None and s.color is not None:
+                tc = s.t + color_lag
+                if color_encoding == "jpeg":
+                    ok, data = cv2.imencode(".jpg", s.color[..., ::-1])
+                    msg = MSG[compressed_type](header=_header(tc, color_frame), format="rgb8; jpeg compressed bgr8",
+                                               data=data.reshape(-1))
+                    records.append((tc, color_conn, compressed_type, msg))
+                else:
+                    array = {"rgb8": s.color, "bgr8": s.color[..., ::-1],
+                             "mono8": cv2.cvtColor(s.color, cv2.COLOR_RGB2GRAY)}[color_encoding]
+                    records.append((tc, color_conn, image_type, image_msg(tc, array, color_encoding, color_frame)))
+            if gt_conn:
+                records.append((s.t, gt_conn, gt_type, pose_msg(s.t, s.pose, gt)))
+        for t, conn, msgtype, msg in sorted(records, key=lambda r: r[0]):
+            w.write(conn, round(t * 1e9), STORE.serialize_cdr(msg, msgtype))
+    return path
+
+
+def small_shots(rng, n: int = 4, t0: float = 1700000000.0, size=(40, 30)) -> list[Shot]:
+    """``n`` frames of ``size`` (40×30) at 30 Hz with random depth and colour."""
+    shots = []
+    for i in range(n):
+        depth = rng.uniform(0.5, 3.0, size[::-1]).astype(np.float32)
+        color = rng.integers(0, 256, (*size[::-1], 3), dtype=np.uint8)
+        shots.append(Shot(t0 + i / 30.0, depth, color, make_pose(so3_exp(np.array([0, 0.01 * i, 0])), [0.01 * i, 0, 0])))
+    return shots
+
+
+def small_cfg(path: Path, **kw) -> DatasetConfig:
+    return DatasetConfig(path=str(path), **kw)
+
+
+# --------------------------------------------------------------------------------------------------
+# The synthetic sequence as bags: the same trajectory as from its TUM copy
+# --------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def tum_sequence(tmp_path_factory):
+    from ti_fusion.backend import init_backend
+    from ti_fusion.cli.synth import write_tum_sequence
+    from ti_fusion.synthetic.scene import SyntheticSequence
+
+    init_backend("cpu")
+    root = tmp_path_factory.mktemp("synthetic") / "tum"
+    write_tum_sequence(SyntheticSequence(SynthConfig(frames=FRAMES, width=320, height=240, fx=K[0])), root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def synthetic_shots(tum_sequence) -> list[Shot]:
+    """The TUM copy's frames as written: depth read as the TUM loader reads it (5000 units per metre)."""
+    stamps, poses = read_tum(tum_sequence / "groundtruth.txt")
+    shots = []
+    for line, T in zip((tum_sequence / "associations.txt").read_text().splitlines(), poses):
+        t, rgb, _, depth = line.split()
+        raw = cv2.imread(str(tum_sequence / depth), cv2.IMREAD_UNCHANGED)
+        color = cv2.cvtColor(cv2.imread(str(tum_sequence / rgb)), cv2.COLOR_BGR2RGB)
+        shots.append(Shot(float(t), raw.astype(np.float32) / np.float32(5000.0), color, T))
+    return shots
+
+
+def slam(dataset_cfg: DatasetConfig, out: Path) -> dict:
+    from ti_fusion.backend import current_backend
+    from ti_fusion.io.outputs import RunDir
+    from ti_fusion.slam.pipeline import SLAMPipeline
+
+    cfg = Config()
+    cfg.dataset = dataset_cfg
+    cfg.log.progress = False
+    summary = SLAMPipeline(open_dataset(cfg.dataset, cfg.synth), cfg, RunDir("slam", out), current_backend(),
+                           show_progress=False).run()
+    summary["trajectory"] = read_tum(out / "trajectory.tum")
+    return summary
+
+
+@pytest.fixture(scope="module")
+def tum_run(tum_sequence, tmp_path_factory):
+    return slam(DatasetConfig(path=str(tum_sequence)), tmp_path_factory.mktemp("runs") / "tum")
+
+
+def test_a_32fc1_bag_gives_the_tum_runs_trajectory(cpu, synthetic_shots, tum_run, tmp_path):
+    """Depth in metres as 32FC1 (the TUM loader's float32 values), intrinsics from CameraInfo, ground truth
+    from a PoseStamped topic: the same trajectory, with the header stamps as its times."""
+    bag = write_bag(tmp_path / "bag", synthetic_shots, depth_encoding="32FC1")
+    run = slam(small_cfg(bag, gt_topic=GT), tmp_path / "run")
+    d = run["dataset"]
+    assert d["format"] == "rosbag" and d["frames"] == FRAMES and d["depth_encoding"] == "32FC1"
+    assert d["topics"] == {"depth": DEPTH, "color": COLOR, "camera_info": INFO, "ground_truth": GT}
+    assert d["intrinsics"]["source"] == f"{INFO} (CameraInfo K)" and d["colour_registered"] is True
+    stamps, poses = run["trajectory"]
+    tum_stamps, tum_poses = tum_run["trajectory"]
+    np.testing.assert_array_equal(stamps, tum_stamps)
+    np.testing.assert_allclose(poses, tum_poses, atol=1e-6)
+    assert run["ate_rmse_m"] == pytest.approx(tum_run["ate_rmse_m"], abs=1e-6)
+
+
+def test_a_16uc1_mcap_file_with_lagging_bgr_colour_from_the_command_line(cpu, synthetic_shots, tum_run, tmp_path):
+    """Millimetres (REP 118), a bare .mcap file, colour 8 ms behind depth, ground truth from Odometry."""
+    bag = write_bag(tmp_path / "bag", synthetic_shots, depth_encoding="16UC1", color_encoding="bgr8",
+                    color_lag=0.008, gt="odom")
+    mcap = shutil.move(next(bag.glob("*.mcap")), tmp_path / "recording.mcap")
+    out = tmp_path / "run"
+    assert main(["slam", str(mcap), "--gt-topic", GT, "--out", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    d = summary["dataset"]
+    assert d["format_from"] == "detected from a .mcap file" and d["depth_scale"] == 1000
+    assert d["notes"] == [] and d["colour"] is True  # every depth frame found its colour
+    assert summary["tracking_failures"] == 0
+    assert summary["ate_rmse_m"] < 0.01 and abs(summary["ate_rmse_m"] - tum_run["ate_rmse_m"]) < 1e-3
+    stamps, _ = read_tum(out / "trajectory.tum")
+    np.testing.assert_allclose(stamps, [s.t for s in synthetic_shots], atol=1e-6)
+
+
+# --------------------------------------------------------------------------------------------------
+# Small bags: topics, encodings, stamps, damage
+# --------------------------------------------------------------------------------------------------
+def test_frames_colour_intrinsics_and_ground_truth(tmp_path, rng):
+    shots = small_shots(rng)
+    ds = open_dataset(small_cfg(write_bag(tmp_path / "bag", shots, gt="pose"), gt_topic=GT))
+    assert isinstance(ds, RosbagDataset) and len(ds) == 4 and ds.intrinsics.as_tuple() == K
+    for i, s in enumerate(shots):
+        frame = ds[i]
+        assert frame.timestamp == pytest.approx(s.t, abs=1e-6)
+        np.testing.assert_array_equal(frame.depth, np.where(s.depth > 4.0, 0, s.depth))
+        np.testing.assert_array_equal(frame.color, s.color)
+        np.testing.assert_allclose(frame.gt_pose, s.pose, atol=1e-9)
+
+
+@pytest.mark.parametrize("encoding", ["bgr8", "mono8", "jpeg"])
+def test_colour_encodings_come_out_rgb(tmp_path, rng, encoding):
+    shots = small_shots(rng, n=2)
+    ds = open_dataset(small_cfg(write_bag(tmp_path / "bag", shots, color_encoding=encoding)))
+    color = ds[1].color
+    assert color.shape == (30, 40, 3) and color.dtype == np.uint8
+    if encoding == "bgr8":
+        np.testing.assert_array_equal(color, shots[1].color)
+    elif encoding == "mono8":
+        np.testing.assert_array_equal(color[..., 0], cv2.cvtColor(shots[1].color, cv2.COLOR_RGB2GRAY))
+    else:  # JPEG is lossy; random noise is its worst case
+        assert np.abs(color.astype(int) - shots[1].color).mean() < 60
+
+
+def test_16uc1_is_millimetres_unless_the_depth_scale_says_otherwise(tmp_path, rng):
+    shots = small_shots(rng, n=2)
+    bag = write_bag(tmp_path / "bag", shots, depth_encoding="16UC1")
+    ds = open_dataset(small_cfg(bag))
+    expected = np.round(shots[0].depth * 1000) / 1000
+    np.testing.assert_allclose(ds[0].depth, np.where(expected > 4, 0, expected), rtol=1e-6)
+    assert ds.describe()["depth_scale_from"] == "REP 118 for 16UC1"
+    ds = open_dataset(small_cfg(bag, depth_scale=500.0, depth_max=0))
+    np.testing.assert_allclose(ds[0].depth, expected * 2, rtol=1e-6)
+
+
+def test_32fc1_nan_and_inf_are_no_depth():
+    msg = image_msg(0.0, np.array([[1.5, np.nan], [np.inf, -np.inf]], dtype=np.float32), "32FC1")
+    np.testing.assert_array_equal(depth_image(msg, 1.0, 4.0, "test"), [[1.5, 0], [0, 0]])
+
+
+def test_rows_with_padding_and_big_endian_depth():
+    raw = np.array([[1000, 2000, 3000], [4000, 5000, 6000]], dtype=">u2")
+    padded = np.zeros((2, 8), dtype=np.uint8)
+    padded[:, :6] = raw.view(np.uint8).reshape(2, 6)
+    msg = MSG["sensor_msgs/msg/Image"](header=_header(0.0, "c"), height=2, width=3, encoding="16UC1", is_bigendian=1,
+                                       step=8, data=padded.reshape(-1))
+    np.testing.assert_allclose(depth_image(msg, 1000.0, 0, "test"), raw.astype(np.float32) / 1000)
+
+
+def test_two_depth_topics_are_listed_with_the_option(tmp_path, rng):
+    bag = write_bag(tmp_path / "bag", small_shots(rng, n=2), depth_topics=(DEPTH, "/other/depth"))
+    with pytest.raises(InputError) as info:
+        open_dataset(small_cfg(bag))
+    message = str(info.value)
+    assert "\n" not in message
+    assert f"depth: {DEPTH}, /other/depth (--depth-topic TOPIC)" in message
+    ds = open_dataset(small_cfg(bag, depth_topic="/other/depth"))
+    assert ds.topics["depth"] == "/other/depth" and len(ds) == 2
+    with pytest.raises(InputError, match="--depth-topic /nothing: no such topic"):
+        open_dataset(small_cfg(bag, depth_topic="/nothing"))
+    with pytest.raises(InputError, match=f"--depth-topic {COLOR}: a sensor_msgs/msg/Image topic in rgb8, not a depth"):
+        open_dataset(small_cfg(bag, depth_topic=COLOR))
+
+
+def test_the_command_line_lists_the_candidates_in_one_line(tmp_path, rng, capsys):
+    bag = write_bag(tmp_path / "bag", small_shots(rng, n=2), depth_topics=(DEPTH, "/other/depth"))
+    assert main(["slam", str(bag), "--out", str(tmp_path / "out"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--depth-topic TOPIC" in err and "/other/depth" in err
+
+
+def test_colour_outside_the_window_is_left_out_and_counted(tmp_path, rng, caplog):
+    shots = small_shots(rng, n=4)
+    bag = write_bag(tmp_path / "bag", shots, color_lag=0.015)
+    ds = open_dataset(small_cfg(bag))  # 15 ms: within the 20 ms window
+    assert all(ds[i].color is not None for i in range(4)) and ds.describe()["notes"] == []
+    ds = open_dataset(small_cfg(bag, max_time_difference=0.01))
+    assert all(ds[i].color is None for i in range(4)) and len(ds) == 4
+    assert "4 of 4 depth images have no colour image within 0.01 s" in ds.describe()["notes"][0]
+    ds = open_dataset(small_cfg(bag, color_topic="none"))
+    assert ds[0].color is None and ds.topics["color"] is None
+
+
+def test_colour_in_another_frame_is_not_registered(tmp_path, rng):
+    bag = write_bag(tmp_path / "bag", small_shots(rng, n=2), color_frame="camera_color_optical")
+    d = open_dataset(small_cfg(bag)).describe()
+    assert d["colour_registered"] is False and "not registered" in d["notes"][0]
+
+
+def test_intrinsics_without_camera_info(tmp_path, rng):
+    bag = write_bag(tmp_path / "bag", small_shots(rng, n=2), info=False)
+    with pytest.raises(InputError, match="no sensor_msgs/msg/CameraInfo topic to give the intrinsics: pass --intrinsics"):
+        open_dataset(small_cfg(bag))
+    ds = open_dataset(small_cfg(bag, intrinsics="30,30,19.5,14.5"))
+    assert ds.intrinsics.as_tuple() == (30.0, 30.0, 19.5, 14.5)
+
+
+def test_ground_truth_from_a_tum_file(tmp_path, rng):
+    shots = small_shots(rng, n=3)
+    bag = write_bag(tmp_path / "bag", shots, gt=None)
+    lines = [f"{s.t:.6f} {s.pose[0, 3]} 0 0 0 0 0 1\n" for s in shots]
+    (tmp_path / "gt.txt").write_text("".join(lines))
+    ds = open_dataset(small_cfg(bag, ground_truth=str(tmp_path / "gt.txt")))
+    assert ds[2].gt_pose[0, 3] == pytest.approx(shots[2].pose[0, 3])
+    (bag / "groundtruth.txt").write_text("".join(lines))  # beside the bag's files: found
+    assert open_dataset(small_cfg(bag)).describe()["ground_truth_frames"] == 3
+
+
+def test_an_odometry_topic_is_ground_truth_only_when_named(tmp_path, rng):
+    bag = write_bag(tmp_path / "bag", small_shots(rng, n=2), gt="odom")
+    assert open_dataset(small_cfg(bag)).has_ground_truth is False
+    assert open_dataset(small_cfg(bag, gt_topic=GT)).has_ground_truth is True
+    with pytest.raises(InputError, match=f"--gt-topic {INFO}: a sensor_msgs/msg/CameraInfo topic, not a ground truth"):
+        open_dataset(small_cfg(bag, gt_topic=INFO))
+
+
+def test_a_cut_off_recording_is_read_up_to_the_cut(tmp_path, rng):
+    # rosbags writes chunks of 1 MiB: frames of 320×240 fill one every two frames
+    bag = write_bag(tmp_path / "bag", small_shots(rng, n=8, size=(320, 240)), info=False)
+    whole = next(bag.glob("*.mcap"))
+    cut = tmp_path / "cut.mcap"
+    data = whole.read_bytes()
+    cut.write_bytes(data[: len(data) // 2])
+    ds = open_dataset(small_cfg(cut, intrinsics="262.5,262.5,159.5,119.5"))
+    assert ds.describe()["truncated"] is True and 0 < len(ds) < 8
+    assert "ends without MCAP's footer" in ds.describe()["notes"][0]
+    full = open_dataset(small_cfg(bag, intrinsics="262.5,262.5,159.5,119.5"))
+    for i in range(len(ds)):  # what is there is read as it was written
+        np.testing.assert_array_equal(ds[i].depth, full[i].depth)
+        np.testing.assert_array_equal(ds[i].color, full[i].color)
+    cut.write_bytes(data[:20])  # nothing past the header
+    with pytest.raises(InputError, match="cannot read the bag"):
+        open_dataset(small_cfg(cut))
+
+
+def test_a_rosbag2_folder_without_metadata_reads_its_mcap_file(tmp_path, rng):
+    bag = write_bag(tmp_path / "bag", small_shots(rng, n=2))
+    (bag / "metadata.yaml").unlink()
+    assert detect(bag)[0] == "rosbag"
+    ds = open_dataset(small_cfg(bag))
+    assert len(ds) == 2 and "no metadata.yaml" in ds.describe()["notes"][0]
+
+
+def test_sqlite3_storage(tmp_path, rng):
+    bag = write_bag(tmp_path / "bag", small_shots(rng, n=3), storage="sqlite3")
+    assert detect(bag) == ("rosbag", "metadata.yaml (rosbag2)")
+    assert len(open_dataset(small_cfg(bag))) == 3
+
+
+def test_what_is_not_a_bag_is_one_line(tmp_path):
+    from ti_fusion.io.mcap_log import RunLogger
+
+    with RunLogger(tmp_path / "log.mcap") as log:  # ti-fusion's own log: Foxglove messages
+        log.log_stats(1.0, {"frame": 0})
+    with pytest.raises(InputError, match="not a ROS 2 bag"):
+        open_dataset(small_cfg(tmp_path / "log.mcap"))
+    (tmp_path / "notes.txt").write_text("hello\n")
+    with pytest.raises(InputError, match="not a folder, nor a ROS 2 bag file"):
+        open_dataset(small_cfg(tmp_path / "notes.txt"))
+    (tmp_path / "empty.mcap").write_bytes(b"")
+    with pytest.raises(InputError, match="cannot read the bag"):
+        open_dataset(small_cfg(tmp_path / "empty.mcap"))
+
+
+def test_selection_and_downsampling_apply(tmp_path, rng):
+    bag = write_bag(tmp_path / "bag", small_shots(rng, n=6))
+    ds = open_dataset(small_cfg(bag, start=1, stride=2, downsample=2))
+    assert len(ds) == 3 and ds[0].depth.shape == (15, 20) and ds[0].color.shape == (15, 20, 3)
+    assert ds.intrinsics.fx == K[0] / 2

@@ -38,6 +38,7 @@ from ti_fusion import __version__
 from ti_fusion.backend import ARCH_CHOICES, BackendInfo, init_backend
 from ti_fusion.config import Config, load_config
 from ti_fusion.errors import InputError, OutputError, TiFusionError
+from ti_fusion.interrupts import interrupt
 from ti_fusion.io.outputs import RunDir, base_summary
 
 
@@ -226,8 +227,10 @@ def _terminal_logging(command: str, quiet: bool):
 
 @contextmanager
 def _stop_signals_raise():
-    """SIGTERM and SIGHUP raise ``Stopped`` in the main thread; later ones are ignored while the run
-    writes what it has (SIGKILL still ends it at once). Handlers are restored afterwards."""
+    """SIGTERM and SIGHUP raise ``Stopped`` in the main thread, Ctrl-C ``KeyboardInterrupt``; later SIGTERMs
+    and SIGHUPs are ignored while the run writes what it has (SIGKILL still ends it at once). A stop that
+    arrives during a write that must not be cut in two (``ti_fusion.interrupts.critical``: the log's) is
+    raised when the write ends. Handlers are restored afterwards."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -235,9 +238,14 @@ def _stop_signals_raise():
     def stop(signum, frame):
         for s in STOP_SIGNALS:
             signal.signal(s, signal.SIG_IGN)
-        raise Stopped(signum)
+        interrupt(Stopped(signum))
+
+    def ctrl_c(signum, frame):
+        interrupt(KeyboardInterrupt())
 
     previous = {s: signal.signal(s, stop) for s in STOP_SIGNALS}
+    if signal.getsignal(signal.SIGINT) is signal.default_int_handler:  # not when Ctrl-C is ignored
+        previous[signal.SIGINT] = signal.signal(signal.SIGINT, ctrl_c)
     try:
         yield
     finally:

@@ -70,6 +70,7 @@ from mcap_protobuf.schema import build_file_descriptor_set
 
 from ti_fusion.errors import InputError, OutputError
 from ti_fusion.geometry import quat_to_rot, rot_to_quat
+from ti_fusion.interrupts import critical
 from ti_fusion.io.outputs import jsonable
 
 WORLD_FRAME = "world"
@@ -131,7 +132,7 @@ class RunLogger:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = _LogFile(self.path)
-        self._writer = McapWriter(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD)
+        self._writer = _Uninterrupted(McapWriter(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD))
         self._writer.start(profile="", library=f"ti-fusion {_package_version()}")
         self._channels: dict[str, tuple[int, str]] = {}  # topic → (channel id, schema name)
         self._schemas: dict[tuple[str, str], int] = {}   # (schema name, encoding) → schema id
@@ -367,6 +368,23 @@ class _LogFile:
 
     def close(self) -> None:
         self._call("close")
+
+
+class _Uninterrupted:
+    """The MCAP writer with each call a ``critical`` block: a stop signal waits for the call to end, since a
+    chunk cut halfway (taken from the chunk buffer, not yet written) loses every message it held."""
+
+    def __init__(self, writer: McapWriter):
+        self._writer = writer
+
+    def __getattr__(self, name: str):
+        method = getattr(self._writer, name)
+
+        def call(*args, **kwargs):
+            with critical():
+                return method(*args, **kwargs)
+
+        return call
 
 
 def _finish(writer: McapWriter, file) -> None:

@@ -140,3 +140,6 @@ class _Listener:
 
     def on_subscribe(self, client, channel) -> None:
         self._server._subscribed(channel.topic)
+
+    def on_unsubscribe(self, client, channel) -> None:
+        pass  # has_sinks() says whether any client still subscribes

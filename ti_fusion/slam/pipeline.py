@@ -25,11 +25,14 @@ from ti_fusion.evaluation.metrics import trajectory_metrics
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import RunLogger, software_versions
 from ti_fusion.io.outputs import RunDir, progress
+from ti_fusion.io.prefetch import Prefetcher
 from ti_fusion.io.trajectory import write_tum
-from ti_fusion.slam.timing import StageTimer
+from ti_fusion.slam.timing import StageTimer, process_age_s
 
 # The log's record of a run without a Taichi backend (feature odometry runs in OpenCV).
 NO_BACKEND = {"arch": "none (OpenCV on the CPU)"}
+# Frames read ahead of the one being processed, on a background thread (ti_fusion.io.prefetch).
+READ_AHEAD = 3
 
 
 class Step(Protocol):
@@ -75,6 +78,7 @@ class Pipeline:
         self.timer = StageTimer()
         self.results: list = []  # the step's result of every frame done
         self.gt: list[np.ndarray | None] = []  # and the frame's ground-truth pose
+        self.first_frames_s: list[float] = []  # the process's age when each of the first two frames was done
         self._calibration = None  # the intrinsics last logged on /camera/calibration
 
     def run(self) -> dict:
@@ -95,24 +99,30 @@ class Pipeline:
             summary.update(self._evaluate())
             summary.update(self.step.outputs(self))
         summary["ms_per_stage"] = self.timer.summary(skip_first=self.step.warmup_frames)
+        summary["process_s"] = process_age_s()  # from the process's start: interpreter, imports, compiling
         return summary
 
     # -- the loop -------------------------------------------------------------------------------
     def _loop(self, log: RunLogger) -> None:
         n = len(self.dataset)
-        for i in progress(range(n), n, self.step.name, self.show_progress):
-            with self.timer.stage("load"):
-                frame = self.dataset[i]
-            result = self.step.register_frame(frame)
-            t0 = time.perf_counter()
-            self._log_frame(log, i, frame, result)
-            result.ms["log"] = (time.perf_counter() - t0) * 1e3
-            for name, value in result.ms.items():
-                self.timer.add(name, value)
-            result.ms["load"] = self.timer.last["load"]
-            log.log_stats(frame.timestamp, self.step.stats(result), channel=self.step.stats_channel)
-            self.results.append(result)
-            self.gt.append(frame.gt_pose)
+        threaded = not getattr(self.dataset, "renders_on_taichi", False)
+        with Prefetcher(self.dataset, READ_AHEAD, threaded) as frames:
+            for i in progress(range(n), n, self.step.name, self.show_progress):
+                with self.timer.stage("load"):  # the wait for the frame: what reading it did not overlap
+                    _, frame, read_ms = next(frames)
+                self.timer.add("read", read_ms)
+                result = self.step.register_frame(frame)
+                t0 = time.perf_counter()
+                self._log_frame(log, i, frame, result)
+                result.ms["log"] = (time.perf_counter() - t0) * 1e3
+                for name, value in result.ms.items():
+                    self.timer.add(name, value)
+                result.ms["load"] = self.timer.last["load"]
+                log.log_stats(frame.timestamp, self.step.stats(result), channel=self.step.stats_channel)
+                self.results.append(result)
+                self.gt.append(frame.gt_pose)
+                if len(self.first_frames_s) < 2:
+                    self.first_frames_s.append(process_age_s())
 
     def _log_frame(self, log: RunLogger, i: int, frame: Frame, result) -> None:
         cfg = self.config.log
@@ -146,7 +156,6 @@ class Pipeline:
                                                   "any live view), milliseconds"})
         return schema
 
-
     def _metadata(self) -> dict:
         backend = NO_BACKEND if self.backend is None else {
             "arch": self.backend.arch, "requested": self.backend.requested, "reason": self.backend.reason}
@@ -175,9 +184,15 @@ class Pipeline:
         return fps, round(float(per_frame[:warmup].sum()), 1)
 
     def _summary(self, wall: float) -> dict:
+        """``fps_wall`` counts every second of the loop (waiting for frames, logging, compiling);
+        ``fps_processing`` the step's stages and logging after warm-up; ``first_frame_s`` and
+        ``second_frame_s`` are the process's age when frames 0 and 1 were done (for slam, frame 1 is the
+        first one tracked)."""
         fps, warmup_ms = self._frame_rate()
-        return {"frames": len(self.results), "wall_s": wall, "fps_processing": fps, "warmup_ms": warmup_ms,
-                "dataset": self.dataset.describe()}
+        first = dict(zip(("first_frame_s", "second_frame_s"), self.first_frames_s))
+        return {"frames": len(self.results), "wall_s": wall,
+                "fps_wall": round(len(self.results) / wall, 2) if wall > 0 else None, "fps_processing": fps,
+                "warmup_ms": warmup_ms, **first, "dataset": self.dataset.describe()}
 
     def _evaluate(self) -> dict:
         """ATE/RPE of the posed frames that have ground truth (``gt_frames`` of them; ``gt_note`` says so when

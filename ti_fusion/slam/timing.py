@@ -1,7 +1,8 @@
-"""Per-stage wall-clock timing: ``with timer.stage("track"): ...``."""
+"""Per-stage wall-clock timing (``with timer.stage("track"): ...``) and the age of the process."""
 
 from __future__ import annotations
 
+import os
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -43,3 +44,15 @@ class StageTimer:
             }
         return out
 
+
+def process_age_s() -> float | None:
+    """Seconds since this process started, from the kernel's record of its start (Linux; 10 ms steps), so
+    that the interpreter's start and every import count; None where /proc is missing."""
+    try:
+        with open("/proc/self/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return round(uptime - int(fields[19]) / os.sysconf("SC_CLK_TCK"), 2)  # field 22: start, in ticks
+    except (OSError, ValueError, IndexError):
+        return None

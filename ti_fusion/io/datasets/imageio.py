@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import sys
+import threading
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -41,7 +42,14 @@ def _imread(path: Path, flags: int) -> np.ndarray:
 
 @contextmanager
 def _stderr_silenced():
-    """File descriptor 2 pointed at the null device for the duration (C libraries write there directly)."""
+    """File descriptor 2 pointed at the null device for the duration (C libraries write there directly).
+
+    On the main thread only: fd 2 is the whole process's, so silencing it on the pipeline's reader thread
+    (``ti_fusion.io.prefetch``) would swallow what the main thread writes meanwhile (warnings, the last
+    line of a run); a damaged image read ahead may then let libpng or libjpeg add their own line."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
     try:
         sys.stderr.flush()
         saved = os.dup(2)

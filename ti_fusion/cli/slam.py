@@ -2,10 +2,6 @@
 
 from __future__ import annotations
 
-import logging
-
-log = logging.getLogger(__name__)
-
 HELP = "dense SLAM (frame-to-model ICP + surfel fusion): trajectory, map, MCAP log, plots, ATE/RPE"
 USES_DATASET = True
 USES_TAICHI = True
@@ -32,10 +28,9 @@ def run(ctx) -> dict:
     if ctx.args.no_relocalise:
         cfg.slam.relocalise = "none"
     dataset = open_dataset(cfg.dataset, cfg.synth)
-    if not ctx.quiet:  # what the format line (format, depth scale, intrinsics) does not say
+    if not ctx.quiet:
         d = dataset.describe()
-        name = "the synthetic sequence" if d["format"] == "synthetic" else d["name"]
-        ctx.log(f"{name}: {d['frames']} frames at {d['width']}x{d['height']}")
+        ctx.log(f"dataset: {d['name']} ({d['format']}), {d['frames']} frames at {d['width']}x{d['height']}")
     live = _live_server(ctx)
     try:
         summary = SLAMPipeline(dataset, cfg, ctx.out, ctx.backend, show_progress=not ctx.quiet, live=live).run()
@@ -65,5 +60,3 @@ def _print_summary(ctx, s: dict) -> None:
                  f"{s['path_length_m']:.2f} m), RPE {s['rpe_trans_m'] * 1000:.1f} mm")
     line += f", tracking failures: {s['tracking_failures']}"
     ctx.log(line)
-    if s.get("gt_note"):
-        log.warning(s["gt_note"])

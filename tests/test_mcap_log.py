@@ -496,3 +496,28 @@ def test_every_stats_message_validates_against_the_declared_schema(cpu, tmp_path
     ((t_calib, _, calib),) = msgs["/camera/calibration"]  # once: the intrinsics do not change
     assert t_calib == depth_times[0] and (calib.width, calib.height) == (depth.width, depth.height)
     assert calib.frame_id == "camera" and calib.K[0] > 0 and calib.K[8] == 1
+
+
+def test_the_foxglove_layout_shows_what_the_logs_have():
+    """docs/foxglove-layout.json is what scripts/foxglove_layout.py writes, and every topic and message path
+    in it is one the logs have."""
+    import importlib.util
+    import re
+
+    spec = importlib.util.spec_from_file_location("foxglove_layout", DOCS.parents[1] / "scripts" / "foxglove_layout.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    text = (DOCS.parent / "foxglove-layout.json").read_text()
+    assert json.loads(text) == json.loads(module.layout().to_json())
+    topics = {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points", "/camera/depth", "/camera/color",
+              "/camera/calibration"}
+    slam_fields = set(_field_names(_steps()["/slam/stats"])) | {"ms.load", "ms.log"}
+    paths = set(re.findall(r'"(/[a-z/_]+(?:\.[a-z_.]+)?)"', text))
+    assert paths
+    for path in paths:
+        topic, _, field = path.partition(".")
+        assert topic in topics, path
+        if topic == "/slam/stats":
+            assert field in slam_fields, path
+        elif field:
+            assert field in ("pose.position.x", "pose.position.y"), path

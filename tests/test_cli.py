@@ -61,10 +61,10 @@ BAD_ARGUMENTS = [
                                      "per side are needed, so at most --downsample 68"),
     (["vo", "--start", "500", "--stop", "510"], "no frames selected: the synthetic sequence has 120 frames "
                                                 "(0 to 119), and start 500, stop 510, stride 1 select none"),
-    (["vo", "--set", "dataset.start=-3"], "dataset.start = -3: must be an integer of at least 0"),
+    (["vo", "--set", "dataset.start=-3"], "--set: dataset.start = -3: must be an integer >= 0"),
     (["slam", "--frames", "0"], "ti-fusion slam: error: --frames 0: must be at least 1"),
     (["slam", "--start", "200", "--downsample", "4"], "no frames selected"),
-    (["icp", "--source", "-1", "--downsample", "4"], "no frame -1 in this sequence"),
+    (["icp", "--source", "-1", "--downsample", "4"], "--source -1: the synthetic sequence has frames 0 to 119"),
     (["synth", "{out}", "--width", "0"], "ti-fusion synth: error: --width 0: must be at least 8"),
     (["synth", "{out}", "--height", "3"], "--height 3: must be at least 8"),
     (["synth", "{out}", "--frames", "-2"], "--frames -2: must be at least 1"),

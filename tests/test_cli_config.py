@@ -105,3 +105,117 @@ def test_sigterm_during_a_run_keeps_the_log_whole(cpu, tmp_path, capsys, signal_
     log = read_log(out / "log.mcap")
     assert log.complete and len(stamps) >= 1 and len(log.stats) == len(stamps)
     assert log.channels["/camera/pose"].count >= len(stamps)
+
+
+# --------------------------------------------------------------------------------------------------
+# A sequence on disk whose first frames have no depth, or whose ground truth has a gap
+# --------------------------------------------------------------------------------------------------
+@pytest.fixture
+def sequence(cpu, tmp_path, capsys):
+    """``sequence(name)``: the synthetic sequence at 160x120, 12 frames, written in TUM format."""
+    def make(name: str) -> Path:
+        seq = tmp_path / name
+        assert main(["synth", str(seq), "--frames", "12", "--width", "160", "--quiet"]) == 0
+        capsys.readouterr()
+        return seq
+
+    return make
+
+
+def test_blank_first_frames_are_skipped_and_the_map_starts_after_them(sequence, tmp_path, capsys):
+    import cv2
+
+    seq = sequence("blank")
+    depth_files = sorted((seq / "depth").glob("*.png"))
+    for path in depth_files[:2]:
+        cv2.imwrite(str(path), np.zeros((120, 160), np.uint16))
+    out = tmp_path / "run"
+    assert main(["slam", str(seq), "--out", str(out), "--quiet"]) == 0
+    assert _stderr_lines(capsys) == ["ti-fusion slam: warning: the first 2 frames (0 to 1) were skipped (no valid "
+                                     "depth): the map starts at frame 2"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["map_started_at"] == 2 and summary["tracking_failures"] == 0
+    assert summary["skipped_frames"] == [{"frame": 0, "reason": "no valid depth"},
+                                         {"frame": 1, "reason": "no valid depth"}]
+    assert summary["ate_rmse_m"] < 0.01 and summary["gt_frames"] == 10
+    assert len(read_tum(out / "trajectory.tum")[0]) == 10
+    assert (out / "map_color.png").is_file()
+    # inspect counts what summary.json counts: skipped frames are not tracking failures
+    assert main(["inspect", str(out / "log.mcap"), "--out", str(tmp_path / "inspect"), "--quiet"]) == 0
+    assert json.loads((tmp_path / "inspect" / "summary.json").read_text())["tracking_failures"] == 0
+
+
+def test_ate_over_part_of_the_frames_says_how_many(sequence, tmp_path, capsys):
+    seq = sequence("partial")
+    gt = seq / "groundtruth.txt"
+    lines = gt.read_text().splitlines()
+    gt.write_text("\n".join(lines[:3 + 4] + lines[3 + 8:]) + "\n")  # frames 4..7 lose their ground truth
+    out = tmp_path / "run"
+    assert main(["vo", str(seq), "--out", str(out), "--quiet"]) == 0
+    assert _stderr_lines(capsys) == ["ti-fusion vo: warning: ATE and RPE are over the 8 of 12 posed frames that "
+                                     "have ground truth"]
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["gt_frames"] == 8 and summary["pairs"] == 8 and "ate_rmse_m" in summary
+
+
+# --------------------------------------------------------------------------------------------------
+# The smaller messages
+# --------------------------------------------------------------------------------------------------
+def test_a_one_frame_run_says_why_it_has_no_frame_rate(cpu, tmp_path, capsys):
+    assert main(["slam", "--frames", "1", "--downsample", "4", "--out", str(tmp_path / "run")]) == 0
+    out = capsys.readouterr().out
+    assert "None" not in out
+    assert "the synthetic sequence: 1 frames at 160x120" in out.splitlines()  # one dataset line, no format repeated
+    assert "(every frame was warm-up)" in out
+
+
+def test_a_tracking_size_too_small_for_icps_pyramid_is_a_warning(cpu, tmp_path, capsys):
+    assert main(["slam", "--frames", "1", "--downsample", "7", "--out", str(tmp_path / "run"), "--quiet"]) == 0
+    assert _stderr_lines(capsys) == [
+        "ti-fusion slam: warning: tracking at 92x69 leaves ICP's coarsest level (3 levels in icp.iterations) 23x18 = "
+        "414 pixels, too few for icp.min_inliers = 100 correspondences (at this size a fifth to a third of the "
+        "pixels find one): expect lost frames. Use a smaller --downsample, fewer levels in icp.iterations or a "
+        "lower icp.min_inliers"]
+    assert main(["slam", "--frames", "1", "--downsample", "4", "--out", str(tmp_path / "fine"), "--quiet"]) == 0
+    assert _stderr_lines(capsys) == []
+
+
+@pytest.mark.parametrize("option", ["--source", "--target"])
+def test_icp_frame_out_of_the_synthetic_sequence_names_the_option_not_a_folder(cpu, tmp_path, capsys, option):
+    assert main(["icp", option, "-1", "--downsample", "4", "--out", str(tmp_path / "run"), "--quiet"]) == 2
+    assert _stderr_lines(capsys) == [f"ti-fusion icp: error: {option} -1: the synthetic sequence has frames 0 to 119"]
+
+
+@pytest.fixture
+def disk_full_for(monkeypatch):
+    """``disk_full_for("matches.png")``: writing that output fails as on a full disk (at the rename of its
+    temporary file, after the writer wrote it)."""
+    import errno
+
+    real_replace = os.replace
+
+    def arm(name: str):
+        def replace(src, dst, *args, **kwargs):
+            if Path(dst).name == name:
+                raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+            return real_replace(src, dst, *args, **kwargs)
+
+        monkeypatch.setattr(os, "replace", replace)
+
+    return arm
+
+
+@pytest.mark.parametrize("argv, name", [
+    (["vo", "--frames", "3", "--downsample", "4"], "matches.png"),
+    (["vo", "--frames", "3", "--downsample", "4"], "trajectory.png"),
+    (["fuse", "--frames", "2", "--downsample", "4"], "map_color.png"),
+    (["icp", "--source", "0", "--target", "2", "--downsample", "4"], "icp.png"),
+])
+def test_an_image_that_cannot_be_written_is_one_line_naming_it(cpu, tmp_path, capsys, disk_full_for, argv, name):
+    disk_full_for(name)
+    out = tmp_path / "run"
+    assert main([*argv, "--out", str(out), "--quiet"]) == 2
+    assert _stderr_lines(capsys)[-1] == f"ti-fusion {argv[0]}: error: {out / name}: cannot be written: No space " \
+                                        "left on device"
+    left = os.listdir(out) if out.exists() else []  # a run that wrote nothing leaves no folder
+    assert name not in left and not [p for p in left if ".tmp" in p]

@@ -325,3 +325,22 @@ def test_ate_over_the_frames_with_ground_truth_says_how_many(cpu, tmp_path):
                            current_backend(), show_progress=False).run()
     assert summary["gt_frames"] == 8 and summary["pairs"] == 8 and summary["ate_rmse_m"] < 0.01
     assert summary["gt_note"] == "ATE and RPE are over the 8 of 12 posed frames that have ground truth"
+
+
+def test_a_failed_health_check_shows_the_value_on_its_side_of_the_limit():
+    """'inlier ratio 0.15 < 0.15' said nothing: the value gets the digits that show it is below."""
+    from types import SimpleNamespace
+
+    from ti_fusion.slam.dense import DenseSLAM
+    from ti_fusion.tracking.icp import ICPResult
+
+    fake = SimpleNamespace(config=Config())
+    icp = ICPResult(pose=np.eye(4), inlier_ratio=0.14996, residual_rms=0.001)
+    assert DenseSLAM._health(fake, icp, np.eye(4), np.eye(4)) == "lost: inlier ratio 0.14996 < 0.15"
+    icp = ICPResult(pose=np.eye(4), inlier_ratio=0.5, residual_rms=0.02004)
+    assert DenseSLAM._health(fake, icp, np.eye(4), np.eye(4)) == "lost: residual 20.04 mm > 20 mm"
+    jump = np.eye(4)
+    jump[0, 3] = 0.30004
+    icp = ICPResult(pose=np.eye(4), inlier_ratio=0.5, residual_rms=0.001)
+    assert DenseSLAM._health(fake, icp, jump, np.eye(4)) == \
+        "lost: jump of 0.0 deg / 30.004 cm from the motion model (at most 20 deg / 30 cm)"

@@ -9,6 +9,7 @@ inv(T_wc_target) · T_wc_source. Writes ``icp.png``: the two clouds in the targe
 
 from __future__ import annotations
 
+import logging
 import time
 from typing import Callable
 
@@ -17,8 +18,12 @@ import numpy as np
 from ti_fusion.io.datasets import Frame, open_dataset
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import invert, pose_error
+from ti_fusion.io.outputs import atomic_path
 from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.slam.dense import coarse_level_warning
+
+log = logging.getLogger(__name__)
 
 HELP = "align two frames with coarse-to-fine point-to-plane ICP: iterations, pose, error vs ground truth, PNG"
 USES_DATASET = True
@@ -55,11 +60,15 @@ def add_arguments(parser) -> None:
                         help="initial pose of the source in the target camera (default identity)")
 
 
-def _frame(dataset, index: int) -> Frame:
+def _frame(dataset, option: str, index: int) -> Frame:
     try:
         return dataset.frame_by_raw_index(index)
     except (IndexError, KeyError):
-        raise InputError(dataset.root, f"no frame {index} in this sequence") from None
+        n = dataset._num_raw_frames()
+        frames = f"frames 0 to {n - 1}" if n > 1 else "only frame 0"
+        if dataset.format == "synthetic":  # no folder to name
+            raise InputError(None, f"{option} {index}: the synthetic sequence has {frames}") from None
+        raise InputError(dataset.root, f"{option} {index}: no such frame (the sequence has {frames})") from None
 
 
 def _maps(frame: Frame, cfg) -> FrameMaps:
@@ -133,15 +142,18 @@ def save_figure(path, source: Frame, target: Frame, before: np.ndarray, after: n
                    loc="lower left", fontsize=9)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()
-    fig.savefig(path)
-    plt.close(fig)
+    try:
+        with atomic_path(path) as tmp:  # whole or not at all; OutputError naming the file when it cannot be
+            fig.savefig(tmp)
+    finally:
+        plt.close(fig)
 
 
 def run(ctx) -> dict:
     cfg = ctx.config
     args = ctx.args
     dataset = open_dataset(cfg.dataset, cfg.synth)
-    source, target = _frame(dataset, args.source), _frame(dataset, args.target)
+    source, target = _frame(dataset, "--source", args.source), _frame(dataset, "--target", args.target)
     if source.depth.shape != target.depth.shape:
         raise InputError(dataset.root, f"frames {args.source} and {args.target} differ in size")
     init = np.asarray(INITIALISERS[args.init](source, target, ctx), dtype=np.float64)
@@ -149,6 +161,9 @@ def run(ctx) -> dict:
     t0 = time.perf_counter()
     src_maps, tgt_maps = _maps(source, cfg), _maps(target, cfg)
     t1 = time.perf_counter()
+    warning = coarse_level_warning(cfg.icp, src_maps.shapes[-1], src_maps.shapes[0])
+    if warning:
+        log.warning(warning)
     result = ICP(cfg.icp).align(src_maps, tgt_maps, init)
     t2 = time.perf_counter()
     _print_result(result)

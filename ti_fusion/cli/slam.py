@@ -2,6 +2,10 @@
 
 from __future__ import annotations
 
+import logging
+
+log = logging.getLogger(__name__)
+
 HELP = "dense SLAM (frame-to-model ICP + surfel fusion): trajectory, map, MCAP log, plots, ATE/RPE"
 USES_DATASET = True
 USES_TAICHI = True
@@ -28,9 +32,10 @@ def run(ctx) -> dict:
     if ctx.args.no_relocalise:
         cfg.slam.relocalise = "none"
     dataset = open_dataset(cfg.dataset, cfg.synth)
-    if not ctx.quiet:
+    if not ctx.quiet:  # what the format line (format, depth scale, intrinsics) does not say
         d = dataset.describe()
-        ctx.log(f"dataset: {d['name']} ({d['format']}), {d['frames']} frames at {d['width']}x{d['height']}")
+        name = "the synthetic sequence" if d["format"] == "synthetic" else d["name"]
+        ctx.log(f"{name}: {d['frames']} frames at {d['width']}x{d['height']}")
     live = _live_server(ctx)
     try:
         summary = SLAMPipeline(dataset, cfg, ctx.out, ctx.backend, show_progress=not ctx.quiet, live=live).run()
@@ -52,11 +57,14 @@ def _live_server(ctx):
 
 
 def _print_summary(ctx, s: dict) -> None:
-    line = (f"{s['frames']} frames, {s['surfels']} surfels, {s['fps_processing']} fps processing (after warm-up), "
-            f"{s['fps_wall']} fps wall-clock (the whole loop")
+    fps = f"{s['fps_processing']} fps processing (after warm-up)" if s["fps_processing"] is not None else \
+        "no fps processing (every frame was warm-up)"
+    line = f"{s['frames']} frames, {s['surfels']} surfels, {fps}, {s['fps_wall']} fps wall-clock (the whole loop"
     line += f"; {s['process_s']:.1f} s since the process started)" if s.get("process_s") is not None else ")"
     if "ate_rmse_m" in s:
         line += (f", ATE {s['ate_rmse_m'] * 100:.2f} cm ({s['ate_percent_of_path']:.2f}% of "
                  f"{s['path_length_m']:.2f} m), RPE {s['rpe_trans_m'] * 1000:.1f} mm")
     line += f", tracking failures: {s['tracking_failures']}"
     ctx.log(line)
+    if s.get("gt_note"):
+        log.warning(s["gt_note"])

@@ -21,13 +21,18 @@ fps_processing counts tracking, cloud joining and logging, not image loading (re
 
 from __future__ import annotations
 
+import logging
+
 import cv2
 
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets import open_dataset
+from ti_fusion.io.outputs import write_image
 from ti_fusion.slam.pipeline import Pipeline
 from ti_fusion.slam.vo_step import VOStep
 from ti_fusion.tracking.features import draw_match_panels
+
+log = logging.getLogger(__name__)
 
 HELP = "feature-based RGB-D odometry (ORB + PnP RANSAC): trajectory, joined cloud, match image, log"
 USES_DATASET = True
@@ -63,7 +68,7 @@ def _write_matches(ctx, dataset) -> dict:
     else:
         return {}
     image, est = draw_match_panels(a, b, ctx.config.vo)
-    cv2.imwrite(str(ctx.out.file("matches.png")), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+    write_image(ctx.out.file("matches.png"), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
     return {"frames": [int(a.index), int(b.index)], "keypoints": list(est.keypoints), "matches": est.matches,
             "good": est.good, "inliers": est.inliers, "reason": est.reason}
 
@@ -73,5 +78,7 @@ def _print_summary(s: dict) -> None:
     line = f"vo: {s['accepted']}/{s['frames']} frames accepted (rejected: {rej})"
     if "ate_rmse_m" in s:
         line += f"  ATE {s['ate_rmse_m']:.4f} m  RPE {s['rpe_trans_m']:.4f} m"
-    line += f"  tracking {s['tracking_fps']} fps"
+    line += f"  tracking {s['tracking_fps']} fps" if s["tracking_fps"] is not None else ""
     print(line, flush=True)
+    if s.get("gt_note"):
+        log.warning(s["gt_note"])

@@ -8,6 +8,7 @@ import numpy as np
 from matplotlib.figure import Figure
 
 from ti_fusion.evaluation.metrics import align_rigid, trajectory_metrics
+from ti_fusion.io.outputs import atomic_path
 
 _AXES = "xyz"
 
@@ -95,5 +96,6 @@ def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=N
     fig.suptitle(title)
     path_png = Path(path_png)
     path_png.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path_png)
+    with atomic_path(path_png) as tmp:  # whole or not at all; OutputError naming the file when it cannot be
+        fig.savefig(tmp)
     return path_png

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from ti_fusion.camera import Intrinsics
+from ti_fusion.io.outputs import write_image
 
 VIEW_INTRINSICS = Intrinsics(fx=420.0, fy=420.0, cx=319.5, cy=239.5, width=640, height=480)
 
@@ -28,12 +29,11 @@ def save_views(surfel_map, pose: np.ndarray, out_dir: str | Path, prefix: str = 
     """Write ``<prefix>_color.png`` and ``<prefix>_normals.png`` of ``surfel_map`` seen from ``pose``.
 
     ``surfel_map`` is a ``SurfelMap`` (or anything with its ``render_image(pose, intrinsics, by_normal)``).
+    Each file is written whole or not at all (``OutputError`` naming it when it cannot be).
     """
     out_dir = Path(out_dir)
     paths = {}
     for name, by_normal in (("color", False), ("normals", True)):
         rgb = surfel_map.render_image(pose, intrinsics, by_normal=by_normal)
-        path = out_dir / f"{prefix}_{name}.png"
-        cv2.imwrite(str(path), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-        paths[name] = path
+        paths[name] = write_image(out_dir / f"{prefix}_{name}.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     return paths

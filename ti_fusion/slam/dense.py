@@ -196,12 +196,15 @@ class DenseSLAM:
         if icp.failure:
             return f"lost: {icp.failure}"
         if icp.inlier_ratio < cfg.min_inlier_ratio:
-            return f"lost: inlier ratio {icp.inlier_ratio:.2f} < {cfg.min_inlier_ratio}"
+            return f"lost: inlier ratio {_beside(icp.inlier_ratio, cfg.min_inlier_ratio, 2)} < {cfg.min_inlier_ratio:g}"
         if icp.residual_rms > cfg.max_residual:
-            return f"lost: residual {icp.residual_rms * 1e3:.1f} mm > {cfg.max_residual * 1e3:.1f} mm"
+            return (f"lost: residual {_beside(icp.residual_rms * 1e3, cfg.max_residual * 1e3, 1)} mm > "
+                    f"{cfg.max_residual * 1e3:g} mm")
         rot_deg, trans_m = pose_error(pose, predicted)
         if rot_deg > cfg.max_update_deg or trans_m > cfg.max_update_m:
-            return f"lost: jump of {rot_deg:.1f} deg / {trans_m * 100:.1f} cm from the motion model"
+            return (f"lost: jump of {_beside(rot_deg, cfg.max_update_deg, 1)} deg / "
+                    f"{_beside(trans_m * 100, cfg.max_update_m * 100, 1)} cm from the motion model (at most "
+                    f"{cfg.max_update_deg:g} deg / {cfg.max_update_m * 100:g} cm)")
         return "ok"
 
     def _relocalise(self, frame: Frame, source: FrameMaps, last: np.ndarray):
@@ -242,6 +245,14 @@ class DenseSLAM:
         return {"map_level": self.map_level,
                 "map_size": [model.width, model.height], "tracked_at": [frame.width, frame.height],
                 "depth_smooth_radius": frame.smooth_radius}
+
+
+def _beside(value: float, limit: float, digits: int) -> str:
+    """``value`` with at least ``digits`` decimals, and as many more as it takes to show on which side of
+    ``limit`` it is (a ratio of 0.1496 against 0.15 reads 0.1496, not 0.15)."""
+    while digits < 12 and round(value, digits) == round(limit, digits):
+        digits += 1
+    return f"{value:.{digits}f}"
 
 
 def coarse_level_warning(icp: ICPConfig, coarsest: tuple[int, int], tracked: tuple[int, int]) -> str | None:

@@ -1,5 +1,6 @@
-"""ROS 2 bags as input: bags written here with rosbags' writer from the synthetic sequence track as its
-TUM-format copy does; topics, encodings, stamps and damaged bags on small hand-made bags (no Taichi)."""
+"""MCAP files and ROS 2 bags as input: bags written here with rosbags' writer from the synthetic sequence
+track as its TUM-format copy does; topics, encodings, stamps and damaged bags on small hand-made bags (no
+Taichi); ti-fusion's own run log replays."""
 
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ import numpy as np
 import pytest
 
 from ti_fusion.cli.main import main
+from ti_fusion.camera import Intrinsics
 from ti_fusion.config import Config, DatasetConfig, SynthConfig
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import make_pose, rot_to_quat, so3_exp
@@ -167,12 +169,12 @@ def synthetic_shots(tum_sequence) -> list[Shot]:
     return shots
 
 
-def slam(dataset_cfg: DatasetConfig, out: Path) -> dict:
+def slam(dataset_cfg: DatasetConfig, out: Path, cfg: Config | None = None) -> dict:
     from ti_fusion.backend import current_backend
     from ti_fusion.io.outputs import RunDir
     from ti_fusion.slam.pipeline import SLAMPipeline
 
-    cfg = Config()
+    cfg = cfg or Config()
     cfg.dataset = dataset_cfg
     cfg.log.progress = False
     summary = SLAMPipeline(open_dataset(cfg.dataset, cfg.synth), cfg, RunDir("slam", out), current_backend(),
@@ -376,16 +378,50 @@ def test_sqlite3_storage(tmp_path, rng):
 def test_what_is_not_a_bag_is_one_line(tmp_path):
     from ti_fusion.io.mcap_log import RunLogger
 
-    with RunLogger(tmp_path / "log.mcap") as log:  # ti-fusion's own log: Foxglove messages
+    with RunLogger(tmp_path / "log.mcap") as log:  # an MCAP of Foxglove messages without depth images
         log.log_stats(1.0, {"frame": 0})
-    with pytest.raises(InputError, match="not a ROS 2 bag"):
+    with pytest.raises(InputError, match="not a folder, nor a ROS 2 bag file"):
         open_dataset(small_cfg(tmp_path / "log.mcap"))
+    with pytest.raises(InputError, match="not a ROS 2 bag .*--format log"):
+        open_dataset(small_cfg(tmp_path / "log.mcap", format="rosbag"))
+    with pytest.raises(InputError, match="no /camera/depth images in the log"):
+        open_dataset(small_cfg(tmp_path / "log.mcap", format="log"))
     (tmp_path / "notes.txt").write_text("hello\n")
     with pytest.raises(InputError, match="not a folder, nor a ROS 2 bag file"):
         open_dataset(small_cfg(tmp_path / "notes.txt"))
     (tmp_path / "empty.mcap").write_bytes(b"")
     with pytest.raises(InputError, match="cannot read the bag"):
         open_dataset(small_cfg(tmp_path / "empty.mcap"))
+
+
+def test_a_run_log_with_every_depth_image_replays(cpu, tmp_path):
+    """ti-fusion's own log.mcap (log.depth_every = 1) replays as a sequence: the run's frames, times,
+    intrinsics and ground truth; depth in whole millimetres, so the same accuracy within a millimetre."""
+    cfg = Config()
+    cfg.synth.width, cfg.synth.height, cfg.synth.fx, cfg.synth.frames = 320, 240, 262.5, 12
+    cfg.log.depth_every, cfg.log.progress = 1, False
+    run = slam(cfg.dataset, tmp_path / "run", cfg)
+    assert detect(tmp_path / "run") == ("log", "log.mcap (a ti-fusion run log)")
+    assert detect(tmp_path / "run" / "log.mcap")[0] == "log"
+    replay = slam(small_cfg(tmp_path / "run"), tmp_path / "replay")
+    d = replay["dataset"]
+    assert d["format"] == "log" and d["frames"] == 12 and d["ground_truth_frames"] == 12 and d["colour"]
+    assert d["intrinsics"]["source"] == "/camera/calibration in the log"
+    np.testing.assert_allclose(replay["trajectory"][0], run["trajectory"][0], atol=1e-6)
+    assert replay["tracking_failures"] == 0 and abs(replay["ate_rmse_m"] - run["ate_rmse_m"]) < 1e-3
+
+
+def test_a_run_log_with_some_depth_images_says_so(cpu, tmp_path):
+    from ti_fusion.io.mcap_log import RunLogger
+
+    K_ = Intrinsics(*K, width=40, height=30)
+    with RunLogger(tmp_path / "log.mcap", {"dataset": {"frames": 9}}) as log:
+        log.log_calibration(1.0, K_)
+        for i in range(3):  # every third frame of nine
+            log.log_depth(1.0 + i / 10, np.full((30, 40), 1.0 + i, dtype=np.float32))
+    ds = open_dataset(small_cfg(tmp_path / "log.mcap"))
+    assert len(ds) == 3 and ds[2].depth[0, 0] == 3.0 and ds[2].timestamp == pytest.approx(1.2)
+    assert "the run had 9 frames and logged the depth of 3" in ds.describe()["notes"][0]
 
 
 def test_selection_and_downsampling_apply(tmp_path, rng):

@@ -243,7 +243,7 @@ class DatasetConfig:
     path: Annotated[str, Text("a folder or file path")] = ""
                                     # the dataset; "" = the embedded synthetic sequence
     format: Annotated[str, OneOf(source=_dataset_formats)] = "auto"
-                                    # auto | tum | iclnuim | 7scenes | folder | rosbag | synthetic
+                                    # auto | tum | iclnuim | 7scenes | folder | rosbag | log | synthetic
     downsample: Count = 1           # integer subsampling factor (2 → 320×240 from 640×480)
     start: NonNegativeInt = 0       # first frame (index into the sequence)
     stop: Annotated[int | None, Range(ge=1)] = None  # one past the last frame; None = to the end

@@ -2,10 +2,11 @@
 
 A format is detected only from files that identify it: TUM RGB-D from ``depth.txt``, ICL-NUIM from its
 ``*.gt.freiburg`` ground truth, 7-Scenes from its ``frame-XXXXXX.depth.png`` names, a ROS 2 bag from its
-``metadata.yaml`` or ``.mcap`` file. A folder with none of them, or with the files of two formats, is
-refused with a line naming the ``--format`` to pass: the format fixes the depth scale and the
-intrinsics, and a wrong guess gives wrong depths without any error. A plain folder of numbered depth
-PNGs (``--format folder``) is never detected: its units and camera are the user's to state.
+``metadata.yaml`` or ``.mcap`` file (profile ``ros2``), a ti-fusion run log from its ``log.mcap``. A folder
+with none of them, or with the files of two formats, is refused with a line naming the ``--format`` to
+pass: the format fixes the depth scale and the intrinsics, and a wrong guess gives wrong depths without
+any error. A plain folder of numbered depth PNGs (``--format folder``) is never detected: its units and
+camera are the user's to state.
 
 Frames from one's own code need no format: ``rgbd_frame`` makes a ``Frame`` from arrays and
 ``FrameList`` holds frames as a ``Dataset`` (``ti_fusion.io.datasets.arrays``).
@@ -24,7 +25,7 @@ from ti_fusion.io.datasets.base import Dataset, Frame
 __all__ = ["Dataset", "Frame", "open_dataset", "detect_format", "loader_class", "FORMATS", "rgbd_frame",
            "FrameList"]
 
-FORMATS = ("tum", "iclnuim", "7scenes", "folder", "rosbag", "synthetic")
+FORMATS = ("tum", "iclnuim", "7scenes", "folder", "rosbag", "log", "synthetic")
 
 log = logging.getLogger(__name__)
 
@@ -36,11 +37,12 @@ _LOADERS = {
     "7scenes": (".sevenscenes", "SevenScenesDataset"),
     "folder": (".folder", "FolderDataset"),
     "rosbag": (".rosbag", "RosbagDataset"),
+    "log": (".runlog", "RunLogDataset"),
     "synthetic": (".synthetic", "SyntheticDataset"),
 }
 
-# Formats whose input may be a single file rather than a folder (an .mcap or .db3 bag file).
-FILE_FORMATS = ("rosbag",)
+# Formats whose input may be a single file rather than a folder (an .mcap or .db3 bag file, a run log).
+FILE_FORMATS = ("rosbag", "log")
 
 # Formats with intrinsics of their own that ``dataset.intrinsics`` replaces after loading.
 _BENCHMARK_FORMATS = ("tum", "iclnuim", "7scenes")
@@ -73,7 +75,8 @@ def detect(root: Path) -> tuple[str, str]:
         raise InputError(root, f"holds the files of more than one format: {which}; pass "
                                + " or ".join(f"--format {fmt}" for fmt in found))
     if not root.is_dir():
-        raise InputError(root, "not a folder, nor a ROS 2 bag file (.mcap or .db3): give the dataset's folder")
+        raise InputError(root, "not a folder, nor a ROS 2 bag file (.mcap or .db3) or a ti-fusion run log: give "
+                               "the dataset's folder")
     from ti_fusion.io.datasets.iclnuim import numbered_pngs
 
     if numbered_pngs(root / "depth") or (root / "depth").is_dir():
@@ -82,8 +85,8 @@ def detect(root: Path) -> tuple[str, str]:
                                "UNITS_PER_METRE --intrinsics fx,fy,cx,cy (or FILE); or --format iclnuim if it "
                                "is ICL-NUIM (5000 units per metre, its published intrinsics)")
     raise InputError(root, "unrecognised dataset layout: expected TUM (depth.txt), ICL-NUIM (*.gt.freiburg), "
-                           "7-Scenes (frame-XXXXXX.depth.png) or a ROS 2 bag (metadata.yaml, *.mcap); or pass "
-                           "--format")
+                           "7-Scenes (frame-XXXXXX.depth.png), a ROS 2 bag (metadata.yaml, *.mcap) or a run log "
+                           "(log.mcap); or pass --format")
 
 
 def detect_format(root: Path) -> str:

@@ -213,8 +213,8 @@ def open_bag(root: Path) -> tuple[BagFile | CutMcap, str | None]:
     except (OSError, ValueError, KeyError) as exc:
         problem = f"unreadable bag: {exc}"
     if "Profile is not ros2" in problem:
-        raise InputError(path, "an MCAP file, but not a ROS 2 bag (its profile is not ros2; ti-fusion's own "
-                               "log.mcap holds Foxglove messages)")
+        raise InputError(path, "an MCAP file, but not a ROS 2 bag (its profile is not ros2); a ti-fusion run log "
+                               "replays with --format log")
     if path.suffix == ".mcap" and ("end magic" in problem or "footer" in problem.lower()):
         try:
             bag = CutMcap(path)
@@ -558,9 +558,13 @@ class RosbagDataset(Dataset):
     def detect(root: Path) -> str | None:
         """What identifies a bag: an .mcap or .db3 file, a rosbag2 folder's metadata.yaml, or the .mcap
         files of a folder that lost it; else None."""
+        from ti_fusion.io.datasets.runlog import mcap_profile
+
         root = Path(root)
         if root.is_file():
-            return f"a {root.suffix} file" if root.suffix in (".mcap", ".db3") else None
+            if root.suffix == ".mcap":  # an MCAP of another profile is no bag (ti-fusion's log.mcap: "log")
+                return "a .mcap file" if mcap_profile(root) in ("ros2", None) else None
+            return "a .db3 file" if root.suffix == ".db3" else None
         meta = root / "metadata.yaml"
         if meta.is_file():
             try:
@@ -568,5 +572,5 @@ class RosbagDataset(Dataset):
             except OSError:
                 return None
             return "metadata.yaml (rosbag2)" if "rosbag2_bagfile_information" in head else None
-        found = sorted(root.glob("*.mcap"))
+        found = [p for p in sorted(root.glob("*.mcap")) if mcap_profile(p) == "ros2"]
         return found[0].name if found else None

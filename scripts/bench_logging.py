@@ -42,7 +42,7 @@ DEPTH_EVERY, MAP_EVERY, MAP_POINTS = 10, 30, 200_000
 CLIENT = r"""
 import json, struct, sys
 from websockets.sync.client import connect
-subs, counts, size = {}, {}, 0
+subs, channels, counts, size = {}, {}, {}, 0
 with connect(sys.argv[1], subprotocols=["foxglove.websocket.v1", "foxglove.sdk.v1"], max_size=None) as ws:
     print("connected", flush=True)
     try:
@@ -50,9 +50,15 @@ with connect(sys.argv[1], subprotocols=["foxglove.websocket.v1", "foxglove.sdk.v
             if isinstance(m, str):
                 m = json.loads(m)
                 if m["op"] == "advertise":
-                    new = [{"id": len(subs) + i + 1, "channelId": c["id"]} for i, c in enumerate(m["channels"])]
-                    subs.update({s["id"]: c["topic"] for s, c in zip(new, m["channels"])})
-                    ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+                    channels.update({c["id"]: c for c in m["channels"]})
+                    wanted = m["channels"]
+                elif m["op"] == "status" and m["message"].startswith("Unknown channel ID:"):
+                    wanted = [channels[int(m["message"].rsplit(":", 1)[1])]]  # refused as it appeared: again
+                else:
+                    continue
+                new = [{"id": len(subs) + i + 1, "channelId": c["id"]} for i, c in enumerate(wanted)]
+                subs.update({s["id"]: c["topic"] for s, c in zip(new, wanted)})
+                ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
             elif m[0] == 1:
                 topic = subs[struct.unpack_from("<I", m, 1)[0]]
                 counts[topic] = counts.get(topic, 0) + 1

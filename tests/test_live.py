@@ -52,6 +52,7 @@ class Client(threading.Thread):
         self.closed = threading.Event()
         self.error: BaseException | None = None
         self._subscriptions: dict[int, str] = {}  # subscription id → topic
+        self._retries = 100
         self._changed = threading.Condition()
 
     def run(self) -> None:
@@ -76,15 +77,25 @@ class Client(threading.Thread):
                 self._changed.notify_all()
 
     def _control(self, ws, message: dict) -> None:
-        if message["op"] != "advertise":
-            return
+        if message["op"] == "advertise":
+            for channel in message["channels"]:
+                self.channels[channel["id"]] = channel
+            wanted = [c for c in message["channels"] if self.topics is None or c["topic"] in self.topics]
+            self._subscribe(ws, wanted)
+        elif message["op"] == "status" and message["message"].startswith("Unknown channel ID:"):
+            # the SDK can refuse a subscription sent the instant a channel appears: ask again
+            channel = self.channels.get(int(message["message"].rsplit(":", 1)[1]))
+            if channel is not None and self._retries > 0:
+                self._retries -= 1
+                time.sleep(0.01)
+                self._subscribe(ws, [channel])
+
+    def _subscribe(self, ws, channels: list[dict]) -> None:
         subscribe = []
-        for channel in message["channels"]:
-            self.channels[channel["id"]] = channel
-            if self.topics is None or channel["topic"] in self.topics:
-                sub = len(self._subscriptions) + 1
-                self._subscriptions[sub] = channel["topic"]
-                subscribe.append({"id": sub, "channelId": channel["id"]})
+        for channel in channels:
+            sub = len(self._subscriptions) + 1
+            self._subscriptions[sub] = channel["topic"]
+            subscribe.append({"id": sub, "channelId": channel["id"]})
         if subscribe:
             ws.send(json.dumps({"op": "subscribe", "subscriptions": subscribe}))
 
@@ -155,8 +166,8 @@ def test_a_taken_port_is_one_line(tmp_path, capsys):
 
 def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
     """A client subscribed to every channel decodes the run's messages: the same schemas as the file, the
-    same bytes at the same log times, the calibration sent again after it subscribed, and live maps of
-    at most the live bound. The run waits for the client before each frame (its subscriptions and the
+    same bytes at the same log times, and live maps of at most the live bound. The run waits for the
+    client before each frame (its subscriptions to every channel, advertised when the log opens, and the
     last frame's stats), so what arrives does not depend on timing; the last frame and the final map,
     sent as the run closes, are checked when they arrive."""
     frames = 8
@@ -195,12 +206,12 @@ def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
     for topic in advertised - {"/map/points"}:  # every message received is the file's, at its time
         for ns, data in client.received(topic):
             assert in_file[topic].get(ns) == data, (topic, ns)
-    assert set(range(frames - 1)) <= client.stats_frames()  # from frame 0: declared before the loop
-    for topic in ("/tf", "/camera/pose", "/gt/pose"):  # from frame 1: advertised by frame 0's messages
-        assert set(times[1:-1]) <= {ns for ns, _ in client.received(topic)}, topic
-    assert {times[3], times[6]} <= {ns for ns, _ in client.received("/camera/depth")}
-    assert {times[3], times[6]} <= {ns for ns, _ in client.received("/camera/color")}
-    assert times[0] in {ns for ns, _ in client.received("/camera/calibration")}  # sent again on subscribing
+    assert set(range(frames - 1)) <= client.stats_frames()
+    for topic in ("/tf", "/camera/pose", "/gt/pose"):
+        assert set(times[:-1]) <= {ns for ns, _ in client.received(topic)}, topic
+    for topic in ("/camera/depth", "/camera/color"):
+        assert {times[0], times[3], times[6]} <= {ns for ns, _ in client.received(topic)}, topic
+    assert times[0] in {ns for ns, _ in client.received("/camera/calibration")}
 
     # Decoded with the advertised schemas alone: stats as the file has them, poses as read_log reads them.
     log = read_log(run.file("log.mcap"))
@@ -212,7 +223,7 @@ def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
         np.testing.assert_array_equal(pose_from_msg(decode(data)), log.est_poses[times.index(ns)])
     decode = DecoderFactory().decoder_for("protobuf", client.schema("/map/points"))
     clouds = [decode(data) for _, data in client.received("/map/points")]
-    assert clouds and client.received("/map/points")[0][0] == times[1]  # the first live map: frame 1
+    assert clouds and client.received("/map/points")[0][0] == times[0]  # the first live map: frame 0
     for cloud in clouds:
         xyz, rgba = points_from_msg(cloud)
         assert 0 < len(xyz) <= 500 and rgba is not None and cloud.frame_id == "world"
@@ -220,8 +231,8 @@ def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
 
 
 def test_no_client_costs_no_map_and_changes_no_log(cpu, tmp_path):
-    """With --live and nobody connected, the map is sampled for the file only (once more at frame 0, which
-    advertises the channel), and the log holds what a run without --live writes."""
+    """With --live and nobody connected, the map is sampled for the file only, and the log holds what a run
+    without --live writes."""
     counts = {}
     for name, live in (("plain", None), ("live", LiveServer("127.0.0.1:0"))):
         cfg = _config(6)
@@ -235,7 +246,27 @@ def test_no_client_costs_no_map_and_changes_no_log(cpu, tmp_path):
         log = read_log(run.file("log.mcap"))
         counts[name] = ({t: c.count for t, c in log.channels.items()}, len(calls))
     assert counts["live"][0] == counts["plain"][0]
-    assert counts["live"][1] == counts["plain"][1] + 1
+    assert counts["live"][1] == counts["plain"][1]
+
+
+def test_a_late_client_gets_the_calibration(tmp_path):
+    """/camera/calibration is logged once: a client that subscribes later gets it again, at its log time."""
+    from ti_fusion.camera import Intrinsics
+    from ti_fusion.io.mcap_log import RunLogger
+
+    live = LiveServer("127.0.0.1:0")
+    path = tmp_path / "log.mcap"
+    with RunLogger(path, live=live) as log:
+        log.log_calibration(1.5, Intrinsics(500.0, 500.0, 319.5, 239.5, 640, 480))
+        client = Client(live.url, topics=("/camera/calibration", "/camera/pose"))
+        client.start()
+        client.wait_for(lambda: live.subscribed("/camera/calibration") and live.subscribed("/camera/pose"),
+                        "subscriptions")
+        log.log_pose(2.0, np.eye(4))  # the next message sends it
+        client.wait_for(lambda: client.received("/camera/calibration"), "calibration")
+    client.join(WAIT_S)
+    in_file, _ = _file_messages(path)
+    assert client.received("/camera/calibration") == [(1_500_000_000, in_file["/camera/calibration"][1_500_000_000])]
 
 
 @pytest.mark.slow

@@ -13,7 +13,10 @@ one message that costs the run to make: the pipeline asks ``map_due()`` and send
 ``max_points`` points at most every ``map_period_s`` seconds, and only while a client watches it.
 
 The SDK speaks the protocol under the sub-protocol name ``foxglove.sdk.v1``, the same protocol as
-``foxglove.websocket.v1`` renamed; current Foxglove offers both names.
+``foxglove.websocket.v1`` renamed; current Foxglove offers both names. The SDK (0.30) can refuse, as an
+"Unknown channel ID", a subscription that arrives in the instant after a channel is created while this
+process is busy, so ``RunLogger`` creates its channels when the log opens, before a client is likely to
+be connected; a client can subscribe again.
 """
 
 from __future__ import annotations
@@ -80,6 +83,9 @@ class LiveServer:
     # -- what RunLogger calls ---------------------------------------------------------------------
     def add_channel(self, topic: str, message_encoding: str, schema_name: str, schema_encoding: str,
                     schema_data: bytes) -> None:
+        """Advertise a channel (once: a topic advertised already keeps its channel)."""
+        if topic in self._channels:
+            return
         schema = self._foxglove.Schema(name=schema_name, encoding=schema_encoding, data=schema_data)
         self._channels[topic] = self._foxglove.Channel(topic, schema=schema, message_encoding=message_encoding,
                                                        context=self._context)

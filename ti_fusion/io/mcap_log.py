@@ -79,6 +79,11 @@ STATS_TOPIC = "/slam/stats"
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
+# The channels of the log_* methods, by their default topics.
+LIVE_CHANNELS = {"/tf": FrameTransforms, "/camera/pose": PoseInFrame, "/gt/pose": PoseInFrame,
+                 "/camera/calibration": CameraCalibration, "/camera/depth": RawImage,
+                 "/camera/color": CompressedImage, "/map/points": PointCloud}
+
 # Small chunks: a run killed with SIGKILL loses at most one open chunk (about 90 frames of poses and
 # stats; big messages such as depth images and point clouds close a chunk on their own).
 DEFAULT_CHUNK_SIZE = 64 * 1024
@@ -143,6 +148,12 @@ class RunLogger:
         self._finalizer = weakref.finalize(self, _finish, self._writer, self._file)
         for name, record in (metadata or {}).items():
             self.log_metadata(name, record)
+        if live is not None:
+            # The live channels exist from the start: a client that connects sees them all at once (and the
+            # SDK can refuse a subscription sent in the instant after a channel appears).
+            for topic, message_type in LIVE_CHANNELS.items():
+                live.add_channel(topic, MessageEncoding.Protobuf, message_type.DESCRIPTOR.full_name,
+                                 SchemaEncoding.Protobuf, build_file_descriptor_set(message_type).SerializeToString())
 
     # -- context manager: finalise on normal exit, on any exception and on KeyboardInterrupt ------
     def __enter__(self) -> "RunLogger":

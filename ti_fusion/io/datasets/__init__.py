@@ -82,8 +82,8 @@ def detect(root: Path) -> tuple[str, str]:
     if numbered_pngs(root / "depth") or (root / "depth").is_dir():
         raise InputError(root, "depth/ holds depth images, but no file says which dataset they come from, so "
                                "their depth scale and intrinsics are unknown: pass --format folder --depth-scale "
-                               "UNITS_PER_METRE --intrinsics fx,fy,cx,cy (or FILE); or --format iclnuim if it "
-                               "is ICL-NUIM (5000 units per metre, its published intrinsics)")
+                               "UNITS_PER_METRE --intrinsics fx,fy,cx,cy (or FILE); if it is ICL-NUIM (5000 "
+                               "units per metre, its published intrinsics), pass --format iclnuim")
     raise InputError(root, "unrecognised dataset layout: expected TUM (depth.txt), ICL-NUIM (*.gt.freiburg), "
                            "7-Scenes (frame-XXXXXX.depth.png), a ROS 2 bag (metadata.yaml, *.mcap) or a run log "
                            "(log.mcap); or pass --format")

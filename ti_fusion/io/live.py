@@ -119,9 +119,11 @@ class LiveServer:
         close (idempotent)."""
         if not self.closed:
             self.closed = True
-            if any(channel.has_sinks() for channel in self._channels.values()):
-                time.sleep(LINGER_S)  # the SDK has no flush: its sender threads drain the queues meanwhile
-            self._server.stop()
+            try:
+                if any(channel.has_sinks() for channel in self._channels.values()):
+                    time.sleep(LINGER_S)  # the SDK has no flush: its sender threads drain the queues meanwhile
+            finally:  # a second Ctrl-C during the wait still stops the server
+                self._server.stop()
 
     # -- internals --------------------------------------------------------------------------------
     def _subscribed(self, topic: str) -> None:

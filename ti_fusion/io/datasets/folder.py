@@ -95,7 +95,7 @@ class FolderDataset(ImageFileDataset):
 
         missing = self._missing_options()
         if missing:
-            raise InputError(self.root, f"{' and '.join(missing)}: a plain folder does not say them")
+            raise InputError(self.root, missing)
         self.depth_scale = float(cfg.depth_scale)
         self.depth_scale_source = "--depth-scale / dataset.depth_scale"
 
@@ -108,15 +108,20 @@ class FolderDataset(ImageFileDataset):
     def _intrinsics_file(self) -> Path | None:
         return next((self.root / n for n in INTRINSICS_FILES if (self.root / n).is_file()), None)
 
-    def _missing_options(self) -> list[str]:
-        cfg, missing = self.config, []
+    def _missing_options(self) -> str | None:
+        """The line that asks for what the folder cannot say (its depth units, its camera), or None."""
+        cfg, what, options = self.config, [], []
         if not cfg.depth_scale or cfg.depth_scale <= 0:
-            missing.append("the depth scale is unknown: pass --depth-scale UNITS_PER_METRE (1000 for "
-                           "millimetres, as a RealSense or an Azure Kinect writes them; 5000 for TUM's)")
+            what.append("its depth units")
+            options.append("--depth-scale UNITS_PER_METRE (1000 for millimetres, as a RealSense or an Azure "
+                           "Kinect writes them; 5000 for TUM's)")
         if not cfg.intrinsics and not cfg.intrinsics_file and self._intrinsics_file() is None:
-            missing.append("the intrinsics are unknown: pass --intrinsics fx,fy,cx,cy or --intrinsics FILE "
-                           f"(or put {' or '.join(INTRINSICS_FILES)} in the folder)")
-        return missing
+            what.append("its camera's intrinsics")
+            options.append(f"--intrinsics fx,fy,cx,cy or --intrinsics FILE (or put {' or '.join(INTRINSICS_FILES)} "
+                           "in the folder)")
+        if not what:
+            return None
+        return f"a plain folder does not say {' nor '.join(what)}: pass {' and '.join(options)}"
 
     def _find_intrinsics(self, width: int, height: int):
         cfg = self.config

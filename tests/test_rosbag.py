@@ -88,10 +88,11 @@ def pose_msg(t: float, T: np.ndarray, kind: str):
 
 def write_bag(path: Path, shots: list[Shot], depth_encoding: str = "32FC1", color_encoding: str | None = "rgb8",
               color_lag: float = 0.0, gt: str | None = "pose", info: bool = True, depth_topics=(DEPTH,),
-              storage: str = "mcap", color_frame: str = "camera_optical") -> Path:
-    """A rosbag2 folder of ``shots`` (log time = header stamp, as a recorder close to the driver writes it).
-    ``depth_encoding`` 16UC1 writes millimetres; ``color_encoding`` is rgb8, bgr8, mono8 or "jpeg"
-    (CompressedImage); ``color_lag`` delays colour's stamps; ``gt`` is "pose", "odom" or None."""
+              storage: str = "mcap", color_frame: str = "camera_optical", log_delays=None) -> Path:
+    """A rosbag2 folder of ``shots`` (log time = header stamp, as a recorder close to the driver writes it,
+    plus ``log_delays[i]`` seconds for shot i's depth). ``depth_encoding`` 16UC1 writes millimetres;
+    ``color_encoding`` is rgb8, bgr8, mono8 or "jpeg" (CompressedImage); ``color_lag`` delays colour's
+    stamps; ``gt`` is "pose", "odom" or None."""
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     image_type, compressed_type = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
     with Writer(path, version=9, storage_plugin=plugin) as w:
@@ -102,11 +103,12 @@ def write_bag(path: Path, shots: list[Shot], depth_encoding: str = "32FC1", colo
         gt_type = {"pose": "geometry_msgs/msg/PoseStamped", "odom": "nav_msgs/msg/Odometry"}.get(gt)
         gt_conn = w.add_connection(GT, gt_type, typestore=STORE) if gt else None
         records = []
-        for s in shots:
+        for i, s in enumerate(shots):
             h, wd = s.depth.shape
             depth = s.depth if depth_encoding == "32FC1" else np.round(s.depth * 1000).astype(np.uint16)
+            logged = s.t + (log_delays[i] if log_delays else 0.0)
             for conn in depth_conns:
-                records.append((s.t, conn, image_type, image_msg(s.t, depth, depth_encoding)))
+                records.append((logged, conn, image_type, image_msg(s.t, depth, depth_encoding)))
             if info_conn:
                 records.append((s.t, info_conn, "sensor_msgs/msg/CameraInfo", info_msg(s.t, wd, h)))
             if color_conn is not None and s.color is not None:
@@ -248,6 +250,18 @@ def test_colour_encodings_come_out_rgb(tmp_path, rng, encoding):
         np.testing.assert_array_equal(color[..., 0], cv2.cvtColor(shots[1].color, cv2.COLOR_RGB2GRAY))
     else:  # JPEG is lossy; random noise is its worst case
         assert np.abs(color.astype(int) - shots[1].color).mean() < 60
+
+
+def test_frames_in_header_stamp_order_and_a_repeated_stamp_left_out(tmp_path, rng):
+    shots = small_shots(rng, n=4)
+    shots[3].t = shots[2].t  # a driver that stamped two images alike
+    # frame 1's image recorded after frame 2's
+    bag = write_bag(tmp_path / "bag", shots, color_encoding=None, gt=None, log_delays=[0, 0.05, 0, 0])
+    ds = open_dataset(small_cfg(bag))
+    assert len(ds) == 3 and ds.dropped_frames == 1
+    assert [f.timestamp for f in ds] == sorted(f.timestamp for f in ds)
+    notes = " ".join(ds.describe()["notes"])
+    assert "not in header-stamp order" in notes and "1 depth messages repeat the header stamp" in notes
 
 
 def test_16uc1_is_millimetres_unless_the_depth_scale_says_otherwise(tmp_path, rng):

@@ -402,7 +402,10 @@ class RosbagDataset(Dataset):
             raise InputError(self.root, f"empty sequence: no message on {topics['depth']}")
         self._gt_samples = gt
 
-        depth.sort(key=lambda x: x[0])
+        if any(b[0] < a[0] for a, b in zip(depth, depth[1:])):
+            self.note(f"the depth messages on {topics['depth']} are not in header-stamp order in the bag: they are "
+                      "taken in stamp order")
+            depth.sort(key=lambda x: x[0])
         stamps = np.array([s for s, _ in depth])
         repeated = np.flatnonzero(np.diff(stamps) == 0) + 1
         if len(repeated):

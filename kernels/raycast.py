@@ -11,7 +11,9 @@ pixel back-projects onto the surface it hit. With noise on, the depth gets a Kin
 axial Gaussian noise of ``ti_fusion.sensor``'s σ(z) (Nguyen et al. 2012), disparity quantised to
 1/subpixel pixel (of a 640-pixel-wide sensor) for a projector baseline, and drop-outs outside [min_range, max_range] and at grazing
 angles. The noise comes from an integer hash of (seed, full-resolution pixel, channel), so a frame is
-the same for a seed on every backend and a subsampled render equals the subsampled full render.
+the same for a seed on every backend, to float rounding, and a subsampled render equals the subsampled
+full render. Float rounding depends on the compiled code (Taichi compiles with fast math), so a change
+to this kernel may move a few pixels of a frame by one grey level or one disparity step.
 """
 
 import math
@@ -44,7 +46,15 @@ SALT = 22     # per-primitive randomisation of its texture
 BOUND = 23    # radius of a sphere about CENTER enclosing the primitive; < 0 for planes (unbounded)
 NUM_COLUMNS = 24
 
+# Columns of a primitive's row of ``seen``: what depends on the camera position alone, once per frame.
+REL = 0         # 3: camera position − CENTER
+REL_SQ = 3      # |camera position − CENTER|²
+PLANE_DIST = 4  # planes: (point − camera position) · normal
+LOCAL = 5       # 3: boxes: camera position − CENTER in the box's own axes
+NUM_SEEN = 8
+
 T_MIN = 1e-4
+LANES = 8  # pixels per vector in the kernel's second pass
 TILE = 16  # pixels: each tile of the image tests only the primitives that may cover it
 NO_HIT = 1e30
 MORTAR = 0.015  # metres: width of the joints in the bricks pattern
@@ -101,7 +111,40 @@ def gaussian(key, seed):
     h2 = hash_u32(h1 ^ ti.u32(0x9E3779B9))
     u1 = (ti.cast(h1 >> 8, ti.f32) + 1.0) * (1.0 / 16777216.0)
     u2 = to_unit(h2)
-    return ti.sqrt(-2.0 * ti.log(u1)) * ti.cos(2.0 * math.pi * u2)
+    return ti.sqrt(-2.0 * log_unit(u1)) * cos_turns(u2)
+
+
+@ti.func
+def log_unit(x):
+    """ln x for x in (0, 1], to about one float32 ulp (Cephes' logf). Inline arithmetic rather than a call
+    to the C library, so that LLVM can put LANES of it in one vector."""
+    bits = ti.bit_cast(x, ti.i32)
+    e = ti.cast(((bits >> 23) & 255) - 127, ti.f32)
+    m = ti.bit_cast((bits & 0x7FFFFF) | 0x3F800000, ti.f32)  # x = m 2^e, m in [1, 2)
+    high = m > 1.41421356
+    m = ti.select(high, m * 0.5, m)
+    e = ti.select(high, e + 1.0, e)
+    f = m - 1.0  # in [√½ − 1, √2 − 1)
+    z = f * f
+    p = ti.abs(f) * 0.0 + 7.0376836292e-2  # shaped as f: a scalar or LANES of them
+    for c in ti.static((-1.1514610310e-1, 1.1676998740e-1, -1.2420140846e-1, 1.4249322787e-1,
+                        -1.6668057665e-1, 2.0000714765e-1, -2.4999993993e-1, 3.3333331174e-1)):
+        p = p * f + c
+    return f + (z * f * p - 0.5 * z) + e * 0.693147180559945
+
+
+@ti.func
+def cos_turns(u):
+    """cos(2πu) for u in [0, 1], to 2e-7 (Taylor's series to x¹², folded to x in [0, π/2]): as close as cosf of
+    the float32 product 2πu."""
+    a = ti.abs(u - ti.round(u))  # cos(2πu) is even and of period 1: a in [0, ½]
+    flip = a > 0.25
+    x = 2.0 * math.pi * ti.select(flip, 0.5 - a, a)
+    x2 = x * x
+    c = x2 * 0.0 + 1.0 / 479001600.0
+    for k in ti.static((-1.0 / 3628800.0, 1.0 / 40320.0, -1.0 / 720.0, 1.0 / 24.0, -0.5, 1.0)):
+        c = c * x2 + k
+    return ti.select(flip, -c, c)
 
 
 # -- geometry ------------------------------------------------------------------------------------------
@@ -122,22 +165,23 @@ def to_world(l, c, s):
 
 
 @ti.func
-def intersect(prims: ti.template(), k, o, d):
-    """Distance along the unit ray (o, d) to primitive k's front surface; NO_HIT when missed."""
+def intersect(prims: ti.template(), seen: ti.template(), k, d):
+    """Distance along the unit ray d from the camera to primitive k's front surface; NO_HIT when missed.
+    ``seen`` holds what depends on the camera position alone (``RayCaster._seen_from``)."""
     kind = ti.cast(prims[k, KIND], ti.i32)
-    c = row3(prims, k, CENTER)
+    oc = ti.Vector([seen[k, REL], seen[k, REL + 1], seen[k, REL + 2]])  # camera − centre
     t = NO_HIT
     if kind == PLANE:
         n = row3(prims, k, NORMAL)
         denom = d.dot(n)
         if denom < -1e-8:
-            s = (c - o).dot(n) / denom
+            s = seen[k, PLANE_DIST] / denom
             if s > T_MIN:
                 t = s
     elif kind == BOX:
         cs, sn = prims[k, YAW], prims[k, YAW + 1]
         h = row3(prims, k, HALF)
-        ol = to_local(o - c, cs, sn)
+        ol = ti.Vector([seen[k, LOCAL], seen[k, LOCAL + 1], seen[k, LOCAL + 2]])
         dl = to_local(d, cs, sn)
         t_near = -NO_HIT
         t_far = NO_HIT
@@ -153,7 +197,6 @@ def intersect(prims: ti.template(), k, o, d):
             t = t_near
     elif kind == SPHERE:
         r = prims[k, HALF]
-        oc = o - c
         b = oc.dot(d)
         perp = oc - b * d  # closest approach: better conditioned than b² − |oc|² + r²
         disc = r * r - perp.dot(perp)
@@ -164,7 +207,6 @@ def intersect(prims: ti.template(), k, o, d):
     elif kind == CYLINDER:
         r = prims[k, HALF]
         hz = prims[k, HALF + 2]
-        oc = o - c
         a = d.x * d.x + d.y * d.y
         if a > 1e-12:  # side wall
             b = oc.x * d.x + oc.y * d.y
@@ -291,7 +333,8 @@ def pattern_value(pattern, uv, su, sv, salt, footprint):
 
 
 @ti.func
-def albedo(prims: ti.template(), k, uv, footprint):
+def base_albedo(prims: ti.template(), k, uv, footprint):
+    """The material's colour at texture coordinates ``uv`` before its fine detail (``detail``)."""
     su = prims[k, SCALE]
     sv = su * prims[k, ASPECT]
     salt = ti.cast(prims[k, SALT], ti.i32)
@@ -301,14 +344,19 @@ def albedo(prims: ti.template(), k, uv, footprint):
     col = a * 0.3
     if m >= 0:
         col = a + (b - a) * m
-    # fine detail: two octaves of value noise below the cell size, faded where smaller than a pixel
-    detail = 0.0
-    lam = 0.5 * ti.min(su, sv)
-    for octave in ti.static(range(2)):
-        w = fade(lam, footprint)
-        detail += w * (value_noise(uv.x / lam, uv.y / lam, salt + 17 + octave) - 0.5) * (0.7 ** octave)
-        lam *= 0.4
-    return col * (1.0 + prims[k, DETAIL] * 1.8 * detail)
+    return col
+
+
+@ti.func
+def detail(u, v, lam, footprint, salt):
+    """Fine detail: two octaves of value noise below the cell size (``lam`` = half of it), faded where
+    smaller than a pixel. Scalars or LANES-vectors alike: the arithmetic is the same on each lane."""
+    w0 = fade(lam, footprint)
+    n0 = value_noise(u / lam, v / lam, salt + 17)
+    lam1 = lam * 0.4
+    w1 = fade(lam1, footprint)
+    n1 = value_noise(u / lam1, v / lam1, salt + 18)
+    return w0 * (n0 - 0.5) + w1 * (n1 - 0.5) * 0.7
 
 
 @ti.func
@@ -321,12 +369,18 @@ def shade(p, n):
 
 
 # -- the kernel ----------------------------------------------------------------------------------------
+# Per pixel, what the first pass (the nearest hit, its surface and base colour) leaves for the second (the
+# fine detail, the sensor model and the colour's rounding, LANES pixels at a time).
+COS_INC, COL, SCALE_LIT, U, V, LAM, FOOTPRINT, SALT_LIT, CONTRAST, NUM_LIT = 0, 1, 4, 5, 6, 7, 8, 9, 10, 11
+
+
 @ti.kernel
 def render_kernel(
     depth: ti.types.ndarray(dtype=ti.f32, ndim=2),
-    color: ti.types.ndarray(dtype=ti.i32, ndim=2),
+    color: ti.types.ndarray(dtype=ti.u8, ndim=3),
     label: ti.types.ndarray(dtype=ti.i32, ndim=2),
     prims: ti.types.ndarray(dtype=ti.f32, ndim=2),
+    seen: ti.types.ndarray(dtype=ti.f32, ndim=2),
     tile_prims: ti.types.ndarray(dtype=ti.i32, ndim=3),
     tile_count: ti.types.ndarray(dtype=ti.i32, ndim=2),
     rot: ti.types.matrix(3, 3, ti.f32),
@@ -337,58 +391,88 @@ def render_kernel(
     min_range: ti.f32, max_range: ti.f32, cos_grazing: ti.f32,
     fx_baseline: ti.f32, subpixel: ti.f32, color_sigma: ti.f32,
 ):
-    """Per pixel: nearest hit → depth (along the optical axis), packed RGB (r | g<<8 | b<<16), label."""
+    """Per pixel: nearest hit → depth (along the optical axis), RGB, label.
+
+    One iteration is one row of one tile: its primitive list is read once, and its TILE pixels go through
+    the per-pixel pass into ``lit`` (a stack buffer, lanes contiguous per channel), then through the
+    straight-line second pass LANES at a time, which LLVM turns into vector instructions."""
     H, W = depth.shape
-    for v, u in ti.ndrange(H, W):
-        ui = u * step  # the full-resolution pixel this one samples
+    for v, tx in ti.ndrange(H, (W + TILE - 1) // TILE):
+        ty = v // TILE
+        u0 = tx * TILE
+        n_px = ti.min(TILE, W - u0)
+        count = tile_count[ty, tx]
+        lit = ti.Matrix.zero(ti.f32, NUM_LIT, TILE)
+        zs = ti.Vector.zero(ti.f32, TILE)
+        hits = ti.Vector.zero(ti.i32, TILE)
         vi = v * step
-        ray_cam = ti.Vector([(ti.cast(ui, ti.f32) - cx) / fx, (ti.cast(vi, ti.f32) - cy) / fy, 1.0])
-        inv_len = 1.0 / ray_cam.norm()
-        d = (rot @ ray_cam) * inv_len
-        best = NO_HIT
-        hit = -1
-        for j in range(tile_count[v // TILE, u // TILE]):
-            k = tile_prims[v // TILE, u // TILE, j]
-            bound = prims[k, BOUND]
-            if bound >= 0:  # cheap rejection by the bounding sphere: off the ray, or behind the best hit
-                oc = row3(prims, k, CENTER) - origin
-                b = oc.dot(d)
-                if oc.dot(oc) - b * b > bound * bound or b - bound > best:
-                    continue
-            t = intersect(prims, k, origin, d)
-            if t < best:
-                best = t
-                hit = k
-        z = 0.0
-        cos_inc = 0.0
-        rgb = ti.Vector([0.0, 0.0, 0.0])
-        if hit >= 0:
-            p = origin + best * d
-            n, uv = surface(prims, hit, p)
-            z = best * inv_len
-            cos_inc = -n.dot(d)
-            footprint = z / fx / ti.max(ti.abs(n.dot(d)), 0.25)  # metres per full-resolution pixel
-            rgb = albedo(prims, hit, uv, footprint) * shade(p, n) * 255.0
-        pixel = ti.cast(vi * full_width + ui, ti.u32) * ti.u32(4)
-        if noise != 0:
+        for i in range(n_px):
+            ui = (u0 + i) * step  # the full-resolution pixel this one samples
+            ray_cam = ti.Vector([(ti.cast(ui, ti.f32) - cx) / fx, (ti.cast(vi, ti.f32) - cy) / fy, 1.0])
+            inv_len = 1.0 / ray_cam.norm()
+            d = (rot @ ray_cam) * inv_len
+            best = NO_HIT
+            hit = -1
+            for j in range(count):
+                k = tile_prims[ty, tx, j]
+                bound = prims[k, BOUND]
+                if bound >= 0:  # cheap rejection by the bounding sphere: off the ray, or behind the best hit
+                    b = -(seen[k, REL] * d.x + seen[k, REL + 1] * d.y + seen[k, REL + 2] * d.z)
+                    if seen[k, REL_SQ] - b * b > bound * bound or b - bound > best:
+                        continue
+                t = intersect(prims, seen, k, d)
+                if t < best:
+                    best = t
+                    hit = k
+            lit[LAM, i] = 1.0  # keeps the detail pass finite where nothing is hit
+            lit[FOOTPRINT, i] = 1.0
             if hit >= 0:
-                if z < min_range or z > max_range or cos_inc < cos_grazing:
-                    z = 0.0
-                else:
-                    zn = z + depth_sigma(z, ti.f32) * gaussian(pixel, seed)
-                    disparity = ti.round(fx_baseline / zn * subpixel) / subpixel
-                    z = fx_baseline / disparity if disparity > 0 else 0.0
-            # colour: a cheap near-Gaussian (sum of four uniform bytes of one hash, unit variance)
-            for ch in ti.static(range(3)):
-                h = hash_u32(hash_u32(pixel + ti.u32(ch + 1)) ^ seed)
-                bytes_sum = ti.cast((h & 255) + ((h >> 8) & 255) + ((h >> 16) & 255) + (h >> 24), ti.f32)
-                rgb[ch] += color_sigma * (bytes_sum - 510.0) * (1.7320508 / 255.0)
-        r = ti.cast(ti.min(ti.max(ti.round(rgb.x), 0.0), 255.0), ti.i32)
-        g = ti.cast(ti.min(ti.max(ti.round(rgb.y), 0.0), 255.0), ti.i32)
-        b = ti.cast(ti.min(ti.max(ti.round(rgb.z), 0.0), 255.0), ti.i32)
-        depth[v, u] = z
-        color[v, u] = r | (g << 8) | (b << 16)
-        label[v, u] = hit
+                p = origin + best * d
+                n, uv = surface(prims, hit, p)
+                z = best * inv_len
+                footprint = z / fx / ti.max(ti.abs(n.dot(d)), 0.25)  # metres per full-resolution pixel
+                col = base_albedo(prims, hit, uv, footprint)
+                su = prims[hit, SCALE]
+                zs[i] = z
+                lit[COS_INC, i] = -n.dot(d)
+                for c in ti.static(range(3)):
+                    lit[COL + c, i] = col[c]
+                lit[SCALE_LIT, i] = shade(p, n) * 255.0
+                lit[U, i] = uv.x
+                lit[V, i] = uv.y
+                lit[LAM, i] = 0.5 * ti.min(su, su * prims[hit, ASPECT])
+                lit[FOOTPRINT, i] = footprint
+                lit[SALT_LIT, i] = prims[hit, SALT]
+                lit[CONTRAST, i] = prims[hit, DETAIL] * 1.8
+            hits[i] = hit
+            label[v, u0 + i] = hit
+        for g in ti.static(range(TILE // LANES)):
+            lanes = ti.static(range(g * LANES, (g + 1) * LANES))
+            z = ti.Vector([zs[l] for l in lanes])
+            hit = ti.Vector([hits[l] for l in lanes])
+            ch = [ti.Vector([lit[c, l] for l in lanes]) for c in ti.static(range(NUM_LIT))]
+            salt = ti.cast(ch[SALT_LIT], ti.i32)
+            fine = detail(ch[U], ch[V], ch[LAM], ch[FOOTPRINT], salt)
+            gain = (1.0 + ch[CONTRAST] * fine) * ch[SCALE_LIT]
+            rgb = [ch[COL + c] * gain for c in ti.static(range(3))]
+            px = ti.Vector([ti.cast((vi * full_width + (u0 + l) * step) * 4, ti.u32) for l in lanes])
+            if noise != 0:
+                zn = z + depth_sigma(z, ti.f32) * gaussian(px, seed)
+                disparity = ti.round(fx_baseline / zn * subpixel) / subpixel
+                quantised = ti.select(disparity > 0, fx_baseline / disparity, 0.0)
+                dropped = (z < min_range) | (z > max_range) | (ch[COS_INC] < cos_grazing)
+                z = ti.select(hit >= 0, ti.select(dropped, 0.0, quantised), z)
+                # colour: a cheap near-Gaussian (sum of four uniform bytes of one hash, unit variance)
+                for c in ti.static(range(3)):
+                    h = hash_u32(hash_u32(px + ti.u32(c + 1)) ^ seed)
+                    bytes_sum = ti.cast((h & 255) + ((h >> 8) & 255) + ((h >> 16) & 255) + (h >> 24), ti.f32)
+                    rgb[c] += color_sigma * (bytes_sum - 510.0) * (1.7320508 / 255.0)
+            q = [ti.cast(ti.min(ti.max(ti.round(rgb[c]), 0.0), 255.0), ti.u8) for c in ti.static(range(3))]
+            for l in ti.static(range(LANES)):
+                if g * LANES + l < n_px:
+                    depth[v, u0 + g * LANES + l] = z[l]
+                    for c in ti.static(range(3)):
+                        color[v, u0 + g * LANES + l, c] = q[c][l]
 
 
 class RayCaster:
@@ -400,13 +484,31 @@ class RayCaster:
             raise ValueError(f"primitive table must be P×{NUM_COLUMNS}, got {table.shape}")
         self.table = table
 
-    def _tile_lists(self, pose: np.ndarray, K: Intrinsics, step: int, H: int, W: int):
-        """Per TILE×TILE tile, the primitives that may cover it: (lists TH×TW×P, counts TH×TW), int32.
+    def _seen_from(self, o: np.ndarray) -> np.ndarray:
+        """P × NUM_SEEN float32: the columns of ``seen`` for a camera at ``o`` (computed in float64)."""
+        table = self.table.astype(np.float64)
+        rel = np.asarray(o, np.float64) - table[:, CENTER:CENTER + 3]
+        c, s = table[:, YAW], table[:, YAW + 1]
+        seen = np.zeros((len(table), NUM_SEEN))
+        seen[:, REL:REL + 3] = rel
+        seen[:, REL_SQ] = (rel * rel).sum(1)
+        seen[:, PLANE_DIST] = -(rel * table[:, NORMAL:NORMAL + 3]).sum(1)
+        seen[:, LOCAL:LOCAL + 3] = np.stack([c * rel[:, 0] + s * rel[:, 1], -s * rel[:, 0] + c * rel[:, 1],
+                                             rel[:, 2]], 1)
+        return seen.astype(np.float32)
 
-        Conservative: a bounded primitive goes to the tiles its bounding cube projects to; a plane to the
-        tiles where some corner ray points at its front side (ray directions are affine in the pixel, so
-        a tile's rays are convex combinations of its corner rays). Each list holds planes first, then the
-        others near to far, so an early hit lets the farther ones be skipped by the bounding test.
+    def _tile_lists(self, pose: np.ndarray, K: Intrinsics, step: int, H: int, W: int):
+        """Per TILE×TILE tile, the primitives that may be the nearest hit of one of its pixels: (lists
+        TH×TW×P, counts TH×TW), int32.
+
+        Ray directions are affine in the pixel, so a tile's rays are the positive combinations of its four
+        corner rays, and a test that is linear in the ray direction holds for every ray of the tile when it
+        holds for the corners. A bounded primitive is kept where its bounding sphere meets the tile's
+        frustum (the four side planes through the camera). A plane is kept where some corner ray points at
+        its front side, unless another plane is nearer along every ray of the tile. Both tests keep a
+        margin far above float32 rounding, so the kernel finds the same nearest hit as with every
+        primitive in every list. Each list holds planes first, then the others near to far, so an early
+        hit lets the farther ones be skipped by the bounding test.
         """
         table = self.table.astype(np.float64)
         R, o = pose[:3, :3], pose[:3, 3]
@@ -415,21 +517,25 @@ class RayCaster:
         bound = table[:, BOUND]
         centers = table[:, CENTER:CENTER + 3]
         visible = np.zeros((TH, TW, P), bool)
-        # corner pixels of every tile, as full-resolution pixel coordinates
+        # corner pixels of every tile, as full-resolution pixel coordinates, and their camera-ray slopes
         us = np.stack([np.arange(TW) * TILE, np.minimum(np.arange(TW) * TILE + TILE - 1, W - 1)], 1) * step
         vs = np.stack([np.arange(TH) * TILE, np.minimum(np.arange(TH) * TILE + TILE - 1, H - 1)], 1) * step
+        ax = (us - K.cx) / K.fx  # TW×2: x/z of the tile's left and right rays
+        ay = (vs - K.cy) / K.fy  # TH×2: y/z of its top and bottom rays
+        nx, ny = np.hypot(1, ax), np.hypot(1, ay)  # lengths of the side planes' normals (1, 0, −a), (0, 1, −a)
         cam = (centers - o) @ R  # centres in the camera frame
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+        planes = np.flatnonzero(bound < 0)
         for k in range(P):
-            if bound[k] < 0:  # plane
+            if bound[k] < 0:
                 n_cam = R.T @ table[k, NORMAL:NORMAL + 3]
-                dx = (us - K.cx) / K.fx * n_cam[0]  # TW×2
-                dy = (vs - K.cy) / K.fy * n_cam[1]  # TH×2
+                dx = ax * n_cam[0]  # TW×2
+                dy = ay * n_cam[1]  # TH×2
                 lowest = dy.min(1)[:, None] + dx.min(1)[None, :] + n_cam[2]
                 visible[:, :, k] = lowest < 1e-6
                 continue
             r = bound[k] * 1.001 + 1e-3
-            z = cam[k, 2]
+            x, y, z = cam[k]
             if z + r <= 0:
                 continue
             if z - r <= 1e-3:  # reaches behind the camera: anywhere
@@ -442,13 +548,43 @@ class RayCaster:
             j0, j1 = int(np.ceil(v.min() / step)), int(np.floor(v.max() / step))
             i0, i1, j0, j1 = max(i0, 0), min(i1, W - 1), max(j0, 0), min(j1, H - 1)
             if i0 <= i1 and j0 <= j1:
-                visible[j0 // TILE:j1 // TILE + 1, i0 // TILE:i1 // TILE + 1, k] = True
+                # the sphere meets the frustum only if it is not wholly outside one of its side planes
+                # (x = a z with a the left or right slope, y = a z likewise), at distances (x − a z)/√(1 + a²)
+                cols = ((x - ax[:, 0] * z) / nx[:, 0] >= -r) & ((ax[:, 1] * z - x) / nx[:, 1] >= -r)
+                rows = ((y - ay[:, 0] * z) / ny[:, 0] >= -r) & ((ay[:, 1] * z - y) / ny[:, 1] >= -r)
+                near = np.zeros((TH, TW), bool)
+                near[j0 // TILE:j1 // TILE + 1, i0 // TILE:i1 // TILE + 1] = True
+                visible[:, :, k] = near & rows[:, None] & cols[None, :]
+        if len(planes) > 1:
+            visible[:, :, planes] &= ~self._hidden_planes(table[planes], R, o, ax, ay)
         dist = np.linalg.norm(centers - o, axis=1) - bound
         dist[bound < 0] = -np.inf
         order = np.argsort(dist, kind="stable")
         ranked = visible[:, :, order]
         lists = order[np.argsort(~ranked, axis=-1, kind="stable")]
         return np.ascontiguousarray(lists, dtype=np.int32), ranked.sum(-1).astype(np.int32)
+
+    @staticmethod
+    def _hidden_planes(rows: np.ndarray, R: np.ndarray, o: np.ndarray, ax: np.ndarray, ay: np.ndarray):
+        """TH×TW×Q: whether plane g of the Q ``rows`` lies, along every ray of the tile, more than 0.1%
+        beyond another plane f that every ray of the tile hits.
+
+        Along a ray d (camera frame, any length), plane p is at t_p = s_p / (d·n_p) with s_p = (c_p − o)·n_p
+        < 0 in front of the camera. For d·n_f < 0, t_g > (1 + m) t_f or no hit on g at all is
+        |s_g| (d·n_f) − (1 + m) |s_f| (d·n_g) < 0: linear in d, so the four corner rays decide it.
+        """
+        margin = 1e-3
+        n_cam = rows[:, NORMAL:NORMAL + 3] @ R  # Q×3 normals in the camera frame
+        s = np.einsum("qi,qi->q", rows[:, CENTER:CENTER + 3] - o, rows[:, NORMAL:NORMAL + 3])
+        # d·n at the four corners of every tile: TH×TW×4×Q
+        dn = (ay[:, None, :, None, None] * n_cam[:, 1] + ax[None, :, None, :, None] * n_cam[:, 0]
+              + n_cam[:, 2]).reshape(len(ay), len(ax), 4, -1)
+        a = np.abs(s)
+        # [..., f, g]: every ray of the tile hits f (the camera in front of it), and g lies beyond f
+        hits = (dn < -1e-6).all(2) & (s < -T_MIN)
+        farther = (a[None, :] * dn[..., :, None] - (1 + margin) * a[:, None] * dn[..., None, :] < 0).all(2)
+        farther[..., np.arange(len(rows)), np.arange(len(rows))] = False
+        return (hits[..., :, None] & farther).any(-2)
 
     def render(self, pose: np.ndarray, intrinsics: Intrinsics, step: int = 1,
                sensor: SensorModel | None = None, seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -460,13 +596,13 @@ class RayCaster:
         H = (intrinsics.height + step - 1) // step
         W = (intrinsics.width + step - 1) // step
         depth = np.empty((H, W), np.float32)
-        packed = np.empty((H, W), np.int32)
+        color = np.empty((H, W, 3), np.uint8)
         label = np.empty((H, W), np.int32)
         pose = np.asarray(pose, dtype=np.float64)
         s = sensor or SensorModel()
         lists, counts = self._tile_lists(pose, intrinsics, step, H, W)
         render_kernel(
-            depth, packed, label, self.table, lists, counts,
+            depth, color, label, self.table, self._seen_from(pose[:3, 3]), lists, counts,
             ti.Matrix(pose[:3, :3].astype(np.float32)), ti.Vector(pose[:3, 3].astype(np.float32)),
             intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy,
             int(step), int(intrinsics.width),
@@ -474,6 +610,4 @@ class RayCaster:
             s.min_range, s.max_range, math.cos(math.radians(s.grazing_deg)),
             intrinsics.fx * s.sensor_width / intrinsics.width * s.baseline, s.subpixel, s.color_sigma,
         )
-        little = packed if np.little_endian else packed.byteswap()  # bytes r, g, b, 0 in memory order
-        color = np.ascontiguousarray(little.view(np.uint8).reshape(H, W, 4)[..., :3])
         return depth, color, label

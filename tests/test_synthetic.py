@@ -151,6 +151,67 @@ def test_raycast_kernel_matches_reference(arch, rng):
 # --------------------------------------------------------------------------------------------------
 # The default scene and path
 # --------------------------------------------------------------------------------------------------
+def every_primitive(caster, pose, K, step, H, W):
+    """Tile lists holding every primitive (planes first, then near to far, as the renderer orders them)."""
+    from ti_fusion.kernels import raycast as rc
+
+    table = caster.table.astype(np.float64)
+    bound = table[:, rc.BOUND]
+    dist = np.linalg.norm(table[:, rc.CENTER:rc.CENTER + 3] - pose[:3, 3], axis=1) - bound
+    dist[bound < 0] = -np.inf
+    order = np.argsort(dist, kind="stable").astype(np.int32)
+    TH, TW = -(-H // rc.TILE), -(-W // rc.TILE)
+    return (np.ascontiguousarray(np.broadcast_to(order, (TH, TW, len(order)))),
+            np.full((TH, TW), len(order), np.int32))
+
+
+def test_tile_lists_leave_out_only_primitives_that_cannot_be_nearest(arch, rng, monkeypatch):
+    """The renderer's tile lists drop a bounded primitive whose bounding sphere misses the tile and a plane
+    that another plane hides along every ray of the tile: frames are the same, bit for bit, as with every
+    primitive in every list (odd sizes and --downsample 3 give tiles cut by the image's edge)."""
+    cfg = SynthConfig(frames=120, width=150, height=110, fx=123.0)
+    cases = [(SyntheticSequence(cfg), SyntheticSequence(cfg).poses[::23])]
+    scene = random_scene(rng)
+    cases.append((SyntheticSequence(cfg, scene=scene), [random_pose(rng) for _ in range(4)]))
+    for seq, poses in cases:
+        lists, _ = seq._caster._tile_lists(poses[0], seq.intrinsics, 1, cfg.height, cfg.width)
+        for pose in poses:
+            for step, noise in ((1, True), (1, False), (3, True)):
+                culled = seq.render(pose, noise=noise, seed=3, downsample=step) + (seq.last_labels,)
+                with monkeypatch.context() as m:
+                    m.setattr(seq._caster, "_tile_lists", lambda *a: every_primitive(seq._caster, *a))
+                    full = seq.render(pose, noise=noise, seed=3, downsample=step) + (seq.last_labels,)
+                for a, b in zip(culled, full):
+                    np.testing.assert_array_equal(a, b)
+    counts = [seq._caster._tile_lists(p, seq.intrinsics, 1, cfg.height, cfg.width)[1].mean()
+              for seq, poses in cases[:1] for p in poses]
+    assert np.mean(counts) < len(default_scene()) / 2  # the lists are short: the test is not vacuous
+
+
+def test_log_and_cos_of_the_noise_match_float64(arch):
+    """The depth noise's inline ln and cos (vectorised with the pixels) against NumPy in float64, over
+    the inputs Box–Muller gives them: u1 in (0, 1] and u2 in [0, 1) in steps of 2⁻²⁴."""
+    import taichi as ti
+
+    from ti_fusion.kernels.raycast import cos_turns, log_unit
+
+    def evaluate(x, ln, cos):
+        for i in x:
+            ln[i] = log_unit(x[i])
+            cos[i] = cos_turns(x[i])
+
+    column = ti.types.ndarray(dtype=ti.f32, ndim=1)  # set here: this file's annotations are strings
+    evaluate.__annotations__ = {"x": column, "ln": column, "cos": column}
+    evaluate = ti.kernel(evaluate)
+    x = np.concatenate([np.arange(1, 2**24 + 1, 251), [2**23 - 1, 2**23, 2**23 + 1, 2**22, 3 * 2**22, 11863283]])
+    x = (x / 2**24).astype(np.float32)
+    ln, cos = np.empty_like(x), np.empty_like(x)
+    evaluate(x, ln, cos)
+    x64 = x.astype(np.float64)
+    np.testing.assert_allclose(ln, np.log(x64), rtol=3e-7, atol=1e-7)
+    np.testing.assert_allclose(cos, np.cos(2 * np.pi * x64), rtol=0, atol=5e-7)
+
+
 def test_depth_backprojects_onto_the_primitive_it_hit(cpu, rng):
     seq = SyntheticSequence(replace(SMALL, noise=False))
     poses = [seq.poses[0], seq.poses[70], seq.poses[119], random_pose(rng)]

@@ -528,35 +528,32 @@ class RayCaster:
         cam = (centers - o) @ R  # centres in the camera frame
         signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
         planes = np.flatnonzero(bound < 0)
-        for k in range(P):
-            if bound[k] < 0:
-                n_cam = R.T @ table[k, NORMAL:NORMAL + 3]
-                dx = ax * n_cam[0]  # TW×2
-                dy = ay * n_cam[1]  # TH×2
-                lowest = dy.min(1)[:, None] + dx.min(1)[None, :] + n_cam[2]
-                visible[:, :, k] = lowest < 1e-6
-                continue
-            r = bound[k] * 1.001 + 1e-3
-            x, y, z = cam[k]
-            if z + r <= 0:
-                continue
-            if z - r <= 1e-3:  # reaches behind the camera: anywhere
-                visible[:, :, k] = True
-                continue
-            corners = cam[k] + r * signs
-            u = K.fx * corners[:, 0] / corners[:, 2] + K.cx
-            v = K.fy * corners[:, 1] / corners[:, 2] + K.cy
-            i0, i1 = int(np.ceil(u.min() / step)), int(np.floor(u.max() / step))
-            j0, j1 = int(np.ceil(v.min() / step)), int(np.floor(v.max() / step))
-            i0, i1, j0, j1 = max(i0, 0), min(i1, W - 1), max(j0, 0), min(j1, H - 1)
-            if i0 <= i1 and j0 <= j1:
-                # the sphere meets the frustum only if it is not wholly outside one of its side planes
-                # (x = a z with a the left or right slope, y = a z likewise), at distances (x − a z)/√(1 + a²)
-                cols = ((x - ax[:, 0] * z) / nx[:, 0] >= -r) & ((ax[:, 1] * z - x) / nx[:, 1] >= -r)
-                rows = ((y - ay[:, 0] * z) / ny[:, 0] >= -r) & ((ay[:, 1] * z - y) / ny[:, 1] >= -r)
-                near = np.zeros((TH, TW), bool)
-                near[j0 // TILE:j1 // TILE + 1, i0 // TILE:i1 // TILE + 1] = True
-                visible[:, :, k] = near & rows[:, None] & cols[None, :]
+        for k in planes:
+            n_cam = R.T @ table[k, NORMAL:NORMAL + 3]
+            lowest = (ay * n_cam[1]).min(1)[:, None] + (ax * n_cam[0]).min(1)[None, :] + n_cam[2]
+            visible[:, :, k] = lowest < 1e-6
+        bounded = np.flatnonzero(bound >= 0)
+        r = bound[bounded] * 1.001 + 1e-3
+        x, y, z = (c[:, None] for c in cam[bounded].T)
+        # The sphere meets a tile's frustum only if it is not wholly outside one of its side planes (x = a z
+        # with a the left or right slope, y = a z likewise), at distances (x − a z)/√(1 + a²).
+        cols = ((x - ax[:, 0] * z) / nx[:, 0] >= -r[:, None]) & ((ax[:, 1] * z - x) / nx[:, 1] >= -r[:, None])
+        rows = ((y - ay[:, 0] * z) / ny[:, 0] >= -r[:, None]) & ((ay[:, 1] * z - y) / ny[:, 1] >= -r[:, None])
+        keep = rows[:, :, None] & cols[:, None, :]  # B×TH×TW
+        # In front of the camera, also only the tiles its bounding cube projects to.
+        front = (z[:, 0] - r > 1e-3)
+        corners = cam[bounded][:, None, :] + r[:, None, None] * signs  # B×8×3
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K.fx * corners[..., 0] / corners[..., 2] + K.cx
+            v = K.fy * corners[..., 1] / corners[..., 2] + K.cy
+        i0, i1 = np.maximum(np.ceil(u.min(1) / step), 0), np.minimum(np.floor(u.max(1) / step), W - 1)
+        j0, j1 = np.maximum(np.ceil(v.min(1) / step), 0), np.minimum(np.floor(v.max(1) / step), H - 1)
+        tx, ty = np.arange(TW), np.arange(TH)
+        in_x = (tx >= (i0 // TILE)[:, None]) & (tx <= (i1 // TILE)[:, None]) & (i0 <= i1)[:, None]
+        in_y = (ty >= (j0 // TILE)[:, None]) & (ty <= (j1 // TILE)[:, None]) & (j0 <= j1)[:, None]
+        keep &= ~front[:, None, None] | (in_y[:, :, None] & in_x[:, None, :])
+        keep &= (z[:, 0] + r > 0)[:, None, None]  # wholly behind the camera: nowhere
+        visible[:, :, bounded] = keep.transpose(1, 2, 0)
         if len(planes) > 1:
             visible[:, :, planes] &= ~self._hidden_planes(table[planes], R, o, ax, ay)
         dist = np.linalg.norm(centers - o, axis=1) - bound

@@ -28,7 +28,7 @@ from ti_fusion.kernels.maps import FrameMaps
 from ti_fusion.synthetic.scene import SyntheticSequence
 from ti_fusion.tracking.solve import check_system, solve_normal_equations, solve_stacked_qr
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 THR = 0.1
 THETA = 30.0
 

@@ -16,7 +16,7 @@ from ti_fusion.errors import InputError
 from ti_fusion.io.datasets import FrameList, open_dataset, rgbd_frame
 from ti_fusion.io.trajectory import read_tum
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "DATA.md"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "DATA.md"
 K = Intrinsics(fx=30.0, fy=30.0, cx=19.5, cy=14.5, width=40, height=30)
 
 

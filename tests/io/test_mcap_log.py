@@ -369,7 +369,7 @@ def test_inspect_on_a_vo_log(tmp_path, capsys):
 # Declared stats schemas
 
 
-DOCS = Path(__file__).resolve().parents[1] / "docs" / "LOGS.md"
+DOCS = Path(__file__).resolve().parents[2] / "docs" / "LOGS.md"
 
 
 def test_declared_schema_is_the_channels_schema(tmp_path):

@@ -287,7 +287,7 @@ def test_keep_freed_memory_takes_effect_on_glibc():
     import sys
     from pathlib import Path
 
-    benchlib = Path(__file__).resolve().parents[1] / "scripts" / "benchlib.py"
+    benchlib = Path(__file__).resolve().parents[2] / "scripts" / "benchlib.py"
     code = ("import runpy, sys; import numpy as np; kept = runpy.run_path(sys.argv[1])['keep_freed_memory'](); "
             "a = np.ones(5_000_000); del a; assert float(np.ones(5_000_000).sum()) == 5e6; print(kept)")
     out = subprocess.run([sys.executable, "-c", code, str(benchlib)], capture_output=True, text=True,

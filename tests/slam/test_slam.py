@@ -200,7 +200,7 @@ def test_slam_on_vulkan_is_as_accurate_as_on_cpu(tmp_path):
     Stated bound: the vulkan ATE is within 1.5× the cpu ATE plus 1 mm (float32 reductions on the GPU
     path against float64 on cpu), with no tracking failure on either.
     """
-    from conftest import _has_vulkan, _use
+    from tests.conftest import _has_vulkan, _use
 
     if not _has_vulkan():
         pytest.skip("no Vulkan device (apt-get install mesa-vulkan-drivers for lavapipe)")

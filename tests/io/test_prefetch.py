@@ -4,6 +4,7 @@ at its own frame, the thread stopped however the loop ends, and the pipeline's r
 from __future__ import annotations
 
 import copy
+import sys
 import threading
 import time
 
@@ -49,10 +50,12 @@ class Items:
 @pytest.mark.parametrize("threaded", [True, False], ids=["thread", "inline"])
 def test_frames_come_in_order(threaded):
     data = Items(200, slow_every=7)
+    interval = sys.getswitchinterval()
     with Prefetcher(data, ahead=3, threaded=threaded) as frames:
         got = [(i, item) for i, item, read_ms in frames]
     assert got == [(i, i) for i in range(200)]
     assert not _readers()
+    assert sys.getswitchinterval() == interval  # the reader's shorter GIL switch interval is given back
 
 
 @pytest.mark.parametrize("threaded", [True, False], ids=["thread", "inline"])

@@ -18,11 +18,16 @@ Taichi's launch and compile paths are not meant to run on two threads at once.
 from __future__ import annotations
 
 import queue
+import sys
 import threading
 import time
 from typing import Iterator, Sequence
 
 _STOP_POLL_S = 0.05  # how often a reader blocked on a full queue checks whether it is asked to stop
+# The GIL's switch interval while the reader runs: the loop's thread holds the GIL through every Taichi
+# kernel launch and between them hands it over only when this interval has passed, so the reader, which
+# needs it for a moment between decodes, waits less with a shorter one (CPython's default is 5 ms).
+_SWITCH_INTERVAL_S = 0.0005
 
 
 class Prefetcher:
@@ -39,10 +44,13 @@ class Prefetcher:
         self._queue: queue.Queue = queue.Queue(maxsize=self.ahead)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        self._switch_interval: float | None = None
 
     def __enter__(self) -> Iterator[tuple[int, object, float]]:
         if not self.threaded:
             return self._inline()
+        self._switch_interval = sys.getswitchinterval()
+        sys.setswitchinterval(min(self._switch_interval, _SWITCH_INTERVAL_S))
         self._thread = threading.Thread(target=self._read_all, name="ti-fusion-reader", daemon=True)
         self._thread.start()
         return self._from_queue()
@@ -60,6 +68,7 @@ class Prefetcher:
             self._thread.join(_STOP_POLL_S)
         self._drain()
         self._thread = None
+        sys.setswitchinterval(self._switch_interval)
 
     # -- the caller's side ----------------------------------------------------------------------
     def _inline(self) -> Iterator[tuple[int, object, float]]:

@@ -200,7 +200,7 @@ def test_sigterm_and_sighup_keep_what_was_done(cpu, tmp_path, capsys, monkeypatc
 
 
 def test_sigterm_from_outside_the_process(tmp_path):
-    """Whenever it lands (a log write is finished first: test_cli_config.py checks that deterministically)."""
+    """Whenever it lands (a log write is finished first: tests/cli/test_run_checks.py checks that deterministically)."""
     out = tmp_path / "run"
 
     def stats_so_far(log: Path) -> int:  # the log of a run in progress: absent, then empty until its first flush

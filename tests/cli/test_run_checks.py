@@ -94,7 +94,7 @@ def test_a_stop_in_the_middle_of_a_log_write_keeps_every_message(tmp_path, signa
 
 
 def test_sigterm_during_a_run_keeps_the_log_whole(cpu, tmp_path, capsys, signal_in_chunk_write):
-    """The race behind the occasional failure of test_cli.py::test_sigterm_from_outside_the_process: a
+    """The race behind the occasional failure of tests/cli/test_main.py::test_sigterm_from_outside_the_process: a
     SIGTERM while the log writer finished a chunk lost that chunk's messages."""
     signal_in_chunk_write(signal.SIGTERM, after=4)
     out = tmp_path / "run"

@@ -185,7 +185,29 @@ class Dataset(ABC):
         }
 
 
-class ImageFileDataset(Dataset):
+class RecordedSequence(Dataset):
+    """A recorded sequence: a subclass sets ``_intrinsics`` and ``_gt_poses`` (one 4×4 or None per raw
+    frame); the intrinsics, the ground-truth questions and the frame's assembly are answered here once."""
+
+    @property
+    def raw_intrinsics(self) -> Intrinsics:
+        return self._intrinsics
+
+    @property
+    def has_ground_truth(self) -> bool:
+        return any(T is not None for T in self._gt_poses)
+
+    def ground_truth_frames(self) -> int:
+        """How many of the selected frames have a ground-truth pose."""
+        return sum(self._gt_poses[i] is not None for i in self.indices)
+
+    def _frame(self, raw_index: int, timestamp: float, depth: np.ndarray, color, meta: dict) -> Frame:
+        gt = self._gt_poses[raw_index]
+        return Frame(index=raw_index, timestamp=timestamp, depth=depth, intrinsics=self._intrinsics, color=color,
+                     gt_pose=None if gt is None else gt.copy(), meta=meta)
+
+
+class ImageFileDataset(RecordedSequence):
     """A sequence stored as one depth image (and optionally one colour image) per frame.
 
     A subclass's ``__init__`` fills, one entry per frame: ``_depth_files``, ``_color_files`` (None where a
@@ -207,14 +229,6 @@ class ImageFileDataset(Dataset):
         if not self.root.is_dir():
             raise InputError(self.root, "dataset folder does not exist")
 
-    @property
-    def raw_intrinsics(self) -> Intrinsics:
-        return self._intrinsics
-
-    @property
-    def has_ground_truth(self) -> bool:
-        return any(T is not None for T in self._gt_poses)
-
     def _num_raw_frames(self) -> int:
         return len(self._depth_files)
 
@@ -225,14 +239,12 @@ class ImageFileDataset(Dataset):
         K = self._intrinsics
         depth, color = read_rgbd(depth_path, color_path, self.depth_scale, self.config.depth_max,
                                  (K.width, K.height), self.invalid_depth)
-        gt = self._gt_poses[raw_index]
-        return Frame(index=raw_index, timestamp=float(self._stamps[raw_index]), depth=depth, intrinsics=K,
-                     color=color, gt_pose=None if gt is None else gt.copy(),
-                     meta={"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
+        return self._frame(raw_index, float(self._stamps[raw_index]), depth, color,
+                           {"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
 
     def describe(self) -> dict:
         info = super().describe()
-        info["ground_truth_frames"] = sum(self._gt_poses[i] is not None for i in self.indices)
+        info["ground_truth_frames"] = self.ground_truth_frames()
         info["colour"] = any(c is not None for c in self._color_files)
         return info
 

@@ -247,10 +247,8 @@ class FolderDataset(ImageFileDataset):
                     raise InputError(color_path, f"colour image is {color.shape[1]}x{color.shape[0]}, the "
                                                  f"depth images and the first colour image {K.width}x{K.height}")
                 color = cv2.resize(color, (K.width, K.height), interpolation=cv2.INTER_AREA)
-        gt = self._gt_poses[raw_index]
-        return Frame(index=raw_index, timestamp=float(self._stamps[raw_index]), depth=depth, intrinsics=K,
-                     color=color, gt_pose=None if gt is None else gt.copy(),
-                     meta={"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
+        return self._frame(raw_index, float(self._stamps[raw_index]), depth, color,
+                           {"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
 
     def describe(self) -> dict:
         info = super().describe()

@@ -33,7 +33,7 @@ from ti_fusion.config import DatasetConfig
 from ti_fusion.errors import InputError
 from ti_fusion.io.trajectory import read_tum
 from ti_fusion.io.datasets.base import ImageFileDataset
-from ti_fusion.io.datasets.imageio import read_depth_png, read_intrinsics_file, read_rgbd
+from ti_fusion.io.datasets.imageio import read_depth_png, read_intrinsics_file
 
 DEPTH_SCALE = 5000.0
 ICL_INTRINSICS = (481.20, 480.0, 319.5, 239.5)  # fy after the y flip (−480.0 in the original renders)

@@ -43,7 +43,7 @@ from ti_fusion.camera import Intrinsics
 from ti_fusion.config import DatasetConfig
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import make_pose, quat_to_rot
-from ti_fusion.io.datasets.base import Dataset, Frame
+from ti_fusion.io.datasets.base import Frame, RecordedSequence
 from ti_fusion.io.datasets.imageio import depth_to_metres, intrinsics_from_numbers, parse_intrinsics
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -288,7 +288,7 @@ def pose_of(msg, msgtype: str) -> np.ndarray:
 # --------------------------------------------------------------------------------------------------
 # The dataset
 # --------------------------------------------------------------------------------------------------
-class RosbagDataset(Dataset):
+class RosbagDataset(RecordedSequence):
     """A ROS 2 bag's depth (and colour) images as frames (see the module docstring)."""
 
     format = "rosbag"
@@ -296,7 +296,7 @@ class RosbagDataset(Dataset):
     def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
         super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)
-        self.config = cfg = config or DatasetConfig()
+        self.config = config or DatasetConfig()
         self.name = self.root.stem if self.root.is_file() else self.root.name
         if not self.root.exists():
             raise InputError(self.root, "bag does not exist")
@@ -504,14 +504,6 @@ class RosbagDataset(Dataset):
         return gt
 
     # -- the Dataset interface ------------------------------------------------------------------
-    @property
-    def raw_intrinsics(self) -> Intrinsics:
-        return self._intrinsics
-
-    @property
-    def has_ground_truth(self) -> bool:
-        return any(T is not None for T in self._gt_poses)
-
     def _num_raw_frames(self) -> int:
         return len(self._stamps)
 
@@ -532,10 +524,8 @@ class RosbagDataset(Dataset):
                     raise InputError(None, f"{self.root}: {topics['color']}: colour image is {color.shape[1]}x"
                                            f"{color.shape[0]} in the depth's frame, the depth {K.width}x{K.height}")
                 color = cv2.resize(color, (K.width, K.height), interpolation=cv2.INTER_AREA)
-        gt = self._gt_poses[raw_index]
-        return Frame(index=raw_index, timestamp=float(self._stamps[raw_index]), depth=depth, intrinsics=K,
-                     color=color, gt_pose=None if gt is None else gt.copy(),
-                     meta={"depth_topic": topics["depth"], "color_topic": topics["color"]})
+        return self._frame(raw_index, float(self._stamps[raw_index]), depth, color,
+                           {"depth_topic": topics["depth"], "color_topic": topics["color"]})
 
     def _decode(self, topic: str, key):
         try:
@@ -550,7 +540,7 @@ class RosbagDataset(Dataset):
         info.update(topics=dict(self.topics), depth_encoding=self.encoding, depth_scale_from=self.depth_scale_source,
                     colour=self.topics["color"] is not None, colour_registered=self.color_registered,
                     ground_truth_from=self.ground_truth_source, truncated=self.bag.truncated,
-                    ground_truth_frames=sum(self._gt_poses[i] is not None for i in self.indices))
+                    ground_truth_frames=self.ground_truth_frames())
         return info
 
     def close(self) -> None:

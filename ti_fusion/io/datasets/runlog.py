@@ -19,10 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ti_fusion.camera import Intrinsics
 from ti_fusion.config import DatasetConfig
 from ti_fusion.errors import InputError
-from ti_fusion.io.datasets.base import Dataset, Frame
+from ti_fusion.io.datasets.base import Frame, RecordedSequence
 from ti_fusion.io.datasets.imageio import depth_to_metres, intrinsics_from_numbers, parse_intrinsics
 
 DEPTH, COLOR, CALIBRATION, GROUND_TRUTH = "/camera/depth", "/camera/color", "/camera/calibration", "/gt/pose"
@@ -59,7 +58,7 @@ def _channels(path: Path) -> dict[str, str]:
             for c in summary.channels.values()}
 
 
-class RunLogDataset(Dataset):
+class RunLogDataset(RecordedSequence):
     """A ti-fusion run log's depth (and colour) images as frames (see the module docstring)."""
 
     format = "log"
@@ -134,14 +133,6 @@ class RunLogDataset(Dataset):
             return None
         return None
 
-    @property
-    def raw_intrinsics(self) -> Intrinsics:
-        return self._intrinsics
-
-    @property
-    def has_ground_truth(self) -> bool:
-        return any(T is not None for T in self._gt_poses)
-
     def _num_raw_frames(self) -> int:
         return len(self._times)
 
@@ -171,14 +162,11 @@ class RunLogDataset(Dataset):
             if image is None or image.shape[:2] != depth.shape:
                 raise InputError(self.path, f"{COLOR} image at {t} ns cannot be decoded at the depth's size")
             color = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-        gt = self._gt_poses[raw_index]
-        return Frame(index=raw_index, timestamp=t * 1e-9, depth=depth, intrinsics=K, color=color,
-                     gt_pose=None if gt is None else gt.copy(), meta={"log": str(self.path)})
+        return self._frame(raw_index, t * 1e-9, depth, color, {"log": str(self.path)})
 
     def describe(self) -> dict:
         info = super().describe()
-        info.update(colour=any(self._has_color), ground_truth_frames=sum(self._gt_poses[i] is not None
-                                                                         for i in self.indices))
+        info.update(colour=any(self._has_color), ground_truth_frames=self.ground_truth_frames())
         return info
 
     @staticmethod

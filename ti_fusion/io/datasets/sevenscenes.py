@@ -23,13 +23,12 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
-import numpy as np
 
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import DatasetConfig
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets.base import ImageFileDataset
-from ti_fusion.io.datasets.imageio import read_depth_png, read_intrinsics_file, read_pose_matrix, read_rgbd
+from ti_fusion.io.datasets.imageio import read_depth_png, read_intrinsics_file, read_pose_matrix
 
 DEPTH_SCALE = 1000.0
 INVALID_DEPTH = (0, 65535)

@@ -35,7 +35,7 @@ from ti_fusion.errors import InputError
 from ti_fusion.geometry import make_pose, so3_exp, so3_log
 from ti_fusion.io.trajectory import associate, read_tum
 from ti_fusion.io.datasets.base import ImageFileDataset
-from ti_fusion.io.datasets.imageio import parse_floats, read_depth_png, read_intrinsics_file, read_rgbd, read_table
+from ti_fusion.io.datasets.imageio import parse_floats, read_depth_png, read_intrinsics_file, read_table
 
 DEPTH_SCALE = 5000.0
 

@@ -261,6 +261,8 @@ class DatasetConfig:
     color_topic: Topic = ""         # bags: the colour image topic; "" = the only one, "none" = no colour
     camera_info_topic: Topic = ""   # bags: CameraInfo of the depth images; "" = the depth topic's camera_info, or the only one
     gt_topic: Topic = ""            # bags: a PoseStamped or Odometry topic of ground truth; "" = none
+    color_registered: bool = False  # folder and bag: the colour images are registered to depth (pixel for
+                                    # pixel); other formats know it themselves (7-Scenes: not registered)
 
 
 @dataclass
@@ -302,6 +304,12 @@ class ICPConfig:
     level_dist_scale: Positive = 2.0  # d_thr at pyramid level l is dist_threshold · level_dist_scale**l (coarse
                                       # levels gate wider)
     converged_update: Positive = 1e-4  # result.converged: the last ‖δξ‖ (rad, m) fell below this
+    color_weight: NonNegative = 0.0  # weight of the photometric term's normal equations beside ICP's (intensity
+                                     # in [0, 1] against metres); 0 = depth only. Off where colour is not
+                                     # registered to depth (docs/PHOTOMETRIC.md)
+    color_robust_scale: Positive = 0.05  # intensity in [0, 1]: Huber's k on the photometric residual
+    weak_ratio: Annotated[float, Range(gt=0, lt=1)] = 1e-3  # a direction of the geometric AᵀA whose eigenvalue
+                                     # is below this fraction of the largest is reported weak (degeneracy)
 
 
 @dataclass

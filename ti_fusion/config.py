@@ -261,8 +261,9 @@ class DatasetConfig:
     color_topic: Topic = ""         # bags: the colour image topic; "" = the only one, "none" = no colour
     camera_info_topic: Topic = ""   # bags: CameraInfo of the depth images; "" = the depth topic's camera_info, or the only one
     gt_topic: Topic = ""            # bags: a PoseStamped or Odometry topic of ground truth; "" = none
-    color_registered: bool = False  # folder and bag: the colour images are registered to depth (pixel for
-                                    # pixel); other formats know it themselves (7-Scenes: not registered)
+    color_registered: bool = False  # folder, bag and log: the colour images are registered to depth (pixel for
+                                    # pixel), so photometric tracking may use them; TUM, ICL-NUIM and synthetic
+                                    # are, 7-Scenes is not (its own word); a bag with one frame_id for both is
 
 
 @dataclass

@@ -27,6 +27,8 @@ class Frame:
     depth: float32 H×W in metres, 0 = invalid.
     color: uint8 H×W×3 RGB, or None when the set has no colour.
     gt_pose: float64 4×4 camera-to-world ground truth, or None.
+    color_registered: pixel (u, v) of ``color`` sees the point of ``depth`` at (u, v) (photometric tracking
+    uses colour only then); set by the dataset (``Dataset.colour_for_tracking``).
     """
 
     index: int
@@ -36,6 +38,7 @@ class Frame:
     color: np.ndarray | None = None
     gt_pose: np.ndarray | None = None
     meta: dict = field(default_factory=dict)
+    color_registered: bool = False
 
 
 class Dataset(ABC):
@@ -54,6 +57,8 @@ class Dataset(ABC):
     name: str = "dataset"
     format: str = "?"
     depth_scale: float | None = None  # raw depth units per metre; None where depth is not read from images
+    # the colour images are registered to depth, pixel for pixel (the photometric tracking term needs it)
+    color_registered: bool = False
 
     def __init__(self, root: str | Path, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
@@ -86,6 +91,13 @@ class Dataset(ABC):
     def has_ground_truth(self) -> bool:
         return False
 
+    @property
+    def colour_for_tracking(self) -> bool:
+        """Whether the photometric tracking term may use this set's colour: only colour registered to depth.
+        A format whose registration is the user's word (a folder, a log) overrides this with
+        ``dataset.color_registered``."""
+        return bool(self.color_registered)
+
     # -- shared behaviour -----------------------------------------------------------------------
     @property
     def indices(self) -> list[int]:
@@ -103,6 +115,7 @@ class Dataset(ABC):
 
     def __getitem__(self, i: int) -> Frame:
         frame = self._load_raw(self.indices[i])
+        frame.color_registered = frame.color is not None and self.colour_for_tracking
         f = self.downsample
         if f > 1:
             frame.depth = np.ascontiguousarray(frame.depth[::f, ::f])
@@ -180,6 +193,7 @@ class Dataset(ABC):
             "intrinsics": {"fx": raw.fx, "fy": raw.fy, "cx": raw.cx, "cy": raw.cy, "width": raw.width,
                            "height": raw.height, "source": self.intrinsics_source},
             "ground_truth": self.has_ground_truth,
+            "colour_for_tracking": self.colour_for_tracking,
             "dropped_frames": self.dropped_frames,
             "notes": list(self.notes),
         }

@@ -230,6 +230,11 @@ class FolderDataset(ImageFileDataset):
                   "to depth, so it is resized to the depth images' size and only colours the map")
         return False
 
+    @property
+    def colour_for_tracking(self) -> bool:
+        # a colour image of the depth's size may still be unregistered (a raw Kinect's): the user's word
+        return bool(self.color_registered) and self.config.color_registered
+
     # -- frames ---------------------------------------------------------------------------------
     def _load_raw(self, raw_index: int) -> Frame:
         depth_path, color_path = self._depth_files[raw_index], self._color_files[raw_index]

@@ -66,6 +66,7 @@ class ICLNUIMDataset(ImageFileDataset):
     """An ICL-NUIM sequence in TUM layout (see the module docstring for conventions)."""
 
     format = "iclnuim"
+    color_registered = True  # rendered: colour and depth from the same camera
 
     depth_scale = DEPTH_SCALE
 

@@ -293,6 +293,10 @@ class RosbagDataset(RecordedSequence):
 
     format = "rosbag"
 
+    @property
+    def colour_for_tracking(self) -> bool:  # one frame_id for both, or the user's word (dataset.color_registered)
+        return bool(self.color_registered) or self.config.color_registered
+
     def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
         super().__init__(root, downsample=downsample, start=start, stop=stop, stride=stride)

@@ -64,6 +64,10 @@ class RunLogDataset(RecordedSequence):
     format = "log"
     depth_scale = 1000.0  # /camera/depth is 16UC1 millimetres
 
+    @property
+    def colour_for_tracking(self) -> bool:  # the log does not say: the user's word (dataset.color_registered)
+        return self.config.color_registered
+
     def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
         from mcap.reader import make_reader

@@ -41,6 +41,7 @@ class SevenScenesDataset(ImageFileDataset):
     """A 7-Scenes sequence folder (see the module docstring for conventions)."""
 
     format = "7scenes"
+    color_registered = False  # the dataset says so: its colour and depth cameras are not calibrated together
 
     depth_scale = DEPTH_SCALE
     invalid_depth = INVALID_DEPTH

@@ -18,6 +18,7 @@ class SyntheticDataset(Dataset):
 
     name = "synthetic"
     format = "synthetic"
+    color_registered = True  # rendered: colour and depth from the same camera
     renders_on_taichi = True  # frames come from Taichi kernels: read on the pipeline's own thread (io.prefetch)
 
     def __init__(self, root: str | Path = "synthetic", config: DatasetConfig | None = None,

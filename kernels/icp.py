@@ -47,6 +47,19 @@ solve (``iterate``, float64 backends)
     ``ti_fusion.tracking.icp`` replays the records through its checks. One launch per iteration and nothing read
     back but a flag: a round trip through NumPy per iteration costs as much as a coarse level's pass.
 
+photometric term (``joint``, a compile-time switch: the depth-only kernels are the ones above, unchanged)
+    at each correspondence (STATUS_OK, so occlusions and depth edges are left out as for the geometry) the
+    model's intensity I_m at the source pixel (``src_i``, −1 = none) is compared with the live frame's at the
+    projection of p′, bilinearly interpolated at x = fx x′/z′ + cx, y = fy y′/z′ + cy (no rounding) from
+    ``tgt_ig`` = (I, ∂I/∂x, ∂I/∂y) per pixel (I < 0 at any of the four taps: no residual). r_c = I(x, y) − I_m;
+    with g = ∂I/∂p′ = (g_x fx/z′, g_y fy/z′, −(g_x fx x′ + g_y fy y′)/z′²) and δp′ = ω × p′ + v, the row is
+        A_c = [ (p′ × g)ᵀ , gᵀ ]
+    (the point-to-plane row with the normal replaced by the intensity gradient in 3-D). Huber weights on r_c
+    (k = ``params[P_COLOR_SCALE]``). The joint pass accumulates N_SUMS_JOINT = 59 numbers: the 30 above, then
+    the colour's 21 AᵀA, 6 Aᵀb, Σr_c² and its count, in the same registers and partials. ``iterate_joint``
+    solves (Σ w AᵀA + λ Σ w_c A_cᵀA_c) δξ = −(Σ w Aᵀb + λ Σ w_c A_cᵀ r_c), λ = ``params[P_COLOR_WEIGHT]``
+    (``icp.color_weight``), and records the colour's sums after the geometric record (R_COLOUR).
+
 Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
 (vulkan, cuda), chosen when ``PointToPlane`` is built. Fields stay float32.
 """
@@ -54,6 +67,7 @@ Precision: arithmetic and accumulation are float64 when the backend has it (cpu)
 
 import math
 import os
+from typing import NamedTuple
 
 import numpy as np
 import taichi as ti
@@ -89,6 +103,12 @@ SUM_R2 = 27
 SUM_INLIERS = 28
 SUM_SOURCE = 29
 UPPER = [(i, j) for i in range(6) for j in range(i, 6)]  # order of the 21 AᵀA entries
+# the joint pass: the colour term's sums after the geometric 30
+SUM_C_ATA = 30
+SUM_C_ATB = 51
+SUM_C_R2 = 57
+SUM_C_COUNT = 58
+N_SUMS_JOINT = 59
 _UPPER_IDX = tuple(np.array(UPPER).T)
 
 ROBUST_CODES = {"none": 0, "huber": 1, "tukey": 2}
@@ -110,6 +130,25 @@ def unpack_sums(sums: np.ndarray) -> dict:
     AtA.T[_UPPER_IDX] = sums[:21]
     return {"AtA": AtA, "Atb": sums[SUM_ATB:SUM_ATB + 6].copy(), "r2": float(sums[SUM_R2]),
             "inliers": int(round(sums[SUM_INLIERS])), "sources": int(round(sums[SUM_SOURCE]))}
+
+
+def unpack_colour_sums(sums: np.ndarray) -> dict | None:
+    """The colour term of a joint pass's 59 sums as AtA, Atb, r2 and count (None for a depth-only pass)."""
+    sums = np.asarray(sums, dtype=np.float64)
+    if sums.shape[0] < N_SUMS_JOINT:
+        return None
+    s = unpack_sums(sums[SUM_C_ATA:SUM_C_ATA + 27].tolist() + [sums[SUM_C_R2], sums[SUM_C_COUNT], 0.0])
+    return {"AtA": s["AtA"], "Atb": s["Atb"], "r2": s["r2"], "count": s["inliers"]}
+
+
+def combined_system(sums: np.ndarray, color_weight: float) -> tuple[np.ndarray, np.ndarray]:
+    """(AᵀA, Aᵀb) of the system solved: the geometric one, plus ``color_weight`` × the colour one when the
+    sums are a joint pass's."""
+    s = unpack_sums(sums)
+    c = unpack_colour_sums(sums)
+    if c is None:
+        return s["AtA"], s["Atb"]
+    return s["AtA"] + color_weight * c["AtA"], s["Atb"] + color_weight * c["Atb"]
 
 
 def _code(robust: str) -> int:
@@ -135,15 +174,26 @@ def default_chunks(arch: str) -> int:
 _KERNELS: dict = {}
 
 
+def _blocks(n: int) -> list:
+    """range(n) in ranges of at most 30, for nested ``ti.static`` loops: the joint pass unrolls its 59 register
+    sums on purpose (as the depth-only pass its 30), and Taichi warns at every compile about a static range
+    of more than 32."""
+    return [range(b, min(b + 30, n)) for b in range(0, n, 30)]
+
+
 # Layout of the ``params`` array every kernel takes (float64 on cpu, float32 elsewhere): the pose, the
 # target intrinsics and the thresholds travel as one small array (cheaper to pass than matrix arguments).
 P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE = 0, 9, 12, 16, 17, 18
 # ``iterate`` only: the system's checks, where its record goes, and what it tells the caller
-P_MIN_INLIERS, P_STOP, P_LEVEL, P_ITERATION, P_RECORDS, P_DONE, N_PARAMS = 19, 20, 21, 22, 23, 24, 25
+P_MIN_INLIERS, P_STOP, P_LEVEL, P_ITERATION, P_RECORDS, P_DONE = 19, 20, 21, 22, 23, 24
+# the joint pass only: λ of the colour term, Huber's k on the intensity residual
+P_COLOR_WEIGHT, P_COLOR_SCALE, N_PARAMS = 25, 26, 27
 
 # One ``iterate`` record: the 30 sums, the pose before the update (R row-major, t), level, iteration,
 # ‖δξ‖ and the outcome
 R_SUMS, R_POSE, R_LEVEL, R_ITERATION, R_UPDATE, R_OUTCOME, RECORD_LEN = 0, 30, 42, 43, 44, 45, 46
+R_COLOUR = RECORD_LEN  # ``iterate_joint``: the colour term's 29 sums (SUM_C_ATA onwards) follow
+RECORD_LEN_JOINT = R_COLOUR + N_SUMS_JOINT - N_SUMS
 UPDATED, TOO_FEW_INLIERS, NOT_POSITIVE_DEFINITE = 0, 1, 2
 STOPPED, FAILED = 1, 2  # ``params[P_DONE]``: the update fell below P_STOP; the system was not solved
 
@@ -260,15 +310,62 @@ def _build_kernels(real):
         return status, pt, q, nq
 
     @ti.func
+    def _bilinear(ig: ti.template(), x, y):
+        """(I, ∂I/∂x, ∂I/∂y) of ``ig`` at the continuous pixel (x, y), 0 ≤ x < W − 1, 0 ≤ y < H − 1, and
+        whether all four taps hold an intensity (I ≥ 0)."""
+        x0 = ti.cast(x, ti.i32)  # truncation is the floor for x ≥ 0
+        y0 = ti.cast(y, ti.i32)
+        ax = x - x0
+        ay = y - y0
+        a = ti.cast(ig[y0, x0], real)
+        b = ti.cast(ig[y0, x0 + 1], real)
+        c = ti.cast(ig[y0 + 1, x0], real)
+        d = ti.cast(ig[y0 + 1, x0 + 1], real)
+        valid = ti.min(ti.min(a[0], b[0]), ti.min(c[0], d[0])) >= 0
+        return (1.0 - ay) * ((1.0 - ax) * a + ax * b) + ay * ((1.0 - ax) * c + ax * d), valid
+
+    @ti.func
+    def _photo_row(src_i: ti.template(), tgt_ig: ti.template(), v, u, pt, K, cscale):
+        """(ok, A_c, r_c, w_c) of the photometric term at source pixel (v, u) with p′ = ``pt`` (module
+        docstring): ok is False where the model has no intensity or the projection's four taps are not
+        all inside the target image with an intensity."""
+        Ht, Wt = tgt_ig.shape
+        ok = False
+        A = ti.Vector.zero(real, 6)
+        r = ti.cast(0.0, real)
+        w = ti.cast(0.0, real)
+        Im = ti.cast(src_i[v, u], real)
+        inv_z = 1.0 / pt.z
+        x = K[0] * pt.x * inv_z + K[2]
+        y = K[1] * pt.y * inv_z + K[3]
+        if Im >= 0 and 0 <= x and x < Wt - 1 and 0 <= y and y < Ht - 1:
+            s, valid = _bilinear(tgt_ig, x, y)
+            if valid:
+                ok = True
+                r = s[0] - Im
+                gu = s[1] * K[0] * inv_z
+                gv = s[2] * K[1] * inv_z
+                g = vec3(gu, gv, -(gu * pt.x + gv * pt.y) * inv_z)
+                c = pt.cross(g)
+                A = ti.Vector([c.x, c.y, c.z, g.x, g.y, g.z], dt=real)
+                w = 1.0
+                a = ti.abs(r)
+                if a > cscale:  # Huber
+                    w = cscale / a
+        return ok, A, r, w
+
+    @ti.func
     def _chunk_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                    c, n_chunks, robust: ti.template(), params: ti.template(), target: ti.template()):
-        """The 30 sums of chunk c of ``n_chunks``, in registers (two passes: ``_project_chunk``)."""
+                    c, n_chunks, robust: ti.template(), params: ti.template(), target: ti.template(),
+                    joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template()):
+        """The 30 sums of chunk c of ``n_chunks``, in registers (two passes: ``_project_chunk``); with
+        ``joint``, the colour term's 29 after them (``src_i``, ``tgt_ig``: module docstring)."""
         W = src_v.shape[1]
         begin, end = _chunk_range(src_v, c, n_chunks)
         _project_chunk(src_v, src_n, tgt_v, begin, end, params, target)
         R, t, K = _pose(params)
         dist2_thr, cos_thr, scale = params[P_DIST2], params[P_COS], params[P_SCALE]
-        acc = ti.Vector([0.0] * N_SUMS, dt=real)
+        acc = ti.Vector([0.0] * ti.static(N_SUMS_JOINT if joint else N_SUMS), dt=real)
         v = begin // W
         u = begin - v * W
         for k in range(begin, end):
@@ -288,6 +385,16 @@ def _build_kernels(real):
                         acc[SUM_ATB + e] += wA[e] * r
                     acc[SUM_R2] += r * r
                     acc[SUM_INLIERS] += 1.0
+                    if ti.static(joint):
+                        ok, Ac, rc, wc = _photo_row(src_i, tgt_ig, v, u, pt, K, params[P_COLOR_SCALE])
+                        if ok:
+                            wAc = wc * Ac
+                            for e in ti.static(range(21)):
+                                acc[SUM_C_ATA + e] += wAc[UPPER[e][0]] * Ac[UPPER[e][1]]
+                            for e in ti.static(range(6)):
+                                acc[SUM_C_ATB + e] += wAc[e] * rc
+                            acc[SUM_C_R2] += rc * rc
+                            acc[SUM_C_COUNT] += 1.0
             u += 1
             if u == W:
                 u = 0
@@ -297,43 +404,53 @@ def _build_kernels(real):
     @ti.func
     def _partial_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                       partials: ti.template(), n_chunks, robust: ti.template(), params: ti.template(),
-                      serial: ti.template(), target: ti.template()):
+                      serial: ti.template(), target: ti.template(), joint: ti.template(), src_i: ti.template(),
+                      tgt_ig: ti.template()):
         """``partials[c, :]`` = the sums of chunk c, for every chunk. Call it at a kernel's top level: its
         loop is then the kernel's parallel loop over chunks (on the calling thread with ``serial``)."""
         if ti.static(serial):
             ti.loop_config(serialize=True)
         for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
-            acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, c, n_chunks, robust, params, target)
-            for e in ti.static(range(N_SUMS)):
-                partials[c, e] = acc[e]
+            acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, c, n_chunks, robust, params, target, joint, src_i,
+                              tgt_ig)
+            for block in ti.static(_blocks(N_SUMS_JOINT if joint else N_SUMS)):
+                for e in ti.static(block):
+                    partials[c, e] = acc[e]
 
     @ti.func
-    def _total(partials: ti.template(), n_chunks):
-        """The partials of ``n_chunks`` chunks added, serially: 30 independent running sums in registers."""
-        total = ti.Vector([0.0] * N_SUMS, dt=real)
+    def _total(partials: ti.template(), n_chunks, n_sums: ti.template()):
+        """The partials of ``n_chunks`` chunks added, serially: ``n_sums`` independent running sums in
+        registers."""
+        total = ti.Vector([0.0] * n_sums, dt=real)
         for c in range(n_chunks):
-            for e in ti.static(range(N_SUMS)):
-                total[e] += partials[c, e]
+            for block in ti.static(_blocks(n_sums)):
+                for e in ti.static(block):
+                    total[e] += partials[c, e]
         return total
 
     @ti.kernel
     def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
-               out: params_t, serial: ti.template(), target: ti.template()):
-        """The 30 sums into ``out`` (and the per-chunk partials into ``partials[:n_chunks]``); ``serial``:
-        the chunks run on the calling thread (small levels on the CPU, see ``PointToPlane``); ``target``:
-        scratch of one int per source pixel."""
-        _partial_sums(src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, params, serial, target)
+               out: params_t, serial: ti.template(), target: ti.template(), joint: ti.template(),
+               src_i: ti.template(), tgt_ig: ti.template()):
+        """The 30 sums (59 with ``joint``) into ``out`` (and the per-chunk partials into
+        ``partials[:n_chunks]``); ``serial``: the chunks run on the calling thread (small levels on the
+        CPU, see ``PointToPlane``); ``target``: scratch of one int per source pixel; ``src_i``, ``tgt_ig``:
+        the intensities of the joint pass (any field when not ``joint``: unused)."""
+        _partial_sums(src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, params, serial, target, joint,
+                      src_i, tgt_ig)
+        n_sums = ti.static(N_SUMS_JOINT if joint else N_SUMS)
         # Runs after the loop above has finished: add the partials.
         if ti.static(real == ti.f64):  # cpu: one serial pass, 30 independent running sums in registers
             # on the calling thread: handing even a one-iteration loop to the thread pool costs more
             ti.loop_config(serialize=True)
             for _ in range(1):
-                total = _total(partials, n_chunks)
-                for k in ti.static(range(N_SUMS)):
-                    out[k] = total[k]
+                total = _total(partials, n_chunks, n_sums)
+                for block in ti.static(_blocks(n_sums)):
+                    for k in ti.static(block):
+                        out[k] = total[k]
         else:  # float32 (GPU backends): one thread per sum, Kahan-compensated to stay near float64
-            for k in range(N_SUMS):
+            for k in range(n_sums):
                 s = ti.cast(0.0, real)
                 comp = ti.cast(0.0, real)
                 for c in range(n_chunks):
@@ -394,20 +511,31 @@ def _build_kernels(real):
     @ti.kernel
     def iterate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                 partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
-                serial: ti.template(), target: ti.template(), records: ti.template()):
+                serial: ti.template(), target: ti.template(), records: ti.template(), joint: ti.template(),
+                src_i: ti.template(), tgt_ig: ti.template()):
         """One whole ICP iteration in one launch (float64 backends): the sums as ``reduce``, then on the
         calling thread the checks, the Cholesky solve and the update T ← exp(δξ) T of the pose in
         ``params`` (written back in place). Appends a record (R_* layout) at ``params[P_RECORDS]`` and
         sets ``params[P_DONE]`` to FAILED when the system was not solved, STOPPED when ‖δξ‖ fell below
         ``params[P_STOP]``. The caller replays the records (``ti_fusion.tracking.icp``), with the condition-number
-        check of ``ti_fusion.tracking.solve`` too, which is why it is not repeated here."""
-        _partial_sums(src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, params, serial, target)
+        check of ``ti_fusion.tracking.solve`` too, which is why it is not repeated here. With ``joint``, the
+        system solved is the geometric one plus λ × the colour one (module docstring), and the record holds
+        the colour's sums at R_COLOUR."""
+        _partial_sums(src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, params, serial, target, joint,
+                      src_i, tgt_ig)
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
         for _ in range(1):
-            total = _total(partials, n_chunks)
+            total = _total(partials, n_chunks, ti.static(N_SUMS_JOINT if joint else N_SUMS))
             k = ti.cast(params[P_RECORDS], ti.i32)
             for e in ti.static(range(N_SUMS)):
                 records[k, R_SUMS + e] = total[e]
+            system = ti.Vector([total[e] for e in ti.static(range(N_SUMS))], dt=real)
+            if ti.static(joint):
+                for e in ti.static(range(N_SUMS_JOINT - N_SUMS)):
+                    records[k, R_COLOUR + e] = total[N_SUMS + e]
+                lam = params[P_COLOR_WEIGHT]
+                for e in ti.static(range(27)):
+                    system[e] += lam * total[SUM_C_ATA + e]
             for e in ti.static(range(12)):
                 records[k, R_POSE + e] = params[P_R + e]
             records[k, R_LEVEL] = params[P_LEVEL]
@@ -415,7 +543,7 @@ def _build_kernels(real):
             outcome = TOO_FEW_INLIERS
             update = ti.cast(0.0, real)
             if total[SUM_INLIERS] >= params[P_MIN_INLIERS]:
-                xi, ok = _solve_cholesky(total)
+                xi, ok = _solve_cholesky(system)
                 update = xi.norm()
                 outcome = NOT_POSITIVE_DEFINITE
                 if ok and update < 1e30:  # (a NaN fails the comparison)
@@ -488,6 +616,17 @@ def kernels_for(real):
     return _KERNELS[real]
 
 
+class Photometric(NamedTuple):
+    """The colour term of a joint pass: ``source`` the model's intensity at the source level (f32 field,
+    −1 = none), ``target`` the live frame's (I, ∂I/∂x, ∂I/∂y) at the target level (3-vector field, I < 0 =
+    none), ``weight`` λ (``icp.color_weight``), ``scale`` Huber's k on the intensity residual."""
+
+    source: object
+    target: object
+    weight: float
+    scale: float
+
+
 @ti.data_oriented
 class PointToPlane:
     """Association + linearisation + reduction for one backend, with the fields the passes write.
@@ -507,16 +646,18 @@ class PointToPlane:
         self.serial_below = SERIAL_BELOW if arch == "cpu" else 0  # smaller sources run on the calling thread
         self.k = kernels_for(self.real)
         self.partials = ti.field(self.real, shape=(self.n_chunks, N_SUMS))
+        self.partials_joint = None  # (n_chunks, N_SUMS_JOINT), allocated by the first joint pass
         self.target = ti.field(ti.i32, shape=self.max_pixels)  # per-pixel scratch (``_project_chunk``)
         self.records = None  # ``iterate``'s records, allocated by ``begin_iterations``
         self.params = np.zeros(N_PARAMS, dtype=self.np_real)
         self.out = np.zeros(N_SUMS, dtype=self.np_real)  # written by the kernel (no copy on cpu)
+        self.out_joint = np.zeros(N_SUMS_JOINT, dtype=self.np_real)
         self.offsets = None  # allocated on the first rows() call (QR only)
         self.rows_field = None
         self.status_field = {}
 
     def _set_params(self, T: np.ndarray | None, K, dist_threshold: float, normal_threshold_deg: float,
-                    robust_scale: float = 0.01) -> np.ndarray:
+                    robust_scale: float = 0.01, photometric=None) -> np.ndarray:
         """Fill ``params`` for a pass (T None: keep the pose there, as ``iterate`` leaves it)."""
         p = self.params
         if T is not None:
@@ -525,7 +666,19 @@ class PointToPlane:
         p[P_DIST2] = float(dist_threshold) ** 2
         p[P_COS] = math.cos(math.radians(normal_threshold_deg))
         p[P_SCALE] = float(robust_scale)
+        if photometric is not None:
+            p[P_COLOR_WEIGHT] = float(photometric.weight)
+            p[P_COLOR_SCALE] = float(photometric.scale)
         return p
+
+    def _joint_args(self, src_v, photometric):
+        """(joint, partials, src_i, tgt_ig) of a pass: the kernels' last arguments (the depth-only pass
+        passes ``src_v`` for the unused intensity fields, so it compiles as before)."""
+        if photometric is None:
+            return False, self.partials, src_v, src_v
+        if self.partials_joint is None:
+            self.partials_joint = ti.field(self.real, shape=(self.n_chunks, N_SUMS_JOINT))
+        return True, self.partials_joint, photometric.source, photometric.target
 
     def _chunks(self, src_v) -> int:
         n = src_v.shape[0] * src_v.shape[1]
@@ -540,13 +693,16 @@ class PointToPlane:
         return src_v.shape[0] * src_v.shape[1] < self.serial_below
 
     def reduce(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
-               robust: str = "none", robust_scale: float = 0.01) -> np.ndarray:
-        """The 30 sums (float64 NumPy) of one association + linearisation pass at pose ``T``."""
+               robust: str = "none", robust_scale: float = 0.01, photometric: "Photometric | None" = None) -> np.ndarray:
+        """The 30 sums (float64 NumPy) of one association + linearisation pass at pose ``T``; with
+        ``photometric``, the joint pass's 59."""
         n_chunks = self._chunks(src_v)
-        params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale)
-        self.k["reduce"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, _code(robust), params, self.out,
-                         self._serial(src_v), self.target)
-        return self.out.astype(np.float64)
+        params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale, photometric)
+        joint, partials, src_i, tgt_ig = self._joint_args(src_v, photometric)
+        out = self.out_joint if joint else self.out
+        self.k["reduce"](src_v, src_n, tgt_v, tgt_n, partials, n_chunks, _code(robust), params, out,
+                         self._serial(src_v), self.target, joint, src_i, tgt_ig)
+        return out.astype(np.float64)
 
     # -- whole iterations in the kernel (float64 backends) ---------------------------------------------
     @property
@@ -558,32 +714,35 @@ class PointToPlane:
     def begin_iterations(self, T: np.ndarray, max_records: int) -> None:
         """Start a run of ``iterate`` calls at pose ``T`` with room for ``max_records`` records."""
         if self.records is None or self.records.shape[0] < max_records:
-            self.records = ti.field(self.real, shape=(max(64, max_records), RECORD_LEN))
+            self.records = ti.field(self.real, shape=(max(64, max_records), RECORD_LEN_JOINT))
         self.params[P_R:P_T + 3] = flatten_pose(T)
         self.params[P_RECORDS] = 0
 
     def begin_level(self, src_v, K, dist_threshold: float, normal_threshold_deg: float, robust: str,
-                    robust_scale: float, level: int, min_inliers: int, stop_update: float) -> None:
-        """Settings of the next ``iterate`` calls (one pyramid level, source vertex field ``src_v``); the
-        pose stays as the last call left it."""
-        p = self._set_params(None, K, dist_threshold, normal_threshold_deg, robust_scale)
+                    robust_scale: float, level: int, min_inliers: int, stop_update: float,
+                    photometric: "Photometric | None" = None) -> None:
+        """Settings of the next ``iterate`` calls (one pyramid level, source vertex field ``src_v``; with
+        ``photometric``, joint iterations with its fields and weights); the pose stays as the last call
+        left it."""
+        p = self._set_params(None, K, dist_threshold, normal_threshold_deg, robust_scale, photometric)
         p[P_LEVEL], p[P_MIN_INLIERS], p[P_STOP] = level, min_inliers, stop_update
         # worked out once per level: a Taichi field's .shape costs microseconds per call
-        self._level = (self._chunks(src_v), _code(robust), self._serial(src_v))
+        self._level = (self._chunks(src_v), _code(robust), self._serial(src_v)) + self._joint_args(src_v, photometric)
 
     def iterate(self, src_v, src_n, tgt_v, tgt_n, iteration: int) -> int:
         """One ICP iteration in one launch (``iterate`` kernel) with the settings of ``begin_level``: 0, or
         STOPPED / FAILED (stop the level / the run)."""
-        n_chunks, robust, serial = self._level
+        n_chunks, robust, serial, joint, partials, src_i, tgt_ig = self._level
         if self.params[P_RECORDS] >= self.records.shape[0]:  # the kernel would write past the records
             raise ValueError(f"more than {self.records.shape[0]} iterations since begin_iterations")
         self.params[P_ITERATION] = iteration
-        self.k["iterate"](src_v, src_n, tgt_v, tgt_n, self.partials, n_chunks, robust, self.params, serial,
-                          self.target, self.records)
+        self.k["iterate"](src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, self.params, serial,
+                          self.target, self.records, joint, src_i, tgt_ig)
         return int(self.params[P_DONE])
 
     def iteration_records(self) -> np.ndarray:
-        """The records of the iterations since ``begin_iterations`` (float64, one row each, R_* layout)."""
+        """The records of the iterations since ``begin_iterations`` (float64, one row each, R_* layout;
+        R_COLOUR onwards only from joint iterations)."""
         n = int(self.params[P_RECORDS])
         return self.records.to_numpy()[:n].astype(np.float64)
 

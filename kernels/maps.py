@@ -24,6 +24,14 @@ than unrolled eight times (unrolled, it was most of the compile time). One 640×
 smoothing r = 12 take 7.8 ms on one core of the 2-core machine, a 320×240 frame's with r = 6 1.9 ms.
 Loops over images smaller than ``SERIAL_BELOW`` pixels run on the calling thread.
 
+Intensity (the photometric tracking term, ``icp.color_weight`` > 0; allocated on first use): per level an
+intensity image in [0, 1] (−1 = none) and, for the live frame, (I, ∂I/∂x, ∂I/∂y) with Sobel / 8 (per pixel;
+I = −1 on the border and next to a missing intensity). The live frame's grey image (ITU-R 601 weights) is
+averaged down like the depth: coarse pixel (u, v) is the [1 2 1] ⊗ [1 2 1] weighted mean of the valid fine
+intensities of the 3×3 window centred on (2u, 2v), so it stays aligned with the depth pyramid; the model's
+level 0 is the colour of the surfel seen at each pixel (``surfel_intensity``, from the prediction's
+``view_index``).
+
 Compilation: Taichi compiles a kernel once per set of fields it is given, so the first ``compute`` of
 each new FrameMaps compiles its kernels (about 0.3 s each, 0.1 s from Taichi's kernel cache); allocate
 FrameMaps once and reuse them.
@@ -34,6 +42,7 @@ import numpy as np
 import taichi as ti
 
 from ti_fusion.backend import serial_for
+from ti_fusion.kernels.common import INT_MAX
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import MapsConfig
 from ti_fusion.errors import InputError
@@ -321,6 +330,73 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
                     normal[v, u] = normal_at(depth, v, u, c, ifx, ify, cx, cy, max_depth_jump)
 
 
+GREY = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights of R, G, B
+
+
+@ti.kernel
+def intensity_down(fine: ti.template(), coarse: ti.template(), serial: ti.template()):
+    """coarse = fine averaged down one level: the [1 2 1] ⊗ [1 2 1] weighted mean of the valid (≥ 0) fine
+    intensities in the 3×3 window centred on (2v, 2u) that lie inside the image; −1 where none is valid."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+    H, W = fine.shape
+    Hc, Wc = coarse.shape
+    for v, u in ti.ndrange(Hc, Wc):
+        total = 0.0
+        weight = 0.0
+        for dv, du in ti.static(ti.ndrange((-1, 2), (-1, 2))):
+            y = 2 * v + dv
+            x = 2 * u + du
+            if 0 <= y < H and 0 <= x < W:
+                i = fine[y, x]
+                if i >= 0:
+                    w = ti.static(float((2 - abs(dv)) * (2 - abs(du))))
+                    total += w * i
+                    weight += w
+        coarse[v, u] = ti.select(weight > 0, total / ti.max(weight, 1.0), -1.0)
+
+
+@ti.kernel
+def intensity_gradient(image: ti.template(), out: ti.template(), serial: ti.template()):
+    """out[v, u] = (I, ∂I/∂x, ∂I/∂y), the derivatives by Sobel / 8 (intensity per pixel); (−1, 0, 0) on the
+    image border and where any of the 3×3 window has no intensity."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+    H, W = image.shape
+    for v, u in ti.ndrange(H, W):
+        res = ti.Vector([-1.0, 0.0, 0.0])
+        if 0 < v < H - 1 and 0 < u < W - 1:
+            a = ti.Matrix([[image[v + dv, u + du] for du in ti.static(range(-1, 2))] for dv in ti.static(range(-1, 2))])
+            lo = a.min()
+            if lo >= 0:
+                gx = ((a[0, 2] + 2.0 * a[1, 2] + a[2, 2]) - (a[0, 0] + 2.0 * a[1, 0] + a[2, 0])) / 8.0
+                gy = ((a[2, 0] + 2.0 * a[2, 1] + a[2, 2]) - (a[0, 0] + 2.0 * a[0, 1] + a[0, 2])) / 8.0
+                res = ti.Vector([a[1, 1], gx, gy])
+        out[v, u] = res
+
+
+@ti.kernel
+def surfel_intensity(view_index: ti.template(), colour: ti.template(), out: ti.template(), serial: ti.template()):
+    """out[v, u] = the grey level in [0, 1] of the surfel seen at the pixel (``colour`` RGB in [0, 255]), −1
+    where none is (``view_index`` INT_MAX)."""
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+    H, W = out.shape
+    for v, u in ti.ndrange(H, W):
+        i = view_index[v, u]
+        g = -1.0
+        if i != INT_MAX:
+            c = colour[i]
+            g = (GREY[0] * c[0] + GREY[1] * c[1] + GREY[2] * c[2]) / 255.0
+        out[v, u] = g
+
+
+def grey_image(color: np.ndarray) -> np.ndarray:
+    """uint8 H×W×3 RGB → float32 H×W grey levels in [0, 1] (``GREY`` weights)."""
+    c = np.asarray(color, dtype=np.float32)
+    return (c @ np.asarray(GREY, dtype=np.float32)) * np.float32(1.0 / 255.0)
+
+
 @ti.data_oriented
 class FrameMaps:
     """Depth, vertex and normal maps of one frame at every pyramid level (camera frame, metres).
@@ -358,6 +434,10 @@ class FrameMaps:
         self.intrinsics: list[Intrinsics] = []
         self._serial = [serial_for(h * w) for h, w in self.shapes]  # per level: loops on the calling thread
         self._packed = None  # when smoothing: the level-0 depth before and after the row pass, packed
+        # the photometric term's images (``compute_intensity``, ``intensity_from_surfels``), on first use
+        self.intensity: list | None = None  # per level, f32 in [0, 1], −1 = none
+        self.intensity_grad: list | None = None  # per level, (I, ∂I/∂x, ∂I/∂y) (live frames only)
+        self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
 
     def compute(self, depth: np.ndarray, intrinsics: Intrinsics) -> None:
         """Upload a float32 depth image (metres, 0 = invalid) and build every level's maps.
@@ -386,6 +466,44 @@ class FrameMaps:
             smooth_rows(raw, rows, self.width, self.smooth_radius, self.max_depth_diff)
             smooth_columns(rows, self.depth[0], self.smooth_radius, self.max_depth_diff)
         self.compute_from_field(intrinsics)
+
+    def _intensity_fields(self, gradients: bool) -> None:
+        if self.intensity is None:
+            self.intensity = [ti.field(ti.f32, shape=s) for s in self.shapes]
+        if gradients and self.intensity_grad is None:
+            self.intensity_grad = [ti.Vector.field(3, ti.f32, shape=s) for s in self.shapes]
+
+    def compute_intensity(self, grey: np.ndarray) -> None:
+        """The live frame's intensity pyramid and gradients from a float32 grey image of the input's size
+        (``grey_image``; values in [0, 1], negative = none), averaged down like the depth."""
+        if grey.shape != self.input_shape:
+            raise ValueError(f"grey image of shape {grey.shape} given to FrameMaps of shape {self.input_shape}")
+        self._intensity_fields(True)
+        grey = np.ascontiguousarray(grey, dtype=np.float32)
+        if self.input_level == 0:
+            self.intensity[0].from_numpy(grey)
+        else:
+            if not self._grey_inputs:
+                self._grey_inputs = [ti.field(ti.f32, shape=f.shape) for f in self._inputs]
+            self._grey_inputs[0].from_numpy(grey)
+            targets = self._grey_inputs[1:] + [self.intensity[0]]
+            for fine, coarse in zip(self._grey_inputs, targets):
+                intensity_down(fine, coarse, serial_for(coarse.shape[0] * coarse.shape[1]))
+        self._intensity_levels()
+        for l in range(self.levels):
+            intensity_gradient(self.intensity[l], self.intensity_grad[l], self._serial[l])
+
+    def intensity_from_surfels(self, view_index, colour) -> None:
+        """The model's intensity pyramid: level 0 the grey level of the surfel seen at each pixel
+        (``view_index`` of a prediction of this size, ``colour`` the surfels' RGB field), the others averaged
+        down; no gradients (the model's intensity is compared, the live frame's differentiated)."""
+        self._intensity_fields(False)
+        surfel_intensity(view_index, colour, self.intensity[0], self._serial[0])
+        self._intensity_levels()
+
+    def _intensity_levels(self) -> None:
+        for l in range(1, self.levels):
+            intensity_down(self.intensity[l - 1], self.intensity[l], self._serial[l])
 
     def _packed_fields(self):
         """The packed level-0 images of the smoothing (allocated when smoothing is first asked for)."""

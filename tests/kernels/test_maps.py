@@ -255,3 +255,90 @@ def test_wrong_depth_shape_is_refused(cpu):
     maps = FrameMaps(settings(), 10, 12, levels=1)
     with pytest.raises(ValueError, match="shape"):
         maps.compute(np.zeros((12, 10), np.float32), Intrinsics(10.0, 10.0, 5.0, 5.0, 12, 10))
+
+
+# -- intensity (the photometric tracking term) -----------------------------------------------------------
+def intensity_down_ref(fine):
+    """[1 2 1] ⊗ [1 2 1] mean of the valid (≥ 0) fine intensities of the 3×3 window at (2v, 2u) inside the image."""
+    H, W = fine.shape
+    out = np.full(((H + 1) // 2, (W + 1) // 2), -1.0)
+    for v in range(out.shape[0]):
+        for u in range(out.shape[1]):
+            total = weight = 0.0
+            for dv in (-1, 0, 1):
+                for du in (-1, 0, 1):
+                    y, x = 2 * v + dv, 2 * u + du
+                    if 0 <= y < H and 0 <= x < W and fine[y, x] >= 0:
+                        w = (2 - abs(dv)) * (2 - abs(du))
+                        total += w * fine[y, x]
+                        weight += w
+            if weight:
+                out[v, u] = total / weight
+    return out
+
+
+def gradient_ref(image):
+    """(I, Sobel_x / 8, Sobel_y / 8); (−1, 0, 0) on the border and next to an invalid intensity."""
+    I = image.astype(np.float64)
+    H, W = I.shape
+    out = np.zeros((H, W, 3))
+    out[..., 0] = -1.0
+    c = I[1:-1, 1:-1]
+    win = np.stack([I[1 + dv:H - 1 + dv, 1 + du:W - 1 + du] for dv in (-1, 0, 1) for du in (-1, 0, 1)])
+    k = np.array([[-1, 0, 1], [-2, 0, 2], [-1, 0, 1]], dtype=np.float64).ravel() / 8
+    ok = win.min(axis=0) >= 0
+    inner = np.stack([c, np.tensordot(k, win, 1), np.tensordot(k.reshape(3, 3).T.ravel(), win, 1)], axis=-1)
+    out[1:-1, 1:-1] = np.where(ok[..., None], inner, [-1.0, 0.0, 0.0])
+    return out
+
+
+def random_grey(rng, shape, invalid=0.05):
+    g = rng.uniform(0, 1, shape)
+    g[rng.random(shape) < invalid] = -1.0
+    return g.astype(np.float32)
+
+
+def test_intensity_pyramid_and_gradients_match_reference(arch, rng, loops, input_level=1):
+    grey = random_grey(rng, (37, 51))
+    grey[10:17, 20:29] = -1.0  # a hole that survives averaging down
+    depth = random_depth(rng, shape=grey.shape)
+    K_in = Intrinsics(150.0, 140.0, 25.0, 18.0, 51, 37)
+    maps = FrameMaps(settings(), *grey.shape, levels=3, input_level=input_level)
+    maps.compute(depth, K_in)
+    maps.compute_intensity(grey)
+    expected = grey.astype(np.float64)
+    for _ in range(input_level):
+        expected = intensity_down_ref(expected.astype(np.float32))
+    for level in range(3):
+        if level:
+            expected = intensity_down_ref(maps.intensity[level - 1].to_numpy())
+        got = maps.intensity[level].to_numpy()
+        assert got.shape == maps.shapes[level]
+        np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(maps.intensity_grad[level].to_numpy(), gradient_ref(got), atol=1e-6)
+    assert np.any(maps.intensity_grad[0].to_numpy()[1:-1, 1:-1, 0] < 0)  # invalid windows inside exercised
+    with pytest.raises(ValueError, match="shape"):
+        maps.compute_intensity(grey[:-1])
+
+
+def test_surfel_intensity_matches_reference(arch, rng):
+    import taichi as ti
+
+    from ti_fusion.kernels.common import INT_MAX
+    from ti_fusion.kernels.maps import GREY, grey_image
+
+    n = 50
+    colour = rng.uniform(0, 255, (n, 3)).astype(np.float32)
+    index = rng.integers(0, n, (13, 17)).astype(np.int32)
+    index[rng.random(index.shape) < 0.2] = INT_MAX
+    view, col = ti.field(ti.i32, shape=index.shape), ti.Vector.field(3, ti.f32, shape=n)
+    view.from_numpy(index)
+    col.from_numpy(colour)
+    maps = FrameMaps(settings(), 13, 17, levels=2)
+    maps.intensity_from_surfels(view, col)
+    expected = np.where(index == INT_MAX, -1.0, (colour[np.minimum(index, n - 1)] @ np.array(GREY)) / 255.0)
+    np.testing.assert_allclose(maps.intensity[0].to_numpy(), expected, atol=1e-6)
+    np.testing.assert_allclose(maps.intensity[1].to_numpy(), intensity_down_ref(maps.intensity[0].to_numpy()),
+                               rtol=1e-5, atol=1e-6)
+    rgb = rng.integers(0, 256, (4, 5, 3)).astype(np.uint8)
+    np.testing.assert_allclose(grey_image(rgb), (rgb @ np.array(GREY)) / 255.0, atol=1e-6)

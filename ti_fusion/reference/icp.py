@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ti_fusion.kernels.icp import (N_SUMS, STATUS_BEHIND, STATUS_NORMAL_ANGLE, STATUS_OK, STATUS_OUT_OF_IMAGE,
+from ti_fusion.kernels.icp import (N_SUMS, N_SUMS_JOINT, SUM_C_ATA, SUM_C_ATB, SUM_C_COUNT, SUM_C_R2, STATUS_BEHIND, STATUS_NORMAL_ANGLE, STATUS_OK, STATUS_OUT_OF_IMAGE,
                                    STATUS_SOURCE_INVALID, STATUS_TARGET_INVALID, STATUS_TOO_FAR, SUM_ATB,
                                    SUM_INLIERS, SUM_R2, SUM_SOURCE, UPPER)
 from ti_fusion.sensor import SIGMA_1M, depth_sigma
@@ -115,6 +115,53 @@ def stacked_rows(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal
     A, r = linearise(c["p"], c["q"], c["nq"])
     sw = np.sqrt(robust_weights(r, robust, robust_scale, c["q"][:, 2]))
     return np.concatenate([A, r[:, None]], axis=1) * sw[:, None]
+
+
+def bilinear(ig: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(m×3 values, valid) of the H×W×3 image ``ig`` = (I, ∂I/∂x, ∂I/∂y) at continuous pixels (x, y) inside
+    [0, W − 1) × [0, H − 1); valid where all four taps have I ≥ 0."""
+    ig = np.asarray(ig, dtype=np.float64)
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    ax, ay = (x - x0)[:, None], (y - y0)[:, None]
+    a, b, c, d = ig[y0, x0], ig[y0, x0 + 1], ig[y0 + 1, x0], ig[y0 + 1, x0 + 1]
+    valid = np.minimum(np.minimum(a[:, 0], b[:, 0]), np.minimum(c[:, 0], d[:, 0])) >= 0
+    return (1 - ay) * ((1 - ax) * a + ax * b) + ay * ((1 - ax) * c + ax * d), valid
+
+
+def photometric_rows(p: np.ndarray, pixels: np.ndarray, src_i: np.ndarray, tgt_ig: np.ndarray, K):
+    """The colour term at the correspondences p′ (m×3) of the flat source pixels ``pixels``: (A_c k×6,
+    r_c k) for those with a model intensity whose projection's four taps lie in the target with one
+    (``ti_fusion.kernels.icp``'s docstring has the math)."""
+    fx, fy, cx, cy = (float(k) for k in K)
+    Ht, Wt = tgt_ig.shape[:2]
+    Im = np.asarray(src_i, dtype=np.float64).reshape(-1)[pixels]
+    x = fx * p[:, 0] / p[:, 2] + cx
+    y = fy * p[:, 1] / p[:, 2] + cy
+    inside = (Im >= 0) & (x >= 0) & (x < Wt - 1) & (y >= 0) & (y < Ht - 1)
+    p, Im, x, y = p[inside], Im[inside], x[inside], y[inside]
+    s, valid = bilinear(tgt_ig, x, y)
+    p, Im, s = p[valid], Im[valid], s[valid]
+    z = p[:, 2]
+    gu, gv = s[:, 1] * fx / z, s[:, 2] * fy / z
+    g = np.stack([gu, gv, -(gu * p[:, 0] + gv * p[:, 1]) / z], axis=1)
+    return np.concatenate([np.cross(p, g), g], axis=1), s[:, 0] - Im
+
+
+def joint_pass(src_v, src_n, tgt_v, tgt_n, src_i, tgt_ig, T, K, dist_threshold: float, normal_threshold_deg: float,
+               robust: str = "none", robust_scale: float = 0.01, color_scale: float = 0.05) -> np.ndarray:
+    """The 59 sums of a joint pass: the reference of ``PointToPlane.reduce(..., photometric=...)``: the 30 of
+    ``icp_pass``, then the colour term's 21 AᵀA, 6 Aᵀb, Σr_c² and count (Huber weights, k = ``color_scale``)."""
+    status, c = associate(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold, normal_threshold_deg)
+    A, r = linearise(c["p"], c["q"], c["nq"])
+    sums = np.zeros(N_SUMS_JOINT)
+    sums[:N_SUMS] = reduce_sums(A, r, robust_weights(r, robust, robust_scale, c["q"][:, 2]), c["sources"])
+    Ac, rc = photometric_rows(c["p"], np.flatnonzero(status.reshape(-1) == STATUS_OK), src_i, tgt_ig, K)
+    colour = reduce_sums(Ac, rc, robust_weights(rc, "huber", color_scale), 0)
+    sums[SUM_C_ATA:SUM_C_ATB + 6] = colour[:27]
+    sums[SUM_C_R2] = colour[SUM_R2]
+    sums[SUM_C_COUNT] = colour[SUM_INLIERS]
+    return sums
 
 
 class LevelIteration:

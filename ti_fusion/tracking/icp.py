@@ -11,6 +11,13 @@ launch (``PointToPlane.iterate``), and the records of the iterations are replaye
 the same checks (too few inliers, rank, condition number) and bookkeeping, so the result is the same as
 solving in NumPy: a failure found on replay rewinds to the pose before that iteration. Otherwise (LU, QR,
 float32 backends) the sums cross to NumPy every iteration and are solved there in float64.
+
+Photometric term (``icp.color_weight`` λ > 0 and ``align(..., photometric=True)``; docs/PHOTOMETRIC.md): each
+iteration's pass is the joint one (``ti_fusion.kernels.icp``: the colour term's sums beside the geometric
+ones, in the same pass) and the system solved is AᵀA + λ A_cᵀA_c, Aᵀb + λ A_cᵀr_c; the checks (condition
+number) are those of that system. The QR solver has no stacked colour rows: with the term on it solves
+the joint normal equations by Cholesky. ``ICPResult.degeneracy`` reports the weak eigen-directions of the
+geometric AᵀA of the last iteration and whether the colour term constrained them.
 """
 
 from __future__ import annotations
@@ -22,9 +29,11 @@ import numpy as np
 from ti_fusion.backend import current_backend
 from ti_fusion.config import ICPConfig
 from ti_fusion.geometry import rigidity_error, se3_exp, unflatten_pose
-from ti_fusion.kernels.icp import (FAILED, N_SUMS, R_ITERATION, R_LEVEL, R_OUTCOME, R_POSE, R_SUMS, R_UPDATE,
-                          ROBUST_CODES, UPDATED, PointToPlane, unpack_sums)
-from ti_fusion.tracking.solve import SOLVERS, check_system, solve_normal_equations, solve_stacked_qr
+from ti_fusion.kernels.icp import (FAILED, N_SUMS, N_SUMS_JOINT, R_COLOUR, R_ITERATION, R_LEVEL, R_OUTCOME, R_POSE,
+                                   R_SUMS, R_UPDATE, ROBUST_CODES, UPDATED, Photometric, PointToPlane,
+                                   combined_system, unpack_colour_sums, unpack_sums)
+from ti_fusion.tracking.solve import (SOLVERS, check_system, solve_normal_equations, solve_stacked_qr,
+                                      weak_directions)
 
 
 @dataclass
@@ -60,6 +69,10 @@ class ICPResult:
     residual_rms: float = float("nan")
     condition: float = float("nan")
     update_norm: float = float("nan")
+    colour_inliers: int = 0  # photometric residuals of the last iteration (0: the term was off)
+    colour_rms: float = float("nan")  # RMS intensity residual of those, in [0, 1] units
+    degeneracy: dict | None = None  # weak geometric directions (``ti_fusion.tracking.solve.weak_directions``)
+    sums: np.ndarray | None = field(default=None, repr=False)  # the last iteration's sums (30, or 59 joint)
 
     def table(self) -> list[dict]:
         """The per-iteration records as plain dicts (for summary.json)."""
@@ -79,6 +92,7 @@ class ICP:
             raise ValueError(f"icp.solver {self.config.solver!r}: choose one of {', '.join(SOLVERS)}")
         if self.config.robust not in ROBUST_CODES:
             raise ValueError(f"icp.robust {self.config.robust!r}: choose one of {', '.join(ROBUST_CODES)}")
+        self._photometric = False  # this align call's: the joint cost (``align``)
 
     def _kernels(self, n_pixels: int) -> PointToPlane:
         """The pass of the current backend, sized for ``n_pixels``, shared by every ICP object: Taichi
@@ -101,9 +115,12 @@ class ICP:
         """The kernels' robust mode: ``icp.robust``, with "+depth" when ``icp.depth_weighting`` is on."""
         return self.config.robust + ("+depth" if self.config.depth_weighting else "")
 
-    def align(self, source, target, init: np.ndarray | None = None) -> ICPResult:
-        """Align ``source`` to ``target`` starting from ``init`` (identity when None)."""
+    def align(self, source, target, init: np.ndarray | None = None, photometric: bool = False) -> ICPResult:
+        """Align ``source`` to ``target`` starting from ``init`` (identity when None). With ``photometric``
+        and ``icp.color_weight`` > 0, the joint geometric + photometric cost: ``source.intensity`` (the
+        model's) and ``target.intensity_grad`` (the live frame's) must be computed."""
         cfg = self.config
+        self._photometric = photometric and cfg.color_weight > 0
         n_levels = len(cfg.iterations)
         if source.levels < n_levels or target.levels < n_levels:
             raise ValueError(f"icp.iterations has {n_levels} levels but the maps have "
@@ -120,7 +137,18 @@ class ICP:
             resume = self._align_in_kernel(kernels, source, target, schedule, result)
         if resume is not None:
             self._align_in_python(kernels, source, target, schedule, result, resume)
+        if result.sums is not None:
+            s, c = unpack_sums(result.sums), unpack_colour_sums(result.sums)
+            result.degeneracy = weak_directions(s["AtA"], None if c is None else c["AtA"], cfg.color_weight,
+                                                cfg.weak_ratio)
         return result
+
+    def _colour(self, source, target, level: int) -> Photometric | None:
+        """The colour term of a pass at ``level`` (None: depth only)."""
+        if not self._photometric:
+            return None
+        return Photometric(source.intensity[level], target.intensity_grad[level], self.config.color_weight,
+                           self.config.color_robust_scale)
 
     def _align_in_kernel(self, kernels: PointToPlane, source, target, schedule, result: ICPResult):
         """Every iteration one launch of the ``iterate`` kernel, which solves and updates the pose itself
@@ -136,7 +164,7 @@ class ICP:
             fields = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level])
             kernels.begin_level(fields[0], target.intrinsics[level].as_tuple(), self.dist_threshold(level),
                                 cfg.normal_threshold_deg, robust, cfg.robust_scale, level, cfg.min_inliers,
-                                cfg.stop_update)
+                                cfg.stop_update, self._colour(source, target, level))
             done = 0
             for it in range(n_iter):
                 done = kernels.iterate(*fields, it)
@@ -148,7 +176,10 @@ class ICP:
         for record in kernels.iteration_records():
             level, it = int(record[R_LEVEL]), int(record[R_ITERATION])
             result.pose = unflatten_pose(record[R_POSE:R_POSE + 12])
-            if self._record(result, level, it, record[R_SUMS:R_SUMS + N_SUMS]) is None:
+            sums = record[R_SUMS:R_SUMS + N_SUMS]
+            if self._photometric:
+                sums = np.concatenate([sums, record[R_COLOUR:R_COLOUR + N_SUMS_JOINT - N_SUMS]])
+            if self._record(result, level, it, sums) is None:
                 return None  # a failure, reported as the NumPy path reports it
             if record[R_OUTCOME] != UPDATED:
                 result.iterations.pop()  # recorded again by the NumPy path
@@ -187,6 +218,12 @@ class ICP:
         result.inliers = n
         result.inlier_ratio = n / s["sources"] if s["sources"] else 0.0
         result.residual_rms = float(np.sqrt(loss)) if n else float("nan")
+        result.sums = np.asarray(sums, dtype=np.float64)
+        c = unpack_colour_sums(sums)
+        if c is not None:
+            result.colour_inliers = c["count"]
+            result.colour_rms = float(np.sqrt(c["r2"] / c["count"])) if c["count"] else float("nan")
+        s["AtA"], s["Atb"] = combined_system(sums, cfg.color_weight)
         failure, result.condition = check_system(s["AtA"], n, cfg.min_inliers, cfg.max_condition)
         if failure is not None:
             result.failure = f"level {level} iteration {it}: {failure}"
@@ -201,17 +238,18 @@ class ICP:
         args = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level],
                 result.pose, target.intrinsics[level].as_tuple(), self.dist_threshold(level),
                 cfg.normal_threshold_deg, self.robust, cfg.robust_scale)
-        if cfg.solver == "qr":
+        colour = self._colour(source, target, level)
+        if cfg.solver == "qr" and colour is None:
             sums, rows = kernels.rows(*args)
-        else:
-            sums, rows = kernels.reduce(*args), None
+        else:  # (with the colour term, QR's place is taken by Cholesky on the joint normal equations)
+            sums, rows = kernels.reduce(*args, photometric=colour), None
         s = self._record(result, level, it, sums)
         if s is None:
             return None
         failure = delta = None
         try:
             delta = solve_stacked_qr(rows) if rows is not None else \
-                solve_normal_equations(s["AtA"], s["Atb"], cfg.solver)
+                solve_normal_equations(s["AtA"], s["Atb"], "cholesky" if cfg.solver == "qr" else cfg.solver)
             if not np.all(np.isfinite(delta)):
                 failure, delta = "non-finite update", None
         except np.linalg.LinAlgError as exc:

@@ -53,3 +53,33 @@ def solve_stacked_qr(rows: np.ndarray) -> np.ndarray:
     rows = np.asarray(rows, dtype=np.float64)
     Q, R = np.linalg.qr(rows[:, :6], mode="reduced")
     return np.linalg.solve(R, -(Q.T @ rows[:, 6]))  # R is upper triangular
+
+
+def weak_directions(AtA: np.ndarray, colour_AtA: np.ndarray | None, color_weight: float,
+                    weak_ratio: float) -> dict:
+    """The eigen-directions of the geometric AᵀA whose eigenvalue is below ``weak_ratio`` × the largest
+    (what depth alone leaves unconstrained: two translations and a rotation facing a plane), and whether
+    the colour term (``color_weight`` × ``colour_AtA``) lifts each above that line.
+
+    Returns {"weak": count, "constrained_by_colour": count, "directions": [{"twist": unit 6-vector (ω, v),
+    largest component positive, "ratio": λ / λmax of the geometry, "joint_ratio": eᵀ(AᵀA + λ_c A_cᵀA_c)e /
+    λmax, "colour": bool}, ...]} (weakest first)."""
+    AtA = np.asarray(AtA, dtype=np.float64)
+    out = {"weak": 0, "constrained_by_colour": 0, "directions": []}
+    if not np.all(np.isfinite(AtA)):
+        return out
+    lam, vec = np.linalg.eigh(AtA)
+    top = lam[-1]
+    if not top > 0:
+        return out
+    for i in range(6):
+        if lam[i] >= weak_ratio * top:
+            break
+        e = vec[:, i] * np.sign(vec[np.argmax(np.abs(vec[:, i])), i])
+        joint = float(lam[i]) if colour_AtA is None else float(e @ (AtA + color_weight * colour_AtA) @ e)
+        lifted = colour_AtA is not None and joint >= weak_ratio * top
+        out["directions"].append({"twist": [round(float(x), 3) for x in e], "ratio": float(max(lam[i], 0.0) / top),
+                                  "joint_ratio": float(max(joint, 0.0) / top), "colour": bool(lifted)})
+        out["weak"] += 1
+        out["constrained_by_colour"] += int(lifted)
+    return out

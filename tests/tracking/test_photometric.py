@@ -1,0 +1,167 @@
+"""The photometric term of joint ICP: the joint pass's 59 sums against the NumPy float64 reference on every
+backend, the in-kernel solve against NumPy's, and a textured plane (three directions depth cannot see)
+tracked only with colour.
+
+Tolerances as tests/tracking/test_icp.py: cpu 1e-5 relative; vulkan (float32) each entry within 1e-4 of its
+Cauchy–Schwarz bound, per term (geometric, colour); counts exact."""
+
+import math
+
+import numpy as np
+import pytest
+import taichi as ti
+
+from ti_fusion.backend import current_backend
+from ti_fusion.camera import Intrinsics
+from ti_fusion.config import ICPConfig, MapsConfig
+from ti_fusion.geometry import make_pose, pose_error, so3_exp
+from ti_fusion.kernels import icp as kicp
+from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.reference import icp as icp_numpy
+from ti_fusion.tracking.icp import ICP
+from ti_fusion.tracking.solve import weak_directions
+from tests.tracking.test_icp import THETA, THR, cs_scale, pass_for, random_pass_inputs, random_pose, rays, vec_field
+
+
+def random_intensities(rng, P, T, K_t: Intrinsics):
+    """Model intensities (−1 at some pixels), the target's (I, ∂I/∂x, ∂I/∂y) (I = −1 at some), and the
+    source points with every pixel whose projection lies within rounding of a tap or image boundary made
+    invalid (so float32 and float64 pick the same taps)."""
+    Ht, Wt = K_t.height, K_t.width
+    src_i = rng.uniform(0.0, 1.0, P.shape[:2])
+    src_i[rng.random(P.shape[:2]) < 0.05] = -1.0
+    tgt_ig = np.stack([rng.uniform(0.0, 1.0, (Ht, Wt)), rng.normal(0, 0.05, (Ht, Wt)), rng.normal(0, 0.05, (Ht, Wt))],
+                      axis=-1)
+    tgt_ig[rng.random((Ht, Wt)) < 0.03, 0] = -1.0
+    p = P.reshape(-1, 3).astype(np.float64) @ T[:3, :3].T + T[:3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = K_t.fx * p[:, 0] / p[:, 2] + K_t.cx
+        y = K_t.fy * p[:, 1] / p[:, 2] + K_t.cy
+    near = lambda a: np.abs(a - np.round(a)) < 0.01  # noqa: E731 (a tap or a boundary: integers)
+    P = P.copy()
+    P.reshape(-1, 3)[near(x) | near(y)] = 0.0
+    return P, src_i.astype(np.float32), tgt_ig.astype(np.float32)
+
+
+def scalar_field(a):
+    f = ti.field(ti.f32, shape=a.shape)
+    f.from_numpy(np.ascontiguousarray(a, dtype=np.float32))
+    return f
+
+
+def assert_joint_close(got, ref):
+    np.testing.assert_array_equal(got[kicp.SUM_INLIERS:kicp.N_SUMS], ref[kicp.SUM_INLIERS:kicp.N_SUMS])
+    assert got[kicp.SUM_C_COUNT] == ref[kicp.SUM_C_COUNT]
+    if current_backend().has_f64:
+        np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-12)
+        return
+    for part in (slice(0, kicp.N_SUMS), None):
+        if part is None:  # the colour term laid out as a geometric pass's 30 sums
+            g = np.concatenate([got[kicp.SUM_C_ATA:kicp.SUM_C_R2 + 1], [got[kicp.SUM_C_COUNT], 0.0]])
+            r = np.concatenate([ref[kicp.SUM_C_ATA:kicp.SUM_C_R2 + 1], [ref[kicp.SUM_C_COUNT], 0.0]])
+        else:
+            g, r = got[part], ref[part]
+        err = np.abs(g - r) / np.maximum(cs_scale(r), 1e-30)
+        assert err.max() < 1e-4, f"float32 sums off by {err.max():.2e} of their scale"
+
+
+@pytest.mark.parametrize("chunks", ["parallel", "default"])
+def test_joint_sums_match_reference(arch, rng, chunks):
+    T = random_pose(rng, 0.1)
+    K_t = Intrinsics(120.0, 110.0, 27.3, 20.6, 56, 40)
+    P, N, Vt, Nt = random_pass_inputs(rng, T, K_t)
+    P, src_i, tgt_ig = random_intensities(rng, P, T, K_t)
+    n = P.shape[0] * P.shape[1]
+    kp = pass_for(n) if chunks == "default" else pass_for(n, n_chunks=1100)
+    if chunks != "default":
+        kp.serial_below = 0
+    args = (vec_field(P), vec_field(N), vec_field(Vt), vec_field(Nt))
+    colour = kicp.Photometric(scalar_field(src_i), vec_field(tgt_ig), 0.3, 0.2)
+    sums = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05, photometric=colour)
+    ref = icp_numpy.joint_pass(P, N, Vt, Nt, src_i, tgt_ig, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05, 0.2)
+    assert sums.shape == (kicp.N_SUMS_JOINT,)
+    inliers, with_colour = ref[kicp.SUM_INLIERS], ref[kicp.SUM_C_COUNT]
+    assert 50 < with_colour < inliers, (with_colour, inliers)  # some correspondences have no colour residual
+    assert_joint_close(sums, ref)
+    # the depth-only pass of the same inputs: the first 30 sums, unchanged
+    plain = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05)
+    np.testing.assert_allclose(plain, sums[:kicp.N_SUMS], rtol=1e-6 if current_backend().has_f64 else 1e-4,
+                               atol=1e-12 if current_backend().has_f64 else 1e-4 * np.abs(plain).max())
+
+
+def test_combined_system_and_weak_directions():
+    rng = np.random.default_rng(3)
+    sums = rng.normal(size=kicp.N_SUMS_JOINT)
+    AtA, Atb = kicp.combined_system(sums, 0.5)
+    s, c = kicp.unpack_sums(sums), kicp.unpack_colour_sums(sums)
+    np.testing.assert_allclose(AtA, s["AtA"] + 0.5 * c["AtA"])
+    np.testing.assert_allclose(Atb, s["Atb"] + 0.5 * c["Atb"])
+    assert kicp.unpack_colour_sums(sums[:kicp.N_SUMS]) is None
+    geo = np.diag([1.0, 1.0, 1e-6, 1.0, 1e-7, 1.0])  # weak: ω_z and v_y
+    colour = np.zeros((6, 6))
+    colour[2, 2] = 1.0  # colour constrains ω_z only
+    d = weak_directions(geo, colour, 0.1, 1e-3)
+    assert d["weak"] == 2 and d["constrained_by_colour"] == 1
+    assert d["directions"][0]["twist"] == [0, 0, 0, 0, 1, 0] and not d["directions"][0]["colour"]
+    assert d["directions"][1]["twist"] == [0, 0, 1, 0, 0, 0] and d["directions"][1]["colour"]
+    assert weak_directions(geo, None, 0.0, 1e-3)["constrained_by_colour"] == 0
+
+
+# -- a textured plane: depth sees 3 of the 6 directions ------------------------------------------------
+K_PLANE = Intrinsics(100.0, 100.0, 39.5, 29.5, 80, 60)
+
+
+def texture(X, Y):
+    return 0.5 + 0.2 * np.sin(7.0 * X + 1.0) * np.cos(5.0 * Y) + 0.15 * np.sin(4.0 * X - 6.0 * Y)
+
+
+def plane_view(pose: np.ndarray, K: Intrinsics = K_PLANE, distance: float = 1.5):
+    """Depth and grey image of the plane z = ``distance`` (world) seen from camera-to-world ``pose``."""
+    v, u = np.mgrid[0:K.height, 0:K.width]
+    d = rays(K, u, v) @ pose[:3, :3].T  # world ray directions (z-component scale per camera z = 1)
+    s = (distance - pose[2, 3]) / d[..., 2]  # camera depth along the ray (ray has camera z = 1)
+    X = pose[0, 3] + s * d[..., 0]
+    Y = pose[1, 3] + s * d[..., 1]
+    return s.astype(np.float32), texture(X, Y).astype(np.float32)
+
+
+def plane_maps(pose, slot):
+    depth, grey = plane_view(pose)
+    maps = FrameMaps(MapsConfig(depth_smooth_radius=0), K_PLANE.height, K_PLANE.width, 2)
+    maps.compute(depth, K_PLANE)
+    maps.compute_intensity(grey)
+    return maps
+
+
+@pytest.fixture
+def plane_pair(cpu):
+    G = make_pose(so3_exp(np.radians([0.3, -0.2, 1.5])), [0.02, -0.015, 0.005])  # p_target = G p_source
+    source = plane_maps(np.eye(4), "source")
+    target = plane_maps(np.linalg.inv(G), "target")
+    return source, target, G
+
+
+def test_colour_tracks_what_depth_cannot_see(plane_pair):
+    source, target, G = plane_pair
+    cfg = ICPConfig(iterations=[10, 10])
+    depth_only = ICP(cfg).align(source, target, photometric=True)  # λ = 0: the term stays off
+    assert depth_only.colour_inliers == 0
+    assert depth_only.failure is not None and ("rank" in depth_only.failure or "ill-conditioned" in depth_only.failure)
+    joint = ICP(ICPConfig(iterations=[10, 10], color_weight=0.01)).align(source, target, photometric=True)
+    rot, trans = pose_error(joint.pose, G)
+    assert joint.failure is None and rot < 0.05 and trans < 1e-3, (joint.failure, rot, trans)
+    d = joint.degeneracy
+    assert d["weak"] == 3 and d["constrained_by_colour"] == 3, d
+
+
+def test_joint_solve_in_kernel_matches_numpy(plane_pair):
+    source, target, _ = plane_pair
+    cfg = dict(iterations=[4, 3], color_weight=0.01, stop_update=0.0)
+    in_kernel = ICP(ICPConfig(solver="cholesky", **cfg)).align(source, target, photometric=True)
+    in_numpy = ICP(ICPConfig(solver="lu", **cfg)).align(source, target, photometric=True)
+    assert in_kernel.failure is None and in_numpy.failure is None
+    assert [(r.level, r.iteration, r.inliers) for r in in_kernel.iterations] == \
+        [(r.level, r.iteration, r.inliers) for r in in_numpy.iterations]
+    np.testing.assert_allclose(in_kernel.pose, in_numpy.pose, atol=1e-9)
+    assert in_kernel.colour_inliers == in_numpy.colour_inliers > 1000
+    assert math.isfinite(in_kernel.colour_rms) and in_kernel.colour_rms < 0.01

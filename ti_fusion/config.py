@@ -391,6 +391,8 @@ class SLAMConfig:
                                      # before smoothing and tracking (False: smooth and track at the input
                                      # resolution, each model point aligned to a finer frame). Redkitchen 500
                                      # frames at 640×480: ATE 2.73 vs 2.67 cm, maps 8 vs 33 ms per frame
+    loop_closure: bool = False       # keyframes, place recognition, loop verification and pose-graph correction
+                                     # of the poses and the map ([loop]; docs/LOOP_CLOSURE.md)
 
 
 @dataclass
@@ -412,6 +414,39 @@ class VOConfig:
 
 
 @dataclass
+class LoopConfig:
+    keyframe_translation: Positive = 0.25  # metres moved since the last keyframe → a new keyframe
+    keyframe_rotation_deg: Degrees = 20.0  # degrees turned since the last keyframe → a new keyframe
+    keyframe_overlap: Fraction = 0.7  # fraction of the last keyframe's depth points still seen below this → a new
+                                      # keyframe
+    keyframe_min_frames: Count = 5   # frames between two keyframes at least (a keyframe costs ORB and a search)
+    n_features: Count = 500          # ORB keypoints per keyframe at most
+    max_hamming: Annotated[int, Range(ge=0, le=256)] = 40  # bits: a descriptor's neighbour in another keyframe
+                                     # votes for that keyframe when closer than this
+    min_score: Fraction = 0.08       # fraction of a keyframe's descriptors voting for a place: less → not a candidate
+    candidates: Count = 3            # best-scoring earlier keyframes verified per keyframe at most
+    min_frame_gap: Count = 60        # frames between a candidate keyframe and the current one at least (nearer ones
+                                     # are odometry's business)
+    min_consistent: Count = 12       # pre-check: matches whose 3D distances to the others agree (within
+                                     # consistent_m) at least, else rejected before PnP
+    consistent_m: Positive = 0.05    # metres: pre-check tolerance on the distance between two matched 3D points
+    min_pnp_inliers: Count = 25      # PnP RANSAC inliers at least
+    min_inlier_ratio: Fraction = 0.3  # ICP between the two keyframes: inliers / valid pixels at least
+    max_residual: Positive = 0.015   # metres: ICP's RMS point-to-plane residual at most
+    max_icp_change_deg: Degrees = 10.0  # ICP may move PnP's guess by at most this (degrees) ...
+    max_icp_change_m: Positive = 0.15  # ... and this (metres), else the two disagree: rejected
+    odometry_sigma_m: Positive = 0.01  # pose graph: standard deviation of an odometry edge's translation, metres
+    odometry_sigma_deg: Positive = 0.5  # and of its rotation, degrees
+    loop_sigma_m: Positive = 0.02    # standard deviation of a loop edge's translation, metres
+    loop_sigma_deg: Positive = 1.0   # and of its rotation, degrees
+    robust: Annotated[str, OneOf("cauchy", "huber", "none")] = "cauchy"  # robust kernel on loop edges
+    robust_scale: Positive = 1.0     # the kernel's k, in standard deviations of the loop edge
+    max_loop_error: Positive = 3.0   # after optimisation a loop edge further than this (its standard deviations)
+                                     # from the optimised poses was rejected by the kernel: the poses and the map
+                                     # are left as they were
+
+
+@dataclass
 class LogConfig:
     map_every: NonNegativeInt = 30   # frames between /map/points messages (and one at the end); 0 = at the end only
     map_max_points: Count = 200_000  # /map/points is downsampled to at most this many points
@@ -428,6 +463,7 @@ class Config:
     fusion: FusionConfig = field(default_factory=FusionConfig)
     slam: SLAMConfig = field(default_factory=SLAMConfig)
     vo: VOConfig = field(default_factory=VOConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
     log: LogConfig = field(default_factory=LogConfig)
 
     def frame_input_level(self, width: int) -> int:

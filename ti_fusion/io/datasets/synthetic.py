@@ -72,7 +72,7 @@ class SyntheticDataset(Dataset):
         return Frame(index=raw_index, timestamp=float(seq.timestamps[raw_index]), depth=depth,
                      intrinsics=seq.intrinsics.downsampled(downsample), color=color,
                      gt_pose=seq.poses[raw_index].copy(),
-                     meta={"noise": self.synth.noise, "seed": self.synth.seed})
+                     meta={"noise": self.synth.noise, "seed": self.synth.seed}, color_registered=True)
 
     def describe(self) -> dict:
         info = super().describe()

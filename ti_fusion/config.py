@@ -439,11 +439,14 @@ class LoopConfig:
     odometry_sigma_deg: Positive = 0.5  # and of its rotation, degrees
     loop_sigma_m: Positive = 0.02    # standard deviation of a loop edge's translation, metres
     loop_sigma_deg: Positive = 1.0   # and of its rotation, degrees
-    robust: Annotated[str, OneOf("cauchy", "huber", "none")] = "cauchy"  # robust kernel on loop edges
-    robust_scale: Positive = 1.0     # the kernel's k, in standard deviations of the loop edge
-    max_loop_error: Positive = 3.0   # after optimisation a loop edge further than this (its standard deviations)
-                                     # from the optimised poses was rejected by the kernel: the poses and the map
-                                     # are left as they were
+    robust: Annotated[str, OneOf("gnc", "cauchy", "huber", "none")] = "gnc"  # robust kernel on loop edges: gnc =
+                                     # Geman–McClure by graduated non-convexity (GTSAM's GncLMOptimizer), which
+                                     # also closes loops that start many sigmas away; cauchy / huber: plain LM
+    robust_scale: Positive = 1.0     # cauchy / huber: the kernel's k, in standard deviations of the loop edge
+    gnc_min_weight: Fraction = 0.1   # gnc: a loop edge whose final weight is below this is an outlier (dropped)
+    max_loop_error: Positive = 5.0   # after optimisation a loop edge further than this (its standard deviations,
+                                     # Mahalanobis over 6 components) from the optimised poses was rejected by the
+                                     # kernel: the poses and the map are left as they were
 
 
 @dataclass

@@ -20,6 +20,9 @@ runs the kernels, ``ti_fusion.mapping.mapper.SurfelMapper`` strings the stages t
 6. remove     unstable surfels (low weight, not updated for a while) and, optionally, surfels the frame
               sees through (free-space violations); the arrays are compacted in place.
 
+Merge and add also write the frame's anchor (a keyframe id) into the surfels they touch; after a loop
+closure, ``apply_corrections`` moves every surfel with its anchor's rigid pose correction.
+
 Determinism: new surfels are appended in row-major pixel order (counts per row segment, a serial scan
 over the segments, then per-segment writes), and removal fills the k-th hole below the new count with the
 k-th surviving surfel above it (per-block lists and scans), so a run gives the same map on every run and
@@ -31,8 +34,8 @@ import math
 
 import taichi as ti
 
-from ti_fusion.kernels.common import (BLOCK, INT_MAX, Rigid, Vec3, bits_depth, depth_bits, depth_noise_scale,
-                                      is_valid, rigid)
+from ti_fusion.kernels.common import (BLOCK, INT_MAX, Mat3, Rigid, Vec3, bits_depth, depth_bits,
+                                      depth_noise_scale, is_valid, rigid)
 from ti_fusion.kernels.index_map import IndexMap, list_if, project_to_pixel
 from ti_fusion.kernels.surfels import copy_surfel
 
@@ -231,8 +234,9 @@ def assoc_from_index(img: ti.template()):
 
 @ti.func
 def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), normal: ti.template(), v, u,
-              R, t, f, confidence: ti.template(), has_colour, frame_index):
-    """p ← (w p + α (R q + t)) / (w + α), n likewise then normalised, colour likewise, w ← w + α."""
+              R, t, f, confidence: ti.template(), has_colour, frame_index, anchor):
+    """p ← (w p + α (R q + t)) / (w + α), n likewise then normalised, colour likewise, w ← w + α; the
+    surfel takes the frame's anchor."""
     q = vertex[v, u]
     nq = normal[v, u]
     a = measurement_weight(img, v, u, q.z, confidence)
@@ -247,6 +251,7 @@ def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), no
     s.weight[i] = w + a
     s.radius[i] = ti.min(s.radius[i], measurement_radius(q.z, nq.z, f))
     s.t_updated[i] = frame_index
+    s.anchor[i] = anchor
     img.merged_position[v, u] = s.position[i]
     img.merged_normal[v, u] = s.normal[i]
     img.merged_radius[v, u] = s.radius[i]
@@ -254,7 +259,8 @@ def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), no
 
 @ti.kernel
 def merge_listed(s: ti.template(), img: ti.template(), vertex: ti.template(), normal: ti.template(),
-                 pose: Rigid, f: ti.f32, confidence: ti.template(), has_colour: ti.i32, frame_index: ti.i32):
+                 pose: Rigid, f: ti.f32, confidence: ti.template(), has_colour: ti.i32, frame_index: ti.i32,
+                 anchor: ti.i32):
     """Every surfel that a pixel's association chose averages in that pixel's measurement.
 
     Only the surfels the projection listed (in the image; with Keller's order, compatible too) can have
@@ -269,7 +275,7 @@ def merge_listed(s: ti.template(), img: ti.template(), vertex: ti.template(), no
         pix = s.proj_pixel[i]
         v, u = pix // W, pix % W
         if img.assoc[v, u] == i:
-            merge_one(s, i, img, vertex, normal, v, u, R, t, f, confidence, has_colour, frame_index)
+            merge_one(s, i, img, vertex, normal, v, u, R, t, f, confidence, has_colour, frame_index, anchor)
 
 
 # -- 5. add (stream compaction in row-major pixel order) -------------------------------------------------
@@ -375,7 +381,7 @@ def scan_segments(img: ti.template(), counts: ti.template()):
 @ti.kernel
 def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
                pose: Rigid, f: ti.f32, confidence: ti.template(), has_colour: ti.i32, frame_index: ti.i32,
-               counts: ti.template()):
+               anchor: ti.i32, counts: ti.template()):
     """Write the new surfels at n + seg_offset[v, g] + (rank within the segment), so in row-major pixel
     order; count any that do not fit (``counts.lost``).
 
@@ -403,6 +409,7 @@ def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.templ
                     s.radius[k] = measurement_radius(q.z, nq.z, f)
                     s.t_created[k] = frame_index
                     s.t_updated[k] = frame_index
+                    s.anchor[k] = anchor
                 else:
                     lost += 1
                 k += 1
@@ -517,3 +524,25 @@ def fill_holes(s: ti.template(), n: ti.i32, m: ti.i32):
                 k += 1
     for k in range(s.n_holes[None]):
         copy_surfel(s, s.movers[k], s, s.holes[k])
+
+
+# -- loop closure: per-anchor rigid corrections ----------------------------------------------------------
+
+
+@ti.kernel
+def apply_corrections(s: ti.template(), n: ti.i32, corrections: ti.types.ndarray(dtype=ti.f32, ndim=2),
+                      moved: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+    """Every surfel i < n whose anchor k has ``moved[k]`` ≠ 0 (0 ≤ k < K) goes with anchor k's correction
+    (R, t) = ``corrections[k]`` (a ``Rigid``: R row-major, then t): p ← R p + t, n ← R n. Other surfels
+    (anchors outside [0, K), or anchors whose correction is the identity and so not ``moved``) are not
+    written, which keeps them bit-identical. Each surfel writes only itself: no atomics."""
+    K = corrections.shape[0]
+    for i in range(n):
+        k = s.anchor[i]
+        if 0 <= k < K:
+            if moved[k] != 0:
+                R = Mat3([[corrections[k, 3 * r + c] for c in ti.static(range(3))]
+                          for r in ti.static(range(3))])
+                t = Vec3(corrections[k, 9], corrections[k, 10], corrections[k, 11])
+                s.position[i] = R @ s.position[i] + t
+                s.normal[i] = R @ s.normal[i]

@@ -99,17 +99,20 @@ class SurfelMap(SurfelStore):
 
     # -- 4-5: merge and add --------------------------------------------------------------------------------
     def merge(self, img: FusionImages, vertex, normal, pose, intrinsics, frame_index: int,
-              confidence: bool, sigma: float, has_colour: bool, depth_weighted: bool = False) -> None:
+              confidence: bool, sigma: float, has_colour: bool, depth_weighted: bool = False,
+              anchor: int = 0) -> None:
+        """Average the frame into the surfels ``img.assoc`` chose; they take ``anchor``."""
         if self._projected > 0:
             if confidence:
                 img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
             fusion.merge_listed(self.arrays, img, vertex, normal, camera_to_world(pose), intrinsics.fx,
-                                fusion.weight_bits(confidence, depth_weighted), int(has_colour), frame_index)
+                                fusion.weight_bits(confidence, depth_weighted), int(has_colour), frame_index,
+                                int(anchor))
 
     def add(self, img: FusionImages, vertex, normal, pose, intrinsics, frame_index: int, confidence: bool,
             sigma: float, has_colour: bool, depth_weighted: bool = False,
-            cover: tuple[float, float] | None = None) -> AddCounts:
-        """Append the valid unassociated pixels as surfels. With ``cover`` = (dist_threshold,
+            cover: tuple[float, float] | None = None, anchor: int = 0) -> AddCounts:
+        """Append the valid unassociated pixels as surfels (with ``anchor``). With ``cover`` = (dist_threshold,
         normal_threshold_deg), pixels that ``mark_covered`` would mark are marked first, in the same pass,
         and not added."""
         dist, angle = cover if cover is not None else (0.0, 0.0)
@@ -125,7 +128,7 @@ class SurfelMap(SurfelStore):
             self.counts.lost[None] = 0
             fusion.append_new(self.arrays, self.count, img, vertex, normal, to_world, intrinsics.fx,
                               fusion.weight_bits(confidence, depth_weighted), int(has_colour), frame_index,
-                              self.counts)
+                              int(anchor), self.counts)
             lost = int(self.counts.lost[None])
             if lost:  # cannot happen after ensure_capacity; never let it pass silently
                 raise MapCapacityError(f"{lost} new surfels did not fit (capacity {self.capacity}): "
@@ -156,6 +159,30 @@ class SurfelMap(SurfelStore):
             self.count = m
             self._projected = 0  # indices moved: the projection scratch is stale
         return removed
+
+    # -- loop closure ---------------------------------------------------------------------------------------
+    def apply_corrections(self, corrections: np.ndarray) -> int:
+        """Move every surfel with the rigid correction of its anchor: ``corrections`` is (K, 4, 4), anchor k
+        < K gets p ← R_k p + t_k and n ← R_k n (float32 on the map); surfels with other anchors, and those
+        whose anchor's correction is exactly the identity, are left as they are (bit for bit). Returns how
+        many anchors moved."""
+        T = np.asarray(corrections, dtype=np.float64)
+        if T.ndim != 3 or T.shape[1:] != (4, 4):
+            raise ValueError(f"corrections must be (K, 4, 4) rigid transforms, not of shape {T.shape}")
+        if not np.all(np.isfinite(T)):
+            raise ValueError("corrections must be finite")
+        K = len(T)
+        flat = np.zeros((max(K, 1), 12), np.float32)  # a zero-length ndarray argument is not allowed
+        moved = np.zeros(max(K, 1), np.int32)
+        if K:
+            flat[:K] = np.concatenate([T[:, :3, :3].reshape(K, 9), T[:, :3, 3]], axis=1)
+            identity = np.concatenate([np.eye(3).ravel(), np.zeros(3)]).astype(np.float32)
+            moved[:K] = np.any(flat[:K] != identity, axis=1)
+        n_moved = int(moved.sum())
+        if self.count > 0 and n_moved:
+            fusion.apply_corrections(self.arrays, self.count, flat, moved)
+            self._projected = 0  # positions changed: the fusion projection is stale
+        return n_moved
 
     # -- prediction -----------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics, out_vertex=None, out_normal=None, out_depth=None,

@@ -22,6 +22,9 @@ from ti_fusion.kernels.common import BLOCK
 
 # Fields of one surfel, in the order of ``SurfelArrays.attributes``.
 ATTRIBUTES = ("position", "normal", "colour", "weight", "radius", "t_created", "t_updated")
+# Stored beside them and moved with them (compaction, growth), but not part of the fused geometry that the
+# references compare: the anchor (keyframe id) of the frame that last created or updated the surfel.
+STORED = ATTRIBUTES + ("anchor",)
 
 
 @ti.data_oriented
@@ -42,6 +45,9 @@ class SurfelArrays:
         self.radius = ti.field(ti.f32)  # metres
         self.t_created = ti.field(ti.i32)  # frame index
         self.t_updated = ti.field(ti.i32)  # frame index of the last merge
+        # the anchor (keyframe id) of the last frame that created or updated the surfel: loop closure moves
+        # the surfel with that anchor's pose correction (``fusion.apply_corrections``)
+        self.anchor = ti.field(ti.i32)
 
         # The last projection into an image (``index_map``): every surfel's pixel (v·W + u, or -1 when
         # the projection left it out) and depth key (``depth_bits``); the surfels it kept, listed per
@@ -58,8 +64,8 @@ class SurfelArrays:
         # map), in index order.
         self.removals_by_block = ti.field(ti.i32)
         for f in (self.position, self.normal, self.colour, self.weight, self.radius, self.t_created,
-                  self.t_updated, self.proj_pixel, self.proj_depth, self.listed_by_block, self.listed,
-                  self.removals_by_block):
+                  self.t_updated, self.anchor, self.proj_pixel, self.proj_depth, self.listed_by_block,
+                  self.listed, self.removals_by_block):
             fb.dense(ti.i, self.capacity).place(f)  # one array per attribute: SoA
         self.holes = ti.field(ti.i32)
         self.movers = ti.field(ti.i32)
@@ -185,8 +191,8 @@ class SurfelStore:
 
     def to_numpy(self, names=ATTRIBUTES, stride: int = 1) -> dict[str, np.ndarray]:
         """The live surfels as NumPy arrays (copies), keyed by attribute name; with ``stride`` k, every k-th
-        surfel only (a cheap, deterministic subsample for logging). Only those surfels are copied, not the
-        whole capacity the fields hold."""
+        surfel only (a cheap, deterministic subsample for logging); ``names`` may hold ``anchor`` too (STORED).
+        Only those surfels are copied, not the whole capacity the fields hold."""
         stride = max(1, int(stride))
         m = (self.count + stride - 1) // stride
         out = {}
@@ -204,12 +210,14 @@ class SurfelStore:
         return out
 
     def from_numpy(self, data: dict[str, np.ndarray]) -> None:
-        """Replace the surfels by the given ones (every attribute of ATTRIBUTES, same length)."""
+        """Replace the surfels by the given ones (every attribute of ATTRIBUTES, same length; ``anchor``
+        too if given, else 0)."""
         n = len(data["position"])
         self.ensure_capacity(n)
-        for name, field in zip(ATTRIBUTES, self.arrays.attributes):
+        for name in STORED:
+            field = getattr(self.arrays, name)
             full = field.to_numpy()
-            full[:n] = data[name]
+            full[:n] = data[name] if name in data else 0
             field.from_numpy(full)
         self.count = n
         self._projected = 0
@@ -217,7 +225,7 @@ class SurfelStore:
 
 @ti.func
 def copy_surfel(src: ti.template(), i, dst: ti.template(), k):
-    """Surfel i of ``src`` to index k of ``dst`` (attributes only)."""
+    """Surfel i of ``src`` to index k of ``dst`` (the attributes and the anchor; no scratch)."""
     dst.position[k] = src.position[i]
     dst.normal[k] = src.normal[i]
     dst.colour[k] = src.colour[i]
@@ -225,6 +233,7 @@ def copy_surfel(src: ti.template(), i, dst: ti.template(), k):
     dst.radius[k] = src.radius[i]
     dst.t_created[k] = src.t_created[i]
     dst.t_updated[k] = src.t_updated[i]
+    dst.anchor[k] = src.anchor[i]
 
 
 @ti.kernel

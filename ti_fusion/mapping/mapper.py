@@ -5,6 +5,9 @@
     mapper.render(pose, intrinsics, maps.vertex[0], maps.normal[0], maps.depth[0])  # prediction for ICP
     mapper.export_ply("map.ply")
 
+    mapper.anchor = keyframe_id       # written into every surfel the next integrate calls create or update
+    mapper.apply_corrections(T)       # loop closure: (K, 4, 4), surfels of anchor k move by T[k]
+
 The map and its stages live in ``ti_fusion.kernels.surfel_map`` (kernels in ``ti_fusion.kernels.fusion`` and
 ``ti_fusion.kernels.prediction``); this layer holds the configuration, uploads the frame's colour, times the
 stages and reports what changed.
@@ -51,6 +54,9 @@ class SurfelMapper:
     def __init__(self, config: FusionConfig | None = None):
         self.config = config or FusionConfig()
         self.map = SurfelMap(self.config.capacity, self.config.grow)
+        # the anchor (keyframe id) that ``integrate`` writes into the surfels it creates or updates, so that
+        # ``apply_corrections`` can move them with that keyframe's pose correction after a loop closure
+        self.anchor: int = 0
 
     @property
     def count(self) -> int:
@@ -100,16 +106,27 @@ class SurfelMapper:
                 self.map.associate(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
         with stage("merge"):
             self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
-                           cfg.confidence_sigma, has_colour, cfg.depth_weighting)
+                           cfg.confidence_sigma, has_colour, cfg.depth_weighting, self.anchor)
         with stage("add"):  # with skip_covered, covered pixels are marked in the same pass and not added
             cover = (cfg.dist_threshold, cfg.normal_threshold_deg) if cfg.skip_covered else None
             counts = self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
-                                  cfg.confidence_sigma, has_colour, cfg.depth_weighting, cover)
+                                  cfg.confidence_sigma, has_colour, cfg.depth_weighting, cover, self.anchor)
         with stage("remove"):
             removed = self.map.remove(frame_index, cfg.remove_unstable, cfg.unstable_weight, cfg.unstable_age,
                                       cfg.remove_free_space, cfg.free_space_margin, depth)
         return FusionStats(counts.merged, counts.new, removed, self.map.count,
                            counts.merged + counts.new + counts.covered, counts.covered, ms)
+
+    def apply_corrections(self, corrections: np.ndarray) -> int:
+        """Loop closure: move the map with the corrected poses. ``corrections`` (K, 4, 4): the rigid
+        transform T_k = T_k,new · T_k,old⁻¹ (world frame) of anchor k; every surfel of anchor k < K gets
+        p ← R_k p + t_k, n ← R_k n; surfels of anchors ≥ K, and of anchors whose T_k is the identity,
+        are untouched. Returns how many anchors moved."""
+        return self.map.apply_corrections(corrections)
+
+    def anchors(self) -> np.ndarray:
+        """The anchor of every live surfel (int32, in map order)."""
+        return self.map.to_numpy(("anchor",))["anchor"]
 
     # -- rendering -----------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics: Intrinsics, out_vertex, out_normal, out_depth) -> None:

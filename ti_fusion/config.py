@@ -268,7 +268,15 @@ class DatasetConfig:
 
 @dataclass
 class SynthConfig:
-    frames: Count = 120             # frames in the embedded synthetic sequence (~4 s at 30 Hz)
+    scene: Annotated[str, OneOf("room", "loop", "twins", "wall", "corridor")] = "room"
+                                    # the scene and its own camera path (docs/DATA.md): room (furnished room),
+                                    # loop (corridor loop around a block, for loop closure), twins (the loop with
+                                    # two identical sections, for false loops), wall (flat wall and floor) and
+                                    # corridor (plain walls, posters): geometry-poor, for photometric tracking
+    trajectory: FilePath = ""       # a TUM file of camera-to-world poses to render instead of the scene's path:
+                                    # one frame per pose at the file's timestamps; "" = the scene's own path
+    frames: NonNegativeInt = 0      # frames in the embedded synthetic sequence; 0 = the scene's own length
+                                    # (room 120, ~4 s at 30 Hz; a trajectory file: all its poses)
     width: Count = 640
     height: Count = 480
     fx: Positive = 525.0            # fx = fy; principal point at the image centre

@@ -282,7 +282,7 @@ class SyntheticSequence:
         self.scene = scene or default_scene()
         self.intrinsics = Intrinsics(fx=c.fx, fy=c.fx, cx=(c.width - 1) / 2.0, cy=(c.height - 1) / 2.0,
                                      width=c.width, height=c.height)
-        self.timestamps = T0 + np.arange(c.frames) / FPS
+        self.timestamps = T0 + np.arange(c.frames or 120) / FPS
         self.poses = camera_path(self.timestamps - T0)
         self.sensor = SensorModel(min_range=c.min_range, max_range=c.max_range, grazing_deg=c.grazing_deg,
                                   baseline=c.baseline, subpixel=c.subpixel, sensor_width=c.sensor_width,

@@ -58,7 +58,7 @@ class SyntheticDataset(Dataset):
                           width=c.width, height=c.height)
 
     def _num_raw_frames(self) -> int:
-        return int(self.synth.frames)
+        return int(self.synth.frames or 120)
 
     def _load_raw(self, raw_index: int) -> Frame:
         return self._render(raw_index, 1)

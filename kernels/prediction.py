@@ -68,7 +68,7 @@ def occlusion_margin(z):
 
 
 @ti.kernel
-def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, half: ti.template(),
+def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, half: ti.i32,
                  out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
     """Per pixel: the pixel's own front surfel, unless a neighbour's disc that the ray meets lies clearly
     in front of it (an occluding edge), or the pixel has none (a hole, filled by the nearest neighbour disc).
@@ -80,8 +80,8 @@ def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.
 
     A surfel always covers its own pixel (at its centre depth if the ray misses the disc), so surfels
     small on screen still show as points. Ties in depth go to the smaller surfel index. Outputs are in
-    the camera frame; ``img.view_index`` gets the surfel (INT_MAX = none). ``half`` is a compile-time
-    constant, so the neighbourhood is unrolled.
+    the camera frame; ``img.view_index`` gets the surfel (INT_MAX = none). ``half`` is a runtime argument: one
+    compiled kernel serves every neighbourhood size.
     """
     H, W = img.front_radius.shape
     for v, u in ti.ndrange(H, W):
@@ -103,9 +103,11 @@ def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.
                 best_i = img.index_map.index[v, u]
                 best_n = nc
         margin = occlusion_margin(own_z)
-        for dv in ti.static(range(-half, half + 1)):
-            for du in ti.static(range(-half, half + 1)):
-                if ti.static(dv != 0 or du != 0):
+        # A runtime loop, in the order the unrolled one had (rows, then columns): unrolled, its (2h+1)²
+        # copies made this by far the slowest kernel to compile.
+        for dv in range(-half, half + 1):
+            for du in range(-half, half + 1):
+                if dv != 0 or du != 0:
                     y = v + dv
                     x = u + du
                     if 0 <= y < H and 0 <= x < W:

@@ -9,7 +9,8 @@ folder that TUM's tools, evo and Open3D read as a TUM sequence:
     associations.txt         "timestamp rgb/... timestamp depth/..." (as associate.py rgb.txt depth.txt)
     intrinsics.txt           "fx fy cx cy" (the TUM loader picks it up from the folder)
     summary.json             frames, size, noise, seed, path length, ms per stage
-Timestamps start at 1.0 s and are 1/30 s apart, written with 6 decimals.
+Timestamps start at 1.0 s and are 1/30 s apart (with --trajectory: the file's own), written with 6 decimals.
+--scene picks the scene and its camera path (ti_fusion.synthetic.scenes; docs/DATA.md).
 """
 
 from __future__ import annotations
@@ -36,7 +37,16 @@ DEPTH_SCALE = 5000.0
 def add_arguments(parser) -> None:
     parser.add_argument("out_dir", metavar="OUT_DIR",
                         help="folder to write the sequence to: new or empty (or an earlier run's, with --overwrite)")
-    parser.add_argument("--frames", type=int, default=None, help="number of frames (default: synth.frames, 120)")
+    from ti_fusion.synthetic.scenes import SCENES
+
+    parser.add_argument("--scene", choices=tuple(SCENES), default=None,
+                        help="scene and its camera path (default: synth.scene, room): "
+                             + "; ".join(f"{s.name}: {s.about}, {s.frames} frames" for s in SCENES.values()))
+    parser.add_argument("--trajectory", default=None, metavar="FILE.tum",
+                        help="render these camera-to-world poses (TUM: timestamp tx ty tz qx qy qz qw), one frame "
+                             "per pose at its timestamp, instead of the scene's path")
+    parser.add_argument("--frames", type=int, default=None,
+                        help="number of frames (default: the scene's own length; a trajectory's poses)")
     parser.add_argument("--no-noise", action="store_true", help="ideal depth: no sensor noise, quantisation or drop-outs")
     parser.add_argument("--seed", type=int, default=None, help="noise seed (default: synth.seed, 0)")
     parser.add_argument("--width", type=int, default=None,
@@ -54,6 +64,10 @@ def synth_config(ctx):
             raise InputError(None, f"--{name} {value}: must be at least {least}")
     if args.frames is not None:
         cfg = replace(cfg, frames=args.frames)
+    if args.scene is not None:
+        cfg = replace(cfg, scene=args.scene)
+    if args.trajectory is not None:
+        cfg = replace(cfg, trajectory=args.trajectory)
     if args.no_noise:
         cfg = replace(cfg, noise=False)
     if args.seed is not None:
@@ -62,7 +76,11 @@ def synth_config(ctx):
         width = args.width if args.width is not None else round(args.height * cfg.width / cfg.height)
         height = args.height if args.height is not None else round(args.width * cfg.height / cfg.width)
         cfg = replace(cfg, width=width, height=height, fx=cfg.fx * width / cfg.width)
-    if cfg.frames < 1 or cfg.width < MIN_FRAME_SIZE or cfg.height < MIN_FRAME_SIZE:
+    if cfg.trajectory:
+        from ti_fusion.synthetic.scene import read_trajectory
+
+        read_trajectory(cfg.trajectory)  # a bad file: one line before anything is written
+    if cfg.frames < 0 or cfg.width < MIN_FRAME_SIZE or cfg.height < MIN_FRAME_SIZE:
         raise InputError(None, f"synth: need at least 1 frame and {MIN_FRAME_SIZE}×{MIN_FRAME_SIZE} pixels (got {cfg.frames} "
                                f"frames, {cfg.width}×{cfg.height})")
     return cfg
@@ -78,10 +96,12 @@ def run(ctx) -> dict:
     write_tum_sequence(seq, folder, timer, show_progress=ctx.config.log.progress)
     path = float(np.linalg.norm(np.diff(seq.poses[:, :3, 3], axis=0), axis=1).sum())
     if not ctx.quiet:
-        ctx.log(f"wrote {len(seq)} frames ({cfg.width}×{cfg.height}, noise {'on' if cfg.noise else 'off'}) "
-                f"to {folder}/")
+        ctx.log(f"wrote {len(seq)} frames of {cfg.scene} ({cfg.width}×{cfg.height}, noise {'on' if cfg.noise else 'off'}"
+                f"{', poses of ' + cfg.trajectory if cfg.trajectory else ''}) to {folder}/")
     return {
         "frames": len(seq),
+        "scene": cfg.scene,
+        "trajectory": cfg.trajectory,
         "ms_per_stage": timer.summary(skip_first=1),
         "width": cfg.width,
         "height": cfg.height,

@@ -37,6 +37,7 @@ class Material:
     color_b: tuple[float, float, float]
     aspect: float = 1.0
     detail: float = 0.3            # contrast of the fine value-noise detail
+    salt: int | None = None        # texture seed; None = from the primitive's index (copies look alike only with one)
 
 
 @dataclass(frozen=True)
@@ -126,7 +127,7 @@ class Scene:
             row[rc.DETAIL] = m.detail
             row[rc.COLOR_A:rc.COLOR_A + 3] = m.color_a
             row[rc.COLOR_B:rc.COLOR_B + 3] = m.color_b
-            row[rc.SALT] = 101 * k + 7
+            row[rc.SALT] = 101 * k + 7 if m.salt is None else m.salt
         return rows.astype(np.float32)
 
     def distances(self, points: np.ndarray) -> np.ndarray:
@@ -250,6 +251,36 @@ def camera_path(times: np.ndarray) -> np.ndarray:
     return np.array(poses)
 
 
+MIN_TRAJECTORY_POSES = 2
+
+
+def read_trajectory(path) -> tuple[np.ndarray, np.ndarray]:
+    """(timestamps, camera-to-world poses) of a TUM trajectory file to render, one frame per pose.
+
+    Refused with an ``InputError`` naming the file: missing or unreadable, a line that is not 8 numbers,
+    a quaternion that is not a rotation, fewer than two poses, timestamps not increasing.
+    """
+    from pathlib import Path
+
+    from ti_fusion.errors import InputError
+    from ti_fusion.io.trajectory import read_tum
+
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "trajectory file not found" if not path.exists() else "trajectory is not a file")
+    stamps, poses = read_tum(path)
+    if len(poses) < MIN_TRAJECTORY_POSES:
+        raise InputError(path, f"trajectory has only {len(poses)} pose, need at least {MIN_TRAJECTORY_POSES}")
+    if not np.all(np.isfinite(stamps)) or not np.all(np.isfinite(poses)):
+        raise InputError(path, "trajectory holds NaN or infinite values")
+    steps = np.diff(stamps)
+    if np.any(steps <= 0):
+        k = int(np.argmax(steps <= 0)) + 1
+        raise InputError(path, f"timestamps must increase: pose {k + 1} ({stamps[k]:.6f}) is not after pose {k} "
+                               f"({stamps[k - 1]:.6f})")
+    return stamps, poses
+
+
 # -- seeds ---------------------------------------------------------------------------------------------
 def _mix(*values: int) -> int:
     """A 32-bit seed from integers (splitmix64 steps): stable across runs and platforms."""
@@ -279,11 +310,19 @@ class SyntheticSequence:
 
         self.cfg = cfg or SynthConfig()
         c = self.cfg
-        self.scene = scene or default_scene()
+        from ti_fusion.synthetic.scenes import get_scene
+
+        self.spec = get_scene(c.scene)
+        self.scene = scene or self.spec.build()
         self.intrinsics = Intrinsics(fx=c.fx, fy=c.fx, cx=(c.width - 1) / 2.0, cy=(c.height - 1) / 2.0,
                                      width=c.width, height=c.height)
-        self.timestamps = T0 + np.arange(c.frames or 120) / FPS
-        self.poses = camera_path(self.timestamps - T0)
+        if c.trajectory:
+            stamps, poses = read_trajectory(c.trajectory)
+            n = min(c.frames or len(poses), len(poses))
+            self.timestamps, self.poses = stamps[:n], poses[:n]
+        else:
+            self.timestamps = T0 + np.arange(c.frames or self.spec.frames) / FPS
+            self.poses = self.spec.path(self.timestamps - T0)
         self.sensor = SensorModel(min_range=c.min_range, max_range=c.max_range, grazing_deg=c.grazing_deg,
                                   baseline=c.baseline, subpixel=c.subpixel, sensor_width=c.sensor_width,
                                   color_sigma=c.color_noise)

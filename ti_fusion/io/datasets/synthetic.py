@@ -58,7 +58,7 @@ class SyntheticDataset(Dataset):
                           width=c.width, height=c.height)
 
     def _num_raw_frames(self) -> int:
-        return int(self.synth.frames or 120)
+        return len(self.sequence)
 
     def _load_raw(self, raw_index: int) -> Frame:
         return self._render(raw_index, 1)
@@ -72,9 +72,12 @@ class SyntheticDataset(Dataset):
         return Frame(index=raw_index, timestamp=float(seq.timestamps[raw_index]), depth=depth,
                      intrinsics=seq.intrinsics.downsampled(downsample), color=color,
                      gt_pose=seq.poses[raw_index].copy(),
-                     meta={"noise": self.synth.noise, "seed": self.synth.seed}, color_registered=True)
+                     meta={"noise": self.synth.noise, "seed": self.synth.seed, "scene": self.synth.scene},
+                     color_registered=True)
 
     def describe(self) -> dict:
         info = super().describe()
-        info.update(noise=self.synth.noise, seed=self.synth.seed)
+        info.update(noise=self.synth.noise, seed=self.synth.seed, scene=self.synth.scene)
+        if self.synth.trajectory:
+            info.update(trajectory=str(self.synth.trajectory))
         return info

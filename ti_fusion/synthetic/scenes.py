@@ -1,0 +1,311 @@
+"""The catalogue of synthetic scenes, each with its own hand-held camera path and length.
+
+``room``      the furnished 5 m × 4 m room (``scene.default_scene``), 120 frames circling the table.
+``loop``      a closed corridor loop, 12 m × 8 m outside around an 8 m × 4 m block, corridors 2 m wide and
+              2.6 m high, textured walls, pilasters and furniture; the camera walks once around it
+              (≈ 0.65 m/s) and on past its start, so the last views re-observe the first ones.
+``twins``     ``loop`` with two identical 4 m sections (walls, floor, ceiling panels and furniture) in the
+              middle of the south and north corridors, one the other turned half a turn about the centre:
+              walking round, the north one looks exactly like the south one (a false loop).
+``wall``      one large textured wall and the floor in front of it (an edge, no corner): the camera moves
+              along it, up and down and toward it. Depth fixes only the two planes: motion along the wall
+              is unobservable without colour.
+``corridor``  an endless straight corridor with plain walls, floor and ceiling and textured posters flat on
+              the walls (3 mm thick): depth cannot see motion along the corridor.
+
+World frame as in ``scene``: metres, z up. The loop scenes are centred under the renderer's point light
+(``kernels.raycast.LIGHT``) so their shading, like their geometry, is symmetric under a half turn about
+the centre (what makes the twins identical, light included). Paths are functions of time (seconds from
+the first frame) sampled at 30 Hz; evaluated past their default length they go on (the loop keeps
+walking round, so ``frames`` = 2 × the default is about two laps).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from typing import Callable
+
+import numpy as np
+
+from ti_fusion.synthetic.scene import (FPS, Box, Cylinder, Material, Plane, Primitive, Scene, Sphere,
+                                       camera_path, default_scene, look_at)
+
+M = Material
+
+# -- the loop ------------------------------------------------------------------------------------------
+LOOP_CENTER = np.array([0.4, -0.3])  # under kernels.raycast.LIGHT: shading symmetric under a half turn
+LOOP_OUTER = np.array([6.0, 4.0])    # half extents of the outside walls
+LOOP_BLOCK = np.array([4.0, 2.0])    # half extents of the central block
+LOOP_HEIGHT = 2.6
+LOOP_RADIUS = 1.0                     # the walk's centre line: the block grown by 1 m (corridor middle)
+LOOP_SPEED = 0.65                     # m/s, mean walking speed
+LOOP_LENGTH = 2 * 2 * (LOOP_BLOCK[0] + LOOP_BLOCK[1]) + 2 * np.pi * LOOP_RADIUS  # centre line, ≈ 30.3 m
+LOOP_OVERLAP = 3.0                    # metres walked past the start, re-observing the first views
+LOOP_FRAMES = int(round((LOOP_LENGTH + LOOP_OVERLAP) / LOOP_SPEED * FPS))
+TWIN_HALF_LENGTH = 2.0                # the twin sections span x ∈ [−2, 2] (relative to the centre)
+
+
+def _at(x: float, y: float) -> tuple[float, float]:
+    """A point given relative to the loop's centre, in world coordinates."""
+    return float(LOOP_CENTER[0] + x), float(LOOP_CENTER[1] + y)
+
+
+def _loop_shell() -> list[Primitive]:
+    """Floor, ceiling, the four outside walls (infinite planes facing in) and the central block."""
+    cx, cy = LOOP_CENTER
+    ox, oy = LOOP_OUTER
+    return [
+        Plane((0, 0, 0), (0, 0, 1), M("tiles", 0.3, (0.45, 0.40, 0.35), (0.80, 0.76, 0.68), detail=0.35)),
+        Plane((0, 0, LOOP_HEIGHT), (0, 0, -1), M("checker", 0.6, (0.72, 0.72, 0.76), (0.93, 0.92, 0.88), detail=0.25)),
+        Plane((cx - ox, 0, 0), (1, 0, 0), M("bricks", 0.25, (0.50, 0.22, 0.16), (0.85, 0.50, 0.35), aspect=0.4)),
+        Plane((cx + ox, 0, 0), (-1, 0, 0), M("tiles", 0.12, (0.18, 0.28, 0.50), (0.78, 0.84, 0.92))),
+        Plane((0, cy - oy, 0), (0, 1, 0), M("plaid", 0.09, (0.28, 0.45, 0.30), (0.88, 0.82, 0.60))),
+        Plane((0, cy + oy, 0), (0, -1, 0), M("blobs", 0.16, (0.30, 0.30, 0.38), (0.92, 0.86, 0.74), detail=0.4)),
+        Box((cx, cy, LOOP_HEIGHT / 2), (LOOP_BLOCK[0], LOOP_BLOCK[1], LOOP_HEIGHT / 2),
+            M("bricks", 0.3, (0.55, 0.45, 0.30), (0.95, 0.85, 0.60), aspect=0.3, detail=0.35)),
+    ]
+
+
+def _loop_furniture() -> list[tuple[float, float, Primitive]]:
+    """(x, y relative to the centre, primitive) of the loop's furniture: nothing reaches more than 0.35 m
+    into a corridor, so the walk (within 0.25 m of the corridor's middle) keeps ≥ 0.4 m from it."""
+    ox, oy = LOOP_OUTER
+    bx, by = LOOP_BLOCK
+    h = LOOP_HEIGHT / 2
+    items: list[tuple[float, float, Primitive]] = []
+
+    def box(x, y, half, material, yaw=0.0, z=None):
+        wx, wy = _at(x, y)
+        items.append((x, y, Box((wx, wy, half[2] if z is None else z), half, material, yaw=yaw)))
+
+    def cyl(x, y, r, hh, material, z=None):
+        wx, wy = _at(x, y)
+        items.append((x, y, Cylinder((wx, wy, hh if z is None else z), r, hh, material)))
+
+    def ball(x, y, z, r, material):
+        wx, wy = _at(x, y)
+        items.append((x, y, Sphere((wx, wy, z), r, material)))
+
+    # pilasters (door frames) on the outside walls every 2 m, and on the block's long sides
+    for k, x in enumerate(np.arange(-5.0, 5.01, 2.0)):
+        box(x, -oy + 0.06, (0.1, 0.06, h), M("tiles", 0.08, (0.30, 0.30, 0.32), (0.75, 0.74, 0.70)))
+        box(-x, oy - 0.06, (0.1, 0.06, h), M("tiles", 0.08, (0.30, 0.30, 0.32), (0.75, 0.74, 0.70)))
+    for y in (-2.0, 0.0, 2.0):
+        box(ox - 0.06, y, (0.06, 0.1, h), M("checker", 0.07, (0.35, 0.30, 0.25), (0.80, 0.75, 0.65)))
+        box(-ox + 0.06, -y, (0.06, 0.1, h), M("checker", 0.07, (0.35, 0.30, 0.25), (0.80, 0.75, 0.65)))
+    for x in (-3.0, 3.0):
+        box(x, -by - 0.05, (0.08, 0.05, h), M("plaid", 0.05, (0.20, 0.20, 0.40), (0.85, 0.80, 0.60)))
+        box(-x, by + 0.05, (0.08, 0.05, h), M("plaid", 0.05, (0.20, 0.20, 0.40), (0.85, 0.80, 0.60)))
+    # south corridor (y ∈ [−4, −2]): cabinet, bins, pictures, bench
+    box(-3.6, -oy + 0.3, (0.45, 0.28, 0.5), M("tiles", 0.1, (0.55, 0.50, 0.40), (0.95, 0.92, 0.85)))
+    box(-3.6, -oy + 0.3, (0.2, 0.15, 0.12), M("plaid", 0.04, (0.60, 0.10, 0.10), (0.95, 0.85, 0.30)), yaw=0.4, z=1.12)
+    cyl(-1.2, -by - 0.25, 0.2, 0.35, M("plaid", 0.05, (0.10, 0.35, 0.45), (0.90, 0.90, 0.90)))
+    box(1.0, -oy + 0.02, (0.5, 0.02, 0.35), M("checker", 0.05, (0.60, 0.20, 0.15), (0.95, 0.95, 0.85)), z=1.5)
+    box(2.4, -oy + 0.25, (0.7, 0.22, 0.23), M("blobs", 0.08, (0.25, 0.40, 0.20), (0.85, 0.90, 0.60)))
+    box(-0.2, -by - 0.02, (0.4, 0.02, 0.3), M("tiles", 0.04, (0.10, 0.20, 0.35), (0.95, 0.80, 0.40)), z=1.6)
+    # east corridor (x ∈ [4, 6]): shelf, plant, ball
+    box(ox - 0.25, -0.9, (0.22, 0.6, 0.9), M("plaid", 0.06, (0.20, 0.15, 0.45), (0.95, 0.75, 0.35)))
+    cyl(ox - 0.3, 1.1, 0.18, 0.25, M("bricks", 0.08, (0.45, 0.25, 0.15), (0.80, 0.55, 0.40), aspect=0.5))
+    ball(ox - 0.3, 1.1, 0.75, 0.28, M("blobs", 0.05, (0.15, 0.45, 0.15), (0.60, 0.85, 0.40)))
+    box(bx + 0.02, 0.8, (0.02, 0.45, 0.3), M("checker", 0.05, (0.05, 0.05, 0.08), (0.55, 0.70, 0.85)), z=1.45)
+    ball(bx + 0.3, -1.3, 0.25, 0.25, M("tiles", 0.05, (0.85, 0.45, 0.10), (0.98, 0.90, 0.55)))
+    # north corridor (y ∈ [2, 4]): desk with a monitor, column, cube, pictures
+    box(2.8, oy - 0.3, (0.6, 0.3, 0.38), M("bricks", 0.2, (0.30, 0.35, 0.40), (0.80, 0.82, 0.80), aspect=0.5))
+    box(2.8, oy - 0.15, (0.3, 0.03, 0.2), M("checker", 0.03, (0.05, 0.05, 0.08), (0.55, 0.70, 0.85)), z=0.96)
+    cyl(0.6, by + 0.2, 0.16, h, M("bricks", 0.12, (0.55, 0.55, 0.55), (0.90, 0.88, 0.80), aspect=0.5))
+    box(-1.5, oy - 0.25, (0.25, 0.25, 0.25), M("tiles", 0.07, (0.60, 0.55, 0.15), (0.20, 0.25, 0.55)), yaw=0.3)
+    box(-3.3, oy - 0.02, (0.45, 0.02, 0.3), M("blobs", 0.06, (0.75, 0.15, 0.20), (0.95, 0.90, 0.85)), z=1.5)
+    box(-0.9, by + 0.02, (0.35, 0.02, 0.45), M("plaid", 0.05, (0.10, 0.35, 0.45), (0.90, 0.90, 0.90)), z=1.4)
+    # west corridor (x ∈ [−6, −4]): lockers, bin, picture
+    box(-ox + 0.25, 0.6, (0.22, 0.7, 0.9), M("tiles", 0.15, (0.35, 0.45, 0.55), (0.85, 0.88, 0.90), aspect=2.0))
+    cyl(-bx - 0.25, -0.8, 0.2, 0.3, M("checker", 0.04, (0.35, 0.15, 0.45), (0.85, 0.75, 0.90)))
+    box(-bx - 0.02, 1.0, (0.02, 0.4, 0.3), M("tiles", 0.04, (0.40, 0.10, 0.10), (0.95, 0.85, 0.70)), z=1.5)
+    box(-ox + 0.3, -1.4, (0.25, 0.25, 0.45), M("blobs", 0.07, (0.25, 0.25, 0.45), (0.85, 0.85, 0.95)), yaw=0.2)
+    return items
+
+
+def _twin_section(turn: bool, salt0: int = 5000) -> list[Primitive]:
+    """The twin section of the south corridor (x ∈ [−2, 2] about the centre), or (``turn``) its copy turned
+    half a turn about the centre, in the north corridor. Every surface seen there is a box with an explicit
+    texture seed, so the copy is identical, seen from the turned viewpoint, pixel for pixel."""
+    ox, oy = LOOP_OUTER
+    bx, by = LOOP_BLOCK
+    L = TWIN_HALF_LENGTH
+    h = LOOP_HEIGHT / 2
+    parts = [  # (x, y, z, half, yaw, material), relative to the centre
+        (0.0, -oy + 0.005, h, (L, 0.005, h), 0.0, M("blobs", 0.14, (0.20, 0.30, 0.45), (0.90, 0.85, 0.70), detail=0.4)),
+        (0.0, -by - 0.005, h, (L, 0.005, h), 0.0, M("bricks", 0.22, (0.45, 0.20, 0.25), (0.90, 0.70, 0.60), aspect=0.4)),
+        (0.0, -oy / 2 - by / 2, 0.005, (L, 1.0, 0.005), 0.0, M("tiles", 0.2, (0.30, 0.30, 0.30), (0.85, 0.80, 0.70))),
+        (0.0, -oy / 2 - by / 2, LOOP_HEIGHT - 0.005, (L, 1.0, 0.005), 0.0,
+         M("checker", 0.5, (0.75, 0.75, 0.80), (0.95, 0.95, 0.90))),
+        (-1.2, -oy + 0.3, 0.45, (0.4, 0.28, 0.45), 0.0, M("tiles", 0.09, (0.50, 0.40, 0.25), (0.95, 0.90, 0.75))),
+        (-1.2, -oy + 0.3, 1.0, (0.15, 0.12, 0.1), 0.5, M("plaid", 0.04, (0.10, 0.40, 0.60), (0.95, 0.85, 0.35))),
+        (0.9, -oy + 0.015, 1.5, (0.45, 0.01, 0.3), 0.0, M("checker", 0.05, (0.55, 0.15, 0.10), (0.95, 0.95, 0.80))),
+        (0.4, -by - 0.25, 0.35, (0.2, 0.2, 0.35), 0.3, M("blobs", 0.06, (0.25, 0.45, 0.20), (0.90, 0.90, 0.60))),
+        (-0.6, -by - 0.015, 1.45, (0.35, 0.01, 0.35), 0.0, M("tiles", 0.04, (0.15, 0.15, 0.35), (0.95, 0.80, 0.40))),
+        (1.6, -oy + 0.2, 0.2, (0.25, 0.18, 0.2), 0.0, M("checker", 0.06, (0.60, 0.55, 0.15), (0.20, 0.25, 0.55))),
+    ]
+    out: list[Primitive] = []
+    for k, (x, y, z, half, yaw, material) in enumerate(parts):
+        material = replace(material, salt=salt0 + 101 * k)
+        if turn:
+            x, y, yaw = -x, -y, yaw + np.pi
+        wx, wy = _at(x, y)
+        out.append(Box((wx, wy, z), half, material, yaw=yaw))
+    return out
+
+
+def _in_twin_section(x: float, y: float) -> bool:
+    return abs(x) <= TWIN_HALF_LENGTH + 0.3 and abs(y) >= LOOP_BLOCK[1] - 0.1
+
+
+def loop_scene() -> Scene:
+    return Scene(_loop_shell() + [p for _, _, p in _loop_furniture()])
+
+
+def twins_scene() -> Scene:
+    furniture = [p for x, y, p in _loop_furniture() if not _in_twin_section(x, y)]
+    return Scene(_loop_shell() + furniture + _twin_section(False) + _twin_section(True))
+
+
+def loop_centre_line(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(points N×2, unit tangents N×2) of the loop's centre line at arc lengths ``s`` (metres, any value:
+    periodic), counter-clockwise from the south corridor's west end, (−4, −3) about the centre."""
+    bx, by = LOOP_BLOCK
+    r = LOOP_RADIUS
+    # straight pieces: (start point, direction, length); each followed by a quarter arc round a block corner
+    pieces = [((-bx, -by - r), (1.0, 0.0), 2 * bx, (bx, -by), -np.pi / 2),
+              ((bx + r, -by), (0.0, 1.0), 2 * by, (bx, by), 0.0),
+              ((bx, by + r), (-1.0, 0.0), 2 * bx, (-bx, by), np.pi / 2),
+              ((-bx - r, by), (0.0, -1.0), 2 * by, (-bx, -by), np.pi)]
+    s = np.mod(np.asarray(s, dtype=np.float64), LOOP_LENGTH)
+    points = np.zeros((len(s), 2))
+    tangents = np.zeros((len(s), 2))
+    start = 0.0
+    arc = r * np.pi / 2
+    for p0, d, length, corner, a0 in pieces:
+        on = (s >= start) & (s < start + length)
+        points[on] = np.asarray(p0) + np.outer(s[on] - start, d)
+        tangents[on] = d
+        start += length
+        on = (s >= start) & (s < start + arc)
+        a = a0 + (s[on] - start) / r
+        points[on] = np.asarray(corner) + r * np.stack([np.cos(a), np.sin(a)], 1)
+        tangents[on] = np.stack([-np.sin(a), np.cos(a)], 1)
+        start += arc
+    return points + LOOP_CENTER, tangents
+
+
+def loop_path(times: np.ndarray) -> np.ndarray:
+    """A walk round the loop's corridors: ≈ 0.65 m/s along the centre line (speed varying by ±10%), up
+    to 0.2 m to either side, eye height with a walking bob, the gaze swinging between the walls ±30°
+    about the way ahead and up and down, a few degrees of roll."""
+    t = np.asarray(times, dtype=np.float64)
+    s = LOOP_SPEED * t + 0.15 * np.sin(0.4 * t)
+    p, tangent = loop_centre_line(s)
+    left = np.stack([-tangent[:, 1], tangent[:, 0]], 1)  # towards the block
+    lateral = 0.18 * np.sin(0.23 * t + 0.5) + 0.01 * np.sin(2 * np.pi * 0.9 * t)
+    xy = p + lateral[:, None] * left
+    z = 1.45 + 0.08 * np.sin(0.5 * t + 0.3) + 0.01 * np.sin(2 * np.pi * 1.8 * t)
+    ahead, ahead_tangent = loop_centre_line(s + 2.0)
+    ahead_left = np.stack([-ahead_tangent[:, 1], ahead_tangent[:, 0]], 1)
+    swing = 1.1 * np.sin(0.35 * t + 0.2) + 0.2 * np.sin(0.9 * t)
+    target_xy = ahead + swing[:, None] * ahead_left
+    target_z = 1.15 + 0.35 * np.sin(0.41 * t + 1.0)
+    roll = np.radians(4.0 * np.sin(0.7 * t + 0.4) + 1.5 * np.sin(1.9 * t))
+    return np.array([look_at(np.array([xy[i, 0], xy[i, 1], z[i]]),
+                             np.array([target_xy[i, 0], target_xy[i, 1], target_z[i]]), roll[i])
+                     for i in range(len(t))])
+
+
+# -- the wall ------------------------------------------------------------------------------------------
+WALL_Y = 1.7  # the wall: the plane y = 1.7 facing −y; the floor z = 0
+
+
+def wall_scene() -> Scene:
+    return Scene([
+        Plane((0, 0, 0), (0, 0, 1), M("tiles", 0.25, (0.40, 0.36, 0.30), (0.82, 0.78, 0.70), detail=0.35)),
+        Plane((0, WALL_Y, 0), (0, -1, 0), M("blobs", 0.18, (0.25, 0.30, 0.45), (0.92, 0.86, 0.72), detail=0.45)),
+    ])
+
+
+def wall_path(times: np.ndarray) -> np.ndarray:
+    """Along the wall and back (x ±2.5 m, ≤ 0.6 m/s), 1.1–1.6 m from it, up and down, looking at the wall
+    low enough that the floor fills the lower part of the view."""
+    t = np.asarray(times, dtype=np.float64)
+    x = 2.5 * np.sin(0.24 * t) + 0.005 * np.sin(2 * np.pi * 1.1 * t)
+    y = WALL_Y - 1.35 + 0.25 * np.sin(0.31 * t + 1.0) + 0.005 * np.sin(2 * np.pi * 0.9 * t + 1.0)
+    z = 1.35 + 0.25 * np.sin(0.4 * t) + 0.005 * np.sin(2 * np.pi * 1.3 * t + 2.0)
+    target = np.stack([x + 0.7 * np.sin(0.37 * t + 0.3), np.full_like(t, WALL_Y), 0.45 + 0.25 * np.sin(0.5 * t + 1.2)], 1)
+    roll = np.radians(5.0 * np.sin(0.8 * t + 0.4) + 2.0 * np.sin(1.9 * t))
+    return np.array([look_at(np.array([x[i], y[i], z[i]]), target[i], roll[i]) for i in range(len(t))])
+
+
+# -- the corridor --------------------------------------------------------------------------------------
+CORRIDOR_Y = (-1.3, 0.7)   # the side walls (2 m apart, the light above the middle)
+CORRIDOR_HEIGHT = 2.6
+CORRIDOR_SPEED = 0.6       # m/s
+CORRIDOR_START = -6.0      # x of the first frame; the walk goes towards +x
+
+
+def corridor_scene() -> Scene:
+    y0, y1 = CORRIDOR_Y
+    plain = (lambda c: M("checker", 1.0, c, c, detail=0.0))
+    prims: list[Primitive] = [
+        Plane((0, 0, 0), (0, 0, 1), plain((0.55, 0.55, 0.52))),
+        Plane((0, 0, CORRIDOR_HEIGHT), (0, 0, -1), plain((0.92, 0.92, 0.90))),
+        Plane((0, y0, 0), (0, 1, 0), plain((0.85, 0.82, 0.74))),
+        Plane((0, y1, 0), (0, -1, 0), plain((0.80, 0.84, 0.86))),
+    ]
+    posters = [M("blobs", 0.08, (0.20, 0.25, 0.50), (0.95, 0.85, 0.55), detail=0.4),
+               M("checker", 0.07, (0.60, 0.15, 0.12), (0.95, 0.92, 0.80)),
+               M("plaid", 0.06, (0.15, 0.40, 0.25), (0.95, 0.90, 0.70)),
+               M("tiles", 0.06, (0.10, 0.15, 0.30), (0.95, 0.75, 0.35)),
+               M("bricks", 0.1, (0.45, 0.20, 0.30), (0.90, 0.80, 0.85), aspect=0.4)]
+    for k, x in enumerate(np.arange(-9.0, 12.01, 1.5)):
+        south = k % 2 == 0
+        y = y0 + 0.003 if south else y1 - 0.003
+        prims.append(Box((float(x), y, 1.45 + 0.1 * ((k * 7) % 3 - 1)), (0.35, 0.003, 0.45), posters[k % len(posters)]))
+    return Scene(prims)
+
+
+def corridor_path(times: np.ndarray) -> np.ndarray:
+    """Down the corridor at ≈ 0.6 m/s from x = −6, within 0.2 m of its middle, the gaze swinging ±35°
+    between the walls' posters and the way ahead."""
+    t = np.asarray(times, dtype=np.float64)
+    mid = 0.5 * (CORRIDOR_Y[0] + CORRIDOR_Y[1])
+    x = CORRIDOR_START + CORRIDOR_SPEED * t + 0.1 * np.sin(0.5 * t)
+    y = mid + 0.2 * np.sin(0.27 * t + 0.4) + 0.005 * np.sin(2 * np.pi * 0.9 * t)
+    z = 1.5 + 0.06 * np.sin(0.5 * t) + 0.01 * np.sin(2 * np.pi * 1.8 * t)
+    target = np.stack([x + 2.0, mid + 1.4 * np.sin(0.4 * t + 0.3), 1.3 + 0.3 * np.sin(0.45 * t + 1.0)], 1)
+    roll = np.radians(4.0 * np.sin(0.7 * t + 0.4) + 1.5 * np.sin(1.9 * t))
+    return np.array([look_at(np.array([x[i], y[i], z[i]]), target[i], roll[i]) for i in range(len(t))])
+
+
+# -- the catalogue -------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SceneSpec:
+    name: str
+    build: Callable[[], Scene]
+    path: Callable[[np.ndarray], np.ndarray]  # times (s from the first frame) → N×4×4 camera-to-world
+    frames: int                               # default length at 30 Hz
+    about: str
+
+
+SCENES: dict[str, SceneSpec] = {
+    "room": SceneSpec("room", default_scene, camera_path, 120, "furnished 5 m × 4 m room, circling the table"),
+    "loop": SceneSpec("loop", loop_scene, loop_path, LOOP_FRAMES,
+                      "corridor loop 12 m × 8 m round a block, once round and 3 m on (loop closure)"),
+    "twins": SceneSpec("twins", twins_scene, loop_path, LOOP_FRAMES,
+                       "the loop with two identical sections on opposite sides (false loops)"),
+    "wall": SceneSpec("wall", wall_scene, wall_path, 600, "textured wall and floor only (photometric tracking)"),
+    "corridor": SceneSpec("corridor", corridor_scene, corridor_path, 600,
+                          "plain corridor with textured posters (photometric tracking)"),
+}
+
+
+def get_scene(name: str) -> SceneSpec:
+    try:
+        return SCENES[name]
+    except KeyError:
+        raise ValueError(f"unknown synthetic scene {name!r}: one of {', '.join(SCENES)}") from None

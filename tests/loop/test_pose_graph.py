@@ -1,0 +1,91 @@
+"""The keyframe pose graph (GTSAM): a known loop corrects a drifted chain; a false loop edge is an outlier
+of the robust kernel and leaves the trajectory as odometry had it."""
+
+import numpy as np
+import pytest
+
+from ti_fusion.config import LoopConfig
+from ti_fusion.geometry import invert, se3_exp
+from ti_fusion.loop.pose_graph import PoseGraph
+
+K = 40  # keyframes around a circle of 2 m radius
+
+
+def _truth(k: int) -> np.ndarray:
+    a = 2 * np.pi * k / K
+    T = np.eye(4)
+    T[:3, :3] = [[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]]
+    T[:3, 3] = [2 * np.sin(a), 0, 2 * np.cos(a)]
+    return T
+
+
+def _drifted(rng) -> tuple[list, list]:
+    """Ground truth and a chain whose every step has a bias (drift) and noise."""
+    truth = [_truth(k) for k in range(K)]
+    chain = [truth[0]]
+    for k in range(1, K):
+        error = se3_exp(np.r_[0.0, 0.006, 0.0, 0.006, 0.0, 0.0] + rng.normal(0, 1e-3, 6))
+        chain.append(chain[-1] @ invert(truth[k - 1]) @ truth[k] @ error)
+    return truth, chain
+
+
+def _worst(poses, truth) -> float:
+    return max(float(np.linalg.norm(p[:3, 3] - t[:3, 3])) for p, t in zip(poses, truth))
+
+
+def _graph(chain, config=None) -> PoseGraph:
+    graph = PoseGraph(config or LoopConfig())
+    for pose in chain:
+        graph.add_keyframe(pose)
+    return graph
+
+
+def test_true_loop_corrects_a_drifted_chain(rng):
+    truth, chain = _drifted(rng)
+    graph = _graph(chain)
+    graph.add_loop(0, K - 1, invert(truth[0]) @ truth[K - 1])
+    out = graph.optimise()
+    before, after = _worst(chain, truth), _worst(out.poses, truth)
+    assert before > 0.3  # the chain has drifted by decimetres
+    assert after < before / 3
+    assert out.outliers == []
+    assert out.loop_errors[(0, K - 1)] < LoopConfig().max_loop_error
+    assert np.allclose(out.poses[0], chain[0], atol=1e-6)  # the first keyframe holds the map's frame
+
+
+def test_false_loop_is_an_outlier_and_leaves_the_trajectory_intact(rng):
+    truth, chain = _drifted(rng)
+    graph = _graph(chain)
+    graph.add_loop(5, 25, np.eye(4))  # claims keyframe 25 (across the circle) is where keyframe 5 is
+    out = graph.optimise()
+    assert out.outliers == [(5, 25)]
+    assert max(float(np.linalg.norm(p[:3, 3] - c[:3, 3])) for p, c in zip(out.poses, chain)) < 0.01
+
+
+def test_false_loop_beside_a_true_one(rng):
+    truth, chain = _drifted(rng)
+    graph = _graph(chain)
+    graph.add_loop(0, K - 1, invert(truth[0]) @ truth[K - 1])
+    graph.add_loop(5, 25, np.eye(4))
+    out = graph.optimise()
+    assert out.outliers == [(5, 25)]
+    assert _worst(out.poses, truth) < _worst(chain, truth) / 3
+
+
+def test_without_a_robust_kernel_the_false_loop_wrecks_the_map(rng):
+    """Why the kernel is there: least squares pulls the chain onto the false loop."""
+    truth, chain = _drifted(rng)
+    graph = _graph(chain, LoopConfig(robust="none"))
+    graph.add_loop(5, 25, np.eye(4))
+    out = graph.optimise()
+    assert _worst(out.poses, truth) > 1.0
+
+
+@pytest.mark.parametrize("robust", ["cauchy", "huber"])
+def test_plain_kernels_run(rng, robust):
+    truth, chain = _drifted(rng)
+    graph = _graph(chain, LoopConfig(robust=robust))
+    graph.add_loop(0, K - 1, invert(truth[0]) @ truth[K - 1])
+    out = graph.optimise()
+    assert out.poses.shape == (K, 4, 4) and np.isfinite(out.poses).all()
+    assert out.error_after <= out.error_before

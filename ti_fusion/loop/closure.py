@@ -1,0 +1,198 @@
+"""Loop closure around dense SLAM: ``LoopClosure.after_frame`` runs after each ``DenseSLAM.register_frame``.
+
+    loop = LoopClosure(config, slam)
+    for frame in dataset:
+        result = slam.register_frame(frame)
+        report = loop.after_frame(frame, result)   # None, or what this frame did (keyframe, candidates, loop)
+
+For a tracked frame that the selector makes a keyframe (``keyframes.py``): its ORB features and depth
+summary are kept, the pose graph gets the keyframe and an odometry edge, the surfel map's anchor becomes
+its id (the surfels fused from then on move with it), and place recognition (``place_recognition.py``)
+proposes earlier keyframes, verified best first (``verification.py``) until one is accepted. An accepted
+loop goes into the pose graph (``pose_graph.py``); if the optimisation keeps it (not an outlier of the
+robust kernel, and within ``loop.max_loop_error`` of the optimised poses), every keyframe k gets its
+world-frame correction C_k = T_k,new · T_k,old⁻¹, and with it every frame pose anchored to k (in place:
+``slam.poses``, ``slam.last_good`` and the run's results share those arrays) and every surfel anchored to k
+(``SurfelMapper.apply_corrections``). Tracking then goes on from the corrected last pose against the
+corrected map; the motion model is a relative motion and needs nothing.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ti_fusion.config import Config
+from ti_fusion.geometry import invert, renormalize
+from ti_fusion.loop.keyframes import Keyframe, KeyframeSelector, grid_points
+from ti_fusion.loop.place_recognition import PlaceDatabase
+from ti_fusion.loop.pose_graph import PoseGraph
+from ti_fusion.loop.verification import LoopCandidate, LoopVerifier
+from ti_fusion.tracking.features import extract_features
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class LoopReport:
+    """What loop closure did after one frame (only frames that became keyframes have one)."""
+
+    keyframe: int  # the new keyframe's id
+    why: str  # "first", "moved", "turned", "overlap"
+    candidates: list[LoopCandidate] = field(default_factory=list)
+    closed: tuple[int, int] | None = None  # (earlier keyframe, this keyframe) of a loop applied
+    outcome: str = ""  # for an accepted candidate: "applied", or why the pose graph refused it
+    ms: dict[str, float] = field(default_factory=dict)  # keyframe, detect, verify, optimise, correct
+
+    def stats(self) -> dict:
+        """The frame's ``loop`` entry in /slam/stats."""
+        return {"keyframe": self.keyframe, "why": self.why,
+                "candidates": [c.record() for c in self.candidates],
+                "closed": None if self.closed is None else list(self.closed), "outcome": self.outcome,
+                "ms": {k: round(v, 3) for k, v in self.ms.items()}}
+
+
+class LoopClosure:
+    """Keyframes, place recognition, verification, the pose graph and the correction of poses and map."""
+
+    def __init__(self, config: Config, slam):
+        self.config = config
+        self.slam = slam  # a DenseSLAM: its mapper, maps and intrinsics are used, its code is not changed
+        self.selector = KeyframeSelector(config.loop)
+        self.database = PlaceDatabase(config.loop)
+        self.graph = PoseGraph(config.loop)
+        self.verifier = LoopVerifier(config)
+        self.keyframes: list[Keyframe] = []
+        self._orb = cv2.ORB_create(config.loop.n_features)
+        self._vo = dataclasses.replace(config.vo, n_features=config.loop.n_features)
+        self._posed: list[tuple[np.ndarray, int]] = []  # every frame pose and the keyframe it is anchored to
+        self.candidates: list[LoopCandidate] = []  # every candidate verified, in order
+        self.closures: list[tuple[int, int]] = []  # loops applied
+        self.refused: list[tuple[int, int, str]] = []  # verified loops the pose graph refused, and why
+        self.ms: dict[str, list[float]] = {"detect": [], "verify": [], "optimise": [], "correct": []}
+        self._map_correction = getattr(slam.mapper, "apply_corrections", None)
+        if self._map_correction is None:
+            log.warning("this surfel map cannot move with corrected poses (no SurfelMapper.apply_corrections): "
+                        "loops are detected and verified but not applied")
+
+    # -- the verb -------------------------------------------------------------------------------
+    def after_frame(self, frame, result) -> LoopReport | None:
+        """Loop closure's part of one frame, after ``register_frame`` returned ``result`` for it."""
+        if result.pose is None:
+            return None
+        anchor = len(self.keyframes) - 1
+        if not result.tracked or (why := self.selector.why(self.keyframes[-1] if self.keyframes else None,
+                                                           result.pose, frame.index)) is None:
+            self._posed.append((result.pose, max(anchor, 0)))
+            return None
+        t0 = time.perf_counter()
+        kf = self._make_keyframe(frame, result.pose)
+        self._posed.append((result.pose, kf.id))
+        report = LoopReport(kf.id, why)
+        t1 = time.perf_counter()
+        report.ms["keyframe"] = (t1 - t0) * 1e3
+        places = self.database.query(kf)
+        self.database.add(kf)
+        report.ms["detect"] = (time.perf_counter() - t1) * 1e3
+        self.ms["detect"].append(report.ms["keyframe"] + report.ms["detect"])
+        accepted = None
+        for place in places:
+            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self.slam.model_maps,
+                                     self.slam.frame_maps, target_ready=True)
+            report.candidates.append(c)
+            self.candidates.append(c)
+            log.info(f"loop candidate: keyframe {c.query} (frame {kf.frame}) with keyframe {c.match} (frame "
+                     f"{self.keyframes[c.match].frame}), score {c.score:.3f}: "
+                     f"{'accepted' if c.accepted else 'rejected'} ({c.reason})")
+            if c.accepted:
+                accepted = c
+                break
+        if report.candidates:
+            report.ms["verify"] = sum(c.ms for c in report.candidates)
+            self.ms["verify"].append(report.ms["verify"])
+        if accepted is not None:
+            self._close(accepted, report)
+        return report
+
+    # -- keyframes ------------------------------------------------------------------------------
+    def _make_keyframe(self, frame, pose: np.ndarray) -> Keyframe:
+        slam = self.slam
+        level = slam.map_level - slam.frame_maps.input_level  # the fused level, at the map's resolution
+        depth = slam.frame_maps.depth[level].to_numpy()
+        K = slam.frame_maps.intrinsics[level]
+        features = extract_features(frame, self._vo, self._orb)
+        kf = Keyframe(len(self.keyframes), frame.index, frame.timestamp, pose, features, frame.intrinsics,
+                      depth, K, grid_points(depth, K))
+        self.keyframes.append(kf)
+        self.graph.add_keyframe(pose)
+        slam.mapper.anchor = kf.id  # surfels fused from the next frame on move with this keyframe
+        return kf
+
+    # -- closing a loop -------------------------------------------------------------------------
+    def _close(self, c: LoopCandidate, report: LoopReport) -> None:
+        i, j = c.match, c.query
+        # T: p_j = T p_i, so keyframe j's pose in keyframe i's frame is T⁻¹
+        self.graph.poses = [kf.pose.copy() for kf in self.keyframes]
+        self.graph.add_loop(i, j, invert(c.T))
+        opt = self.graph.optimise()
+        report.ms["optimise"] = opt.ms
+        self.ms["optimise"].append(opt.ms)
+        error = opt.loop_errors[(i, j)]
+        if (i, j) in opt.outliers or error > self.config.loop.max_loop_error:
+            self.graph.remove_loop(i, j)
+            why = "an outlier of the robust kernel" if (i, j) in opt.outliers else \
+                f"{error:.1f} sigma from the optimised poses > {self.config.loop.max_loop_error:g}"
+            report.outcome = f"refused by the pose graph: {why}"
+            self.refused.append((i, j, why))
+            log.info(f"loop {i}-{j} {report.outcome}")
+            return
+        if self._map_correction is None:
+            self.graph.remove_loop(i, j)
+            report.outcome = "not applied: the map cannot be corrected"
+            return
+        t0 = time.perf_counter()
+        corrections = np.stack([renormalize(new @ invert(kf.pose)) for new, kf in zip(opt.poses, self.keyframes)])
+        self._apply(corrections)
+        self.graph.accept(opt.poses)
+        report.ms["correct"] = (time.perf_counter() - t0) * 1e3
+        self.ms["correct"].append(report.ms["correct"])
+        report.closed, report.outcome = (i, j), "applied"
+        self.closures.append((i, j))
+        moved = float(np.linalg.norm(corrections[-1][:3, 3]))
+        log.info(f"loop {i}-{j} closed: {opt.iterations} iterations, error {opt.error_before:.1f} → "
+                 f"{opt.error_after:.2f}, the current keyframe moved {moved * 100:.1f} cm")
+
+    def _apply(self, corrections: np.ndarray) -> None:
+        """Every keyframe pose, every frame pose anchored to a keyframe, and the map, by its correction."""
+        seen: set[int] = set()
+        for pose, k in self._posed:  # a keyframe's pose is its frame's pose, anchored to itself
+            if id(pose) not in seen:
+                seen.add(id(pose))
+                pose[:] = renormalize(corrections[k] @ pose)
+        self._map_correction(corrections)
+
+    # -- results --------------------------------------------------------------------------------
+    def loop_segments(self, candidates: list[LoopCandidate]) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+        """(camera centre of the earlier keyframe, of the current one, accepted) of each candidate."""
+        return [(self.keyframes[c.match].centre, self.keyframes[c.query].centre, c.accepted) for c in candidates]
+
+    def edges(self) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+        """Every verified candidate as a segment between the two keyframes' current centres."""
+        return self.loop_segments(self.candidates)
+
+    def summary(self) -> dict:
+        """The counts for summary.json, and what each part cost per call (milliseconds: mean, max)."""
+        cost = {name: {"calls": len(v), "mean": round(float(np.mean(v)), 2), "max": round(float(np.max(v)), 2)}
+                for name, v in self.ms.items() if v}
+        return {"keyframes": len(self.keyframes), "loop_candidates": len(self.candidates),
+                "loop_closures": len(self.closures),
+                "loops": [{"from": i, "to": j, "frames": [self.keyframes[i].frame, self.keyframes[j].frame]}
+                          for i, j in self.closures][:50],
+                "loops_refused": [{"from": i, "to": j, "why": why} for i, j, why in self.refused][:50],
+                "loop_candidates_log": [c.record() for c in self.candidates][:200],
+                "loop_ms": cost}

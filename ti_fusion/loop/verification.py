@@ -1,0 +1,122 @@
+"""Loop verification: is an earlier keyframe really the same place, and what is the relative pose?
+
+Three gates, cheapest first, every outcome recorded with its reason (``LoopCandidate``):
+1. the geometric pre-check (``place_recognition.precheck``): enough ORB matches consistent with one
+   rigid motion;
+2. PnP RANSAC (``ti_fusion.tracking.features.solve_pnp``) on the matches: the earlier keyframe's 3D
+   points against the current keyframe's keypoints, at least ``loop.min_pnp_inliers`` inliers;
+3. dense point-to-plane ICP (``ti_fusion.tracking.icp.ICP.align``) between the two keyframes' maps (the
+   earlier keyframe's stored depth as the source, the current keyframe's maps as the target), from PnP's
+   guess: no ICP failure, an inlier ratio of at least ``loop.min_inlier_ratio``, an RMS residual of at most
+   ``loop.max_residual``, and a pose within ``loop.max_icp_change_deg`` / ``_m`` of PnP's (both agree).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ti_fusion.config import Config
+from ti_fusion.geometry import pose_error
+from ti_fusion.loop.keyframes import Keyframe
+from ti_fusion.loop.place_recognition import precheck
+from ti_fusion.tracking.features import solve_pnp
+from ti_fusion.tracking.icp import ICP
+
+
+@dataclass
+class LoopCandidate:
+    """One candidate loop and its verdict. ``T``: p_query = T p_match (the earlier keyframe's camera
+    coordinates into the current one's), set once PnP has found one (ICP's refinement when it ran)."""
+
+    query: int  # the current keyframe's id
+    match: int  # the earlier keyframe's id
+    score: float  # place recognition's score
+    accepted: bool = False
+    reason: str = ""  # why rejected, or "verified" (the pose graph may still reject it: see closure.py)
+    consistent: int = 0  # matches passing the pre-check
+    pnp_inliers: int = 0
+    icp_inlier_ratio: float | None = None
+    icp_residual_m: float | None = None
+    T: np.ndarray | None = None
+    ms: float = 0.0
+
+    def record(self) -> dict:
+        """The candidate for the log and summary.json."""
+        return {"query": self.query, "match": self.match, "score": round(self.score, 4),
+                "accepted": self.accepted, "reason": self.reason, "consistent": self.consistent,
+                "pnp_inliers": self.pnp_inliers,
+                "icp_inlier_ratio": None if self.icp_inlier_ratio is None else round(self.icp_inlier_ratio, 4),
+                "icp_residual_mm": None if self.icp_residual_m is None else round(self.icp_residual_m * 1e3, 3),
+                "ms": round(self.ms, 3)}
+
+
+class LoopVerifier:
+    """Verifies candidates with the run's ICP settings and ``loop`` thresholds.
+
+    ``source`` and ``target`` are ``FrameMaps`` to fill: the earlier keyframe's maps are built in
+    ``source`` from its stored depth, and the current keyframe's in ``target`` unless the caller says
+    they are already there (the SLAM loop passes the maps it just tracked the frame with).
+    """
+
+    def __init__(self, config: Config):
+        self.config = config
+        self.icp = ICP(config.icp)
+        self.vo = dataclasses.replace(config.vo, n_features=config.loop.n_features, match="min_distance")
+
+    def verify(self, query: Keyframe, match: Keyframe, score: float, source, target,
+               target_ready: bool = False) -> LoopCandidate:
+        t0 = time.perf_counter()
+        candidate = LoopCandidate(query.id, match.id, score)
+        try:
+            self._verify(candidate, query, match, source, target, target_ready)
+        finally:
+            candidate.ms = (time.perf_counter() - t0) * 1e3
+        return candidate
+
+    def _verify(self, c: LoopCandidate, query: Keyframe, match: Keyframe, source, target,
+                target_ready: bool) -> None:
+        cfg = self.config.loop
+        c.consistent = precheck(match, query, self.vo, cfg.consistent_m)
+        if c.consistent < cfg.min_consistent:
+            c.reason = f"pre-check: {c.consistent} consistent matches < {cfg.min_consistent}"
+            return
+        pnp = solve_pnp(match.features, query.features, query.intrinsics, self.vo, check_motion=False)
+        c.pnp_inliers = pnp.inliers
+        if pnp.T is None or pnp.inliers < cfg.min_pnp_inliers:
+            c.reason = f"PnP: {pnp.inliers} inliers < {cfg.min_pnp_inliers}"
+            return
+        c.T = pnp.T
+        fill(source, match)
+        if not target_ready:
+            fill(target, query)
+        icp = self.icp.align(source, target, init=pnp.T)
+        c.icp_inlier_ratio, c.icp_residual_m = float(icp.inlier_ratio), float(icp.residual_rms)
+        if icp.failure:
+            c.reason = f"ICP: {icp.failure}"
+            return
+        if not icp.inlier_ratio >= cfg.min_inlier_ratio:
+            c.reason = f"ICP: inlier ratio {icp.inlier_ratio:.3f} < {cfg.min_inlier_ratio:g}"
+            return
+        if not icp.residual_rms <= cfg.max_residual:
+            c.reason = f"ICP: residual {icp.residual_rms * 1e3:.1f} mm > {cfg.max_residual * 1e3:g} mm"
+            return
+        rot_deg, trans_m = pose_error(icp.pose, pnp.T)
+        if rot_deg > cfg.max_icp_change_deg or trans_m > cfg.max_icp_change_m:
+            c.reason = (f"ICP moved PnP's pose by {rot_deg:.1f} deg / {trans_m * 100:.1f} cm (at most "
+                        f"{cfg.max_icp_change_deg:g} deg / {cfg.max_icp_change_m * 100:g} cm)")
+            return
+        c.T = icp.pose
+        c.accepted, c.reason = True, "verified"
+
+
+def fill(maps, keyframe: Keyframe) -> None:
+    """Build ``maps`` (a ``FrameMaps`` whose level 0 has the shape of ``keyframe.depth``) from the
+    keyframe's stored depth, without smoothing it again."""
+    if tuple(maps.shapes[0]) != keyframe.depth.shape:
+        raise ValueError(f"maps of level-0 shape {maps.shapes[0]} for a keyframe depth of {keyframe.depth.shape}")
+    maps.depth[0].from_numpy(keyframe.depth)
+    maps.compute_from_field(keyframe.depth_intrinsics)

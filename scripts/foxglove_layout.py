@@ -4,8 +4,8 @@
 
 Built with the Foxglove SDK's typed layout classes (``foxglove.layouts``), so that its panel settings are
 the ones Foxglove reads: a 3D panel in ``world`` with the map coloured by its RGBA fields, the estimated
-and ground-truth poses and the camera frustum; the colour and depth images; plots of the track and fuse
-milliseconds, the ICP inlier ratio, the surfel count, and both trajectories seen from above.
+and ground-truth poses, the camera frustum and the loop edges; the colour and depth images; plots of the
+track and fuse milliseconds, the ICP inlier ratio, the surfel count, and both trajectories seen from above.
 """
 
 from __future__ import annotations
@@ -32,6 +32,8 @@ def layout() -> fl.Layout:
             "/camera/color": fl.BaseRendererImageTopicSettings(visible=True, camera_info_topic="/camera/calibration",
                                                                distance=0.3),
             "/camera/calibration": fl.BaseRendererCameraTopicSettings(visible=True, distance=0.3, color=EST),
+            # loop edges (slam.loop_closure): the colours are the message's own (accepted green, rejected red)
+            "/loop_closures": fl.BaseRendererSceneUpdateTopicSettings(visible=True),
         }))
     colour = fl.ImagePanel(title="colour", config=fl.ImageConfig(image_mode=fl.ImageModeConfig(
         image_topic="/camera/color", calibration_topic="/camera/calibration")))

@@ -17,8 +17,8 @@ from ti_fusion.camera import Intrinsics
 from ti_fusion.cli.main import main
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import se3_exp
-from ti_fusion.io.mcap_log import (RunLogger, depth_from_msg, points_from_msg, pose_from_msg, read_log,
-                                software_versions)
+from ti_fusion.io.mcap_log import (LOOP_TOPIC, RunLogger, depth_from_msg, loop_edges_from_msg, points_from_msg,
+                                pose_from_msg, read_log, software_versions)
 
 T0 = 1305031102.175304  # a TUM-style unix timestamp: the ns conversion must keep µs
 N_FRAMES = 6
@@ -152,6 +152,44 @@ def test_every_channel_decodes_with_its_values(written):
 
     calib = msgs["/camera/calibration"][0][2]
     assert list(calib.K) == [525.0, 0, 319.5, 0, 525.0, 239.5, 0, 0, 1] and calib.width == 640
+
+
+def test_loop_edges_read_back(tmp_path, rng):
+    """Loop edges: a foxglove.SceneUpdate in the world frame, one entity holding one LINE_LIST (two points
+    per edge, accepted green, rejected red), replaced by each message; non-finite edges are left out."""
+    from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
+
+    poses = _trajectory(rng)
+    p = poses[:, :3, 3]
+    first = [(p[4], p[0], True)]
+    second = first + [(p[5], p[1], False), (p[5], np.array([np.nan, 0.0, 0.0]), True), (p[3], p[2], True)]
+    path = tmp_path / "loops.mcap"
+    with RunLogger(path) as log:
+        log.log_pose(T0, poses[0])
+        assert log.log_loop_edges(T0 + 0.1, first) == 1
+        assert log.log_loop_edges(T0 + 0.2, second) == 3
+        assert log.log_loop_edges(T0 + 0.3, []) == 0  # clears them
+    msgs = _decode_all(path)[LOOP_TOPIC]
+    assert [(t, s) for t, s, _ in msgs] == [(int(round((T0 + d) * 1e9)), "foxglove.SceneUpdate")
+                                           for d in (0.1, 0.2, 0.3)]
+    (_, _, one), (_, _, two), (_, _, none) = msgs
+    for msg in (one, two, none):
+        (entity,) = msg.entities
+        assert entity.frame_id == "world" and entity.id == "loop_closures"  # the poses' frame; one entity
+        (line,) = entity.lines
+        assert line.type == LinePrimitive.LINE_LIST and line.thickness > 0 and len(line.colors) == len(line.points)
+    got = loop_edges_from_msg(two)
+    want = [second[0], second[1], second[3]]
+    assert [ok for _, _, ok in got] == [True, False, True]
+    for (a, b, _), (c, d, _) in zip(got, want):
+        np.testing.assert_allclose(a, c, atol=1e-12)
+        np.testing.assert_allclose(b, d, atol=1e-12)
+    colours = [(c.r, c.g, c.b) for c in two.entities[0].lines[0].colors]
+    assert colours[0] == colours[1] and colours[0][1] > colours[0][0]  # green
+    assert colours[2] == colours[3] and colours[2][0] > colours[2][1]  # red
+    assert len(loop_edges_from_msg(one)) == 1 and loop_edges_from_msg(none) == []
+    contents = read_log(path)
+    assert contents.channels[LOOP_TOPIC].count == 3 and contents.complete
 
 
 def test_metadata_records(written):
@@ -510,7 +548,7 @@ def test_the_foxglove_layout_shows_what_the_logs_have():
     text = (DOCS.parent / "foxglove-layout.json").read_text()
     assert json.loads(text) == json.loads(module.layout().to_json())
     topics = {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points", "/camera/depth", "/camera/color",
-              "/camera/calibration"}
+              "/camera/calibration", LOOP_TOPIC}
     slam_fields = set(_field_names(_steps()["/slam/stats"])) | {"ms.load", "ms.log"}
     paths = set(re.findall(r'"(/[a-z/_]+(?:\.[a-z_.]+)?)"', text))
     assert paths

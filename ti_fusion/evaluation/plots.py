@@ -29,13 +29,42 @@ def metrics_line(metrics: dict) -> str:
     return "  ·  ".join(parts)
 
 
+def _edge_points(loop_edges, est_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(from (m, 3), to (m, 3), accepted (m,)) of loop edges given as (i, j, accepted), i and j rows of
+    ``est_poses``, or as (p_from, p_to, accepted), two positions in the estimate's world frame."""
+    p_from, p_to, accepted = [], [], []
+    for edge in loop_edges:
+        if len(edge) != 3:
+            raise ValueError(f"a loop edge is (from, to, accepted), not {edge!r}")
+        a, b, ok = edge
+        ends = []
+        for end in (a, b):
+            if np.ndim(end) == 0:
+                if not (float(end).is_integer() and 0 <= int(end) < len(est_xyz)):
+                    raise ValueError(f"loop edge end {end!r} is not a row of the {len(est_xyz)} poses")
+                ends.append(("row", int(end)))
+            else:
+                point = np.asarray(end, dtype=np.float64)
+                if point.shape != (3,):
+                    raise ValueError(f"loop edge end {end!r} is neither a row of the poses nor an x, y, z position")
+                ends.append(("point", point))
+        p_from.append(ends[0])
+        p_to.append(ends[1])
+        accepted.append(bool(ok))
+    return p_from, p_to, np.asarray(accepted, bool)
+
+
 def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=None,
-                    title: str = "Camera trajectory", metrics: dict | None = None) -> Path:
+                    title: str = "Camera trajectory", metrics: dict | None = None, loop_edges=None) -> Path:
     """Write a PNG: top view (the plane of most motion) and x, y, z over time.
 
     ``est_poses`` and ``gt_poses`` are camera-to-world N×4×4, already paired (same length, same
     timestamps). With ground truth, the estimate is drawn after rigid alignment to it (as ATE measures
     it) and ATE/RPE go in the title (computed here unless ``metrics`` is given).
+
+    ``loop_edges``: loop closures drawn in the top view as lines between two camera positions, accepted
+    ones solid, rejected ones dashed; each is (i, j, accepted) with i, j rows of ``est_poses``, or
+    (p_from, p_to, accepted) with two positions in the estimate's world frame (aligned with it).
     """
     est = np.asarray(est_poses, dtype=np.float64).reshape(-1, 4, 4)
     gt = None if gt_poses is None else np.asarray(gt_poses, dtype=np.float64).reshape(-1, 4, 4)
@@ -43,6 +72,8 @@ def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=N
         raise ValueError(f"{len(est)} estimated poses for {len(gt)} ground-truth poses: associate them first")
     est_xyz = est[:, :3, 3]
     est_label = "estimate"
+    edges = _edge_points(loop_edges or (), est_xyz)
+    S = np.eye(4)
     if gt is not None and len(gt) > 0:
         metrics = metrics or trajectory_metrics(est, gt)
         S = align_rigid(est_xyz, gt[:, :3, 3])
@@ -72,6 +103,7 @@ def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=N
         top.plot(xyz[:, a], xyz[:, b], style, color=color, lw=1.5, label=label)
         if len(xyz):
             top.plot(xyz[0, a], xyz[0, b], "o", color=color, ms=6)
+    _draw_loop_edges(top, edges, est_xyz, S, a, b)
     top.plot([], [], "o", color="0.5", label="start")
     top.set_xlabel(f"{_AXES[a]} [m]")
     top.set_ylabel(f"{_AXES[b]} [m]")
@@ -99,3 +131,23 @@ def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=N
     with atomic_path(path_png) as tmp:  # whole or not at all; OutputError naming the file when it cannot be
         fig.savefig(tmp)
     return path_png
+
+
+def _draw_loop_edges(ax, edges, est_xyz: np.ndarray, S: np.ndarray, a: int, b: int) -> None:
+    """Loop edges on the top view (axes a, b): accepted green and solid, rejected red and dashed; the ends
+    given as positions take the estimate's alignment ``S``, those given as rows are read from ``est_xyz``."""
+    p_from, p_to, accepted = edges
+
+    def where(end):
+        kind, value = end
+        return est_xyz[value] if kind == "row" else S[:3, :3] @ value + S[:3, 3]
+
+    for ok, color, style, label in ((True, "tab:green", "-", "loop closure (accepted)"),
+                                    (False, "tab:red", "--", "loop candidate (rejected)")):
+        pick = [k for k in range(len(accepted)) if accepted[k] == ok]
+        if not pick:
+            continue
+        for n, k in enumerate(pick):
+            p, q = where(p_from[k]), where(p_to[k])
+            ax.plot([p[a], q[a]], [p[b], q[b]], style, color=color, lw=1.5,
+                    label=label if n == 0 else None)

@@ -10,6 +10,7 @@ Channels (log time = the frame's dataset timestamp; ``docs/LOGS.md`` has the ful
     /camera/depth       foxglove.RawImage          protobuf  16UC1, millimetres, 0 = no depth
     /camera/color       foxglove.CompressedImage   protobuf  jpeg (or png)
     /camera/calibration foxglove.CameraCalibration protobuf  pinhole K, P
+    /loop_closures      foxglove.SceneUpdate       protobuf  loop edges as one LINE_LIST, frame "world"
 
 Why this encoding. The geometry channels use Foxglove's official protobuf schemas from
 ``foxglove-schemas-protobuf``: the schema names are the ones Foxglove recognises, the messages are
@@ -56,10 +57,12 @@ from foxglove_schemas_protobuf.CameraCalibration_pb2 import CameraCalibration
 from foxglove_schemas_protobuf.CompressedImage_pb2 import CompressedImage
 from foxglove_schemas_protobuf.FrameTransform_pb2 import FrameTransform
 from foxglove_schemas_protobuf.FrameTransforms_pb2 import FrameTransforms
+from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
+from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.records import Channel, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader
 from mcap.well_known import MessageEncoding, SchemaEncoding
@@ -76,6 +79,11 @@ from ti_fusion.io.outputs import jsonable
 WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
 STATS_TOPIC = "/slam/stats"
+LOOP_TOPIC = "/loop_closures"
+LOOP_ENTITY = "loop_closures"  # one entity, replaced by each message: it holds every loop edge so far
+# RGBA in [0, 1]: accepted loop closures green, rejected candidates red
+LOOP_ACCEPTED_RGBA = (0.17, 0.80, 0.25, 1.0)
+LOOP_REJECTED_RGBA = (0.90, 0.15, 0.15, 1.0)
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -299,6 +307,42 @@ class RunLogger:
         _set_stamp(msg.timestamp, ns)
         self._write_proto(topic, msg, ns)
         self._file.flush()
+
+    def log_loop_edges(self, t: float, segments, topic: str = LOOP_TOPIC) -> int:
+        """Loop edges as a ``foxglove.SceneUpdate`` in the world frame (the poses' frame): one entity whose
+        LinePrimitive of type LINE_LIST joins the two positions of each edge, green when accepted, red when
+        rejected (per-vertex colours). ``segments``: (p_from (3,), p_to (3,), accepted) in world coordinates,
+        every edge to show (the entity replaces the previous message's, so pass all edges so far; an empty
+        list clears them). Edges with a non-finite end are left out; returns how many were written."""
+        ns = self._ns(t)
+        msg = SceneUpdate()
+        entity = msg.entities.add()
+        _set_stamp(entity.timestamp, ns)
+        entity.frame_id = WORLD_FRAME
+        entity.id = LOOP_ENTITY
+        entity.frame_locked = False
+        line = entity.lines.add()
+        line.type = LinePrimitive.LINE_LIST
+        line.thickness = 3.0  # pixels: visible at any zoom
+        line.scale_invariant = True
+        line.pose.orientation.w = 1.0
+        written = 0
+        for segment in segments:
+            p_from, p_to, accepted = segment
+            ends = [np.asarray(p, dtype=np.float64).reshape(3) for p in (p_from, p_to)]
+            if not all(np.all(np.isfinite(e)) for e in ends):
+                continue
+            rgba = LOOP_ACCEPTED_RGBA if accepted else LOOP_REJECTED_RGBA
+            for e in ends:
+                point = line.points.add()
+                point.x, point.y, point.z = (float(v) for v in e)
+                colour = line.colors.add()
+                colour.r, colour.g, colour.b, colour.a = rgba
+            written += 1
+        line.color.r, line.color.g, line.color.b, line.color.a = LOOP_ACCEPTED_RGBA  # used only without colors
+        self._write_proto(topic, msg, ns)
+        self._file.flush()
+        return written
 
     # -- internals --------------------------------------------------------------------------------
     def _ns(self, t: float) -> int:
@@ -669,6 +713,17 @@ def points_from_msg(msg: PointCloud) -> tuple[np.ndarray, np.ndarray | None]:
     return xyz, rgba
 
 
+def loop_edges_from_msg(msg: SceneUpdate) -> list[tuple[np.ndarray, np.ndarray, bool]]:
+    """The (p_from, p_to, accepted) edges of a ``log_loop_edges`` message (accepted: drawn green)."""
+    edges = []
+    for entity in msg.entities:
+        for line in entity.lines:
+            pts = np.array([(p.x, p.y, p.z) for p in line.points], dtype=np.float64).reshape(-1, 3)
+            green = [c.g > c.r for c in line.colors] or [line.color.g > line.color.r] * len(pts)
+            edges += [(pts[k], pts[k + 1], bool(green[k])) for k in range(0, len(pts) - 1, 2)]
+    return edges
+
+
 def depth_from_msg(msg: RawImage) -> np.ndarray:
     """Float32 metres (0 = no depth) of a foxglove.RawImage in 16UC1 millimetres or 32FC1 metres."""
     if msg.encoding == "16UC1":
@@ -680,4 +735,5 @@ def depth_from_msg(msg: RawImage) -> np.ndarray:
 
 
 __all__ = ["RunLogger", "read_log", "LogContents", "ChannelInfo", "software_versions", "json_object", "json_field",
-           "pose_from_msg", "points_from_msg", "depth_from_msg", "STATS_TOPIC"]
+           "pose_from_msg", "points_from_msg", "depth_from_msg", "loop_edges_from_msg", "STATS_TOPIC",
+           "LOOP_TOPIC"]

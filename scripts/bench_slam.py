@@ -1,23 +1,43 @@
 #!/usr/bin/env python3
-"""Dense SLAM against Open3D's tensor SLAM on the same frames, one table, measured in one run.
+"""Dense SLAM against Open3D's tensor SLAM and OpenCV's odometry on the same frames, one table, one run.
 
-    python scripts/bench_slam.py [DATA] [--frames N] [--downsample F] [--arch cpu]
+    python scripts/bench_slam.py [DATA] [--frames N] [--downsample F] [--arch cpu] [--cold]
+                                 [--systems ti-fusion,open3d,opencv] [--open3d-python PY] [--opencv-path DIR]
+                                 [--opencv-odometry depth|depth-fast|rgbd|rgb]
 
 DATA defaults to ../shared/data/redkitchen-7scenes when present, else the synthetic sequence. Each
-system runs in its own child process (so each gets its own peak memory and process start). Two rates,
-side by side so that neither is read as the other:
-- ``fps wall``: frames / wall-clock time of the whole loop, with reading the images, the first frames'
-  kernel compilation and logging;
+system runs in its own child process, one after the other, so each has its own process start, its own
+peak memory and the cores to itself (apart from other users of the machine). Columns:
+- ``process s``: the child's whole wall-clock life as this script measured it (interpreter start, imports,
+  reading every frame, compiling, tracking, fusion, logging, writing the outputs, exit), and ``fps
+  process`` = frames / that: what a user waits for;
+- ``fps loop``: frames / wall-clock time of the frame loop (``fps_wall`` of ti-fusion's summary): with
+  reading the images, the first frames' kernel compilation and logging, without start-up and outputs;
 - ``fps proc``: frames / time of tracking + fusion (+ logging for ti-fusion) after the first two frames,
-  without reading the images or compiling.
-``1st tracked s`` is the child's age when its second frame (the first one tracked) was done: the cold
-start with the kernel cache as it is. ``process s`` is its age at the end, outputs written. ti-fusion is
-the ``ti-fusion slam`` command itself, run in the child; ``--cold`` adds a run of it with an empty Taichi
-kernel cache (a fresh TI_OFFLINE_CACHE_FILE_PATH), and the next ti-fusion run reads that cache (warm, and
-independent of the user's cache, which holds other versions of the kernels and has an LRU size limit). Open3D (``pip install open3d-cpu``; Debian's
-libusb-1.0-0) is optional: without it the table has ti-fusion alone. Open3D runs
-``o3d.t.pipelines.slam.Model`` (frame-to-model TSDF, voxel 0.0059 m, depth max 3 m, truncation 8 voxels,
-depth-only point-to-plane) and writes nothing.
+  without reading the images or compiling;
+- ``1st tracked s``: the child's age (from the kernel's record of its start) when its second frame (the
+  first one tracked) was done: the cold start with the kernel cache as it is;
+- ``peak MB``: the child's maximum resident set size (``wait4``'s rusage, all of the process's life).
+ti-fusion is the ``ti-fusion slam`` command itself (every output written), run in the child. ``--cold``
+adds a run of it with an empty Taichi kernel cache (a fresh TI_OFFLINE_CACHE_FILE_PATH), and the next
+ti-fusion run reads that cache (warm, and independent of the user's cache, which holds other versions of
+the kernels and has an LRU size limit).
+
+Peers, both optional and never dependencies of ti-fusion (without one its row says why):
+- Open3D (``pip install open3d-cpu``; Debian's libusb-1.0-0): ``o3d.t.pipelines.slam.Model``
+  (frame-to-model TSDF, voxel 0.0059 m, depth max 3 m, truncation 8 voxels, depth-only point-to-plane);
+  writes nothing.
+- OpenCV's RGB-D odometry, frame to frame (an odometry-only trajectory: no map, so no drift correction
+  and no fusion time): OpenCV 5's ``cv2.Odometry`` (in the 3d module of the main wheels, so
+  ``opencv-python-headless`` 5.x, a ti-fusion dependency, already has it) or OpenCV 4's contrib
+  ``cv2.rgbd`` (``opencv-contrib-python-headless`` 4.x, which cannot share an environment with
+  ``opencv-python-headless``: install it into a folder of its own with ``pip install --target DIR``
+  and pass ``--opencv-path DIR``). ``--opencv-odometry``: ``depth`` (point-to-plane ICP, default),
+  ``depth-fast`` (OpenCV's fast ICP variant), ``rgbd`` (ICP + photometric), ``rgb`` (photometric only).
+  The colour of 7-Scenes is not registered to its depth, so the colour variants are at a disadvantage there.
+Open3D runs in this interpreter unless ``--open3d-python PY`` names another (e.g. a virtual environment
+with ``pip install open3d-cpu``), which then finds ti-fusion (for reading the frames and the metrics)
+through this interpreter's site-packages, added after its own.
 """
 
 from __future__ import annotations
@@ -26,9 +46,11 @@ import argparse
 import json
 import os
 import resource
+import site
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 from pathlib import Path
 
@@ -37,8 +59,12 @@ import numpy as np
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen-7scenes"
 
 
-def _peak_mb() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+def _add_parent_site() -> None:
+    """In a peer's own interpreter: this benchmark's interpreter's site-packages (ti-fusion and what it
+    reads frames with), after the peer's own, so that the peer's packages win where both have one."""
+    for path in filter(None, os.environ.get("BENCH_SLAM_SITE", "").split(os.pathsep)):
+        if path not in sys.path:
+            site.addsitedir(path)
 
 
 def _dataset(args):
@@ -68,17 +94,32 @@ def run_ti_fusion(args, cold: bool = False) -> dict:
         s = json.loads((Path(tmp) / "run" / "summary.json").read_text())
     return {"system": f"ti-fusion ({s['backend']}{', empty kernel cache' if cold else ''})", "frames": s["frames"],
             "fps_wall": s["fps_wall"], "fps": s["fps_processing"], "first_tracked_s": s.get("second_frame_s"),
-            "process_s": s.get("process_s"), "ate_rmse_m": s.get("ate_rmse_m"), "rpe_trans_m": s.get("rpe_trans_m"),
-            "failures": s["tracking_failures"], "peak_mb": _peak_mb()}
+            "ate_rmse_m": s.get("ate_rmse_m"), "rpe_trans_m": s.get("rpe_trans_m"),
+            "failures": s["tracking_failures"], "loop_s": s.get("wall_s"), "age_end_s": s.get("process_s"),
+            "warmup_s": s["warmup_ms"] / 1e3 if s.get("warmup_ms") is not None else None,
+            "stages_s": {k: v["total"] / 1e3 for k, v in (s.get("ms_per_stage") or {}).items()}}
+
+
+def _trajectory_result(system, poses, gts, times, wall, first_tracked, failures) -> dict:
+    from ti_fusion.evaluation.metrics import trajectory_metrics
+
+    steady = np.asarray(times[2:])
+    out = {"system": system, "frames": len(poses), "fps_wall": len(poses) / wall,
+           "fps": len(steady) / steady.sum() if len(steady) else None, "first_tracked_s": first_tracked,
+           "failures": failures}
+    if all(g is not None for g in gts):
+        m = trajectory_metrics(np.stack(poses), np.stack(gts))
+        out.update(ate_rmse_m=m["ate_rmse_m"], rpe_trans_m=m["rpe_trans_m"])
+    return out
 
 
 def run_open3d(args) -> dict:
+    _add_parent_site()
     try:
         import open3d as o3d
         import open3d.core as o3c
-    except ImportError:
-        return {"system": "Open3D", "error": "not installed (pip install open3d-cpu)"}
-    from ti_fusion.evaluation.metrics import trajectory_metrics
+    except ImportError as e:
+        return {"system": "Open3D", "error": f"not available ({e}; pip install open3d-cpu, or --open3d-python PY)"}
     from ti_fusion.slam.timing import process_age_s
 
     _, dataset = _dataset(args)
@@ -112,14 +153,116 @@ def run_open3d(args) -> dict:
         gts.append(frame.gt_pose)
         if i == 1:
             first_tracked = process_age_s()
-    wall = time.perf_counter() - t_loop
-    steady = np.asarray(times[2:])
-    out = {"system": f"Open3D {o3d.__version__} (cpu)", "frames": len(poses), "fps_wall": len(poses) / wall,
-           "fps": len(steady) / steady.sum(), "first_tracked_s": first_tracked, "process_s": process_age_s(),
-           "failures": 0, "peak_mb": _peak_mb()}
-    if all(g is not None for g in gts):
-        m = trajectory_metrics(np.stack(poses), np.stack(gts))
-        out.update(ate_rmse_m=m["ate_rmse_m"], rpe_trans_m=m["rpe_trans_m"])
+    return _trajectory_result(f"Open3D {o3d.__version__} (cpu)", poses, gts, times, time.perf_counter() - t_loop,
+                              first_tracked, 0)
+
+
+class OpenCVOdometry:
+    """OpenCV's RGB-D odometry between two frames, whichever API this cv2 has: OpenCV 5's ``cv2.Odometry``
+    or OpenCV 4 contrib's ``cv2.rgbd``. ``prepare(depth_m, grey)`` → a frame; ``compute(src, dst)`` → (ok,
+    4×4 Rt with Rt · p_src = p_dst). Depth in metres (float32, 0 = none), grey uint8 or None."""
+
+    KINDS = ("depth", "depth-fast", "rgbd", "rgb")
+
+    def __init__(self, kind: str, K, depth_max: float):
+        import cv2
+
+        self.cv2, self.kind = cv2, kind
+        camera = np.array([[K.fx, 0.0, K.cx], [0.0, K.fy, K.cy], [0.0, 0.0, 1.0]], np.float32)
+        if hasattr(cv2, "Odometry"):  # OpenCV 5: the 3d module
+            settings = cv2.OdometrySettings()
+            settings.setCameraMatrix(camera)
+            settings.setMaxDepth(float(depth_max))
+            kind_type = {"depth": cv2.OdometryType_DEPTH, "depth-fast": cv2.OdometryType_DEPTH,
+                         "rgbd": cv2.OdometryType_RGB_DEPTH, "rgb": cv2.OdometryType_RGB}[kind]
+            algo = cv2.OdometryAlgoType_FAST if kind == "depth-fast" else cv2.OdometryAlgoType_COMMON
+            self.odometry = cv2.Odometry(kind_type, settings, algo)
+            self.api = f"cv2.Odometry (OpenCV {cv2.__version__})"
+        elif hasattr(cv2, "rgbd"):  # OpenCV 4 contrib
+            rgbd = cv2.rgbd
+            if kind == "depth":
+                self.odometry = rgbd.ICPOdometry_create(camera, 0.0, float(depth_max))
+            elif kind == "depth-fast":
+                self.odometry = rgbd.FastICPOdometry_create(camera)
+            elif kind == "rgbd":
+                self.odometry = rgbd.RgbdICPOdometry_create(camera, 0.0, float(depth_max))
+            else:
+                self.odometry = rgbd.RgbdOdometry_create(camera, 0.0, float(depth_max))
+            self.api = f"cv2.rgbd (OpenCV {cv2.__version__} contrib)"
+        else:
+            raise ImportError(f"OpenCV {cv2.__version__} has neither cv2.Odometry (OpenCV 5) nor cv2.rgbd "
+                              "(OpenCV 4 contrib)")
+        self.name = f"OpenCV {cv2.__version__} {kind} odometry"
+        self.uses_grey = kind in ("rgbd", "rgb")
+
+    def prepare(self, depth_m: np.ndarray, grey: np.ndarray | None):
+        cv2 = self.cv2
+        depth = np.ascontiguousarray(depth_m, dtype=np.float32)
+        if grey is None:
+            grey = np.zeros(depth.shape, np.uint8)
+        if hasattr(cv2, "Odometry"):
+            frame = cv2.OdometryFrame(image=grey, depth=depth) if self.uses_grey else cv2.OdometryFrame(depth=depth)
+            self.odometry.prepareFrame(frame)
+            return frame
+        frame = cv2.rgbd.OdometryFrame_create(grey, depth, np.ones(depth.shape, np.uint8), None, -1)
+        self.odometry.prepareFrameCache(frame, cv2.rgbd.OdometryFrame_CACHE_ALL)
+        return frame
+
+    def compute(self, src, dst) -> tuple[bool, np.ndarray]:
+        if hasattr(self.cv2, "Odometry"):
+            ok, Rt = self.odometry.compute(src, dst)
+        else:
+            ok, Rt = self.odometry.compute2(src, dst)
+        return bool(ok), (np.asarray(Rt, dtype=np.float64) if ok else np.eye(4))
+
+
+def grey_of(colour: np.ndarray | None) -> np.ndarray | None:
+    if colour is None:
+        return None
+    c = colour.astype(np.float32)
+    return np.clip(0.299 * c[..., 0] + 0.587 * c[..., 1] + 0.114 * c[..., 2] + 0.5, 0, 255).astype(np.uint8)
+
+
+def run_opencv(args) -> dict:
+    """Frame-to-frame odometry: each frame against the previous one (prepared once, reused), poses chained;
+    a failed frame keeps the previous pose (counted as a failure)."""
+    _add_parent_site()
+    import cv2
+
+    from ti_fusion.slam.timing import process_age_s
+
+    if not hasattr(cv2.utils, "logging"):  # OpenCV 4 wheels lack it; ti-fusion's image reading silences through it
+        import types
+
+        cv2.utils.logging = types.SimpleNamespace(LOG_LEVEL_SILENT=0, getLogLevel=lambda: 0,
+                                                  setLogLevel=lambda level: None)
+    cfg, dataset = _dataset(args)
+    try:
+        odometry = OpenCVOdometry(args.opencv_odometry, dataset.intrinsics, cfg.dataset.depth_max)
+    except (ImportError, AttributeError) as e:
+        return {"system": "OpenCV", "error": f"not available ({e})"}
+    t_loop = time.perf_counter()
+    poses, gts, times = [], [], []
+    first_tracked, failures, previous = None, 0, None
+    for i in range(len(dataset)):
+        frame = dataset[i]
+        t0 = time.perf_counter()
+        current = odometry.prepare(frame.depth, grey_of(frame.color) if odometry.uses_grey else None)
+        if previous is None:
+            T = frame.gt_pose.copy() if frame.gt_pose is not None else np.eye(4)
+        else:
+            ok, Rt = odometry.compute(current, previous)  # current → previous camera frame
+            failures += not ok
+            T = T @ Rt
+        previous = current
+        times.append(time.perf_counter() - t0)
+        poses.append(T.copy())
+        gts.append(frame.gt_pose)
+        if i == 1:
+            first_tracked = process_age_s()
+    out = _trajectory_result(f"{odometry.name} (frame to frame)", poses, gts, times, time.perf_counter() - t_loop,
+                             first_tracked, failures)
+    out["api"] = odometry.api
     return out
 
 
@@ -127,21 +270,49 @@ def _number(value, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
+def run_child(cmd: list[str], env: dict | None) -> tuple[dict | None, str, float, float]:
+    """(RESULT of the child or None, its last line of stderr, its wall-clock life in s, its peak RSS in MB)."""
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    outs, errs = [], []
+    readers = [threading.Thread(target=lambda s, into: into.append(s.read()), args=(stream, into))
+               for stream, into in ((proc.stdout, outs), (proc.stderr, errs))]
+    for t in readers:
+        t.start()
+    # the child's own rusage (RUSAGE_CHILDREN would be the maximum over every child so far)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    for t in readers:
+        t.join()
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    out, err = "".join(outs), "".join(errs)
+    lines = [line for line in out.splitlines() if line.startswith("RESULT ")]
+    return (json.loads(lines[-1][7:]) if lines else None, (err.strip().splitlines() or ["failed"])[-1], wall,
+            usage.ru_maxrss / 1024.0)
+
+
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument("data", nargs="?", default=str(DEFAULT_DATA) if DEFAULT_DATA.is_dir() else "")
     parser.add_argument("--frames", type=int, default=None, help="first N frames (default: all)")
     parser.add_argument("--downsample", type=int, default=1)
     parser.add_argument("--arch", default="cpu")
-    parser.add_argument("--systems", default="ti-fusion,open3d")
+    parser.add_argument("--systems", default="ti-fusion,open3d,opencv")
     parser.add_argument("--cold", action="store_true",
                         help="also run ti-fusion with an empty Taichi kernel cache (the first run after installing)")
+    parser.add_argument("--open3d-python", default=None, metavar="PY",
+                        help="an interpreter with open3d installed, when this one has none")
+    parser.add_argument("--opencv-path", default=None, metavar="DIR",
+                        help="a folder with another cv2 (pip install --target DIR opencv-contrib-python-headless==4.*), "
+                             "put before this interpreter's packages for the OpenCV run")
+    parser.add_argument("--opencv-odometry", default="depth", choices=OpenCVOdometry.KINDS)
+    parser.add_argument("--json", metavar="FILE", help="also write the rows as JSON")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
-        result = (run_open3d(args) if args.worker == "open3d" else
-                  run_ti_fusion(args, cold=args.worker == "ti-fusion-cold"))
-        print("RESULT " + json.dumps(result), flush=True)
+        workers = {"open3d": run_open3d, "opencv": run_opencv,
+                   "ti-fusion": run_ti_fusion, "ti-fusion-cold": lambda a: run_ti_fusion(a, cold=True)}
+        print("RESULT " + json.dumps(workers[args.worker](args)), flush=True)
         return 0
 
     systems = args.systems.split(",")
@@ -150,37 +321,60 @@ def main() -> int:
     rows = []
     # --cold: an empty kernel cache of its own, which the cold run fills and the warm run then reads
     cache = tempfile.TemporaryDirectory() if args.cold else None
+    parent_site = os.pathsep.join(site.getsitepackages() + [str(Path(__file__).resolve().parents[1])])
     for system in systems:
-        cmd = [sys.executable, __file__, args.data, "--worker", system, "--downsample", str(args.downsample),
-               "--arch", args.arch] + (["--frames", str(args.frames)] if args.frames else [])
-        env = {**os.environ, "TI_OFFLINE_CACHE_FILE_PATH": cache.name} if cache and "ti-fusion" in system else None
-        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
-        lines = [line for line in proc.stdout.splitlines() if line.startswith("RESULT ")]
-        rows.append(json.loads(lines[-1][7:]) if lines else
-                    {"system": system, "error": (proc.stderr.strip().splitlines() or ["failed"])[-1]})
+        python = args.open3d_python if system == "open3d" and args.open3d_python else sys.executable
+        cmd = [python, __file__, args.data, "--worker", system, "--downsample", str(args.downsample),
+               "--arch", args.arch, "--opencv-odometry", args.opencv_odometry] + \
+            (["--frames", str(args.frames)] if args.frames else [])
+        env = dict(os.environ)
+        if cache and "ti-fusion" in system:
+            env["TI_OFFLINE_CACHE_FILE_PATH"] = cache.name
+        if python != sys.executable:
+            env["BENCH_SLAM_SITE"] = parent_site
+        if system == "opencv" and args.opencv_path:
+            env["PYTHONPATH"] = os.pathsep.join(filter(None, [args.opencv_path, env.get("PYTHONPATH")]))
+        result, last_err, wall, peak = run_child(cmd, env)
+        if result is None:
+            result = {"system": system, "error": last_err}
+        result.update(process_s=wall, peak_mb=peak)
+        rows.append(result)
     if cache:
         cache.cleanup()
     name = args.data or "synthetic"
-    print(f"dense SLAM on {name}, downsample {args.downsample}")
-    print(f"{'system':<38} {'frames':>6} {'fps wall':>8} {'fps proc':>8} {'1st tracked s':>13} {'process s':>9} "
-          f"{'ATE m':>8} {'RPE m':>8} {'fail':>5} {'peak MB':>8}")
+    print(f"dense SLAM on {name}, downsample {args.downsample}, {os.cpu_count()} CPUs; "
+          f"{time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC")
+    print(f"{'system':<48} {'frames':>6} {'process s':>9} {'fps process':>11} {'fps loop':>8} {'fps proc':>8} "
+          f"{'1st tracked s':>13} {'ATE m':>8} {'RPE m':>8} {'fail':>5} {'peak MB':>8}")
     for r in rows:
         if "error" in r:
-            print(f"{r['system']:<38} {r['error']}")
+            print(f"{r['system']:<48} {r['error']}")
             continue
-        print(f"{r['system']:<38} {r['frames']:>6} {_number(r['fps_wall'], '8.2f')} {_number(r['fps'], '8.2f')} "
-              f"{_number(r['first_tracked_s'], '13.2f')} {_number(r['process_s'], '9.2f')} "
+        print(f"{r['system']:<48} {r['frames']:>6} {r['process_s']:9.2f} {r['frames'] / r['process_s']:11.2f} "
+              f"{_number(r['fps_wall'], '8.2f')} {_number(r['fps'], '8.2f')} "
+              f"{_number(r['first_tracked_s'], '13.2f')} "
               f"{_number(r.get('ate_rmse_m'), '8.4f')} {_number(r.get('rpe_trans_m'), '8.4f')} {r['failures']:>5} "
               f"{r['peak_mb']:>8.0f}")
-    ours = [r for r in rows if "error" not in r and r["system"].startswith("ti-fusion") and "empty" not in r["system"]]
-    peers = [r for r in rows if "error" not in r and r["system"].startswith("Open3D")]
-    if ours and peers:
-        a, b = ours[0], peers[0]
-        line = (f"ratios ti-fusion / Open3D: fps wall {a['fps_wall'] / b['fps_wall']:.2f}x, "
-                f"fps proc {a['fps'] / b['fps']:.2f}x, process time {b['process_s'] / a['process_s']:.2f}x shorter")
-        if a.get("ate_rmse_m") and b.get("ate_rmse_m"):
-            line += f", ATE {a['ate_rmse_m'] / b['ate_rmse_m']:.2f}x"
-        print(line)
+    for r in rows:
+        if r.get("stages_s"):
+            stages = ", ".join(f"{k} {v:.2f}" for k, v in r["stages_s"].items())
+            print(f"{r['system']}: where the {r['process_s']:.2f} s went: before the loop and after it "
+                  f"{r['process_s'] - r['loop_s']:.2f} s, the loop {r['loop_s']:.2f} s, of which its first two frames "
+                  f"(compiling) {_number(r.get('warmup_s'), '.2f')} s; stage totals after them (s): {stages}")
+    ok = [r for r in rows if "error" not in r]
+    ours = [r for r in ok if r["system"].startswith("ti-fusion") and "empty" not in r["system"]]
+    for prefix in ("Open3D", "OpenCV"):
+        peers = [r for r in ok if r["system"].startswith(prefix)]
+        if ours and peers:
+            a, b = ours[0], peers[0]
+            line = (f"ti-fusion / {prefix}: whole process {b['process_s'] / a['process_s']:.2f}x shorter, "
+                    f"fps process {(a['frames'] / a['process_s']) / (b['frames'] / b['process_s']):.2f}x, "
+                    f"fps loop {a['fps_wall'] / b['fps_wall']:.2f}x, fps proc {a['fps'] / b['fps']:.2f}x")
+            if a.get("ate_rmse_m") and b.get("ate_rmse_m"):
+                line += f", ATE {a['ate_rmse_m'] / b['ate_rmse_m']:.2f}x"
+            print(line)
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=2))
     return 0
 
 

@@ -429,9 +429,10 @@ class LoopConfig:
                                       # keyframe
     keyframe_min_frames: Count = 5   # frames between two keyframes at least (a keyframe costs ORB and a search)
     n_features: Count = 500          # ORB keypoints per keyframe at most
-    max_hamming: Annotated[int, Range(ge=0, le=256)] = 40  # bits: a descriptor's neighbour in another keyframe
-                                     # votes for that keyframe when closer than this
-    min_score: Fraction = 0.08       # fraction of a keyframe's descriptors voting for a place: less → not a candidate
+    max_hamming: Annotated[int, Range(ge=0, le=256)] = 40  # bits: before the vocabulary exists (first keyframes),
+                                     # a descriptor's neighbour in another keyframe votes for it when closer than this
+    min_score: Fraction = 0.15       # bag-of-words similarity (DBoW2's L1 score, 0 to 1; or the fraction of voting
+                                     # descriptors before the vocabulary exists) below this → not a candidate
     candidates: Count = 3            # best-scoring earlier keyframes verified per keyframe at most
     min_frame_gap: Count = 60        # frames between a candidate keyframe and the current one at least (nearer ones
                                      # are odometry's business)
@@ -439,7 +440,8 @@ class LoopConfig:
                                      # consistent_m) at least, else rejected before PnP
     consistent_m: Positive = 0.05    # metres: pre-check tolerance on the distance between two matched 3D points
     min_pnp_inliers: Count = 25      # PnP RANSAC inliers at least
-    min_inlier_ratio: Fraction = 0.3  # ICP between the two keyframes: inliers / valid pixels at least
+    min_inlier_ratio: Fraction = 0.2  # ICP between the two keyframes: inliers / valid pixels at least (two raw
+                                      # frames of one place at 5 cm / 4 deg apart gave 0.30 on the synthetic room)
     max_residual: Positive = 0.015   # metres: ICP's RMS point-to-plane residual at most
     max_icp_change_deg: Degrees = 10.0  # ICP may move PnP's guess by at most this (degrees) ...
     max_icp_change_m: Positive = 0.15  # ... and this (metres), else the two disagree: rejected

@@ -11,7 +11,7 @@
               along it, up and down and toward it. Depth fixes only the two planes: motion along the wall
               is unobservable without colour.
 ``corridor``  an endless straight corridor with plain walls, floor and ceiling and textured posters flat on
-              the walls (3 mm thick): depth cannot see motion along the corridor.
+              the walls (3 mm thick, 0.8 m × 1 m, every 1.2 m on each wall): depth cannot see motion along the corridor.
 
 World frame as in ``scene``: metres, z up. The loop scenes are centred under the renderer's point light
 (``kernels.raycast.LIGHT``) so their shading, like their geometry, is symmetric under a half turn about
@@ -67,8 +67,8 @@ def _loop_shell() -> list[Primitive]:
 
 
 def _loop_furniture() -> list[tuple[float, float, Primitive]]:
-    """(x, y relative to the centre, primitive) of the loop's furniture: nothing reaches more than 0.35 m
-    into a corridor, so the walk (within 0.25 m of the corridor's middle) keeps ≥ 0.4 m from it."""
+    """(x, y relative to the centre, primitive) of the loop's furniture: what stands higher than 1 m reaches
+    at most 0.32 m into a corridor, so the walk (within 0.2 m of the corridor's middle) keeps ≥ 0.4 m away."""
     ox, oy = LOOP_OUTER
     bx, by = LOOP_BLOCK
     h = LOOP_HEIGHT / 2
@@ -104,7 +104,7 @@ def _loop_furniture() -> list[tuple[float, float, Primitive]]:
     box(2.4, -oy + 0.25, (0.7, 0.22, 0.23), M("blobs", 0.08, (0.25, 0.40, 0.20), (0.85, 0.90, 0.60)))
     box(-0.2, -by - 0.02, (0.4, 0.02, 0.3), M("tiles", 0.04, (0.10, 0.20, 0.35), (0.95, 0.80, 0.40)), z=1.6)
     # east corridor (x ∈ [4, 6]): shelf, plant, ball
-    box(ox - 0.25, -0.9, (0.22, 0.6, 0.9), M("plaid", 0.06, (0.20, 0.15, 0.45), (0.95, 0.75, 0.35)))
+    box(ox - 0.17, -0.9, (0.15, 0.6, 0.9), M("plaid", 0.06, (0.20, 0.15, 0.45), (0.95, 0.75, 0.35)))
     cyl(ox - 0.3, 1.1, 0.18, 0.25, M("bricks", 0.08, (0.45, 0.25, 0.15), (0.80, 0.55, 0.40), aspect=0.5))
     ball(ox - 0.3, 1.1, 0.75, 0.28, M("blobs", 0.05, (0.15, 0.45, 0.15), (0.60, 0.85, 0.40)))
     box(bx + 0.02, 0.8, (0.02, 0.45, 0.3), M("checker", 0.05, (0.05, 0.05, 0.08), (0.55, 0.70, 0.85)), z=1.45)
@@ -117,7 +117,7 @@ def _loop_furniture() -> list[tuple[float, float, Primitive]]:
     box(-3.3, oy - 0.02, (0.45, 0.02, 0.3), M("blobs", 0.06, (0.75, 0.15, 0.20), (0.95, 0.90, 0.85)), z=1.5)
     box(-0.9, by + 0.02, (0.35, 0.02, 0.45), M("plaid", 0.05, (0.10, 0.35, 0.45), (0.90, 0.90, 0.90)), z=1.4)
     # west corridor (x ∈ [−6, −4]): lockers, bin, picture
-    box(-ox + 0.25, 0.6, (0.22, 0.7, 0.9), M("tiles", 0.15, (0.35, 0.45, 0.55), (0.85, 0.88, 0.90), aspect=2.0))
+    box(-ox + 0.17, 0.6, (0.15, 0.7, 0.9), M("tiles", 0.15, (0.35, 0.45, 0.55), (0.85, 0.88, 0.90), aspect=2.0))
     cyl(-bx - 0.25, -0.8, 0.2, 0.3, M("checker", 0.04, (0.35, 0.15, 0.45), (0.85, 0.75, 0.90)))
     box(-bx - 0.02, 1.0, (0.02, 0.4, 0.3), M("tiles", 0.04, (0.40, 0.10, 0.10), (0.95, 0.85, 0.70)), z=1.5)
     box(-ox + 0.3, -1.4, (0.25, 0.25, 0.45), M("blobs", 0.07, (0.25, 0.25, 0.45), (0.85, 0.85, 0.95)), yaw=0.2)
@@ -198,21 +198,27 @@ def loop_centre_line(s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def loop_path(times: np.ndarray) -> np.ndarray:
     """A walk round the loop's corridors: ≈ 0.65 m/s along the centre line (speed varying by ±10%), up
-    to 0.2 m to either side, eye height with a walking bob, the gaze swinging between the walls ±30°
-    about the way ahead and up and down, a few degrees of roll."""
+    to 0.2 m to either side, eye height with a walking bob, the gaze swinging between the walls about the
+    way ahead (±30°) and up and down, a few degrees of roll.
+
+    Where the walker is and where it looks depend on how far round it is (whole cycles per lap), so the
+    second time past a place (after the 30.3 m lap) it stands and looks as the first time, within the bob
+    and roll (which follow the clock): the end of the default path re-observes the first views.
+    """
     t = np.asarray(times, dtype=np.float64)
     s = LOOP_SPEED * t + 0.15 * np.sin(0.4 * t)
+    phase = 2 * np.pi * s / LOOP_LENGTH  # one turn per lap
     p, tangent = loop_centre_line(s)
     left = np.stack([-tangent[:, 1], tangent[:, 0]], 1)  # towards the block
-    lateral = 0.18 * np.sin(0.23 * t + 0.5) + 0.01 * np.sin(2 * np.pi * 0.9 * t)
+    lateral = 0.18 * np.sin(5 * phase + 0.5) + 0.01 * np.sin(2 * np.pi * 0.9 * t)
     xy = p + lateral[:, None] * left
-    z = 1.45 + 0.08 * np.sin(0.5 * t + 0.3) + 0.01 * np.sin(2 * np.pi * 1.8 * t)
+    z = 1.45 + 0.06 * np.sin(3 * phase + 0.3) + 0.01 * np.sin(2 * np.pi * 1.8 * t)
     ahead, ahead_tangent = loop_centre_line(s + 2.0)
     ahead_left = np.stack([-ahead_tangent[:, 1], ahead_tangent[:, 0]], 1)
-    swing = 1.1 * np.sin(0.35 * t + 0.2) + 0.2 * np.sin(0.9 * t)
+    swing = 1.1 * np.sin(8 * phase + 0.2) + 0.2 * np.sin(19 * phase)
     target_xy = ahead + swing[:, None] * ahead_left
-    target_z = 1.15 + 0.35 * np.sin(0.41 * t + 1.0)
-    roll = np.radians(4.0 * np.sin(0.7 * t + 0.4) + 1.5 * np.sin(1.9 * t))
+    target_z = 1.15 + 0.35 * np.sin(11 * phase + 1.0)
+    roll = np.radians(3.0 * np.sin(7 * phase + 0.4) + 1.5 * np.sin(1.9 * t))
     return np.array([look_at(np.array([xy[i, 0], xy[i, 1], z[i]]),
                              np.array([target_xy[i, 0], target_xy[i, 1], target_z[i]]), roll[i])
                      for i in range(len(t))])
@@ -236,7 +242,7 @@ def wall_path(times: np.ndarray) -> np.ndarray:
     x = 2.5 * np.sin(0.24 * t) + 0.005 * np.sin(2 * np.pi * 1.1 * t)
     y = WALL_Y - 1.35 + 0.25 * np.sin(0.31 * t + 1.0) + 0.005 * np.sin(2 * np.pi * 0.9 * t + 1.0)
     z = 1.35 + 0.25 * np.sin(0.4 * t) + 0.005 * np.sin(2 * np.pi * 1.3 * t + 2.0)
-    target = np.stack([x + 0.7 * np.sin(0.37 * t + 0.3), np.full_like(t, WALL_Y), 0.45 + 0.25 * np.sin(0.5 * t + 1.2)], 1)
+    target = np.stack([x + 0.7 * np.sin(0.37 * t + 0.3), np.full_like(t, WALL_Y), 0.3 + 0.25 * np.sin(0.5 * t + 1.2)], 1)
     roll = np.radians(5.0 * np.sin(0.8 * t + 0.4) + 2.0 * np.sin(1.9 * t))
     return np.array([look_at(np.array([x[i], y[i], z[i]]), target[i], roll[i]) for i in range(len(t))])
 
@@ -262,10 +268,10 @@ def corridor_scene() -> Scene:
                M("plaid", 0.06, (0.15, 0.40, 0.25), (0.95, 0.90, 0.70)),
                M("tiles", 0.06, (0.10, 0.15, 0.30), (0.95, 0.75, 0.35)),
                M("bricks", 0.1, (0.45, 0.20, 0.30), (0.90, 0.80, 0.85), aspect=0.4)]
-    for k, x in enumerate(np.arange(-9.0, 12.01, 1.5)):
-        south = k % 2 == 0
-        y = y0 + 0.003 if south else y1 - 0.003
-        prims.append(Box((float(x), y, 1.45 + 0.1 * ((k * 7) % 3 - 1)), (0.35, 0.003, 0.45), posters[k % len(posters)]))
+    for k, x in enumerate(np.arange(-9.0, 12.01, 0.6)):  # each wall: a poster 0.8 m wide every 1.2 m
+        y = y0 + 0.003 if k % 2 == 0 else y1 - 0.003
+        z = 1.4 + 0.12 * ((k * 7) % 3 - 1)
+        prims.append(Box((float(x), y, z), (0.4, 0.003, 0.5), posters[(k * 3) % len(posters)]))
     return Scene(prims)
 
 

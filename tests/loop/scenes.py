@@ -15,7 +15,7 @@ WIDTH, HEIGHT = 320, 240
 def sequence():
     from ti_fusion.synthetic.scene import SyntheticSequence
 
-    return SyntheticSequence(SynthConfig(width=WIDTH, height=HEIGHT, fx=262.5, frames=10))
+    return SyntheticSequence(SynthConfig(width=WIDTH, height=HEIGHT, fx=262.5))
 
 
 def moved(pose: np.ndarray, yaw_deg: float = 0.0, shift=(0.0, 0.0, 0.0)) -> np.ndarray:

@@ -32,7 +32,7 @@ from ti_fusion.geometry import invert, renormalize
 from ti_fusion.loop.keyframes import Keyframe, KeyframeSelector, grid_points
 from ti_fusion.loop.place_recognition import PlaceDatabase
 from ti_fusion.loop.pose_graph import PoseGraph
-from ti_fusion.loop.verification import LoopCandidate, LoopVerifier
+from ti_fusion.loop.verification import LoopCandidate, LoopVerifier, fill
 from ti_fusion.tracking.features import extract_features
 
 log = logging.getLogger(__name__)
@@ -131,6 +131,10 @@ class LoopClosure:
         self.keyframes.append(kf)
         self.graph.add_keyframe(pose)
         slam.mapper.anchor = kf.id  # surfels fused from the next frame on move with this keyframe
+        if kf.id == 0:
+            # Compile the source maps' kernels for stored depth now, in the run's warm-up frames, not at the
+            # first candidate (the prediction is rendered into these maps again before the next frame is tracked).
+            fill(slam.model_maps, kf)
         return kf
 
     # -- closing a loop -------------------------------------------------------------------------

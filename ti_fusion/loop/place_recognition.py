@@ -1,12 +1,16 @@
 """Place recognition: which earlier keyframes see the place the current one sees, by appearance alone.
 
-Every keyframe's ORB descriptors go into one database. A query descriptor's nearest neighbours among all
-the eligible keyframes' descriptors (brute-force Hamming k-NN, ``cv2.BFMatcher``) each vote for their
-keyframe when closer than ``loop.max_hamming`` bits, at most one vote per query descriptor and keyframe;
-a keyframe's score is its votes over the query's descriptor count. This is the nearest-neighbour search of
-a bag of binary words without the vocabulary (no training set to build one from, and at the few hundred
-keyframes of an indoor sequence the exhaustive search costs a few milliseconds). The search runs over every
-keyframe at least ``loop.min_frame_gap`` frames older than the query, wherever the pose estimate puts it.
+A bag of binary words (Gálvez-López and Tardós's DBoW2 in miniature): each ORB descriptor is quantised to
+its nearest word of a vocabulary (Hamming distance), a keyframe becomes a histogram of words weighted by
+tf-idf, and its similarity to another is DBoW2's L1 score, 1 − ½‖a/|a| − b/|b|‖₁ (0 = no word in common,
+1 = the same histogram). The query scores every earlier keyframe at least ``loop.min_frame_gap`` frames
+older, wherever the pose estimate puts it (a K × V table: microseconds per keyframe).
+
+The vocabulary is learnt from the run's own keyframes (there is no training set to ship one from): k-majority
+clustering of their descriptors (k-means for bit strings: each word becomes the bitwise majority of its
+members), learnt at the fourth keyframe and again whenever the keyframe count doubles, every histogram
+then recomputed (amortised, this is a constant cost per keyframe). Before the fourth keyframe (nothing
+is old enough to be a loop yet) the keyframes are compared by brute-force nearest-neighbour votes.
 
 The cheap geometric pre-check (``precheck``): of the good matches between the two keyframes whose points
 have depth in both, how many agree with the largest set of matches whose pairwise 3D distances are
@@ -24,32 +28,57 @@ from ti_fusion.config import LoopConfig, VOConfig
 from ti_fusion.loop.keyframes import Keyframe
 from ti_fusion.tracking.features import match_features
 
-# Neighbours per query descriptor: the same place is usually seen by a few consecutive keyframes.
-NEIGHBOURS = 8
+# Neighbours per query descriptor in the brute-force vote used before the vocabulary exists.
+NEIGHBOURS = 4
 # The pre-check looks at this many matches at most (its cost grows with the square).
 PRECHECK_MATCHES = 300
+# The vocabulary: words, k-majority iterations, descriptors it is learnt from at most, and the keyframe
+# count it is first learnt at (then relearnt at every doubling).
+WORDS = 512
+ITERATIONS = 3
+TRAINING_DESCRIPTORS = 5_000
+FIRST_VOCABULARY = 4
 
 
 @dataclass
 class Place:
-    """An earlier keyframe that may see the same place: its id, score (fraction of the query's descriptors
-    that voted for it) and votes."""
+    """An earlier keyframe that may see the same place: its id and similarity score (0 to 1)."""
 
     keyframe: int
     score: float
-    votes: int
+
+
+def k_majority(descriptors: np.ndarray, words: int, iterations: int, rng: np.random.Generator) -> np.ndarray:
+    """``words`` binary words (uint8 × 32 rows) clustering ``descriptors`` by Hamming distance: start from
+    distinct random members, then assign each descriptor to its nearest word and replace each word by the
+    bitwise majority of its members (an empty cluster keeps its word)."""
+    unique = np.unique(descriptors, axis=0)
+    words = min(words, len(unique))
+    vocabulary = unique[rng.choice(len(unique), words, replace=False)]
+    bits = np.unpackbits(descriptors, axis=1).astype(np.int32)
+    matcher = cv2.BFMatcher(cv2.NORM_HAMMING)
+    for _ in range(iterations):
+        assign = np.array([m.trainIdx for m in matcher.match(descriptors, vocabulary)])
+        order = np.argsort(assign, kind="stable")
+        members, starts = np.unique(assign[order], return_index=True)  # the clusters that have members
+        sums = np.add.reduceat(bits[order], starts, axis=0)
+        counts = np.diff(np.r_[starts, len(order)])
+        vocabulary[members] = np.packbits((2 * sums > counts[:, None]).astype(np.uint8), axis=1)
+    return vocabulary
 
 
 class PlaceDatabase:
     """ORB descriptors of every keyframe; ``query`` finds the earlier keyframes that look like a new one."""
 
-    def __init__(self, config: LoopConfig):
+    def __init__(self, config: LoopConfig, seed: int = 0):
         self.config = config
         self._descriptors: list[np.ndarray] = []
-        self._owners: list[np.ndarray] = []
         self._frames: list[int] = []  # frame index of each keyframe, by id
-        self._stacked: tuple[np.ndarray, np.ndarray] | None = None
         self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=False)
+        self._rng = np.random.default_rng(seed)
+        self.vocabulary: np.ndarray | None = None
+        self._counts = np.zeros((0, 0), np.float32)  # keyframes × words: word counts
+        self.trainings = 0  # how often the vocabulary was learnt
 
     def __len__(self) -> int:
         return len(self._frames)
@@ -59,11 +88,30 @@ class PlaceDatabase:
         if keyframe.id != len(self._frames):
             raise ValueError(f"keyframe {keyframe.id} added as number {len(self._frames)}")
         d = keyframe.features.descriptors
-        d = np.zeros((0, 32), np.uint8) if d is None else d
-        self._descriptors.append(d)
-        self._owners.append(np.full(len(d), keyframe.id, np.int32))
+        self._descriptors.append(np.zeros((0, 32), np.uint8) if d is None else d)
         self._frames.append(keyframe.frame)
-        self._stacked = None
+        n = len(self._frames)
+        if n >= FIRST_VOCABULARY and n & (n - 1) == 0:  # 4, 8, 16, ...: learn the vocabulary again
+            self._learn()
+        elif self.vocabulary is not None:
+            self._counts = np.vstack([self._counts, self._histogram(self._descriptors[-1])])
+
+    def _learn(self) -> None:
+        every = np.concatenate(self._descriptors)
+        if len(every) > TRAINING_DESCRIPTORS:
+            every = every[self._rng.choice(len(every), TRAINING_DESCRIPTORS, replace=False)]
+        if len(every) < 2:
+            return
+        self.vocabulary = k_majority(every, WORDS, ITERATIONS, self._rng)
+        self._counts = np.stack([self._histogram(d) for d in self._descriptors])
+        self.trainings += 1
+
+    def _histogram(self, descriptors: np.ndarray) -> np.ndarray:
+        words = len(self.vocabulary)
+        if len(descriptors) == 0:
+            return np.zeros(words, np.float32)
+        assign = [m.trainIdx for m in self._matcher.match(descriptors, self.vocabulary)]
+        return np.bincount(assign, minlength=words).astype(np.float32)
 
     def query(self, keyframe: Keyframe) -> list[Place]:
         """Earlier keyframes at least ``min_frame_gap`` frames before ``keyframe`` with a score of at least
@@ -73,22 +121,37 @@ class PlaceDatabase:
         q = keyframe.features.descriptors
         if eligible == 0 or q is None or len(q) == 0:
             return []
-        if self._stacked is None:
-            self._stacked = (np.concatenate(self._descriptors), np.concatenate(self._owners))
-        descriptors, owners = self._stacked
-        n = int(sum(len(d) for d in self._descriptors[:eligible]))  # keyframes are stored in frame order
-        if n == 0:
-            return []
-        neighbours = self._matcher.knnMatch(q, descriptors[:n], k=min(NEIGHBOURS, n))
-        votes = np.zeros(eligible, np.int64)
-        for row in neighbours:
-            hit = {owners[m.trainIdx] for m in row if m.distance < cfg.max_hamming}
-            for k in hit:
-                votes[k] += 1
-        scores = votes / len(q)
+        scores = self._bow_scores(q, eligible) if self.vocabulary is not None else self._vote_scores(q, eligible)
         order = np.argsort(-scores, kind="stable")
-        return [Place(int(k), float(scores[k]), int(votes[k])) for k in order[:cfg.candidates]
-                if scores[k] >= cfg.min_score]
+        return [Place(int(k), float(scores[k])) for k in order[:cfg.candidates] if scores[k] >= cfg.min_score]
+
+    def _bow_scores(self, q: np.ndarray, eligible: int) -> np.ndarray:
+        """DBoW2's L1 score of the query against each of the first ``eligible`` keyframes, tf-idf weighted
+        (idf over every keyframe in the database)."""
+        counts = self._counts
+        df = np.count_nonzero(counts, axis=0)
+        # a word no keyframe has cannot match: weight 0, so it does not lower every score alike
+        idf = np.where(df > 0, np.log(len(counts) / np.maximum(df, 1)), 0.0).astype(np.float32)
+        def normalised(c):
+            v = c * idf
+            total = np.abs(v).sum(axis=-1, keepdims=True)
+            return v / np.maximum(total, 1e-12)
+        a = normalised(self._histogram(q))
+        b = normalised(counts[:eligible])
+        return 1.0 - 0.5 * np.abs(b - a).sum(axis=1)
+
+    def _vote_scores(self, q: np.ndarray, eligible: int) -> np.ndarray:
+        """Brute force: each query descriptor votes once for every keyframe among its nearest neighbours
+        (closer than ``max_hamming``); the score is the voting fraction of the query's descriptors."""
+        descriptors = np.concatenate(self._descriptors[:eligible])
+        owners = np.concatenate([np.full(len(d), k, np.int32) for k, d in enumerate(self._descriptors[:eligible])])
+        votes = np.zeros(eligible, np.int64)
+        if len(descriptors) == 0:
+            return votes.astype(np.float64)
+        for row in self._matcher.knnMatch(q, descriptors, k=min(NEIGHBOURS, len(descriptors))):
+            for k in {owners[m.trainIdx] for m in row if m.distance < self.config.max_hamming}:
+                votes[k] += 1
+        return votes / len(q)
 
 
 def precheck(a: Keyframe, b: Keyframe, vo: VOConfig, tolerance_m: float) -> int:

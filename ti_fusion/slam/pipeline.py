@@ -131,6 +131,8 @@ class Pipeline:
             self._calibration = frame.intrinsics
         if result.pose is not None:
             log.log_pose(frame.timestamp, result.pose, frame.gt_pose)
+        if hasattr(self.step, "log_frame"):  # the step's own channels (slam: loop edges)
+            self.step.log_frame(log, frame, result)
         if cfg.depth_every > 0 and i % cfg.depth_every == 0:
             log.log_depth(frame.timestamp, frame.depth)
             if frame.color is not None:
@@ -221,8 +223,9 @@ class Pipeline:
 
         with_gt = len(pairs) == len(poses) and metrics is not None  # else the estimate alone
         title = self.step.plot_title(self) + (f"\n({fields['gt_note']})" if "gt_note" in fields else "")
+        edges = self.step.loop_edges() if hasattr(self.step, "loop_edges") else None
         plot_trajectory(self.out.file("trajectory.png"), np.stack(poses), np.stack(gt) if with_gt else None,
-                        timestamps=stamps, title=title, metrics=metrics)
+                        timestamps=stamps, title=title, metrics=metrics, **({"loop_edges": edges} if edges else {}))
         return fields
 
 

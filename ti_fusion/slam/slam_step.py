@@ -1,9 +1,11 @@
-"""``ti-fusion slam``'s step in the pipeline: dense SLAM (``DenseSLAM.register_frame``) on each frame,
-the /slam/stats message, the surfel map for /map/points, and the map's files after the loop."""
+"""``ti-fusion slam``'s step in the pipeline: dense SLAM (``DenseSLAM.register_frame``) on each frame, then
+loop closure (``ti_fusion.loop.closure``, with ``slam.loop_closure``), the /slam/stats message, the surfel
+map for /map/points, the loop edges for /slam/loop_edges, and the map's files after the loop."""
 
 from __future__ import annotations
 
 import logging
+import time
 
 from ti_fusion.config import Config
 from ti_fusion.io.datasets.base import Dataset, Frame
@@ -27,6 +29,9 @@ STATS_SCHEMA = json_object({
         "track": json_field("number", "rendering the model and ICP (with feature relocalisation when it runs), "
                                       "milliseconds; every frame but the first"),
         "fuse": json_field("number", "fusing the frame into the map, milliseconds; fused frames only"),
+        "loop": json_field("number", "loop closure: keyframe, place recognition, verification, and on an "
+                                     "accepted loop the pose graph and the correction, milliseconds; with "
+                                     "slam.loop_closure only"),
     }, required=("maps",), description="time per stage, milliseconds"),
     "icp": json_object({
         "iterations": json_field("array", "iterations run at each pyramid level, index = level (0 = finest)",
@@ -48,6 +53,19 @@ STATS_SCHEMA = json_object({
                                      "covers them; fused frames only", minimum=0),
     "removed": json_field("integer", "surfels removed (unstable, or in front of the measured surface); fused "
                                      "frames only", minimum=0),
+    "loop": json_object({
+        "keyframe": json_field("integer", "the keyframe's id (0, 1, 2, ...)", minimum=0),
+        "why": json_field("string", '"first", "moved", "turned" or "overlap" (too little of the last keyframe seen)'),
+        "candidates": json_field("array", "earlier keyframes place recognition proposed, each with its decision: "
+                                          "query, match (keyframe ids), score, accepted, reason, consistent, "
+                                          "pnp_inliers, icp_inlier_ratio, icp_residual_mm, ms",
+                                 items={"type": "object"}),
+        "closed": json_field(["array", "null"], "[earlier keyframe, this keyframe] of a loop applied, else null",
+                             items={"type": "integer"}),
+        "outcome": json_field("string", 'for an accepted candidate: "applied" or why the pose graph refused it'),
+        "ms": json_field("object", "keyframe, detect, verify, optimise, correct: milliseconds"),
+    }, required=("keyframe", "why", "candidates", "closed", "outcome", "ms"),
+        description="loop closure, on frames that became keyframes (slam.loop_closure)"),
 }, required=("frame", "status", "tracking", "surfels", "ms"))
 
 
@@ -71,6 +89,9 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
     if result.fusion is not None:
         stats.update({"merged": result.fusion.merged, "added": result.fusion.added,
                       "covered": result.fusion.covered, "removed": result.fusion.removed})
+    loop = getattr(result, "loop", None)
+    if loop is not None:
+        stats["loop"] = loop.stats()
     return stats
 
 
@@ -80,13 +101,18 @@ class SLAMStep:
     name = "slam"
     stats_channel = "/slam/stats"
     stats_schema = STATS_SCHEMA
-    stages = ("maps", "track", "fuse")
+    stages = ("maps", "track", "fuse", "loop")
     estimates_poses = True
 
     def __init__(self, config: Config, dataset: Dataset):
         self.config = config
         self.dataset_name = dataset.name
         self.slam = DenseSLAM(config, dataset.intrinsics)
+        self.loop = None
+        if config.slam.loop_closure:
+            from ti_fusion.loop.closure import LoopClosure  # GTSAM: imported only when loop closure is on
+
+            self.loop = LoopClosure(config, self.slam)
 
     @property
     def warmup_frames(self) -> int:
@@ -95,7 +121,22 @@ class SLAMStep:
         return len(self.slam.skipped) + 2
 
     def register_frame(self, frame: Frame) -> FrameResult:
-        return self.slam.register_frame(frame)
+        result = self.slam.register_frame(frame)
+        if self.loop is not None:
+            t0 = time.perf_counter()
+            result.loop = self.loop.after_frame(frame, result)  # corrects earlier poses in place on a loop
+            result.ms["loop"] = (time.perf_counter() - t0) * 1e3
+        return result
+
+    def log_frame(self, log, frame: Frame, result: FrameResult) -> None:
+        """The loop edges so far (at the keyframes' current poses) after a frame that verified candidates."""
+        report = getattr(result, "loop", None)
+        if report is not None and report.candidates and hasattr(log, "log_loop_edges"):
+            log.log_loop_edges(frame.timestamp, self.loop.edges())
+
+    def loop_edges(self) -> list | None:
+        """Every verified loop candidate as (from, to, accepted) world points, for trajectory.png."""
+        return self.loop.edges() if self.loop is not None else None
 
     def stats(self, result: FrameResult) -> dict:
         return frame_stats(result, self.slam.surfels)
@@ -124,4 +165,12 @@ class SLAMStep:
             "relocalised": sum(r.status == "relocalised" for r in run.results),
             "map_started_at": None if first is None else first.index,
             "skipped_frames": [{"frame": f, "reason": reason} for f, reason in slam.skipped][:50],
+            **self.loop_summary(),
         }
+
+    def loop_summary(self) -> dict:
+        """summary.json's loop closure fields: the counts (0 with slam.loop_closure off), the loops, the
+        candidates with their decisions, and the milliseconds per call of each part."""
+        if self.loop is None:
+            return {"keyframes": 0, "loop_candidates": 0, "loop_closures": 0}
+        return self.loop.summary()

@@ -36,11 +36,18 @@ Open3D is optional: when ``import open3d`` fails it is skipped, unless ``--open3
 interpreter that has it (e.g. a throwaway venv with ``pip install open3d-cpu``); that interpreter then
 runs this file's worker on the same depth images, within the same benchmark run.
 
-Then, on real data, both run once from the identity on ``--accuracy-pairs`` pairs ``--accuracy-gap``
+OpenCV's RGB-D odometry (``benchlib.OpenCVOdometry``: OpenCV 5's ``cv2.Odometry``, which the
+``opencv-python-headless`` 5.x that ti-fusion depends on already has, or OpenCV 4 contrib's ``cv2.rgbd``) is
+the second peer, in this interpreter (skipped when its cv2 has neither): ``--opencv-odometry`` (default
+``depth``, point-to-plane ICP) with OpenCV's own settings (its pyramid of 4 levels with 7, 7, 7, 10
+iterations from the finest, depth up to ``dataset.depth_max``); a frame pair is ``prepareFrame`` of both
+frames (its pyramids and normals) + ``compute``, timed in blocks alternated with the others'.
+
+Then, on real data, each system runs once from the identity on ``--accuracy-pairs`` pairs ``--accuracy-gap``
 frames apart spread over the sequence, and the table gives median / mean / max pose error of each.
 
 usage: scripts/bench_icp.py [DATA] [--pair S T] [--repeats N (20)] [--open3d-python PY] [--set icp.KEY=VALUE]
-                            [--accuracy-pairs N] [--accuracy-gap G]
+                            [--accuracy-pairs N] [--accuracy-gap G] [--opencv-odometry KIND]
 """
 
 from __future__ import annotations
@@ -54,7 +61,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchlib import BLAS_SETTLE_S, keep_freed_memory, numpy_conditions
+from benchlib import BLAS_SETTLE_S, OpenCVOdometry, grey_of, keep_freed_memory, numpy_conditions
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen-7scenes"
 
@@ -149,6 +156,33 @@ def open3d_runner(depth_s, depth_t, K, iterations, depth_max, python) -> "Open3D
     try:
         return Open3DRunner(depth_s, depth_t, K, iterations, depth_max, python)
     except ImportError:
+        return None
+
+
+class OpenCVPair:
+    """One frame pair for OpenCV's odometry (this interpreter's cv2); ``run()`` aligns it once."""
+
+    def __init__(self, depth_s, depth_t, K, depth_max: float, kind: str, colour_s=None, colour_t=None):
+        self.odometry = OpenCVOdometry(kind, K, depth_max)  # ImportError when this cv2 has none
+        self.version, self.api = self.odometry.name, self.odometry.api
+        grey = self.odometry.uses_grey
+        self.inputs = [(d, grey_of(c) if grey else None) for d, c in ((depth_s, colour_s), (depth_t, colour_t))]
+
+    def run(self) -> tuple[float, float, list]:
+        """(wall ms, CPU ms of this process, 4×4 pose source → target; the identity when it failed)."""
+        t0, c0 = time.perf_counter(), time.process_time()
+        src, dst = (self.odometry.prepare(d, g) for d, g in self.inputs)
+        _, Rt = self.odometry.compute(src, dst)
+        return 1e3 * (time.perf_counter() - t0), 1e3 * (time.process_time() - c0), Rt.tolist()
+
+    def close(self) -> None:
+        pass
+
+
+def opencv_pair(depth_s, depth_t, K, depth_max, kind, colour_s=None, colour_t=None) -> "OpenCVPair | None":
+    try:
+        return OpenCVPair(depth_s, depth_t, K, depth_max, kind, colour_s, colour_t)
+    except (ImportError, AttributeError):
         return None
 
 
@@ -271,10 +305,11 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     for _ in range(WARMUP_RUNS):  # the first compiles every kernel; the next few were still ~20% slower
         result = frame_pair()
     o3d = open3d_runner(depth_s, depth_t, K, list(c.iterations), cfg.dataset.depth_max, args.open3d_python)
-    ours, theirs, o3d_pose = [], [], None
-    if o3d is not None:
-        for _ in range(WARMUP_RUNS):
-            o3d.run()
+    cv = opencv_pair(depth_s, depth_t, K, cfg.dataset.depth_max, args.opencv_odometry)
+    ours, theirs, o3d_pose, cv_times, cv_pose = [], [], None, [], None
+    for peer in (o3d, cv):
+        for _ in range(WARMUP_RUNS if peer is not None else 0):
+            peer.run()
     # Each system runs in blocks of back-to-back frame pairs (its threads stay awake, as when processing a
     # sequence), the first of each block untimed; blocks alternate with a pause between them, so that
     # neither is timed while the other's threads still spin (OpenMP's do, for a while after each call).
@@ -288,6 +323,12 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
             for _ in range(RUNS_PER_BLOCK):
                 ms, cpu, o3d_pose = o3d.run()
                 theirs.append((ms, cpu))
+        if cv is not None:
+            time.sleep(SWITCH_SETTLE_S)
+            cv.run()
+            for _ in range(RUNS_PER_BLOCK):
+                ms, cpu, cv_pose = cv.run()
+                cv_times.append((ms, cpu))
     result = frame_pair()
     if o3d is not None:
         o3d.close()
@@ -326,6 +367,12 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
             out[key]["ratio"] = out[key]["open3d"] / out[key]["taichi"]
         out["open3d_version"] = o3d.version
         out["open3d_error"] = pose_error(np.asarray(o3d_pose), reference) if reference is not None else None
+    if cv is not None:
+        for key, i in (("frame_ms", 0), ("frame_cpu_ms", 1)):
+            out[key]["opencv"] = float(np.median([t[i] for t in cv_times]))
+            out[key]["opencv_ratio"] = out[key]["opencv"] / out[key]["taichi"]
+        out["opencv_version"], out["opencv_api"] = cv.version, cv.api
+        out["opencv_error"] = pose_error(np.asarray(cv_pose), reference) if reference is not None else None
     return out
 
 
@@ -351,7 +398,7 @@ def accuracy_over_pairs(cfg, args) -> dict | None:
     K = dataset[0].intrinsics
     src, tgt = (FrameMaps(cfg.maps, K.height, K.width, len(c.iterations)) for _ in range(2))
     icp = ICP(c)
-    ours, theirs = [], []
+    ours, theirs, cv_errors = [], [], []
     for s in starts:
         a, b = dataset[int(s)], dataset[int(s) + gap]
         reference = invert(b.gt_pose) @ a.gt_pose
@@ -362,9 +409,14 @@ def accuracy_over_pairs(cfg, args) -> dict | None:
         if o3d is not None:
             theirs.append(pose_error(np.asarray(o3d.run()[2]), reference))
             o3d.close()
+        cv = opencv_pair(a.depth, b.depth, K, cfg.dataset.depth_max, args.opencv_odometry, a.color, b.color)
+        if cv is not None:
+            cv_errors.append(pose_error(np.asarray(cv.run()[2]), reference))
     out = {"pairs": len(starts), "gap": gap, "ours": np.asarray(ours).tolist()}
     if theirs:
         out["open3d"] = np.asarray(theirs).tolist()
+    if cv_errors:
+        out["opencv"] = np.asarray(cv_errors).tolist()
     return out
 
 
@@ -373,16 +425,17 @@ def print_accuracy(acc: dict) -> None:
 
     print(f"\npose error vs reference over {acc['pairs']} pairs {acc['gap']} frames apart, 640x480, from the identity")
     print(f"{'':>9} | {'median':>16} {'mean':>16} {'max':>16}")
-    for name in ("ours", "open3d"):
+    for name in ("ours", "open3d", "opencv"):
         if name not in acc:
             continue
         e = np.asarray(acc[name])
         cells = [f"{f(e[:, 0]):.2f}° {1e3 * f(e[:, 1]):5.1f} mm" for f in (np.median, np.mean, np.max)]
         print(f"{name:>9} | " + " ".join(f"{c:>16}" for c in cells))
-    if "open3d" in acc:
-        o, t = np.asarray(acc["ours"]), np.asarray(acc["open3d"])
-        print(f"ours is nearer the reference on {(o[:, 1] < t[:, 1]).sum()} of {len(o)} pairs in translation, "
-              f"{(o[:, 0] < t[:, 0]).sum()} in rotation")
+    for peer in ("open3d", "opencv"):
+        if peer in acc:
+            o, t = np.asarray(acc["ours"]), np.asarray(acc[peer])
+            print(f"ours is nearer the reference than {peer} on {(o[:, 1] < t[:, 1]).sum()} of {len(o)} pairs in "
+                  f"translation, {(o[:, 0] < t[:, 0]).sum()} in rotation")
 
 
 def main(argv=None) -> int:
@@ -397,6 +450,8 @@ def main(argv=None) -> int:
     parser.add_argument("--accuracy-pairs", type=int, default=25,
                         help="frame pairs for the accuracy table (0: skip); real data only")
     parser.add_argument("--accuracy-gap", type=int, default=10, help="frames between the two of a pair")
+    parser.add_argument("--opencv-odometry", default="depth", choices=OpenCVOdometry.KINDS,
+                        help="which of OpenCV's odometries (depth: point-to-plane ICP)")
     parser.add_argument("--open3d-worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     kept = keep_freed_memory()  # NumPy (and Open3D) at their best: see keep_freed_memory
@@ -425,22 +480,30 @@ def main(argv=None) -> int:
     for title, it_key, fr_key in (("wall-clock", "iteration_ms", "frame_ms"),
                                   ("CPU time of each process (all its threads)", "iteration_cpu_ms", "frame_cpu_ms")):
         print(f"\n{title}")
-        print(f"{'':>9} | {'one ICP iteration, finest level (ms)':^36} | {'one frame pair: maps + ICP (ms)':^34} | "
-              f"{'error vs reference':^29}")
+        print(f"{'':>9} | {'one ICP iteration, finest level (ms)':^36} | {'one frame pair: maps + ICP (ms)':^57} | "
+              f"{'error vs reference':^44}")
         print(f"{'':>9} | {'Taichi':>10} {'NumPy':>10} {'NumPy/Ti':>12} | {'Taichi':>10} {'Open3D':>10} "
-              f"{'O3D/Ti':>11} | {'Taichi':>14} {'Open3D':>14}")
+              f"{'O3D/Ti':>11} {'OpenCV':>10} {'CV/Ti':>11} | {'Taichi':>14} {'Open3D':>14} {'OpenCV':>14}")
         for r in rows:
             it, fr = r[it_key], r[fr_key]
             o3d_ms = f"{fr['open3d']:10.1f}" if "open3d" in fr else f"{'skipped':>10}"
             o3d_ratio = f"{fr['ratio']:10.2f}×" if "ratio" in fr else f"{'-':>11}"
+            cv_ms = f"{fr['opencv']:10.1f}" if "opencv" in fr else f"{'skipped':>10}"
+            cv_ratio = f"{fr['opencv_ratio']:10.2f}×" if "opencv_ratio" in fr else f"{'-':>11}"
             print(f"{r['resolution']:>9} | {it['taichi']:10.2f} {it['numpy']:10.1f} {it['ratio']:11.1f}× | "
-                  f"{fr['taichi']:10.1f} {o3d_ms} {o3d_ratio} | {err(r['taichi_error']):>14} "
-                  f"{err(r.get('open3d_error')) if 'open3d' in fr else '-':>14}")
+                  f"{fr['taichi']:10.1f} {o3d_ms} {o3d_ratio} {cv_ms} {cv_ratio} | {err(r['taichi_error']):>14} "
+                  f"{err(r.get('open3d_error')) if 'open3d' in fr else '-':>14} "
+                  f"{err(r.get('opencv_error')) if 'opencv' in fr else '-':>14}")
     if "open3d" not in rows[0]["frame_ms"]:
         print("Open3D: not installed here (pip install open3d-cpu, or --open3d-python PY): skipped")
     else:
         print(f"Open3D {rows[0]['open3d_version']}: rgbd_odometry_multi_scale, Method.PointToPlane, its default loss "
               "parameters (depth_outlier_trunc 0.07, depth_huber_delta 0.05)")
+    if "opencv" in rows[0]["frame_ms"]:
+        print(f"{rows[0]['opencv_version']} through {rows[0]['opencv_api']}: its own settings (4 levels, 7, 7, 7, 10 "
+              "iterations from the finest), prepareFrame of both frames + compute")
+    else:
+        print("OpenCV: this cv2 has no RGB-D odometry (OpenCV 5's cv2.Odometry or OpenCV 4 contrib's cv2.rgbd): skipped")
     accuracy = accuracy_over_pairs(cfg, args)
     if accuracy is not None:
         print_accuracy(accuracy)

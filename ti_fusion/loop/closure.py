@@ -100,6 +100,13 @@ class LoopClosure:
         self.database.add(kf)
         report.ms["detect"] = (time.perf_counter() - t1) * 1e3
         self.ms["detect"].append(report.ms["keyframe"] + report.ms["detect"])
+        if kf.id == 0:
+            # Compile the source maps' kernels for stored depth now, in the run's warm-up frames, not at the
+            # first candidate (the prediction is rendered into these maps again before the next frame is
+            # tracked); not counted as detection.
+            t2 = time.perf_counter()
+            fill(self.slam.model_maps, kf)
+            report.ms["warmup"] = (time.perf_counter() - t2) * 1e3
         accepted = None
         for place in places:
             c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self.slam.model_maps,
@@ -131,10 +138,6 @@ class LoopClosure:
         self.keyframes.append(kf)
         self.graph.add_keyframe(pose)
         slam.mapper.anchor = kf.id  # surfels fused from the next frame on move with this keyframe
-        if kf.id == 0:
-            # Compile the source maps' kernels for stored depth now, in the run's warm-up frames, not at the
-            # first candidate (the prediction is rendered into these maps again before the next frame is tracked).
-            fill(slam.model_maps, kf)
         return kf
 
     # -- closing a loop -------------------------------------------------------------------------

@@ -1,0 +1,101 @@
+"""Loop closure on a synthetic scene, on and off: ATE, and whether the walls of the first and the last pass
+coincide (docs/LOOP_CLOSURE.md).
+
+    .venv/bin/python scripts/loop_consistency.py --scene loop --set icp.min_inliers=40
+
+For each setting, a slam run of the whole scene (320×240 with --downsample 2), then: the last ``--last``
+frames' depth (every 4th pixel), back-projected at the run's final (corrected) poses, against the map's
+first-pass surfels (created while fusing the first ``--first`` frames): the point-to-plane distance to
+the nearest such surfel, beside the sensor's depth noise σ(z) at those points; and the map's distance to
+the true surfaces (every confirmed surfel). Prints one JSON object per setting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import tempfile
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ti_fusion.backend import init_backend
+from ti_fusion.config import load_config
+from ti_fusion.io.datasets import open_dataset
+from ti_fusion.io.outputs import RunDir
+from ti_fusion.sensor import depth_sigma
+from ti_fusion.slam.pipeline import SLAMPipeline
+
+STEP = 4  # pixels between the back-projected points of a frame, in u and v
+NEAR = 0.5  # metres: a point further than this from every first-pass surfel sees no first-pass wall
+
+
+def measure(overrides: list[str], first: int, last: int, out: Path) -> dict:
+    cfg = load_config(None, overrides)
+    cfg.log.progress = False
+    dataset = open_dataset(cfg.dataset, cfg.synth)
+    pipeline = SLAMPipeline(dataset, cfg, RunDir("slam", out, overwrite=True), None, show_progress=False)
+    summary = pipeline.run()
+    slam = pipeline.step.slam
+    surfels = slam.mapper.to_numpy()
+    fused_by_first = sum(r.tracked for r in pipeline.results[:first])
+    keep = (surfels["t_created"] < fused_by_first) & (surfels["weight"] >= cfg.fusion.unstable_weight)
+    pos, nrm = surfels["position"][keep].astype(np.float64), surfels["normal"][keep].astype(np.float64)
+    tree = cKDTree(pos)
+    distances, sigmas = [], []
+    for i in range(len(dataset) - last, len(dataset)):
+        result = pipeline.results[i]
+        if result.pose is None:
+            continue
+        frame = dataset[i]
+        K = frame.intrinsics
+        v, u = np.mgrid[0:frame.depth.shape[0]:STEP, 0:frame.depth.shape[1]:STEP]
+        z = frame.depth[v, u].astype(np.float64)
+        ok = z > 0
+        p = np.column_stack([(u[ok] - K.cx) * z[ok] / K.fx, (v[ok] - K.cy) * z[ok] / K.fy, z[ok]])
+        world = p @ result.pose[:3, :3].T + result.pose[:3, 3]
+        d, j = tree.query(world)
+        near = d < NEAR
+        distances.append(np.abs(np.einsum("ij,ij->i", world[near] - pos[j[near]], nrm[j[near]])))
+        sigmas.append(depth_sigma(z[ok][near]))
+    dist, sig = np.concatenate(distances), np.concatenate(sigmas)
+    all_pos = surfels["position"][surfels["weight"] >= cfg.fusion.unstable_weight].astype(np.float64)
+    truth = dataset.sequence.surface_distance(all_pos)
+    return {"overrides": overrides, "frames": summary["frames"], "ate_rmse_m": summary.get("ate_rmse_m"),
+            "ate_max_m": summary.get("ate_max_m"), "tracking_failures": summary["tracking_failures"],
+            "fps_processing": summary["fps_processing"], "keyframes": summary["keyframes"],
+            "loop_candidates": summary["loop_candidates"], "loop_closures": summary["loop_closures"],
+            "loop_ms": summary.get("loop_ms"), "loops_refused": summary.get("loops_refused"),
+            "last_vs_first_pass": {"points": int(len(dist)), "median_mm": round(1e3 * float(np.median(dist)), 2),
+                                   "rms_mm": round(1e3 * float(np.sqrt(np.mean(dist ** 2))), 2),
+                                   "p90_mm": round(1e3 * float(np.percentile(dist, 90)), 2),
+                                   "sensor_sigma_median_mm": round(1e3 * float(np.median(sig)), 2),
+                                   "within_3_sigma": round(float(np.mean(dist < 3 * sig)), 3)},
+            "map_to_truth": {"surfels": int(len(truth)), "median_mm": round(1e3 * float(np.median(truth)), 2),
+                             "p90_mm": round(1e3 * float(np.percentile(truth, 90)), 2),
+                             "p99_mm": round(1e3 * float(np.percentile(truth, 99)), 2)}}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--scene", default="loop")
+    parser.add_argument("--downsample", type=int, default=2)
+    parser.add_argument("--set", action="append", default=[], help="SECTION.KEY=VALUE for both runs")
+    parser.add_argument("--first", type=int, default=300, help="frames of the first pass")
+    parser.add_argument("--last", type=int, default=60, help="last frames compared with the first pass")
+    parser.add_argument("--only", choices=("on", "off"), help="one setting only")
+    args = parser.parse_args()
+    init_backend("cpu")
+    base = [f"synth.scene={args.scene}", f"dataset.downsample={args.downsample}", *args.set]
+    with tempfile.TemporaryDirectory() as tmp:
+        for setting in ("off", "on"):
+            if args.only and setting != args.only:
+                continue
+            flag = f"slam.loop_closure={'true' if setting == 'on' else 'false'}"
+            print(json.dumps({"loop_closure": setting, **measure([*base, flag], args.first, args.last,
+                                                                   Path(tmp) / setting)}), flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -139,6 +139,23 @@ def test_twin_sections_look_the_same_from_half_a_turn_round(cpu):
         assert np.mean(np.abs(la.astype(int) - lb.astype(int)) <= 2) < 0.5
 
 
+def test_the_walk_passes_the_north_twin_as_it_passed_the_south_one(paths):
+    """Half a lap on, the walker stands and looks as before turned half a turn about the centre."""
+    poses = paths["twins"]
+    c = np.array([*scenes.LOOP_CENTER, 0.0])
+    half_turn = np.diag([-1.0, -1.0, 1.0])
+    rel = poses[:, :2, 3] - scenes.LOOP_CENTER
+    south = np.flatnonzero((np.abs(rel[:, 0]) < 1.5) & (rel[:, 1] < -2) & (np.arange(len(poses)) < 700))
+    north = np.flatnonzero((np.abs(rel[:, 0]) < 2.0) & (rel[:, 1] > 2))
+    assert len(south) > 60 and len(north) > 60
+    for i in south[::10]:
+        position = c + half_turn @ (poses[i, :3, 3] - c)
+        dist = np.linalg.norm(poses[north, :3, 3] - position, axis=1)
+        j = north[np.argmin(dist)]
+        assert dist.min() < 0.05
+        assert rotation_angle_deg((half_turn @ poses[i, :3, :3]).T @ poses[j, :3, :3]) < 5.0
+
+
 def test_room_is_unchanged(cpu):
     seq = SyntheticSequence(TINY)
     assert TINY.scene == "room" and TINY.frames == 0 and len(seq) == 120

@@ -203,22 +203,24 @@ def loop_path(times: np.ndarray) -> np.ndarray:
 
     Where the walker is and where it looks depend on how far round it is (whole cycles per lap), so the
     second time past a place (after the 30.3 m lap) it stands and looks as the first time, within the bob
-    and roll (which follow the clock): the end of the default path re-observes the first views.
+    and roll (which follow the clock): the end of the default path re-observes the first views. The cycles
+    per lap are even, so half a lap on it stands and looks as before turned half a turn about the centre:
+    in ``twins`` the pass through the north section sees what the pass through the south one saw.
     """
     t = np.asarray(times, dtype=np.float64)
     s = LOOP_SPEED * t + 0.15 * np.sin(0.4 * t)
     phase = 2 * np.pi * s / LOOP_LENGTH  # one turn per lap
     p, tangent = loop_centre_line(s)
     left = np.stack([-tangent[:, 1], tangent[:, 0]], 1)  # towards the block
-    lateral = 0.18 * np.sin(5 * phase + 0.5) + 0.01 * np.sin(2 * np.pi * 0.9 * t)
+    lateral = 0.18 * np.sin(4 * phase + 0.5) + 0.01 * np.sin(2 * np.pi * 0.9 * t)
     xy = p + lateral[:, None] * left
-    z = 1.45 + 0.06 * np.sin(3 * phase + 0.3) + 0.01 * np.sin(2 * np.pi * 1.8 * t)
+    z = 1.45 + 0.06 * np.sin(2 * phase + 0.3) + 0.01 * np.sin(2 * np.pi * 1.8 * t)
     ahead, ahead_tangent = loop_centre_line(s + 2.0)
     ahead_left = np.stack([-ahead_tangent[:, 1], ahead_tangent[:, 0]], 1)
-    swing = 1.1 * np.sin(8 * phase + 0.2) + 0.2 * np.sin(19 * phase)
+    swing = 1.1 * np.sin(8 * phase + 0.2) + 0.2 * np.sin(18 * phase)
     target_xy = ahead + swing[:, None] * ahead_left
-    target_z = 1.15 + 0.35 * np.sin(11 * phase + 1.0)
-    roll = np.radians(3.0 * np.sin(7 * phase + 0.4) + 1.5 * np.sin(1.9 * t))
+    target_z = 1.15 + 0.35 * np.sin(10 * phase + 1.0)
+    roll = np.radians(3.0 * np.sin(6 * phase + 0.4) + 1.5 * np.sin(1.9 * t))
     return np.array([look_at(np.array([xy[i, 0], xy[i, 1], z[i]]),
                              np.array([target_xy[i, 0], target_xy[i, 1], target_z[i]]), roll[i])
                      for i in range(len(t))])

@@ -77,7 +77,7 @@ def test_path_is_rigid_smooth_and_stays_in_free_space(name, paths):
     assert all(rigidity_error(T) is None for T in poses[::25])
     steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) * FPS
     turns = np.array([rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) for a, b in zip(poses[:-1], poses[1:])]) * FPS
-    assert steps.max() < 1.0 and turns.max() < 120  # m/s, deg/s: walking, hand-held
+    assert steps.max() < 1.2 and turns.max() < 120  # m/s, deg/s: walking, hand-held
     assert np.all(steps > 0.01)  # always moving
     # never inside a primitive nor on the back of a plane, never within 0.4 m of a surface
     scene = spec.build()

@@ -11,7 +11,7 @@
               along it, up and down and toward it. Depth fixes only the two planes: motion along the wall
               is unobservable without colour.
 ``corridor``  an endless straight corridor with plain walls, floor and ceiling and textured posters flat on
-              the walls (3 mm thick, 0.8 m × 1 m, every 1.2 m on each wall): depth cannot see motion along the corridor.
+              the walls (1 mm thick, 0.8 m × 1 m, every 1.2 m on each wall): depth cannot see motion along the corridor.
 
 World frame as in ``scene``: metres, z up. The loop scenes are centred under the renderer's point light
 (``kernels.raycast.LIGHT``) so their shading, like their geometry, is symmetric under a half turn about
@@ -252,7 +252,9 @@ def wall_path(times: np.ndarray) -> np.ndarray:
 # -- the corridor --------------------------------------------------------------------------------------
 CORRIDOR_Y = (-1.3, 0.7)   # the side walls (2 m apart, the light above the middle)
 CORRIDOR_HEIGHT = 2.6
-CORRIDOR_SPEED = 0.6       # m/s
+CORRIDOR_SPEED = 0.6       # m/s, mean: stop and go, 0.12 to 1.08 m/s every 6 s (looking at posters)
+CORRIDOR_PACE = 6.0        # seconds
+POSTER_HALF = 0.0005       # metres: posters 1 mm thick, far below the depth noise
 CORRIDOR_START = -6.0      # x of the first frame; the walk goes towards +x
 
 
@@ -271,18 +273,20 @@ def corridor_scene() -> Scene:
                M("tiles", 0.06, (0.10, 0.15, 0.30), (0.95, 0.75, 0.35)),
                M("bricks", 0.1, (0.45, 0.20, 0.30), (0.90, 0.80, 0.85), aspect=0.4)]
     for k, x in enumerate(np.arange(-9.0, 12.01, 0.6)):  # each wall: a poster 0.8 m wide every 1.2 m
-        y = y0 + 0.003 if k % 2 == 0 else y1 - 0.003
+        y = y0 + POSTER_HALF if k % 2 == 0 else y1 - POSTER_HALF
         z = 1.4 + 0.12 * ((k * 7) % 3 - 1)
-        prims.append(Box((float(x), y, z), (0.4, 0.003, 0.5), posters[(k * 3) % len(posters)]))
+        prims.append(Box((float(x), y, z), (0.4, POSTER_HALF, 0.5), posters[(k * 3) % len(posters)]))
     return Scene(prims)
 
 
 def corridor_path(times: np.ndarray) -> np.ndarray:
-    """Down the corridor at ≈ 0.6 m/s from x = −6, within 0.2 m of its middle, the gaze swinging ±35°
-    between the walls' posters and the way ahead."""
+    """Down the corridor from x = −6, slowing down and speeding up (0.12–1.08 m/s, 0.6 m/s on average, every
+    6 s: a constant-velocity motion model mispredicts it), within 0.2 m of the middle, the gaze swinging
+    ±35° between the walls' posters and the way ahead."""
     t = np.asarray(times, dtype=np.float64)
     mid = 0.5 * (CORRIDOR_Y[0] + CORRIDOR_Y[1])
-    x = CORRIDOR_START + CORRIDOR_SPEED * t + 0.1 * np.sin(0.5 * t)
+    w = 2 * np.pi / CORRIDOR_PACE
+    x = CORRIDOR_START + CORRIDOR_SPEED * (t - 0.8 / w * np.sin(w * t))
     y = mid + 0.2 * np.sin(0.27 * t + 0.4) + 0.005 * np.sin(2 * np.pi * 0.9 * t)
     z = 1.5 + 0.06 * np.sin(0.5 * t) + 0.01 * np.sin(2 * np.pi * 1.8 * t)
     target = np.stack([x + 2.0, mid + 1.4 * np.sin(0.4 * t + 0.3), 1.3 + 0.3 * np.sin(0.45 * t + 1.0)], 1)

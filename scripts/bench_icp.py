@@ -36,6 +36,12 @@ Open3D is optional: when ``import open3d`` fails it is skipped, unless ``--open3
 interpreter that has it (e.g. a throwaway venv with ``pip install open3d-cpu``); that interpreter then
 runs this file's worker on the same depth images, within the same benchmark run.
 
+The photometric term (``icp.color_weight``, docs/PHOTOMETRIC.md): its cost per frame on the synthetic
+room (colour registered to depth), 640×480 input tracked at 320×240 as the SLAM loop does: the live
+frame's intensity pyramid and gradients, the model's intensity (gathered per pixel, timed here as a second
+intensity pyramid), and the joint ICP against the depth-only ICP with the same iterations (``--photometric 0``
+skips it).
+
 OpenCV's RGB-D odometry (``benchlib.OpenCVOdometry``: OpenCV 5's ``cv2.Odometry``, which the
 ``opencv-python-headless`` 5.x that ti-fusion depends on already has, or OpenCV 4 contrib's ``cv2.rgbd``) is
 the second peer, in this interpreter (skipped when its cv2 has neither): ``--opencv-odometry`` (default
@@ -438,6 +444,46 @@ def print_accuracy(acc: dict) -> None:
                   f"translation, {(o[:, 0] < t[:, 0]).sum()} in rotation")
 
 
+def photometric_cost(cfg, args) -> dict:
+    """ms per frame of the photometric term (see the module docstring): medians of alternated runs."""
+    import dataclasses
+
+    import numpy as np
+
+    from ti_fusion.config import SynthConfig
+    from ti_fusion.geometry import invert, make_pose, so3_exp
+    from ti_fusion.kernels.maps import FrameMaps, grey_image
+    from ti_fusion.synthetic.scene import SyntheticSequence
+    from ti_fusion.tracking.icp import ICP
+
+    seq = SyntheticSequence(SynthConfig())
+    pose, G = seq.poses[40], make_pose(so3_exp(np.radians([1.0, -0.5, 0.5])), [0.01, -0.01, 0.01])
+    (ds, cs), (dt, ct) = seq.render(pose, seed=1), seq.render(pose @ invert(G), seed=2)
+    K, levels = seq.intrinsics, len(cfg.icp.iterations)
+    src, tgt = (FrameMaps(cfg.maps, K.height, K.width, levels, input_level=1) for _ in range(2))
+    src.compute(ds, K)
+    tgt.compute(dt, K)
+    depth_only = ICP(dataclasses.replace(cfg.icp, color_weight=0.0))
+    joint = ICP(dataclasses.replace(cfg.icp, color_weight=cfg.icp.color_weight or 0.01))
+
+    def intensity():
+        src.compute_intensity(grey_image(cs))  # (stands in for the model's gather, a cheaper kernel)
+        tgt.compute_intensity(grey_image(ct))
+
+    runs = {"intensity": intensity, "icp_depth_only": lambda: depth_only.align(src, tgt),
+            "icp_joint": lambda: joint.align(src, tgt, photometric=True)}
+    times: dict = {k: [] for k in runs}
+    for _ in range(3):  # compile and warm up
+        for fn in runs.values():
+            fn()
+    for _ in range(max(3, args.repeats)):
+        for key, fn in runs.items():
+            times[key].append(timed(fn)[0])
+    out = {k: float(np.median(v)) for k, v in times.items()}
+    out["term_per_frame"] = out["intensity"] + out["icp_joint"] - out["icp_depth_only"]
+    return out
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("data", nargs="?", default="", help="7-Scenes folder (default: ../shared/data/redkitchen-7scenes)")
@@ -450,6 +496,7 @@ def main(argv=None) -> int:
     parser.add_argument("--accuracy-pairs", type=int, default=25,
                         help="frame pairs for the accuracy table (0: skip); real data only")
     parser.add_argument("--accuracy-gap", type=int, default=10, help="frames between the two of a pair")
+    parser.add_argument("--photometric", type=int, default=1, help="0: skip the photometric term's cost")
     parser.add_argument("--opencv-odometry", default="depth", choices=OpenCVOdometry.KINDS,
                         help="which of OpenCV's odometries (depth: point-to-plane ICP)")
     parser.add_argument("--open3d-worker", help=argparse.SUPPRESS)
@@ -507,8 +554,15 @@ def main(argv=None) -> int:
     accuracy = accuracy_over_pairs(cfg, args)
     if accuracy is not None:
         print_accuracy(accuracy)
+    photometric = photometric_cost(cfg, args) if args.photometric else None
+    if photometric is not None:
+        p = photometric
+        print(f"\nphotometric term, synthetic room tracked at 320x240 (ms per frame, wall-clock): intensity pyramids "
+              f"{p['intensity']:.2f}, ICP depth only {p['icp_depth_only']:.2f}, joint {p['icp_joint']:.2f}; "
+              f"the term costs {p['term_per_frame']:.2f} ms per frame")
     if args.json:
-        Path(args.json).write_text(json.dumps({"data": what, "rows": rows, "accuracy": accuracy}, indent=2))
+        Path(args.json).write_text(json.dumps({"data": what, "rows": rows, "accuracy": accuracy,
+                                               "photometric": photometric}, indent=2))
     return 0
 
 

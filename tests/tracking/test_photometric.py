@@ -165,3 +165,32 @@ def test_joint_solve_in_kernel_matches_numpy(plane_pair):
     np.testing.assert_allclose(in_kernel.pose, in_numpy.pose, atol=1e-9)
     assert in_kernel.colour_inliers == in_numpy.colour_inliers > 1000
     assert math.isfinite(in_kernel.colour_rms) and in_kernel.colour_rms < 0.01
+
+
+# -- in the SLAM loop ------------------------------------------------------------------------------------
+def test_dense_slam_uses_colour_only_where_registered(cpu, caplog):
+    """Frames with registered colour are tracked with the joint cost (colour residuals, degeneracy
+    reported); on frames whose colour is not registered (7-Scenes) the term stays off (the depth-only pass
+    runs: no colour residual), with one warning."""
+    import dataclasses
+
+    from ti_fusion.config import Config, SynthConfig
+    from ti_fusion.io.datasets.base import Frame
+    from ti_fusion.slam.dense import DenseSLAM
+    from ti_fusion.synthetic.scene import SyntheticSequence
+
+    seq = SyntheticSequence(SynthConfig(width=160, height=120, fx=131.25, frames=5))
+    cfg = Config()
+    cfg.icp = dataclasses.replace(cfg.icp, color_weight=0.01)
+    slam = DenseSLAM(cfg, seq.intrinsics)
+    caplog.clear()
+    results = []
+    for i in range(5):
+        depth, colour = seq.frame(i)
+        results.append(slam.register_frame(Frame(i, float(i), depth, seq.intrinsics, colour,
+                                                 color_registered=i < 3)))
+    assert all(r.tracked for r in results)
+    assert all(r.icp.colour_inliers > 500 and r.icp.degeneracy is not None for r in results[1:3])
+    assert all(r.icp.colour_inliers == 0 for r in results[3:])
+    warnings = [m for m in caplog.messages if "not registered to depth" in m]
+    assert len(warnings) == 1 and "icp.color_weight = 0.01" in warnings[0] and "frame 3" in warnings[0]

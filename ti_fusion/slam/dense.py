@@ -23,6 +23,12 @@ default the frame is averaged down to that level before it is smoothed and track
 at 320×240 tracked better than one at 640×480 (more measurements averaged into each surfel, so a less
 noisy prediction) at a quarter of the surfels.
 
+Colour (``icp.color_weight`` > 0, docs/PHOTOMETRIC.md): tracking minimises the joint cost, point-to-plane
+ICP plus the photometric error between the live frame's intensity and the model's colour rendered with the
+prediction (the surfel seen at each pixel), which constrains what depth alone does not (a wall, a floor, a
+corridor). Only for frames whose colour is registered to depth (``Frame.color_registered``, set by the
+dataset): on others the term stays off, with one warning.
+
 The map starts at the first usable frame: one with depth enough for ICP to track the next frame against
 (``usable``); frames before it (a sensor that starts blank) are skipped: no pose, status "skipped: ...".
 The pose is initialised by a constant-velocity motion model. A frame whose tracking is unhealthy (few
@@ -44,7 +50,7 @@ from ti_fusion.io.datasets.base import Frame
 from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
 from ti_fusion.geometry import invert, pose_error, renormalize, se3_log
 from ti_fusion.tracking.icp import ICP, ICPResult
-from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.kernels.maps import FrameMaps, grey_image
 from ti_fusion.slam.timing import StageTimer
 
 log = logging.getLogger(__name__)
@@ -111,12 +117,32 @@ class DenseSLAM:
         self.last_good: tuple[Frame, np.ndarray] | None = None  # for feature re-localisation
         self._velocity = np.eye(4)  # last inter-frame motion, camera-to-camera
         self._frames_fused = 0
+        self._colour_warned = False  # the warning that the photometric term is off for unregistered colour
+        self._degeneracy_warned = False  # the warning that depth (and colour) leave directions unconstrained
+
+    def _uses_colour(self, frame: Frame) -> bool:
+        """Whether this frame is tracked with the photometric term (warns once when the term is asked for
+        but the frame's colour is missing or not registered to its depth)."""
+        weight = self.config.icp.color_weight
+        if weight <= 0:
+            return False
+        if frame.color is not None and frame.color_registered:
+            return True
+        if not self._colour_warned:
+            self._colour_warned = True
+            why = "has no colour" if frame.color is None else "has colour that is not registered to depth"
+            log.warning(f"icp.color_weight = {weight:g}, but frame {frame.index} {why}: the photometric tracking "
+                        "term is off for such frames (depth only); see docs/PHOTOMETRIC.md")
+        return False
 
     # -- the verb -------------------------------------------------------------------------------
     def register_frame(self, frame: Frame) -> FrameResult:
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
+        colour = self._uses_colour(frame)
         with timer.stage("maps"):
             self.frame_maps.compute(frame.depth, frame.intrinsics)
+            if colour:
+                self.frame_maps.compute_intensity(grey_image(frame.color))
         if not self.poses and (problem := self.unusable(frame)):
             self.skipped.append((frame.index, problem))
             return FrameResult(frame.index, frame.timestamp, None, f"skipped: {problem}", ms=dict(timer.last))
@@ -131,7 +157,7 @@ class DenseSLAM:
                 log.warning(f"{which} skipped ({reason}): the map starts at frame {frame.index}")
         else:
             with timer.stage("track"):
-                result = self._track(frame)
+                result = self._track(frame, colour)
         if result.tracked:
             with timer.stage("fuse"):
                 result.fusion = self.mapper.integrate(self.frame_maps, frame.color, result.pose,
@@ -161,8 +187,9 @@ class DenseSLAM:
         last = self.poses[-1]
         return renormalize(last @ self._velocity) if self.config.slam.motion_model else last.copy()
 
-    def _reference(self) -> tuple[FrameMaps, np.ndarray]:
-        """The ICP source and the camera-to-world pose of its camera frame."""
+    def _reference(self, colour: bool = False) -> tuple[FrameMaps, np.ndarray]:
+        """The ICP source and the camera-to-world pose of its camera frame (with ``colour``, its intensity
+        too: the model's colour at each pixel of the prediction)."""
         if self.previous_maps is not None:  # frame-to-frame, for comparison only
             return self.previous_maps, self.poses[-1]
         last = self.last_good[1] if self.last_good is not None else self.poses[-1]
@@ -173,17 +200,24 @@ class DenseSLAM:
         warm = self._frames_fused >= fusion.unstable_age
         self.mapper.render_maps(self.model_maps, last, self.model_intrinsics,
                                 min_weight=fusion.render_min_weight if warm else 0.0)
+        if colour:
+            K = self.model_intrinsics
+            view = self.mapper.map.prediction_images(K.height, K.width).view_index  # the render's, just made
+            self.model_maps.intensity_from_surfels(view, self.mapper.map.arrays.colour)
         return self.model_maps, last
 
-    def _track(self, frame: Frame) -> FrameResult:
+    def _track(self, frame: Frame, colour: bool = False) -> FrameResult:
         predicted = self._predicted_pose()
-        source, last = self._reference()
+        source, last = self._reference(colour)
+        # frame-to-frame: the previous frame's intensity, made when it was the live frame (if it was)
+        colour = colour and source.intensity is not None
         # ICP maps source points (camera frame of `last`) into the new camera: T = inv(T_wc_new) · T_wc_last.
-        icp = self.icp.align(source, self.frame_maps, init=invert(predicted) @ last)
+        icp = self.icp.align(source, self.frame_maps, init=invert(predicted) @ last, photometric=colour)
         pose = renormalize(last @ invert(icp.pose))
         status = self._health(icp, pose, predicted)
+        self._report_degeneracy(frame, icp)
         if status != "ok" and self.config.slam.relocalise == "features":
-            relocalised = self._relocalise(frame, source, last)
+            relocalised = self._relocalise(frame, source, last, colour)
             if relocalised is not None:
                 icp, pose = relocalised
                 status = "relocalised"
@@ -207,7 +241,25 @@ class DenseSLAM:
                     f"{cfg.max_update_deg:g} deg / {cfg.max_update_m * 100:g} cm)")
         return "ok"
 
-    def _relocalise(self, frame: Frame, source: FrameMaps, last: np.ndarray):
+    def _report_degeneracy(self, frame: Frame, icp: ICPResult) -> None:
+        """Log the weak directions of the geometry (debug, every frame that has any), and warn once when
+        depth alone leaves some unconstrained and colour did not constrain them all."""
+        d = icp.degeneracy
+        if not d or not d["weak"]:
+            return
+        twists = "; ".join(f"{'(colour)' if w['colour'] else ''}{w['twist']} at {w['ratio']:.1e}"
+                           for w in d["directions"])
+        log.debug(f"frame {frame.index}: {d['weak']} weak direction(s) of the geometry (twist (ω, v), λ/λmax), "
+                  f"{d['constrained_by_colour']} constrained by colour: {twists}")
+        if d["constrained_by_colour"] < d["weak"] and not self._degeneracy_warned:
+            self._degeneracy_warned = True
+            hint = "" if self.config.icp.color_weight > 0 else \
+                " (icp.color_weight > 0 adds the photometric term where colour is registered to depth)"
+            log.warning(f"frame {frame.index}: the depth constrains only {6 - d['weak']} of the 6 directions of "
+                        f"the camera's motion, and colour {d['constrained_by_colour']} of the other {d['weak']}: "
+                        f"tracking may slide{hint}")
+
+    def _relocalise(self, frame: Frame, source: FrameMaps, last: np.ndarray, colour: bool = False):
         """ICP again, initialised by ORB + PnP against the last well-tracked frame."""
         if self.last_good is None or frame.color is None or self.last_good[0].color is None:
             return None
@@ -220,7 +272,7 @@ class DenseSLAM:
         # The estimate maps the reference frame's camera into the new one; ICP's source sits at `last`
         # (the same camera in model tracking, the previous frame's in frame-to-frame tracking).
         init = estimate.pose @ invert(reference_pose) @ last
-        icp = self.icp.align(source, self.frame_maps, init=init)
+        icp = self.icp.align(source, self.frame_maps, init=init, photometric=colour)
         pose = renormalize(last @ invert(icp.pose))
         rough = renormalize(reference_pose @ invert(estimate.pose))
         return (icp, pose) if self._health(icp, pose, rough) == "ok" else None

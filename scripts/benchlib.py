@@ -76,7 +76,7 @@ class OpenCVOdometry:
                          "rgbd": cv2.OdometryType_RGB_DEPTH, "rgb": cv2.OdometryType_RGB}[kind]
             algo = cv2.OdometryAlgoType_FAST if kind == "depth-fast" else cv2.OdometryAlgoType_COMMON
             self.odometry = cv2.Odometry(kind_type, settings, algo)
-            self.api = f"cv2.Odometry (OpenCV {cv2.__version__})"
+            self.api = "cv2.Odometry"
         elif hasattr(cv2, "rgbd"):  # OpenCV 4 contrib
             rgbd = cv2.rgbd
             if kind == "depth":
@@ -87,7 +87,7 @@ class OpenCVOdometry:
                 self.odometry = rgbd.RgbdICPOdometry_create(camera, 0.0, float(depth_max))
             else:
                 self.odometry = rgbd.RgbdOdometry_create(camera, 0.0, float(depth_max))
-            self.api = f"cv2.rgbd (OpenCV {cv2.__version__} contrib)"
+            self.api = "cv2.rgbd (contrib)"
         else:
             raise ImportError(f"OpenCV {cv2.__version__} has neither cv2.Odometry (OpenCV 5) nor cv2.rgbd "
                               "(OpenCV 4 contrib)")

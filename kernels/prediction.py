@@ -69,7 +69,7 @@ def occlusion_margin(z):
 
 @ti.kernel
 def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, half: ti.i32,
-                 out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
+                 fill_half: ti.i32, out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
     """Per pixel: the pixel's own front surfel, unless a neighbour's disc that the ray meets lies clearly
     in front of it (an occluding edge), or the pixel has none (a hole, filled by the nearest neighbour disc).
 
@@ -81,7 +81,11 @@ def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.
     A surfel always covers its own pixel (at its centre depth if the ray misses the disc), so surfels
     small on screen still show as points. Ties in depth go to the smaller surfel index. Outputs are in
     the camera frame; ``img.view_index`` gets the surfel (INT_MAX = none). ``half`` is a runtime argument: one
-    compiled kernel serves every neighbourhood size.
+    compiled kernel serves every neighbourhood size. A pixel without a front surfel of its own searches
+    max(half, ``fill_half``) pixels around it instead: the fusion step adds no surfel at a pixel whose
+    point lies on the disc of a surfel at one of its 8 neighbours (``fusion.count_segments``), so
+    ``fill_half`` = 1 renders what the map was built to cover, while pixels with their own surfel keep
+    it (no dilation of occluding edges).
     """
     H, W = img.front_radius.shape
     for v, u in ti.ndrange(H, W):
@@ -103,10 +107,13 @@ def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.
                 best_i = img.index_map.index[v, u]
                 best_n = nc
         margin = occlusion_margin(own_z)
+        reach = half
+        if best_i == INT_MAX:
+            reach = ti.max(half, fill_half)
         # A runtime loop, in the order the unrolled one had (rows, then columns): unrolled, its (2h+1)²
         # copies made this by far the slowest kernel to compile.
-        for dv in range(-half, half + 1):
-            for du in range(-half, half + 1):
+        for dv in range(-reach, reach + 1):
+            for du in range(-reach, reach + 1):
                 if dv != 0 or du != 0:
                     y = v + dv
                     x = u + du

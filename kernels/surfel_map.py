@@ -186,14 +186,15 @@ class SurfelMap(SurfelStore):
 
     # -- prediction -----------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics, out_vertex=None, out_normal=None, out_depth=None,
-               min_weight: float = 0.0, max_half: int = 1) -> PredictionImages:
+               min_weight: float = 0.0, max_half: int = 1, fill_half: int = 0) -> PredictionImages:
         """Predicted vertex / normal / depth maps in the camera frame of ``pose`` (zero = no surfel).
 
         Outputs are Taichi fields of shape (intrinsics.height, intrinsics.width), e.g. a FrameMaps' level
         0; left out, they are the returned images' ``vertex``, ``normal``, ``depth`` fields (valid until
         the next render at this resolution). Surfels with weight ≥ ``min_weight`` that face the camera
         are splatted as discs reaching at most ``max_half`` pixels from their centre pixel; the vertex lies
-        on the pixel's ray, at the depth where the ray meets the disc.
+        on the pixel's ray, at the depth where the ray meets the disc. A pixel that no surfel projects to
+        (a hole) takes the nearest disc its ray meets within max(``max_half``, ``fill_half``) pixels.
         """
         img = self.prediction_images(intrinsics.height, intrinsics.width)
         to_camera = world_to_camera(pose)
@@ -205,7 +206,7 @@ class SurfelMap(SurfelStore):
             index_map.build(self.arrays, self.count, img.index_map)
         self._projected = 0  # the projection scratch now holds the render's projection, not the fusion step's
         prediction.gather_front(self.arrays, img, to_camera)
-        prediction.splat_gather(img, fx, fy, cx, cy, int(max_half),
+        prediction.splat_gather(img, fx, fy, cx, cy, int(max_half), int(fill_half),
                                 img.vertex if out_vertex is None else out_vertex,
                                 img.normal if out_normal is None else out_normal,
                                 img.depth if out_depth is None else out_depth)

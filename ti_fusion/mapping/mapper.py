@@ -132,7 +132,7 @@ class SurfelMapper:
     def render(self, pose: np.ndarray, intrinsics: Intrinsics, out_vertex, out_normal, out_depth) -> None:
         """Predicted camera-frame vertex / normal / depth maps at ``pose`` (zero where no surfel)."""
         self.map.render(pose, intrinsics, out_vertex, out_normal, out_depth, self.config.render_min_weight,
-                        self.config.render_max_half)
+                        self.config.render_max_half, self.config.render_fill_half)
 
     def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics,
                     min_weight: float | None = None) -> None:
@@ -143,7 +143,7 @@ class SurfelMapper:
         if min_weight is None:
             min_weight = self.config.render_min_weight
         self.map.render(pose, intrinsics, frame_maps.vertex[0], frame_maps.normal[0], frame_maps.depth[0],
-                        min_weight, self.config.render_max_half)
+                        min_weight, self.config.render_max_half, self.config.render_fill_half)
         frame_maps.compute_from_field(intrinsics, level0_maps=False)
 
     def render_image(self, pose: np.ndarray, intrinsics: Intrinsics, by_normal: bool = False) -> np.ndarray:

@@ -227,7 +227,7 @@ def run_child(cmd: list[str], env: dict | None) -> tuple[dict | None, str, float
 
 
 def main() -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("data", nargs="?", default=str(DEFAULT_DATA) if DEFAULT_DATA.is_dir() else "")
     parser.add_argument("--frames", type=int, default=None, help="first N frames (default: all)")
     parser.add_argument("--downsample", type=int, default=1)

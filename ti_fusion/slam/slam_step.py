@@ -45,6 +45,12 @@ STATS_SCHEMA = json_object({
                                                     "computed or infinite)"),
         "update_norm": json_field(["number", "null"], "norm of the last se(3) update (radians and metres "
                                                       "together), the convergence test's value"),
+        "colour_residuals": json_field("integer", "photometric residuals of the last iteration (0: the term is "
+                                                  "off, icp.color_weight = 0 or colour not registered)", minimum=0),
+        "weak_directions": json_field("integer", "eigen-directions of the geometric AᵀA below icp.weak_ratio of "
+                                                 "its largest: what depth alone leaves unconstrained", minimum=0),
+        "weak_constrained_by_colour": json_field("integer", "of those, the ones the photometric term lifted above "
+                                                            "icp.weak_ratio", minimum=0),
     }, required=("iterations", "residual_rms_m", "inliers", "inlier_ratio", "condition", "update_norm"),
         description="the frame's ICP against the model, of its last iteration; every frame but the first"),
     "merged": json_field("integer", "pixels averaged into an existing surfel; fused frames only", minimum=0),
@@ -85,7 +91,11 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
             "inlier_ratio": icp.inlier_ratio,
             "condition": icp.condition,
             "update_norm": icp.update_norm,
+            "colour_residuals": icp.colour_inliers,
         }
+        if icp.degeneracy is not None:
+            stats["icp"]["weak_directions"] = icp.degeneracy["weak"]
+            stats["icp"]["weak_constrained_by_colour"] = icp.degeneracy["constrained_by_colour"]
     if result.fusion is not None:
         stats.update({"merged": result.fusion.merged, "added": result.fusion.added,
                       "covered": result.fusion.covered, "removed": result.fusion.removed})

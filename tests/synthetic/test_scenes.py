@@ -221,6 +221,10 @@ def test_bad_trajectory_file_is_one_line(cpu, tmp_path, capsys, case):
     err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
     assert len(err) == 1 and str(path) in err[0] and problem in err[0], err
     assert not (tmp_path / "out" / "rgb").exists()
+    if case == "not_rigid":  # slam on the embedded sequence reads it the same way
+        assert main(["slam", "--set", f"synth.trajectory={path}", "--out", str(tmp_path / "run"), "--quiet"]) == 2
+        err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+        assert len(err) == 1 and str(path) in err[0] and problem in err[0], err
 
 
 def test_synth_command_scene_and_trajectory(cpu, tmp_path, capsys):

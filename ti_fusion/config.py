@@ -371,10 +371,10 @@ class FusionConfig:
     render_max_half: NonNegativeInt = 0  # rendering for tracking: a surfel's disc reaches at most this many pixels
                                      # from its centre. 0: each pixel shows its own front surfel; 1 dilated
                                      # occluding edges by a pixel and cost ATE (redkitchen 320×240: 4.5 → 3.4 cm)
-    render_fill_half: NonNegativeInt = 1  # rendering for tracking: a pixel no surfel projects to (a hole) takes the
-                                     # nearest disc its ray meets within this many pixels (fusion adds no surfel
-                                     # where a neighbour's disc covers the pixel, so 0 leaves holes once the camera
-                                     # comes nearer than where the surfels were fused); pixels with a surfel keep it
+    render_fill_half: NonNegativeInt = 1  # rendering for tracking: before the model's pyramid is built, a pixel no
+                                     # surfel projects to takes the nearest disc its ray meets within this many
+                                     # pixels (with render_max_half 0, level 0 keeps the surfels' own pixels). 0: the
+                                     # coarse levels empty out when the camera walks forward (synthetic loop lost)
     view_back: Annotated[float, Range()] = 1.0  # PNG views: metres the first camera is pulled back along its axis
 
     def map_level(self, width: int) -> int:

@@ -146,3 +146,16 @@ def shade(s: ti.template(), img: ti.template(), by_normal: ti.i32, background: V
             else:
                 c = s.colour[i] / 255.0
         img.image[v, u] = c
+
+
+@ti.kernel
+def clear_holes(img: ti.template(), out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
+    """Zero the outputs at the pixels no surfel projects to (``img.index_map``): after a render with
+    ``splat_gather``'s ``fill_half`` and the pyramid built from it, level 0 goes back to the surfels' own
+    pixels (and ``img.view_index`` to none)."""
+    for v, u in out_depth:
+        if img.index_map.index[v, u] == INT_MAX:
+            img.view_index[v, u] = INT_MAX
+            out_vertex[v, u] = Vec3(0.0, 0.0, 0.0)
+            out_normal[v, u] = Vec3(0.0, 0.0, 0.0)
+            out_depth[v, u] = 0.0

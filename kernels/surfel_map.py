@@ -212,6 +212,12 @@ class SurfelMap(SurfelStore):
                                 img.depth if out_depth is None else out_depth)
         return img
 
+    def clear_holes(self, intrinsics, out_vertex, out_normal, out_depth) -> None:
+        """After ``render`` with ``max_half`` = 0 into these outputs: zero the pixels that only the hole fill
+        reached (no surfel projects to them), leaving each surfel's own pixel."""
+        img = self.prediction_images(intrinsics.height, intrinsics.width)
+        prediction.clear_holes(img, out_vertex, out_normal, out_depth)
+
     def render_image(self, pose: np.ndarray, intrinsics, by_normal: bool = False, min_weight: float = 0.0,
                      max_half: int = 3, background=(0.12, 0.12, 0.12)) -> np.ndarray:
         """uint8 RGB view of the map from ``pose``: surfel colours, or world normals as (n + 1) / 2."""

@@ -130,21 +130,32 @@ class SurfelMapper:
 
     # -- rendering -----------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics: Intrinsics, out_vertex, out_normal, out_depth) -> None:
-        """Predicted camera-frame vertex / normal / depth maps at ``pose`` (zero where no surfel)."""
+        """Predicted camera-frame vertex / normal / depth maps at ``pose`` (zero where no surfel): one level,
+        so without the hole fill that ``render_maps`` gives the coarse levels."""
         self.map.render(pose, intrinsics, out_vertex, out_normal, out_depth, self.config.render_min_weight,
-                        self.config.render_max_half, self.config.render_fill_half)
+                        self.config.render_max_half)
 
     def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics,
                     min_weight: float | None = None) -> None:
         """Fill a ``FrameMaps`` with the prediction: every pyramid level from the rendered depth (with the
         maps' own settings), and level 0's vertex and normal maps straight from the
         surfels (averaged normals, smoother than normals from depth differences). Surfels below
-        ``min_weight`` (default ``fusion.render_min_weight``) are left out."""
+        ``min_weight`` (default ``fusion.render_min_weight``) are left out.
+
+        The pyramid is built from a render whose holes (pixels no surfel projects to) take a neighbour's
+        disc (``fusion.render_fill_half``); with ``render_max_half`` = 0, level 0 then goes back to the
+        surfels' own pixels. Why: surfels fused from afar lie up to two pixels apart once the camera comes
+        nearer (fusion adds none where a neighbour's disc covers the pixel), and a coarse pixel exists only
+        where its centre fine pixel has depth, so the coarse levels emptied (tracking lost on the synthetic
+        corridor loop); filled at level 0 too, the synthetic room's ATE doubled (docs/KERNELS.md)."""
         if min_weight is None:
             min_weight = self.config.render_min_weight
-        self.map.render(pose, intrinsics, frame_maps.vertex[0], frame_maps.normal[0], frame_maps.depth[0],
-                        min_weight, self.config.render_max_half, self.config.render_fill_half)
+        cfg = self.config
+        level0 = frame_maps.vertex[0], frame_maps.normal[0], frame_maps.depth[0]
+        self.map.render(pose, intrinsics, *level0, min_weight, cfg.render_max_half, cfg.render_fill_half)
         frame_maps.compute_from_field(intrinsics, level0_maps=False)
+        if cfg.render_max_half == 0 < cfg.render_fill_half:
+            self.map.clear_holes(intrinsics, *level0)
 
     def render_image(self, pose: np.ndarray, intrinsics: Intrinsics, by_normal: bool = False) -> np.ndarray:
         """uint8 RGB view of the map from ``pose`` (surfel colour, or world normal as (n + 1) / 2)."""

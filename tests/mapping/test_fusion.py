@@ -551,9 +551,20 @@ def test_compaction_edge_cases(arch, rng, pattern):
     np.testing.assert_array_equal(got["t_created"][holes], m + np.flatnonzero(~drop[m:]))
 
 
-def ref_render(data, pose, half, min_weight=0.0):
+def ref_render(data, pose, half, min_weight=0.0, fill=0):
     """Point z-buffer of the front-facing, confident surfels, then per pixel the nearest disc hit among
-    the neighbourhood's front surfels (the kernel's screen-space splatting), in float64."""
+    the neighbourhood's front surfels (the kernel's screen-space splatting), in float64. A pixel without
+    a surfel of its own (a hole) searches max(half, fill) pixels."""
+    if fill > half:
+        own = ref_render(data, pose, half, min_weight)
+        wide = ref_render(data, pose, fill, min_weight)
+        inv = np.linalg.inv(pose)
+        pc = data["position"].astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]
+        nc = data["normal"].astype(np.float64) @ inv[:3, :3].T
+        pix, _ = ref_project(data["position"].astype(np.float64), pose)
+        pix[((nc * pc).sum(-1) >= 0) | (data["weight"] < min_weight)] = -1
+        hole = ref_index_map(pix, pc[:, 2]) < 0
+        return np.where(hole, wide[0], own[0]), np.where(hole, wide[1], own[1]), own[2]
     inv = np.linalg.inv(pose)
     pc = data["position"].astype(np.float64) @ inv[:3, :3].T + inv[:3, 3]
     nc = data["normal"].astype(np.float64) @ inv[:3, :3].T
@@ -592,13 +603,13 @@ def test_render_matches_reference(arch, rng):
     out_v = ti.Vector.field(3, ti.f32, shape=(H, W))
     out_n = ti.Vector.field(3, ti.f32, shape=(H, W))
     out_d = ti.field(ti.f32, shape=(H, W))
-    for half in (0, 2):
-        img = smap.render(pose, K, out_v, out_n, out_d, min_weight=1.0, max_half=half)
-        want_i, want_z, nc = ref_render(data, pose, half, min_weight=1.0)
+    for half, fill in ((0, 0), (2, 0), (0, 1), (1, 3)):
+        img = smap.render(pose, K, out_v, out_n, out_d, min_weight=1.0, max_half=half, fill_half=fill)
+        want_i, want_z, nc = ref_render(data, pose, half, min_weight=1.0, fill=fill)
         got_i = img.view_index.to_numpy()
         got_i[got_i == INT_MAX] = -1
         same = got_i == want_i
-        assert same.mean() > 0.995, f"half={half}: {same.mean():.4f} of pixels agree"
+        assert same.mean() > 0.995, f"half={half}, fill={fill}: {same.mean():.4f} of pixels agree"
         assert (want_i >= 0).sum() > 300
         got_z = out_d.to_numpy()
         assert_close(got_z[same], want_z[same], 1e-4)
@@ -607,6 +618,9 @@ def test_render_matches_reference(arch, rng):
         assert_close(out_v.to_numpy()[ok], rays(u.astype(float), v.astype(float)) * want_z[ok][:, None], 1e-4)
         assert_close(out_n.to_numpy()[ok], nc[want_i[ok]], 1e-5)
         assert np.all(out_d.to_numpy()[want_i < 0][same[want_i < 0]] == 0)
+        if half == 0 < fill:  # only holes change: a pixel with a surfel of its own keeps it
+            own = ref_render(data, pose, 0, 1.0)[0]
+            assert np.all(want_i[own >= 0] == own[own >= 0]) and (want_i >= 0).sum() > (own >= 0).sum()
     # the footprint makes discs cover more pixels than their points
     assert (want_i >= 0).sum() > (ref_render(data, pose, 0, 1.0)[0] >= 0).sum()
 

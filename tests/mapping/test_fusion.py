@@ -619,8 +619,16 @@ def test_render_matches_reference(arch, rng):
         assert_close(out_n.to_numpy()[ok], nc[want_i[ok]], 1e-5)
         assert np.all(out_d.to_numpy()[want_i < 0][same[want_i < 0]] == 0)
         if half == 0 < fill:  # only holes change: a pixel with a surfel of its own keeps it
-            own = ref_render(data, pose, 0, 1.0)[0]
+            own, own_z, _ = ref_render(data, pose, 0, 1.0)
             assert np.all(want_i[own >= 0] == own[own >= 0]) and (want_i >= 0).sum() > (own >= 0).sum()
+            # clear_holes takes the filled render back to the surfels' own pixels
+            smap.clear_holes(K, out_v, out_n, out_d)
+            got_i = img.view_index.to_numpy()
+            got_i[got_i == INT_MAX] = -1
+            same = got_i == own
+            assert same.mean() > 0.995 and np.all((out_d.to_numpy() > 0) == (got_i >= 0))
+            assert np.all(out_v.to_numpy()[got_i < 0] == 0) and np.all(out_n.to_numpy()[got_i < 0] == 0)
+            assert_close(out_d.to_numpy()[same], own_z[same], 1e-4)
     # the footprint makes discs cover more pixels than their points
     assert (want_i >= 0).sum() > (ref_render(data, pose, 0, 1.0)[0] >= 0).sum()
 

@@ -39,6 +39,7 @@ def measure(overrides: list[str], first: int, last: int, out: Path) -> dict:
     summary = pipeline.run()
     slam = pipeline.step.slam
     surfels = slam.mapper.to_numpy()
+    np.savez_compressed(out / "surfels.npz", anchor=slam.mapper.anchors(), **surfels)
     fused_by_first = sum(r.tracked for r in pipeline.results[:first])
     keep = (surfels["t_created"] < fused_by_first) & (surfels["weight"] >= cfg.fusion.unstable_weight)
     pos, nrm = surfels["position"][keep].astype(np.float64), surfels["normal"][keep].astype(np.float64)
@@ -85,10 +86,13 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=300, help="frames of the first pass")
     parser.add_argument("--last", type=int, default=60, help="last frames compared with the first pass")
     parser.add_argument("--only", choices=("on", "off"), help="one setting only")
+    parser.add_argument("--keep", help="keep each run's folder under this folder (with surfels.npz: the map's "
+                                       "surfels and anchors), instead of a temporary one")
     args = parser.parse_args()
     init_backend("cpu")
     base = [f"synth.scene={args.scene}", f"dataset.downsample={args.downsample}", *args.set]
     with tempfile.TemporaryDirectory() as tmp:
+        tmp = args.keep or tmp
         for setting in ("off", "on"):
             if args.only and setting != args.only:
                 continue

@@ -59,10 +59,11 @@ def list_if(s: ti.template(), b, found, i, keep):
 
 @ti.kernel
 def project_surfels(s: ti.template(), n: ti.i32, imap: ti.template(), pose: Rigid, fx: ti.f32, fy: ti.f32,
-                    cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32):
+                    cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32, min_time: ti.i32):
     """``proj_pixel`` ≥ 0 (and a listing per block) for the surfels inside the image of ``imap`` with
-    z > 0: filter pass 1 of the fusion step. With ``render``, surfels below ``min_weight`` or facing away
-    are left out too. ``pose`` (R, t) maps world to camera. Branch-free, as ``fusion.project_compatible``.
+    z > 0: filter pass 1 of the fusion step. With ``render``, surfels below ``min_weight``, facing away or
+    last updated before frame ``min_time`` (inactive, ElasticFusion's time window) are left out too.
+    ``pose`` (R, t) maps world to camera. Branch-free, as ``fusion.project_compatible``.
     """
     H, W = imap.index.shape
     for b in range((n + BLOCK - 1) // BLOCK):  # parallel over blocks, serial inside one
@@ -73,7 +74,8 @@ def project_surfels(s: ti.template(), n: ti.i32, imap: ti.template(), pose: Rigi
             pc = R @ s.position[i] + t
             keep, u, v = project_to_pixel(pc, fx, fy, cx, cy, H, W)
             if ti.static(render):
-                keep = keep & (s.weight[i] >= min_weight) & ((R @ s.normal[i]).dot(pc) < 0)
+                keep = keep & (s.weight[i] >= min_weight) & ((R @ s.normal[i]).dot(pc) < 0) \
+                    & (s.t_updated[i] >= min_time)
             s.proj_pixel[i] = ti.select(keep, v * W + u, -1)
             s.proj_depth[i] = depth_bits(ti.abs(pc.z))
             found = list_if(s, b, found, i, keep)

@@ -57,7 +57,7 @@ class SurfelMap(SurfelStore):
         index_map.clear(img.index_map)
         if self.count > 0:
             index_map.project_surfels(self.arrays, self.count, img.index_map, world_to_camera(pose),
-                                      *intrinsics.as_tuple(), False, 0.0)
+                                      *intrinsics.as_tuple(), False, 0.0, 0)
             index_map.build(self.arrays, self.count, img.index_map, with_index)
         self._projected = self.count
         return img
@@ -186,7 +186,8 @@ class SurfelMap(SurfelStore):
 
     # -- prediction -----------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics, out_vertex=None, out_normal=None, out_depth=None,
-               min_weight: float = 0.0, max_half: int = 1, fill_half: int = 0) -> PredictionImages:
+               min_weight: float = 0.0, max_half: int = 1, fill_half: int = 0,
+               min_time: int = -2**31) -> PredictionImages:
         """Predicted vertex / normal / depth maps in the camera frame of ``pose`` (zero = no surfel).
 
         Outputs are Taichi fields of shape (intrinsics.height, intrinsics.width), e.g. a FrameMaps' level
@@ -195,6 +196,7 @@ class SurfelMap(SurfelStore):
         are splatted as discs reaching at most ``max_half`` pixels from their centre pixel; the vertex lies
         on the pixel's ray, at the depth where the ray meets the disc. A pixel that no surfel projects to
         (a hole) takes the nearest disc its ray meets within max(``max_half``, ``fill_half``) pixels.
+        Surfels last updated before frame ``min_time`` (inactive: ElasticFusion's time window) are left out.
         """
         img = self.prediction_images(intrinsics.height, intrinsics.width)
         to_camera = world_to_camera(pose)
@@ -202,7 +204,7 @@ class SurfelMap(SurfelStore):
         index_map.clear(img.index_map)
         if self.count > 0:
             index_map.project_surfels(self.arrays, self.count, img.index_map, to_camera, fx, fy, cx, cy, True,
-                                      float(min_weight))
+                                      float(min_weight), int(min_time))
             index_map.build(self.arrays, self.count, img.index_map)
         self._projected = 0  # the projection scratch now holds the render's projection, not the fusion step's
         prediction.gather_front(self.arrays, img, to_camera)

@@ -136,11 +136,12 @@ class SurfelMapper:
                         self.config.render_max_half)
 
     def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics,
-                    min_weight: float | None = None) -> None:
+                    min_weight: float | None = None, min_time: int = -2**31) -> None:
         """Fill a ``FrameMaps`` with the prediction: every pyramid level from the rendered depth (with the
         maps' own settings), and level 0's vertex and normal maps straight from the
         surfels (averaged normals, smoother than normals from depth differences). Surfels below
-        ``min_weight`` (default ``fusion.render_min_weight``) are left out.
+        ``min_weight`` (default ``fusion.render_min_weight``) or last updated before frame ``min_time``
+        (inactive: ElasticFusion's time window, ``slam.active_window``) are left out.
 
         The pyramid is built from a render whose holes (pixels no surfel projects to) take a neighbour's
         disc (``fusion.render_fill_half``); with ``render_max_half`` = 0, level 0 then goes back to the
@@ -152,7 +153,8 @@ class SurfelMapper:
             min_weight = self.config.render_min_weight
         cfg = self.config
         level0 = frame_maps.vertex[0], frame_maps.normal[0], frame_maps.depth[0]
-        self.map.render(pose, intrinsics, *level0, min_weight, cfg.render_max_half, cfg.render_fill_half)
+        self.map.render(pose, intrinsics, *level0, min_weight, cfg.render_max_half, cfg.render_fill_half,
+                        min_time)
         frame_maps.compute_from_field(intrinsics, level0_maps=False)
         if cfg.render_max_half == 0 < cfg.render_fill_half:
             self.map.clear_holes(intrinsics, *level0)

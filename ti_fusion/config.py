@@ -405,6 +405,9 @@ class SLAMConfig:
                                      # frames at 640×480: ATE 2.73 vs 2.67 cm, maps 8 vs 33 ms per frame
     loop_closure: bool = False       # keyframes, place recognition, loop verification and pose-graph correction
                                      # of the poses and the map ([loop]; docs/LOOP_CLOSURE.md)
+    active_window: NonNegativeInt = 0  # frames: tracking renders only surfels updated within this many fused frames
+                                     # (ElasticFusion's active model; older ones stay in the map for loop closure);
+                                     # 0 = the whole map
 
 
 @dataclass

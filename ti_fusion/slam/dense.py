@@ -198,8 +198,11 @@ class DenseSLAM:
         # once the map has had time to confirm any: at first every surfel is new, and a prediction
         # without them would be empty, every frame lost and never fused.
         warm = self._frames_fused >= fusion.unstable_age
+        # slam.active_window: only the active model (surfels updated lately) is tracked against (ElasticFusion)
+        window = self.config.slam.active_window
         self.mapper.render_maps(self.model_maps, last, self.model_intrinsics,
-                                min_weight=fusion.render_min_weight if warm else 0.0)
+                                min_weight=fusion.render_min_weight if warm else 0.0,
+                                min_time=self._frames_fused - window if window > 0 else -2**31)
         if colour:
             K = self.model_intrinsics
             view = self.mapper.map.prediction_images(K.height, K.width).view_index  # the render's, just made

@@ -182,6 +182,10 @@ class LoopClosure:
                 seen.add(id(pose))
                 pose[:] = renormalize(corrections[k] @ pose)
         self._map_correction(corrections)
+        if self.config.slam.active_window > 0:
+            # the corrected old surfels agree with the current pose again: active (tracked against) for
+            # the next slam.active_window frames, as ElasticFusion reactivates the model after a loop
+            self.slam.mapper.map.arrays.t_updated.fill(self.slam._frames_fused)
 
     # -- results --------------------------------------------------------------------------------
     def loop_segments(self, candidates: list[LoopCandidate]) -> list[tuple[np.ndarray, np.ndarray, bool]]:

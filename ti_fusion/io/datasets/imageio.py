@@ -28,16 +28,27 @@ def _imread(path: Path, flags: int) -> np.ndarray:
     if data.size:
         # Our InputError says it in one line; OpenCV's log lines and libpng's and libjpeg's own messages
         # about a broken file (written straight to the process's stderr) would be noise.
-        level = cv2.utils.logging.getLogLevel()
-        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
-        try:
-            with _stderr_silenced():
-                image = cv2.imdecode(data, flags)
-        finally:
-            cv2.utils.logging.setLogLevel(level)
+        with _opencv_silenced(), _stderr_silenced():
+            image = cv2.imdecode(data, flags)
     if image is None:
         raise InputError(path, "unreadable or corrupt image")
     return image
+
+
+@contextmanager
+def _opencv_silenced():
+    """OpenCV's own log silenced for the duration, where this build exposes its log level (some OpenCV 4
+    wheels have no ``cv2.utils.logging``; their messages then reach stderr, which is silenced too)."""
+    logging = getattr(getattr(cv2, "utils", None), "logging", None)
+    if logging is None:
+        yield
+        return
+    level = logging.getLogLevel()
+    logging.setLogLevel(logging.LOG_LEVEL_SILENT)
+    try:
+        yield
+    finally:
+        logging.setLogLevel(level)
 
 
 @contextmanager
@@ -231,15 +242,11 @@ def _intrinsics_from_yaml(path: Path, width: int, height: int) -> Intrinsics:
 
 def _intrinsics_from_opencv(path: Path, width: int, height: int) -> Intrinsics:
     """An OpenCV FileStorage calibration (``cv::FileStorage`` YAML with ``camera_matrix``)."""
-    level = cv2.utils.logging.getLogLevel()
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_SILENT)
     try:
-        with _stderr_silenced():
+        with _opencv_silenced(), _stderr_silenced():
             storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
     except cv2.error:
         raise InputError(path, "cannot parse OpenCV calibration file") from None
-    finally:
-        cv2.utils.logging.setLogLevel(level)
     try:
         if not storage.isOpened():
             raise InputError(path, "cannot parse OpenCV calibration file")

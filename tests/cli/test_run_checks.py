@@ -219,3 +219,10 @@ def test_an_image_that_cannot_be_written_is_one_line_naming_it(cpu, tmp_path, ca
                                         "left on device"
     left = os.listdir(out) if out.exists() else []  # a run that wrote nothing leaves no folder
     assert name not in left and not [p for p in left if ".tmp" in p]
+
+
+def test_scene_options_on_recorded_data_are_one_line(sequence, tmp_path, capsys):
+    seq = sequence("recorded")
+    assert main(["slam", str(seq), "--scene", "loop", "--out", str(tmp_path / "run"), "--quiet"]) == 2
+    assert _stderr_lines(capsys) == [f"ti-fusion slam: error: --scene is for the synthetic sequence (no DATA); "
+                                     f"{seq} is recorded data"]

@@ -136,6 +136,12 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
         d.add_argument("--stop", type=int, default=None, help="one past the last frame")
         d.add_argument("--stride", type=int, default=None, help="take every N-th frame")
         d.add_argument("--frames", type=int, default=None, help="number of frames (from --start)")
+        from ti_fusion.synthetic.scenes import SCENES
+
+        d.add_argument("--scene", choices=tuple(SCENES), default=None,
+                       help="without DATA: the synthetic scene and its camera path (default: synth.scene, room)")
+        d.add_argument("--trajectory", default=None, metavar="FILE.tum",
+                       help="without DATA: render the synthetic scene from these poses instead of its own path")
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
@@ -179,6 +185,12 @@ def _apply_dataset_args(args: argparse.Namespace, config: Config) -> None:
         value = getattr(args, name, None)
         if value is not None:
             setattr(ds, name, value)
+    for name in ("scene", "trajectory"):
+        value = getattr(args, name, None)
+        if value is not None:
+            if ds.path:
+                raise InputError(None, f"--{name} is for the synthetic sequence (no DATA); {ds.path} is recorded data")
+            setattr(config.synth, name, value)
     if getattr(args, "frames", None) is not None:
         ds.stop = ds.start + args.frames * ds.stride
         config.synth.frames = max(config.synth.frames, ds.stop) if ds.path == "" else config.synth.frames

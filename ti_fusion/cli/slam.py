@@ -34,7 +34,10 @@ def run(ctx) -> dict:
     dataset = open_dataset(cfg.dataset, cfg.synth)
     if not ctx.quiet:  # what the format line (format, depth scale, intrinsics) does not say
         d = dataset.describe()
-        name = "the synthetic sequence" if d["format"] == "synthetic" else d["name"]
+        name = d["name"]
+        if d["format"] == "synthetic":
+            name = "the synthetic sequence" + ("" if d["scene"] == "room" else f" (scene {d['scene']})") + \
+                (f" along {d['trajectory']}" if d.get("trajectory") else "")
         ctx.log(f"{name}: {d['frames']} frames at {d['width']}x{d['height']}")
     live = _live_server(ctx)
     try:

@@ -6,7 +6,7 @@ import pytest
 
 from ti_fusion.config import LoopConfig
 from ti_fusion.geometry import invert, se3_exp
-from ti_fusion.loop.pose_graph import PoseGraph
+from ti_fusion.loop.pose_graph import PoseGraph, adjoint, edge_covariance, frame_covariance
 
 K = 40  # keyframes around a circle of 2 m radius
 
@@ -89,3 +89,61 @@ def test_plain_kernels_run(rng, robust):
     out = graph.optimise()
     assert out.poses.shape == (K, 4, 4) and np.isfinite(out.poses).all()
     assert out.error_after <= out.error_before
+
+
+def test_adjoint_moves_a_twist_between_frames(rng):
+    T = se3_exp(rng.normal(0, 0.5, 6))
+    xi = rng.normal(0, 0.1, 6)
+    assert np.allclose(T @ se3_exp(xi) @ invert(T), se3_exp(adjoint(T) @ xi), atol=1e-9)
+
+
+def _corridor_chain(slide: float):
+    """Keyframes every 0.25 m along world x (the corridor), the camera turned to look across it (camera z =
+    world y) so the corridor axis is the camera's x; odometry right except the middle edge, which slid by
+    ``slide`` metres along the corridor."""
+    look = np.eye(4)
+    look[:3, :3] = [[1, 0, 0], [0, 0, -1], [0, 1, 0]]
+    truth = []
+    for k in range(11):
+        T = look.copy()
+        T[0, 3] = 0.25 * k
+        truth.append(T)
+    chain = [truth[0]]
+    for k in range(1, 11):
+        step = invert(truth[k - 1]) @ truth[k]
+        if k == 6:
+            step = step @ se3_exp(np.r_[0, 0, 0, slide, 0, 0])
+        chain.append(chain[-1] @ step)
+    return truth, chain
+
+
+def test_weak_direction_of_an_odometry_edge_takes_the_loop_correction():
+    """A corridor chain whose middle edge slid along the corridor axis, where its frames' AᵀA is weak:
+    with edge covariances from ICP's information the loop puts the correction on that edge and the other
+    keyframes stay right; with the constant sigmas it is spread over every edge."""
+    truth, chain = _corridor_chain(0.1)
+    AtA_strong = np.eye(6) * 1e4
+    AtA_weak = np.diag([1e4, 1e4, 1e4, 1e-2, 1e4, 1e4])  # camera x (the corridor) unobserved
+    config = LoopConfig(odometry_from_icp=True)
+    errors = {}
+    for informed in (False, True):
+        graph = PoseGraph(config)
+        for k, pose in enumerate(chain):
+            frames = [(pose, frame_covariance(AtA_weak if k == 6 else AtA_strong, config))]
+            graph.add_keyframe(pose, edge_covariance(frames, pose) if informed and k else None)
+        graph.add_loop(0, 10, invert(truth[0]) @ truth[10])
+        out = graph.optimise()
+        assert out.outliers == []
+        errors[informed] = _worst(out.poses, truth)
+    assert _worst(chain, truth) > 0.08
+    assert errors[False] > 0.03  # spread: keyframe 5 is off by about half the slide
+    assert errors[True] < 0.01
+
+
+def test_frame_covariance_is_the_constant_sigmas_where_observed_and_large_where_not():
+    config = LoopConfig()
+    D2 = np.diag([np.radians(config.odometry_sigma_deg)] * 3 + [config.odometry_sigma_m] * 3) ** 2
+    assert np.allclose(frame_covariance(np.eye(6) * 1e4, config), D2)
+    weak = frame_covariance(np.diag([1e4, 1e4, 1e4, 0.0, 1e4, 1e4]), config)
+    assert np.isclose(weak[3, 3], config.odometry_max_scale * config.odometry_sigma_m ** 2)
+    assert np.allclose(frame_covariance(None, config), D2 * config.odometry_max_scale)

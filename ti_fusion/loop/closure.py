@@ -31,7 +31,7 @@ from ti_fusion.config import Config
 from ti_fusion.geometry import invert, renormalize
 from ti_fusion.loop.keyframes import Keyframe, KeyframeSelector, grid_points
 from ti_fusion.loop.place_recognition import PlaceDatabase
-from ti_fusion.loop.pose_graph import PoseGraph
+from ti_fusion.loop.pose_graph import PoseGraph, edge_covariance, frame_covariance
 from ti_fusion.loop.verification import LoopCandidate, LoopVerifier, fill
 from ti_fusion.tracking.features import extract_features
 
@@ -71,6 +71,8 @@ class LoopClosure:
         self._orb = cv2.ORB_create(config.loop.n_features)
         self._vo = dataclasses.replace(config.vo, n_features=config.loop.n_features)
         self._posed: list[tuple[np.ndarray, int]] = []  # every frame pose and the keyframe it is anchored to
+        self._since: list[tuple[np.ndarray, np.ndarray]] = []  # loop.odometry_from_icp: (pose, covariance) of the
+        # frames since the last keyframe, for the next odometry edge
         self.candidates: list[LoopCandidate] = []  # every candidate verified, in order
         self.closures: list[tuple[int, int]] = []  # loops applied
         self.refused: list[tuple[int, int, str]] = []  # verified loops the pose graph refused, and why
@@ -85,6 +87,9 @@ class LoopClosure:
         """Loop closure's part of one frame, after ``register_frame`` returned ``result`` for it."""
         if result.pose is None:
             return None
+        if self.config.loop.odometry_from_icp and self.keyframes:
+            self._since.append((np.array(result.pose, dtype=np.float64),
+                                frame_covariance(self._information(result), self.config.loop)))
         anchor = len(self.keyframes) - 1
         if not result.tracked or (why := self.selector.why(self.keyframes[-1] if self.keyframes else None,
                                                            result.pose, frame.index)) is None:
@@ -127,6 +132,17 @@ class LoopClosure:
         return report
 
     # -- keyframes ------------------------------------------------------------------------------
+    @staticmethod
+    def _information(result) -> np.ndarray | None:
+        """The tracked frame's geometric AᵀA of ICP's last iteration ((ω, v) in the new camera's frame: ICP's
+        left update of T = T_wc_new⁻¹ T_wc_last is a right perturbation of the new pose), or None."""
+        icp = getattr(result, "icp", None)
+        if not result.tracked or icp is None or icp.sums is None:
+            return None
+        from ti_fusion.kernels.icp import unpack_sums
+
+        return unpack_sums(icp.sums)["AtA"]
+
     def _make_keyframe(self, frame, pose: np.ndarray) -> Keyframe:
         slam = self.slam
         level = slam.map_level - slam.frame_maps.input_level  # the fused level, at the map's resolution
@@ -136,7 +152,11 @@ class LoopClosure:
         kf = Keyframe(len(self.keyframes), frame.index, frame.timestamp, pose, features, frame.intrinsics,
                       depth, K, grid_points(depth, K))
         self.keyframes.append(kf)
-        self.graph.add_keyframe(pose)
+        covariance = None
+        if self.config.loop.odometry_from_icp and self._since:
+            covariance = edge_covariance(self._since, pose)
+        self._since = []
+        self.graph.add_keyframe(pose, covariance)
         slam.mapper.anchor = kf.id  # surfels fused from the next frame on move with this keyframe
         return kf
 

@@ -41,6 +41,7 @@ class Edge:
     j: int
     T: np.ndarray
     loop: bool
+    covariance: np.ndarray | None = None  # 6×6 in GTSAM's Pose3 tangent order (ω, v); None: the constant sigmas
 
 
 @dataclass
@@ -63,6 +64,53 @@ def _sigmas(rot_deg: float, trans_m: float) -> np.ndarray:
     return np.array([np.radians(rot_deg)] * 3 + [trans_m] * 3)
 
 
+def adjoint(T: np.ndarray) -> np.ndarray:
+    """The 6×6 adjoint of T in the (ω, v) order: T exp(ξ) T⁻¹ = exp(Ad(T) ξ)."""
+    R, t = T[:3, :3], T[:3, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    Ad = np.zeros((6, 6))
+    Ad[:3, :3] = R
+    Ad[3:, 3:] = R
+    Ad[3:, :3] = tx @ R
+    return Ad
+
+
+def frame_covariance(AtA: np.ndarray | None, config: LoopConfig) -> np.ndarray:
+    """One tracked frame's share of an odometry edge's covariance, in its camera's frame ((ω, v), right
+    perturbation of its camera-to-world pose), before the 1/frames scaling: the constant sigmas' diagonal D², reshaped
+    by ICP's geometric AᵀA. Whitened by D, the eigen-directions whose eigenvalue is at least
+    ``odometry_info_ratio`` of the largest keep variance 1 (the constant sigma); weaker ones get
+    ``odometry_info_ratio / (λ/λmax)``, at most ``odometry_max_scale``. No (or a non-finite, or zero) AᵀA: the
+    maximum in every direction (a frame that was not tracked)."""
+    D = np.diag(_sigmas(config.odometry_sigma_deg, config.odometry_sigma_m))
+    scale = np.full(6, config.odometry_max_scale)
+    vec = np.eye(6)
+    if AtA is not None and np.all(np.isfinite(AtA)):
+        Hw = D @ np.asarray(AtA, dtype=np.float64) @ D
+        lam, vec = np.linalg.eigh(0.5 * (Hw + Hw.T))
+        if lam[-1] > 0:
+            ratio = np.maximum(lam, 0.0) / lam[-1]
+            with np.errstate(divide="ignore"):
+                scale = np.clip(config.odometry_info_ratio / ratio, 1.0, config.odometry_max_scale)
+        else:
+            vec = np.eye(6)
+    return D @ (vec * scale) @ vec.T @ D
+
+
+def edge_covariance(frames: list[tuple[np.ndarray, np.ndarray]], pose_j: np.ndarray) -> np.ndarray:
+    """An odometry edge's covariance (keyframe j's frame, GTSAM's BetweenFactor convention) from the frames
+    tracked since keyframe i, keyframe j included: each (camera-to-world pose, ``frame_covariance``) moved into
+    j's frame with the adjoint of T_j⁻¹ T_f and summed (first order, independent frames), divided by their
+    number so that an edge whose frames all observed every direction keeps the constant sigmas."""
+    inv_j = invert(pose_j)
+    total = np.zeros((6, 6))
+    for pose, cov in frames:
+        Ad = adjoint(inv_j @ pose)
+        total += Ad @ cov @ Ad.T
+    total /= max(len(frames), 1)
+    return 0.5 * (total + total.T)
+
+
 class PoseGraph:
     """Keyframe poses, odometry and loop edges; ``optimise`` returns corrected poses."""
 
@@ -81,13 +129,15 @@ class PoseGraph:
     def __len__(self) -> int:
         return len(self.poses)
 
-    def add_keyframe(self, pose: np.ndarray) -> int:
+    def add_keyframe(self, pose: np.ndarray, covariance: np.ndarray | None = None) -> int:
         """A new keyframe at ``pose``; from the second on, an odometry edge from the previous one (the
-        relative pose of the two current estimates). Returns its id."""
+        relative pose of the two current estimates) with ``covariance`` (6×6, (ω, v), ``edge_covariance``),
+        or the constant sigmas when None. Returns its id."""
         pose = np.asarray(pose, dtype=np.float64)
         if self.poses:
             i = len(self.poses) - 1
-            self.edges.append(Edge(i, i + 1, renormalize(invert(self.poses[i]) @ pose), loop=False))
+            self.edges.append(Edge(i, i + 1, renormalize(invert(self.poses[i]) @ pose), loop=False,
+                                   covariance=covariance))
         self.poses.append(pose.copy())
         return len(self.poses) - 1
 
@@ -151,7 +201,9 @@ class PoseGraph:
                                          gtsam.noiseModel.Isotropic.Sigma(6, PRIOR_SIGMA)))
         for e in self.edges:
             if not e.loop:
-                graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), self._odometry_noise))
+                noise = self._odometry_noise if e.covariance is None else \
+                    gtsam.noiseModel.Gaussian.Covariance(e.covariance)
+                graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), noise))
         for e in loops:
             graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), loop_noise))
         return graph

@@ -457,10 +457,11 @@ class LoopConfig:
     odometry_sigma_deg: Positive = 0.5  # and of its rotation, degrees
     odometry_from_icp: bool = False  # pose graph: shape each odometry edge's covariance by the tracked frames' ICP
                                      # AᵀA (directions ICP could not observe get large variance; docs/LOOP_CLOSURE.md)
-    odometry_info_ratio: Fraction = 0.01  # odometry_from_icp: a direction whose AᵀA eigenvalue (whitened by the sigmas
+    odometry_info_ratio: Fraction = 1.0  # odometry_from_icp: a direction whose AᵀA eigenvalue (whitened by the sigmas
                                      # above) is below this fraction of the largest gets variance × ratio / eigenvalue
-    odometry_max_scale: Annotated[float, Range(ge=1)] = 1e4  # odometry_from_icp: that variance factor at most
-                                     # (dimensionless; 1e4 = the sigma × 100); untracked frames get it in every direction
+                                     # (1: the inverse information, the strongest direction at the sigmas above)
+    odometry_max_scale: Annotated[float, Range(ge=1)] = 1e6  # odometry_from_icp: that variance factor at most
+                                     # (dimensionless; 1e6 = the sigma × 1000); untracked frames get it in every direction
     loop_sigma_m: Positive = 0.02    # standard deviation of a loop edge's translation, metres
     loop_sigma_deg: Positive = 1.0   # and of its rotation, degrees
     robust: Annotated[str, OneOf("gnc", "cauchy", "huber", "none")] = "gnc"  # robust kernel on loop edges: gnc =

@@ -143,7 +143,9 @@ def test_weak_direction_of_an_odometry_edge_takes_the_loop_correction():
 def test_frame_covariance_is_the_constant_sigmas_where_observed_and_large_where_not():
     config = LoopConfig()
     D2 = np.diag([np.radians(config.odometry_sigma_deg)] * 3 + [config.odometry_sigma_m] * 3) ** 2
-    assert np.allclose(frame_covariance(np.eye(6) * 1e4, config), D2)
-    weak = frame_covariance(np.diag([1e4, 1e4, 1e4, 0.0, 1e4, 1e4]), config)
+    strong = np.linalg.inv(D2) * 1e3  # every direction observed equally well (in the sigmas' units)
+    assert np.allclose(frame_covariance(strong, config), D2)
+    strong[3, 3] = 0.0
+    weak = frame_covariance(strong, config)
     assert np.isclose(weak[3, 3], config.odometry_max_scale * config.odometry_sigma_m ** 2)
     assert np.allclose(frame_covariance(None, config), D2 * config.odometry_max_scale)

@@ -62,6 +62,7 @@ def run(tmp_path_factory):
     cfg.slam.loop_closure = True
     cfg.loop.keyframe_translation = 0.1
     cfg.loop.min_frame_gap = 15
+    cfg.loop.odometry_from_icp = True  # the odometry edges' covariances from ICP's AᵀA (the constant ones: test_pose_graph)
     out = tmp_path_factory.mktemp("loop") / "run"
     frames = FrameList(_out_and_back(), name="out-and-back")
     pipeline = SLAMPipeline(frames, cfg, RunDir("slam", out), None, show_progress=False)
@@ -79,6 +80,9 @@ def test_the_return_is_closed_onto_the_start(run):
     for name in ("detect", "verify", "optimise", "correct"):
         assert s["loop_ms"][name]["calls"] >= 1, name
     assert all({"query", "match", "accepted", "reason"} <= set(c) for c in s["loop_candidates_log"])
+    odometry = [e for e in run.pipeline.step.loop.graph.edges if not e.loop]
+    assert odometry and all(e.covariance is not None and np.all(np.linalg.eigvalsh(e.covariance) > 0)
+                            for e in odometry)
 
 
 def test_surfels_carry_keyframe_anchors(run):

@@ -132,15 +132,17 @@ class LoopClosure:
         return report
 
     # -- keyframes ------------------------------------------------------------------------------
-    @staticmethod
-    def _information(result) -> np.ndarray | None:
-        """The tracked frame's geometric AᵀA of ICP's last iteration ((ω, v) in the new camera's frame: ICP's
-        left update of T = T_wc_new⁻¹ T_wc_last is a right perturbation of the new pose), or None."""
+    def _information(self, result) -> np.ndarray | None:
+        """The tracked frame's AᵀA of ICP's last iteration ((ω, v) in the new camera's frame: ICP's left update
+        of T = T_wc_new⁻¹ T_wc_last is a right perturbation of the new pose), the photometric term's added where
+        it ran (``icp.color_weight``), or None."""
         icp = getattr(result, "icp", None)
         if not result.tracked or icp is None or icp.sums is None:
             return None
-        from ti_fusion.kernels.icp import unpack_sums
+        from ti_fusion.kernels.icp import combined_system, unpack_sums
 
+        if icp.colour_inliers > 0:
+            return combined_system(icp.sums, self.config.icp.color_weight)[0]
         return unpack_sums(icp.sums)["AtA"]
 
     def _make_keyframe(self, frame, pose: np.ndarray) -> Keyframe:

@@ -1,7 +1,8 @@
 """The pose graph of the keyframes, optimised with GTSAM.
 
 Nodes: keyframe poses (camera-to-world). Edges: odometry between consecutive keyframes (the tracked
-relative pose, Gaussian with ``loop.odometry_sigma_*``) and loops (the verified relative pose, with
+relative pose, Gaussian with ``loop.odometry_sigma_*``, or with ``loop.odometry_from_icp`` a full covariance
+shaped by the tracked frames' ICP AᵀA: ``frame_covariance``, ``edge_covariance``) and loops (the verified relative pose, with
 ``loop.loop_sigma_*`` under a robust kernel, ``loop.robust``). The first keyframe is held by a tight prior
 (the map's frame).
 

@@ -292,6 +292,17 @@ class FinestIteration:
         return solve_normal_equations(s["AtA"], s["Atb"])
 
 
+def _peer_block(peer, times: list) -> np.ndarray:
+    """One block of a peer's frame pairs: the pause, one untimed run, then RUNS_PER_BLOCK timed ones whose
+    (ms, CPU ms) go to ``times``; the last run's pose."""
+    time.sleep(SWITCH_SETTLE_S)
+    peer.run()
+    for _ in range(RUNS_PER_BLOCK):
+        ms, cpu, pose = peer.run()
+        times.append((ms, cpu))
+    return pose
+
+
 def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
     import numpy as np
 
@@ -324,17 +335,9 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
         frame_pair()
         ours.extend(timed(frame_pair) for _ in range(RUNS_PER_BLOCK))
         if o3d is not None:
-            time.sleep(SWITCH_SETTLE_S)
-            o3d.run()
-            for _ in range(RUNS_PER_BLOCK):
-                ms, cpu, o3d_pose = o3d.run()
-                theirs.append((ms, cpu))
+            o3d_pose = _peer_block(o3d, theirs)
         if cv is not None:
-            time.sleep(SWITCH_SETTLE_S)
-            cv.run()
-            for _ in range(RUNS_PER_BLOCK):
-                ms, cpu, cv_pose = cv.run()
-                cv_times.append((ms, cpu))
+            cv_pose = _peer_block(cv, cv_times)
     result = frame_pair()
     if o3d is not None:
         o3d.close()

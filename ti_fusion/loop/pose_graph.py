@@ -29,7 +29,7 @@ import gtsam
 import numpy as np
 
 from ti_fusion.config import LoopConfig
-from ti_fusion.geometry import invert, renormalize, se3_log
+from ti_fusion.geometry import hat, invert, renormalize, se3_log
 
 PRIOR_SIGMA = 1e-6  # radians and metres: the first keyframe does not move
 
@@ -68,11 +68,10 @@ def _sigmas(rot_deg: float, trans_m: float) -> np.ndarray:
 def adjoint(T: np.ndarray) -> np.ndarray:
     """The 6×6 adjoint of T in the (ω, v) order: T exp(ξ) T⁻¹ = exp(Ad(T) ξ)."""
     R, t = T[:3, :3], T[:3, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
     Ad = np.zeros((6, 6))
     Ad[:3, :3] = R
     Ad[3:, 3:] = R
-    Ad[3:, :3] = tx @ R
+    Ad[3:, :3] = hat(t) @ R
     return Ad
 
 

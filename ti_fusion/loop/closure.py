@@ -136,7 +136,7 @@ class LoopClosure:
         """The tracked frame's AᵀA of ICP's last iteration ((ω, v) in the new camera's frame: ICP's left update
         of T = T_wc_new⁻¹ T_wc_last is a right perturbation of the new pose), the photometric term's added where
         it ran (``icp.color_weight``), or None."""
-        icp = getattr(result, "icp", None)
+        icp = result.icp
         if not result.tracked or icp is None or icp.sums is None:
             return None
         from ti_fusion.kernels.icp import combined_system, unpack_sums

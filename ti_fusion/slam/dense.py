@@ -71,6 +71,7 @@ class FrameResult:
     icp: ICPResult | None = None
     fusion: FusionStats | None = None
     ms: dict[str, float] = field(default_factory=dict)
+    loop: object | None = None  # the loop closure's report on a keyframe (``ti_fusion.loop.closure.LoopReport``)
 
     @property
     def tracked(self) -> bool:

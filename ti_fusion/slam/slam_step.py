@@ -1,6 +1,6 @@
 """``ti-fusion slam``'s step in the pipeline: dense SLAM (``DenseSLAM.register_frame``) on each frame, then
 loop closure (``ti_fusion.loop.closure``, with ``slam.loop_closure``), the /slam/stats message, the surfel
-map for /map/points, the loop edges for /slam/loop_edges, and the map's files after the loop."""
+map for /map/points, the loop edges for /loop_closures, and the map's files after the loop."""
 
 from __future__ import annotations
 
@@ -99,9 +99,8 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
     if result.fusion is not None:
         stats.update({"merged": result.fusion.merged, "added": result.fusion.added,
                       "covered": result.fusion.covered, "removed": result.fusion.removed})
-    loop = getattr(result, "loop", None)
-    if loop is not None:
-        stats["loop"] = loop.stats()
+    if result.loop is not None:
+        stats["loop"] = result.loop.stats()
     return stats
 
 
@@ -140,7 +139,7 @@ class SLAMStep:
 
     def log_frame(self, log, frame: Frame, result: FrameResult) -> None:
         """The loop edges so far (at the keyframes' current poses) after a frame that verified candidates."""
-        report = getattr(result, "loop", None)
+        report = result.loop
         if report is not None and report.candidates and hasattr(log, "log_loop_edges"):
             log.log_loop_edges(frame.timestamp, self.loop.edges())
 

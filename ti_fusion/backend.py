@@ -59,6 +59,9 @@ def _try_start(arch: str, **kwargs) -> bool:
     """Start Taichi on ``arch``; False (and Taichi reset) when that backend is absent."""
     import taichi as ti
 
+    from ti_fusion.frontend import memoize_source_positions
+
+    memoize_source_positions()
     global _threads_before_init
     ti.reset()
     _threads_before_init = _thread_ids()

@@ -1,0 +1,75 @@
+"""The memo of Taichi's source-position text (ti_fusion/frontend.py): installed, and compile errors still
+point at the right line, including when the same function is compiled again from another place."""
+
+import pytest
+import taichi as ti
+
+from ti_fusion.frontend import memoize_source_positions
+
+
+@ti.func
+def _bad_index(x: ti.template(), i):
+    return x[i, i, i]  # a 1-D field indexed with three indices: a compile error on this line
+
+
+def test_memo_installed(cpu):
+    assert memoize_source_positions()
+    from taichi.lang.ast import ast_transformer_utils as utils
+
+    assert hasattr(utils.ASTTransformerContext.get_pos_info, "__wrapped__")
+
+
+def test_compile_errors_still_name_the_line(cpu):
+    x = ti.field(ti.f32, shape=4)
+
+    @ti.kernel
+    def first():
+        for i in range(4):
+            x[i] = _bad_index(x, i)
+
+    @ti.kernel
+    def second():
+        x[0] = 1.0
+        x[1] = _bad_index(x, 1)
+
+    for kernel in (first, second, first):  # the same failing function reached from two kernels, twice
+        with pytest.raises(Exception) as info:
+            kernel()
+        text = str(info.value)
+        assert "return x[i, i, i]" in text and "^" in text, text
+        assert "_bad_index" in text, text
+
+
+def test_memo_gives_the_original_text(cpu, monkeypatch):
+    """Every position text the memo hands out while compiling a kernel with unrolled loops, an inlined
+    function called twice and multi-line statements equals what Taichi itself would have built."""
+    from taichi.lang.ast import ast_transformer_utils as utils
+
+    memo = utils.ASTTransformerContext.get_pos_info
+    compared = []
+
+    def checked(self, node):
+        text = memo(self, node)
+        assert text == memo.__wrapped__(self, node)
+        compared.append(text)
+        return text
+
+    monkeypatch.setattr(utils.ASTTransformerContext, "get_pos_info", checked)
+    x = ti.field(ti.f32, shape=(4, 4))
+
+    @ti.func
+    def twice(a):
+        return (a
+                + a)
+
+    @ti.kernel
+    def kernel():
+        for i, j in x:
+            total = 0.0
+            for k in ti.static(range(3)):
+                if k > 0:
+                    total += twice(x[i, j]) * k
+            x[i, j] = twice(total)
+
+    kernel()
+    assert len(compared) > 50

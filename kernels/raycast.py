@@ -76,6 +76,7 @@ class SensorModel:
     subpixel: float = 8.0      # disparity quantised to 1/subpixel pixel ...
     sensor_width: int = 640    # ... of a sensor this many pixels wide with the image's field of view
     color_sigma: float = 2.0   # grey levels per channel
+    depth_noise_scale: float = 1.0  # the axial noise is this × ti_fusion.sensor's σ(z)
 
 
 # -- hashing: uniform and Gaussian numbers from integers, identical on every backend ------------------
@@ -389,7 +390,7 @@ def render_kernel(
     step: ti.i32, full_width: ti.i32,
     noise: ti.i32, seed: ti.u32,
     min_range: ti.f32, max_range: ti.f32, cos_grazing: ti.f32,
-    fx_baseline: ti.f32, subpixel: ti.f32, color_sigma: ti.f32,
+    fx_baseline: ti.f32, subpixel: ti.f32, color_sigma: ti.f32, depth_noise_scale: ti.f32,
 ):
     """Per pixel: nearest hit → depth (along the optical axis), RGB, label.
 
@@ -459,7 +460,7 @@ def render_kernel(
             px = ti.Vector([ti.cast((vi * full_width + (u0 + g * LANES + l) * step) * 4, ti.u32)
                             for l in ti.static(range(LANES))])
             if noise != 0:
-                zn = z + depth_sigma(z, ti.f32) * gaussian(px, seed)
+                zn = z + depth_noise_scale * depth_sigma(z, ti.f32) * gaussian(px, seed)
                 disparity = ti.round(fx_baseline / zn * subpixel) / subpixel
                 quantised = ti.select(disparity > 0, fx_baseline / disparity, 0.0)
                 dropped = (z < min_range) | (z > max_range) | (ch[COS_INC] < cos_grazing)
@@ -608,5 +609,6 @@ class RayCaster:
             int(sensor is not None), int(seed) & 0xFFFFFFFF,
             s.min_range, s.max_range, math.cos(math.radians(s.grazing_deg)),
             intrinsics.fx * s.sensor_width / intrinsics.width * s.baseline, s.subpixel, s.color_sigma,
+            s.depth_noise_scale,
         )
         return depth, color, label

@@ -290,6 +290,8 @@ class SynthConfig:
     subpixel: Positive = 8.0        # disparity quantised to 1/subpixel pixel ...
     sensor_width: Count = 640       # ... of a sensor this wide with the same field of view (fx · sensor_width / width)
     color_noise: NonNegative = 2.0  # grey levels: Gaussian noise per colour channel (noise on)
+    depth_noise_scale: NonNegative = 1.0  # the axial depth noise is this × the sensor's σ(z) (ti_fusion/sensor.py;
+                                    # dimensionless, noise on): more noise, more drift (the loop scene, issue 22)
 
 
 @dataclass

@@ -303,14 +303,15 @@ def _wall_sequence(distance: float, **cfg) -> tuple[SyntheticSequence, np.ndarra
     return seq, pose
 
 
-@pytest.mark.parametrize("distance", [0.8, 1.6, 2.4, 3.2])
-def test_axial_noise_matches_the_kinect_model(cpu, distance):
-    seq, pose = _wall_sequence(distance)
+@pytest.mark.parametrize("distance, scale", [(0.8, 1.0), (1.6, 1.0), (2.4, 1.0), (3.2, 1.0), (2.4, 3.0)])
+def test_axial_noise_matches_the_kinect_model(cpu, distance, scale):
+    """σ(z) of ti_fusion.sensor, × synth.depth_noise_scale, then quantised to the disparity grid."""
+    seq, pose = _wall_sequence(distance, depth_noise_scale=scale)
     clean, _ = seq.render(pose, noise=False)
     np.testing.assert_allclose(clean, distance, atol=1e-5)
     errors = np.concatenate([(seq.render(pose, seed=s)[0] - clean).ravel() for s in range(4)])
     c = seq.cfg
-    sigma = 0.0012 + 0.0019 * (distance - 0.4) ** 2
+    sigma = scale * (0.0012 + 0.0019 * (distance - 0.4) ** 2)
     fx_sensor = c.fx * c.sensor_width / c.width  # quantisation is the 640-pixel sensor's
     step = distance**2 / (fx_sensor * c.baseline * c.subpixel)  # depth step of one disparity quantum
     expected = np.sqrt(sigma**2 + step**2 / 12)  # Gaussian then uniform quantisation error

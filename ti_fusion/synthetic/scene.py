@@ -325,7 +325,7 @@ class SyntheticSequence:
             self.poses = self.spec.path(self.timestamps - T0)
         self.sensor = SensorModel(min_range=c.min_range, max_range=c.max_range, grazing_deg=c.grazing_deg,
                                   baseline=c.baseline, subpixel=c.subpixel, sensor_width=c.sensor_width,
-                                  color_sigma=c.color_noise)
+                                  color_sigma=c.color_noise, depth_noise_scale=c.depth_noise_scale)
         self._caster = RayCaster(self.scene.table())
         self.last_labels: np.ndarray | None = None  # primitive index per pixel of the last render, −1 = none
 

@@ -7,7 +7,8 @@ For each setting, a slam run of the whole scene (320×240 with --downsample 2), 
 frames' depth (every 4th pixel), back-projected at the run's final (corrected) poses, against the map's
 first-pass surfels (created while fusing the first ``--first`` frames): the point-to-plane distance to
 the nearest such surfel, beside the sensor's depth noise σ(z) at those points; and the map's distance to
-the true surfaces (every confirmed surfel). Prints one JSON object per setting.
+the true surfaces (every confirmed surfel); and the final trajectory's unaligned position error every 100
+frames. Prints one JSON object per setting.
 """
 
 from __future__ import annotations
@@ -39,12 +40,11 @@ def measure(overrides: list[str], first: int, last: int, out: Path) -> dict:
     summary = pipeline.run()
     slam = pipeline.step.slam
     surfels = slam.mapper.to_numpy()
-    np.savez_compressed(out / "surfels.npz", anchor=slam.mapper.anchors(), **surfels)
     fused_by_first = sum(r.tracked for r in pipeline.results[:first])
     keep = (surfels["t_created"] < fused_by_first) & (surfels["weight"] >= cfg.fusion.unstable_weight)
     pos, nrm = surfels["position"][keep].astype(np.float64), surfels["normal"][keep].astype(np.float64)
     tree = cKDTree(pos)
-    distances, sigmas = [], []
+    distances, sigmas, points = [], [], []
     for i in range(len(dataset) - last, len(dataset)):
         result = pipeline.results[i]
         if result.pose is None:
@@ -56,15 +56,23 @@ def measure(overrides: list[str], first: int, last: int, out: Path) -> dict:
         ok = z > 0
         p = np.column_stack([(u[ok] - K.cx) * z[ok] / K.fx, (v[ok] - K.cy) * z[ok] / K.fy, z[ok]])
         world = p @ result.pose[:3, :3].T + result.pose[:3, 3]
+        points.append(world.astype(np.float32))
         d, j = tree.query(world)
         near = d < NEAR
         distances.append(np.abs(np.einsum("ij,ij->i", world[near] - pos[j[near]], nrm[j[near]])))
         sigmas.append(depth_sigma(z[ok][near]))
     dist, sig = np.concatenate(distances), np.concatenate(sigmas)
+    np.savez_compressed(out / "surfels.npz", anchor=slam.mapper.anchors(), first_pass_frames=fused_by_first,
+                        last_points=np.concatenate(points), **surfels)
+    truth_poses = dataset.sequence.poses
+    errors_cm = [None if r.pose is None else round(100 * float(np.linalg.norm(r.pose[:3, 3] - gt[:3, 3])), 1)
+                 for r, gt in zip(pipeline.results, truth_poses)]
     all_pos = surfels["position"][surfels["weight"] >= cfg.fusion.unstable_weight].astype(np.float64)
     truth = dataset.sequence.surface_distance(all_pos)
     return {"overrides": overrides, "frames": summary["frames"], "ate_rmse_m": summary.get("ate_rmse_m"),
-            "ate_max_m": summary.get("ate_max_m"), "tracking_failures": summary["tracking_failures"],
+            "ate_max_m": summary.get("ate_max_m"), "error_every_100_cm": errors_cm[::100],
+            "error_last_cm": errors_cm[-1],
+            "tracking_failures": summary["tracking_failures"],
             "fps_processing": summary["fps_processing"], "keyframes": summary["keyframes"],
             "loop_candidates": summary["loop_candidates"], "loop_closures": summary["loop_closures"],
             "loop_ms": summary.get("loop_ms"), "loops_refused": summary.get("loops_refused"),
@@ -87,7 +95,8 @@ def main() -> None:
     parser.add_argument("--last", type=int, default=60, help="last frames compared with the first pass")
     parser.add_argument("--only", choices=("on", "off"), help="one setting only")
     parser.add_argument("--keep", help="keep each run's folder under this folder (with surfels.npz: the map's "
-                                       "surfels and anchors), instead of a temporary one")
+                                       "surfels and anchors, the first pass's fused frames and the last frames' "
+                                       "points; scripts/plot_loop_map.py draws them), instead of a temporary one")
     args = parser.parse_args()
     init_backend("cpu")
     base = [f"synth.scene={args.scene}", f"dataset.downsample={args.downsample}", *args.set]

@@ -73,3 +73,22 @@ def test_memo_gives_the_original_text(cpu, monkeypatch):
 
     kernel()
     assert len(compared) > 50
+
+
+def test_source_lines_are_kept_per_function(cpu):
+    """Two kernels made by one factory share their source lines but not their captured values."""
+    from taichi.lang import kernel_impl
+
+    assert hasattr(kernel_impl.getsourcelines, "__wrapped__")
+    x = ti.field(ti.f32, shape=2)
+
+    def make(value):
+        @ti.kernel
+        def put(i: ti.i32):
+            x[i] = value
+
+        return put
+
+    make(1.5)(0)
+    make(2.5)(1)
+    assert x.to_numpy().tolist() == [1.5, 2.5]

@@ -1,4 +1,4 @@
-"""A memo for Taichi's compiler front end: the source-position text it builds for every syntax node.
+"""Memos for Taichi's compiler front end: the source it reads and the position text it builds.
 
 Taichi 1.7's front end (Python AST → Taichi IR, run for every kernel instance in every process, with a
 warm kernel cache too) formats a "File ..., line ..." message with the offending source line wrapped
@@ -7,6 +7,8 @@ nodes are visited again and again (every unrolled ``ti.static`` iteration, every
 every instance of a kernel), and the text only depends on where the node is in its file, so
 ``memoize_source_positions`` caches it by that position: the front end gets the same strings, sooner
 (docs/PERFORMANCE.md, "Cold start": about a quarter of a warm run's time to its first tracked frame).
+It also reads a function's source lines from its file (``inspect.getsourcelines``, which tokenizes the
+file's text) again for every instance; ``memoize_source_positions`` keeps them per function.
 """
 
 from __future__ import annotations
@@ -43,5 +45,28 @@ def memoize_source_positions() -> bool:
 
     get_pos_info.__wrapped__ = original
     context.get_pos_info = get_pos_info
+    _memoize_source_lines()
     _installed = True
     return True
+
+
+def _memoize_source_lines() -> None:
+    """Keep ``getsourcelines``'s answer per function (the function itself is the key, so a function that
+    is gone cannot hand its source to a new one at the same address); the caller copies the list."""
+    try:
+        from taichi.lang import kernel_impl
+    except ImportError:
+        return
+    original = getattr(kernel_impl, "getsourcelines", None)
+    if original is None:
+        return
+    cache: dict = {}
+
+    def getsourcelines(func):
+        lines = cache.get(func)
+        if lines is None:
+            lines = cache[func] = original(func)
+        return lines
+
+    getsourcelines.__wrapped__ = original
+    kernel_impl.getsourcelines = getsourcelines

@@ -6,7 +6,8 @@ coincide (docs/LOOP_CLOSURE.md).
 For each setting, a slam run of the whole scene (320×240 with --downsample 2), then: the last ``--last``
 frames' depth (every 4th pixel), back-projected at the run's final (corrected) poses, against the map's
 first-pass surfels (created while fusing the first ``--first`` frames): the point-to-plane distance to
-the nearest such surfel, beside the sensor's depth noise σ(z) at those points; and the map's distance to
+the nearest such surfel (points further than 0.5 m from every one are left out: none left, no statistics),
+beside the sensor's depth noise σ(z) at those points (× ``synth.depth_noise_scale``); and the map's distance to
 the true surfaces (every confirmed surfel); and the final trajectory's unaligned position error every 100
 frames. Prints one JSON object per setting.
 """
@@ -60,10 +61,11 @@ def measure(overrides: list[str], first: int, last: int, out: Path) -> dict:
         d, j = tree.query(world)
         near = d < NEAR
         distances.append(np.abs(np.einsum("ij,ij->i", world[near] - pos[j[near]], nrm[j[near]])))
-        sigmas.append(depth_sigma(z[ok][near]))
+        sigmas.append(cfg.synth.depth_noise_scale * depth_sigma(z[ok][near]))
     dist, sig = np.concatenate(distances), np.concatenate(sigmas)
     np.savez_compressed(out / "surfels.npz", anchor=slam.mapper.anchors(), first_pass_frames=fused_by_first,
-                        last_points=np.concatenate(points), **surfels)
+                        fused_frames=sum(r.tracked for r in pipeline.results), last_points=np.concatenate(points),
+                        last_pass_frames=sum(r.tracked for r in pipeline.results[-last:]), **surfels)
     truth_poses = dataset.sequence.poses
     errors_cm = [None if r.pose is None else round(100 * float(np.linalg.norm(r.pose[:3, 3] - gt[:3, 3])), 1)
                  for r, gt in zip(pipeline.results, truth_poses)]
@@ -76,11 +78,12 @@ def measure(overrides: list[str], first: int, last: int, out: Path) -> dict:
             "fps_processing": summary["fps_processing"], "keyframes": summary["keyframes"],
             "loop_candidates": summary["loop_candidates"], "loop_closures": summary["loop_closures"],
             "loop_ms": summary.get("loop_ms"), "loops_refused": summary.get("loops_refused"),
-            "last_vs_first_pass": {"points": int(len(dist)), "median_mm": round(1e3 * float(np.median(dist)), 2),
-                                   "rms_mm": round(1e3 * float(np.sqrt(np.mean(dist ** 2))), 2),
-                                   "p90_mm": round(1e3 * float(np.percentile(dist, 90)), 2),
-                                   "sensor_sigma_median_mm": round(1e3 * float(np.median(sig)), 2),
-                                   "within_3_sigma": round(float(np.mean(dist < 3 * sig)), 3)},
+            "last_vs_first_pass": {"points": int(len(dist)), **({} if len(dist) == 0 else {
+                "median_mm": round(1e3 * float(np.median(dist)), 2),
+                "rms_mm": round(1e3 * float(np.sqrt(np.mean(dist ** 2))), 2),
+                "p90_mm": round(1e3 * float(np.percentile(dist, 90)), 2),
+                "sensor_sigma_median_mm": round(1e3 * float(np.median(sig)), 2),
+                "within_3_sigma": round(float(np.mean(dist < 3 * sig)), 3)})},
             "map_to_truth": {"surfels": int(len(truth)), "median_mm": round(1e3 * float(np.median(truth)), 2),
                              "p90_mm": round(1e3 * float(np.percentile(truth, 90)), 2),
                              "p99_mm": round(1e3 * float(np.percentile(truth, 99)), 2)}}
@@ -94,9 +97,10 @@ def main() -> None:
     parser.add_argument("--first", type=int, default=300, help="frames of the first pass")
     parser.add_argument("--last", type=int, default=60, help="last frames compared with the first pass")
     parser.add_argument("--only", choices=("on", "off"), help="one setting only")
-    parser.add_argument("--keep", help="keep each run's folder under this folder (with surfels.npz: the map's "
-                                       "surfels and anchors, the first pass's fused frames and the last frames' "
-                                       "points; scripts/plot_loop_map.py draws them), instead of a temporary one")
+    parser.add_argument("--keep", help="keep each run's folder under this folder instead of a temporary one, with "
+                                       "surfels.npz: the map's surfels and anchors, the frames fused in all, in "
+                                       "the first and in the last pass, and the last frames' points "
+                                       "(scripts/plot_loop_map.py draws the map from it)")
     args = parser.parse_args()
     init_backend("cpu")
     base = [f"synth.scene={args.scene}", f"dataset.downsample={args.downsample}", *args.set]

@@ -170,7 +170,7 @@ def associate(s: ti.template(), img: ti.template(), vertex: ti.template(), norma
 def world_measurements(img: ti.template(), vertex: ti.template(), normal: ti.template(), pose: Rigid):
     """img.world_vertex, world_normal = the frame's vertex and normal maps in the world frame ((R, t) maps
     camera to world); where the pixel has no vertex or no normal, FAR and zero."""
-    for v, u in vertex:
+    for v, u in img.world_vertex:  # (the frame's maps may be levels of a stacked field: no struct-for)
         R, t = rigid(pose)
         q = vertex[v, u]
         nq = normal[v, u]

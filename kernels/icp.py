@@ -62,6 +62,12 @@ photometric term (``joint``, a compile-time switch: the depth-only kernels are t
 
 Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
 (vulkan, cuda), chosen when ``PointToPlane`` is built. Fields stay float32.
+
+Images: the source and target maps are levels of stacked fields (``ti_fusion.kernels.maps.Level``: the
+H × W image at a first row of its field), passed as the field and, at run time, the first row and size
+(``Hs``, ``Ws`` for the source, ``Ht``, ``Wt`` for the target), so that one instance of each kernel serves
+every pyramid level; a plain H × W field is the level at its row 0. The source's vertex, normal and
+intensity share one layout, as do the target's vertex, normal and intensity gradient.
 """
 
 
@@ -75,6 +81,7 @@ import taichi as ti
 from ti_fusion.backend import SERIAL_BELOW
 from ti_fusion.geometry import flatten_pose, unflatten_pose
 from ti_fusion.kernels.common import depth_noise_scale
+from ti_fusion.kernels.maps import as_level
 
 STATUS_OK = 0
 # ``_target_pixel``: a target pixel index, or one of these (the first three tests' failures)
@@ -211,13 +218,13 @@ def _build_kernels(real):
         return R, t, K
 
     @ti.func
-    def _target_pixel(src_v: ti.template(), src_n: ti.template(), Ht, Wt, v, u, params: ti.template()):
+    def _target_pixel(src_v: ti.template(), src_n: ti.template(), s0, Ht, Wt, v, u, params: ti.template()):
         """The first three tests of the association, without branches: the target pixel vi·Wt + ui that
         source pixel (v, u) projects to; else, the first test it fails: SOURCE_INVALID (no vertex or
         normal), BEHIND_TARGET (z′ ≤ 0), NO_TARGET (outside the target image)."""
         R, t, K = _pose(params)  # per pixel, as the surfel projections (hoisted, it ran slower: docs/KERNELS.md)
-        p = ti.cast(src_v[v, u], real)
-        n = ti.cast(src_n[v, u], real)
+        p = ti.cast(src_v[s0 + v, u], real)
+        n = ti.cast(src_n[s0 + v, u], real)
         pt = R @ p + t
         inv_z = 1.0 / pt.z  # inf or negative where z′ ≤ 0: masked below
         # ⌊x⌋ in [0, W) exactly when x in [0, W), and there truncation is the floor: one conversion,
@@ -259,16 +266,15 @@ def _build_kernels(real):
         return A, nq.dot(pt - q)
 
     @ti.func
-    def _chunk_range(src_v: ti.template(), c, n_chunks):
-        """Pixels [begin, end) of chunk c of ``n_chunks`` contiguous runs of the source's pixels."""
-        H, W = src_v.shape
+    def _chunk_range(H, W, c, n_chunks):
+        """Pixels [begin, end) of chunk c of ``n_chunks`` contiguous runs of the H × W source's pixels."""
         n_pix = H * W
         chunk = (n_pix + n_chunks - 1) // n_chunks
         begin = ti.min(c * chunk, n_pix)
         return begin, ti.min(begin + chunk, n_pix)
 
     @ti.func
-    def _project_chunk(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), begin, end,
+    def _project_chunk(src_v: ti.template(), src_n: ti.template(), s0, W, Ht, Wt, begin, end,
                        params: ti.template(), target: ti.template()):
         """First pass over a chunk: ``target[k]`` = ``_target_pixel`` of each of its pixels k.
 
@@ -277,12 +283,10 @@ def _build_kernels(real):
         (``_correspondence``), while the chunk's ``target`` entries are still in cache: fused into one
         pass, the projection and the target read that depends on it ran slower (docs/KERNELS.md).
         ``reduce``, ``iterate`` and ``write_rows`` share both passes, so they find the same correspondences."""
-        W = src_v.shape[1]
-        Ht, Wt = tgt_v.shape
         v = begin // W
         u = begin - v * W
         for k in range(begin, end):
-            target[k] = _target_pixel(src_v, src_n, Ht, Wt, v, u, params)
+            target[k] = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params)
             u += 1
             if u == W:
                 u = 0
@@ -290,56 +294,54 @@ def _build_kernels(real):
 
     @ti.func
     def _correspondence(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                        tp, v, u, R, t, dist2_thr, cos_thr):
+                        s0, t0, Wt, tp, v, u, R, t, dist2_thr, cos_thr):
         """Second pass, for source pixel (v, u) with target pixel ``tp`` ≥ 0 (``_target_pixel``): (status,
         p′, q, n_q), status the first of the remaining tests it fails (STATUS_TARGET_INVALID,
         STATUS_TOO_FAR, STATUS_NORMAL_ANGLE) or STATUS_OK."""
-        Wt = tgt_v.shape[1]
         status = STATUS_TARGET_INVALID
         pt = vec3(0.0)
-        q = ti.cast(tgt_v[tp // Wt, tp % Wt], real)
-        nq = ti.cast(tgt_n[tp // Wt, tp % Wt], real)
+        q = ti.cast(tgt_v[t0 + tp // Wt, tp % Wt], real)
+        nq = ti.cast(tgt_n[t0 + tp // Wt, tp % Wt], real)
         if q.z > 0 and nq.dot(nq) > 0:
             status = STATUS_TOO_FAR
-            pt = R @ ti.cast(src_v[v, u], real) + t
+            pt = R @ ti.cast(src_v[s0 + v, u], real) + t
             d = pt - q
             if d.dot(d) < dist2_thr:
                 status = STATUS_NORMAL_ANGLE
-                if (R @ ti.cast(src_n[v, u], real)).dot(nq) > cos_thr:
+                if (R @ ti.cast(src_n[s0 + v, u], real)).dot(nq) > cos_thr:
                     status = STATUS_OK
         return status, pt, q, nq
 
     @ti.func
-    def _bilinear(ig: ti.template(), x, y):
+    def _bilinear(ig: ti.template(), t0, x, y):
         """(I, ∂I/∂x, ∂I/∂y) of ``ig`` at the continuous pixel (x, y), 0 ≤ x < W − 1, 0 ≤ y < H − 1, and
         whether all four taps hold an intensity (I ≥ 0)."""
         x0 = ti.cast(x, ti.i32)  # truncation is the floor for x ≥ 0
         y0 = ti.cast(y, ti.i32)
         ax = x - x0
         ay = y - y0
-        a = ti.cast(ig[y0, x0], real)
-        b = ti.cast(ig[y0, x0 + 1], real)
-        c = ti.cast(ig[y0 + 1, x0], real)
-        d = ti.cast(ig[y0 + 1, x0 + 1], real)
+        a = ti.cast(ig[t0 + y0, x0], real)
+        b = ti.cast(ig[t0 + y0, x0 + 1], real)
+        c = ti.cast(ig[t0 + y0 + 1, x0], real)
+        d = ti.cast(ig[t0 + y0 + 1, x0 + 1], real)
         valid = ti.min(ti.min(a[0], b[0]), ti.min(c[0], d[0])) >= 0
         return (1.0 - ay) * ((1.0 - ax) * a + ax * b) + ay * ((1.0 - ax) * c + ax * d), valid
 
     @ti.func
-    def _photo_row(src_i: ti.template(), tgt_ig: ti.template(), v, u, pt, K, cscale):
+    def _photo_row(src_i: ti.template(), tgt_ig: ti.template(), s0, t0, Ht, Wt, v, u, pt, K, cscale):
         """(ok, A_c, r_c, w_c) of the photometric term at source pixel (v, u) with p′ = ``pt`` (module
         docstring): ok is False where the model has no intensity or the projection's four taps are not
         all inside the target image with an intensity."""
-        Ht, Wt = tgt_ig.shape
         ok = False
         A = ti.Vector.zero(real, 6)
         r = ti.cast(0.0, real)
         w = ti.cast(0.0, real)
-        Im = ti.cast(src_i[v, u], real)
+        Im = ti.cast(src_i[s0 + v, u], real)
         inv_z = 1.0 / pt.z
         x = K[0] * pt.x * inv_z + K[2]
         y = K[1] * pt.y * inv_z + K[3]
         if Im >= 0 and 0 <= x and x < Wt - 1 and 0 <= y and y < Ht - 1:
-            s, valid = _bilinear(tgt_ig, x, y)
+            s, valid = _bilinear(tgt_ig, t0, x, y)
             if valid:
                 ok = True
                 r = s[0] - Im
@@ -356,13 +358,12 @@ def _build_kernels(real):
 
     @ti.func
     def _chunk_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                    c, n_chunks, robust: ti.template(), params: ti.template(), target: ti.template(),
-                    joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template()):
+                    s0, Hs, W, t0, Ht, Wt, c, n_chunks, robust: ti.template(), params: ti.template(),
+                    target: ti.template(), joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template()):
         """The 30 sums of chunk c of ``n_chunks``, in registers (two passes: ``_project_chunk``); with
         ``joint``, the colour term's 29 after them (``src_i``, ``tgt_ig``: module docstring)."""
-        W = src_v.shape[1]
-        begin, end = _chunk_range(src_v, c, n_chunks)
-        _project_chunk(src_v, src_n, tgt_v, begin, end, params, target)
+        begin, end = _chunk_range(Hs, W, c, n_chunks)
+        _project_chunk(src_v, src_n, s0, W, Ht, Wt, begin, end, params, target)
         R, t, K = _pose(params)
         dist2_thr, cos_thr, scale = params[P_DIST2], params[P_COS], params[P_SCALE]
         acc = ti.Vector([0.0] * ti.static(N_SUMS_JOINT if joint else N_SUMS), dt=real)
@@ -373,8 +374,8 @@ def _build_kernels(real):
             if tp != SOURCE_INVALID:
                 acc[SUM_SOURCE] += 1.0
             if tp >= 0:
-                status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, tp, v, u, R, t, dist2_thr,
-                                                    cos_thr)
+                status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, t0, Wt, tp, v, u, R, t,
+                                                    dist2_thr, cos_thr)
                 if status == STATUS_OK:
                     A, r = _row(pt, q, nq)
                     w = _weight(r, robust, scale, q.z)
@@ -386,7 +387,8 @@ def _build_kernels(real):
                     acc[SUM_R2] += r * r
                     acc[SUM_INLIERS] += 1.0
                     if ti.static(joint):
-                        ok, Ac, rc, wc = _photo_row(src_i, tgt_ig, v, u, pt, K, params[P_COLOR_SCALE])
+                        ok, Ac, rc, wc = _photo_row(src_i, tgt_ig, s0, t0, Ht, Wt, v, u, pt, K,
+                                                    params[P_COLOR_SCALE])
                         if ok:
                             wAc = wc * Ac
                             for e in ti.static(range(21)):
@@ -403,16 +405,16 @@ def _build_kernels(real):
 
     @ti.func
     def _partial_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                      partials: ti.template(), n_chunks, robust: ti.template(), params: ti.template(),
-                      serial: ti.template(), target: ti.template(), joint: ti.template(), src_i: ti.template(),
-                      tgt_ig: ti.template()):
+                      s0, Hs, Ws, t0, Ht, Wt, partials: ti.template(), n_chunks, robust: ti.template(),
+                      params: ti.template(), serial: ti.template(), target: ti.template(), joint: ti.template(),
+                      src_i: ti.template(), tgt_ig: ti.template()):
         """``partials[c, :]`` = the sums of chunk c, for every chunk. Call it at a kernel's top level: its
         loop is then the kernel's parallel loop over chunks (on the calling thread with ``serial``)."""
         if ti.static(serial):
             ti.loop_config(serialize=True)
         for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
-            acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, c, n_chunks, robust, params, target, joint, src_i,
-                              tgt_ig)
+            acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, c, n_chunks, robust, params,
+                              target, joint, src_i, tgt_ig)
             for block in ti.static(_blocks(N_SUMS_JOINT if joint else N_SUMS)):
                 for e in ti.static(block):
                     partials[c, e] = acc[e]
@@ -430,6 +432,7 @@ def _build_kernels(real):
 
     @ti.kernel
     def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+               s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32,
                partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
                out: params_t, serial: ti.template(), target: ti.template(), joint: ti.template(),
                src_i: ti.template(), tgt_ig: ti.template()):
@@ -437,8 +440,8 @@ def _build_kernels(real):
         ``partials[:n_chunks]``); ``serial``: the chunks run on the calling thread (small levels on the
         CPU, see ``PointToPlane``); ``target``: scratch of one int per source pixel; ``src_i``, ``tgt_ig``:
         the intensities of the joint pass (any field when not ``joint``: unused)."""
-        _partial_sums(src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, params, serial, target, joint,
-                      src_i, tgt_ig)
+        _partial_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, n_chunks, robust, params,
+                      serial, target, joint, src_i, tgt_ig)
         n_sums = ti.static(N_SUMS_JOINT if joint else N_SUMS)
         # Runs after the loop above has finished: add the partials.
         if ti.static(real == ti.f64):  # cpu: one serial pass, 30 independent running sums in registers
@@ -510,6 +513,7 @@ def _build_kernels(real):
 
     @ti.kernel
     def iterate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32,
                 partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
                 serial: ti.template(), target: ti.template(), records: ti.template(), joint: ti.template(),
                 src_i: ti.template(), tgt_ig: ti.template()):
@@ -521,8 +525,8 @@ def _build_kernels(real):
         check of ``ti_fusion.tracking.solve`` too, which is why it is not repeated here. With ``joint``, the
         system solved is the geometric one plus λ × the colour one (module docstring), and the record holds
         the colour's sums at R_COLOUR."""
-        _partial_sums(src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, params, serial, target, joint,
-                      src_i, tgt_ig)
+        _partial_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, n_chunks, robust, params,
+                      serial, target, joint, src_i, tgt_ig)
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
         for _ in range(1):
             total = _total(partials, n_chunks, ti.static(N_SUMS_JOINT if joint else N_SUMS))
@@ -563,29 +567,29 @@ def _build_kernels(real):
 
     @ti.kernel
     def status_map(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                   s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32,
                    status: ti.template(), params: params_t):
-        Ht, Wt = tgt_v.shape
-        for v, u in src_v:
-            tp = _target_pixel(src_v, src_n, Ht, Wt, v, u, params)
+        for v, u in ti.ndrange(Hs, Ws):
+            tp = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params)
             s = ti.select(tp == SOURCE_INVALID, STATUS_SOURCE_INVALID,
                           ti.select(tp == BEHIND_TARGET, STATUS_BEHIND, STATUS_OUT_OF_IMAGE))
             if tp >= 0:
                 R, t, K = _pose(params)
-                s, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, tp, v, u, R, t, params[P_DIST2],
-                                               params[P_COS])
+                s, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, t0, Wt, tp, v, u, R, t,
+                                               params[P_DIST2], params[P_COS])
             status[v, u] = s
 
     @ti.kernel
     def write_rows(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                   offsets: ti.template(), rows: ti.template(), n_chunks: ti.i32, robust: ti.template(),
+                   s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32, offsets: ti.template(), rows: ti.template(), n_chunks: ti.i32, robust: ti.template(),
                    params: params_t, target: ti.template()):
         """Rows √w [A | r] of the correspondences, compact and in pixel order: chunk c writes from
         ``offsets[c]`` (the exclusive prefix sum of the per-chunk inlier counts of ``reduce``, whose two
         passes it shares, so each chunk writes exactly its count)."""
-        W = src_v.shape[1]
+        W = Ws
         for c in range(n_chunks):
-            begin, end = _chunk_range(src_v, c, n_chunks)
-            _project_chunk(src_v, src_n, tgt_v, begin, end, params, target)
+            begin, end = _chunk_range(Hs, Ws, c, n_chunks)
+            _project_chunk(src_v, src_n, s0, Ws, Ht, Wt, begin, end, params, target)
             R, t, K = _pose(params)
             v = begin // W
             u = begin - v * W
@@ -593,7 +597,7 @@ def _build_kernels(real):
             for i in range(begin, end):
                 tp = target[i]
                 if tp >= 0:
-                    status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, tp, v, u, R, t,
+                    status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, t0, Wt, tp, v, u, R, t,
                                                         params[P_DIST2], params[P_COS])
                     if status == STATUS_OK:
                         A, r = _row(pt, q, nq)
@@ -617,9 +621,9 @@ def kernels_for(real):
 
 
 class Photometric(NamedTuple):
-    """The colour term of a joint pass: ``source`` the model's intensity at the source level (f32 field,
-    −1 = none), ``target`` the live frame's (I, ∂I/∂x, ∂I/∂y) at the target level (3-vector field, I < 0 =
-    none), ``weight`` λ (``icp.color_weight``), ``scale`` Huber's k on the intensity residual."""
+    """The colour term of a joint pass: ``source`` the model's intensity at the source level (f32 field or
+    ``Level``, −1 = none), ``target`` the live frame's (I, ∂I/∂x, ∂I/∂y) at the target level (3-vector, I < 0
+    = none), ``weight`` λ (``icp.color_weight``), ``scale`` Huber's k on the intensity residual."""
 
     source: object
     target: object
@@ -633,6 +637,7 @@ class PointToPlane:
 
     ``max_pixels``: the largest source level (H·W) it will see. Poses are 4×4 NumPy arrays mapping
     source-camera points into the target camera; intrinsics are (fx, fy, cx, cy) of the TARGET level.
+    Images (``src_v`` … ``tgt_n``) are ``Level`` views or plain 2-D fields (module docstring).
     """
 
     def __init__(self, max_pixels: int, has_f64: bool, arch: str = "cpu", n_chunks: int | None = None,
@@ -644,6 +649,8 @@ class PointToPlane:
         # GPUs want one short chunk per thread; on the CPU a chunk run serially should outweigh its bookkeeping
         self.min_chunk_pixels = int(min_chunk_pixels or (MIN_CHUNK_PIXELS if arch == "cpu" else 1))
         self.serial_below = SERIAL_BELOW if arch == "cpu" else 0  # smaller sources run on the calling thread
+        # one choice for every level (each choice is an instance of the kernels): small maximum, serial
+        self.serial = self.max_pixels < self.serial_below
         self.k = kernels_for(self.real)
         self.partials = ti.field(self.real, shape=(self.n_chunks, N_SUMS))
         self.partials_joint = None  # (n_chunks, N_SUMS_JOINT), allocated by the first joint pass
@@ -671,37 +678,49 @@ class PointToPlane:
             p[P_COLOR_SCALE] = float(photometric.scale)
         return p
 
-    def _joint_args(self, src_v, photometric):
+    @staticmethod
+    def _images(src_v, src_n, tgt_v, tgt_n) -> tuple:
+        """The kernels' first ten arguments: the four images' fields, then the source's first row, height
+        and width and the target's (``Level`` views or plain fields; module docstring)."""
+        s, sn, t, tn = as_level(src_v), as_level(src_n), as_level(tgt_v), as_level(tgt_n)
+        if (sn.row0, sn.shape) != (s.row0, s.shape) or (tn.row0, tn.shape) != (t.row0, t.shape):
+            raise ValueError("vertex and normal images of one side must be levels of the same layout")
+        return (s.field, sn.field, t.field, tn.field, s.row0, *s.shape, t.row0, *t.shape)
+
+    def _joint_args(self, images: tuple, photometric):
         """(joint, partials, src_i, tgt_ig) of a pass: the kernels' last arguments (the depth-only pass
-        passes ``src_v`` for the unused intensity fields, so it compiles as before)."""
+        passes the source vertex field for the unused intensity fields, so it compiles as before)."""
         if photometric is None:
-            return False, self.partials, src_v, src_v
+            return False, self.partials, images[0], images[0]
         if self.partials_joint is None:
             self.partials_joint = ti.field(self.real, shape=(self.n_chunks, N_SUMS_JOINT))
-        return True, self.partials_joint, photometric.source, photometric.target
+        src_i, tgt_ig = as_level(photometric.source), as_level(photometric.target)
+        if (src_i.row0, src_i.shape) != (images[4], images[5:7]) or (tgt_ig.row0, tgt_ig.shape) != (images[7], images[8:10]):
+            raise ValueError("intensity images must be levels of the same layout as the vertex images")
+        return True, self.partials_joint, src_i.field, tgt_ig.field
 
-    def _chunks(self, src_v) -> int:
-        n = src_v.shape[0] * src_v.shape[1]
+    def _chunks(self, images: tuple) -> int:
+        """Chunks of a pass over the source of ``images``: small levels (fewer than ``serial_below``
+        pixels) in chunks of at least ``min_chunk_pixels``, run by one thread (serially, or as one task of
+        the parallel loop), larger ones in ``n_chunks`` shared by the threads."""
+        n = images[5] * images[6]
         if n > self.max_pixels:
             raise ValueError(f"source of {n} pixels given to a PointToPlane sized for {self.max_pixels}")
-        if self._serial(src_v):
+        if n < self.serial_below:
             return max(1, min(self.n_chunks, n // self.min_chunk_pixels))
         return min(self.n_chunks, n)
-
-    def _serial(self, src_v) -> bool:
-        """Small levels run on the calling thread on the CPU (see ``ti_fusion.backend.SERIAL_BELOW``)."""
-        return src_v.shape[0] * src_v.shape[1] < self.serial_below
 
     def reduce(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
                robust: str = "none", robust_scale: float = 0.01, photometric: "Photometric | None" = None) -> np.ndarray:
         """The 30 sums (float64 NumPy) of one association + linearisation pass at pose ``T``; with
         ``photometric``, the joint pass's 59."""
-        n_chunks = self._chunks(src_v)
+        images = self._images(src_v, src_n, tgt_v, tgt_n)
+        n_chunks = self._chunks(images)
         params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale, photometric)
-        joint, partials, src_i, tgt_ig = self._joint_args(src_v, photometric)
+        joint, partials, src_i, tgt_ig = self._joint_args(images, photometric)
         out = self.out_joint if joint else self.out
-        self.k["reduce"](src_v, src_n, tgt_v, tgt_n, partials, n_chunks, _code(robust), params, out,
-                         self._serial(src_v), self.target, joint, src_i, tgt_ig)
+        self.k["reduce"](*images, partials, n_chunks, _code(robust), params, out, self.serial, self.target, joint,
+                         src_i, tgt_ig)
         return out.astype(np.float64)
 
     # -- whole iterations in the kernel (float64 backends) ---------------------------------------------
@@ -718,26 +737,27 @@ class PointToPlane:
         self.params[P_R:P_T + 3] = flatten_pose(T)
         self.params[P_RECORDS] = 0
 
-    def begin_level(self, src_v, K, dist_threshold: float, normal_threshold_deg: float, robust: str,
-                    robust_scale: float, level: int, min_inliers: int, stop_update: float,
+    def begin_level(self, src_v, src_n, tgt_v, tgt_n, K, dist_threshold: float, normal_threshold_deg: float,
+                    robust: str, robust_scale: float, level: int, min_inliers: int, stop_update: float,
                     photometric: "Photometric | None" = None) -> None:
-        """Settings of the next ``iterate`` calls (one pyramid level, source vertex field ``src_v``; with
-        ``photometric``, joint iterations with its fields and weights); the pose stays as the last call
-        left it."""
+        """Settings of the next ``iterate`` calls: one pyramid level's images (source vertex and normal,
+        target vertex and normal; with ``photometric``, joint iterations with its images and weights); the
+        pose stays as the last call left it."""
         p = self._set_params(None, K, dist_threshold, normal_threshold_deg, robust_scale, photometric)
         p[P_LEVEL], p[P_MIN_INLIERS], p[P_STOP] = level, min_inliers, stop_update
         # worked out once per level: a Taichi field's .shape costs microseconds per call
-        self._level = (self._chunks(src_v), _code(robust), self._serial(src_v)) + self._joint_args(src_v, photometric)
+        images = self._images(src_v, src_n, tgt_v, tgt_n)
+        self._level = (images, self._chunks(images), _code(robust)) + self._joint_args(images, photometric)
 
-    def iterate(self, src_v, src_n, tgt_v, tgt_n, iteration: int) -> int:
-        """One ICP iteration in one launch (``iterate`` kernel) with the settings of ``begin_level``: 0, or
-        STOPPED / FAILED (stop the level / the run)."""
-        n_chunks, robust, serial, joint, partials, src_i, tgt_ig = self._level
+    def iterate(self, iteration: int) -> int:
+        """One ICP iteration in one launch (``iterate`` kernel) with the images and settings of
+        ``begin_level``: 0, or STOPPED / FAILED (stop the level / the run)."""
+        images, n_chunks, robust, joint, partials, src_i, tgt_ig = self._level
         if self.params[P_RECORDS] >= self.records.shape[0]:  # the kernel would write past the records
             raise ValueError(f"more than {self.records.shape[0]} iterations since begin_iterations")
         self.params[P_ITERATION] = iteration
-        self.k["iterate"](src_v, src_n, tgt_v, tgt_n, partials, n_chunks, robust, self.params, serial,
-                          self.target, self.records, joint, src_i, tgt_ig)
+        self.k["iterate"](*images, partials, n_chunks, robust, self.params, self.serial, self.target, self.records,
+                          joint, src_i, tgt_ig)
         return int(self.params[P_DONE])
 
     def iteration_records(self) -> np.ndarray:
@@ -761,7 +781,8 @@ class PointToPlane:
 
         Runs ``reduce`` first (its per-chunk inlier counts give each chunk its output offset), so it costs
         two passes: it is for the QR solver and for tests, not for the default path."""
-        n_chunks = self._chunks(src_v)
+        images = self._images(src_v, src_n, tgt_v, tgt_n)
+        n_chunks = self._chunks(images)
         sums = self.reduce(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold, normal_threshold_deg, robust,
                            robust_scale)
         counts = self.chunk_inliers(n_chunks)
@@ -772,18 +793,17 @@ class PointToPlane:
             self.rows_field = ti.field(self.real, shape=(self.max_pixels, 7))
         self.offsets.from_numpy(offsets)
         params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale)
-        self.k["write_rows"](src_v, src_n, tgt_v, tgt_n, self.offsets, self.rows_field, n_chunks,
-                             _code(robust), params, self.target)
+        self.k["write_rows"](*images, self.offsets, self.rows_field, n_chunks, _code(robust), params, self.target)
         n = int(counts.sum())
         return sums, self.rows_field.to_numpy()[:n].astype(np.float64)
 
     def status(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float,
                normal_threshold_deg: float) -> np.ndarray:
         """Per-source-pixel association status codes (int32 H×W; STATUS_* above). For tests and plots."""
-        shape = tuple(src_v.shape)
+        images = self._images(src_v, src_n, tgt_v, tgt_n)
+        shape = images[5:7]
         if shape not in self.status_field:
             self.status_field[shape] = ti.field(ti.i32, shape=shape)
         field = self.status_field[shape]
-        self.k["status_map"](src_v, src_n, tgt_v, tgt_n, field, self._set_params(T, K, dist_threshold,
-                                                                                  normal_threshold_deg))
+        self.k["status_map"](*images, field, self._set_params(T, K, dist_threshold, normal_threshold_deg))
         return field.to_numpy()

@@ -32,14 +32,24 @@ intensities of the 3×3 window centred on (2u, 2v), so it stays aligned with the
 level 0 is the colour of the surfel seen at each pixel (``surfel_intensity``, from the prediction's
 ``view_index``).
 
-Compilation: Taichi compiles a kernel once per set of fields it is given, so the first ``compute`` of
-each new FrameMaps compiles its kernels (about 0.3 s each, 0.1 s from Taichi's kernel cache); allocate
-FrameMaps once and reuse them.
+Storage and compilation: Taichi compiles a kernel once per set of fields it is given (a ``ti.template()``
+argument is keyed by the field itself), so each pyramid's levels are stacked top to bottom in one field
+per quantity (depth, vertex, normal, intensity: level l at rows ``row0[l]`` .. ``row0[l] + H_l``, columns
+0 .. W_l) and the kernels take the level's first row and size as runtime arguments: one instance of
+``pyramid_down``, ``vertex_normal_maps`` and ICP's passes serves every level of a pyramid, where per-level
+fields needed one per level. ``FrameMaps.depth[l]`` (likewise ``vertex``, ``normal``, ``intensity``,
+``intensity_grad``) is a ``Level``, a view that reads and writes like an H_l × W_l field inside other
+kernels and has ``to_numpy`` / ``from_numpy``. Runtime offsets were chosen over ``ti.types.ndarray``
+arguments (one instance per dtype for every pyramid) because an ndarray argument costs about 8 µs more per
+launch than a field, and ICP launches four of them per iteration (docs/PERFORMANCE.md). Allocate FrameMaps
+once and reuse them: a new one compiles (or loads) its own instances.
 """
 
 
 import numpy as np
 import taichi as ti
+from taichi.lang import impl as ti_impl
+from taichi.lang.util import in_taichi_scope
 
 from ti_fusion.backend import serial_for
 from ti_fusion.kernels.common import INT_MAX
@@ -57,13 +67,72 @@ LANES = 8
 Pack = ti.types.vector(LANES, ti.f32)
 
 
+@ti.data_oriented
+class Level:
+    """One level of a pyramid stacked in one field: rows ``row0`` .. ``row0`` + H and columns 0 .. W of
+    ``field`` (see the module docstring). Inside a kernel it reads and writes like an H × W field
+    (``level[v, u]``, ``level.shape``; no struct-for: loop over ``ti.ndrange(*level.shape)``); in Python
+    it has ``to_numpy``, ``from_numpy`` and ``fill`` for its own pixels. A plain field is a level at row 0
+    of itself (``as_level``)."""
+
+    def __init__(self, field, row0: int, shape):
+        self.field = field
+        self.row0 = int(row0)
+        self.shape = (int(shape[0]), int(shape[1]))
+
+    def __getitem__(self, index):
+        v, u = index
+        if in_taichi_scope():  # (a field's own ``[]`` is for Python scope only)
+            return ti_impl.subscript(None, self.field, v + self.row0, u)
+        return self.field[v + self.row0, u]
+
+    @property
+    def dtype(self):
+        return self.field.dtype
+
+    def to_numpy(self) -> np.ndarray:
+        H, W = self.shape
+        return np.ascontiguousarray(self.field.to_numpy()[self.row0:self.row0 + H, :W])
+
+    def from_numpy(self, array: np.ndarray) -> None:
+        """Set this level's pixels (the rest of the stack is kept: a copy of the whole field, so for
+        occasional uploads, not per frame)."""
+        array = np.asarray(array)
+        if array.shape[:2] != self.shape:
+            raise ValueError(f"array of shape {array.shape} given to a level of shape {self.shape}")
+        whole = self.field.to_numpy()
+        H, W = self.shape
+        whole[self.row0:self.row0 + H, :W] = array
+        self.field.from_numpy(whole)
+
+    def fill(self, value) -> None:
+        whole = self.field.to_numpy()
+        H, W = self.shape
+        whole[self.row0:self.row0 + H, :W] = value
+        self.field.from_numpy(whole)
+
+
+def as_level(x) -> Level:
+    """``x`` itself if it is a ``Level``, else the plain 2-D field ``x`` as the level at its row 0."""
+    return x if isinstance(x, Level) else Level(x, 0, x.shape)
+
+
+def stacked_rows(shapes) -> tuple[list[int], int, int]:
+    """(first row of each level, total rows, width) of levels of ``shapes`` stacked top to bottom."""
+    row0, rows = [], 0
+    for h, _ in shapes:
+        row0.append(rows)
+        rows += h
+    return row0, rows, max(w for _, w in shapes)
+
+
 @ti.func
-def pyramid_pixel(fine: ti.template(), v, u, max_diff):
-    """Coarse pixel (v, u) of ``pyramid_down``, one at a time (the path for the image border)."""
-    H, W = fine.shape
+def pyramid_pixel(fine: ti.template(), f0, H, W, v, u, max_diff):
+    """Coarse pixel (v, u) of ``pyramid_down``, one at a time (the path for the image border); the fine
+    image is H × W at row ``f0`` of ``fine``."""
     y0 = 2 * v
     x0 = 2 * u
-    c = fine[y0, x0]
+    c = fine[f0 + y0, x0]
     out = 0.0
     if c > 0:
         # On the image border the window shrinks to the symmetric part that fits (only the centre row
@@ -74,7 +143,7 @@ def pyramid_pixel(fine: ti.template(), v, u, max_diff):
         total = ti.Vector([0.0, 0.0, 0.0])
         count = ti.Vector([0.0, 0.0, 0.0])
         for dv, du in ti.static(ti.ndrange((-1, 2), (-1, 2))):
-            d = fine[y0 + dv * ry, x0 + du * rx]  # outside the window: re-reads a row/column inside
+            d = fine[f0 + y0 + dv * ry, x0 + du * rx]  # outside the window: re-reads a row/column inside
             ok = (ti.abs(dv) <= ry) & (ti.abs(du) <= rx) & (d > 0) & (ti.abs(d - c) < max_diff)
             total[dv + 1] += ti.select(ok, d, 0.0)
             count[dv + 1] += ti.select(ok, 1.0, 0.0)
@@ -83,27 +152,27 @@ def pyramid_pixel(fine: ti.template(), v, u, max_diff):
 
 
 @ti.kernel
-def pyramid_down(fine: ti.template(), coarse: ti.template(), max_diff: ti.f32, packed: ti.template(),
-                 serial: ti.template()):
-    """coarse = fine averaged down one level (see the module docstring); ``packed``: coarse is a packed
-    image (``LANES`` pixels per element, see ``smooth_rows``) rather than a plain one.
+def pyramid_down(fine: ti.template(), f0: ti.i32, H: ti.i32, W: ti.i32, coarse: ti.template(), c0: ti.i32,
+                 max_diff: ti.f32, packed: ti.template(), serial: ti.template()):
+    """coarse = fine averaged down one level (see the module docstring): the H × W image at row ``f0`` of
+    ``fine`` into the one at row ``c0`` of ``coarse`` (levels of stacked fields, see ``Level``); ``packed``:
+    coarse is a packed image (``LANES`` pixels per element, see ``smooth_rows``) rather than a plain one.
 
     Eight coarse pixels of a row per iteration, as 8-vectors (SLP-vectorised, see ``LANES``): each of the
     three fine rows is read once as the 17 pixels the eight 3×3 windows span, and every tap is a fixed
     selection of them. Packs on the image border take the pixel-at-a-time path (``pyramid_pixel``)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
-    H, W = fine.shape
     Wc = (W + 1) // 2
     for v, b in ti.ndrange((H + 1) // 2, (Wc + LANES - 1) // LANES):
         u0 = b * LANES
         y0 = 2 * v
         if 0 < y0 < H - 1 and 0 < u0 and 2 * (u0 + LANES - 1) + 1 <= W - 1:  # every window is whole
-            c = Pack([fine[y0, 2 * (u0 + l)] for l in ti.static(range(LANES))])
+            c = Pack([fine[f0 + y0, 2 * (u0 + l)] for l in ti.static(range(LANES))])
             total = Pack(0.0)
             count = Pack(0.0)
             for dv in ti.static(range(-1, 2)):
-                row = ti.Vector([fine[y0 + dv, 2 * u0 - 1 + k] for k in ti.static(range(2 * LANES + 1))])
+                row = ti.Vector([fine[f0 + y0 + dv, 2 * u0 - 1 + k] for k in ti.static(range(2 * LANES + 1))])
                 row_total = Pack(0.0)  # per window row, as pyramid_pixel adds them
                 row_count = Pack(0.0)
                 for du in ti.static(range(-1, 2)):
@@ -115,18 +184,18 @@ def pyramid_down(fine: ti.template(), coarse: ti.template(), max_diff: ti.f32, p
                 count += row_count
             out = ti.select(c > 0, total / ti.max(count, 1.0), 0.0)
             if ti.static(packed):
-                coarse[v, b] = out
+                coarse[c0 + v, b] = out
             else:
                 for l in ti.static(range(LANES)):
-                    coarse[v, u0 + l] = out[l]
+                    coarse[c0 + v, u0 + l] = out[l]
         else:
             for l in range(LANES):  # a loop, not unrolled: one copy of the slow path to compile
                 u = u0 + l
                 if u < Wc:
                     if ti.static(packed):
-                        coarse[v, b][l] = pyramid_pixel(fine, v, u, max_diff)
+                        coarse[c0 + v, b][l] = pyramid_pixel(fine, f0, H, W, v, u, max_diff)
                     else:
-                        coarse[v, u] = pyramid_pixel(fine, v, u, max_diff)
+                        coarse[c0 + v, u] = pyramid_pixel(fine, f0, H, W, v, u, max_diff)
 
 
 @ti.func
@@ -197,9 +266,11 @@ def smooth_rows(src: ti.template(), dst: ti.template(), width: ti.i32, radius: t
 
 @ti.kernel
 def smooth_columns(src: ti.template(), dst: ti.template(), radius: ti.template(), max_diff: ti.f32):
-    """The column pass of the range-checked mean (as ``smooth_rows``, along columns) from a packed image
-    into the plain H × W image ``dst``. The 8 lanes of a pack share their window, border rows included."""
-    H, W = dst.shape
+    """The column pass of the range-checked mean (as ``smooth_rows``, along columns) from a packed H × ⌈W/8⌉
+    image into the H × W image at row 0 of ``dst`` (W its width: level 0 of a stack). The 8 lanes of a
+    pack share their window, border rows included."""
+    H = src.shape[0]
+    W = dst.shape[1]
     for v, b in src:
         c = src[v, b]
         total = Pack(0.0)
@@ -222,23 +293,22 @@ def smooth_columns(src: ti.template(), dst: ti.template(), radius: ti.template()
 
 
 @ti.func
-def backproject_pixel(depth: ti.template(), v, u, ifx, ify, cx, cy):
-    z = depth[v, u]
+def backproject_pixel(depth: ti.template(), r0, v, u, ifx, ify, cx, cy):
+    z = depth[r0 + v, u]
     z = ti.select(z > 0, z, 0.0)  # branch-free: the zero vector falls out of z = 0 (NaN is invalid too)
     return ti.Vector([(u - cx) * ifx * z, (v - cy) * ify * z, z])
 
 
 @ti.func
-def normal_at(depth: ti.template(), v, u, c, ifx, ify, cx, cy, max_depth_jump):
+def normal_at(depth: ti.template(), r0, H, W, v, u, c, ifx, ify, cx, cy, max_depth_jump):
     """The normal of pixel (v, u) with vertex c: see ``vertex_normal_maps``; one pixel at a time."""
-    H, W = depth.shape
     n = ti.Vector([0.0, 0.0, 0.0])
     if 0 < u < W - 1 and 0 < v < H - 1:
         if c.z > 0:  # holes are common: skip the four neighbours
-            l = backproject_pixel(depth, v, u - 1, ifx, ify, cx, cy)
-            r = backproject_pixel(depth, v, u + 1, ifx, ify, cx, cy)
-            t = backproject_pixel(depth, v - 1, u, ifx, ify, cx, cy)
-            b = backproject_pixel(depth, v + 1, u, ifx, ify, cx, cy)
+            l = backproject_pixel(depth, r0, v, u - 1, ifx, ify, cx, cy)
+            r = backproject_pixel(depth, r0, v, u + 1, ifx, ify, cx, cy)
+            t = backproject_pixel(depth, r0, v - 1, u, ifx, ify, cx, cy)
+            b = backproject_pixel(depth, r0, v + 1, u, ifx, ify, cx, cy)
             lo = ti.min(ti.min(l.z, r.z), ti.min(t.z, b.z))
             hi = ti.max(ti.max(l.z, r.z), ti.max(t.z, b.z))
             # all neighbours valid, and max |z_neighbour - z_centre| <= max_depth_jump
@@ -253,14 +323,15 @@ def normal_at(depth: ti.template(), v, u, c, ifx, ify, cx, cy, max_depth_jump):
 
 @ti.func
 def row_pack(depth: ti.template(), v, u0):
-    """Depths of pixels u0 .. u0 + 7 of row v, invalid (≤ 0 or NaN) as 0."""
+    """Depths of pixels u0 .. u0 + 7 of row v (of the stack), invalid (≤ 0 or NaN) as 0."""
     z = Pack([depth[v, u0 + l] for l in ti.static(range(LANES))])
     return ti.select(z > 0, z, 0.0)
 
 
 @ti.kernel
-def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.template(), fx: ti.f32, fy: ti.f32,
-                       cx: ti.f32, cy: ti.f32, max_depth_jump: ti.f32, serial: ti.template()):
+def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.template(), r0: ti.i32, H: ti.i32,
+                       W: ti.i32, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, max_depth_jump: ti.f32,
+                       serial: ti.template()):
     """vertex[v, u] = ((u - cx) z / fx, (v - cy) z / fy, z), zero where the depth is invalid (≤ 0 or NaN);
     normal[v, u] = the cross product of central differences of the vertices, facing the camera, zero where
     undefined: on the image border, where the pixel or one of its four neighbours is invalid, or where a
@@ -271,11 +342,10 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
     Eight pixels of a row per iteration, as 8-vectors (see ``LANES``): LLVM's SLP vectoriser turns their
     arithmetic into SIMD (at 320×240 on one core, both maps 0.94 → 0.69 ms, the normals alone 0.94 →
     0.46 ms). Packs on the image border, where a neighbour would fall outside, take the pixel-at-a-time
-    path.
+    path. The three images are the H × W level at row ``r0`` of their stacked fields (see ``Level``).
     """
     if ti.static(serial):
         ti.loop_config(serialize=True)
-    H, W = depth.shape
     ifx = 1.0 / fx  # one division per launch, not two per pixel
     ify = 1.0 / fy
     for v, b in ti.ndrange(H, (W + LANES - 1) // LANES):  # a range-for: ``serialize`` skips a struct-for
@@ -283,19 +353,19 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
         if 0 < v < H - 1 and 0 < u0 and u0 + LANES < W:  # every lane has its four neighbours
             xs = Pack([(u0 + l - cx) * ifx for l in ti.static(range(LANES))])
             y = (v - cy) * ify
-            zc = row_pack(depth, v, u0)
+            zc = row_pack(depth, r0 + v, u0)
             for l in ti.static(range(LANES)):
-                vertex[v, u0 + l] = ti.Vector([xs[l] * zc[l], y * zc[l], zc[l]])
+                vertex[r0 + v, u0 + l] = ti.Vector([xs[l] * zc[l], y * zc[l], zc[l]])
             # left and right neighbours: the row pack shifted by one pixel
             row = ti.Vector([0.0] * (LANES + 2))
-            row[0] = ti.select(depth[v, u0 - 1] > 0, depth[v, u0 - 1], 0.0)
-            row[LANES + 1] = ti.select(depth[v, u0 + LANES] > 0, depth[v, u0 + LANES], 0.0)
+            row[0] = ti.select(depth[r0 + v, u0 - 1] > 0, depth[r0 + v, u0 - 1], 0.0)
+            row[LANES + 1] = ti.select(depth[r0 + v, u0 + LANES] > 0, depth[r0 + v, u0 + LANES], 0.0)
             for l in ti.static(range(LANES)):
                 row[l + 1] = zc[l]
             zl = Pack([row[l] for l in ti.static(range(LANES))])
             zr = Pack([row[l + 2] for l in ti.static(range(LANES))])
-            zt = row_pack(depth, v - 1, u0)
-            zb = row_pack(depth, v + 1, u0)
+            zt = row_pack(depth, r0 + v - 1, u0)
+            zb = row_pack(depth, r0 + v + 1, u0)
             xl = Pack([(u0 + l - 1 - cx) * ifx for l in ti.static(range(LANES))])
             xr = Pack([(u0 + l + 1 - cx) * ifx for l in ti.static(range(LANES))])
             yt = (v - 1 - cy) * ify
@@ -320,68 +390,69 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
             ny = ti.select(ok, my * s, 0.0)
             nz = ti.select(ok, mz * s, 0.0)
             for l in ti.static(range(LANES)):
-                normal[v, u0 + l] = ti.Vector([nx[l], ny[l], nz[l]])
+                normal[r0 + v, u0 + l] = ti.Vector([nx[l], ny[l], nz[l]])
         else:
             for l in range(LANES):  # a loop, not unrolled: one copy of the slow path to compile
                 u = u0 + l
                 if u < W:
-                    c = backproject_pixel(depth, v, u, ifx, ify, cx, cy)
-                    vertex[v, u] = c
-                    normal[v, u] = normal_at(depth, v, u, c, ifx, ify, cx, cy, max_depth_jump)
+                    c = backproject_pixel(depth, r0, v, u, ifx, ify, cx, cy)
+                    vertex[r0 + v, u] = c
+                    normal[r0 + v, u] = normal_at(depth, r0, H, W, v, u, c, ifx, ify, cx, cy, max_depth_jump)
 
 
 GREY = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights of R, G, B
 
 
 @ti.kernel
-def intensity_down(fine: ti.template(), coarse: ti.template(), serial: ti.template()):
+def intensity_down(fine: ti.template(), f0: ti.i32, H: ti.i32, W: ti.i32, coarse: ti.template(), c0: ti.i32,
+                   serial: ti.template()):
     """coarse = fine averaged down one level: the [1 2 1] ⊗ [1 2 1] weighted mean of the valid (≥ 0) fine
-    intensities in the 3×3 window centred on (2v, 2u) that lie inside the image; −1 where none is valid."""
+    intensities in the 3×3 window centred on (2v, 2u) that lie inside the image; −1 where none is valid.
+    The H × W image at row ``f0`` of ``fine`` into the ⌈H/2⌉ × ⌈W/2⌉ one at row ``c0`` of ``coarse``."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
-    H, W = fine.shape
-    Hc, Wc = coarse.shape
-    for v, u in ti.ndrange(Hc, Wc):
+    for v, u in ti.ndrange((H + 1) // 2, (W + 1) // 2):
         total = 0.0
         weight = 0.0
         for dv, du in ti.static(ti.ndrange((-1, 2), (-1, 2))):
             y = 2 * v + dv
             x = 2 * u + du
             if 0 <= y < H and 0 <= x < W:
-                i = fine[y, x]
+                i = fine[f0 + y, x]
                 if i >= 0:
                     w = ti.static(float((2 - abs(dv)) * (2 - abs(du))))
                     total += w * i
                     weight += w
-        coarse[v, u] = ti.select(weight > 0, total / ti.max(weight, 1.0), -1.0)
+        coarse[c0 + v, u] = ti.select(weight > 0, total / ti.max(weight, 1.0), -1.0)
 
 
 @ti.kernel
-def intensity_gradient(image: ti.template(), out: ti.template(), serial: ti.template()):
+def intensity_gradient(image: ti.template(), out: ti.template(), r0: ti.i32, H: ti.i32, W: ti.i32,
+                       serial: ti.template()):
     """out[v, u] = (I, ∂I/∂x, ∂I/∂y), the derivatives by Sobel / 8 (intensity per pixel); (−1, 0, 0) on the
-    image border and where any of the 3×3 window has no intensity."""
+    image border and where any of the 3×3 window has no intensity. Both the H × W level at row ``r0``."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
-    H, W = image.shape
     for v, u in ti.ndrange(H, W):
         res = ti.Vector([-1.0, 0.0, 0.0])
         if 0 < v < H - 1 and 0 < u < W - 1:
-            a = ti.Matrix([[image[v + dv, u + du] for du in ti.static(range(-1, 2))] for dv in ti.static(range(-1, 2))])
+            a = ti.Matrix([[image[r0 + v + dv, u + du] for du in ti.static(range(-1, 2))]
+                           for dv in ti.static(range(-1, 2))])
             lo = a.min()
             if lo >= 0:
                 gx = ((a[0, 2] + 2.0 * a[1, 2] + a[2, 2]) - (a[0, 0] + 2.0 * a[1, 0] + a[2, 0])) / 8.0
                 gy = ((a[2, 0] + 2.0 * a[2, 1] + a[2, 2]) - (a[0, 0] + 2.0 * a[0, 1] + a[0, 2])) / 8.0
                 res = ti.Vector([a[1, 1], gx, gy])
-        out[v, u] = res
+        out[r0 + v, u] = res
 
 
 @ti.kernel
 def surfel_intensity(view_index: ti.template(), colour: ti.template(), out: ti.template(), serial: ti.template()):
     """out[v, u] = the grey level in [0, 1] of the surfel seen at the pixel (``colour`` RGB in [0, 255]), −1
-    where none is (``view_index`` INT_MAX)."""
+    where none is (``view_index`` INT_MAX); ``out`` level 0 of a stack (row 0), of ``view_index``'s size."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
-    H, W = out.shape
+    H, W = view_index.shape
     for v, u in ti.ndrange(H, W):
         i = view_index[v, u]
         g = -1.0
@@ -406,6 +477,9 @@ class FrameMaps:
 
         maps = FrameMaps(config.maps, height, width, levels, input_level)
         maps.compute(depth, intrinsics)
+
+    ``depth[l]``, ``vertex[l]``, ``normal[l]`` (and ``intensity[l]``, ``intensity_grad[l]``) are ``Level``
+    views of level l of one stacked field per quantity (module docstring).
     """
 
     def __init__(self, settings: MapsConfig, height: int, width: int, levels: int = 3, input_level: int = 0):
@@ -431,16 +505,30 @@ class FrameMaps:
         for _ in range(levels):
             self.shapes.append((h, w))
             h, w = (h + 1) // 2, (w + 1) // 2
-        self.depth = [ti.field(ti.f32, shape=s) for s in self.shapes]
-        self.vertex = [ti.Vector.field(3, ti.f32, shape=s) for s in self.shapes]
-        self.normal = [ti.Vector.field(3, ti.f32, shape=s) for s in self.shapes]
+        self.row0, rows, _ = stacked_rows(self.shapes)
+        self._stack_shape = (rows, width)
+        self.depth = self._levels(ti.field(ti.f32, shape=self._stack_shape))
+        self.vertex = self._levels(ti.Vector.field(3, ti.f32, shape=self._stack_shape))
+        self.normal = self._levels(ti.Vector.field(3, ti.f32, shape=self._stack_shape))
         self.intrinsics: list[Intrinsics] = []
-        self._serial = [serial_for(h * w) for h, w in self.shapes]  # per level: loops on the calling thread
+        # one choice for every level (a per-level one would compile an instance per choice): the loops run on
+        # the calling thread when level 0 is small (tests), and the coarse levels of larger ones in parallel
+        self._serial = serial_for(height * width)
         self._packed = None  # when smoothing: the level-0 depth before and after the row pass, packed
         # the photometric term's images (``compute_intensity``, ``intensity_from_surfels``), on first use
         self.intensity: list | None = None  # per level, f32 in [0, 1], −1 = none
         self.intensity_grad: list | None = None  # per level, (I, ∂I/∂x, ∂I/∂y) (live frames only)
         self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
+
+    def _levels(self, stack) -> list[Level]:
+        return [Level(stack, r, s) for r, s in zip(self.row0, self.shapes)]
+
+    def _upload_level0(self, stack, image: np.ndarray) -> None:
+        """Level 0 of ``stack`` = ``image`` in one copy (the coarse levels' rows are zeroed: the pyramid is
+        rebuilt from level 0 right after)."""
+        whole = np.zeros(self._stack_shape, dtype=np.float32)
+        whole[:self.height] = image
+        stack.from_numpy(whole)
 
     def compute(self, depth: np.ndarray, intrinsics: Intrinsics) -> None:
         """Upload a float32 depth image (metres, 0 = invalid) and build every level's maps.
@@ -451,30 +539,33 @@ class FrameMaps:
             raise ValueError(f"depth of shape {depth.shape} given to FrameMaps of shape {self.input_shape}")
         depth = np.ascontiguousarray(depth, dtype=np.float32)
         smooth = self.smooth_radius > 0
-        # the unsmoothed level-0 depth: packed for the smoothing passes, else level 0 itself
-        level0 = self._packed_fields()[0] if smooth else self.depth[0]
+        stack = self.depth[0].field
         if self.input_level == 0:
-            level0.from_numpy(self._pack(depth) if smooth else depth)
+            if smooth:
+                self._packed_fields()[0].from_numpy(self._pack(depth))
+            else:
+                self._upload_level0(stack, depth)
         else:
             intrinsics = intrinsics.downsampled(2**self.input_level)
             self._inputs[0].from_numpy(depth)
-            targets = self._inputs[1:] + [level0]
-            for fine, coarse in zip(self._inputs, targets):
+            # the last step writes the smoothing's packed input, or level 0 of the stack
+            targets = self._inputs[1:] + [self._packed_fields()[0] if smooth else stack]
+            for i, (fine, coarse) in enumerate(zip(self._inputs, targets)):
                 h, w = fine.shape
-                packed = smooth and coarse is level0  # the smoothing's packed input
-                pyramid_down(fine, coarse, self.max_depth_diff, packed,
+                packed = smooth and i == len(targets) - 1
+                pyramid_down(fine, 0, h, w, coarse, 0, self.max_depth_diff, packed,
                              serial_for(((h + 1) // 2) * ((w + 1) // 2)))
         if smooth:
             raw, rows = self._packed
             smooth_rows(raw, rows, self.width, self.smooth_radius, self.max_depth_diff)
-            smooth_columns(rows, self.depth[0], self.smooth_radius, self.max_depth_diff)
+            smooth_columns(rows, stack, self.smooth_radius, self.max_depth_diff)
         self.compute_from_field(intrinsics)
 
     def _intensity_fields(self, gradients: bool) -> None:
         if self.intensity is None:
-            self.intensity = [ti.field(ti.f32, shape=s) for s in self.shapes]
+            self.intensity = self._levels(ti.field(ti.f32, shape=self._stack_shape))
         if gradients and self.intensity_grad is None:
-            self.intensity_grad = [ti.Vector.field(3, ti.f32, shape=s) for s in self.shapes]
+            self.intensity_grad = self._levels(ti.Vector.field(3, ti.f32, shape=self._stack_shape))
 
     def compute_intensity(self, grey: np.ndarray) -> None:
         """The live frame's intensity pyramid and gradients from a float32 grey image of the input's size
@@ -484,29 +575,35 @@ class FrameMaps:
         self._intensity_fields(True)
         grey = np.ascontiguousarray(grey, dtype=np.float32)
         if self.input_level == 0:
-            self.intensity[0].from_numpy(grey)
+            self._upload_level0(self.intensity[0].field, grey)
         else:
             if not self._grey_inputs:
                 self._grey_inputs = [ti.field(ti.f32, shape=f.shape) for f in self._inputs]
             self._grey_inputs[0].from_numpy(grey)
-            targets = self._grey_inputs[1:] + [self.intensity[0]]
+            targets = self._grey_inputs[1:] + [self.intensity[0].field]
             for fine, coarse in zip(self._grey_inputs, targets):
-                intensity_down(fine, coarse, serial_for(coarse.shape[0] * coarse.shape[1]))
+                h, w = fine.shape
+                intensity_down(fine, 0, h, w, coarse, 0, serial_for(((h + 1) // 2) * ((w + 1) // 2)))
         self._intensity_levels()
-        for l in range(self.levels):
-            intensity_gradient(self.intensity[l], self.intensity_grad[l], self._serial[l])
+        stack, grad = self.intensity[0].field, self.intensity_grad[0].field
+        for r0, (h, w) in zip(self.row0, self.shapes):
+            intensity_gradient(stack, grad, r0, h, w, self._serial)
 
     def intensity_from_surfels(self, view_index, colour) -> None:
         """The model's intensity pyramid: level 0 the grey level of the surfel seen at each pixel
         (``view_index`` of a prediction of this size, ``colour`` the surfels' RGB field), the others averaged
         down; no gradients (the model's intensity is compared, the live frame's differentiated)."""
+        if tuple(view_index.shape) != self.shapes[0]:
+            raise ValueError(f"view_index of shape {view_index.shape} for maps of shape {self.shapes[0]}")
         self._intensity_fields(False)
-        surfel_intensity(view_index, colour, self.intensity[0], self._serial[0])
+        surfel_intensity(view_index, colour, self.intensity[0].field, self._serial)
         self._intensity_levels()
 
     def _intensity_levels(self) -> None:
+        stack = self.intensity[0].field
         for l in range(1, self.levels):
-            intensity_down(self.intensity[l - 1], self.intensity[l], self._serial[l])
+            h, w = self.shapes[l - 1]
+            intensity_down(stack, self.row0[l - 1], h, w, stack, self.row0[l], self._serial)
 
     def _packed_fields(self):
         """The packed level-0 images of the smoothing (allocated when smoothing is first asked for)."""
@@ -527,9 +624,12 @@ class FrameMaps:
         """Build every level from ``self.depth[0]`` already on the Taichi side (without level 0's vertex
         and normal maps when ``level0_maps`` is False: a renderer that writes them itself). No smoothing."""
         self.intrinsics = [intrinsics.downsampled(2**l) for l in range(self.levels)]
+        depth, vertex, normal = self.depth[0].field, self.vertex[0].field, self.normal[0].field
         for l in range(1, self.levels):
-            pyramid_down(self.depth[l - 1], self.depth[l], self.max_depth_diff, False, self._serial[l])
+            h, w = self.shapes[l - 1]
+            pyramid_down(depth, self.row0[l - 1], h, w, depth, self.row0[l], self.max_depth_diff, False,
+                         self._serial)
         for l in range(0 if level0_maps else 1, self.levels):
             # A depth edge at a coarse level spans 2**l fine pixels: scale the jump threshold with it.
-            vertex_normal_maps(self.depth[l], self.vertex[l], self.normal[l], *self.intrinsics[l].as_tuple(),
-                               self.max_depth_jump * 2**l, self._serial[l])
+            vertex_normal_maps(depth, vertex, normal, self.row0[l], *self.shapes[l], *self.intrinsics[l].as_tuple(),
+                               self.max_depth_jump * 2**l, self._serial)

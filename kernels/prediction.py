@@ -153,7 +153,7 @@ def clear_holes(img: ti.template(), out_vertex: ti.template(), out_normal: ti.te
     """Zero the outputs at the pixels no surfel projects to (``img.index_map``): after a render with
     ``splat_gather``'s ``fill_half`` and the pyramid built from it, level 0 goes back to the surfels' own
     pixels (and ``img.view_index`` to none)."""
-    for v, u in out_depth:
+    for v, u in img.index_map.index:  # (the outputs may be levels of a stacked field: no struct-for)
         if img.index_map.index[v, u] == INT_MAX:
             img.view_index[v, u] = INT_MAX
             out_vertex[v, u] = Vec3(0.0, 0.0, 0.0)

@@ -263,11 +263,11 @@ class FinestIteration:
     def start(self) -> None:
         if self.in_kernel:
             self.kernels.begin_iterations(self.pose, ITERATIONS_PER_RUN + 1)
-            self.kernels.begin_level(self.fields[0], self.K, *self.thresholds, 0, self.icp.config.min_inliers, 0.0)
+            self.kernels.begin_level(*self.fields, self.K, *self.thresholds, 0, self.icp.config.min_inliers, 0.0)
 
     def taichi(self):
         if self.in_kernel:
-            return self.kernels.iterate(*self.fields, 0)
+            return self.kernels.iterate(0)
         return self._solve(self.kernels.reduce(*self.fields, self.pose, self.K, *self.thresholds))
 
     def numpy(self):

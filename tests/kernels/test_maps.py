@@ -342,3 +342,55 @@ def test_surfel_intensity_matches_reference(arch, rng):
                                rtol=1e-5, atol=1e-6)
     rgb = rng.integers(0, 256, (4, 5, 3)).astype(np.uint8)
     np.testing.assert_allclose(grey_image(rgb), (rgb @ np.array(GREY)) / 255.0, atol=0.51 / 255)  # rounded to 1/255
+
+
+# -- stacked levels (one kernel instance for every level) ---------------------------------------------------
+def _instances(kernel) -> int:
+    """Instances Taichi has compiled of a kernel in this process (one per set of template arguments)."""
+    return len(kernel._primal.compiled_kernels)
+
+
+def test_every_level_shares_one_kernel_instance(cpu, rng):
+    """The levels of a pyramid are rows of one field per quantity, so a new FrameMaps adds one instance
+    of the pyramid and vertex/normal kernels for all of its levels, not one per level."""
+    from ti_fusion.kernels import maps as kmaps
+
+    depth = random_depth(rng, shape=(40, 48))
+    counts = [_instances(k) for k in (kmaps.pyramid_down, kmaps.vertex_normal_maps)]
+    maps = FrameMaps(settings(), *depth.shape, levels=4)
+    maps.compute(depth, Intrinsics(60.0, 60.0, 24.0, 20.0, 48, 40))
+    maps.compute(depth, Intrinsics(60.0, 60.0, 24.0, 20.0, 48, 40))
+    assert [_instances(k) - n for k, n in zip((kmaps.pyramid_down, kmaps.vertex_normal_maps), counts)] == [1, 1]
+    assert maps.depth[3].shape == (5, 6) and maps.depth[3].row0 == 40 + 20 + 10
+
+
+def test_level_views_read_and_write_their_own_pixels(arch, rng):
+    """A ``Level`` indexes like its own H × W field inside another kernel and in NumPy round trips, and
+    leaves the other levels of its stacked field alone."""
+    import taichi as ti
+
+    from ti_fusion.kernels.maps import Level, as_level
+
+    stack = ti.field(ti.f32, shape=(9, 7))
+    stack.from_numpy(np.full((9, 7), -1.0, np.float32))
+    level = Level(stack, 5, (4, 5))  # rows 5..8, columns 0..4
+    values = rng.uniform(0, 1, level.shape).astype(np.float32)
+    level.from_numpy(values)
+    np.testing.assert_array_equal(level.to_numpy(), values)
+
+    @ti.kernel
+    def double_into(src: ti.template(), dst: ti.template()):
+        for v, u in ti.ndrange(*src.shape):
+            dst[v, u] = 2.0 * src[v, u]
+
+    out = ti.field(ti.f32, shape=(4, 5))
+    double_into(level, out)
+    np.testing.assert_array_equal(out.to_numpy(), 2.0 * values)
+    double_into(as_level(out), level)  # a plain field is the level at its row 0
+    np.testing.assert_array_equal(level.to_numpy(), 4.0 * values)
+    level.fill(0.5)
+    whole = stack.to_numpy()
+    np.testing.assert_array_equal(whole[5:, :5], 0.5)
+    assert np.all(whole[:5] == -1.0) and np.all(whole[5:, 5:] == -1.0)
+    with pytest.raises(ValueError, match="shape"):
+        level.from_numpy(values[:, :4])

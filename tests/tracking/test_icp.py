@@ -481,12 +481,13 @@ def test_iterate_refuses_more_iterations_than_records(cpu, rng, sequence):
     src, tgt, G = synthetic_pair(sequence, rng, noise=False)
     kernels = ICP(ICPConfig())._kernels(src.width * src.height)
     kernels.begin_iterations(np.eye(4), 1)
-    kernels.begin_level(src.vertex[0], tgt.intrinsics[0].as_tuple(), 0.1, 30.0, "huber", 0.01, 0, 100, 0.0)
+    kernels.begin_level(src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0], tgt.intrinsics[0].as_tuple(),
+                        0.1, 30.0, "huber", 0.01, 0, 100, 0.0)
     capacity = kernels.records.shape[0]
     for it in range(capacity):
-        kernels.iterate(src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0], it)
+        kernels.iterate(it)
     with pytest.raises(ValueError, match="iterations since begin_iterations"):
-        kernels.iterate(src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0], capacity)
+        kernels.iterate(capacity)
 
 
 def test_single_plane_is_degenerate(cpu):
@@ -573,3 +574,19 @@ def test_a_non_rigid_initial_pose_is_refused():
 
     with pytest.raises(ValueError, match="initial pose: rotation block is not orthonormal"):
         ICP().align(Maps, Maps, init=np.diag([2.0, 1.0, 1.0, 1.0]))
+
+
+def test_align_compiles_one_iterate_instance_for_every_level(cpu, sequence):
+    """The pyramid levels are rows of one field per quantity (``kernels/maps.py``), so aligning a new pair
+    of maps over three levels adds one instance of the ``iterate`` kernel, not one per level (here a frame
+    aligned to itself: one iteration per level)."""
+    cfg = ICPConfig()
+    K = sequence.intrinsics
+    maps = FrameMaps(MapsConfig(depth_smooth_radius=0), K.height, K.width, len(cfg.iterations))  # new fields
+    maps.compute(sequence.render(sequence.poses[0], noise=False)[0], K)
+    icp = ICP(cfg)
+    iterate = icp._kernels(K.width * K.height).k["iterate"]._primal
+    before = len(iterate.compiled_kernels)
+    result = icp.align(maps, maps)
+    assert result.failure is None and {r.level for r in result.iterations} == {0, 1, 2}
+    assert len(iterate.compiled_kernels) - before == 1

@@ -1,7 +1,7 @@
 """Projective point-to-plane ICP, coarse to fine: ``ICP(config).align(source, target, init)``.
 
-``source`` and ``target`` are ``FrameMaps`` (or anything with per-level ``vertex``, ``normal`` fields and
-``intrinsics``) of two depth frames; the result's ``pose`` maps source-camera points into the target
+``source`` and ``target`` are ``FrameMaps`` (or anything with per-level ``vertex``, ``normal`` images, as
+``Level`` views or plain fields, and ``intrinsics``) of two depth frames; the result's ``pose`` maps source-camera points into the target
 camera, p_target = T p_source. Each iteration is one Taichi pass (association + linearisation +
 reduction, ``ti_fusion.kernels.icp``), the 6×6 system is checked and solved and the pose updated on the
 left with the exact exponential, T ← exp(δξ) · T, the twist δξ = (ω, v) rotation first.
@@ -161,13 +161,13 @@ class ICP:
         robust = self.robust
         kernels.begin_iterations(result.pose, sum(n for _, n in schedule))
         for level, n_iter in schedule:
-            fields = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level])
-            kernels.begin_level(fields[0], target.intrinsics[level].as_tuple(), self.dist_threshold(level),
+            kernels.begin_level(source.vertex[level], source.normal[level], target.vertex[level],
+                                target.normal[level], target.intrinsics[level].as_tuple(), self.dist_threshold(level),
                                 cfg.normal_threshold_deg, robust, cfg.robust_scale, level, cfg.min_inliers,
                                 cfg.stop_update, self._colour(source, target, level))
             done = 0
             for it in range(n_iter):
-                done = kernels.iterate(*fields, it)
+                done = kernels.iterate(it)
                 if done:
                     break
             if done == FAILED:

@@ -72,12 +72,14 @@ def measure(overrides: list[str], first: int, last: int, out: Path) -> dict:
     all_pos = surfels["position"][surfels["weight"] >= cfg.fusion.unstable_weight].astype(np.float64)
     truth = dataset.sequence.surface_distance(all_pos)
     return {"overrides": overrides, "frames": summary["frames"], "ate_rmse_m": summary.get("ate_rmse_m"),
-            "ate_max_m": summary.get("ate_max_m"), "error_every_100_cm": errors_cm[::100],
+            "ate_max_m": summary.get("ate_max_m"), "ate_percent_of_path": summary.get("ate_percent_of_path"),
+            "path_length_m": summary.get("path_length_m"), "error_every_100_cm": errors_cm[::100],
             "error_last_cm": errors_cm[-1],
             "tracking_failures": summary["tracking_failures"],
             "fps_processing": summary["fps_processing"], "keyframes": summary["keyframes"],
             "loop_candidates": summary["loop_candidates"], "loop_closures": summary["loop_closures"],
-            "loop_ms": summary.get("loop_ms"), "loops_refused": summary.get("loops_refused"),
+            "loop_ms": summary.get("loop_ms"), "loops": summary.get("loops"),
+            "loops_refused": summary.get("loops_refused"),
             "last_vs_first_pass": {"points": int(len(dist)), **({} if len(dist) == 0 else {
                 "median_mm": round(1e3 * float(np.median(dist)), 2),
                 "rms_mm": round(1e3 * float(np.sqrt(np.mean(dist ** 2))), 2),

@@ -86,7 +86,7 @@ def main() -> None:
     else:
         off = runs[0]
         meet = cKDTree(off["first"]).query(off["last"], distance_upper_bound=0.5)[0] < 0.5
-        cx, cy = np.median(off["last"][meet], axis=0)
+        cx, cy = np.median(off["last"][meet], axis=0) if meet.any() else LOOP_CENTER
     window = ((cx - ZOOM / 2, cx + ZOOM / 2), (cy - ZOOM / 2, cy + ZOOM / 2))
     fig, axes = plt.subplots(2, 2, figsize=(12, 9.5), gridspec_kw={"height_ratios": [1, 1.15]})
     for col, (run, label) in enumerate(zip(runs, args.labels)):

@@ -2,8 +2,7 @@ r"""Loop closure on a synthetic scene, on and off: ATE, and whether the walls of
 coincide (docs/LOOP_CLOSURE.md).
 
     .venv/bin/python scripts/loop_consistency.py --scene loop --first 300 --last 100 \
-        --set slam.active_window=200 --set icp.color_weight=0.01 --set synth.depth_noise_scale=4.5 \
-        --set loop.max_residual=0.04 --keep RUNS
+        --set slam.active_window=200 --set icp.color_weight=0.01 --set synth.depth_noise_scale=4.5 --keep RUNS
 
 For each setting, a slam run of the whole scene (320×240 with --downsample 2), then: the last ``--last``
 frames' depth (every 4th pixel), back-projected at the run's final (corrected) poses, against the map's

@@ -464,6 +464,8 @@ class LoopConfig:
                                      # (1: the inverse information, the strongest direction at the sigmas above)
     odometry_max_scale: Annotated[float, Range(ge=1)] = 1e6  # odometry_from_icp: that variance factor at most
                                      # (dimensionless; 1e6 = the sigma × 1000); untracked frames get it in every direction
+    keyframe_pnp: bool = False       # pose graph: also an edge between consecutive keyframes from PnP RANSAC on
+                                     # their ORB features (loop sigmas, Huber): their motion observed apart from ICP
     loop_sigma_m: Positive = 0.02    # standard deviation of a loop edge's translation, metres
     loop_sigma_deg: Positive = 1.0   # and of its rotation, degrees
     robust: Annotated[str, OneOf("gnc", "cauchy", "huber", "none")] = "gnc"  # robust kernel on loop edges: gnc =

@@ -33,7 +33,7 @@ from ti_fusion.loop.keyframes import Keyframe, KeyframeSelector, grid_points
 from ti_fusion.loop.place_recognition import PlaceDatabase
 from ti_fusion.loop.pose_graph import PoseGraph, edge_covariance, frame_covariance
 from ti_fusion.loop.verification import LoopCandidate, LoopVerifier, fill
-from ti_fusion.tracking.features import extract_features
+from ti_fusion.tracking.features import extract_features, solve_pnp
 
 log = logging.getLogger(__name__)
 
@@ -159,8 +159,18 @@ class LoopClosure:
             covariance = edge_covariance(self._since, pose)
         self._since = []
         self.graph.add_keyframe(pose, covariance)
+        if self.config.loop.keyframe_pnp and kf.id > 0:
+            self._pnp_edge(self.keyframes[-2], kf)
         slam.mapper.anchor = kf.id  # surfels fused from the next frame on move with this keyframe
         return kf
+
+    def _pnp_edge(self, previous: Keyframe, kf: Keyframe) -> None:
+        """``loop.keyframe_pnp``: the two keyframes' relative pose from PnP RANSAC on their ORB features (the
+        previous keyframe's 3D points against this one's keypoints) as a pose-graph edge, when it has at least
+        ``loop.min_pnp_inliers`` inliers."""
+        pnp = solve_pnp(previous.features, kf.features, kf.intrinsics, self.verifier.vo, check_motion=False)
+        if pnp.T is not None and pnp.inliers >= self.config.loop.min_pnp_inliers:
+            self.graph.add_relative(previous.id, kf.id, invert(pnp.T))  # pnp.T: p_kf = T p_previous
 
     # -- closing a loop -------------------------------------------------------------------------
     def _close(self, c: LoopCandidate, report: LoopReport) -> None:

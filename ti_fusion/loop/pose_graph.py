@@ -2,9 +2,10 @@
 
 Nodes: keyframe poses (camera-to-world). Edges: odometry between consecutive keyframes (the tracked
 relative pose, Gaussian with ``loop.odometry_sigma_*``, or with ``loop.odometry_from_icp`` a full covariance
-shaped by the tracked frames' ICP AᵀA: ``frame_covariance``, ``edge_covariance``) and loops (the verified relative pose, with
-``loop.loop_sigma_*`` under a robust kernel, ``loop.robust``). The first keyframe is held by a tight prior
-(the map's frame).
+shaped by the tracked frames' ICP AᵀA: ``frame_covariance``, ``edge_covariance``), with ``loop.keyframe_pnp``
+a second relative pose of consecutive keyframes from PnP on their ORB features (``add_relative``), and
+loops (the verified relative pose, with ``loop.loop_sigma_*`` under a robust kernel, ``loop.robust``). The
+first keyframe is held by a tight prior (the map's frame).
 
 The default kernel is Geman–McClure, minimised by graduated non-convexity (GTSAM's ``GncLMOptimizer``,
 Yang et al. 2020) with the odometry edges and the prior known inliers: it starts from the convex (least
@@ -43,6 +44,7 @@ class Edge:
     T: np.ndarray
     loop: bool
     covariance: np.ndarray | None = None  # 6×6 in GTSAM's Pose3 tangent order (ω, v); None: the constant sigmas
+    robust: bool = False  # a non-loop edge under a Huber kernel (the keyframes' PnP edges)
 
 
 @dataclass
@@ -141,6 +143,13 @@ class PoseGraph:
         self.poses.append(pose.copy())
         return len(self.poses) - 1
 
+    def add_relative(self, i: int, j: int, T_ij: np.ndarray) -> None:
+        """A relative-pose edge that does not come from tracking (``loop.keyframe_pnp``: PnP between consecutive
+        keyframes), T_ij = T_wi⁻¹ T_wj, with the loop sigmas under a Huber kernel; like odometry, a known
+        inlier of GNC."""
+        self.edges.append(Edge(i, j, np.asarray(T_ij, dtype=np.float64), loop=False,
+                               covariance=np.diag(self._loop_sigmas ** 2), robust=True))
+
     def add_loop(self, i: int, j: int, T_ij: np.ndarray) -> None:
         """A loop edge: T_ij = T_wi⁻¹ T_wj measured (keyframe j's camera in keyframe i's)."""
         self.edges.append(Edge(i, j, np.asarray(T_ij, dtype=np.float64), loop=True))
@@ -203,6 +212,8 @@ class PoseGraph:
             if not e.loop:
                 noise = self._odometry_noise if e.covariance is None else \
                     gtsam.noiseModel.Gaussian.Covariance(e.covariance)
+                if e.robust:
+                    noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345), noise)
                 graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), noise))
         for e in loops:
             graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), loop_noise))

@@ -530,6 +530,16 @@ def fill_holes(s: ti.template(), n: ti.i32, m: ti.i32):
 
 
 @ti.kernel
+def reactivate(s: ti.template(), n: ti.i32, frame_index: ti.i32, min_weight: ti.f32):
+    """Loop closure: surfels i < n with weight ≥ ``min_weight`` count as updated at ``frame_index`` (the
+    active model again); weaker ones keep their ``t_updated``, so that the removal of unstable surfels,
+    which tests it, still drops them. Each surfel writes only itself."""
+    for i in range(n):
+        if s.weight[i] >= min_weight:
+            s.t_updated[i] = frame_index
+
+
+@ti.kernel
 def apply_corrections(s: ti.template(), n: ti.i32, corrections: ti.types.ndarray(dtype=ti.f32, ndim=2),
                       moved: ti.types.ndarray(dtype=ti.i32, ndim=1)):
     """Every surfel i < n whose anchor k has ``moved[k]`` ≠ 0 (0 ≤ k < K) goes with anchor k's correction

@@ -184,6 +184,13 @@ class SurfelMap(SurfelStore):
             self._projected = 0  # positions changed: the fusion projection is stale
         return n_moved
 
+    def reactivate(self, frame_index: int, min_weight: float) -> None:
+        """Loop closure: every live surfel of weight ≥ ``min_weight`` counts as updated at ``frame_index``,
+        so the active window (``render(min_time=...)``) includes it again; weaker surfels keep their last
+        update, and with it their turn in the removal of unstable surfels."""
+        if self.count > 0:
+            fusion.reactivate(self.arrays, self.count, int(frame_index), float(min_weight))
+
     # -- prediction -----------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics, out_vertex=None, out_normal=None, out_depth=None,
                min_weight: float = 0.0, max_half: int = 1, fill_half: int = 0,

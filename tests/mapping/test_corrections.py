@@ -162,3 +162,41 @@ def test_anchors_follow_their_surfels_through_growth_and_compaction(arch, rng):
     assert removed > 50 and smap.count == n - removed
     np.testing.assert_array_equal(got["anchor"], data["anchor"][got["t_created"]])  # t_created = old index
     np.testing.assert_array_equal(got["position"], data["position"][got["t_created"]])
+
+
+def test_reactivate_matches_reference(arch, rng):
+    """Live surfels of weight ≥ the threshold (exactly at it included) get ``t_updated`` = the frame; weaker
+    ones and stale slots above the count keep theirs, and nothing else changes."""
+    n = 2 * BLOCK + 9
+    data = random_surfels(rng, n, rng.integers(0, 4, n))
+    data["weight"][rng.random(n) < 0.1] = 3.0
+    smap = SurfelMap(3 * BLOCK)
+    smap.from_numpy(data)
+    removed = smap.remove(200, True, 0.8, 0)  # leaves stale slots [count, n)
+    assert removed > 5
+    m = smap.count
+    before = live_and_stale(smap, n)
+    smap.reactivate(250, 3.0)
+    after = live_and_stale(smap, n)
+    want = np.where(before["weight"][:m].astype(np.float64) >= 3.0, 250, before["t_updated"][:m])
+    np.testing.assert_array_equal(after["t_updated"][:m], want)
+    assert 0 < (want == 250).sum() < m
+    np.testing.assert_array_equal(after["t_updated"][m:], before["t_updated"][m:])
+    for name in set(STORED) - {"t_updated"}:
+        np.testing.assert_array_equal(after[name], before[name])
+
+
+def test_unstable_surfels_are_removed_although_loops_reactivate_the_map(cpu, rng):
+    """A loop every few frames reactivates the map; the unstable surfels still go after ``unstable_age``
+    frames without an update (before, every slot's ``t_updated`` was overwritten and none ever went)."""
+    n = BLOCK + 40
+    data = random_surfels(rng, n, np.zeros(n))
+    data["t_updated"][:] = 0
+    smap = SurfelMap(2 * BLOCK)
+    smap.from_numpy(data)
+    weak = int((data["weight"] < 3.0).sum())
+    for frame in range(1, 30):
+        if frame % 5 == 0:
+            smap.reactivate(frame, 3.0)
+        smap.remove(frame, True, 3.0, 20)
+    assert smap.count == n - weak

@@ -216,8 +216,9 @@ class LoopClosure:
         self._map_correction(corrections)
         if self.config.slam.active_window > 0:
             # the corrected old surfels agree with the current pose again: active (tracked against) for
-            # the next slam.active_window frames, as ElasticFusion reactivates the model after a loop
-            self.slam.mapper.map.arrays.t_updated.fill(self.slam._frames_fused)
+            # the next slam.active_window frames, as ElasticFusion reactivates the model after a loop;
+            # only confirmed ones, or loops every few frames would keep unstable surfels from removal
+            self.slam.mapper.map.reactivate(self.slam._frames_fused, self.config.fusion.unstable_weight)
 
     # -- results --------------------------------------------------------------------------------
     def loop_segments(self, candidates: list[LoopCandidate]) -> list[tuple[np.ndarray, np.ndarray, bool]]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 
 from ti_fusion.evaluation.metrics import align_rigid, trajectory_metrics
@@ -63,7 +64,7 @@ def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=N
     it) and ATE/RPE go in the title (computed here unless ``metrics`` is given).
 
     ``loop_edges``: loop closures drawn in the top view as lines between two camera positions, accepted
-    ones solid, rejected ones dashed; each is (i, j, accepted) with i, j rows of ``est_poses``, or
+    ones green and solid with a ring at each end, rejected ones faint, red and dashed; each is (i, j, accepted) with i, j rows of ``est_poses``, or
     (p_from, p_to, accepted) with two positions in the estimate's world frame (aligned with it).
     """
     est = np.asarray(est_poses, dtype=np.float64).reshape(-1, 4, 4)
@@ -134,20 +135,26 @@ def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=N
 
 
 def _draw_loop_edges(ax, edges, est_xyz: np.ndarray, S: np.ndarray, a: int, b: int) -> None:
-    """Loop edges on the top view (axes a, b): accepted green and solid, rejected red and dashed; the ends
-    given as positions take the estimate's alignment ``S``, those given as rows are read from ``est_xyz``."""
+    """Loop edges on the top view (axes a, b): rejected candidates thin, faint red and dashed under the
+    trajectory (there can be hundreds, between look-alike places), accepted loops green on top of it with a
+    ring at each end (after the correction both ends are at the same place, so the line alone may vanish);
+    the legend counts each. The ends given as positions take the estimate's alignment ``S``, those given
+    as rows are read from ``est_xyz``."""
     p_from, p_to, accepted = edges
 
     def where(end):
         kind, value = end
         return est_xyz[value] if kind == "row" else S[:3, :3] @ value + S[:3, 3]
 
-    for ok, color, style, label in ((True, "tab:green", "-", "loop closure (accepted)"),
-                                    (False, "tab:red", "--", "loop candidate (rejected)")):
+    for ok in (False, True):
         pick = [k for k in range(len(accepted)) if accepted[k] == ok]
         if not pick:
             continue
-        for n, k in enumerate(pick):
-            p, q = where(p_from[k]), where(p_to[k])
-            ax.plot([p[a], q[a]], [p[b], q[b]], style, color=color, lw=1.5,
-                    label=label if n == 0 else None)
+        ends = np.array([[where(p_from[k])[[a, b]], where(p_to[k])[[a, b]]] for k in pick])
+        if ok:
+            ax.add_collection(LineCollection(ends, colors="tab:green", linewidths=2.0, zorder=4))
+            ax.plot(ends[:, :, 0].ravel(), ends[:, :, 1].ravel(), "o", color="tab:green", mfc="none", ms=5,
+                    zorder=4, label=f"loop closure (accepted: {len(pick)})")
+        else:
+            ax.add_collection(LineCollection(ends, colors="tab:red", linewidths=0.8, linestyles="--", alpha=0.3,
+                                             zorder=1, label=f"loop candidate (rejected: {len(pick)})"))

@@ -46,6 +46,21 @@ def test_corrections_move_each_pose_with_its_keyframe():
     assert len(slam.mapper.calls) == 1 and np.allclose(slam.mapper.calls[0], C)
 
 
+def test_edges_are_green_only_for_loops_applied():
+    """A candidate verification accepted but the pose graph refused (a look-alike place) is drawn as not
+    applied, like one verification rejected: green in trajectory.png and /loop_closures means the map moved."""
+    loop = LoopClosure(Config(), SimpleNamespace(mapper=_FakeMapper()))
+    loop.keyframes = [SimpleNamespace(centre=np.array([k, 0.0, 0.0])) for k in range(4)]
+    loop.candidates = [SimpleNamespace(match=0, query=3, accepted=True),
+                       SimpleNamespace(match=1, query=3, accepted=True),
+                       SimpleNamespace(match=2, query=3, accepted=False)]
+    loop.closures = [(0, 3)]
+    loop.refused = [(1, 3, "an outlier of the robust kernel")]
+    edges = loop.edges()
+    assert [e[2] for e in edges] == [True, False, False]
+    assert np.array_equal(edges[0][0], [0.0, 0.0, 0.0]) and np.array_equal(edges[0][1], [3.0, 0.0, 0.0])
+
+
 def _out_and_back():
     """Frames along the room's path and back again (other noise on the way back): 30 frames."""
     seq = sequence()

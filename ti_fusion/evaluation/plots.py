@@ -63,9 +63,10 @@ def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=N
     timestamps). With ground truth, the estimate is drawn after rigid alignment to it (as ATE measures
     it) and ATE/RPE go in the title (computed here unless ``metrics`` is given).
 
-    ``loop_edges``: loop closures drawn in the top view as lines between two camera positions, accepted
-    ones green and solid with a ring at each end, rejected ones faint, red and dashed; each is (i, j, accepted) with i, j rows of ``est_poses``, or
-    (p_from, p_to, accepted) with two positions in the estimate's world frame (aligned with it).
+    ``loop_edges``: loop closures drawn in the top view as lines between two camera positions, applied
+    ones green and solid with a ring at each end, the other candidates faint, red and dashed; each is
+    (i, j, applied) with i, j rows of ``est_poses``, or (p_from, p_to, applied) with two positions in the
+    estimate's world frame (aligned with it).
     """
     est = np.asarray(est_poses, dtype=np.float64).reshape(-1, 4, 4)
     gt = None if gt_poses is None else np.asarray(gt_poses, dtype=np.float64).reshape(-1, 4, 4)
@@ -135,11 +136,11 @@ def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=N
 
 
 def _draw_loop_edges(ax, edges, est_xyz: np.ndarray, S: np.ndarray, a: int, b: int) -> None:
-    """Loop edges on the top view (axes a, b): rejected candidates thin, faint red and dashed under the
-    trajectory (there can be hundreds, between look-alike places), accepted loops green on top of it with a
-    ring at each end (after the correction both ends are at the same place, so the line alone may vanish);
-    the legend counts each. The ends given as positions take the estimate's alignment ``S``, those given
-    as rows are read from ``est_xyz``."""
+    """Loop edges on the top view (axes a, b): candidates not applied (rejected by verification or refused
+    by the pose graph) thin, faint red and dashed under the trajectory (there can be hundreds, between
+    look-alike places), applied loops green on top of it with a ring at each end (after the correction both
+    ends are at the same place, so the line alone may vanish); the legend counts each. The ends given as
+    positions take the estimate's alignment ``S``, those given as rows are read from ``est_xyz``."""
     p_from, p_to, accepted = edges
 
     def where(end):
@@ -154,7 +155,7 @@ def _draw_loop_edges(ax, edges, est_xyz: np.ndarray, S: np.ndarray, a: int, b: i
         if ok:
             ax.add_collection(LineCollection(ends, colors="tab:green", linewidths=2.0, zorder=4))
             ax.plot(ends[:, :, 0].ravel(), ends[:, :, 1].ravel(), "o", color="tab:green", mfc="none", ms=5,
-                    zorder=4, label=f"loop closure (accepted: {len(pick)})")
+                    zorder=4, label=f"loop closure (applied: {len(pick)})")
         else:
             ax.add_collection(LineCollection(ends, colors="tab:red", linewidths=0.8, linestyles="--", alpha=0.3,
-                                             zorder=1, label=f"loop candidate (rejected: {len(pick)})"))
+                                             zorder=1, label=f"loop candidate (not applied: {len(pick)})"))

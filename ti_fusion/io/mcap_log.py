@@ -81,7 +81,7 @@ CAMERA_FRAME = "camera"
 STATS_TOPIC = "/slam/stats"
 LOOP_TOPIC = "/loop_closures"
 LOOP_ENTITY = "loop_closures"  # one entity, replaced by each message: it holds every loop edge so far
-# RGBA in [0, 1]: accepted loop closures green, rejected candidates red
+# RGBA in [0, 1]: loop closures applied green, candidates not applied red
 LOOP_ACCEPTED_RGBA = (0.17, 0.80, 0.25, 1.0)
 LOOP_REJECTED_RGBA = (0.90, 0.15, 0.15, 1.0)
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
@@ -310,8 +310,8 @@ class RunLogger:
 
     def log_loop_edges(self, t: float, segments, topic: str = LOOP_TOPIC) -> int:
         """Loop edges as a ``foxglove.SceneUpdate`` in the world frame (the poses' frame): one entity whose
-        LinePrimitive of type LINE_LIST joins the two positions of each edge, green when accepted, red when
-        rejected (per-vertex colours). ``segments``: (p_from (3,), p_to (3,), accepted) in world coordinates,
+        LinePrimitive of type LINE_LIST joins the two positions of each edge, green when applied, red when
+        not (per-vertex colours). ``segments``: (p_from (3,), p_to (3,), applied) in world coordinates,
         every edge to show (the entity replaces the previous message's, so pass all edges so far; an empty
         list clears them). Edges with a non-finite end are left out; returns how many were written."""
         ns = self._ns(t)
@@ -714,7 +714,7 @@ def points_from_msg(msg: PointCloud) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def loop_edges_from_msg(msg: SceneUpdate) -> list[tuple[np.ndarray, np.ndarray, bool]]:
-    """The (p_from, p_to, accepted) edges of a ``log_loop_edges`` message (accepted: drawn green)."""
+    """The (p_from, p_to, applied) edges of a ``log_loop_edges`` message (applied: drawn green)."""
     edges = []
     for entity in msg.entities:
         for line in entity.lines:

@@ -222,8 +222,12 @@ class LoopClosure:
 
     # -- results --------------------------------------------------------------------------------
     def loop_segments(self, candidates: list[LoopCandidate]) -> list[tuple[np.ndarray, np.ndarray, bool]]:
-        """(camera centre of the earlier keyframe, of the current one, accepted) of each candidate."""
-        return [(self.keyframes[c.match].centre, self.keyframes[c.query].centre, c.accepted) for c in candidates]
+        """(camera centre of the earlier keyframe, of the current one, applied) of each candidate: applied =
+        the loop moved the poses and the map; a candidate verification accepted but the pose graph refused
+        (a look-alike place) is drawn as not applied, as one verification rejected."""
+        applied = set(self.closures)
+        return [(self.keyframes[c.match].centre, self.keyframes[c.query].centre, (c.match, c.query) in applied)
+                for c in candidates]
 
     def edges(self) -> list[tuple[np.ndarray, np.ndarray, bool]]:
         """Every verified candidate as a segment between the two keyframes' current centres."""

@@ -1,5 +1,6 @@
-"""The trajectory plot's loop edges: drawn as lines between two camera positions (accepted green and solid
-with a ring at each end, rejected faint red and dashed), given as rows of the poses or as world positions."""
+"""The trajectory plot's loop edges: drawn as lines between two camera positions (applied green and solid
+with a ring at each end, the other candidates faint red and dashed), given as rows of the poses or as world
+positions."""
 
 import cv2
 import numpy as np
@@ -25,7 +26,6 @@ def colour_pixels(image_bgr, rgb, tol=50):
 
 
 GREEN = (44, 160, 44)  # matplotlib's tab:green
-RED = (214, 39, 40)  # tab:red
 
 
 def reddish_pixels(image_bgr, margin=40):

@@ -156,7 +156,7 @@ def test_every_channel_decodes_with_its_values(written):
 
 def test_loop_edges_read_back(tmp_path, rng):
     """Loop edges: a foxglove.SceneUpdate in the world frame, one entity holding one LINE_LIST (two points
-    per edge, accepted green, rejected red), replaced by each message; non-finite edges are left out."""
+    per edge, applied green, not applied red), replaced by each message; non-finite edges are left out."""
     from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 
     poses = _trajectory(rng)

@@ -31,12 +31,12 @@ def metrics_line(metrics: dict) -> str:
 
 
 def _edge_points(loop_edges, est_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(from (m, 3), to (m, 3), accepted (m,)) of loop edges given as (i, j, accepted), i and j rows of
-    ``est_poses``, or as (p_from, p_to, accepted), two positions in the estimate's world frame."""
-    p_from, p_to, accepted = [], [], []
+    """(from (m, 3), to (m, 3), applied (m,)) of loop edges given as (i, j, applied), i and j rows of
+    ``est_poses``, or as (p_from, p_to, applied), two positions in the estimate's world frame."""
+    p_from, p_to, applied = [], [], []
     for edge in loop_edges:
         if len(edge) != 3:
-            raise ValueError(f"a loop edge is (from, to, accepted), not {edge!r}")
+            raise ValueError(f"a loop edge is (from, to, applied), not {edge!r}")
         a, b, ok = edge
         ends = []
         for end in (a, b):
@@ -51,8 +51,8 @@ def _edge_points(loop_edges, est_xyz: np.ndarray) -> tuple[np.ndarray, np.ndarra
                 ends.append(("point", point))
         p_from.append(ends[0])
         p_to.append(ends[1])
-        accepted.append(bool(ok))
-    return p_from, p_to, np.asarray(accepted, bool)
+        applied.append(bool(ok))
+    return p_from, p_to, np.asarray(applied, bool)
 
 
 def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=None,
@@ -141,14 +141,14 @@ def _draw_loop_edges(ax, edges, est_xyz: np.ndarray, S: np.ndarray, a: int, b: i
     look-alike places), applied loops green on top of it with a ring at each end (after the correction both
     ends are at the same place, so the line alone may vanish); the legend counts each. The ends given as
     positions take the estimate's alignment ``S``, those given as rows are read from ``est_xyz``."""
-    p_from, p_to, accepted = edges
+    p_from, p_to, applied = edges
 
     def where(end):
         kind, value = end
         return est_xyz[value] if kind == "row" else S[:3, :3] @ value + S[:3, 3]
 
     for ok in (False, True):
-        pick = [k for k in range(len(accepted)) if accepted[k] == ok]
+        pick = [k for k in range(len(applied)) if applied[k] == ok]
         if not pick:
             continue
         ends = np.array([[where(p_from[k])[[a, b]], where(p_to[k])[[a, b]]] for k in pick])

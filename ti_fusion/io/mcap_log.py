@@ -82,8 +82,8 @@ STATS_TOPIC = "/slam/stats"
 LOOP_TOPIC = "/loop_closures"
 LOOP_ENTITY = "loop_closures"  # one entity, replaced by each message: it holds every loop edge so far
 # RGBA in [0, 1]: loop closures applied green, candidates not applied red
-LOOP_ACCEPTED_RGBA = (0.17, 0.80, 0.25, 1.0)
-LOOP_REJECTED_RGBA = (0.90, 0.15, 0.15, 1.0)
+LOOP_APPLIED_RGBA = (0.17, 0.80, 0.25, 1.0)
+LOOP_NOT_APPLIED_RGBA = (0.90, 0.15, 0.15, 1.0)
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -328,18 +328,18 @@ class RunLogger:
         line.pose.orientation.w = 1.0
         written = 0
         for segment in segments:
-            p_from, p_to, accepted = segment
+            p_from, p_to, applied = segment
             ends = [np.asarray(p, dtype=np.float64).reshape(3) for p in (p_from, p_to)]
             if not all(np.all(np.isfinite(e)) for e in ends):
                 continue
-            rgba = LOOP_ACCEPTED_RGBA if accepted else LOOP_REJECTED_RGBA
+            rgba = LOOP_APPLIED_RGBA if applied else LOOP_NOT_APPLIED_RGBA
             for e in ends:
                 point = line.points.add()
                 point.x, point.y, point.z = (float(v) for v in e)
                 colour = line.colors.add()
                 colour.r, colour.g, colour.b, colour.a = rgba
             written += 1
-        line.color.r, line.color.g, line.color.b, line.color.a = LOOP_ACCEPTED_RGBA  # used only without colors
+        line.color.r, line.color.g, line.color.b, line.color.a = LOOP_APPLIED_RGBA  # used only without colors
         self._write_proto(topic, msg, ns)
         self._file.flush()
         return written

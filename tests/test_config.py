@@ -128,3 +128,44 @@ def test_choices_match_the_code_that_uses_them():
     assert icp["solver"].choices.choices == SOLVERS
     assert set(icp["robust"].choices.choices) == set(ROBUST_CODES)
     assert rules(DatasetConfig)["format"].choices.choices == ("auto", *FORMATS)
+
+
+# --------------------------------------------------------------------------------------------------
+# Any file content is one line at the command line (issue 32, class 10 and the config parts of 14)
+# --------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("name, content, line", [
+    ("list.yaml", b"- 1\n", "config's top level is a list: expected a table of sections (e.g. icp: with its "
+                            "settings)"),
+    ("list.json", b"[1, 2]", "config's top level is a list: expected a table of sections (e.g. icp: with its "
+                             "settings)"),
+    ("latin1.yaml", "icp:\n  solver: 'lu' # é\n".encode("latin-1"),
+     "config is not UTF-8 text (line 2, byte b'\\xe9'): save it as UTF-8"),
+    ("broken.yaml", b"icp: [\n  a: b\n", "cannot parse config: line 3, column 1: expected ',' or ']', but got "
+                                         "'<stream end>'"),
+    ("scalar.toml", b"icp = 5\n", "section 'icp' must be a table of settings (e.g. [icp] in TOML), not a number (5)"),
+])
+def test_any_config_file_content_is_one_line(tmp_path, capsys, name, content, line):
+    from ti_fusion.cli.main import main
+
+    path = tmp_path / name
+    path.write_bytes(content)
+    assert main(["vo", "--config", str(path), "--out", str(tmp_path / "run"), "--quiet"]) == 2
+    assert capsys.readouterr().err.splitlines() == [f"ti-fusion vo: error: {path}: {line}"]
+
+
+def test_relative_paths_in_a_config_file_are_relative_to_the_file(tmp_path, monkeypatch):
+    folder = tmp_path / "configs"
+    folder.mkdir()
+    (folder / "cam.txt").write_text("525 525 319.5 239.5\n")
+    path = folder / "run.toml"
+    path.write_text('[dataset]\npath = "../data/seq"\nintrinsics = "cam.txt"\nground_truth = "/abs/gt.txt"\n'
+                    '[synth]\ntrajectory = "poses.tum"\n')
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(path)
+    assert cfg.dataset.path == str(folder / "../data/seq")
+    assert cfg.dataset.intrinsics == str(folder / "cam.txt") and cfg.dataset.ground_truth == "/abs/gt.txt"
+    assert cfg.synth.trajectory == str(folder / "poses.tum")
+    path.write_text('[dataset]\nintrinsics = "525,525,319.5,239.5"\n')  # numbers, not a file
+    assert load_config(path).dataset.intrinsics == "525,525,319.5,239.5"
+    # --set paths stay the working directory's
+    assert load_config(path, ["dataset.path=seq"]).dataset.path == "seq"

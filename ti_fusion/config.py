@@ -510,7 +510,27 @@ class Config:
 def _read_file(path: Path) -> dict:
     if not path.is_file():
         raise InputError(path, "config file not found")
-    text = path.read_text()
+    try:
+        text = path.read_bytes().decode("utf-8-sig")
+    except UnicodeDecodeError as exc:
+        line = exc.object[:exc.start].count(b"\n") + 1
+        raise InputError(path, f"config is not UTF-8 text (line {line}, byte {exc.object[exc.start:exc.start + 1]!r}): "
+                               "save it as UTF-8") from None
+    except OSError as exc:
+        raise InputError(path, f"cannot read config: {exc.strerror or exc}") from None
+    data = _parse_text(path, text)
+    if not isinstance(data, dict):
+        raise InputError(path, f"config's top level is {_type_name(data)}: expected a table of sections "
+                               "(e.g. icp: with its settings)")
+    return data
+
+
+def _type_name(value: Any) -> str:
+    return {list: "a list", str: "text", bool: "true/false", type(None): "empty"}.get(
+        type(value), "a number" if isinstance(value, numbers.Number) else type(value).__name__)
+
+
+def _parse_text(path: Path, text: str) -> Any:
     try:
         if path.suffix == ".toml":
             try:
@@ -528,9 +548,19 @@ def _read_file(path: Path) -> dict:
             return json.loads(text)
     except InputError:
         raise
-    except Exception as exc:  # parse errors from any of the three readers
-        raise InputError(path, f"cannot parse config: {exc}") from None
+    except Exception as exc:  # parse errors from any of the three readers: one line, where the reader says
+        raise InputError(path, f"cannot parse config: {_one_line(exc)}") from None
     raise InputError(path, "config must be .toml, .yaml/.yml or .json")
+
+
+def _one_line(exc: Exception) -> str:
+    """A parser's error in one line: YAML's problem and its line and column (its multi-line message quotes the
+    text with a caret), TOML's and JSON's message as they give it."""
+    mark = getattr(exc, "problem_mark", None)
+    if mark is not None:
+        problem = getattr(exc, "problem", None) or getattr(exc, "context", None) or "syntax error"
+        return f"line {mark.line + 1}, column {mark.column + 1}: {problem}"
+    return " ".join(str(exc).split())
 
 
 def _show(value: Any) -> str:
@@ -572,13 +602,37 @@ MOVED = {("icp", name): ("maps", name)
          for name in ("normal_max_depth_jump", "pyramid_depth_sigma", "depth_smooth_radius")}
 
 
-def apply_dict(config: Config, data: dict, where: str = "config") -> Config:
+def apply_dict(config: Config, data: dict, where: str = "config", base: Path | None = None) -> Config:
+    """Set every ``section.key`` of ``data``; ``base``: the folder that relative paths in it are relative to
+    (a config file's own folder; None for --set, whose paths are the working directory's)."""
+    if not isinstance(data, dict):
+        raise InputError(None, f"{where}: config is {_type_name(data)}: expected a table of sections")
+    sections = [f.name for f in dataclasses.fields(config)]
     for section, values in data.items():
-        if not hasattr(config, section) or not isinstance(values, dict):
-            raise InputError(None, f"{where}: unknown section {section!r}")
+        if section not in sections:
+            raise InputError(None, f"{where}: unknown section {section!r} (known: {', '.join(sections)})")
+        if not isinstance(values, dict):
+            raise InputError(None, f"{where}: section {section!r} must be a table of settings (e.g. [{section}] "
+                                   f"in TOML), not {_type_name(values)} ({_show(values)})")
         for key, value in values.items():
+            if base is not None:
+                value = _relative_to(base, section, key, value)
             _set_field(config, section, key, value, where)
     return config
+
+
+# Settings that name a file or folder: a relative one in a config file is relative to that file's folder.
+PATH_SETTINGS = {("dataset", "path"), ("dataset", "intrinsics_file"), ("dataset", "intrinsics"),
+                 ("dataset", "ground_truth"), ("synth", "trajectory")}
+
+
+def _relative_to(base: Path, section: str, key: str, value: Any) -> Any:
+    if (section, key) not in PATH_SETTINGS or not isinstance(value, str) or not value.strip():
+        return value
+    if key == "intrinsics" and len(value.replace(",", " ").split()) == 4 and not (base / value).exists():
+        return value  # "fx,fy,cx,cy", not a file
+    path = Path(value).expanduser()
+    return value if path.is_absolute() else str(base / path)
 
 
 def parse_override(text: str) -> tuple[str, str, Any]:
@@ -611,7 +665,7 @@ def load_config(path: str | Path | None = None, overrides: list[str] | None = No
     """Defaults, then the file (if any), then ``--set`` overrides; every value checked as it is set."""
     config = Config()
     if path:
-        apply_dict(config, _read_file(Path(path)), where=str(path))
+        apply_dict(config, _read_file(Path(path)), where=str(path), base=Path(path).parent)
     for text in overrides or []:
         section, key, value = parse_override(text)
         apply_dict(config, {section: {key: value}}, where="--set")

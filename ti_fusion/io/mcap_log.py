@@ -113,16 +113,76 @@ def software_versions() -> dict[str, str]:
 def json_object(properties: dict[str, dict], required: tuple[str, ...] = (), description: str = "") -> dict:
     """A JSON Schema object with these properties and no others (a field that a message gains without its
     schema fails validation), the ``required`` ones in every message."""
+    if not isinstance(properties, dict) or not properties:
+        raise ValueError("a JSON object needs its properties: Foxglove cannot read an object without them")
+    missing = [name for name in required if name not in properties]
+    if missing:
+        raise ValueError(f"required fields {missing} are not among the object's properties")
     schema = {"type": "object", "properties": properties, "required": list(required),
               "additionalProperties": False}
     return {"description": description, **schema} if description else schema
 
 
-def json_field(kind: str | list[str], description: str, **extra) -> dict:
-    """A JSON Schema leaf: ``kind`` "integer", "number", "string", "boolean", or a list such as ["number",
-    "null"] (a float that may be NaN or infinite, which JSON writes as null); units go in the description
-    unless the name has them."""
-    return {"type": kind, "description": description, **extra}
+def json_field(kind: str, description: str, **extra) -> dict:
+    """A JSON Schema leaf: ``kind`` "integer", "number", "string", "boolean", or "array" with typed
+    ``items`` (a leaf's ``{"type": ...}`` or a ``json_object``); one type, never a union such as ["number",
+    "null"]: a value that may be missing (None, NaN, infinite) is left out of the message instead
+    (``log_stats``), so the field is not required. Units go in the description unless the name has them."""
+    if kind not in FOXGLOVE_LEAF_TYPES and kind != "array":
+        raise ValueError(f"field type {kind!r}: one of {FOXGLOVE_LEAF_TYPES + ('array',)} (objects: json_object)")
+    if (kind == "array") != ("items" in extra):
+        raise ValueError("an array field needs its items' schema, and only an array has items")
+    schema = {"type": kind, "description": description, **extra}
+    problems = foxglove_schema_problems({"type": "object", "properties": {"field": schema}})
+    if problems:
+        raise ValueError(problems[0])
+    return schema
+
+
+# Foxglove's and Lichtblick's parseJsonSchema (packages/mcap-support/src/parseJsonSchema.ts) read a JSON
+# channel's schema into the message paths of their panels; a schema they cannot read hides the channel.
+FOXGLOVE_LEAF_TYPES = ("boolean", "string", "number", "integer")
+
+
+def foxglove_schema_problems(schema: dict, path: str = "") -> list[str]:
+    """What Foxglove's JSON Schema parser would refuse in ``schema`` (an object's): its type switch, rule
+    for rule. Each field has one ``type`` string; "object" has ``properties``; "array" has ``items`` of a
+    leaf type or an object (no arrays of arrays); a string's ``contentEncoding`` is none or "base64"."""
+    where = path or "the schema"
+    if schema.get("type") != "object":
+        return [f"{where}: expected \"type\": \"object\", got {json.dumps(schema.get('type'))}"]
+    if not isinstance(schema.get("properties"), dict):
+        return [f"{where}: an object without properties"]
+    problems = []
+    for name, field_schema in schema["properties"].items():
+        at = f"{path}.{name}" if path else name
+        kind = field_schema.get("type") if isinstance(field_schema, dict) else None
+        if kind == "string" and field_schema.get("contentEncoding") not in (None, "base64"):
+            problems.append(f"{at}: unsupported contentEncoding {field_schema['contentEncoding']!r}")
+        elif kind == "object":
+            problems += foxglove_schema_problems(field_schema, at)
+        elif kind == "array":
+            items = field_schema.get("items")
+            item_kind = items.get("type") if isinstance(items, dict) else None
+            if item_kind == "object":
+                problems += foxglove_schema_problems(items, at + "[]")
+            elif item_kind == "string" and items.get("contentEncoding") is not None:
+                problems.append(f"{at}[]: unsupported contentEncoding for an array item")
+            elif item_kind not in FOXGLOVE_LEAF_TYPES:
+                problems.append(f"{at}: unsupported array item type {json.dumps(item_kind)}")
+        elif kind not in FOXGLOVE_LEAF_TYPES:
+            problems.append(f"{at}: unsupported type {json.dumps(kind)} (one type string per field)")
+    return problems
+
+
+def without_nulls(value):
+    """``value`` with every dict entry that is None left out, at any depth (list items are kept): Foxglove
+    reads no union type such as ["number", "null"], so a missing value is a field left out of the message."""
+    if isinstance(value, dict):
+        return {k: without_nulls(v) for k, v in value.items() if v is not None}
+    if isinstance(value, list):
+        return [without_nulls(v) for v in value]
+    return value
 
 
 # --------------------------------------------------------------------------------------------------
@@ -209,19 +269,23 @@ class RunLogger:
         after the topic: /slam/stats → ti_fusion.SlamStats)."""
         if topic in self._channels:
             raise ValueError(f"{topic} is declared already")
+        problems = foxglove_schema_problems(schema)
+        if problems:
+            raise ValueError(f"{topic}: Foxglove cannot read this schema: {'; '.join(problems)}")
         schema = {"$schema": JSON_SCHEMA_DIALECT, "title": topic, **schema}
         self._add_channel(topic, _stats_schema_name(topic), SchemaEncoding.JSONSchema,
                           json.dumps(schema).encode(), MessageEncoding.JSON)
         self._file.flush()
 
     def log_stats(self, t: float, stats: dict, channel: str = STATS_TOPIC) -> None:
-        """One JSON message: any dict of numbers, strings, lists, nested dicts (NumPy values welcome; NaN
-        and infinities become null). A channel that was not declared gets a schema inferred from its first
+        """One JSON message: any dict of numbers, strings, lists, nested dicts (NumPy values welcome). A
+        dict entry that is None, NaN or infinite is left out of the message (JSON has no NaN, and Foxglove
+        reads no nullable field). A channel that was not declared gets a schema inferred from its first
         message."""
         if not isinstance(stats, dict):
             raise TypeError(f"stats must be a dict, got {type(stats).__name__}")
         ns = self._ns(t)
-        message = jsonable(stats)
+        message = without_nulls(jsonable(stats))
         if channel not in self._channels:
             self.declare_json(channel, _json_schema_of(message))
         data = json.dumps(message, separators=(",", ":"), allow_nan=False).encode()
@@ -525,19 +589,23 @@ def _subset(idx: np.ndarray, max_points: int) -> np.ndarray:
     return np.sort(np.random.default_rng(_POINTS_SEED).choice(idx, max_points, replace=False))
 
 
-def _json_schema_of(value) -> dict:
-    """A JSON Schema describing ``value``'s shape (for Foxglove's message-path autocomplete)."""
+def _json_schema_of(value) -> dict | None:
+    """A JSON Schema describing ``value``'s shape (for Foxglove's message-path autocomplete), in the form
+    Foxglove reads; None for what one message cannot type (null, an empty list, a list of lists): such a
+    field is left out of the schema."""
     if isinstance(value, dict):
-        return {"type": "object", "properties": {k: _json_schema_of(v) for k, v in value.items()}}
+        properties = {k: s for k, s in ((k, _json_schema_of(v)) for k, v in value.items()) if s is not None}
+        return {"type": "object", "properties": properties}
     if isinstance(value, list):
-        return {"type": "array", "items": _json_schema_of(value[0]) if value else {}}
+        items = _json_schema_of(value[0]) if value else None
+        return None if items is None or items["type"] == "array" else {"type": "array", "items": items}
     if isinstance(value, bool):
         return {"type": "boolean"}
     if isinstance(value, (int, float)):
         return {"type": "number"}
     if isinstance(value, str):
         return {"type": "string"}
-    return {}  # null: any type
+    return None
 
 
 # --------------------------------------------------------------------------------------------------

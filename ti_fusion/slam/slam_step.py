@@ -16,6 +16,21 @@ from ti_fusion.slam.dense import DenseSLAM, FrameResult
 log = logging.getLogger(__name__)
 
 
+# One entry of loop.candidates (LoopCandidate.record(); a value not measured is left out).
+LOOP_CANDIDATE_SCHEMA = json_object({
+    "query": json_field("integer", "the current keyframe's id", minimum=0),
+    "match": json_field("integer", "the earlier keyframe's id", minimum=0),
+    "score": json_field("number", "place recognition's score"),
+    "accepted": json_field("boolean", "verified: a loop for the pose graph"),
+    "reason": json_field("string", 'why rejected, or "verified"'),
+    "consistent": json_field("integer", "matches passing the 3D-distance pre-check", minimum=0),
+    "pnp_inliers": json_field("integer", "PnP RANSAC inliers", minimum=0),
+    "icp_inlier_ratio": json_field("number", "the keyframes' ICP inlier ratio (left out: ICP did not run)"),
+    "icp_residual_mm": json_field("number", "the keyframes' ICP RMS residual, millimetres (left out: ICP did "
+                                            "not run)"),
+    "ms": json_field("number", "verifying this candidate, milliseconds"),
+}, required=("query", "match", "score", "accepted", "reason", "consistent", "pnp_inliers", "ms"))
+
 # The /slam/stats message, every field (docs/LOGS.md shows one; the pipeline adds ms.load and ms.log).
 STATS_SCHEMA = json_object({
     "frame": json_field("integer", "index of the frame in the run (0 = the first frame selected)"),
@@ -36,22 +51,22 @@ STATS_SCHEMA = json_object({
     "icp": json_object({
         "iterations": json_field("array", "iterations run at each pyramid level, index = level (0 = finest)",
                                  items={"type": "integer", "minimum": 0}),
-        "residual_rms_m": json_field(["number", "null"], "RMS point-to-plane residual of the inliers, metres "
-                                                         "(null: no inliers)"),
+        "residual_rms_m": json_field("number", "RMS point-to-plane residual of the inliers, metres (left out: "
+                                               "no inliers)"),
         "inliers": json_field("integer", "correspondences of the last iteration", minimum=0),
         "inlier_ratio": json_field("number", "inliers / valid pixels of the rendered model, 0 to 1",
                                    minimum=0, maximum=1),
-        "condition": json_field(["number", "null"], "condition number of AᵀA, dimensionless (null: not "
-                                                    "computed or infinite)"),
-        "update_norm": json_field(["number", "null"], "norm of the last se(3) update (radians and metres "
-                                                      "together), the convergence test's value"),
+        "condition": json_field("number", "condition number of AᵀA, dimensionless (left out: not computed or "
+                                          "infinite)"),
+        "update_norm": json_field("number", "norm of the last se(3) update (radians and metres together), the "
+                                            "convergence test's value (left out: no update computed)"),
         "colour_residuals": json_field("integer", "photometric residuals of the last iteration (0: the term is "
                                                   "off, icp.color_weight = 0 or colour not registered)", minimum=0),
         "weak_directions": json_field("integer", "eigen-directions of the geometric AᵀA below icp.weak_ratio of "
                                                  "its largest: what depth alone leaves unconstrained", minimum=0),
         "weak_constrained_by_colour": json_field("integer", "of those, the ones the photometric term lifted above "
                                                             "icp.weak_ratio", minimum=0),
-    }, required=("iterations", "residual_rms_m", "inliers", "inlier_ratio", "condition", "update_norm"),
+    }, required=("iterations", "inliers", "inlier_ratio"),
         description="the frame's ICP against the model, of its last iteration; every frame but the first"),
     "merged": json_field("integer", "pixels averaged into an existing surfel; fused frames only", minimum=0),
     "added": json_field("integer", "new surfels; fused frames only", minimum=0),
@@ -62,14 +77,16 @@ STATS_SCHEMA = json_object({
     "loop": json_object({
         "keyframe": json_field("integer", "the keyframe's id (0, 1, 2, ...)", minimum=0),
         "why": json_field("string", '"first", "moved", "turned" or "overlap" (too little of the last keyframe seen)'),
-        "candidates": json_field("array", "earlier keyframes place recognition proposed, each with its decision: "
-                                          "query, match (keyframe ids), score, accepted, reason, consistent, "
-                                          "pnp_inliers, icp_inlier_ratio, icp_residual_mm, ms",
-                                 items={"type": "object"}),
-        "closed": json_field(["array", "null"], "[earlier keyframe, this keyframe] of a loop applied, else null",
+        "candidates": json_field("array", "earlier keyframes place recognition proposed, each with its decision",
+                                 items=LOOP_CANDIDATE_SCHEMA),
+        "closed": json_field("array", "[earlier keyframe, this keyframe] of a loop applied, else []",
                              items={"type": "integer"}),
         "outcome": json_field("string", 'for an accepted candidate: "applied" or why the pose graph refused it'),
-        "ms": json_field("object", "keyframe, detect, verify, optimise, correct: milliseconds"),
+        "ms": json_object({name: json_field("number", what + ", milliseconds") for name, what in (
+            ("keyframe", "choosing the keyframe and its features"), ("detect", "place recognition"),
+            ("warmup", "compiling the verification's kernels, at the first keyframe"),
+            ("verify", "verifying the candidates"), ("optimise", "the pose graph, on an accepted candidate"),
+            ("correct", "moving the poses and the map, on an applied loop"))}, description="loop closure's stages"),
     }, required=("keyframe", "why", "candidates", "closed", "outcome", "ms"),
         description="loop closure, on frames that became keyframes (slam.loop_closure)"),
 }, required=("frame", "status", "tracking", "surfels", "ms"))
@@ -101,6 +118,7 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
                       "covered": result.fusion.covered, "removed": result.fusion.removed})
     if result.loop is not None:
         stats["loop"] = result.loop.stats()
+        stats["loop"]["closed"] = stats["loop"]["closed"] or []  # no loop applied: [], one type for Foxglove
     return stats
 
 

@@ -1,11 +1,23 @@
-"""Writes docs/foxglove-layout.json: a Foxglove layout for ti-fusion's logs and live runs.
+"""Writes docs/foxglove-layout.json: a layout for ti-fusion's logs and live runs that Foxglove and Lichtblick
+both import.
 
     .venv/bin/python scripts/foxglove_layout.py [OUT.json]
 
-Built with the Foxglove SDK's typed layout classes (``foxglove.layouts``), so that its panel settings are
-the ones Foxglove reads: a 3D panel in ``world`` with the map coloured by its RGBA fields, the estimated
-and ground-truth poses, the camera frustum and the loop edges; the colour and depth images; plots of the
-track and fuse milliseconds, the ICP inlier ratio, the surfel count, and both trajectories seen from above.
+The classic layout form (``configById``, ``layout``, ``globalVariables``, ``userNodes``, ``playbackConfig``),
+the one Foxglove Studio, Lichtblick and current Foxglove all import; the Foxglove SDK's newer ``{version,
+content}`` form fails to import in Studio ("Cannot read properties of undefined (reading 'speed')") and in
+Lichtblick. Only panel types and settings that exist in both clients: ``3D``; ``ImageViewPanel``, the image
+panel of Studio, which Lichtblick and current Foxglove turn into their ``Image`` panel on import; ``Plot``
+with one x path per plot (``xAxisPath``), since a per-series x path exists in current Foxglove only.
+
+The 3D panel in ``world``: the map in its own colours (``colorMode`` "rgba-fields" with a ``colorField``
+named: without one the client picks a colour field itself and colours the map by x with a colour map), the
+estimated and ground-truth poses, the camera frustum with the colour image in it, and the loop edges. Below
+it the colour and depth images; on the right plots of the stage milliseconds, the ICP inlier ratio, the
+surfel count, and each trajectory seen from above.
+
+To add a panel: make it with ``panel(TYPE, NAME, CONFIG)`` and put the returned id into the tree in
+``layout()``; a 3D topic is one more entry of ``SCENE_TOPICS``.
 """
 
 from __future__ import annotations
@@ -14,65 +26,97 @@ import json
 import sys
 from pathlib import Path
 
-import foxglove.layouts as fl
-
 OUT = Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json"
 EST, GT = "#4e98e2", "#f5a623"  # estimate blue, ground truth orange, in the 3D panel and the plots
+TITLE = "foxglovePanelTitle"  # the panel title's config key in both clients
+
+# The 3D panel's topics and their settings (the keys of the clients' renderers).
+SCENE_TOPICS = {
+    # colorField: any field name; it keeps the client from choosing one and switching to a colour map
+    "/map/points": {"visible": True, "colorMode": "rgba-fields", "colorField": "red", "pointSize": 2,
+                    "pointShape": "circle", "decayTime": 0},
+    "/camera/pose": {"visible": True, "type": "arrow", "color": EST},
+    "/gt/pose": {"visible": True, "type": "arrow", "color": GT},
+    # the colour image in its camera: the client draws the frustum from the calibration
+    "/camera/color": {"visible": True, "cameraInfoTopic": "/camera/calibration", "distance": 0.3},
+    "/camera/calibration": {"visible": True, "distance": 0.3, "color": EST},
+    # loop edges (slam.loop_closure): the colours are the message's own (applied green, not applied red)
+    "/loop_closures": {"visible": True},
+}
+# Looking down at the scene from 8 m, 45 degrees off vertical (every key: the clients replace the whole state).
+CAMERA = {"distance": 8, "perspective": True, "phi": 45, "thetaOffset": 45, "target": [0, 0, 0],
+          "targetOffset": [0, 0, 0], "targetOrientation": [0, 0, 0, 1], "fovy": 45, "near": 0.01, "far": 5000}
 
 
-def layout() -> fl.Layout:
-    scene = fl.ThreeDeePanel(title="map and poses", config=fl.ThreeDeeConfig(
-        follow_tf="world", fixed_frame="world", follow_mode="follow-none",
-        topics={
-            "/map/points": fl.BaseRendererPointCloudTopicSettings(visible=True, color_mode="rgba-fields",
-                                                                  point_size=2, decay_time=0),
-            "/camera/pose": fl.BaseRendererPoseTopicSettings(visible=True, type="arrow", color=EST),
-            "/gt/pose": fl.BaseRendererPoseTopicSettings(visible=True, type="arrow", color=GT),
-            # the colour image in its camera: Foxglove draws the frustum from the calibration
-            "/camera/color": fl.BaseRendererImageTopicSettings(visible=True, camera_info_topic="/camera/calibration",
-                                                               distance=0.3),
-            "/camera/calibration": fl.BaseRendererCameraTopicSettings(visible=True, distance=0.3, color=EST),
-            # loop edges (slam.loop_closure): the colours are the message's own (accepted green, rejected red)
-            "/loop_closures": fl.BaseRendererSceneUpdateTopicSettings(visible=True),
-        }))
-    colour = fl.ImagePanel(title="colour", config=fl.ImageConfig(image_mode=fl.ImageModeConfig(
-        image_topic="/camera/color", calibration_topic="/camera/calibration")))
-    depth = fl.ImagePanel(title="depth (mm)", config=fl.ImageConfig(image_mode=fl.ImageModeConfig(
-        image_topic="/camera/depth", calibration_topic="/camera/calibration", color_mode="colormap",
-        color_map="turbo", min_value=0, max_value=5000)))
+class Layout:
+    """The panels' configs by id, built up by ``panel``."""
 
-    def plot(title: str, *series: tuple[str, str], y_label: str) -> fl.PlotPanel:
-        return fl.PlotPanel(title=title, config=fl.PlotConfig(
-            paths=[fl.PlotSeries(value=value, label=label, enabled=True) for value, label in series],
-            show_legend=True, legend_display="floating", x_axis_val="timestamp", y_axis_label=y_label))
+    def __init__(self):
+        self.configs: dict[str, dict] = {}
 
-    stages = plot("ms per frame", ("/slam/stats.ms.track", "track"), ("/slam/stats.ms.fuse", "fuse"),
-                  ("/slam/stats.ms.maps", "maps"), ("/slam/stats.ms.log", "log"), y_label="ms")
-    inliers = plot("ICP inlier ratio", ("/slam/stats.icp.inlier_ratio", "inlier ratio"), y_label="0 to 1")
-    surfels = plot("surfels", ("/slam/stats.surfels", "surfels"), y_label="surfels")
-    trajectory = fl.PlotPanel(title="trajectory from above (x, y in metres)", config=fl.PlotConfig(
-        paths=[fl.PlotSeries(value="/camera/pose.pose.position.y", x_value_path="/camera/pose.pose.position.x",
-                             label="estimate", color=EST, enabled=True),
-               fl.PlotSeries(value="/gt/pose.pose.position.y", x_value_path="/gt/pose.pose.position.x",
-                             label="ground truth", color=GT, enabled=True)],
-        x_axis_val="custom", show_legend=True, legend_display="floating", x_axis_label="x (m)",
-        y_axis_label="y (m)", axis_scales_mode="lockedScales"))
+    def panel(self, kind: str, name: str, config: dict) -> str:
+        """A panel of type ``kind``; its id is ``kind!name`` (the clients read the type from the id)."""
+        panel_id = f"{kind}!{name}"
+        if panel_id in self.configs:
+            raise ValueError(f"two panels named {panel_id}")
+        self.configs[panel_id] = config
+        return panel_id
 
-    def column(*panels, proportions=None) -> fl.SplitContainer:
-        proportions = proportions or [1] * len(panels)
-        return fl.SplitContainer(direction="column", items=[
-            fl.SplitItem(proportion=p, content=c) for p, c in zip(proportions, panels)])
+    def plot(self, name: str, title: str, *series: tuple[str, str], x_path: str | None = None,
+             color: str | None = None) -> str:
+        """A plot of message paths over the log's time, or against ``x_path`` (each message's values paired
+        with the y path's by their order)."""
+        config = {TITLE: title, "paths": [
+            {"value": value, "label": label, "enabled": True, "timestampMethod": "receiveTime",
+             **({"color": color} if color else {})} for value, label in series],
+            "showLegend": True, "legendDisplay": "floating", "showPlotValuesInLegend": False,
+            "showXAxisLabels": True, "showYAxisLabels": True, "isSynced": x_path is None,
+            "xAxisVal": "timestamp", "sidebarDimension": 240}
+        if x_path is not None:
+            config.update(xAxisVal="custom", xAxisPath={"value": x_path, "enabled": True})
+        return self.panel("Plot", name, config)
 
-    images = fl.SplitContainer(direction="row", items=[fl.SplitItem(content=colour), fl.SplitItem(content=depth)])
-    return fl.Layout(content=fl.SplitContainer(direction="row", items=[
-        fl.SplitItem(proportion=3, content=column(scene, images, proportions=[2, 1])),
-        fl.SplitItem(proportion=2, content=column(stages, inliers, surfels, trajectory)),
-    ]))
+
+def split(direction: str, *items: tuple[float, str | dict]) -> str | dict:
+    """Panels (ids) or splits side by side ("row") or stacked ("column"), each with its share of the space:
+    the clients' binary splits, nested."""
+    (share, first), rest = items[0], items[1:]
+    if not rest:
+        return first
+    return {"first": first, "second": split(direction, *rest), "direction": direction,
+            "splitPercentage": round(100 * share / sum(s for s, _ in items), 2)}
+
+
+def layout() -> dict:
+    ui = Layout()
+    scene = ui.panel("3D", "map", {
+        TITLE: "map and poses", "followTf": "world", "followMode": "follow-none", "cameraState": CAMERA,
+        "scene": {}, "transforms": {}, "topics": SCENE_TOPICS, "layers": {}})
+    colour = ui.panel("ImageViewPanel", "colour", {TITLE: "colour", "cameraTopic": "/camera/color",
+                                                   "enabledMarkerTopics": [], "mode": "fit", "synchronize": False})
+    depth = ui.panel("ImageViewPanel", "depth", {TITLE: "depth (mm, 0 to 5000)", "cameraTopic": "/camera/depth",
+                                                 "enabledMarkerTopics": [], "mode": "fit", "synchronize": False,
+                                                 "minValue": 0, "maxValue": 5000})
+    stages = ui.plot("ms", "ms per frame", ("/slam/stats.ms.track", "track"), ("/slam/stats.ms.fuse", "fuse"),
+                     ("/slam/stats.ms.maps", "maps"), ("/slam/stats.ms.log", "log"))
+    inliers = ui.plot("inliers", "ICP inlier ratio", ("/slam/stats.icp.inlier_ratio", "inlier ratio"))
+    surfels = ui.plot("surfels", "surfels", ("/slam/stats.surfels", "surfels"))
+    estimate = ui.plot("trajectory-estimate", "estimate from above (y against x, m)",
+                       ("/camera/pose.pose.position.y", "estimate"), x_path="/camera/pose.pose.position.x", color=EST)
+    truth = ui.plot("trajectory-truth", "ground truth from above (y against x, m)",
+                    ("/gt/pose.pose.position.y", "ground truth"), x_path="/gt/pose.pose.position.x",
+                    color=GT)
+    tree = split("row",
+                 (3, split("column", (2, scene), (1, split("row", (1, colour), (1, depth))))),
+                 (2, split("column", (1, stages), (1, inliers), (1, surfels),
+                           (1, split("row", (1, estimate), (1, truth))))))
+    return {"configById": ui.configs, "globalVariables": {}, "userNodes": {}, "playbackConfig": {"speed": 1.0},
+            "layout": tree}
 
 
 def main() -> None:
     out = Path(sys.argv[1]) if len(sys.argv) > 1 else OUT
-    out.write_text(json.dumps(json.loads(layout().to_json()), indent=1) + "\n")
+    out.write_text(json.dumps(layout(), indent=1) + "\n")
     print(f"wrote {out}")
 
 

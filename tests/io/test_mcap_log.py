@@ -536,17 +536,22 @@ def test_every_stats_message_validates_against_the_declared_schema(cpu, tmp_path
     assert calib.frame_id == "camera" and calib.K[0] > 0 and calib.K[8] == 1
 
 
-def test_the_foxglove_layout_shows_what_the_logs_have():
-    """docs/foxglove-layout.json is what scripts/foxglove_layout.py writes, and every topic and message path
-    in it is one the logs have."""
+def _layout_module():
     import importlib.util
-    import re
 
     spec = importlib.util.spec_from_file_location("foxglove_layout", DOCS.parents[1] / "scripts" / "foxglove_layout.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
+    return module
+
+
+def test_the_foxglove_layout_shows_what_the_logs_have():
+    """docs/foxglove-layout.json is what scripts/foxglove_layout.py writes, and every topic and message path
+    in it is one the logs have."""
+    import re
+
     text = (DOCS.parent / "foxglove-layout.json").read_text()
-    assert json.loads(text) == json.loads(module.layout().to_json())
+    assert json.loads(text) == _layout_module().layout()
     topics = {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points", "/camera/depth", "/camera/color",
               "/camera/calibration", LOOP_TOPIC}
     slam_fields = set(_field_names(_steps()["/slam/stats"])) | {"ms.load", "ms.log"}
@@ -559,3 +564,35 @@ def test_the_foxglove_layout_shows_what_the_logs_have():
             assert field in slam_fields, path
         elif field:
             assert field in ("pose.position.x", "pose.position.y"), path
+
+
+def test_the_foxglove_layout_is_in_the_form_every_client_imports():
+    """The classic form (Studio fails on the SDK's {version, content} form), panels of types both Studio and
+    Lichtblick have, each panel of the tree configured, the map in its RGBA fields with a colour field named
+    (else the client colours it by x), and x-y plots with one x path per panel (no per-series x path)."""
+    layout = json.loads((DOCS.parent / "foxglove-layout.json").read_text())
+    assert set(layout) == {"configById", "globalVariables", "userNodes", "playbackConfig", "layout"}
+    assert layout["playbackConfig"]["speed"] == 1.0
+
+    def leaves(node):
+        return [node] if isinstance(node, str) else leaves(node["first"]) + leaves(node["second"])
+
+    def shares(node):
+        return [] if isinstance(node, str) else [node["splitPercentage"], *shares(node["first"]),
+                                                 *shares(node["second"])]
+
+    panels = leaves(layout["layout"])
+    assert sorted(panels) == sorted(layout["configById"]) and len(set(panels)) == len(panels)
+    assert all(0 < p < 100 for p in shares(layout["layout"]))
+    types = {panel.partition("!")[0] for panel in panels}
+    assert types == {"3D", "ImageViewPanel", "Plot"}
+    (scene,) = [c for p, c in layout["configById"].items() if p.startswith("3D!")]
+    cloud = scene["topics"]["/map/points"]
+    assert cloud["colorMode"] == "rgba-fields" and cloud["colorField"] in ("red", "green", "blue", "alpha")
+    plots = [c for p, c in layout["configById"].items() if p.startswith("Plot!")]
+    assert not any("xValuePath" in series or "xValue" in series for c in plots for series in c["paths"])
+    xy = [c for c in plots if c["xAxisVal"] == "custom"]
+    assert len(xy) == 2
+    for plot in xy:  # the x and y of one topic, so that their values pair message by message
+        ((series,),) = [plot["paths"]]
+        assert series["value"].rpartition(".")[0] == plot["xAxisPath"]["value"].rpartition(".")[0]

@@ -2,7 +2,8 @@
 
 Taichi runs one backend per process, so the backend fixtures are session-scoped: pytest groups the
 tests by backend and Taichi is re-initialised only when the backend changes.
-- ``arch``: parametrised over cpu and vulkan (vulkan skipped with a reason where no device is present);
+- ``arch``: parametrised over cpu, vulkan (skipped with a reason where no device is present) and cuda
+  (only where the CUDA driver finds a device; TI_FUSION_NO_CUDA=1 leaves it out);
   use it for kernel tests, which compare every backend against the same NumPy float64 reference.
 - ``cpu``: the CPU backend only, for pipeline and end-to-end tests.
 """
@@ -40,7 +41,22 @@ def _use(arch: str) -> str:
     return arch
 
 
-@pytest.fixture(params=["cpu", "vulkan"])
+def _has_cuda() -> bool:
+    """Whether the CUDA driver finds a device (asked through libcuda itself, without starting Taichi)."""
+    if os.environ.get("TI_FUSION_NO_CUDA") is not None:
+        return False
+    import ctypes
+
+    try:
+        lib = ctypes.CDLL("libcuda.so.1")
+        count = ctypes.c_int(0)
+        return lib.cuInit(0) == 0 and lib.cuDeviceGetCount(ctypes.byref(count)) == 0 and count.value > 0
+    except (OSError, AttributeError):
+        return False
+
+
+# cuda is a parameter only where a CUDA device is found, so machines without one list no skipped cuda tests
+@pytest.fixture(params=["cpu", "vulkan"] + (["cuda"] if _has_cuda() else []))
 def arch(request):
     if request.param == "vulkan" and not _has_vulkan():
         pytest.skip("no Vulkan device (apt-get install mesa-vulkan-drivers for lavapipe)")

@@ -23,10 +23,12 @@ from ti_fusion.synthetic.scenes import SCENES
 from .test_scene import backproject_world
 
 TINY = SynthConfig(width=80, height=60, fx=65.625)
-NEW = ("loop", "twins", "wall", "corridor")
+NEW = ("loop", "twins", "wall", "corridor", "jerky", "cabinet")
+TEXTURED = ("loop", "twins", "wall", "corridor", "jerky")
 # least valid-depth fraction (noise on) of any sampled view: the loop and the corridor look down
-# corridors whose far part lies beyond the sensor's 4 m
-MIN_VALID = {"room": 0.85, "loop": 0.45, "twins": 0.45, "wall": 0.95, "corridor": 0.45}
+# corridors whose far part lies beyond the sensor's 4 m, as the cabinet's views do at the room's far corners
+MIN_VALID = {"room": 0.85, "loop": 0.45, "twins": 0.45, "wall": 0.95, "corridor": 0.45, "jerky": 0.85,
+             "cabinet": 0.6}
 
 
 def sampled(n: int, k: int = 6) -> list[int]:
@@ -36,7 +38,7 @@ def sampled(n: int, k: int = 6) -> list[int]:
 @pytest.fixture(scope="module")
 def paths():
     """Each scene's default poses (computed once)."""
-    return {name: spec.path(np.arange(spec.frames) / FPS) for name, spec in SCENES.items()}
+    return {name: spec.path(spec.times(spec.frames)) for name, spec in SCENES.items()}
 
 
 @pytest.mark.parametrize("name", NEW)
@@ -60,7 +62,7 @@ def test_scene_renders_valid_textured_depth_on_its_surfaces(cpu, name):
         assert np.abs(ideal.surface_distance(points)).max() < 2e-3
 
 
-@pytest.mark.parametrize("name", NEW)
+@pytest.mark.parametrize("name", TEXTURED)
 def test_orb_finds_keypoints_along_the_path(cpu, name):
     """ORB (the re-localiser's and place recognition's features) finds corners in every sampled view."""
     seq = SyntheticSequence(replace(TINY, scene=name, width=320, height=240, fx=262.5))
@@ -75,8 +77,9 @@ def test_path_is_rigid_smooth_and_stays_in_free_space(name, paths):
     poses = paths[name]
     assert poses.shape == (spec.frames, 4, 4)
     assert all(rigidity_error(T) is None for T in poses[::25])
-    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) * FPS
-    turns = np.array([rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) for a, b in zip(poses[:-1], poses[1:])]) * FPS
+    dt = np.diff(spec.times(spec.frames))
+    steps = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1) / dt
+    turns = np.array([rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) for a, b in zip(poses[:-1], poses[1:])]) / dt
     assert steps.max() < 1.2 and turns.max() < 120  # m/s, deg/s: walking, hand-held
     assert np.all(steps > 0.01)  # always moving
     # never inside a primitive nor on the back of a plane, never within 0.4 m of a surface
@@ -257,3 +260,61 @@ def test_dataset_follows_the_scene(cpu):
     assert frame.depth.shape == (30, 40)
     np.testing.assert_allclose(frame.gt_pose, SCENES["corridor"].path(np.arange(4) / FPS)[3], rtol=0, atol=1e-12)
     assert len(open_dataset(DatasetConfig(), replace(TINY, scene="loop"))) == scenes.LOOP_FRAMES
+
+
+def _steps(poses: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(metres, degrees) between consecutive poses."""
+    moved = np.linalg.norm(np.diff(poses[:, :3, 3], axis=0), axis=1)
+    turned = np.array([rotation_angle_deg(a[:3, :3].T @ b[:3, :3]) for a, b in zip(poses[:-1], poses[1:])])
+    return moved, turned
+
+
+def _constant_velocity_misses(poses: np.ndarray) -> np.ndarray:
+    """Per frame from the third: whether the constant-velocity guess is further from the truth (in
+    translation) than the last pose is."""
+    from ti_fusion.geometry import invert
+
+    guess = [poses[i] @ invert(poses[i - 1]) @ poses[i] for i in range(1, len(poses) - 1)]
+    cv = np.array([np.linalg.norm(g[:3, 3] - t[:3, 3]) for g, t in zip(guess, poses[2:])])
+    last = np.linalg.norm(poses[2:, :3, 3] - poses[1:-1, :3, 3], axis=1)
+    return cv > last
+
+
+def test_jerky_frames_are_irregular_gaps_of_the_30_hz_path(cpu, paths):
+    """Gaps of 0.1 to 0.7 s on the 30 Hz grid, both ends drawn; steps up to about 17 degrees and 20 cm;
+    the same gaps on every run; the constant-velocity guess is worse than the last pose on some frames."""
+    spec = SCENES["jerky"]
+    seq = SyntheticSequence(replace(TINY, scene="jerky"))
+    gaps = np.diff(seq.timestamps) * FPS
+    np.testing.assert_allclose(gaps, np.round(gaps), atol=1e-9)
+    gaps = np.round(gaps)
+    assert gaps.min() == 3 and gaps.max() == 21 and len(np.unique(np.round(gaps))) > 10
+    np.testing.assert_array_equal(seq.timestamps, T0 + spec.times(spec.frames))
+    np.testing.assert_allclose(seq.poses, paths["jerky"], atol=1e-12)
+    moved, turned = _steps(paths["jerky"])
+    assert 14 < turned.max() < 18 and turned.mean() > 4 and 0.15 < moved.max() < 0.3
+    assert 0.1 < _constant_velocity_misses(paths["jerky"]).mean() < 0.5
+    # as many frames as asked, on the same gaps: a prefix of the default
+    np.testing.assert_array_equal(spec.times(10), spec.times(spec.frames)[:10])
+
+
+def test_cabinet_is_low_texture_at_wide_baselines(cpu, paths):
+    """A frame every 0.67 s, steps of up to about 17 degrees and 27 cm round one plain box; ORB finds a small
+    fraction of the keypoints it finds in the room, and the colour's gradients are mild away from edges."""
+    seq = SyntheticSequence(replace(TINY, scene="cabinet", width=320, height=240, fx=262.5))
+    np.testing.assert_allclose(np.diff(seq.timestamps), scenes.CABINET_STRIDE / FPS, atol=1e-12)
+    moved, turned = _steps(paths["cabinet"])
+    assert 12 < turned.max() < 18 and 0.2 < moved.max() < 0.3 and 0.1 < moved.mean() < 0.2
+    assert _constant_velocity_misses(paths["cabinet"]).mean() > 0.1  # speed changes between frames
+    room = SyntheticSequence(replace(TINY, width=320, height=240, fx=262.5))
+    orb = cv2.ORB_create(1000)
+
+    def keypoints(s, i):
+        return len(orb.detect(cv2.cvtColor(s.frame(i)[1], cv2.COLOR_RGB2GRAY), None))
+
+    for i in sampled(len(seq), 4):
+        assert keypoints(seq, i) < 0.25 * keypoints(room, min(i, len(room) - 1)), i
+        _, colour = seq.render(seq.poses[i], noise=False)
+        grey = cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY).astype(np.float64)
+        gradient = np.hypot(*np.gradient(grey))
+        assert np.median(gradient) < 1.0, i  # grey levels per pixel: flat almost everywhere

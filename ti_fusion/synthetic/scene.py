@@ -321,7 +321,7 @@ class SyntheticSequence:
             n = min(c.frames or len(poses), len(poses))
             self.timestamps, self.poses = stamps[:n], poses[:n]
         else:
-            self.timestamps = T0 + np.arange(c.frames or self.spec.frames) / FPS
+            self.timestamps = T0 + self.spec.times(c.frames or self.spec.frames)
             self.poses = self.spec.path(self.timestamps - T0)
         self.sensor = SensorModel(min_range=c.min_range, max_range=c.max_range, grazing_deg=c.grazing_deg,
                                   baseline=c.baseline, subpixel=c.subpixel, sensor_width=c.sensor_width,

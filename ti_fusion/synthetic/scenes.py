@@ -13,12 +13,19 @@
               is unobservable without colour.
 ``corridor``  an endless straight corridor with plain walls, floor and ceiling and textured posters flat on
               the walls (1 mm thick, 0.8 m × 1 m, every 1.2 m on each wall): depth cannot see motion along the corridor.
+``jerky``     the furnished room seen at irregular, large steps: frames at random gaps of 0.1–0.7 s of a fast
+              hand-held 30 Hz path (up to ~17° and ~30 cm per step), as from a dropped-frame stream or a fast
+              turn: a constant-velocity guess is often further from the truth than the last pose.
+``cabinet``   a plain box (a cabinet) in a room of plain walls, only mild colour gradients, circled once by a
+              camera whose speed changes; one frame every 0.67 s (every 20th of the 30 Hz path), steps of up
+              to ~23 cm and ~17°: wide baselines on low texture, where feature re-localisation has little to match.
 
 World frame as in ``scene``: metres, z up. The loop scenes are centred under the renderer's point light
 (``kernels.raycast.LIGHT``) so their shading, like their geometry, is symmetric under a half turn about
 the centre (what makes the twins identical, light included). Paths are functions of time (seconds from
-the first frame) sampled at 30 Hz; evaluated past their default length they go on (the loop keeps
-walking round, so ``frames`` = 2 × the default is about two laps).
+the first frame) sampled at 30 Hz, except where a scene's ``times`` samples them otherwise (``jerky``,
+``cabinet``); evaluated past their default length they go on (the loop keeps walking round, so ``frames``
+= 2 × the default is about two laps).
 """
 
 from __future__ import annotations
@@ -30,6 +37,11 @@ import numpy as np
 
 from ti_fusion.synthetic.scene import (FPS, Box, Cylinder, Material, Plane, Primitive, Scene, Sphere,
                                        camera_path, default_scene, look_at)
+
+
+def regular_times(frames: int) -> np.ndarray:
+    """Seconds from the first frame of ``frames`` frames at 30 Hz."""
+    return np.arange(frames) / FPS
 
 M = Material
 
@@ -285,14 +297,92 @@ def corridor_path(times: np.ndarray) -> np.ndarray:
     return np.array([look_at(np.array([x[i], y[i], z[i]]), target[i], roll[i]) for i in range(len(t))])
 
 
+# -- irregular large steps -----------------------------------------------------------------------------
+JERKY_GAPS = (3, 21)   # frames of the 30 Hz path between two frames, drawn uniformly: 0.1–0.7 s
+JERKY_SEED = 31        # the gaps are part of the scene (synth.seed varies only the noise)
+
+
+def jerky_times(frames: int) -> np.ndarray:
+    """Seconds from the first frame: random whole gaps of 3–21 frames of the 30 Hz path (0.1–0.7 s)."""
+    rng = np.random.default_rng(JERKY_SEED)
+    gaps = rng.integers(JERKY_GAPS[0], JERKY_GAPS[1] + 1, size=max(frames - 1, 0))
+    return np.concatenate([[0], np.cumsum(gaps)])[:frames] / FPS
+
+
+def jerky_path(times: np.ndarray) -> np.ndarray:
+    """A fast hand-held walk round the room's table (≈ 0.35 m/s, one lap in 21 s), the gaze swinging
+    quickly over the table and the furniture (up to ~25°/s with the walk's own turn), a few degrees of
+    roll: sampled 0.1–0.7 s apart, steps of up to ~17° and ~30 cm."""
+    t = np.asarray(times, dtype=np.float64)
+    angle = -0.6 + 0.22 * t
+    x = 0.15 + 1.35 * np.cos(angle) + 0.006 * np.sin(2 * np.pi * 1.1 * t)
+    y = 0.05 + 1.05 * np.sin(angle) + 0.006 * np.sin(2 * np.pi * 0.9 * t + 1.0)
+    z = 1.40 + 0.15 * np.sin(0.7 * t + 0.3) + 0.005 * np.sin(2 * np.pi * 1.3 * t + 2.0)
+    target = np.stack([0.2 + 0.3 * np.sin(0.8 * t + 0.5), 0.1 + 0.3 * np.sin(0.95 * t + 1.3),
+                       0.85 + 0.2 * np.sin(0.7 * t + 2.0)], 1)
+    roll = np.radians(6.0 * np.sin(0.9 * t + 0.4) + 2.0 * np.sin(1.9 * t))
+    return np.array([look_at(np.array([x[i], y[i], z[i]]), target[i], roll[i]) for i in range(len(t))])
+
+
+# -- a low-texture object circled ----------------------------------------------------------------------
+CABINET_CENTER = (0.4, -0.3)   # under kernels.raycast.LIGHT
+CABINET_HALF = (0.45, 0.3, 0.5)  # metres: a waist-high cabinet
+CABINET_STRIDE = 20            # one frame every 20th of the 30 Hz path (0.67 s apart)
+CABINET_RADIUS = 1.55          # metres: the camera's mean distance from the cabinet's axis
+CABINET_LAP_S = 45.0           # seconds per lap (the default 58 frames go about 0.85 of a lap)
+
+
+def cabinet_scene() -> Scene:
+    """A room 6 m × 5 m × 2.7 m with plain walls, floor and ceiling and a plain box: mild colour gradients
+    only (blobs metres across, between two close shades), the shading of the light above the box."""
+    cx, cy = CABINET_CENTER
+
+    def mild(scale, a, b):
+        return M("blobs", scale, a, b, detail=0.0)
+
+    return Scene([
+        Plane((0, 0, 0), (0, 0, 1), mild(1.5, (0.55, 0.53, 0.50), (0.62, 0.60, 0.56))),
+        Plane((0, 0, 2.7), (0, 0, -1), mild(2.0, (0.90, 0.90, 0.88), (0.94, 0.94, 0.92))),
+        Plane((cx - 3.0, 0, 0), (1, 0, 0), mild(1.8, (0.80, 0.78, 0.72), (0.86, 0.84, 0.78))),
+        Plane((cx + 3.0, 0, 0), (-1, 0, 0), mild(1.8, (0.76, 0.80, 0.84), (0.82, 0.85, 0.88))),
+        Plane((0, cy - 2.5, 0), (0, 1, 0), mild(1.8, (0.84, 0.80, 0.74), (0.88, 0.85, 0.80))),
+        Plane((0, cy + 2.5, 0), (0, -1, 0), mild(1.8, (0.78, 0.80, 0.76), (0.84, 0.86, 0.82))),
+        Box((cx, cy, CABINET_HALF[2]), CABINET_HALF, mild(0.8, (0.62, 0.50, 0.38), (0.68, 0.56, 0.44)), yaw=0.35),
+    ])
+
+
+def cabinet_times(frames: int) -> np.ndarray:
+    """Seconds from the first frame: every 20th frame of the 30 Hz path."""
+    return np.arange(frames) * CABINET_STRIDE / FPS
+
+
+def cabinet_path(times: np.ndarray) -> np.ndarray:
+    """Once round the cabinet (a lap in 45 s, ≈ 0.22 m/s on average), slowing down and speeding up
+    (0.2–1.8 × the mean every 9 s), 1.35–1.75 m from its axis, at 1.1–1.5 m height, looking at the
+    cabinet with the gaze wandering ±0.35 m over it: every view holds the box, the floor and a wall."""
+    t = np.asarray(times, dtype=np.float64)
+    cx, cy = CABINET_CENTER
+    w = 2 * np.pi / 4.0
+    angle = -2.2 + 2 * np.pi / CABINET_LAP_S * (t - 0.8 / w * np.sin(w * t))
+    r = CABINET_RADIUS + 0.2 * np.sin(0.33 * t + 0.5)
+    x = cx + r * np.cos(angle)
+    y = cy + r * np.sin(angle)
+    z = 1.3 + 0.2 * np.sin(0.27 * t + 1.0) + 0.005 * np.sin(2 * np.pi * 1.3 * t)
+    target = np.stack([cx + 0.35 * np.sin(0.41 * t + 0.2), cy + 0.35 * np.sin(0.53 * t + 1.1),
+                       0.55 + 0.2 * np.sin(0.37 * t + 2.0)], 1)
+    roll = np.radians(4.0 * np.sin(0.6 * t + 0.4) + 1.5 * np.sin(1.9 * t))
+    return np.array([look_at(np.array([x[i], y[i], z[i]]), target[i], roll[i]) for i in range(len(t))])
+
+
 # -- the catalogue -------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class SceneSpec:
     name: str
     build: Callable[[], Scene]
     path: Callable[[np.ndarray], np.ndarray]  # times (s from the first frame) → N×4×4 camera-to-world
-    frames: int                               # default length at 30 Hz
+    frames: int                               # default length
     about: str
+    times: Callable[[int], np.ndarray] = regular_times  # frames → seconds from the first frame (30 Hz)
 
 
 SCENES: dict[str, SceneSpec] = {
@@ -304,6 +394,12 @@ SCENES: dict[str, SceneSpec] = {
     "wall": SceneSpec("wall", wall_scene, wall_path, 600, "textured wall and floor only (photometric tracking)"),
     "corridor": SceneSpec("corridor", corridor_scene, corridor_path, 600,
                           "plain corridor with textured posters (photometric tracking)"),
+    "jerky": SceneSpec("jerky", default_scene, jerky_path, 80,
+                       "the room at random gaps of 0.1-0.7 s of a fast path (irregular, large steps)",
+                       jerky_times),
+    "cabinet": SceneSpec("cabinet", cabinet_scene, cabinet_path, 58,
+                         "a plain cabinet in a plain room circled at changing speed, a frame every 0.67 s "
+                         "(wide baselines, low texture)", cabinet_times),
 }
 
 

@@ -48,6 +48,8 @@ class Client(threading.Thread):
         self.url, self.topics = url, topics
         self.channels: dict[int, dict] = {}  # channel id → the advertised channel
         self.messages: list[tuple[str, int, bytes]] = []
+        self.times: list[int] = []  # the server's time messages, ns
+        self.server_info: dict | None = None
         self.subprotocol = None
         self.closed = threading.Event()
         self.error: BaseException | None = None
@@ -67,6 +69,10 @@ class Client(threading.Thread):
                         with self._changed:
                             self.messages.append((self._subscriptions[sub], ns, bytes(frame[13:])))
                             self._changed.notify_all()
+                    elif frame[0] == 2:  # time: u64 ns
+                        with self._changed:
+                            self.times.append(struct.unpack_from("<Q", frame, 1)[0])
+                            self._changed.notify_all()
         except websockets.ConnectionClosed:
             pass
         except BaseException as exc:  # noqa: BLE001 - reported by the test
@@ -77,7 +83,9 @@ class Client(threading.Thread):
                 self._changed.notify_all()
 
     def _control(self, ws, message: dict) -> None:
-        if message["op"] == "advertise":
+        if message["op"] == "serverInfo":
+            self.server_info = message
+        elif message["op"] == "advertise":
             for channel in message["channels"]:
                 self.channels[channel["id"]] = channel
             wanted = [c for c in message["channels"] if self.topics is None or c["topic"] in self.topics]
@@ -267,6 +275,55 @@ def test_a_late_client_gets_the_calibration(tmp_path):
     client.join(WAIT_S)
     in_file, _ = _file_messages(path)
     assert client.received("/camera/calibration") == [(1_500_000_000, in_file["/camera/calibration"][1_500_000_000])]
+
+
+def test_the_clients_time_is_the_dataset_time(tmp_path):
+    """The server has the time capability and sends each new log time: a client's timeline runs on the
+    dataset's time, as the file's does."""
+    from ti_fusion.io.mcap_log import RunLogger
+
+    live = LiveServer("127.0.0.1:0")
+    with RunLogger(tmp_path / "log.mcap", live=live) as log:
+        client = Client(live.url, topics=("/camera/pose",))
+        client.start()
+        client.wait_for(lambda: live.subscribed("/camera/pose"), "subscription")
+        for t in (1.5, 1.5, 2.25):
+            log.log_pose(t, np.eye(4))
+        log.log_stats(2.25, {"frame": 0})
+        client.wait_for(lambda: len(client.received("/camera/pose")) == 3 and 2_250_000_000 in client.times,
+                        "poses and times")
+    client.join(WAIT_S)
+    assert "time" in client.server_info["capabilities"]
+    assert client.times == [1_500_000_000, 2_250_000_000]  # once per new time, in order
+
+
+def test_a_refused_client_is_one_line(tmp_path, caplog):
+    """A client that offers only the old sub-protocol (Foxglove Studio, Lichtblick before 1.22.1) is refused
+    with HTTP 400 at every retry; the terminal gets one warning that names the protocol and the clients,
+    not the SDK's line per retry."""
+    import logging
+
+    from websockets.exceptions import InvalidStatus
+
+    live = LiveServer("127.0.0.1:0")
+    try:
+        with caplog.at_level(logging.INFO):
+            for _ in range(3):
+                with pytest.raises(InvalidStatus, match="400"):
+                    websockets.connect(live.url, subprotocols=["foxglove.websocket.v1"], open_timeout=WAIT_S)
+            deadline = time.monotonic() + WAIT_S  # the SDK logs from its own thread, after the refusal
+            while live._refused.count < 3 and time.monotonic() < deadline:
+                time.sleep(0.01)
+            client = Client(live.url, topics=())  # a current client still connects
+            client.start()
+            client.wait_for(lambda: client.server_info is not None, "server info")
+    finally:
+        live.close()
+    client.join(WAIT_S)
+    assert live._refused.count == 3
+    refused = [r for r in caplog.records if "refused" in r.getMessage() or "Dropping" in r.getMessage()]
+    assert len(refused) == 1 and refused[0].levelno == logging.WARNING and refused[0].name == "ti_fusion.io.live"
+    assert "foxglove.sdk.v1" in refused[0].getMessage() and "Lichtblick 1.22.1" in refused[0].getMessage()
 
 
 @pytest.mark.slow

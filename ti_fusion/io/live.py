@@ -12,8 +12,15 @@ message at once, so a live run with no client costs nothing measurable. Each cli
 one message that costs the run to make: the pipeline asks ``map_due()`` and sends a cloud of at most
 ``max_points`` points at most every ``map_period_s`` seconds, and only while a client watches it.
 
+Time. The server has the ``time`` capability and sends the log time of each new message as the server's
+time, so a live view's timeline and plots run on the dataset's time, as the file's do (without it a client
+uses its wall clock).
+
 The SDK speaks the protocol under the sub-protocol name ``foxglove.sdk.v1``, the same protocol as
-``foxglove.websocket.v1`` renamed; current Foxglove offers both names. The SDK (0.30) can refuse, as an
+``foxglove.websocket.v1`` renamed; current Foxglove and Lichtblick from 1.22.1 offer both names, and an older
+client (Foxglove Studio, Lichtblick before 1.22.1) that offers only the old one is refused with HTTP 400. The
+SDK logs "Dropping client ...: handshake failed" at each of its retries; ``LiveServer`` turns them into one
+warning that says why. The SDK (0.30) can refuse, as an
 "Unknown channel ID", a subscription that arrives in the instant after a channel is created while this
 process is busy, so ``RunLogger`` creates its channels when the log opens, before a client is likely to
 be connected; a client can subscribe again.
@@ -21,6 +28,8 @@ be connected; a client can subscribe again.
 
 from __future__ import annotations
 
+import logging
+import re
 import threading
 import time
 
@@ -34,6 +43,12 @@ MAP_MAX_POINTS = 50_000     # ... of at most this many points (0.8 MB)
 BACKLOG = 256               # messages queued per client before the oldest is dropped
 LINGER_S = 0.25             # on closing, time for the clients' queues to drain (stopping drops what is queued)
 LATCHED = ("/camera/calibration",)  # logged once: sent again to a client that subscribes later
+SDK_LOGGER = "foxglove.websocket.server"  # where the SDK's server logs (through Python's logging)
+REFUSED = re.compile(r"Dropping client (.+?):\d+: handshake failed")
+CLIENTS = ("current Foxglove and Lichtblick 1.22.1 or later offer it; Foxglove Studio and older Lichtblick "
+           "offer only foxglove.websocket.v1 and cannot connect")
+
+log = logging.getLogger(__name__)
 
 
 def parse_address(text: str) -> tuple[str, int]:
@@ -60,12 +75,17 @@ class LiveServer:
         self._latched: dict[str, tuple[bytes, int]] = {}  # topic → its last message and log time
         self._resend: set[str] = set()  # latched topics a client subscribed to since their last message
         self._map_sent = -float("inf")
+        self._time_ns = -1  # the last time sent to the clients
         self._lock = threading.Lock()  # the server's threads call the listener
         host, port = parse_address(address)
+        self._refused = _RefusedClients()
+        logging.getLogger(SDK_LOGGER).addFilter(self._refused)
         try:
             self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
-                                                 server_listener=_Listener(self), message_backlog_size=BACKLOG)
+                                                 server_listener=_Listener(self), message_backlog_size=BACKLOG,
+                                                 capabilities=[foxglove.websocket.Capability.Time])
         except Exception as exc:  # noqa: BLE001 - the SDK raises a RuntimeError with the OS's reason
+            logging.getLogger(SDK_LOGGER).removeFilter(self._refused)
             raise InputError(None, f"--live {address}: cannot serve on {host}:{port}: {exc}") from None
         self.host, self.port = host, self._server.port
         self.closed = False
@@ -100,6 +120,9 @@ class LiveServer:
             self._map_sent = time.monotonic()
         if self._resend:
             self._send_latched()
+        if ns > self._time_ns:  # the dataset's time, for the clients' timeline (the time capability)
+            self._time_ns = ns
+            self._server.broadcast_time(ns)
         self._channels[topic].log(data, log_time=ns)
 
     def subscribed(self, topic: str) -> bool:
@@ -124,6 +147,7 @@ class LiveServer:
                     time.sleep(LINGER_S)  # the SDK has no flush: its sender threads drain the queues meanwhile
             finally:  # a second Ctrl-C during the wait still stops the server
                 self._server.stop()
+                logging.getLogger(SDK_LOGGER).removeFilter(self._refused)
 
     # -- internals --------------------------------------------------------------------------------
     def _subscribed(self, topic: str) -> None:
@@ -138,6 +162,27 @@ class LiveServer:
             if topic in self._latched:
                 data, ns = self._latched[topic]
                 self._channels[topic].log(data, log_time=ns)
+
+
+class _RefusedClients(logging.Filter):
+    """Turns the SDK's "Dropping client HOST:PORT: handshake failed" records, one per retry of a refused
+    client, into one warning for the first (what most likely happened and which clients connect); the
+    rest are dropped."""
+
+    def __init__(self):
+        super().__init__()
+        self.count = 0
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        match = REFUSED.search(record.getMessage())
+        if match is None:
+            return True
+        self.count += 1
+        if self.count == 1:
+            log.warning(f"live: refused a client at {match.group(1)}: its WebSocket handshake failed, most likely "
+                        f"because it does not offer the sub-protocol foxglove.sdk.v1 ({CLIENTS}); further "
+                        "refusals are not shown")
+        return False
 
 
 class _Listener:

@@ -25,9 +25,11 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 from rosbags.typesys import Stores, get_typestore
 
 STORE = get_typestore(Stores.LATEST)
+STORE1 = get_typestore(Stores.ROS1_NOETIC)
 MSG = STORE.types
 FRAMES = 20
 K = (262.5, 262.5, 159.5, 119.5)  # the synthetic camera at 320×240
+K_SMALL = (32.8125, 32.8125, 19.5, 14.5)  # the same field of view at the small bags' 40×30
 DEPTH = "/camera/depth/image_rect_raw"
 COLOR = "/camera/color/image_raw"
 INFO = "/camera/depth/camera_info"
@@ -63,8 +65,9 @@ def image_msg(t: float, array: np.ndarray, encoding: str, frame: str = "camera_o
                                          data=a.view(np.uint8).reshape(-1))
 
 
-def info_msg(t: float, width: int, height: int, k=K, frame: str = "camera_optical"):
-    fx, fy, cx, cy = k
+def info_msg(t: float, width: int, height: int, k=None, frame: str = "camera_optical"):
+    """CameraInfo of ``k`` (fx, fy, cx, cy), by default the synthetic camera's field of view at this size."""
+    fx, fy, cx, cy = k or (K[0] * width / 320, K[1] * width / 320, (width - 1) / 2, (height - 1) / 2)
     roi = MSG["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0, do_rectify=False)
     return MSG["sensor_msgs/msg/CameraInfo"](
         header=_header(t, frame), height=height, width=width, distortion_model="plumb_bob", d=np.zeros(5),
@@ -86,46 +89,80 @@ def pose_msg(t: float, T: np.ndarray, kind: str):
                                         twist=twist)
 
 
+def ros1_msg(msg):
+    """The ROS 1 form of a message built here: the same fields (CameraInfo's d, k, r, p are D, K, R, P),
+    and Header's seq."""
+    cls = STORE1.types[msg.__msgtype__]
+    values = {}
+    for name in cls.__dataclass_fields__:
+        if name == "__msgtype__":
+            continue
+        value = 0 if name == "seq" else getattr(msg, name, None)
+        value = getattr(msg, name.lower()) if value is None else value
+        values[name] = ros1_msg(value) if hasattr(value, "__msgtype__") else value
+    return cls(**values)
+
+
 def write_bag(path: Path, shots: list[Shot], depth_encoding: str = "32FC1", color_encoding: str | None = "rgb8",
               color_lag: float = 0.0, gt: str | None = "pose", info: bool = True, depth_topics=(DEPTH,),
-              storage: str = "mcap", color_frame: str = "camera_optical", log_delays=None) -> Path:
+              storage: str = "mcap", color_frame: str = "camera_optical", log_delays=None, ros1: bool = False,
+              compressed_depth: bool = False, infos=None, stamps=None) -> Path:
     """A rosbag2 folder of ``shots`` (log time = header stamp, as a recorder close to the driver writes it,
-    plus ``log_delays[i]`` seconds for shot i's depth). ``depth_encoding`` 16UC1 writes millimetres;
-    ``color_encoding`` is rgb8, bgr8, mono8 or "jpeg" (CompressedImage); ``color_lag`` delays colour's
-    stamps; ``gt`` is "pose", "odom" or None."""
+    plus ``log_delays[i]`` seconds for shot i's depth), or a ROS 1 ``.bag`` file with ``ros1``.
+    ``depth_encoding`` 16UC1 writes millimetres, ``compressed_depth`` as image_transport's compressedDepth
+    PNG; ``color_encoding`` is rgb8, bgr8, mono8, "jpeg" or "png" (CompressedImage); ``color_lag`` delays
+    colour's stamps; ``gt`` is "pose", "odom" or None; ``infos[i]`` is shot i's (fx, fy, cx, cy);
+    ``stamps[i]`` overrides shot i's header stamps (log times stay the shot's)."""
+    from rosbags import rosbag1
+
+    from ti_fusion.io.datasets.compressed import encode_compressed_depth
+
     plugin = StoragePlugin.MCAP if storage == "mcap" else StoragePlugin.SQLITE3
     image_type, compressed_type = "sensor_msgs/msg/Image", "sensor_msgs/msg/CompressedImage"
-    with Writer(path, version=9, storage_plugin=plugin) as w:
-        depth_conns = [w.add_connection(t, image_type, typestore=STORE) for t in depth_topics]
+    depth_type = compressed_type if compressed_depth else image_type
+    store = STORE1 if ros1 else STORE
+    writer = rosbag1.Writer(path) if ros1 else Writer(path, version=9, storage_plugin=plugin)
+    with writer as w:
+        depth_conns = [w.add_connection(t, depth_type, typestore=store) for t in depth_topics]
         color_conn = None if color_encoding is None else w.add_connection(
-            COLOR, compressed_type if color_encoding == "jpeg" else image_type, typestore=STORE)
-        info_conn = w.add_connection(INFO, "sensor_msgs/msg/CameraInfo", typestore=STORE) if info else None
+            COLOR, compressed_type if color_encoding in ("jpeg", "png") else image_type, typestore=store)
+        info_conn = w.add_connection(INFO, "sensor_msgs/msg/CameraInfo", typestore=store) if info else None
         gt_type = {"pose": "geometry_msgs/msg/PoseStamped", "odom": "nav_msgs/msg/Odometry"}.get(gt)
-        gt_conn = w.add_connection(GT, gt_type, typestore=STORE) if gt else None
+        gt_conn = w.add_connection(GT, gt_type, typestore=store) if gt else None
         records = []
         for i, s in enumerate(shots):
             h, wd = s.depth.shape
+            t = s.t if stamps is None else stamps[i]
             depth = s.depth if depth_encoding == "32FC1" else np.round(s.depth * 1000).astype(np.uint16)
             logged = s.t + (log_delays[i] if log_delays else 0.0)
+            if compressed_depth:
+                msg = MSG[compressed_type](header=_header(t, "camera_optical"),
+                                           format=f"{depth_encoding}; compressedDepth png",
+                                           data=np.frombuffer(encode_compressed_depth(depth, depth_encoding), np.uint8))
+            else:
+                msg = image_msg(t, depth, depth_encoding)
             for conn in depth_conns:
-                records.append((logged, conn, image_type, image_msg(s.t, depth, depth_encoding)))
+                records.append((logged, conn, depth_type, msg))
             if info_conn:
-                records.append((s.t, info_conn, "sensor_msgs/msg/CameraInfo", info_msg(s.t, wd, h)))
+                records.append((s.t, info_conn, "sensor_msgs/msg/CameraInfo",
+                                info_msg(t, wd, h, None if infos is None else infos[i])))
             if color_conn is not None and s.color is not None:
-                tc = s.t + color_lag
-                if color_encoding == "jpeg":
-                    ok, data = cv2.imencode(".jpg", s.color[..., ::-1])
-                    msg = MSG[compressed_type](header=_header(tc, color_frame), format="rgb8; jpeg compressed bgr8",
-                                               data=data.reshape(-1))
-                    records.append((tc, color_conn, compressed_type, msg))
+                tc = t + color_lag
+                if color_encoding in ("jpeg", "png"):
+                    ok, data = cv2.imencode("." + color_encoding.replace("jpeg", "jpg"), s.color[..., ::-1])
+                    msg = MSG[compressed_type](header=_header(tc, color_frame),
+                                               format=f"rgb8; {color_encoding} compressed bgr8", data=data.reshape(-1))
+                    records.append((s.t + color_lag, color_conn, compressed_type, msg))
                 else:
                     array = {"rgb8": s.color, "bgr8": s.color[..., ::-1],
                              "mono8": cv2.cvtColor(s.color, cv2.COLOR_RGB2GRAY)}[color_encoding]
-                    records.append((tc, color_conn, image_type, image_msg(tc, array, color_encoding, color_frame)))
+                    records.append((s.t + color_lag, color_conn, image_type,
+                                    image_msg(tc, array, color_encoding, color_frame)))
             if gt_conn:
-                records.append((s.t, gt_conn, gt_type, pose_msg(s.t, s.pose, gt)))
+                records.append((s.t, gt_conn, gt_type, pose_msg(t, s.pose, gt)))
         for t, conn, msgtype, msg in sorted(records, key=lambda r: r[0]):
-            w.write(conn, round(t * 1e9), STORE.serialize_cdr(msg, msgtype))
+            data = STORE1.serialize_ros1(ros1_msg(msg), msgtype) if ros1 else STORE.serialize_cdr(msg, msgtype)
+            w.write(conn, round(t * 1e9), data)
     return path
 
 
@@ -229,7 +266,7 @@ def test_a_16uc1_mcap_file_with_lagging_bgr_colour_from_the_command_line(cpu, sy
 def test_frames_colour_intrinsics_and_ground_truth(tmp_path, rng):
     shots = small_shots(rng)
     ds = open_dataset(small_cfg(write_bag(tmp_path / "bag", shots, gt="pose"), gt_topic=GT))
-    assert isinstance(ds, RosbagDataset) and len(ds) == 4 and ds.intrinsics.as_tuple() == K
+    assert isinstance(ds, RosbagDataset) and len(ds) == 4 and ds.intrinsics.as_tuple() == K_SMALL
     for i, s in enumerate(shots):
         frame = ds[i]
         assert frame.timestamp == pytest.approx(s.t, abs=1e-6)
@@ -394,14 +431,14 @@ def test_what_is_not_a_bag_is_one_line(tmp_path):
 
     with RunLogger(tmp_path / "log.mcap") as log:  # an MCAP of Foxglove messages without depth images
         log.log_stats(1.0, {"frame": 0})
-    with pytest.raises(InputError, match="not a folder, nor a ROS 2 bag file"):
+    with pytest.raises(InputError, match="not a folder, nor a ROS bag file"):
         open_dataset(small_cfg(tmp_path / "log.mcap"))
     with pytest.raises(InputError, match="not a ROS 2 bag .*--format log"):
         open_dataset(small_cfg(tmp_path / "log.mcap", format="rosbag"))
     with pytest.raises(InputError, match="no /camera/depth images in the log"):
         open_dataset(small_cfg(tmp_path / "log.mcap", format="log"))
     (tmp_path / "notes.txt").write_text("hello\n")
-    with pytest.raises(InputError, match="not a folder, nor a ROS 2 bag file"):
+    with pytest.raises(InputError, match="not a folder, nor a ROS bag file"):
         open_dataset(small_cfg(tmp_path / "notes.txt"))
     (tmp_path / "empty.mcap").write_bytes(b"")
     with pytest.raises(InputError, match="cannot read the bag"):
@@ -428,7 +465,7 @@ def test_a_run_log_with_every_depth_image_replays(cpu, tmp_path):
 def test_a_run_log_with_some_depth_images_says_so(cpu, tmp_path):
     from ti_fusion.io.mcap_log import RunLogger
 
-    K_ = Intrinsics(*K, width=40, height=30)
+    K_ = Intrinsics(*K_SMALL, width=40, height=30)
     with RunLogger(tmp_path / "log.mcap", {"dataset": {"frames": 9}}) as log:
         log.log_calibration(1.0, K_)
         for i in range(3):  # every third frame of nine
@@ -442,4 +479,187 @@ def test_selection_and_downsampling_apply(tmp_path, rng):
     bag = write_bag(tmp_path / "bag", small_shots(rng, n=6))
     ds = open_dataset(small_cfg(bag, start=1, stride=2, downsample=2))
     assert len(ds) == 3 and ds[0].depth.shape == (15, 20) and ds[0].color.shape == (15, 20, 3)
-    assert ds.intrinsics.fx == K[0] / 2
+    assert ds.intrinsics.fx == K_SMALL[0] / 2
+
+
+# --------------------------------------------------------------------------------------------------
+# ROS 1 bags, compressed topics, RealSense recordings
+# --------------------------------------------------------------------------------------------------
+REALSENSE_BAG = Path(__file__).resolve().parents[3] / "shared/data/realsense-d435-2frames/single_depth_color_640x480.bag"
+
+
+@pytest.mark.parametrize("compressed", [False, True])
+def test_the_synthetic_sequence_as_a_ros1_bag_tracks_as_its_tum_copy(cpu, synthetic_shots, tum_run, tmp_path,
+                                                                    compressed):
+    """Millimetres in a ROS 1 .bag (raw 16UC1, or compressedDepth PNG with JPEG colour): the TUM run's
+    trajectory within the millimetre quantisation (TUM's PNGs hold fifths of a millimetre)."""
+    bag = write_bag(tmp_path / "seq.bag", synthetic_shots, depth_encoding="16UC1", ros1=True,
+                    compressed_depth=compressed, color_encoding="jpeg" if compressed else "rgb8",
+                    depth_topics=(DEPTH + "/compressedDepth",) if compressed else (DEPTH,))
+    out = tmp_path / "run"
+    assert main(["slam", str(bag), "--gt-topic", GT, "--out", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    d = summary["dataset"]
+    assert d["format_from"] == "detected from a .bag file (ROS 1)" and d["depth_scale"] == 1000
+    assert d["topics"]["camera_info"] == INFO and d["notes"] == [] and summary["tracking_failures"] == 0
+    assert abs(summary["ate_rmse_m"] - tum_run["ate_rmse_m"]) < 1e-3
+
+
+def test_compressed_depth_on_ros2_tracks_as_the_raw_images(cpu, synthetic_shots, tmp_path):
+    """compressedDepth 16UC1 is lossless: the same trajectory as the raw 16UC1 images, JPEG colour and all."""
+    raw = slam(small_cfg(write_bag(tmp_path / "raw", synthetic_shots, depth_encoding="16UC1"), gt_topic=GT),
+               tmp_path / "raw_run")
+    bag = write_bag(tmp_path / "png", synthetic_shots, depth_encoding="16UC1", compressed_depth=True,
+                    color_encoding="jpeg", depth_topics=(DEPTH + "/compressedDepth",))
+    run = slam(small_cfg(bag, gt_topic=GT), tmp_path / "png_run")
+    assert run["dataset"]["depth_encoding"] == "16UC1"
+    np.testing.assert_allclose(run["trajectory"][1], raw["trajectory"][1], atol=1e-6)
+    assert run["ate_rmse_m"] == pytest.approx(raw["ate_rmse_m"], abs=1e-6)
+
+
+@pytest.mark.parametrize("ros1", [False, True])
+def test_compressed_depth_and_colour_decode(tmp_path, rng, ros1):
+    """compressedDepth 16UC1 is the raw millimetres; 32FC1 is within its quantisation of inverse depth
+    (z² / (A) with A = 100·101: 0.9 mm at 3 m); PNG colour is exact."""
+    shots = small_shots(rng, n=2)
+    path = tmp_path / ("b.bag" if ros1 else "b")
+    ds = open_dataset(small_cfg(write_bag(path, shots, depth_encoding="16UC1", compressed_depth=True,
+                                          color_encoding="png", depth_topics=(DEPTH + "/compressedDepth",),
+                                          ros1=ros1)))
+    assert ds.topics["depth"] == DEPTH + "/compressedDepth" and ds.topics["camera_info"] == INFO
+    expected = np.round(shots[1].depth * 1000) / 1000
+    np.testing.assert_allclose(ds[1].depth, np.where(expected > 4, 0, expected), rtol=1e-6)
+    np.testing.assert_array_equal(ds[1].color, shots[1].color)
+    path = tmp_path / ("f.bag" if ros1 else "f")
+    ds = open_dataset(small_cfg(write_bag(path, shots, depth_encoding="32FC1", compressed_depth=True,
+                                          depth_topics=(DEPTH + "/compressedDepth",), ros1=ros1)))
+    z = shots[1].depth
+    assert ds.encoding == "32FC1" and np.all(np.abs(ds[1].depth - np.where(z > 4, 0, z)) <= z**2 / 10100 + 1e-6)
+
+
+def test_compressed_depth_that_cannot_be_read_is_one_line(tmp_path, rng):
+    from ti_fusion.io.datasets.compressed import decode_compressed_depth, encode_compressed_depth
+
+    with pytest.raises(InputError, match="RVL.*not supported"):
+        decode_compressed_depth("16UC1; compressedDepth rvl", np.zeros(20, np.uint8), "t")
+    with pytest.raises(InputError, match="holds no PNG image"):
+        decode_compressed_depth("16UC1; compressedDepth png", np.zeros(20, np.uint8), "t")
+    data = encode_compressed_depth(np.full((3, 4), np.nan, np.float32), "32FC1")
+    depth, encoding = decode_compressed_depth("32FC1; compressedDepth png", np.frombuffer(data, np.uint8), "t")
+    assert encoding == "32FC1" and np.all(np.isnan(depth))
+    bag = write_bag(tmp_path / "b", small_shots(rng, n=2), compressed_depth=True, depth_topics=("/d/compressedDepth",))
+    with pytest.raises(InputError, match="--color-topic /d/compressedDepth: a sensor_msgs/msg/CompressedImage topic "
+                                         "in format '32FC1; compressedDepth png', not a colour topic"):
+        open_dataset(small_cfg(bag, color_topic="/d/compressedDepth"))
+
+
+def write_realsense_bag(path: Path, shots: list[Shot], units: float = 0.0001, T_color_depth=None,
+                        color_k=(30.0, 30.0, 20.0, 15.0)) -> Path:
+    """A ROS 1 bag laid out as librealsense records one: the SDK's topics, mono16 depth in ``units`` metres
+    per unit, rgb8 colour, both with frame_id "0", and each stream's extrinsics from depth as its tf/0."""
+    from rosbags import rosbag1
+
+    dev = "/device_0"
+    d, c = f"{dev}/sensor_0/Depth_0", f"{dev}/sensor_1/Color_0"
+    T = np.eye(4) if T_color_depth is None else T_color_depth
+
+    def transform(M):
+        q, p = rot_to_quat(M[:3, :3]), M[:3, 3]
+        return MSG["geometry_msgs/msg/Transform"](translation=MSG["geometry_msgs/msg/Vector3"](x=p[0], y=p[1], z=p[2]),
+                                                  rotation=MSG["geometry_msgs/msg/Quaternion"](x=q[0], y=q[1], z=q[2],
+                                                                                               w=q[3]))
+    h, w = shots[0].depth.shape
+    with rosbag1.Writer(path) as bag:
+        def put(topic, msgtype, msg, t):
+            conn = conns.get(topic) or conns.setdefault(topic, bag.add_connection(topic, msgtype, typestore=STORE1))
+            bag.write(conn, round(t * 1e9), STORE1.serialize_ros1(ros1_msg(msg), msgtype))
+
+        conns = {}
+        t0 = shots[0].t
+        put(f"{d}/info/camera_info", "sensor_msgs/msg/CameraInfo", info_msg(0.0, w, h), t0)
+        put(f"{c}/info/camera_info", "sensor_msgs/msg/CameraInfo", info_msg(0.0, w, h, color_k), t0)
+        put(f"{dev}/sensor_0/option/Depth Units/value", "std_msgs/msg/Float32", MSG["std_msgs/msg/Float32"](data=units), t0)
+        put(f"{d}/tf/0", "geometry_msgs/msg/Transform", transform(np.eye(4)), t0)
+        put(f"{c}/tf/0", "geometry_msgs/msg/Transform", transform(T), t0)
+        for s in shots:
+            put(f"{d}/image/data", "sensor_msgs/msg/Image",
+                image_msg(s.t, np.round(s.depth / units).astype(np.uint16), "mono16", "0"), s.t)
+            put(f"{c}/image/data", "sensor_msgs/msg/Image", image_msg(s.t, s.color, "rgb8", "0"), s.t)
+    return path
+
+
+def test_a_realsense_recording_takes_its_units_intrinsics_and_extrinsics(tmp_path, rng):
+    """The SDK's topic names: depth units from the recorded option (0.1 mm here, not REP 118's mm), the
+    depth stream's camera_info among two, the colour camera and the depth-to-colour extrinsics from tf/0;
+    frame_id "0" on both does not make the colour registered."""
+    shots = small_shots(rng, n=3)
+    T = make_pose(so3_exp(np.array([0.0, 0.02, 0.01])), [0.015, 0.001, 0.0])
+    ds = open_dataset(small_cfg(write_realsense_bag(tmp_path / "rs.bag", shots, T_color_depth=T)))
+    d = ds.describe()
+    assert d["realsense"] is True and d["depth_scale"] == 10000 and "Depth Units/value (0.0001 m per unit" in \
+        d["depth_scale_from"]
+    assert d["topics"]["camera_info"] == "/device_0/sensor_0/Depth_0/info/camera_info"
+    assert d["colour_registered"] is False and d["colour_for_tracking"] is False
+    np.testing.assert_allclose(ds.color_extrinsics, T, atol=1e-6)
+    assert ds.color_intrinsics.as_tuple() == (30.0, 30.0, 20.0, 15.0)
+    expected = np.round(shots[2].depth / 0.0001).astype(np.uint16) / 10000  # as written
+    np.testing.assert_allclose(ds[2].depth, np.where(expected > 4, 0, expected), rtol=1e-6)
+    assert "colour camera fx 30" in ds.describe_format() and "translation (0.0150, 0.0010, 0.0000)" in \
+        ds.describe_format()
+
+
+@pytest.mark.skipif(not REALSENSE_BAG.is_file(), reason=f"the shared RealSense recording is absent ({REALSENSE_BAG})")
+def test_the_shared_realsense_d435_recording():
+    """What pyrealsense2's playback reports for this file: z16 in 0.001 m units, the depth camera fx 390.431,
+    depth-to-colour translation (0.01431, 0.00060, 0.00061) m."""
+    ds = open_dataset(small_cfg(REALSENSE_BAG))
+    d = ds.describe()
+    assert d["format_from"] == "detected from a .bag file (ROS 1)" and d["frames"] == 2 and d["depth_scale"] == 1000
+    assert d["intrinsics"]["fx"] == pytest.approx(390.431, abs=1e-3) and d["depth_encoding"] == "mono16"
+    np.testing.assert_allclose(ds.color_extrinsics[:3, 3], [0.014311, 0.000602, 0.000611], atol=1e-6)
+    assert ds.color_intrinsics.fx == pytest.approx(613.204, abs=1e-3)
+    depth = ds[0].depth
+    assert depth.shape == (480, 640) and 0.3 < np.median(depth[depth > 0]) < 3.5 and (depth > 0).mean() > 0.9
+
+
+# --------------------------------------------------------------------------------------------------
+# Issue 32: a calibration that changes, stamps that cannot order the frames, colour of another size
+# --------------------------------------------------------------------------------------------------
+def test_a_camera_info_that_changes_mid_recording_is_refused_unless_the_selection_avoids_it(tmp_path, rng):
+    shots = small_shots(rng, n=5)
+    infos = [(32.8125, 32.8125, 19.5, 14.5)] * 3 + [(50.0, 50.0, 19.5, 14.5)] * 2
+    bag = write_bag(tmp_path / "b", shots, infos=infos)
+    with pytest.raises(InputError) as info:
+        open_dataset(small_cfg(bag))
+    message = str(info.value)
+    assert "\n" not in message and "changes during the recording: fx 32.8125" in message
+    assert "fx 50 fy 50 cx 19.5 cy 14.5 from frame 3" in message and "--stop 3" in message and "--start 3" in message
+    assert open_dataset(small_cfg(bag, stop=3)).intrinsics.fx == 32.8125
+    assert open_dataset(small_cfg(bag, start=3)).intrinsics.fx == 50.0
+    assert open_dataset(small_cfg(bag, intrinsics="40,40,19.5,14.5")).intrinsics.fx == 40.0
+
+
+def test_all_zero_header_stamps_fall_back_to_the_receive_times(tmp_path, rng):
+    shots = small_shots(rng, n=6)
+    bag = write_bag(tmp_path / "b", shots, stamps=[0.0] * 6, gt=None)
+    ds = open_dataset(small_cfg(bag))
+    assert len(ds) == 6 and ds.dropped_frames == 0
+    assert [f.timestamp for f in ds] == pytest.approx([s.t for s in shots], abs=1e-6)
+    assert all(f.color is not None for f in ds)  # colour paired by receive time too
+    assert "header stamps of /camera/depth/image_rect_raw are all zero: the bag's receive times" in ds.notes[0]
+    assert ds.describe()["times_from"].startswith("receive times")
+
+
+def test_colour_of_another_size_in_the_depths_frame_is_resized_with_a_warning(tmp_path, rng, capsys):
+    shots = small_shots(rng, n=3)
+    for s in shots:
+        s.color = cv2.resize(s.color, (80, 60))
+    bag = write_bag(tmp_path / "b", shots)
+    ds = open_dataset(small_cfg(bag))
+    assert ds.describe()["colour_registered"] is False and ds[0].color.shape == (30, 40, 3)
+    assert "are 80x60 in the depth's frame (camera_optical) and the depth images 40x30" in ds.notes[0]
+    assert "--color-topic none" in ds.notes[0]
+    shots[2].color = shots[2].color[:50]  # one colour image of yet another size: refused, with the way out
+    bag = write_bag(tmp_path / "c", shots)
+    with pytest.raises(InputError, match="colour image of frame 2 is 80x50, the first 80x60 .--color-topic none"):
+        open_dataset(small_cfg(bag))[2]

@@ -75,7 +75,7 @@ def detect(root: Path) -> tuple[str, str]:
         raise InputError(root, f"holds the files of more than one format: {which}; pass "
                                + " or ".join(f"--format {fmt}" for fmt in found))
     if not root.is_dir():
-        raise InputError(root, "not a folder, nor a ROS 2 bag file (.mcap or .db3) or a ti-fusion run log: give "
+        raise InputError(root, "not a folder, nor a ROS bag file (.bag, .mcap or .db3) or a ti-fusion run log: give "
                                "the dataset's folder")
     from ti_fusion.io.datasets.iclnuim import numbered_pngs
 

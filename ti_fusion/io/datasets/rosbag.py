@@ -44,7 +44,10 @@ from ti_fusion.config import DatasetConfig
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import make_pose, quat_to_rot
 from ti_fusion.io.datasets.base import Frame, RecordedSequence
+from ti_fusion.io.datasets.compressed import decode_compressed_color, decode_compressed_depth, is_compressed_depth
 from ti_fusion.io.datasets.imageio import depth_to_metres, intrinsics_from_numbers, parse_intrinsics
+from ti_fusion.io.datasets.realsense import depth_to_color, transform_matrix
+from ti_fusion.io.datasets.realsense import recognise as recognise_realsense
 
 IMAGE = "sensor_msgs/msg/Image"
 COMPRESSED = "sensor_msgs/msg/CompressedImage"
@@ -60,10 +63,16 @@ COLOR_ENCODINGS = {"rgb8": (3, None), "bgr8": (3, cv2.COLOR_BGR2RGB), "rgba8": (
 GROUND_TRUTH_FILES = ("groundtruth.txt", "poses.tum")
 
 
-def _typestore():
+def _typestore(ros1: bool = False):
     from rosbags.typesys import Stores, get_typestore
 
-    return get_typestore(Stores.LATEST)
+    return get_typestore(Stores.ROS1_NOETIC if ros1 else Stores.LATEST)
+
+
+def _field(msg, name: str):
+    """A CameraInfo field by its ROS 2 name (``k``, ``d``) or its ROS 1 one (``K``, ``D``)."""
+    value = getattr(msg, name, None)
+    return getattr(msg, name.upper()) if value is None else value
 
 
 def _stamp(header) -> float:
@@ -81,9 +90,15 @@ class BagFile:
     truncated = False
 
     def __init__(self, path: Path):
-        from rosbags.rosbag2 import Reader
+        # a .bag file is ROS 1 (its own serialisation and message definitions, e.g. CameraInfo's K and D)
+        self.ros1 = path.is_file() and path.suffix == ".bag"
+        if self.ros1:
+            from rosbags.rosbag1 import Reader
+        else:
+            from rosbags.rosbag2 import Reader
 
         self.path = path
+        self._store = _typestore(self.ros1)
         self._reader = Reader(path)
         self._reader.open()
         self._connections = {}
@@ -91,14 +106,14 @@ class BagFile:
             self._connections.setdefault(c.topic, []).append(c)
         self.topics = {t: (cs[0].msgtype, sum(c.msgcount for c in cs)) for t, cs in self._connections.items()}
 
-    def scan(self, topics) -> Iterator[tuple[str, tuple, bytes]]:
-        """(topic, key, raw CDR) of every message of ``topics``, in log-time order."""
+    def scan(self, topics) -> Iterator[tuple[str, tuple, bytes, int]]:
+        """(topic, key, raw message, log time in ns) of every message of ``topics``, in log-time order."""
         conns = [c for t in topics for c in self._connections[t]]
         last, rank = {}, {}
         for conn, t_ns, raw in self._reader.messages(conns):
             rank[conn.topic] = rank.get(conn.topic, 0) + 1 if last.get(conn.topic) == t_ns else 0
             last[conn.topic] = t_ns
-            yield conn.topic, (t_ns, rank[conn.topic]), raw
+            yield conn.topic, (t_ns, rank[conn.topic]), raw, t_ns
 
     def fetch(self, topic: str, key: tuple) -> bytes:
         t_ns, rank = key
@@ -106,6 +121,9 @@ class BagFile:
             if i == rank:
                 return raw
         raise InputError(self.path, f"message of {topic} at {t_ns} ns is gone (was the bag changed while read?)")
+
+    def deserialize(self, raw: bytes, msgtype: str):
+        return self._store.deserialize_ros1(raw, msgtype) if self.ros1 else self._store.deserialize_cdr(raw, msgtype)
 
     def close(self) -> None:
         self._reader.close()
@@ -121,10 +139,12 @@ class CutMcap:
         from mcap.records import Channel, Chunk, Message, Schema
 
         self.path = path
+        self._store = _typestore()
         self._file = open(path, "rb")
         self._chunk_cache: tuple[int, list] | None = None
         self._channels: dict[int, tuple[str, str]] = {}  # channel id → (topic, message type)
-        self._index: list[tuple[int, int, int]] = []   # (channel id, record offset, index in its chunk or -1)
+        self._index: list[tuple[int, int, int, int]] = []  # (channel id, record offset, index in its chunk or -1,
+        #                                                       log time in ns)
         schemas: dict[int, str] = {}
         records = self._records(0)
         counts: dict[int, int] = {}
@@ -136,7 +156,7 @@ class CutMcap:
                 elif isinstance(record, Channel):
                     self._channels[record.id] = (record.topic, schemas.get(record.schema_id, ""))
                 elif isinstance(record, Message):
-                    self._index.append((record.channel_id, offset, -1))
+                    self._index.append((record.channel_id, offset, -1, record.log_time))
                 elif isinstance(record, Chunk):
                     for k, inner in enumerate(self._chunk_records(offset, record)):
                         if isinstance(inner, Schema):
@@ -144,11 +164,11 @@ class CutMcap:
                         elif isinstance(inner, Channel):
                             self._channels[inner.id] = (inner.topic, schemas.get(inner.schema_id, ""))
                         elif isinstance(inner, Message):
-                            self._index.append((inner.channel_id, offset, k))
+                            self._index.append((inner.channel_id, offset, k, inner.log_time))
                 self.read_to = self._file.tell()
         except Exception:  # the cut: a record that the file ends inside, or garbage after the last whole one
             pass
-        for cid, _, _ in self._index:
+        for cid, _, _, _ in self._index:
             counts[cid] = counts.get(cid, 0) + 1
         self.topics = {}
         for cid, (topic, msgtype) in self._channels.items():
@@ -176,15 +196,18 @@ class CutMcap:
             self._chunk_cache = (offset, breakup_chunk(chunk))
         return self._chunk_cache[1]
 
-    def scan(self, topics) -> Iterator[tuple[str, tuple, bytes]]:
+    def scan(self, topics) -> Iterator[tuple[str, tuple, bytes, int]]:
         wanted = {cid for cid, (t, _) in self._channels.items() if t in topics}
-        for cid, offset, k in self._index:
+        for cid, offset, k, log_ns in self._index:
             if cid in wanted:
                 key = (offset, k)
-                yield self._channels[cid][0], key, self._data(key)
+                yield self._channels[cid][0], key, self._data(key), log_ns
 
     def fetch(self, topic: str, key: tuple) -> bytes:
         return self._data(key)
+
+    def deserialize(self, raw: bytes, msgtype: str):
+        return self._store.deserialize_cdr(raw, msgtype)
 
     def _data(self, key: tuple) -> bytes:
         offset, k = key
@@ -197,6 +220,7 @@ class CutMcap:
 
 def open_bag(root: Path) -> tuple[BagFile | CutMcap, str | None]:
     """The messages of the bag at ``root``, and a note when it was read in a way that the user should know."""
+    from rosbags.rosbag1 import ReaderError as Ros1ReaderError
     from rosbags.rosbag2 import ReaderError
 
     path, note = root, None
@@ -208,6 +232,12 @@ def open_bag(root: Path) -> tuple[BagFile | CutMcap, str | None]:
         path, note = files[0], f"no metadata.yaml in the folder: {files[0].name} is read on its own"
     try:
         return BagFile(path), note
+    except Ros1ReaderError as exc:
+        problem = str(exc)
+        if "index" in problem.lower():  # rosbag1 needs the index a killed recorder never wrote
+            raise InputError(path, f"a ROS 1 bag without its index ({problem.rstrip('.')}; a recording cut off?): "
+                                   "`rosbag reindex` it first") from None
+        raise InputError(path, f"cannot read the ROS 1 bag: {problem}") from None
     except ReaderError as exc:
         problem = str(exc)
     except (OSError, ValueError, KeyError) as exc:
@@ -247,14 +277,21 @@ def _image_array(msg, dtype: str, channels: int, where: str) -> np.ndarray:
     return array.astype(array.dtype.newbyteorder("="), copy=False)
 
 
-def depth_image(msg, scale: float, depth_max: float | None, where: str) -> np.ndarray:
-    """float32 metres (0 = no measurement) of a depth Image: raw units / ``scale``; NaN and ±Inf (REP 118's
-    no return, too far, too near) and non-positive values are 0."""
+def depth_raw(msg, msgtype: str, where: str) -> tuple[np.ndarray, str]:
+    """(raw array, encoding) of a depth Image or compressedDepth CompressedImage: uint16 units, or float32."""
+    if msgtype == COMPRESSED:
+        if not is_compressed_depth(msg.format):
+            raise InputError(None, f"{where}: a CompressedImage in {msg.format!r}, not compressedDepth: not depth")
+        return decode_compressed_depth(msg.format, msg.data, where)
     if msg.encoding not in DEPTH_ENCODINGS:
         raise InputError(None, f"{where}: depth encoding {msg.encoding!r}, expected one of {', '.join(DEPTH_ENCODINGS)}")
-    dtype, _ = DEPTH_ENCODINGS[msg.encoding]
-    raw = _image_array(msg, dtype, 1, where)
-    if dtype == "u2":
+    return _image_array(msg, DEPTH_ENCODINGS[msg.encoding][0], 1, where), msg.encoding
+
+
+def raw_to_metres(raw: np.ndarray, scale: float, depth_max: float | None) -> np.ndarray:
+    """float32 metres (0 = no measurement): raw units / ``scale``; NaN and ±Inf (REP 118's no return, too
+    far, too near) and non-positive values are 0."""
+    if raw.dtype == np.uint16:
         return depth_to_metres(raw, scale, depth_max)
     depth = raw.astype(np.float32) / np.float32(scale)
     bad = ~np.isfinite(depth) | (depth <= 0)
@@ -264,13 +301,15 @@ def depth_image(msg, scale: float, depth_max: float | None, where: str) -> np.nd
     return depth
 
 
+def depth_image(msg, scale: float, depth_max: float | None, where: str, msgtype: str = IMAGE) -> np.ndarray:
+    """float32 metres (0 = no measurement) of a depth Image or compressedDepth message."""
+    return raw_to_metres(depth_raw(msg, msgtype, where)[0], scale, depth_max)
+
+
 def color_image(msg, msgtype: str, where: str) -> np.ndarray:
     """uint8 H×W×3 RGB of a colour Image or CompressedImage."""
     if msgtype == COMPRESSED:
-        bgr = cv2.imdecode(np.asarray(msg.data, dtype=np.uint8).reshape(-1), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise InputError(None, f"{where}: compressed image ({msg.format!r}) cannot be decoded")
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+        return decode_compressed_color(msg.format, msg.data, where)
     if msg.encoding not in COLOR_ENCODINGS:
         raise InputError(None, f"{where}: colour encoding {msg.encoding!r}, expected one of {', '.join(COLOR_ENCODINGS)}")
     channels, conversion = COLOR_ENCODINGS[msg.encoding]
@@ -285,11 +324,28 @@ def pose_of(msg, msgtype: str) -> np.ndarray:
     return make_pose(quat_to_rot(np.array([q.x, q.y, q.z, q.w])), np.array([p.x, p.y, p.z]))
 
 
+# librealsense's names for the models OpenCV calls otherwise (its Brown-Conrady is plumb_bob's k1 k2 p1 p2 k3)
+_MODEL_ALIASES = {"brown conrady": "plumb_bob"}
+
+
+def _camera(info, width: int, height: int, where: str) -> Intrinsics:
+    """The Intrinsics of a CameraInfo (ROS 1 or 2): K, and D in its distortion model (undistorted per frame)."""
+    model = str(info.distortion_model or "")
+    return intrinsics_from_numbers(np.asarray(_field(info, "k"), dtype=np.float64), width, height, where,
+                                   np.asarray(_field(info, "d"), dtype=np.float64),
+                                   _MODEL_ALIASES.get(model.strip().lower(), model))
+
+
+def _k_text(k) -> str:
+    k = np.asarray(k, dtype=np.float64).reshape(-1)
+    return f"fx {k[0]:g} fy {k[4]:g} cx {k[2]:g} cy {k[5]:g}"
+
+
 # --------------------------------------------------------------------------------------------------
 # The dataset
 # --------------------------------------------------------------------------------------------------
 class RosbagDataset(RecordedSequence):
-    """A ROS 2 bag's depth (and colour) images as frames (see the module docstring)."""
+    """A ROS 1 or ROS 2 bag's depth (and colour) images as frames (see the module docstring)."""
 
     format = "rosbag"
 
@@ -304,21 +360,27 @@ class RosbagDataset(RecordedSequence):
         self.name = self.root.stem if self.root.is_file() else self.root.name
         if not self.root.exists():
             raise InputError(self.root, "bag does not exist")
-        self._store = _typestore()
         self.bag, note = open_bag(self.root)
         self._closer = weakref.finalize(self, self.bag.close)
         if note:
             self.note(note)
+        self.realsense = None
+        # the colour camera where colour is not registered to depth: its intrinsics and T_color_depth
+        self.color_intrinsics: Intrinsics | None = None
+        self.color_extrinsics: np.ndarray | None = None
+        self.color_calibration_source: str | None = None
         self.topics = self._choose_topics()
         self._index()
         self._intrinsics = self._find_intrinsics()
+        if self.realsense is not None:
+            self._realsense_calibration()
         self._gt_poses = self._ground_truth()
 
     # -- topics ---------------------------------------------------------------------------------
     def _first(self, topic: str):
         msgtype = self.bag.topics[topic][0]
-        for _, _, raw in self.bag.scan([topic]):
-            return self._store.deserialize_cdr(raw, msgtype)
+        for _, _, raw, _ in self.bag.scan([topic]):
+            return self.bag.deserialize(raw, msgtype)
         return None
 
     def _choose_topics(self) -> dict[str, str | None]:
@@ -334,8 +396,13 @@ class RosbagDataset(RecordedSequence):
                 depth.append(topic)
             elif encoding in COLOR_ENCODINGS:
                 color.append(topic)
-        color += [t for t in of_type.get(COMPRESSED, []) if "compressedDepth" not in (self._first(t).format or "")]
+        for topic in of_type.get(COMPRESSED, []):
+            (depth if is_compressed_depth(self._first(topic).format) else color).append(topic)
         infos = of_type.get(CAMERA_INFO, [])
+        self.realsense = recognise_realsense(bag.topics, cfg.depth_topic, cfg.color_topic)
+        if self.realsense is not None:  # the SDK's topics say which stream is which
+            depth = [self.realsense.depth]
+            color = [self.realsense.color] if self.realsense.color else color
 
         listed = ", ".join(f"{t} ({bag.topics[t][0]})" for t in sorted(bag.topics)) or "none"
         chosen, ambiguous = {}, []
@@ -347,20 +414,27 @@ class RosbagDataset(RecordedSequence):
                     raise InputError(self.root, f"{option} {given}: no such topic in the bag (topics: {listed})")
                 msgtype = bag.topics[given][0]
                 if msgtype not in types or (candidates is not None and given not in candidates):
-                    encoding = f" in {self._first(given).encoding}" if msgtype == IMAGE else ""
+                    first = self._first(given) if msgtype in (IMAGE, COMPRESSED) else None
+                    encoding = f" in {first.encoding}" if msgtype == IMAGE else \
+                        f" in format {first.format!r}" if msgtype == COMPRESSED else ""
                     raise InputError(self.root, f"{option} {given}: a {msgtype} topic{encoding}, not a {kind} topic")
                 return given
             if len(candidates) > 1:
                 ambiguous.append(f"{kind}: {', '.join(candidates)} ({option} TOPIC)")
             return candidates[0] if len(candidates) == 1 else None
 
-        chosen["depth"] = pick("depth", cfg.depth_topic, depth, "--depth-topic", (IMAGE,))
+        chosen["depth"] = pick("depth", cfg.depth_topic, depth, "--depth-topic", (IMAGE, COMPRESSED))
         no_color = str(cfg.color_topic).lower() == "none"
         chosen["color"] = None if no_color else pick("colour", cfg.color_topic, color, "--color-topic",
                                                       (IMAGE, COMPRESSED))
         chosen["camera_info"] = None
         if not cfg.intrinsics:
             sibling = chosen["depth"].rsplit("/", 1)[0] + "/camera_info" if chosen["depth"] else None
+            if self.realsense is not None and not cfg.camera_info_topic:
+                sibling = self.realsense.depth_info
+            elif chosen["depth"] and sibling not in infos and bag.topics[chosen["depth"]][0] == COMPRESSED:
+                # image_transport's topic: /camera/depth/image_raw/compressedDepth beside /camera/depth/camera_info
+                sibling = chosen["depth"].rsplit("/", 2)[0] + "/camera_info"
             if not cfg.camera_info_topic and sibling in infos:
                 chosen["camera_info"] = sibling
             else:
@@ -371,8 +445,8 @@ class RosbagDataset(RecordedSequence):
         if ambiguous:
             raise InputError(self.root, "more than one candidate topic: " + "; ".join(ambiguous))
         if chosen["depth"] is None:
-            raise InputError(self.root, f"no depth image topic (a {IMAGE} in {', '.join(DEPTH_ENCODINGS)}); topics: "
-                                        f"{listed}")
+            raise InputError(self.root, f"no depth image topic (a {IMAGE} in {', '.join(DEPTH_ENCODINGS)}, or a "
+                                        f"compressedDepth {COMPRESSED}); topics: {listed}")
         if not cfg.intrinsics and chosen["camera_info"] is None:
             raise InputError(self.root, f"no {CAMERA_INFO} topic to give the intrinsics: pass --intrinsics "
                                         "fx,fy,cx,cy or --intrinsics FILE")
@@ -382,54 +456,67 @@ class RosbagDataset(RecordedSequence):
     def _index(self) -> None:
         topics = self.topics
         read = [t for t in (topics["depth"], topics["color"], topics["camera_info"], topics["ground_truth"]) if t]
-        depth, color, gt = [], [], []
-        self._info, self._first_depth, self._first_color = None, None, None
+        depth, color, gt, infos = [], [], [], []
+        self._first_depth, self._first_color = None, None
         try:
-            for topic, key, raw in self.bag.scan(read):
+            for topic, key, raw, log_ns in self.bag.scan(read):
                 msgtype = self.bag.topics[topic][0]
-                msg = self._store.deserialize_cdr(raw, msgtype)
+                msg = self.bag.deserialize(raw, msgtype)
                 if topic == topics["depth"]:
-                    depth.append((_stamp(msg.header), key))
+                    depth.append((_stamp(msg.header), key, log_ns * 1e-9))
                     self._first_depth = msg if self._first_depth is None else self._first_depth
                 elif topic == topics["color"]:
-                    color.append((_stamp(msg.header), key))
+                    color.append((_stamp(msg.header), key, log_ns * 1e-9))
                     self._first_color = msg if self._first_color is None else self._first_color
                 elif topic == topics["camera_info"]:
-                    self._info = msg if self._info is None else self._info
+                    infos.append((_stamp(msg.header), msg, log_ns * 1e-9))
                 else:
-                    gt.append((_stamp(msg.header), pose_of(msg, msgtype)))
+                    gt.append((_stamp(msg.header), pose_of(msg, msgtype), log_ns * 1e-9))
         except InputError:
             raise
         except Exception as exc:  # rosbags' ReaderError, a CDR decoding error: the bag is damaged
             raise InputError(self.root, f"cannot read the bag's messages: {exc}") from None
         if not depth:
             raise InputError(self.root, f"empty sequence: no message on {topics['depth']}")
-        self._gt_samples = gt
+
+        # header stamps that cannot order the frames (all zero, all one value): the recorder's receive times
+        header = np.array([s for s, _, _ in depth])
+        self.stamps_from = "header stamps"
+        if len(depth) > 1 and np.all(header == header[0]):
+            what = "all zero" if header[0] == 0 else f"all {header[0]:.6f}"
+            self.note(f"the header stamps of {topics['depth']} are {what}: the bag's receive times are used as the "
+                      "frames' times (and for colour, camera info and ground truth)")
+            self.stamps_from = "receive times (the header stamps are unusable)"
+            depth, color = [(t, k, t) for _, k, t in depth], [(t, k, t) for _, k, t in color]
+            infos, gt = [(t, m, t) for _, m, t in infos], [(t, T, t) for _, T, t in gt]
+        self._gt_samples = [(s, T) for s, T, _ in gt]
+        self._infos = [(s, m) for s, m, _ in infos]
 
         if any(b[0] < a[0] for a, b in zip(depth, depth[1:])):
             self.note(f"the depth messages on {topics['depth']} are not in header-stamp order in the bag: they are "
                       "taken in stamp order")
             depth.sort(key=lambda x: x[0])
-        stamps = np.array([s for s, _ in depth])
+        stamps = np.array([s for s, _, _ in depth])
         repeated = np.flatnonzero(np.diff(stamps) == 0) + 1
         if len(repeated):
             self.note(f"{len(repeated)} depth messages repeat the header stamp of the one before: left out")
             self.dropped_frames = len(repeated)
             left_out = set(repeated.tolist())
             depth = [d for i, d in enumerate(depth) if i not in left_out]
-            stamps = np.array([s for s, _ in depth])
+            stamps = np.array([s for s, _, _ in depth])
         self._stamps = stamps
-        self._depth_keys = [k for _, k in depth]
-        msg = self._first_depth
-        self.encoding = msg.encoding
-        self.depth_scale = float(self.config.depth_scale) or DEPTH_ENCODINGS[msg.encoding][1]
+        self._depth_keys = [k for _, k, _ in depth]
+        where = f"{self.root}: {topics['depth']} message 0"
+        first, self.encoding = depth_raw(self._first_depth, self.bag.topics[topics["depth"]][0], where)
+        self.depth_scale = float(self.config.depth_scale) or DEPTH_ENCODINGS[self.encoding][1]
         self.depth_scale_source = ("--depth-scale / dataset.depth_scale" if self.config.depth_scale
-                                   else f"REP 118 for {msg.encoding}")
-        self._size = (int(msg.width), int(msg.height))
+                                   else f"REP 118 for {self.encoding}")
+        self._size = (int(first.shape[1]), int(first.shape[0]))
         self._color_keys: list = [None] * len(depth)
         self.color_registered = None
+        self._color_size = None
         if color:
-            self._pair_colour(color)
+            self._pair_colour([(s, k) for s, k, _ in color])
 
     def _pair_colour(self, color: list) -> None:
         from ti_fusion.io.trajectory import associate
@@ -442,15 +529,27 @@ class RosbagDataset(RecordedSequence):
         unpaired = len(self._stamps) - len(i_depth)
         if unpaired:
             self.note(f"{unpaired} of {len(self._stamps)} depth images have no colour image within {tolerance:g} s "
-                      "(header stamps): they are used without colour (--set dataset.max_time_difference=SECONDS "
+                      f"({self.stamps_from}): they are used without colour (--set dataset.max_time_difference=SECONDS "
                       "widens the window)")
+        topic = self.topics["color"]
+        first = color_image(self._first_color, self.bag.topics[topic][0], f"{self.root}: {topic} message 0")
+        self._color_size = (first.shape[1], first.shape[0])
         depth_frame = self._first_depth.header.frame_id
         color_frame = self._first_color.header.frame_id
         self.color_registered = bool(depth_frame) and depth_frame == color_frame
-        if not self.color_registered and depth_frame and color_frame:
+        if self.realsense is not None:
+            self.color_registered = False  # a separate sensor: registered through the recorded extrinsics
+        elif not self.color_registered and depth_frame and color_frame:
             self.note(f"colour ({color_frame}) is not registered to depth ({depth_frame}): it only colours the map")
         elif not depth_frame or not color_frame:
             self.color_registered = None  # no frame_id to tell
+        if self._color_size != self._size and self.realsense is None:
+            (w, h), (dw, dh) = self._color_size, self._size
+            where = f"in the depth's frame ({depth_frame}) " if self.color_registered else ""
+            self.note(f"the colour images on {topic} are {w}x{h} {where}and the depth images {dw}x{dh}: colour is "
+                      "not registered to depth, so it is resized to the depth images' size and only colours the map "
+                      "(--color-topic none reads no colour)")
+            self.color_registered = False
 
     # -- intrinsics and ground truth ------------------------------------------------------------
     def _find_intrinsics(self) -> Intrinsics:
@@ -460,17 +559,75 @@ class RosbagDataset(RecordedSequence):
             text = ",".join(str(v) for v in spec) if isinstance(spec, (list, tuple)) else spec
             self.intrinsics_source = f"{text} (--intrinsics / dataset.intrinsics)"
             return parse_intrinsics(spec, width, height)
-        topic, info = self.topics["camera_info"], self._info
-        if info is None:
+        topic = self.topics["camera_info"]
+        if not self._infos:
             raise InputError(self.root, f"no message on {topic}: pass --intrinsics fx,fy,cx,cy or FILE")
+        info = self._info_in_force()
         if (int(info.width), int(info.height)) not in ((width, height), (0, 0)):
             raise InputError(self.root, f"{topic} is for {info.width}x{info.height} images, the depth images on "
                                         f"{self.topics['depth']} are {width}x{height} (pass --intrinsics)")
         self.intrinsics_source = f"{topic} (CameraInfo K)"
-        if np.any(np.asarray(info.d, dtype=np.float64) != 0):
-            self.note(f"{topic} has {info.distortion_model} distortion: the depth images are used as they are "
-                      "(record rectified ones, image_rect)")
-        return intrinsics_from_numbers(np.asarray(info.k, dtype=np.float64), width, height, f"{self.root}: {topic}")
+        return _camera(info, width, height, f"{self.root}: {topic}")
+
+    def _info_in_force(self):
+        """The CameraInfo of the selected frames: the last one at or before each frame's stamp (the first
+        before any). One calibration serves the whole run, so a K that changes between selected frames is
+        refused, naming the frame, with the selection that avoids it."""
+        stamps = np.array([s for s, _ in self._infos])
+        order = np.argsort(stamps, kind="stable")
+        infos = [self._infos[i][1] for i in order]
+        stamps = stamps[order]
+        selected = self.indices
+        in_force = np.maximum(np.searchsorted(stamps, self._stamps[selected], side="right") - 1, 0)
+        first = infos[in_force[0]]
+
+        def calibration(m):
+            return (int(m.width), int(m.height), tuple(np.round(np.asarray(_field(m, "k"), np.float64), 9)))
+
+        for n, i in zip(selected, in_force):
+            if calibration(infos[i]) != calibration(first):
+                topic, k0, k1 = self.topics["camera_info"], _field(first, "k"), _field(infos[i], "k")
+                first_frame = selected[0]
+                raise InputError(self.root, f"{topic} changes during the recording: {_k_text(k0)} up to frame "
+                                            f"{n - 1}, {_k_text(k1)} from frame {n} (stamp {self._stamps[n]:.6f}); one "
+                                            f"calibration serves a run: read the frames before the change (--start "
+                                            f"{first_frame} --stop {n}) or after it (--start {n}), or state one with "
+                                            "--intrinsics")
+        return first
+
+    def _realsense_calibration(self) -> None:
+        """A RealSense recording's depth units, and its colour camera (intrinsics, extrinsics) for registration."""
+        rs, cfg = self.realsense, self.config
+        if not cfg.depth_scale and rs.depth_units:
+            units = float(self._first(rs.depth_units).data)  # metres per depth unit
+            if not np.isfinite(units) or units <= 0:
+                raise InputError(self.root, f"{rs.depth_units}: depth units {units}: pass --depth-scale")
+            self.depth_scale = float(f"{1.0 / units:.6g}")  # float32 0.001 → 1000, not 999.99995
+            self.depth_scale_source = f"{rs.depth_units} ({units:.6g} m per unit, RealSense recording)"
+        elif not cfg.depth_scale:
+            self.note("the RealSense recording holds no Depth Units option: the depth is taken as millimetres")
+        if self.topics["color"] is None or self.topics["color"] != rs.color:
+            return
+        if not (rs.color_info and rs.color_tf):
+            self.note(f"the recording holds no {'camera_info' if not rs.color_info else 'extrinsics (tf)'} of the "
+                      "colour stream: colour only colours the map, resized")
+            return
+        info = self._first(rs.color_info)
+        w, h = self._color_size
+        self.color_intrinsics = _camera(info, w, h, f"{self.root}: {rs.color_info}")
+        depth_tf = transform_matrix(self._first(rs.depth_tf)) if rs.depth_tf else None
+        self.color_extrinsics = depth_to_color(depth_tf, transform_matrix(self._first(rs.color_tf)))
+        self.color_calibration_source = f"{rs.color_info} and {rs.color_tf} (RealSense recording)"
+
+    def describe_format(self) -> str:
+        line = super().describe_format() + f"; depth scale from {self.depth_scale_source}; times from {self.stamps_from}"
+        if self.color_extrinsics is not None:
+            C, t = self.color_intrinsics, self.color_extrinsics[:3, 3]
+            line += (f"; colour camera fx {C.fx:g} fy {C.fy:g} cx {C.cx:g} cy {C.cy:g} at {C.width}x{C.height}, "
+                     f"depth-to-colour translation ({t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}) m, "
+                     f"rotation {np.degrees(np.arccos(np.clip((np.trace(self.color_extrinsics[:3, :3]) - 1) / 2, -1, 1))):.2f} deg "
+                     f"({self.color_calibration_source})")
+        return line
 
     def _ground_truth(self) -> list[np.ndarray | None]:
         from ti_fusion.io.datasets.tum import interpolate_pose
@@ -514,26 +671,30 @@ class RosbagDataset(RecordedSequence):
     def _load_raw(self, raw_index: int) -> Frame:
         topics, K = self.topics, self._intrinsics
         where = f"{self.root}: {topics['depth']} message {raw_index}"
-        msg = self._decode(topics["depth"], self._depth_keys[raw_index])
-        if (int(msg.width), int(msg.height)) != self._size:
-            raise InputError(None, f"{where}: image is {msg.width}x{msg.height}, the first is {K.width}x{K.height}")
-        depth = depth_image(msg, self.depth_scale, self.config.depth_max, where)
+        raw, _ = depth_raw(self._decode(topics["depth"], self._depth_keys[raw_index]),
+                           self.bag.topics[topics["depth"]][0], where)
+        if (raw.shape[1], raw.shape[0]) != self._size:
+            raise InputError(None, f"{where}: image is {raw.shape[1]}x{raw.shape[0]}, the first is "
+                                   f"{K.width}x{K.height}")
+        depth = raw_to_metres(raw, self.depth_scale, self.config.depth_max)
         color = None
         if self._color_keys[raw_index] is not None:
             msgtype = self.bag.topics[topics["color"]][0]
             color = color_image(self._decode(topics["color"], self._color_keys[raw_index]), msgtype,
                                 f"{self.root}: {topics['color']}")
-            if color.shape[:2] != depth.shape:
-                if self.color_registered:
-                    raise InputError(None, f"{self.root}: {topics['color']}: colour image is {color.shape[1]}x"
-                                           f"{color.shape[0]} in the depth's frame, the depth {K.width}x{K.height}")
+            if (color.shape[1], color.shape[0]) != self._color_size:
+                (w, h) = self._color_size
+                raise InputError(None, f"{self.root}: {topics['color']}: the colour image of frame {raw_index} is "
+                                       f"{color.shape[1]}x{color.shape[0]}, the first {w}x{h} (--color-topic none "
+                                       "reads no colour)")
+            if color.shape[:2] != depth.shape and self.color_extrinsics is None:
                 color = cv2.resize(color, (K.width, K.height), interpolation=cv2.INTER_AREA)
         return self._frame(raw_index, float(self._stamps[raw_index]), depth, color,
                            {"depth_topic": topics["depth"], "color_topic": topics["color"]})
 
     def _decode(self, topic: str, key):
         try:
-            return self._store.deserialize_cdr(self.bag.fetch(topic, key), self.bag.topics[topic][0])
+            return self.bag.deserialize(self.bag.fetch(topic, key), self.bag.topics[topic][0])
         except InputError:
             raise
         except Exception as exc:
@@ -543,6 +704,12 @@ class RosbagDataset(RecordedSequence):
         info = super().describe()
         info.update(topics=dict(self.topics), depth_encoding=self.encoding, depth_scale_from=self.depth_scale_source,
                     colour=self.topics["color"] is not None, colour_registered=self.color_registered,
+                    times_from=self.stamps_from, realsense=self.realsense is not None,
+                    colour_camera=None if self.color_extrinsics is None else {
+                        "fx": self.color_intrinsics.fx, "fy": self.color_intrinsics.fy, "cx": self.color_intrinsics.cx,
+                        "cy": self.color_intrinsics.cy, "width": self.color_intrinsics.width,
+                        "height": self.color_intrinsics.height, "T_color_depth": self.color_extrinsics.tolist(),
+                        "source": self.color_calibration_source},
                     ground_truth_from=self.ground_truth_source, truncated=self.bag.truncated,
                     ground_truth_frames=self.ground_truth_frames())
         return info
@@ -561,6 +728,8 @@ class RosbagDataset(RecordedSequence):
         if root.is_file():
             if root.suffix == ".mcap":  # an MCAP of another profile is no bag (ti-fusion's log.mcap: "log")
                 return "a .mcap file" if mcap_profile(root) in ("ros2", None) else None
+            if root.suffix == ".bag":
+                return "a .bag file (ROS 1)"
             return "a .db3 file" if root.suffix == ".db3" else None
         meta = root / "metadata.yaml"
         if meta.is_file():

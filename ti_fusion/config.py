@@ -479,6 +479,19 @@ class LoopConfig:
 
 
 @dataclass
+class MeshConfig:
+    voxel_size: Annotated[float, Range(ge=0.001, le=0.5)] = 0.01  # metres: the edge of the grid's cubes (docs/MESH.md)
+    min_weight: NonNegative = 3.0    # only surfels at least this confident are meshed (fusion.unstable_weight: the
+                                     # confirmed ones, never removed as unstable)
+    band: Annotated[float, Range(ge=1.0, le=4.0)] = 2.0  # voxels: how far along its normal a surfel writes its distance
+    max_reach: Annotated[float, Range(ge=1.0, le=4.0)] = 2.0  # voxels: a surfel writes across its normal out to its
+                                     # radius, at least 1 voxel and at most this (gaps wider than twice it stay open)
+    max_voxels: Count = 40_000_000   # the sparse grid's bound (~2 GB with marching cubes' copies): more stops with a message
+    max_triangles: NonNegativeInt = 0  # > 0: decimate the mesh to at most this many triangles (vertex clustering)
+    log_triangles: NonNegativeInt = 300_000  # /map/mesh in the log: decimated to at most this many triangles; 0 = not logged
+
+
+@dataclass
 class LogConfig:
     map_every: NonNegativeInt = 30   # frames between /map/points messages (and one at the end); 0 = at the end only
     map_max_points: Count = 200_000  # /map/points is downsampled to at most this many points
@@ -496,6 +509,7 @@ class Config:
     slam: SLAMConfig = field(default_factory=SLAMConfig)
     vo: VOConfig = field(default_factory=VOConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
+    mesh: MeshConfig = field(default_factory=MeshConfig)
     log: LogConfig = field(default_factory=LogConfig)
 
     def frame_input_level(self, width: int) -> int:

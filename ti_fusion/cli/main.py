@@ -49,7 +49,7 @@ from ti_fusion.io.outputs import RunDir, base_summary
 #     OUT_FROM_POSITIONAL: str          (optional) the positional that names the output folder, instead of --out
 #     add_arguments(parser) -> None     its own options
 #     run(ctx) -> dict                  does the work; returns the command's own summary fields
-COMMAND_NAMES = ("synth", "icp", "fuse", "slam", "vo", "inspect")
+COMMAND_NAMES = ("synth", "icp", "fuse", "slam", "vo", "inspect", "mesh")
 
 # Signals that stop a run the way Ctrl-C does: what kill, timeout, systemd and container runtimes send
 # (SIGTERM), and a closed terminal (SIGHUP).
@@ -306,7 +306,8 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
                 config.log.progress = False
             positional = getattr(module, "OUT_FROM_POSITIONAL", None)  # a command whose positional names its output
             out_arg = getattr(args, positional) if positional else args.out
-            inputs = [config.dataset.path if getattr(module, "USES_DATASET", False) else "", getattr(args, "log", "")]
+            inputs = [config.dataset.path if getattr(module, "USES_DATASET", False) else "", getattr(args, "log", ""),
+                      getattr(args, "map", "")]
             _check_out_holds_no_input(out_arg, inputs, positional.upper() if positional else "--out")
             out = RunDir(command, out_arg, overwrite=args.overwrite)
             backend = init_backend(args.arch) if getattr(module, "USES_TAICHI", False) else None

@@ -24,14 +24,17 @@ _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8
 
 
 def write_ply(path: str | Path, position: np.ndarray, normal: np.ndarray | None = None,
-              colour: np.ndarray | None = None) -> Path:
-    """Write N points; ``colour`` is RGB in [0, 255] (any numeric dtype, rounded and clipped).
+              colour: np.ndarray | None = None, extra: dict[str, np.ndarray] | None = None) -> Path:
+    """Write N points; ``colour`` is RGB in [0, 255] (any numeric dtype, rounded and clipped); ``extra``:
+    more float32 vertex properties after blue, by name (a map's confidence and radius, which viewers ignore).
 
     The file appears whole or not at all (``outputs.atomic_path``); a failed write raises ``OutputError``.
     """
     path = Path(path)
     n = len(position)
-    data = np.zeros(n, dtype=VERTEX_DTYPE)
+    extra = extra or {}
+    dtype = np.dtype(VERTEX_DTYPE.descr + [(name, "<f4") for name in extra])
+    data = np.zeros(n, dtype=dtype)
     data["x"], data["y"], data["z"] = np.asarray(position, dtype=np.float32).T
     if normal is not None:
         data["nx"], data["ny"], data["nz"] = np.asarray(normal, dtype=np.float32).T
@@ -40,10 +43,12 @@ def write_ply(path: str | Path, position: np.ndarray, normal: np.ndarray | None 
     else:
         rgb = np.full((n, 3), 200, dtype=np.uint8)
     data["red"], data["green"], data["blue"] = rgb.T
+    for name, values in extra.items():
+        data[name] = np.asarray(values, dtype=np.float32).reshape(n)
     header = ["ply", "format binary_little_endian 1.0", "comment written by ti-fusion",
               f"element vertex {n}"]
-    header += [f"property {'float' if VERTEX_DTYPE[name].kind == 'f' else 'uchar'} {name}"
-               for name in VERTEX_DTYPE.names]
+    header += [f"property {'float' if dtype[name].kind == 'f' else 'uchar'} {name}"
+               for name in dtype.names]
     header.append("end_header")
     with atomic_write(path, "wb") as f:  # never a truncated map that looks complete
         f.write(("\n".join(header) + "\n").encode("ascii"))

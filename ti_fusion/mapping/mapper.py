@@ -178,7 +178,9 @@ class SurfelMapper:
         from ti_fusion.io.ply import write_ply
 
         data = self.map.to_numpy()
-        return write_ply(path, data["position"], data["normal"], data["colour"])
+        # confidence and radius: what ``ti-fusion mesh map.ply`` needs to keep only confirmed surfels
+        return write_ply(path, data["position"], data["normal"], data["colour"],
+                         {"confidence": data["weight"], "radius": data["radius"]})
 
 
 Fusion = SurfelMapper  # the name the issue uses

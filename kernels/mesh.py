@@ -1,0 +1,130 @@
+"""The surfels splatted into a sparse signed-distance grid: the kernel behind ``ti_fusion.mapping.mesh``.
+
+Each confirmed surfel writes, into every voxel centre within its lateral reach ``R`` (across its normal) and
+within ``band`` along its normal, the signed distance of that centre to its plane, ``d = n·(x − p)``
+(positive in front of the surface), with the weight ``w·exp(−2 l²/R²)`` (``w`` its confidence, ``l`` the
+centre's distance from the normal line through ``p``), and its colour with the same weight. The weighted
+mean of those plane distances is an implicit moving-least-squares surface (Kolluri 2005) of the surfels,
+whose zero level is the mesh; a voxel no surfel reaches keeps weight 0 and no surface is made there.
+
+Voxels live in blocks of ``BLOCK_EDGE``³; only the blocks the surfels reach exist (their packed keys,
+sorted, found by binary search), so memory grows with the surface, not with the bounding box. Voxel
+(i, j, k) of the grid has its centre at (i, j, k)·voxel in the world; block keys pack the block's
+coordinates relative to ``origin`` into 10 bits each. Sums are 32-bit float atomics, so that Vulkan runs
+the kernel too; the order of the additions, and so the last bits, may differ between runs.
+"""
+
+import taichi as ti
+
+BLOCK_EDGE = 8                       # voxels along each edge of a block
+BLOCK_VOXELS = BLOCK_EDGE ** 3
+KEY_BITS = 10                        # bits per axis of a packed block key: 1024 blocks per axis at most
+KEY_SPAN = 1 << KEY_BITS
+
+Vec3Array = ti.types.ndarray(dtype=ti.math.vec3, ndim=1)
+FloatArray = ti.types.ndarray(dtype=ti.f32, ndim=1)
+IntArray = ti.types.ndarray(dtype=ti.i32, ndim=1)
+
+
+@ti.func
+def find_block(keys: ti.template(), n_blocks: ti.i32, key: ti.i32) -> ti.i32:
+    """Index of ``key`` in the sorted ``keys[:n_blocks]``, or −1."""
+    lo, hi = 0, n_blocks
+    while lo < hi:
+        mid = (lo + hi) // 2
+        if keys[mid] < key:
+            lo = mid + 1
+        else:
+            hi = mid
+    found = -1
+    if lo < n_blocks and keys[lo] == key:
+        found = lo
+    return found
+
+
+@ti.kernel
+def splat(position: Vec3Array, normal: Vec3Array, colour: Vec3Array, weight: FloatArray, reach: FloatArray,
+          n: ti.i32, keys: IntArray, n_blocks: ti.i32, origin: ti.math.ivec3, voxel: ti.f32, band: ti.f32,
+          sdf: FloatArray, wsum: FloatArray, rgb: Vec3Array):
+    """Add surfels ``[0, n)`` into the blocks ``keys[:n_blocks]`` (``sdf`` holds Σ w·d, ``wsum`` Σ w, ``rgb``
+    Σ w·colour, at ``block·BLOCK_VOXELS + (lx·E + ly)·E + lz``). A voxel whose block is not listed is skipped:
+    the caller lists every block the surfels reach."""
+    for i in range(n):
+        p = position[i]
+        nrm = normal[i]
+        r = reach[i]
+        # the disc's voxels: a cylinder of radius r and half-height band about the normal; walk the two axes
+        # across the normal's largest component over the cylinder's bounding box, and along that axis only
+        # the voxels within band of the plane (a few per column instead of the whole box)
+        a = 2
+        if ti.abs(nrm.x) >= ti.abs(nrm.y) and ti.abs(nrm.x) >= ti.abs(nrm.z):
+            a = 0
+        elif ti.abs(nrm.y) >= ti.abs(nrm.z):
+            a = 1
+        o1 = (a + 1) % 3
+        o2 = (a + 2) % 3
+        half = cylinder_half_extent(nrm, r, band)
+        lo = ti.cast(ti.ceil((p - half) / voxel), ti.i32)
+        hi = ti.cast(ti.floor((p + half) / voxel), ti.i32)
+        na = pick(nrm, a)
+        for i1 in range(pick_i(lo, o1), pick_i(hi, o1) + 1):
+            for i2 in range(pick_i(lo, o2), pick_i(hi, o2) + 1):
+                s = pick(nrm, o1) * (i1 * voxel - pick(p, o1)) + pick(nrm, o2) * (i2 * voxel - pick(p, o2))
+                centre = pick(p, a) - s / na  # where this column meets the plane
+                hw = band / ti.abs(na)
+                for ia in range(ti.cast(ti.ceil((centre - hw) / voxel), ti.i32),
+                                ti.cast(ti.floor((centre + hw) / voxel), ti.i32) + 1):
+                    g = ti.math.ivec3(0)
+                    for k in ti.static(range(3)):
+                        g[k] = i1 if k == o1 else (i2 if k == o2 else ia)
+                    add_voxel(g, p, nrm, colour[i], weight[i], r, voxel, band, keys, n_blocks, origin, sdf, wsum, rgb)
+
+
+@ti.func
+def pick(v, k: ti.i32) -> ti.f32:
+    """Component ``k`` of a float 3-vector (a run-time index)."""
+    out = v.z
+    if k == 0:
+        out = v.x
+    elif k == 1:
+        out = v.y
+    return out
+
+
+@ti.func
+def pick_i(v, k: ti.i32) -> ti.i32:
+    """Component ``k`` of an integer 3-vector (a run-time index)."""
+    out = v.z
+    if k == 0:
+        out = v.x
+    elif k == 1:
+        out = v.y
+    return out
+
+
+@ti.func
+def cylinder_half_extent(nrm, r: ti.f32, band: ti.f32):
+    """Half the axis-aligned box of a cylinder of radius r and half-height band about the unit axis nrm."""
+    return r * ti.sqrt(ti.max(1.0 - nrm * nrm, 0.0)) + band * ti.abs(nrm)
+
+
+@ti.func
+def add_voxel(g, p, nrm, c, w: ti.f32, r: ti.f32, voxel: ti.f32, band: ti.f32, keys: ti.template(),
+              n_blocks: ti.i32, origin, sdf: ti.template(), wsum: ti.template(), rgb: ti.template()):
+    x = ti.cast(g, ti.f32) * voxel
+    off = x - p
+    d = nrm.dot(off)
+    l2 = off.dot(off) - d * d
+    if ti.abs(d) <= band and l2 <= r * r:
+        bx = (g.x >> 3) - origin.x  # floor division by BLOCK_EDGE, negatives included
+        by = (g.y >> 3) - origin.y
+        bz = (g.z >> 3) - origin.z
+        b = -1
+        if 0 <= bx < KEY_SPAN and 0 <= by < KEY_SPAN and 0 <= bz < KEY_SPAN:
+            b = find_block(keys, n_blocks, (bx << (2 * KEY_BITS)) | (by << KEY_BITS) | bz)
+        if b >= 0:
+            slot = b * BLOCK_VOXELS + ((g.x & 7) * BLOCK_EDGE + (g.y & 7)) * BLOCK_EDGE + (g.z & 7)
+            wt = w * ti.exp(-2.0 * ti.max(l2, 0.0) / (r * r))
+            ti.atomic_add(sdf[slot], wt * d)
+            ti.atomic_add(wsum[slot], wt)
+            ti.atomic_add(rgb[slot], wt * c)

@@ -1,0 +1,224 @@
+"""The mesh of the surfels: the splat kernel against NumPy float64 (cpu and vulkan), the surface it makes
+(planes, a sphere, holes kept), bad input as one line, the files read back by trimesh, ``ti-fusion mesh``."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ti_fusion.config import MeshConfig
+from ti_fusion.errors import InputError
+from ti_fusion.mapping import mesh as M
+
+E = M.E
+
+
+def reference_splat(sel: dict, cfg: MeshConfig):
+    """Σ w·d, Σ w and Σ w·colour per voxel, by brute force over each surfel's whole box, float64: a dict from
+    the voxel's integer coordinates to (sdf_sum, w_sum, rgb_sum)."""
+    v, band = cfg.voxel_size, cfg.band * cfg.voxel_size
+    reach = M.reach_of(sel, cfg).astype(np.float64)
+    out: dict = {}
+    for p, n, c, w, r in zip(sel["position"].astype(np.float64), sel["normal"].astype(np.float64),
+                             sel["colour"].astype(np.float64), sel["weight"].astype(np.float64), reach):
+        ext = np.sqrt(r * r + band * band) + v
+        lo, hi = np.floor((p - ext) / v).astype(int), np.ceil((p + ext) / v).astype(int)
+        g = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi)], indexing="ij"), -1).reshape(-1, 3)
+        off = g * v - p
+        d = off @ n
+        l2 = np.einsum("ij,ij->i", off, off) - d * d
+        hit = (np.abs(d) <= band) & (l2 <= r * r)
+        wt = w * np.exp(-2.0 * np.maximum(l2[hit], 0) / (r * r))
+        for key, wi, di in zip(map(tuple, g[hit]), wt, d[hit]):
+            s, ws, rgb = out.get(key, (0.0, 0.0, np.zeros(3)))
+            out[key] = (s + wi * di, ws + wi, rgb + wi * c)
+    return out
+
+
+def random_surfels(rng, n: int, voxel: float, centre=(0.0, 0.0, 0.0)) -> dict:
+    """Surfels in a 12-voxel cube around ``centre`` (both signs of every coordinate, block edges crossed),
+    random normals, radii from a third of a voxel to three voxels (below and above the reach's clip), random
+    confidence and colour."""
+    n_ = rng.normal(size=(n, 3))
+    return {"position": (np.asarray(centre) + rng.uniform(-6 * voxel, 6 * voxel, (n, 3))).astype(np.float32),
+            "normal": (n_ / np.linalg.norm(n_, axis=1, keepdims=True)).astype(np.float32),
+            "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+            "weight": rng.uniform(0.5, 20.0, n).astype(np.float32),
+            "radius": rng.uniform(voxel / 3, 3 * voxel, n).astype(np.float32)}
+
+
+@pytest.mark.parametrize("centre", [(0.0, 0.0, 0.0), (1.234, -2.5, 0.77)])
+def test_splat_matches_numpy(arch, rng, centre):
+    cfg = MeshConfig(voxel_size=0.01, min_weight=0.0)
+    sel = M.select_surfels(random_surfels(rng, 150, cfg.voxel_size, centre), cfg.min_weight)
+    grid, vox = M.splat_surfels(sel, cfg)
+    ref = reference_splat(sel, cfg)
+    keys = np.array(list(ref))
+    sums = np.array([ref[k][:2] for k in ref])
+    rgb = np.array([ref[k][2] for k in ref])
+    idx = grid.find(np.floor_divide(keys, E) - grid.origin)
+    assert (idx >= 0).all(), "a voxel a surfel reaches lies in no block of the grid"
+    loc = np.mod(keys, E)
+    w = vox["weight"][idx, loc[:, 0], loc[:, 1], loc[:, 2]]
+    np.testing.assert_allclose(w, sums[:, 1], rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(vox["sdf"][idx, loc[:, 0], loc[:, 1], loc[:, 2]], sums[:, 0] / sums[:, 1],
+                               rtol=1e-3, atol=2e-6)
+    np.testing.assert_allclose(vox["colour"][idx, loc[:, 0], loc[:, 1], loc[:, 2]], rgb / sums[:, 1:2],
+                               rtol=1e-3, atol=1e-2)
+    assert int((vox["weight"] > 0).sum()) == len(ref), "the kernel reached voxels the reference did not"
+
+
+def test_splat_selects_confirmed_finite(rng):
+    s = random_surfels(rng, 20, 0.01)
+    s["weight"][:5] = 1.0
+    s["position"][5] = np.nan
+    s["normal"][6] = 0.0
+    sel = M.select_surfels(s, 3.0)
+    assert len(sel["position"]) == int((s["weight"] >= 3.0).sum()) - int(s["weight"][5] >= 3) - int(s["weight"][6] >= 3)
+    assert np.allclose(np.linalg.norm(sel["normal"], axis=1), 1.0, atol=1e-6)
+
+
+def plane_surfels(rng, normal, centre, half: float, spacing: float, hole: float = 0.0, colour=(200, 40, 30)):
+    """Surfels on a square of side 2·half through ``centre`` with ``normal``, jittered grid, an optional round
+    hole of radius ``hole`` in the middle."""
+    n = np.asarray(normal, float)
+    n /= np.linalg.norm(n)
+    u = np.cross(n, [1.0, 0, 0] if abs(n[0]) < 0.9 else [0, 1.0, 0])
+    u /= np.linalg.norm(u)
+    w = np.cross(n, u)
+    a, b = np.meshgrid(np.arange(-half, half, spacing), np.arange(-half, half, spacing), indexing="ij")
+    a = a.ravel() + rng.uniform(-0.2, 0.2, a.size) * spacing
+    b = b.ravel() + rng.uniform(-0.2, 0.2, b.size) * spacing
+    keep = np.hypot(a, b) >= hole
+    a, b = a[keep], b[keep]
+    p = np.asarray(centre) + a[:, None] * u + b[:, None] * w
+    m = len(p)
+    return {"position": p.astype(np.float32), "normal": np.tile(n, (m, 1)).astype(np.float32),
+            "colour": np.tile(colour, (m, 1)).astype(np.float32), "weight": np.full(m, 10.0, np.float32),
+            "radius": np.full(m, spacing, np.float32)}
+
+
+@pytest.mark.parametrize("normal", [(0, 0, 1), (0.3, -0.5, 0.8)])
+def test_plane_with_hole(cpu, rng, normal):
+    """A flat square of surfels: a flat mesh facing the surfels' side, of about the square's area, and the
+    hole left open (no vertex further inside it than the surfels' reach)."""
+    centre = np.array([0.13, -0.41, 1.07])
+    half, hole, v = 0.2, 0.06, 0.01
+    mesh = M.mesh_surfels(plane_surfels(rng, normal, centre, half, 0.004, hole), MeshConfig(voxel_size=v))
+    n = np.asarray(normal, float) / np.linalg.norm(normal)
+    off = mesh.vertices.astype(np.float64) - centre
+    assert np.abs(off @ n).max() < 1e-3
+    assert (mesh.normals @ n > 0.99).all()
+    face_n = np.cross(mesh.vertices[mesh.faces[:, 1]] - mesh.vertices[mesh.faces[:, 0]],
+                      mesh.vertices[mesh.faces[:, 2]] - mesh.vertices[mesh.faces[:, 0]])
+    assert (face_n @ n > 0).all(), "triangles wound against the normals"
+    lateral = np.linalg.norm(off - np.outer(off @ n, n), axis=1)
+    assert lateral.min() > hole - 2 * v, "the hole was closed"
+    square, disc = (2 * half) ** 2, np.pi * hole ** 2
+    assert square - disc - 0.1 * square < mesh.area() < square - disc * 0.3 + 0.05 * square
+    assert (np.abs(mesh.colours.astype(int) - [200, 40, 30]) <= 1).all()
+
+
+def test_sphere_closed_and_outward(cpu, rng):
+    n = 60000
+    d = rng.normal(size=(n, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    c, r = np.array([0.3, -0.2, 1.0]), 0.25
+    s = {"position": (c + r * d).astype(np.float32), "normal": d.astype(np.float32),
+         "colour": np.tile([10, 200, 30], (n, 1)).astype(np.float32), "weight": np.full(n, 5.0, np.float32),
+         "radius": np.full(n, 0.004, np.float32)}
+    mesh = M.mesh_surfels(s, MeshConfig(voxel_size=0.01))
+    rad = np.linalg.norm(mesh.vertices - c, axis=1)
+    assert np.abs(rad - r).max() < 1e-3
+    assert abs(mesh.area() / (4 * np.pi * r * r) - 1) < 0.01
+    assert (np.sum((mesh.vertices - c) * mesh.normals, axis=1) > 0).all()
+    # closed: every edge is shared by exactly two triangles
+    edges = np.sort(mesh.faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    _, counts = np.unique(edges, axis=0, return_counts=True)
+    assert (counts == 2).all()
+
+
+def test_decimate(cpu, rng):
+    mesh = M.mesh_surfels(plane_surfels(rng, (0, 0, 1), (0, 0, 0.5), 0.3, 0.004), MeshConfig(voxel_size=0.01))
+    small = M.decimate(mesh, len(mesh) // 8)
+    assert 0 < len(small) <= len(mesh) // 8
+    assert np.abs(small.vertices[:, 2] - 0.5).max() < 1e-3 and (small.normals[:, 2] > 0.99).all()
+    assert abs(small.area() - mesh.area()) < 0.1 * mesh.area()
+
+
+def test_bad_input_one_line(cpu, rng, tmp_path):
+    empty = {k: np.zeros((0, 3), np.float32) for k in ("position", "normal", "colour")}
+    with pytest.raises(InputError, match="empty"):
+        M.mesh_surfels(empty)
+    weak = plane_surfels(rng, (0, 0, 1), (0, 0, 1), 0.1, 0.005)
+    weak["weight"][:] = 1.0
+    with pytest.raises(InputError, match="confirmed"):
+        M.mesh_surfels(weak)
+    for voxel in (0.0, 10.0, float("nan")):
+        with pytest.raises(InputError, match="voxel_size"):
+            M.mesh_surfels(weak, MeshConfig(voxel_size=voxel, min_weight=0))
+    with pytest.raises(InputError, match="mesh.max_voxels"):
+        M.mesh_surfels(weak, MeshConfig(min_weight=0, max_voxels=1000))
+    far = plane_surfels(rng, (0, 0, 1), (0, 0, 1), 0.1, 0.01)
+    far["position"][0] = [200.0, 0, 0]
+    with pytest.raises(InputError, match="spans"):
+        M.mesh_surfels(far, MeshConfig(voxel_size=0.01))
+
+
+def test_files_read_back_by_trimesh(cpu, rng, tmp_path):
+    trimesh = pytest.importorskip("trimesh")
+    from ti_fusion.io.mesh_files import write_glb, write_mesh_ply
+
+    mesh = M.mesh_surfels(plane_surfels(rng, (0.2, 0.1, 1), (0, 0, 1), 0.15, 0.004, 0.03), MeshConfig())
+    ply = trimesh.load(write_mesh_ply(tmp_path / "m.ply", mesh), process=False)
+    np.testing.assert_allclose(ply.vertices, mesh.vertices, atol=1e-6)
+    np.testing.assert_array_equal(ply.faces, mesh.faces)
+    np.testing.assert_array_equal(ply.visual.vertex_colors[:, :3], mesh.colours)
+    np.testing.assert_allclose(ply.vertex_normals, mesh.normals, atol=1e-3)
+    scene = trimesh.load(write_glb(tmp_path / "m.glb", mesh), process=False)
+    (glb,) = scene.geometry.values()
+    np.testing.assert_allclose(glb.vertices, mesh.vertices, atol=1e-6)
+    np.testing.assert_array_equal(glb.faces, mesh.faces)
+    np.testing.assert_allclose(glb.vertex_normals, mesh.normals, atol=1e-3)
+    # with a material, trimesh keeps COLOR_0 as a vertex attribute beside it
+    np.testing.assert_array_equal(glb.visual.vertex_attributes["color"][:, :3], mesh.colours)
+
+
+def test_map_ply_round_trip(cpu, rng, tmp_path):
+    """map.ply carries confidence and radius, so meshing the file keeps only the confirmed surfels."""
+    from ti_fusion.io.ply import write_ply
+
+    s = plane_surfels(rng, (0, 0, 1), (0, 0, 1), 0.1, 0.005)
+    s["weight"][::2] = 1.0
+    path = write_ply(tmp_path / "map.ply", s["position"], s["normal"], s["colour"],
+                     {"confidence": s["weight"], "radius": s["radius"]})
+    back = M.surfels_from_ply(path)
+    np.testing.assert_array_equal(back["weight"], s["weight"])
+    np.testing.assert_array_equal(back["radius"], s["radius"])
+    assert len(M.select_surfels(back, 3.0)["position"]) == len(s["weight"]) // 2
+
+
+def test_mesh_command(cpu, rng, tmp_path, capsys):
+    from ti_fusion.cli.main import main
+    from ti_fusion.io.ply import write_ply
+
+    run = tmp_path / "run"
+    run.mkdir()
+    s = plane_surfels(rng, (0, 0, 1), (0, 0, 1), 0.1, 0.004)
+    write_ply(run / "map.ply", s["position"], s["normal"], s["colour"], {"confidence": s["weight"],
+                                                                       "radius": s["radius"]})
+    assert main(["mesh", str(run), "--out", str(tmp_path / "out"), "--quiet"]) == 0
+    assert (tmp_path / "out" / "mesh.ply").stat().st_size > 0 and (tmp_path / "out" / "mesh.glb").stat().st_size > 0
+    capsys.readouterr()
+    bad = [(["mesh", str(tmp_path / "out")], "holds no map.ply"),
+           (["mesh", str(run), "--voxel", "0"], "--voxel 0"),
+           (["mesh", str(run), "--voxel", "10"], "--voxel 10"),
+           (["mesh", str(run), "--set", "mesh.voxel_size=0"], "mesh.voxel_size"),
+           (["mesh", str(tmp_path / "nothing.ply")], "no such file")]
+    empty = tmp_path / "empty.ply"
+    write_ply(empty, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
+    bad.append((["mesh", str(empty)], "empty"))
+    for k, (argv, words) in enumerate(bad):
+        assert main(argv + ["--out", str(tmp_path / f"bad{k}"), "--quiet"]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and words in err, err

@@ -1,0 +1,88 @@
+"""``ti-fusion mesh RUN_DIR|map.ply``: a coloured triangle mesh of a run's confirmed surfels (docs/MESH.md).
+
+Writes ``mesh.ply`` (binary, vertex colours and normals) and ``mesh.glb`` (glTF binary) into the --out
+folder. The settings are the config's [mesh] section; --voxel, --min-weight and --max-triangles set the
+common ones.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+log = logging.getLogger(__name__)
+
+HELP = "a coloured triangle mesh (mesh.ply, mesh.glb) of a run's map: RUN_DIR or a map.ply"
+USES_DATASET = False
+USES_TAICHI = True
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("map", metavar="RUN_DIR|MAP.ply",
+                        help="a run folder of slam or fuse (its map.ply), or a map.ply itself")
+    parser.add_argument("--voxel", type=float, default=None, metavar="METRES",
+                        help="edge of the grid's cubes (mesh.voxel_size, default 0.01)")
+    parser.add_argument("--min-weight", type=float, default=None, metavar="CONFIDENCE",
+                        help="mesh only surfels at least this confident (mesh.min_weight, default 3: confirmed)")
+    parser.add_argument("--max-triangles", type=int, default=None, metavar="N",
+                        help="decimate to at most N triangles (mesh.max_triangles; default 0: no decimation)")
+
+
+def map_file(given: str) -> Path:
+    """The map.ply that ``given`` (a run folder or a file) names."""
+    from ti_fusion.errors import InputError
+
+    path = Path(given)
+    if path.is_dir():
+        if not (path / "map.ply").is_file():
+            raise InputError(path, "holds no map.ply: give the folder of a slam or fuse run, or a map.ply")
+        return path / "map.ply"
+    if not path.is_file():
+        raise InputError(path, "no such file or folder")
+    return path
+
+
+def apply_options(args, mesh_config) -> None:
+    """--voxel, --min-weight and --max-triangles into the [mesh] section, checked as --set checks it."""
+    from ti_fusion.errors import InputError
+    from ti_fusion.mapping.mesh import check_voxel_size
+
+    if getattr(args, "voxel", None) is not None:
+        check_voxel_size(args.voxel, "--voxel")
+        mesh_config.voxel_size = args.voxel
+    if getattr(args, "min_weight", None) is not None:
+        if not args.min_weight >= 0:
+            raise InputError(None, f"--min-weight {args.min_weight:g}: must be 0 or more")
+        mesh_config.min_weight = args.min_weight
+    if getattr(args, "max_triangles", None) is not None:
+        if args.max_triangles < 0:
+            raise InputError(None, f"--max-triangles {args.max_triangles}: must be 0 (no decimation) or more")
+        mesh_config.max_triangles = args.max_triangles
+
+
+def write_mesh_files(out, mesh) -> dict:
+    """mesh.ply and mesh.glb in the run folder ``out``; their paths."""
+    from ti_fusion.io.mesh_files import write_glb, write_mesh_ply
+
+    return {"mesh_ply": str(write_mesh_ply(out.file("mesh.ply"), mesh)),
+            "mesh_glb": str(write_glb(out.file("mesh.glb"), mesh))}
+
+
+def run(ctx) -> dict:
+    from ti_fusion.mapping.mesh import mesh_surfels, surfels_from_ply
+
+    cfg = ctx.config.mesh
+    apply_options(ctx.args, cfg)
+    path = map_file(ctx.args.map)
+    surfels = surfels_from_ply(path)
+    stats: dict = {}
+    mesh = mesh_surfels(surfels, cfg, source=path, stats=stats)
+    files = write_mesh_files(ctx.out, mesh)
+    ctx.log(f"{len(mesh)} triangles, {len(mesh.vertices)} vertices, {mesh.area():.2f} m² from "
+            f"{stats['surfels_meshed']} of {stats['surfels_in_map']} surfels at {cfg.voxel_size * 100:g} cm voxels "
+            f"({stats['ms']['splat'] / 1e3:.2f} s splat, {stats['ms']['extract'] / 1e3:.2f} s marching cubes)")
+    if len(mesh) == 0:
+        log.warning("the confirmed surfels made no closed cube of the grid: the mesh is empty "
+                    "(a larger --voxel bridges sparser surfels)")
+    return {"map": str(path), "triangles": len(mesh), "vertices": len(mesh.vertices),
+            "area_m2": round(mesh.area(), 4), "voxel_size": cfg.voxel_size, **stats, **files}

@@ -1,0 +1,387 @@
+"""A coloured triangle mesh of the confirmed surfels (docs/MESH.md).
+
+``mesh_surfels`` splats the surfels into a sparse signed-distance grid (``kernels/mesh.py``: each disc
+writes its plane distance into the voxels it reaches, weighted by confidence; only the blocks of voxels
+the surfels reach exist), then runs scikit-image's marching cubes (Lewiner) block by block on the cubes
+whose eight corners a surfel reached, so no surface is made where no surfel was confirmed. Vertices
+shared by neighbouring blocks are welded; colours are interpolated from the voxels, normals come from the
+triangles and point to the side the surfels faced (the cameras').
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ti_fusion.config import MeshConfig
+from ti_fusion.errors import InputError
+
+log = logging.getLogger(__name__)
+
+E = 8  # voxels along a block's edge (kernels/mesh.py's BLOCK_EDGE; kept here so that NumPy-only callers need no Taichi)
+BYTES_PER_VOXEL = 20 + 4 * 5 * 729 // 512  # the kernel's sums, and the padded copies marching cubes reads
+VOXEL_RANGE = (0.001, 0.5)  # metres: finer is below any RGB-D sensor's noise, coarser is no longer a surface
+
+
+@dataclass
+class Mesh:
+    """Triangles over shared vertices, world frame, metres."""
+
+    vertices: np.ndarray   # V × 3 float32
+    faces: np.ndarray      # F × 3 int64, counter-clockwise seen from the side the normals point to
+    normals: np.ndarray    # V × 3 float32, unit
+    colours: np.ndarray    # V × 3 uint8 RGB
+
+    def __len__(self) -> int:
+        return len(self.faces)
+
+    def area(self) -> float:
+        a, b, c = (self.vertices[self.faces[:, k]].astype(np.float64) for k in range(3))
+        return float(0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1).sum())
+
+
+MeshSettings = MeshConfig  # the [mesh] section of the config: voxel_size, min_weight, band, max_reach, ...
+
+
+def check_voxel_size(voxel: float, where: str = "mesh.voxel_size") -> None:
+    lo, hi = VOXEL_RANGE
+    if not (np.isfinite(voxel) and lo <= voxel <= hi):
+        raise InputError(None, f"{where} {voxel:g}: must be between {lo:g} and {hi:g} metres")
+
+
+def select_surfels(surfels: dict, min_weight: float, source: str | Path | None = None) -> dict:
+    """The surfels to mesh: confirmed (weight ≥ ``min_weight``), finite, with a unit normal."""
+    p = np.asarray(surfels["position"], np.float32).reshape(-1, 3)
+    n = np.asarray(surfels["normal"], np.float32).reshape(-1, 3)
+    if len(p) == 0:
+        raise InputError(source, "the map is empty: no surfels to mesh")
+    keep = np.isfinite(p).all(1) & np.isfinite(n).all(1)
+    norm = np.linalg.norm(n, axis=1)
+    keep &= norm > 0.5
+    w = np.asarray(surfels.get("weight", np.full(len(p), np.inf)), np.float32).reshape(-1)
+    keep &= w >= min_weight
+    if not keep.any():
+        raise InputError(source, f"none of the map's {len(p)} surfels is confirmed (confidence ≥ {min_weight:g}, "
+                                 "mesh.min_weight): no surface to mesh")
+    radius = surfels.get("radius")
+    colour = surfels.get("colour")
+    return {
+        "position": p[keep],
+        "normal": (n[keep] / norm[keep, None]).astype(np.float32),
+        "colour": np.full((int(keep.sum()), 3), 200, np.float32) if colour is None
+        else np.asarray(colour, np.float32).reshape(-1, 3)[keep],
+        "weight": np.where(np.isfinite(w), w, 1.0).astype(np.float32)[keep],
+        "radius": None if radius is None else np.asarray(radius, np.float32).reshape(-1)[keep],
+    }
+
+
+class SparseGrid:
+    """The blocks of voxels the surfels reach: sorted packed keys, their block coordinates, the origin."""
+
+    def __init__(self, position: np.ndarray, extent: np.ndarray, voxel: float, max_voxels: int,
+                 source: str | Path | None = None):
+        from ti_fusion.kernels.mesh import KEY_BITS, KEY_SPAN
+
+        # every block a surfel's box (centre ± extent) touches: extent < one block, so 2 per axis at most
+        lo = np.floor(np.floor((position - extent) / voxel) / E).astype(np.int64)
+        hi = np.floor(np.floor((position + extent) / voxel) / E).astype(np.int64)
+        self.origin = lo.min(axis=0)
+        span = hi.max(axis=0) - self.origin + 1
+        if (span > KEY_SPAN).any():
+            axis = "xyz"[int(np.argmax(span))]
+            raise InputError(source, f"the map spans {span.max() * E * voxel:.1f} m along {axis}: at a voxel size "
+                                     f"of {voxel:g} m the mesh grid reaches {KEY_SPAN * E * voxel:.1f} m at most; "
+                                     "choose a larger mesh.voxel_size")
+        lo, hi = lo - self.origin, hi - self.origin
+        keys = []
+        for corner in range(8):
+            pick = [(corner >> a) & 1 for a in range(3)]
+            b = np.stack([hi[:, a] if pick[a] else lo[:, a] for a in range(3)], axis=1)
+            keys.append((b[:, 0] << (2 * KEY_BITS)) | (b[:, 1] << KEY_BITS) | b[:, 2])
+        self.keys = np.unique(np.concatenate(keys)).astype(np.int32)
+        voxels = len(self.keys) * E ** 3
+        if voxels > max_voxels:
+            raise InputError(source, f"the surface needs {voxels / 1e6:.1f} M voxels of {voxel:g} m "
+                                     f"(~{voxels * BYTES_PER_VOXEL / 2**30:.1f} GB), more than mesh.max_voxels "
+                                     f"({max_voxels / 1e6:.1f} M): choose a larger mesh.voxel_size or raise the bound")
+        k = self.keys.astype(np.int64)
+        mask = KEY_SPAN - 1
+        self.blocks = np.stack([k >> (2 * KEY_BITS), (k >> KEY_BITS) & mask, k & mask], axis=1)  # relative coords
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def find(self, blocks: np.ndarray) -> np.ndarray:
+        """Index of each relative block coordinate (M × 3), −1 where that block does not exist."""
+        from ti_fusion.kernels.mesh import KEY_BITS, KEY_SPAN
+
+        inside = ((blocks >= 0) & (blocks < KEY_SPAN)).all(axis=1)
+        key = (blocks[:, 0] << (2 * KEY_BITS)) | (blocks[:, 1] << KEY_BITS) | blocks[:, 2]
+        i = np.clip(np.searchsorted(self.keys, key), 0, len(self.keys) - 1)
+        return np.where(inside & (self.keys[i] == key), i, -1)
+
+
+def reach_of(selected: dict, settings: MeshSettings) -> np.ndarray:
+    """Metres a surfel writes across its normal: its disc radius, at least one voxel, at most ``max_reach``."""
+    v = settings.voxel_size
+    r = selected["radius"]
+    if r is None:
+        r = np.full(len(selected["position"]), v, np.float32)
+    return np.clip(r, v, settings.max_reach * v).astype(np.float32)
+
+
+def splat_surfels(selected: dict, settings: MeshSettings, source=None) -> tuple[SparseGrid, dict]:
+    """The sparse grid and its voxels: ``sdf`` (weighted mean distance), ``weight`` and ``colour`` per voxel,
+    each (blocks, E, E, E[, 3]) float32; the Taichi kernel does the per-surfel work."""
+    from ti_fusion.backend import current_backend
+    from ti_fusion.kernels import mesh as kmesh
+
+    current_backend()
+    v = float(settings.voxel_size)
+    band = float(settings.band) * v
+    reach = reach_of(selected, settings)
+    n = np.abs(selected["normal"].astype(np.float64))
+    extent = reach[:, None] * np.sqrt(np.maximum(1.0 - n * n, 0.0)) + band * n  # the kernel's cylinder box
+    grid = SparseGrid(selected["position"].astype(np.float64), extent, v, settings.max_voxels, source)
+    nb = len(grid)
+    sdf = np.zeros(nb * E ** 3, np.float32)
+    wsum = np.zeros(nb * E ** 3, np.float32)
+    rgb = np.zeros((nb * E ** 3, 3), np.float32)
+    import taichi as ti
+
+    kmesh.splat(np.ascontiguousarray(selected["position"]), np.ascontiguousarray(selected["normal"]),
+                np.ascontiguousarray(selected["colour"]), np.ascontiguousarray(selected["weight"]), reach,
+                len(reach), grid.keys, nb, ti.math.ivec3(*(int(o) for o in grid.origin)), v, band, sdf, wsum, rgb)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        inv = np.where(wsum > 0, 1.0 / wsum, 0.0).astype(np.float32)
+    shape = (nb, E, E, E)
+    return grid, {"sdf": (sdf * inv).reshape(shape), "weight": wsum.reshape(shape),
+                  "colour": (rgb * inv[:, None]).reshape(shape + (3,))}
+
+
+def _padded(grid: SparseGrid, values: np.ndarray, fill) -> np.ndarray:
+    """Each block with one more layer of voxels from its +x, +y, +z neighbours: (blocks, E+1, E+1, E+1, ...)."""
+    nb = len(grid)
+    out = np.full((nb, E + 1, E + 1, E + 1) + values.shape[4:], fill, values.dtype)
+    out[:, :E, :E, :E] = values
+    for dx in (0, 1):
+        for dy in (0, 1):
+            for dz in (0, 1):
+                if dx == dy == dz == 0:
+                    continue
+                nbr = grid.find(grid.blocks + np.array([dx, dy, dz]))
+                has = nbr >= 0
+                dst = (has, slice(E, E + 1) if dx else slice(0, E), slice(E, E + 1) if dy else slice(0, E),
+                       slice(E, E + 1) if dz else slice(0, E))
+                src = (nbr[has], slice(0, 1) if dx else slice(0, E), slice(0, 1) if dy else slice(0, E),
+                       slice(0, 1) if dz else slice(0, E))
+                out[dst] = values[src]
+    return out
+
+
+def extract(grid: SparseGrid, voxels: dict, voxel: float) -> Mesh:
+    """Marching cubes on every block whose complete cubes (all eight corners reached) change sign."""
+    from skimage.measure import marching_cubes
+
+    sdf = _padded(grid, voxels["sdf"], np.float32(0))
+    valid = _padded(grid, voxels["weight"] > 0, False)
+    colour = _padded(grid, voxels["colour"], np.float32(0))
+    # a cube is complete when its eight corners are valid; skimage tests the mask at a cube's far corner
+    # (cube (x, y, z) is made where mask[x + 1, y + 1, z + 1]: checked in tests/mapping/test_mesh.py)
+    cube = valid[:, :-1, :-1, :-1].copy()
+    for dx, dy, dz in [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (1, 1, 1)]:
+        cube &= valid[:, dx:E + dx, dy:E + dy, dz:E + dz]
+    positive = np.where(valid, sdf > 0, False)
+    negative = np.where(valid, sdf <= 0, False)
+
+    def any_corner(a):
+        out = a[:, :-1, :-1, :-1].copy()
+        for dx, dy, dz in [(1, 0, 0), (0, 1, 0), (0, 0, 1), (1, 1, 0), (1, 0, 1), (0, 1, 1), (1, 1, 1)]:
+            out |= a[:, dx:E + dx, dy:E + dy, dz:E + dz]
+        return out
+
+    crossing = cube & any_corner(positive) & any_corner(negative)
+    todo = np.flatnonzero(crossing.reshape(len(grid), -1).any(axis=1))
+    verts, faces, owner, count = [], [], [], 0
+    mask = np.zeros((E + 1,) * 3, bool)
+    for b in todo:
+        mask[:] = False
+        mask[1:, 1:, 1:] = crossing[b]
+        vol = np.where(valid[b], sdf[b], np.float32(1.0))  # unreached corners: cubes there are masked off
+        try:
+            v, f, _, _ = marching_cubes(vol, 0.0, mask=mask, gradient_direction="ascent", allow_degenerate=False)
+        except RuntimeError:  # only corners exactly at the level: no triangle of positive area
+            continue
+        if len(f) == 0:
+            continue
+        verts.append(v)
+        faces.append(f + count)
+        owner.append(np.full(len(v), b))
+        count += len(v)
+    if not faces:
+        return Mesh(np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int64), np.zeros((0, 3), np.float32),
+                    np.zeros((0, 3), np.uint8))
+    local = np.concatenate(verts).astype(np.float64)
+    faces = np.concatenate(faces).astype(np.int64)
+    owner = np.concatenate(owner)
+    rgb = _trilinear(colour, valid, owner, local)
+    gridpos = local + ((grid.blocks[owner] + grid.origin) * E).astype(np.float64)  # voxel units
+    # blocks that share a face compute the same vertices on it from the same two values: weld them
+    key = np.round(gridpos * 4096.0).astype(np.int64)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    faces = inverse.reshape(-1)[faces]
+    faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
+    vertices = (gridpos[first] * voxel).astype(np.float32)
+    mesh = Mesh(vertices, faces, vertex_normals(vertices, faces), rgb[first])
+    return _orient(mesh, grid, voxels, voxel)
+
+
+def _trilinear(colour: np.ndarray, valid: np.ndarray, owner: np.ndarray, local: np.ndarray) -> np.ndarray:
+    """RGB at each vertex from the valid voxels around it (its block's padded array), as uint8."""
+    base = np.clip(np.floor(local).astype(np.int64), 0, E - 1)
+    frac = local - base
+    acc = np.zeros((len(local), 3))
+    wsum = np.zeros(len(local))
+    for c in range(8):
+        o = np.array([(c >> a) & 1 for a in range(3)])
+        idx = base + o
+        w = np.prod(np.where(o, frac, 1.0 - frac), axis=1)
+        w = w * valid[owner, idx[:, 0], idx[:, 1], idx[:, 2]]
+        acc += w[:, None] * colour[owner, idx[:, 0], idx[:, 1], idx[:, 2]]
+        wsum += w
+    return np.clip(np.rint(acc / np.maximum(wsum, 1e-12)[:, None]), 0, 255).astype(np.uint8)
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted mean of the normals of the triangles around each vertex (unit; +z where none)."""
+    v = vertices.astype(np.float64)
+    fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
+    acc = np.zeros_like(v)
+    for k in range(3):
+        np.add.at(acc, faces[:, k], fn)
+    norm = np.linalg.norm(acc, axis=1, keepdims=True)
+    out = np.where(norm > 0, acc / np.maximum(norm, 1e-300), np.array([0.0, 0.0, 1.0]))
+    return out.astype(np.float32)
+
+
+def _orient(mesh: Mesh, grid: SparseGrid, voxels: dict, voxel: float) -> Mesh:
+    """Triangles wound so that their normals point where the distance grows (the surfels' front side).
+
+    Marching cubes winds all triangles one way for a given gradient direction; this checks which against
+    the grid itself, so a change of library convention cannot silently flip the mesh inside out."""
+    if len(mesh.faces) == 0:
+        return mesh
+    def sdf_at(points):
+        g = np.floor(points / voxel + 0.5).astype(np.int64)  # the nearest voxel centre
+        idx = grid.find(np.floor_divide(g, E) - grid.origin)
+        loc = np.mod(g, E)
+        ok = idx >= 0
+        idx, loc = np.where(ok, idx, 0), np.where(ok[:, None], loc, 0)
+        ok &= voxels["weight"][idx, loc[:, 0], loc[:, 1], loc[:, 2]] > 0
+        return voxels["sdf"][idx, loc[:, 0], loc[:, 1], loc[:, 2]], ok
+
+    # one voxel in front of and behind each vertex: never both on the vertex's own layer of voxels
+    v, n = mesh.vertices.astype(np.float64), mesh.normals.astype(np.float64)
+    front, ok_f = sdf_at(v + voxel * n)
+    back, ok_b = sdf_at(v - voxel * n)
+    d = (front - back)[ok_f & ok_b]
+    if len(d) and np.median(d) < 0:
+        faces = mesh.faces[:, ::-1].copy()
+        return Mesh(mesh.vertices, faces, -mesh.normals, mesh.colours)
+    return mesh
+
+
+def mesh_surfels(surfels: dict, settings: MeshConfig | None = None, source=None, stats: dict | None = None) -> Mesh:
+    """The mesh of a map's confirmed surfels (``surfels``: position, normal, colour, weight, radius arrays).
+
+    ``stats``, when given, receives the counts (surfels meshed, blocks, voxels) and milliseconds per stage."""
+    import time
+
+    settings = settings or MeshConfig()
+    check_voxel_size(settings.voxel_size)
+    stats = {} if stats is None else stats
+    t0 = time.perf_counter()
+    selected = select_surfels(surfels, settings.min_weight, source)
+    grid, voxels = splat_surfels(selected, settings, source)
+    t1 = time.perf_counter()
+    mesh = extract(grid, voxels, settings.voxel_size)
+    t2 = time.perf_counter()
+    if settings.max_triangles and len(mesh) > settings.max_triangles:
+        mesh = decimate(mesh, settings.max_triangles)
+    t3 = time.perf_counter()
+    stats.update({"surfels_meshed": len(selected["position"]), "surfels_in_map": len(surfels["position"]),
+                  "blocks": len(grid), "voxels": len(grid) * E ** 3,
+                  "voxels_reached": int((voxels["weight"] > 0).sum()),
+                  "ms": {"splat": round((t1 - t0) * 1e3, 1), "extract": round((t2 - t1) * 1e3, 1),
+                         "decimate": round((t3 - t2) * 1e3, 1)}})
+    return mesh
+
+
+def decimate(mesh: Mesh, max_triangles: int) -> Mesh:
+    """At most ``max_triangles`` triangles by vertex clustering: vertices in one cell of a coarser grid become
+    their mean (colours and normals averaged too), and triangles that collapse are dropped. The cell is the
+    smallest power-of-1.25 multiple of the mesh's mean edge that meets the count."""
+    v = mesh.vertices.astype(np.float64)
+    edge = float(np.mean(np.linalg.norm(v[mesh.faces[:, 0]] - v[mesh.faces[:, 1]], axis=1)))
+    cell = edge
+    for _ in range(60):
+        key = np.floor(v / cell).astype(np.int64)
+        _, cluster = np.unique(key, axis=0, return_inverse=True)
+        cluster = cluster.reshape(-1)
+        f = cluster[mesh.faces]
+        f = f[(f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])]
+        if len(np.unique(np.sort(f, axis=1), axis=0)) <= max_triangles:
+            break
+        cell *= 1.25
+    f = cluster[mesh.faces]
+    keep = (f[:, 0] != f[:, 1]) & (f[:, 1] != f[:, 2]) & (f[:, 0] != f[:, 2])
+    f = f[keep]
+    _, first = np.unique(np.sort(f, axis=1), axis=0, return_index=True)
+    f = f[np.sort(first)]
+    m = cluster.max() + 1
+    counts = np.bincount(cluster, minlength=m)[:, None]
+    pos = np.zeros((m, 3))
+    col = np.zeros((m, 3))
+    nrm = np.zeros((m, 3))
+    np.add.at(pos, cluster, v)
+    np.add.at(col, cluster, mesh.colours.astype(np.float64))
+    np.add.at(nrm, cluster, mesh.normals.astype(np.float64))
+    pos /= counts
+    col /= counts
+    used = np.unique(f)
+    remap = np.full(m, -1)
+    remap[used] = np.arange(len(used))
+    vertices = pos[used].astype(np.float32)
+    faces = remap[f]
+    normals = vertex_normals(vertices, faces)
+    # keep the side the full mesh faced: the clustered vertex normals agree with the averaged ones
+    flip = np.sum(normals * nrm[used], axis=1) < 0
+    if flip.mean() > 0.5:
+        faces = faces[:, ::-1].copy()
+        normals = -normals
+    return Mesh(vertices, faces, normals, np.clip(np.rint(col[used]), 0, 255).astype(np.uint8))
+
+
+def surfels_from_ply(path: str | Path) -> dict:
+    """A map.ply's surfels: position, normal, colour, and confidence and radius where the file has them."""
+    from ti_fusion.io.ply import read_ply
+
+    path = Path(path)
+    data = read_ply(path)
+    names = data.dtype.names
+    if not {"nx", "ny", "nz"} <= set(names):
+        raise InputError(path, "has no normals (nx, ny, nz): a mesh needs oriented surfels, such as a run's map.ply")
+    out = {"position": np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float32),
+           "normal": np.stack([data["nx"], data["ny"], data["nz"]], axis=1).astype(np.float32)}
+    if {"red", "green", "blue"} <= set(names):
+        out["colour"] = np.stack([data["red"], data["green"], data["blue"]], axis=1).astype(np.float32)
+    if "confidence" in names:
+        out["weight"] = data["confidence"].astype(np.float32)
+    elif len(data):
+        log.warning(f"{path} has no confidence: every surfel is taken as confirmed")
+    if "radius" in names:
+        out["radius"] = data["radius"].astype(np.float32)
+    return out

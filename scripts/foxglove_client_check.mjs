@@ -1,0 +1,251 @@
+// A real-client check of ti-fusion's logs and live view: Foxglove Studio 1.48 (@foxglove/studio-base, the last
+// release of the Foxglove app published as a package) runs in Debian's chromium, headless, driven by
+// playwright-core; it opens a recorded log.mcap (or connects to a live run), imports the shipped layout
+// through its own "Import layout" path, plays the log, and saves screenshots, the Problems list and the
+// browser console's errors.
+//
+//   node scripts/foxglove_client_check.mjs --log RUN/log.mcap [--layout docs/foxglove-layout.json]
+//        [--out logs/foxglove-check] [--live ws://127.0.0.1:8765] [--chromium /usr/bin/chromium]
+//
+// Needs node >= 18, npm (the client's packages are installed into logs/foxglove-client on first use, pinned
+// below) and chromium (`apt-get install -y chromium`). Exit status 0 when the client shows no problem, 1 when
+// it lists problems, 2 when it could not run. See docs/LOGS.md, "Checking in a real client".
+
+import { execFileSync } from "node:child_process";
+import fs from "node:fs";
+import http from "node:http";
+import { createRequire } from "node:module";
+import path from "node:path";
+import { fileURLToPath } from "node:url";
+
+const ROOT = path.resolve(path.dirname(fileURLToPath(import.meta.url)), "..");
+const PACKAGES = { "@foxglove/studio-base": "1.48.0", react: "17.0.2", "react-dom": "17.0.2", "playwright-core": "1.49.1" };
+// the brief's flags, and WebGL on the CPU (SwiftShader): the 3D and image panels draw with WebGL
+const CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+  "--disable-component-update", "--disable-sync", "--no-first-run", "--use-angle=swiftshader",
+  "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist"];
+
+function parseArgs(argv) {
+  const args = { layout: path.join(ROOT, "docs", "foxglove-layout.json"), out: path.join(ROOT, "logs", "foxglove-check"),
+    client: path.join(ROOT, "logs", "foxglove-client"), chromium: "/usr/bin/chromium", log: undefined, live: undefined,
+    seconds: 20, width: 1600, height: 1000 };
+  for (let i = 0; i < argv.length; i += 2) {
+    const key = argv[i].replace(/^--/, "");
+    if (!(key in args) || argv[i + 1] == undefined) {
+      fail(`unknown option or missing value: ${argv[i]} (options: ${Object.keys(args).map((k) => "--" + k).join(" ")})`);
+    }
+    args[key] = ["seconds", "width", "height"].includes(key) ? Number(argv[i + 1]) : argv[i + 1];
+  }
+  if ((args.log == undefined) === (args.live == undefined)) fail("give --log RUN/log.mcap or --live ws://HOST:PORT");
+  if (args.log != undefined && !fs.existsSync(args.log)) fail(`--log ${args.log}: no such file`);
+  if (!fs.existsSync(args.layout)) fail(`--layout ${args.layout}: no such file`);
+  if (!fs.existsSync(args.chromium)) fail(`--chromium ${args.chromium}: no such file (apt-get install -y chromium)`);
+  return args;
+}
+
+function fail(message) {
+  console.error(`foxglove_client_check: ${message}`);
+  process.exit(2);
+}
+
+function installClient(dir) {
+  const manifest = { name: "ti-fusion-foxglove-client", private: true, dependencies: PACKAGES };
+  const file = path.join(dir, "package.json");
+  const wanted = JSON.stringify(manifest, null, 1);
+  const have = fs.existsSync(file) ? fs.readFileSync(file, "utf8") : "";
+  if (have === wanted && fs.existsSync(path.join(dir, "node_modules", "@foxglove", "studio-base", "assets", "index.js"))) {
+    return;
+  }
+  fs.mkdirSync(dir, { recursive: true });
+  fs.writeFileSync(file, wanted);
+  console.log(`installing ${Object.entries(PACKAGES).map(([n, v]) => `${n}@${v}`).join(", ")} into ${dir}`);
+  execFileSync("npm", ["install", "--no-audit", "--no-fund", "--ignore-scripts"], { cwd: dir, stdio: "inherit" });
+}
+
+// The page: React 17 as the bundle's externals, then Studio's App with an in-memory layout storage and app
+// configuration, the data sources of Studio's web build, and the URL as its deep link (ds=remote-file or
+// ds=foxglove-websocket). showOpenFilePicker hands the import the layout file the server serves.
+const PAGE = `<!doctype html>
+<html><head><meta charset="utf-8"><title>ti-fusion: Foxglove Studio check</title>
+<style>html, body, #root { height: 100%; margin: 0; }</style></head>
+<body><div id="root"></div>
+<script src="/react.js"></script><script src="/react-dom.js"></script>
+<script>window.react = window.React; window["react-dom"] = window.ReactDOM;</script>
+<script src="/assets/index.js"></script>
+<script>
+window.showOpenFilePicker = async () => {
+  const text = await (await fetch("/layout.json")).text();
+  return [{ getFile: async () => new File([text], window.__layoutName, { type: "application/json" }) }];
+};
+const layouts = new Map();
+const layoutStorage = {
+  list: async (ns) => [...layouts.values()].filter((l) => l.ns === ns).map((l) => l.layout),
+  get: async (ns, id) => layouts.get(ns + "/" + id)?.layout,
+  put: async (ns, layout) => { layouts.set(ns + "/" + layout.id, { ns, layout }); return layout; },
+  delete: async (ns, id) => { layouts.delete(ns + "/" + id); },
+  importLayouts: async () => {},
+  migrateUnnamespacedLayouts: async () => {},
+};
+const settings = new Map([["telemetry.telemetryEnabled", false], ["telemetry.crashReportingEnabled", false],
+                          ["colorScheme", "dark"], ["timezone", "UTC"], ["launchDefault", "web"]]);
+const listeners = new Map();
+const appConfiguration = {
+  get: (key) => settings.get(key),
+  set: async (key, value) => { settings.set(key, value); (listeners.get(key) ?? []).forEach((cb) => cb(value)); },
+  addChangeListener: (key, cb) => listeners.set(key, [...(listeners.get(key) ?? []), cb]),
+  removeChangeListener: (key, cb) => listeners.set(key, (listeners.get(key) ?? []).filter((c) => c !== cb)),
+};
+(async () => {
+  await initI18n();
+  const dataSources = [new FoxgloveWebSocketDataSourceFactory(), new RemoteDataSourceFactory(),
+                       new McapLocalDataSourceFactory()];
+  ReactDOM.render(React.createElement(App, { deepLinks: [window.location.href], appConfiguration, dataSources,
+    layoutStorage, extensionLoaders: [], enableLaunchPreferenceScreen: false, enableGlobalCss: true }),
+    document.getElementById("root"));
+})();
+</script></body></html>`;
+
+function serve(args) {
+  const studio = path.join(args.client, "node_modules", "@foxglove", "studio-base");
+  const files = {
+    "/index.html": { body: PAGE, type: "text/html" },
+    "/react.js": { file: path.join(args.client, "node_modules", "react", "umd", "react.production.min.js") },
+    "/react-dom.js": { file: path.join(args.client, "node_modules", "react-dom", "umd", "react-dom.production.min.js") },
+    "/layout.json": { file: args.layout, type: "application/json" },
+  };
+  if (args.log) files["/log.mcap"] = { file: args.log, type: "application/octet-stream" };
+  const types = { ".js": "text/javascript", ".wasm": "application/wasm", ".png": "image/png", ".ttf": "font/ttf" };
+  const server = http.createServer((req, res) => {
+    const url = new URL(req.url, "http://x");
+    let entry = files[url.pathname];
+    if (!entry && url.pathname.startsWith("/assets/")) {
+      const file = path.join(studio, "assets", path.basename(url.pathname));
+      if (fs.existsSync(file)) entry = { file };
+    }
+    if (!entry) {
+      res.writeHead(404).end();
+      return;
+    }
+    const body = entry.body != undefined ? Buffer.from(entry.body) : fs.readFileSync(entry.file);
+    const headers = { "Content-Type": entry.type ?? types[path.extname(entry.file ?? "")] ?? "application/octet-stream",
+      "Accept-Ranges": "bytes", "Access-Control-Allow-Origin": "*", "Cache-Control": "no-store" };
+    const range = /bytes=(\d+)-(\d*)/.exec(req.headers.range ?? "");
+    if (range) {  // the remote-file source reads the log by byte ranges
+      const start = Number(range[1]);
+      const end = range[2] ? Math.min(Number(range[2]), body.length - 1) : body.length - 1;
+      res.writeHead(206, { ...headers, "Content-Range": `bytes ${start}-${end}/${body.length}`, "Content-Length": end - start + 1 });
+      res.end(req.method === "HEAD" ? undefined : body.subarray(start, end + 1));
+      return;
+    }
+    res.writeHead(200, { ...headers, "Content-Length": body.length });
+    res.end(req.method === "HEAD" ? undefined : body);
+  });
+  return new Promise((resolve) => server.listen(0, "127.0.0.1", () => resolve(server)));
+}
+
+async function main() {
+  const args = parseArgs(process.argv.slice(2));
+  installClient(args.client);
+  const { chromium } = createRequire(path.join(args.client, "package.json"))("playwright-core");
+  fs.mkdirSync(args.out, { recursive: true });
+  const server = await serve(args);
+  const base = `http://127.0.0.1:${server.address().port}`;
+  const source = args.log ? `ds=remote-file&ds.url=${encodeURIComponent(base + "/log.mcap")}`
+    : `ds=foxglove-websocket&ds.url=${encodeURIComponent(args.live)}`;
+  const browser = await chromium.launch({ executablePath: args.chromium, args: CHROMIUM_FLAGS, headless: true });
+  const report = { client: "Foxglove Studio 1.48.0 (@foxglove/studio-base)", chromium: browser.version(),
+    source: args.log ?? args.live, layout: args.layout, console_errors: [], page_errors: [], alerts: [], problems: [], screenshots: [] };
+  try {
+    const page = await browser.newPage({ viewport: { width: args.width, height: args.height } });
+    page.on("console", (msg) => { if (msg.type() === "error") report.console_errors.push(msg.text().slice(0, 500)); });
+    page.on("pageerror", (err) => report.page_errors.push(String(err).slice(0, 500)));
+    page.on("response", (res) => { if (res.status() >= 400) report.console_errors.push(`HTTP ${res.status()} ${res.url()}`); });
+    await page.addInitScript((name) => { window.__layoutName = name; }, path.basename(args.layout));
+    await page.goto(`${base}/index.html?${source}`);
+    const shot = async (name) => {
+      const file = path.join(args.out, `${name}.png`);
+      await page.screenshot({ path: file });
+      report.screenshots.push(file);
+      console.log(`screenshot ${file}`);
+    };
+    await page.waitForTimeout(8000);
+    await shot("0-opened");
+    await importLayout(page);
+    await page.waitForTimeout(3000);
+    report.alerts = await page.locator('[role="alert"]').allInnerTexts();  // e.g. "The layout could not be loaded"
+    const hint = page.getByText("Open settings to configure topics and layers.");  // a first-run tip over the 3D panel
+    if (await hint.count()) await hint.locator("xpath=..").getByRole("button").first().click().catch(() => {});
+    await shot("1-layout");
+    if (args.log) {
+      await playToEnd(page, args.seconds);
+    } else {
+      await page.waitForTimeout(args.seconds * 1000);
+    }
+    await shot("2-played");
+    report.panels = await panelsShown(page, JSON.parse(fs.readFileSync(args.layout, "utf8")));
+    report.problems = await problems(page);
+    await shot("3-problems");
+    await page.getByRole("tab", { name: "Topics" }).click();
+    await page.waitForTimeout(500);
+    report.topics = await page.evaluate(() => document.body.innerText.match(/^\/[a-z_/]+$/gm) ?? []);
+    await shot("4-topics");
+  } finally {
+    await browser.close();
+    server.close();
+  }
+  report.topics = [...new Set(report.topics ?? [])].sort();
+  fs.writeFileSync(path.join(args.out, "report.json"), JSON.stringify(report, null, 1) + "\n");
+  console.log(`topics: ${report.topics.join(" ")}`);
+  console.log(`panels shown: ${report.panels.shown.length} of ${report.panels.shown.length + report.panels.missing.length}` +
+    (report.panels.missing.length ? ` (missing: ${report.panels.missing.join(", ")})` : "") +
+    (report.panels.unknown_panel_type ? "; an unknown panel type" : ""));
+  for (const alert of report.alerts) console.log(`alert: ${alert}`);
+  console.log(`problems: ${report.problems.length}`);
+  for (const p of report.problems) console.log(`  ${p}`);
+  console.log(`console errors: ${report.console_errors.length}; page errors: ${report.page_errors.length}`);
+  console.log(`report ${path.join(args.out, "report.json")}`);
+  const clean = report.problems.length === 0 && report.alerts.length === 0 && report.panels.missing.length === 0 &&
+    !report.panels.unknown_panel_type;
+  process.exit(clean ? 0 : 1);
+}
+
+// The layout menu's import, as a user does it: the layouts sidebar, then its "Import layout" button.
+async function importLayout(page) {
+  await page.locator('[data-sidebar-key="layouts"]').click();
+  await page.waitForTimeout(1000);
+  await page.locator('[title="Import layout"]').first().click();
+  await page.waitForTimeout(2000);
+}
+
+// Plays the log from its start at 1x until the end (or for ``seconds``), as a user pressing play does.
+async function playToEnd(page, seconds) {
+  await page.locator('[title="Play"]').first().click();
+  const deadline = Date.now() + seconds * 1000;
+  while (Date.now() < deadline && (await page.locator('[title="Pause"]').count())) {
+    await page.waitForTimeout(500);
+  }
+}
+
+// The data source sidebar's Problems tab: each problem's message, or none ("No problems found").
+async function problems(page) {
+  await page.locator('[data-sidebar-key="connection"]').click();
+  await page.waitForTimeout(500);
+  await page.getByRole("tab", { name: /Problems/ }).click();
+  await page.waitForTimeout(1000);
+  if (await page.getByText("No problems found").count()) return [];
+  return await page.locator(".MuiListItemText-primary").allInnerTexts();
+}
+
+// The title of every panel of the layout, and whether the page shows it (a panel type a client lacks shows
+// "Unknown panel type" instead of its panel).
+async function panelsShown(page, layout) {
+  const text = await page.evaluate(() => document.body.innerText);
+  if (layout.configById == undefined) {
+    return { shown: [], missing: ["(every panel: the layout has no configById, not the classic form)"], unknown_panel_type: false };
+  }
+  const titles = Object.values(layout.configById).map((c) => c.foxglovePanelTitle).filter(Boolean);
+  return { shown: titles.filter((t) => text.includes(t.slice(0, 20))), missing: titles.filter((t) => !text.includes(t.slice(0, 20))),
+    unknown_panel_type: text.includes("Unknown panel type") };
+}
+
+main().catch((err) => fail(err.stack ?? String(err)));

@@ -6,6 +6,12 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+# The field of view (degrees, the wider of horizontal and vertical) that intrinsics must give their image.
+MIN_FOV_DEG, MAX_FOV_DEG = 20.0, 170.0
+# Lens distortion models a calibration may state (ROS camera_info names; OpenCV's standard model reads
+# 4, 5, 8, 12 or 14 coefficients, its fisheye model 4).
+DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "equidistant")
+
 
 @dataclass(frozen=True)
 class Intrinsics:
@@ -21,10 +27,25 @@ class Intrinsics:
     cy: float
     width: int
     height: int
+    # What a calibration may add to the pinhole model. The kernels take only a pinhole camera: a dataset
+    # whose calibration has these undistorts its images once per frame (``ti_fusion.io.datasets.undistort``)
+    # and hands out frames with ``undistorted()`` intrinsics.
+    skew: float = 0.0                       # K[0,1] (pixels), 0 for almost every camera
+    distortion: tuple[float, ...] = ()      # lens distortion coefficients in OpenCV's order; () = none
+    distortion_model: str = ""              # DISTORTION_MODELS: how to read ``distortion``
 
     @property
     def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+        return np.array([[self.fx, self.skew, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    @property
+    def pinhole(self) -> bool:
+        """No skew and no lens distortion: what the kernels take as it is."""
+        return self.skew == 0.0 and not any(self.distortion)
+
+    def undistorted(self) -> "Intrinsics":
+        """The pinhole camera that undistorted images are for: the same fx, fy, cx, cy, no skew or distortion."""
+        return self if self.pinhole else replace(self, skew=0.0, distortion=(), distortion_model="")
 
     def downsampled(self, factor: int) -> "Intrinsics":
         """Intrinsics of the image subsampled as ``img[::factor, ::factor]`` (pixel u' is pixel factor·u')."""
@@ -36,9 +57,43 @@ class Intrinsics:
             fy=self.fy / factor,
             cx=self.cx / factor,
             cy=self.cy / factor,
+            skew=self.skew / factor,  # distortion acts on normalised coordinates: unchanged
             width=(self.width + factor - 1) // factor,
             height=(self.height + factor - 1) // factor,
         )
+
+    def fields_of_view(self) -> tuple[float, float]:
+        """(horizontal, vertical) field of view in degrees, from the principal point to both image edges."""
+        def fov(f: float, c: float, size: int) -> float:
+            return float(np.degrees(np.arctan2(c + 0.5, f) + np.arctan2(size - 0.5 - c, f)))
+
+        return fov(self.fx, self.cx, self.width), fov(self.fy, self.cy, self.height)
+
+    def implausibility(self) -> str | None:
+        """Why these intrinsics cannot be this image's camera (None: they can): the principal point outside
+        the image, or a field of view no RGB-D camera has (wider than fisheye-wide, narrower than a telephoto
+        that sees a few centimetres of a wall at a metre)."""
+        values = (self.fx, self.fy, self.cx, self.cy)
+        if not all(np.isfinite(values)):
+            return f"intrinsics {self._text()} contain NaN or infinite values"
+        if self.fx <= 0 or self.fy <= 0:
+            return f"focal lengths must be positive (fx={self.fx:g}, fy={self.fy:g})"
+        if not (-0.5 <= self.cx <= self.width - 0.5 and -0.5 <= self.cy <= self.height - 0.5):
+            return (f"principal point ({self.cx:g}, {self.cy:g}) is outside the {self.width}x{self.height} image "
+                    f"(cx in [0, {self.width - 1}], cy in [0, {self.height - 1}]; the image's centre is "
+                    f"({(self.width - 1) / 2:g}, {(self.height - 1) / 2:g}))")
+        h, v = self.fields_of_view()
+        widest = max(h, v)
+        if not MIN_FOV_DEG <= widest <= MAX_FOV_DEG:
+            # the focal length that gives a 60° horizontal view, as most RGB-D cameras have
+            typical = self.width / 2 / np.tan(np.radians(30))
+            return (f"fx {self.fx:g}, fy {self.fy:g} give a {h:.3g}° x {v:.3g}° field of view at {self.width}x"
+                    f"{self.height}: outside {MIN_FOV_DEG:g}° to {MAX_FOV_DEG:g}°, so not this image's camera (a "
+                    f"60° view needs fx about {typical:.0f}; focal lengths are in pixels of these images)")
+        return None
+
+    def _text(self) -> str:
+        return f"fx {self.fx:g} fy {self.fy:g} cx {self.cx:g} cy {self.cy:g}"
 
     def as_tuple(self) -> tuple[float, float, float, float]:
         """(fx, fy, cx, cy): the form the kernels take."""

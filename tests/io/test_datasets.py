@@ -124,7 +124,7 @@ def make_7scenes(root: Path, rng, n: int = 6, color_ext: str = "png", intrinsics
         T[:3, :3] *= 0.9998  # the release's slightly non-orthonormal rotations
         np.savetxt(root / f"frame-{k:06d}.pose.txt", T)
     if intrinsics:
-        np.savetxt(root / "camera-intrinsics.txt", np.array([[580.0, 0, 20.0], [0, 581.0, 15.0], [0, 0, 1]]))
+        np.savetxt(root / "camera-intrinsics.txt", np.array([[58.0, 0, 20.0], [0, 58.1, 15.0], [0, 0, 1]]))
     return {"root": root, "raws": raws, "colors": colors, "poses": poses}
 
 
@@ -232,12 +232,12 @@ def test_freiburg_camera_names():
 
 def test_tum_intrinsics_file_in_folder_and_config(tmp_path, rng):
     fake = make_tum(tmp_path, rng, n=2)
-    (fake["root"] / "intrinsics.txt").write_text("500 501 20.5 14.5\n")
-    assert TUMDataset(fake["root"]).intrinsics.as_tuple() == (500.0, 501.0, 20.5, 14.5)
+    (fake["root"] / "intrinsics.txt").write_text("50 51 20.5 14.5\n")  # focal lengths a 40x30 image can have
+    assert TUMDataset(fake["root"]).intrinsics.as_tuple() == (50.0, 51.0, 20.5, 14.5)
     other = tmp_path / "cam.txt"
-    other.write_text("# K\n600 0 21\n0 602 16\n0 0 1\n")
+    other.write_text("# K\n60 0 21\n0 62 16\n0 0 1\n")
     K = TUMDataset(fake["root"], DatasetConfig(intrinsics_file=str(other))).intrinsics
-    assert K.as_tuple() == (600.0, 602.0, 21.0, 16.0)
+    assert K.as_tuple() == (60.0, 62.0, 21.0, 16.0)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -280,7 +280,7 @@ def test_7scenes_depth_poses_intrinsics(tmp_path, rng, color_ext):
     fake = make_7scenes(tmp_path, rng, color_ext=color_ext)
     ds = SevenScenesDataset(fake["root"], DatasetConfig(depth_max=10.0))
     assert len(ds) == 6 and ds.has_ground_truth
-    assert ds.intrinsics.as_tuple() == (580.0, 581.0, 20.0, 15.0)
+    assert ds.intrinsics.as_tuple() == (58.0, 58.1, 20.0, 15.0)
     for k, f in enumerate(ds):
         raw = fake["raws"][k]
         expected = raw.astype(np.float32) / 1000.0
@@ -623,7 +623,7 @@ def test_describe_and_the_format_line_say_scale_intrinsics_and_their_source(tmp_
     assert icl["depth_scale"] == 5000.0 and icl["intrinsics"]["source"] == "ICL-NUIM's published intrinsics"
     seven = open_dataset(DatasetConfig(path=str(make_7scenes(tmp_path / "c", rng, n=2)["root"]))).describe()
     assert seven["depth_scale"] == 1000.0 and seven["intrinsics"]["source"] == "camera-intrinsics.txt in the dataset folder"
-    assert seven["intrinsics"]["fx"] == 580.0
+    assert seven["intrinsics"]["fx"] == 58.0
 
 
 def test_tum_default_intrinsics_are_a_warned_guess(tmp_path, rng, caplog):

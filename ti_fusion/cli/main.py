@@ -25,6 +25,7 @@ os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")  # keep stdout for 
 import argparse
 import importlib
 import logging
+import re
 import signal
 import sys
 import threading
@@ -284,9 +285,42 @@ def _first_cause(exc: BaseException) -> BaseException:
     return first
 
 
+# A value that starts with a minus sign and a digit ("-525,525,319.5,239.5"): argparse takes it for an option
+# unless it is one plain negative number, so "--intrinsics -525,..." would fail with "expected one argument".
+_NEGATIVE_VALUE = re.compile(r"^-\.?\d")
+
+
+def _value_options(parser: argparse.ArgumentParser) -> set[str]:
+    """The long options of the parser and its sub-commands that take one value."""
+    found = set()
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                found |= _value_options(sub)
+        elif action.nargs is None and action.option_strings:
+            found |= {o for o in action.option_strings if o.startswith("--")}
+    return found
+
+
+def _join_negative_values(argv: list[str], options: set[str]) -> list[str]:
+    """``--option -1,2`` as ``--option=-1,2`` for ``options`` that take a value, so that the option's own
+    check says what is wrong with it."""
+    out, i = [], 0
+    while i < len(argv):
+        token = argv[i]
+        if token in options and i + 1 < len(argv) and _NEGATIVE_VALUE.match(argv[i + 1]):
+            out.append(f"{token}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(token)
+            i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser, modules = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_negative_values(list(sys.argv[1:] if argv is None else argv),
+                                                   _value_options(parser)))
     if not args.command:
         parser.print_help()
         return 0

@@ -51,6 +51,7 @@ from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
 from ti_fusion.geometry import invert, pose_error, renormalize, se3_log
 from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.maps import FrameMaps, grey_image
+from ti_fusion.slam.checks import check_frame
 from ti_fusion.slam.timing import StageTimer
 
 log = logging.getLogger(__name__)
@@ -138,6 +139,7 @@ class DenseSLAM:
 
     # -- the verb -------------------------------------------------------------------------------
     def register_frame(self, frame: Frame) -> FrameResult:
+        check_frame(self, frame)  # one InputError for a frame this map cannot take (ti_fusion/slam/checks.py)
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
         colour = self._uses_colour(frame)
         with timer.stage("maps"):

@@ -12,6 +12,7 @@ finalised ``log.mcap`` and a ``trajectory.tum``.
 from __future__ import annotations
 
 import copy
+import logging
 import time
 from typing import Any, Protocol
 
@@ -27,6 +28,7 @@ from ti_fusion.io.mcap_log import RunLogger, software_versions
 from ti_fusion.io.outputs import RunDir, progress
 from ti_fusion.io.prefetch import Prefetcher
 from ti_fusion.io.trajectory import write_tum
+from ti_fusion.slam.checks import check_first_frames
 from ti_fusion.slam.timing import StageTimer, process_age_s
 
 # The log's record of a run without a Taichi backend (feature odometry runs in OpenCV).
@@ -80,19 +82,34 @@ class Pipeline:
         self.gt: list[np.ndarray | None] = []  # and the frame's ground-truth pose
         self.first_frames_s: list[float] = []  # the process's age when each of the first two frames was done
         self._calibration = None  # the intrinsics last logged on /camera/calibration
+        self._ran = False  # one run per pipeline: a second would mix two runs' frames in one folder
 
     def run(self) -> dict:
+        if self._ran:
+            raise InputError(None, "this pipeline has run already: one run per Pipeline (its results, log and "
+                                   "output folder are that run's); make a new one, with a new RunDir, for another run")
+        self._ran = True
         if len(self.dataset) == 0:
             raise InputError(self.dataset.root, "no frames selected (check --start/--stop/--frames)")
+        check_first_frames(self.dataset, self.config)  # what can be refused before the first frame is, here
         t_start = time.perf_counter()
+        error = None
         with RunLogger(self.out.file("log.mcap"), self._metadata(), live=self.live) as log:
             log.declare_json(self.step.stats_channel, self._stats_schema())
             try:
                 self._loop(log)
+            except Exception as exc:  # bad input in frame 300: the frames done so far still give their outputs
+                error = exc
             finally:  # whatever ended the loop: keep the trajectory so far, and the map in the log
                 self._write_trajectory()
                 if self.results:
                     self._log_map(log, self.results[-1].timestamp)
+        if error is not None:
+            self._outputs_after_error(error)
+            raise error
+        nothing = self._nothing_done()
+        if nothing:
+            raise InputError(self.dataset.root, nothing)
         wall = time.perf_counter() - t_start
         with self.timer.stage("export"):
             summary = self._summary(wall)
@@ -101,6 +118,28 @@ class Pipeline:
         summary["ms_per_stage"] = self.timer.summary(skip_first=self.step.warmup_frames)
         summary["process_s"] = process_age_s()  # from the process's start: interpreter, imports, compiling
         return summary
+
+    def _outputs_after_error(self, error: Exception) -> None:
+        """After an error in the loop: the evaluation, the plot and the step's files (the map, its views) of
+        the frames done, where they can still be written; the error itself is what the run reports."""
+        if not self.results:
+            return
+        try:
+            self._evaluate()
+            self.step.outputs(self)
+        except Exception as exc:  # the first error is the one to report; this one only limits what is kept
+            logging.getLogger(__name__).warning(f"after the error, not every output of the {len(self.results)} "
+                                                f"frames done could be written: {exc}")
+
+    def _nothing_done(self) -> str | None:
+        """The line for a run in which no frame got a pose (nothing to map or evaluate), else None."""
+        if not self.step.estimates_poses or not self.results or any(r.pose is not None for r in self.results):
+            return None
+        reasons = sorted({str(getattr(r, "status", "")).removeprefix("skipped: ") for r in self.results})
+        scale = self.dataset.depth_scale
+        stated = f"depth scale {scale:g} units per metre (--depth-scale), " if scale else ""
+        return (f"none of the {len(self.results)} frames got a pose ({'; '.join(reasons[:2])}): nothing was mapped. "
+                f"Check the depth's units and range: {stated}dataset.depth_max = {self.config.dataset.depth_max:g} m")
 
     # -- the loop -------------------------------------------------------------------------------
     def _loop(self, log: RunLogger) -> None:
@@ -207,6 +246,10 @@ class Pipeline:
         gt = [g for r, g in zip(self.results, self.gt) if r.pose is not None]
         pairs = [(p, g) for p, g in zip(poses, gt) if g is not None]
         fields, metrics = {"gt_frames": len(pairs)}, None
+        if pairs and 2 * len(pairs) < len(poses):  # a few matches, maybe by chance: no figure to quote as the run's
+            fields["gt_note"] = (f"no ATE or RPE: only {len(pairs)} of the {len(poses)} posed frames have ground "
+                                 "truth, fewer than half (are its times on the frames' clock?)")
+            pairs = []
         if len(pairs) >= 2:
             est, ref = (np.stack(x) for x in zip(*pairs))
             metrics = trajectory_metrics(est, ref)

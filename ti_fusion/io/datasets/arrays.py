@@ -47,7 +47,8 @@ def rgbd_frame(depth: np.ndarray, intrinsics: Intrinsics, depth_scale: float | N
     depth: H×W, in metres (float), or in raw units with ``depth_scale`` units per metre (1000 for
         millimetres); 0, NaN, ±Inf and negative values mean no measurement. Integer depth needs
         ``depth_scale`` (its units cannot be guessed).
-    intrinsics: the depth image's pinhole intrinsics; its size must be the depth image's.
+    intrinsics: the depth image's intrinsics; its size must be the depth image's. With skew or lens
+        distortion (``Intrinsics.distortion``) the frame is undistorted to ``intrinsics.undistorted()``.
     color: None, or uint8 H×W×3 RGB (H×W grey is made RGB) registered to depth.
     timestamp: seconds (trajectory.tum and the log use it); None = ``index``.
     gt_pose: 4×4 camera-to-world ground truth, or None.
@@ -73,9 +74,13 @@ def rgbd_frame(depth: np.ndarray, intrinsics: Intrinsics, depth_scale: float | N
     if depth_max:
         bad |= metres > depth_max
     metres[bad] = 0.0
+    rgb = _rgb(color, depth.shape)
+    if not intrinsics.pinhole:  # skew or lens distortion: the kernels take pinhole images
+        from ti_fusion.io.datasets.undistort import undistort
+
+        metres, rgb, intrinsics = undistort(metres, rgb, intrinsics)
     return Frame(index=int(index), timestamp=float(index if timestamp is None else timestamp), depth=metres,
-                 intrinsics=intrinsics, color=_rgb(color, depth.shape),
-                 gt_pose=None if gt_pose is None else _pose(gt_pose))
+                 intrinsics=intrinsics, color=rgb, gt_pose=None if gt_pose is None else _pose(gt_pose))
 
 
 def _rgb(color, shape: tuple[int, int]) -> np.ndarray | None:

@@ -108,7 +108,9 @@ class Dataset(ABC):
 
     @property
     def intrinsics(self) -> Intrinsics:
-        return self.raw_intrinsics.downsampled(self.downsample)
+        """The frames' intrinsics: a pinhole camera (a calibration's distortion and skew are undistorted away
+        in ``__getitem__``), downsampled."""
+        return self.raw_intrinsics.undistorted().downsampled(self.downsample)
 
     def __len__(self) -> int:
         return len(self.indices)
@@ -116,6 +118,10 @@ class Dataset(ABC):
     def __getitem__(self, i: int) -> Frame:
         frame = self._load_raw(self.indices[i])
         frame.color_registered = frame.color is not None and self.colour_for_tracking
+        if not frame.intrinsics.pinhole:  # at full resolution, before downsampling
+            from ti_fusion.io.datasets.undistort import undistort
+
+            frame.depth, frame.color, frame.intrinsics = undistort(frame.depth, frame.color, frame.intrinsics)
         f = self.downsample
         if f > 1:
             frame.depth = np.ascontiguousarray(frame.depth[::f, ::f])
@@ -175,7 +181,7 @@ class Dataset(ABC):
         K = self.raw_intrinsics
         scale = f"depth {self.depth_scale:g} units per metre; " if self.depth_scale else ""
         return (f"format: {self.format} ({self.format_from}); {scale}intrinsics fx {K.fx:g} fy {K.fy:g} "
-                f"cx {K.cx:g} cy {K.cy:g} at {K.width}x{K.height} ({self.intrinsics_source})")
+                f"cx {K.cx:g} cy {K.cy:g} at {K.width}x{K.height} ({self.intrinsics_source}){_lens(K)}")
 
     def describe(self) -> dict:
         K = self.intrinsics
@@ -191,12 +197,24 @@ class Dataset(ABC):
             "downsample": self.downsample,
             "depth_scale": self.depth_scale,
             "intrinsics": {"fx": raw.fx, "fy": raw.fy, "cx": raw.cx, "cy": raw.cy, "width": raw.width,
-                           "height": raw.height, "source": self.intrinsics_source},
+                           "height": raw.height, "source": self.intrinsics_source,
+                           **({} if raw.pinhole else {"skew": raw.skew, "distortion": list(raw.distortion),
+                                                      "distortion_model": raw.distortion_model,
+                                                      "undistorted": True})},
             "ground_truth": self.has_ground_truth,
             "colour_for_tracking": self.colour_for_tracking,
             "dropped_frames": self.dropped_frames,
             "notes": list(self.notes),
         }
+
+
+def _lens(K: Intrinsics) -> str:
+    """What the format line adds for a calibration that is not a plain pinhole camera."""
+    if K.pinhole:
+        return ""
+    parts = ([f"skew {K.skew:g}"] if K.skew else []) + \
+        ([f"{K.distortion_model} distortion [{', '.join(f'{d:g}' for d in K.distortion)}]"] if K.distortion else [])
+    return f"; {' and '.join(parts)}: every frame is undistorted to the pinhole camera"
 
 
 class RecordedSequence(Dataset):

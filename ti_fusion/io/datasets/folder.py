@@ -215,7 +215,21 @@ class FolderDataset(ImageFileDataset):
             raise InputError(path, f"no pose within {tolerance:g} s of any frame's time ({self.timestamps_from}: "
                                    f"{self._stamps[0]:.6f} to {self._stamps[-1]:.6f}; the file: {stamps[0]:.6f} to "
                                    f"{stamps[-1]:.6f})")
+        matched = sum(T is not None for T in gt)
+        if 2 * matched < len(gt):  # a few matches on two clocks are chance, not ground truth
+            span = (f"{self.timestamps_from}: {self._stamps[0]:.6f} to {self._stamps[-1]:.6f}; the file: "
+                    f"{stamps[0]:.6f} to {stamps[-1]:.6f}")
+            if not self._has_timestamps_file():
+                raise InputError(path, f"only {matched} of {len(gt)} frames have a pose within {tolerance:g} s of "
+                                       f"their time ({span}): without timestamps.txt a frame's time is its number, "
+                                       "so these match by chance; add timestamps.txt (one time per frame, on the "
+                                       "ground truth's clock), or give poses by frame number")
+            self.note(f"only {matched} of {len(gt)} frames have a ground-truth pose within {tolerance:g} s of their "
+                      f"time ({span}): no ATE is given over fewer than half")
         return gt
+
+    def _has_timestamps_file(self) -> bool:
+        return self.timestamps_from == "timestamps.txt"
 
     def _check_colour_size(self, width: int, height: int) -> bool | None:
         """True when the colour images are the depth images' size (taken as registered), False when not

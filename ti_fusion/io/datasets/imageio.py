@@ -169,14 +169,18 @@ def read_intrinsics_file(path: str | Path, width: int, height: int) -> Intrinsic
     return intrinsics_from_numbers(values, width, height, path)
 
 
-def intrinsics_from_numbers(values, width: int, height: int, where: str | Path | None) -> Intrinsics:
-    """Intrinsics from (fx, fy, cx, cy) or a 3×3 K given row by row; ``where`` names the source in errors."""
+def intrinsics_from_numbers(values, width: int, height: int, where: str | Path | None,
+                            distortion=None, distortion_model: str = "") -> Intrinsics:
+    """Intrinsics from (fx, fy, cx, cy) or a 3×3 K given row by row (its skew K[0,1] kept), with the lens
+    ``distortion`` coefficients a calibration states (OpenCV's order) and their ``distortion_model``;
+    ``where`` names the source in errors. Intrinsics that cannot be these images' camera are refused."""
     values = np.asarray(values, dtype=np.float64).reshape(-1)
+    skew = 0.0
     if values.size == 4:
         fx, fy, cx, cy = values
     elif values.size == 9:
         K = values.reshape(3, 3)
-        fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        fx, fy, cx, cy, skew = K[0, 0], K[1, 1], K[0, 2], K[1, 2], K[0, 1]
         if not np.allclose(K[2], [0.0, 0.0, 1.0]) or K[1, 0] != 0.0:
             raise InputError(where, "3x3 intrinsics matrix must have last row [0 0 1] and K[1,0] = 0")
     else:
@@ -185,7 +189,42 @@ def intrinsics_from_numbers(values, width: int, height: int, where: str | Path |
         raise InputError(where, "intrinsics contain NaN or infinite values")
     if fx <= 0 or fy <= 0:
         raise InputError(where, f"focal lengths must be positive (fx={fx:g}, fy={fy:g})")
-    return Intrinsics(float(fx), float(fy), float(cx), float(cy), int(width), int(height))
+    coefficients = _distortion(distortion, distortion_model, where)
+    K = Intrinsics(float(fx), float(fy), float(cx), float(cy), int(width), int(height), skew=float(skew),
+                   distortion=coefficients, distortion_model=distortion_model if coefficients else "")
+    problem = K.implausibility()
+    if problem:
+        raise InputError(where, problem)
+    return K
+
+
+# Coefficients each distortion model takes (OpenCV's standard model: k1 k2 p1 p2 [k3 [k4 k5 k6 [s1..s4 [tx ty]]]]).
+_COEFFICIENTS = {"plumb_bob": (4, 5, 8, 12, 14), "rational_polynomial": (4, 5, 8, 12, 14), "equidistant": (4,)}
+_MODEL_NAMES = {"": "plumb_bob", "radtan": "plumb_bob", "radial-tangential": "plumb_bob", "opencv": "plumb_bob",
+                "fisheye": "equidistant", "kannala_brandt": "equidistant"}
+
+
+def _distortion(values, model: str, where) -> tuple[float, ...]:
+    """The distortion coefficients as a tuple (() when there are none or all are 0), or InputError naming a
+    model this reader does not undistort, or coefficients of the wrong count."""
+    if values is None:
+        return ()
+    try:
+        d = np.asarray(values, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        raise InputError(where, f"distortion coefficients are not a list of numbers: {values!r}") from None
+    if not np.all(np.isfinite(d)):
+        raise InputError(where, "distortion coefficients contain NaN or infinite values")
+    if not d.size or not np.any(d):
+        return ()
+    name = _MODEL_NAMES.get(str(model).strip().lower(), str(model).strip().lower())
+    if name not in _COEFFICIENTS:
+        raise InputError(where, f"distortion model {model!r} is not supported (plumb_bob, rational_polynomial, "
+                                "equidistant): undistort the images first and give a calibration without it")
+    if d.size not in _COEFFICIENTS[name]:
+        counts = " or ".join(str(n) for n in _COEFFICIENTS[name])
+        raise InputError(where, f"{d.size} distortion coefficients for the {name} model, which takes {counts}")
+    return tuple(float(x) for x in d)
 
 
 def parse_intrinsics(spec, width: int, height: int, option: str = "--intrinsics") -> Intrinsics:
@@ -237,7 +276,11 @@ def _intrinsics_from_yaml(path: Path, width: int, height: int) -> Intrinsics:
         raise InputError(path, f"camera matrix is not a list of numbers: {values!r}") from None
     size = (data.get("image_width", data.get("width")), data.get("image_height", data.get("height")))
     _check_calibration_size(path, size, width, height)
-    return intrinsics_from_numbers(numbers, width, height, path)
+    distortion = data.get("distortion_coefficients", data.get("d", data.get("D")))
+    if isinstance(distortion, dict):  # camera_calibration_parsers: rows, cols, data
+        distortion = distortion.get("data")
+    return intrinsics_from_numbers(numbers, width, height, path, distortion,
+                                   str(data.get("distortion_model") or ""))
 
 
 def _intrinsics_from_opencv(path: Path, width: int, height: int) -> Intrinsics:
@@ -255,10 +298,15 @@ def _intrinsics_from_opencv(path: Path, width: int, height: int) -> Intrinsics:
             raise InputError(path, "no camera_matrix in this OpenCV calibration file")
         size = tuple(storage.getNode(k).real() if not storage.getNode(k).empty() else None
                      for k in ("image_width", "image_height"))
+        node = next((storage.getNode(k) for k in ("distortion_coefficients", "dist_coeffs", "D")
+                     if not storage.getNode(k).empty()), None)
+        distortion = None if node is None else node.mat()
+        model_node = storage.getNode("distortion_model")
+        model = "" if model_node.empty() else model_node.string()
     finally:
         storage.release()
     _check_calibration_size(path, size, width, height)
-    return intrinsics_from_numbers(K, width, height, path)
+    return intrinsics_from_numbers(K, width, height, path, distortion, model)
 
 
 def _check_calibration_size(path: Path, size, width: int, height: int) -> None:

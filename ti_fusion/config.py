@@ -261,6 +261,10 @@ class DatasetConfig:
     color_topic: Topic = ""         # bags: the colour image topic; "" = the only one, "none" = no colour
     camera_info_topic: Topic = ""   # bags: CameraInfo of the depth images; "" = the depth topic's camera_info, or the only one
     gt_topic: Topic = ""            # bags: a PoseStamped or Odometry topic of ground truth; "" = none
+    color_extrinsics: Annotated[str, Text("a file path or a bag topic")] = ""
+                                    # T_color_depth (p_colour = T p_depth, metres): a file (4x4 or 3x4 matrix, or
+                                    # tx ty tz qx qy qz qw) or a bag's Transform/TransformStamped/TFMessage topic;
+                                    # colour is then registered to depth (RealSense recordings: the recorded one)
     color_registered: bool = False  # folder, bag and log: the colour images are registered to depth (pixel for
                                     # pixel), so photometric tracking may use them; TUM, ICL-NUIM and synthetic
                                     # are, 7-Scenes is not (its own word); a bag with one frame_id for both is

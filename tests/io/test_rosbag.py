@@ -4,6 +4,7 @@ Taichi); ti-fusion's own run log replays."""
 
 from __future__ import annotations
 
+import copy
 import json
 import shutil
 from dataclasses import dataclass
@@ -33,6 +34,7 @@ K_SMALL = (32.8125, 32.8125, 19.5, 14.5)  # the same field of view at the small 
 DEPTH = "/camera/depth/image_rect_raw"
 COLOR = "/camera/color/image_raw"
 INFO = "/camera/depth/camera_info"
+COLOR_INFO = "/camera/color/camera_info"
 GT = "/ground_truth/pose"
 
 
@@ -106,13 +108,14 @@ def ros1_msg(msg):
 def write_bag(path: Path, shots: list[Shot], depth_encoding: str = "32FC1", color_encoding: str | None = "rgb8",
               color_lag: float = 0.0, gt: str | None = "pose", info: bool = True, depth_topics=(DEPTH,),
               storage: str = "mcap", color_frame: str = "camera_optical", log_delays=None, ros1: bool = False,
-              compressed_depth: bool = False, infos=None, stamps=None) -> Path:
+              compressed_depth: bool = False, infos=None, stamps=None, color_k=None) -> Path:
     """A rosbag2 folder of ``shots`` (log time = header stamp, as a recorder close to the driver writes it,
     plus ``log_delays[i]`` seconds for shot i's depth), or a ROS 1 ``.bag`` file with ``ros1``.
     ``depth_encoding`` 16UC1 writes millimetres, ``compressed_depth`` as image_transport's compressedDepth
     PNG; ``color_encoding`` is rgb8, bgr8, mono8, "jpeg" or "png" (CompressedImage); ``color_lag`` delays
     colour's stamps; ``gt`` is "pose", "odom" or None; ``infos[i]`` is shot i's (fx, fy, cx, cy);
-    ``stamps[i]`` overrides shot i's header stamps (log times stay the shot's)."""
+    ``stamps[i]`` overrides shot i's header stamps (log times stay the shot's); ``color_k`` (fx, fy, cx, cy)
+    writes the colour camera's camera_info beside the colour topic."""
     from rosbags import rosbag1
 
     from ti_fusion.io.datasets.compressed import encode_compressed_depth
@@ -127,6 +130,8 @@ def write_bag(path: Path, shots: list[Shot], depth_encoding: str = "32FC1", colo
         color_conn = None if color_encoding is None else w.add_connection(
             COLOR, compressed_type if color_encoding in ("jpeg", "png") else image_type, typestore=store)
         info_conn = w.add_connection(INFO, "sensor_msgs/msg/CameraInfo", typestore=store) if info else None
+        color_info_conn = None if color_k is None else w.add_connection(COLOR_INFO, "sensor_msgs/msg/CameraInfo",
+                                                                        typestore=store)
         gt_type = {"pose": "geometry_msgs/msg/PoseStamped", "odom": "nav_msgs/msg/Odometry"}.get(gt)
         gt_conn = w.add_connection(GT, gt_type, typestore=store) if gt else None
         records = []
@@ -146,6 +151,9 @@ def write_bag(path: Path, shots: list[Shot], depth_encoding: str = "32FC1", colo
             if info_conn:
                 records.append((s.t, info_conn, "sensor_msgs/msg/CameraInfo",
                                 info_msg(t, wd, h, None if infos is None else infos[i])))
+            if color_info_conn is not None:
+                records.append((s.t, color_info_conn, "sensor_msgs/msg/CameraInfo",
+                                info_msg(t, s.color.shape[1], s.color.shape[0], color_k, color_frame)))
             if color_conn is not None and s.color is not None:
                 tc = t + color_lag
                 if color_encoding in ("jpeg", "png"):
@@ -505,6 +513,38 @@ def test_the_synthetic_sequence_as_a_ros1_bag_tracks_as_its_tum_copy(cpu, synthe
     assert abs(summary["ate_rmse_m"] - tum_run["ate_rmse_m"]) < 1e-3
 
 
+# the colour camera of the offset-colour bags: 2.5 cm beside the depth camera, turned about 1.3 degrees
+T_OFFSET = make_pose(so3_exp(np.array([0.01, -0.02, 0.01])), [0.025, 0.003, -0.002])
+K_COLOUR = Intrinsics(fx=300.0, fy=301.0, cx=165.0, cy=118.0, width=320, height=240)
+
+
+def offset_colour_shots(shots: list[Shot], scene: str = "room") -> list[Shot]:
+    """``shots`` with their colour rendered by a camera at T_OFFSET from the depth camera, K_COLOUR."""
+    from ti_fusion.synthetic.scene import SyntheticSequence
+
+    seq = SyntheticSequence(SynthConfig(scene=scene, frames=len(shots), width=320, height=240, fx=K[0]))
+    return [Shot(s.t, s.depth, seq.render_offset_colour(s.pose, T_OFFSET, K_COLOUR), s.pose) for s in shots]
+
+
+@pytest.mark.parametrize("color_weight", [0.0, 0.01])
+def test_unregistered_colour_with_its_extrinsics_tracks_as_registered_colour(cpu, synthetic_shots, tum_sequence,
+                                                                              tmp_path, color_weight):
+    """The synthetic sequence as a ROS 1 bag, millimetres, its colour from a camera 2.5 cm aside (its own
+    camera_info, --color-extrinsics a file): registered to depth in the loop, the photometric term uses it
+    and the run tracks as the TUM folder with registered colour does (within the millimetre quantisation)."""
+    cfg = Config()
+    cfg.icp.color_weight = color_weight
+    tum = slam(DatasetConfig(path=str(tum_sequence)), tmp_path / "tum", copy.deepcopy(cfg))
+    bag = write_bag(tmp_path / "seq.bag", offset_colour_shots(synthetic_shots), depth_encoding="16UC1", ros1=True,
+                    color_frame="camera_color_optical", color_k=K_COLOUR.as_tuple())
+    T = T_OFFSET
+    (tmp_path / "extrinsics.txt").write_text("\n".join(" ".join(f"{x:.12g}" for x in row) for row in T) + "\n")
+    run = slam(small_cfg(bag, gt_topic=GT, color_extrinsics=str(tmp_path / "extrinsics.txt")), tmp_path / "run", cfg)
+    d = run["dataset"]
+    assert d["notes"] == [] and d["colour_camera"]["source"].endswith("(--color-extrinsics)")
+    assert run["tracking_failures"] == 0 and abs(run["ate_rmse_m"] - tum["ate_rmse_m"]) < 1e-3
+
+
 def test_compressed_depth_on_ros2_tracks_as_the_raw_images(cpu, synthetic_shots, tmp_path):
     """compressedDepth 16UC1 is lossless: the same trajectory as the raw 16UC1 images, JPEG colour and all."""
     raw = slam(small_cfg(write_bag(tmp_path / "raw", synthetic_shots, depth_encoding="16UC1"), gt_topic=GT),
@@ -663,3 +703,36 @@ def test_colour_of_another_size_in_the_depths_frame_is_resized_with_a_warning(tm
     bag = write_bag(tmp_path / "c", shots)
     with pytest.raises(InputError, match="colour image of frame 2 is 80x50, the first 80x60 .--color-topic none"):
         open_dataset(small_cfg(bag))[2]
+
+
+def test_colour_extrinsics_from_a_file_or_a_topic_and_what_is_refused(tmp_path, rng):
+    from ti_fusion.io.datasets.extrinsics import read_extrinsics_file
+
+    T = make_pose(so3_exp(np.array([0.0, 0.05, 0.0])), [0.02, 0.0, 0.001])
+    q = rot_to_quat(T[:3, :3])
+    (tmp_path / "q.txt").write_text(f"# tx ty tz qx qy qz qw\n0.02 0 0.001 {q[0]} {q[1]} {q[2]} {q[3]}\n")
+    (tmp_path / "m.txt").write_text("\n".join(" ".join(map(str, row)) for row in T[:3]))
+    for name in ("q.txt", "m.txt"):
+        np.testing.assert_allclose(read_extrinsics_file(tmp_path / name), T, atol=1e-9)
+    (tmp_path / "bad.txt").write_text("1 2 3\n")
+    with pytest.raises(InputError, match="3 numbers; expected a 4x4 or 3x4 matrix"):
+        read_extrinsics_file(tmp_path / "bad.txt")
+    (tmp_path / "mm.txt").write_text("1 0 0 25\n0 1 0 0\n0 0 1 0\n")
+    with pytest.raises(InputError, match="25.00 m from the depth camera: metres are expected"):
+        read_extrinsics_file(tmp_path / "mm.txt")
+    (tmp_path / "skew.txt").write_text("1 0.5 0 0\n0 1 0 0\n0 0 1 0\n")
+    with pytest.raises(InputError, match="not a rotation"):
+        read_extrinsics_file(tmp_path / "skew.txt")
+    shots = small_shots(rng, n=2)
+    bag = write_bag(tmp_path / "b", shots, color_frame="camera_color_optical", color_k=K_SMALL)
+    ds = open_dataset(small_cfg(bag, color_extrinsics=str(tmp_path / "q.txt")))
+    np.testing.assert_allclose(ds.color_extrinsics, T, atol=1e-9)
+    assert ds.notes == [] and ds[0].meta["color_camera"][0].fx == K_SMALL[0] and ds[0].color_registered is False
+    with pytest.raises(InputError, match="--color-extrinsics /tf_static: neither a file nor a topic of the bag"):
+        open_dataset(small_cfg(bag, color_extrinsics="/tf_static"))
+    with pytest.raises(InputError, match=f"--color-extrinsics {INFO}: a sensor_msgs/msg/CameraInfo topic, not a "
+                                         "transform"):
+        open_dataset(small_cfg(bag, color_extrinsics=INFO))
+    bag = write_bag(tmp_path / "c", shots, color_frame="camera_color_optical")
+    with pytest.raises(InputError, match="no /camera/color/camera_info beside /camera/color/image_raw"):
+        open_dataset(small_cfg(bag, color_extrinsics=str(tmp_path / "q.txt")))

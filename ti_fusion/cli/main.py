@@ -112,7 +112,8 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
         d = parser.add_argument_group("dataset options")
         d.add_argument("data", nargs="?", default="", metavar="DATA",
                        help="dataset folder (TUM, ICL-NUIM, 7-Scenes, or a plain folder with --format folder) or "
-                            "ROS 2 bag (a rosbag2 folder or an .mcap file); omitted: the embedded synthetic sequence")
+                            "ROS bag (a ROS 1 .bag, e.g. a RealSense recording; a rosbag2 folder or an .mcap file); "
+                            "omitted: the embedded synthetic sequence")
         from ti_fusion.io.datasets import FORMATS
 
         d.add_argument("--format", choices=("auto", *FORMATS), default=None,
@@ -132,6 +133,9 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
                        help="bag: the CameraInfo topic of the depth images")
         d.add_argument("--gt-topic", default=None, metavar="TOPIC",
                        help="bag: a PoseStamped or Odometry topic of ground-truth poses")
+        d.add_argument("--color-extrinsics", default=None, metavar="FILE|TOPIC",
+                       help="the colour camera's T_color_depth (a 4x4 matrix or tx ty tz qx qy qz qw file, or a "
+                            "bag's transform topic): colour is registered to depth through it")
         d.add_argument("--downsample", type=int, default=None, help="integer subsampling factor (2 → 320×240)")
         d.add_argument("--start", type=int, default=None, help="first frame (0 = the first)")
         d.add_argument("--stop", type=int, default=None, help="one past the last frame")
@@ -182,7 +186,7 @@ def _apply_dataset_args(args: argparse.Namespace, config: Config) -> None:
     if getattr(args, "data", ""):
         ds.path = args.data
     for name in ("format", "downsample", "start", "stop", "stride", "depth_scale", "intrinsics", "ground_truth",
-                 "depth_topic", "color_topic", "camera_info_topic", "gt_topic"):
+                 "depth_topic", "color_topic", "camera_info_topic", "gt_topic", "color_extrinsics"):
         value = getattr(args, name, None)
         if value is not None:
             setattr(ds, name, value)

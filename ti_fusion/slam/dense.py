@@ -145,7 +145,10 @@ class DenseSLAM:
         with timer.stage("maps"):
             self.frame_maps.compute(frame.depth, frame.intrinsics)
             if colour:
-                self.frame_maps.compute_intensity(grey_image(frame.color))
+                grey = grey_image(frame.color)
+                if frame.meta.get("color_valid") is not None:  # registered colour: none where the camera saw none
+                    grey[~frame.meta["color_valid"]] = -1.0
+                self.frame_maps.compute_intensity(grey)
         if not self.poses and (problem := self.unusable(frame)):
             self.skipped.append((frame.index, problem))
             return FrameResult(frame.index, frame.timestamp, None, f"skipped: {problem}", ms=dict(timer.last))

@@ -354,6 +354,21 @@ class SyntheticSequence:
         self.last_labels = labels
         return depth, color
 
+    def render_offset_colour(self, pose: np.ndarray, T_color_depth: np.ndarray, intrinsics: Intrinsics,
+                             noise: bool | None = None, seed: int | None = None) -> np.ndarray:
+        """The colour image (uint8 H×W×3 RGB) of a second camera beside the depth camera, as on a RealSense
+        or a Kinect: ``T_color_depth`` maps depth-camera points into it, ``intrinsics`` is its own camera;
+        ``pose`` is the depth camera's camera-to-world. The target of colour registration."""
+        from ti_fusion.backend import current_backend
+
+        current_backend()
+        pose_c = np.asarray(pose, dtype=np.float64) @ np.linalg.inv(np.asarray(T_color_depth, dtype=np.float64))
+        noise = self.cfg.noise if noise is None else noise
+        if seed is None:
+            seed = _mix(self.cfg.seed, zlib.crc32(pose_c.astype(np.float32).tobytes()))
+        _, color, _ = self._caster.render(pose_c, intrinsics, sensor=self.sensor if noise else None, seed=seed)
+        return color
+
     def frame(self, index: int, downsample: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Frame ``index`` of the sequence (noise per ``cfg.noise``, seed from ``cfg.seed`` and the index)."""
         return self.render(self.poses[index], seed=frame_seed(self.cfg.seed, index), downsample=downsample)

@@ -26,7 +26,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ti_fusion.geometry import make_pose, quat_to_rot
 
 _STREAM = re.compile(r"^/device_(\d+)/sensor_(\d+)/([A-Za-z]+)_(\d+)/image/data$")
 
@@ -79,13 +78,6 @@ def recognise(topics: dict, depth_topic: str | None = None, color_topic: str | N
                            depth_tf=have(f"{base_d}/tf/0"), color=color,
                            color_info=have(f"{base_c}/info/camera_info") if base_c else None,
                            color_tf=have(f"{base_c}/tf/0") if base_c else None)
-
-
-def transform_matrix(msg) -> np.ndarray:
-    """4×4 of a ``geometry_msgs/Transform`` (p_parent = R p_child + t)."""
-    q, t = msg.rotation, msg.translation
-    return make_pose(quat_to_rot(np.array([q.x, q.y, q.z, q.w], dtype=np.float64)),
-                     np.array([t.x, t.y, t.z], dtype=np.float64))
 
 
 def depth_to_color(depth_tf: np.ndarray | None, color_tf: np.ndarray) -> np.ndarray:

@@ -46,7 +46,9 @@ from ti_fusion.geometry import make_pose, quat_to_rot
 from ti_fusion.io.datasets.base import Frame, RecordedSequence
 from ti_fusion.io.datasets.compressed import decode_compressed_color, decode_compressed_depth, is_compressed_depth
 from ti_fusion.io.datasets.imageio import depth_to_metres, intrinsics_from_numbers, parse_intrinsics
-from ti_fusion.io.datasets.realsense import depth_to_color, transform_matrix
+from ti_fusion.io.datasets.extrinsics import (TF_MESSAGE, TRANSFORM, TRANSFORM_STAMPED, extrinsics_from_message,
+                                              read_extrinsics_file, transform_matrix)
+from ti_fusion.io.datasets.realsense import depth_to_color
 from ti_fusion.io.datasets.realsense import recognise as recognise_realsense
 
 IMAGE = "sensor_msgs/msg/Image"
@@ -374,6 +376,8 @@ class RosbagDataset(RecordedSequence):
         self._intrinsics = self._find_intrinsics()
         if self.realsense is not None:
             self._realsense_calibration()
+        if self.config.color_extrinsics:
+            self._stated_colour_camera(self.config.color_extrinsics)
         self._gt_poses = self._ground_truth()
 
     # -- topics ---------------------------------------------------------------------------------
@@ -619,6 +623,39 @@ class RosbagDataset(RecordedSequence):
         self.color_extrinsics = depth_to_color(depth_tf, transform_matrix(self._first(rs.color_tf)))
         self.color_calibration_source = f"{rs.color_info} and {rs.color_tf} (RealSense recording)"
 
+    def _stated_colour_camera(self, spec: str) -> None:
+        """The colour camera from ``--color-extrinsics`` (a file, or a transform topic of the bag) and the
+        colour topic's camera_info; it replaces a RealSense recording's recorded extrinsics."""
+        topic, option = self.topics["color"], f"--color-extrinsics {spec}"
+        if topic is None:
+            raise InputError(None, f"{option}: the bag gives no colour to register (no colour topic chosen)")
+        if spec in self.bag.topics:
+            msgtype = self.bag.topics[spec][0]
+            if msgtype not in (TRANSFORM, TRANSFORM_STAMPED, TF_MESSAGE):
+                raise InputError(self.root, f"{option}: a {msgtype} topic, not a transform ({TRANSFORM}, "
+                                            f"{TRANSFORM_STAMPED} or {TF_MESSAGE})")
+            T = extrinsics_from_message(self._first(spec), msgtype, self._first_depth.header.frame_id,
+                                        self._first_color.header.frame_id, f"{self.root}: {spec}")
+        elif Path(spec).is_file():
+            T = read_extrinsics_file(spec)
+        else:
+            raise InputError(None, f"{option}: neither a file nor a topic of the bag")
+        if self.color_intrinsics is None:
+            base = topic.rsplit("/", 2 if self.bag.topics[topic][0] == COMPRESSED else 1)[0]
+            info = f"{base}/camera_info"
+            if info not in self.bag.topics:
+                raise InputError(self.root, f"{option}: registration needs the colour camera's intrinsics, and "
+                                            f"there is no {info} beside {topic}")
+            w, h = self._color_size
+            self.color_intrinsics = _camera(self._first(info), w, h, f"{self.root}: {info}")
+            self.color_calibration_source = f"{info} and {spec} (--color-extrinsics)"
+        else:
+            self.color_calibration_source = f"{self.color_calibration_source.split(' and ')[0]} and {spec} " \
+                                            "(--color-extrinsics)"
+        self.color_extrinsics = T
+        self.color_registered = False  # not as recorded: the kernel registers it (ti_fusion/io/registration.py)
+        self.notes = [n for n in self.notes if "only colours the map" not in n]
+
     def describe_format(self) -> str:
         line = super().describe_format() + f"; depth scale from {self.depth_scale_source}; times from {self.stamps_from}"
         if self.color_extrinsics is not None:
@@ -689,8 +726,10 @@ class RosbagDataset(RecordedSequence):
                                        "reads no colour)")
             if color.shape[:2] != depth.shape and self.color_extrinsics is None:
                 color = cv2.resize(color, (K.width, K.height), interpolation=cv2.INTER_AREA)
-        return self._frame(raw_index, float(self._stamps[raw_index]), depth, color,
-                           {"depth_topic": topics["depth"], "color_topic": topics["color"]})
+        meta = {"depth_topic": topics["depth"], "color_topic": topics["color"]}
+        if color is not None and self.color_extrinsics is not None:  # registered in the run loop's thread
+            meta["color_camera"] = (self.color_intrinsics, self.color_extrinsics)
+        return self._frame(raw_index, float(self._stamps[raw_index]), depth, color, meta)
 
     def _decode(self, topic: str, key):
         try:

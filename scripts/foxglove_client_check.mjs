@@ -5,13 +5,20 @@
 // browser console's errors.
 //
 //   node scripts/foxglove_client_check.mjs --log RUN/log.mcap [--layout docs/foxglove-layout.json]
-//        [--out logs/foxglove-check] [--live ws://127.0.0.1:8765] [--chromium /usr/bin/chromium]
+//        [--out logs/foxglove-check] [--chromium /usr/bin/chromium] [--seconds 20]
+//   node scripts/foxglove_client_check.mjs --live ws://127.0.0.1:8765 [--relay yes] ...
+//   node scripts/foxglove_client_check.mjs --live-frames 300 ...   (starts ti-fusion slam --live itself)
+//
+// Live: Studio 1.48 offers only the sub-protocol foxglove.websocket.v1, which the Foxglove SDK's server refuses
+// (it takes foxglove.sdk.v1, the same protocol renamed). With --relay yes (the default) the browser connects to
+// a relay in this script that offers the new name to the server and passes every frame through unchanged, so
+// Studio shows the run as a current client would; --relay no connects it directly, to see the refusal.
 //
 // Needs node >= 18, npm (the client's packages are installed into logs/foxglove-client on first use, pinned
 // below) and chromium (`apt-get install -y chromium`). Exit status 0 when the client shows no problem, 1 when
 // it lists problems, 2 when it could not run. See docs/LOGS.md, "Checking in a real client".
 
-import { execFileSync } from "node:child_process";
+import { execFileSync, spawn } from "node:child_process";
 import fs from "node:fs";
 import http from "node:http";
 import { createRequire } from "node:module";
@@ -19,7 +26,8 @@ import path from "node:path";
 import { fileURLToPath } from "node:url";
 
 const ROOT = path.resolve(path.dirname(fileURLToPath(import.meta.url)), "..");
-const PACKAGES = { "@foxglove/studio-base": "1.48.0", react: "17.0.2", "react-dom": "17.0.2", "playwright-core": "1.49.1" };
+const PACKAGES = { "@foxglove/studio-base": "1.48.0", react: "17.0.2", "react-dom": "17.0.2", "playwright-core": "1.49.1",
+  ws: "8.18.0" };
 // the brief's flags, and WebGL on the CPU (SwiftShader): the 3D and image panels draw with WebGL
 const CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
   "--disable-component-update", "--disable-sync", "--no-first-run", "--use-angle=swiftshader",
@@ -28,15 +36,17 @@ const CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disabl
 function parseArgs(argv) {
   const args = { layout: path.join(ROOT, "docs", "foxglove-layout.json"), out: path.join(ROOT, "logs", "foxglove-check"),
     client: path.join(ROOT, "logs", "foxglove-client"), chromium: "/usr/bin/chromium", log: undefined, live: undefined,
-    seconds: 20, width: 1600, height: 1000 };
+    seconds: 20, width: 1600, height: 1000, relay: "yes", "live-frames": undefined };
   for (let i = 0; i < argv.length; i += 2) {
     const key = argv[i].replace(/^--/, "");
     if (!(key in args) || argv[i + 1] == undefined) {
       fail(`unknown option or missing value: ${argv[i]} (options: ${Object.keys(args).map((k) => "--" + k).join(" ")})`);
     }
-    args[key] = ["seconds", "width", "height"].includes(key) ? Number(argv[i + 1]) : argv[i + 1];
+    args[key] = ["seconds", "width", "height", "live-frames"].includes(key) ? Number(argv[i + 1]) : argv[i + 1];
   }
-  if ((args.log == undefined) === (args.live == undefined)) fail("give --log RUN/log.mcap or --live ws://HOST:PORT");
+  if ([args.log, args.live, args["live-frames"]].filter((a) => a != undefined).length !== 1) {
+    fail("give one of --log RUN/log.mcap, --live ws://HOST:PORT, --live-frames N");
+  }
   if (args.log != undefined && !fs.existsSync(args.log)) fail(`--log ${args.log}: no such file`);
   if (!fs.existsSync(args.layout)) fail(`--layout ${args.layout}: no such file`);
   if (!fs.existsSync(args.chromium)) fail(`--chromium ${args.chromium}: no such file (apt-get install -y chromium)`);
@@ -143,15 +153,57 @@ function serve(args) {
   return new Promise((resolve) => server.listen(0, "127.0.0.1", () => resolve(server)));
 }
 
+// ti-fusion slam --live on the synthetic sequence, until it prints its URL.
+function startRun(args) {
+  const out = path.join(args.out, "run");
+  const exe = fs.existsSync(path.join(ROOT, ".venv", "bin", "ti-fusion")) ? path.join(ROOT, ".venv", "bin", "ti-fusion") : "ti-fusion";
+  const cli = ["slam", "--live", "127.0.0.1:0", "--frames", String(args["live-frames"]), "--downsample", "2", "--out", out];
+  console.log(`running ${exe} ${cli.join(" ")}`);
+  const proc = spawn(exe, cli, { cwd: ROOT, stdio: ["ignore", "pipe", "pipe"] });
+  let output = "";
+  return new Promise((resolve, reject) => {
+    const onData = (chunk) => {
+      output += chunk;
+      const match = /live: (ws:\/\/\S+)/.exec(output);
+      if (match) resolve({ proc, url: match[1], output: () => output });
+    };
+    proc.stdout.on("data", onData);
+    proc.stderr.on("data", onData);
+    proc.on("exit", (code) => reject(new Error(`the run ended (${code}) before serving: ${output}`)));
+  });
+}
+
+// A WebSocket relay: takes the browser's foxglove.websocket.v1 connection and opens foxglove.sdk.v1 to ``url``.
+function relay(args, url) {
+  const { WebSocketServer, WebSocket } = createRequire(path.join(args.client, "package.json"))("ws");
+  const server = new WebSocketServer({ host: "127.0.0.1", port: 0, handleProtocols: (offered) => [...offered][0] });
+  server.on("connection", (client) => {
+    const upstream = new WebSocket(url, ["foxglove.sdk.v1"]);
+    const queued = [];
+    upstream.on("open", () => queued.splice(0).forEach(([data, binary]) => upstream.send(data, { binary })));
+    upstream.on("message", (data, binary) => client.send(data, { binary }));
+    client.on("message", (data, binary) => (upstream.readyState === WebSocket.OPEN ? upstream.send(data, { binary })
+      : queued.push([data, binary])));
+    upstream.on("close", () => client.close());
+    client.on("close", () => upstream.close());
+    upstream.on("error", () => client.close());
+  });
+  return new Promise((resolve) => server.on("listening", () => resolve(server)));
+}
+
 async function main() {
   const args = parseArgs(process.argv.slice(2));
   installClient(args.client);
   const { chromium } = createRequire(path.join(args.client, "package.json"))("playwright-core");
   fs.mkdirSync(args.out, { recursive: true });
+  const run = args["live-frames"] != undefined ? await startRun(args) : undefined;
+  if (run) args.live = run.url;
+  const relayServer = args.live != undefined && args.relay === "yes" ? await relay(args, args.live) : undefined;
   const server = await serve(args);
   const base = `http://127.0.0.1:${server.address().port}`;
+  const wsUrl = relayServer ? `ws://127.0.0.1:${relayServer.address().port}` : args.live;
   const source = args.log ? `ds=remote-file&ds.url=${encodeURIComponent(base + "/log.mcap")}`
-    : `ds=foxglove-websocket&ds.url=${encodeURIComponent(args.live)}`;
+    : `ds=foxglove-websocket&ds.url=${encodeURIComponent(wsUrl)}`;
   const browser = await chromium.launch({ executablePath: args.chromium, args: CHROMIUM_FLAGS, headless: true });
   const report = { client: "Foxglove Studio 1.48.0 (@foxglove/studio-base)", chromium: browser.version(),
     source: args.log ?? args.live, layout: args.layout, console_errors: [], page_errors: [], alerts: [], problems: [], screenshots: [] };
@@ -192,8 +244,16 @@ async function main() {
   } finally {
     await browser.close();
     server.close();
+    relayServer?.close();
+    if (run) {
+      run.proc.kill("SIGTERM");
+      await new Promise((resolve) => run.proc.on("exit", resolve));
+      report.run_output = run.output().split("\n").filter((l) => /warning|refused|Dropping|live:|frames/.test(l));
+    }
   }
   report.topics = [...new Set(report.topics ?? [])].sort();
+  report.relay = relayServer != undefined;
+  for (const line of report.run_output ?? []) console.log(`run: ${line}`);
   fs.writeFileSync(path.join(args.out, "report.json"), JSON.stringify(report, null, 1) + "\n");
   console.log(`topics: ${report.topics.join(" ")}`);
   console.log(`panels shown: ${report.panels.shown.length} of ${report.panels.shown.length + report.panels.missing.length}` +

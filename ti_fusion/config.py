@@ -265,6 +265,9 @@ class DatasetConfig:
                                     # T_color_depth (p_colour = T p_depth, metres): a file (4x4 or 3x4 matrix, or
                                     # tx ty tz qx qy qz qw) or a bag's Transform/TransformStamped/TFMessage topic;
                                     # colour is then registered to depth (RealSense recordings: the recorded one)
+    camera: Annotated[str, Text("realsense[:SERIAL] or realsense:FILE.bag")] = ""
+                                    # a live camera instead of a dataset (pyrealsense2: pip install ti-fusion[realsense]);
+                                    # realsense:FILE.bag plays a recording back through the SDK
     color_registered: bool = False  # folder, bag and log: the colour images are registered to depth (pixel for
                                     # pixel), so photometric tracking may use them; TUM, ICL-NUIM and synthetic
                                     # are, 7-Scenes is not (its own word); a bag with one frame_id for both is

@@ -133,6 +133,9 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
                        help="bag: the CameraInfo topic of the depth images")
         d.add_argument("--gt-topic", default=None, metavar="TOPIC",
                        help="bag: a PoseStamped or Odometry topic of ground-truth poses")
+        d.add_argument("--camera", default=None, metavar="realsense[:SERIAL]",
+                       help="frames from a live RealSense camera (pip install 'ti-fusion[realsense]'); Ctrl-C or "
+                            "--frames N ends the run; realsense:FILE.bag plays a recording back through the SDK")
         d.add_argument("--color-extrinsics", default=None, metavar="FILE|TOPIC",
                        help="the colour camera's T_color_depth (a 4x4 matrix or tx ty tz qx qy qz qw file, or a "
                             "bag's transform topic): colour is registered to depth through it")
@@ -186,7 +189,7 @@ def _apply_dataset_args(args: argparse.Namespace, config: Config) -> None:
     if getattr(args, "data", ""):
         ds.path = args.data
     for name in ("format", "downsample", "start", "stop", "stride", "depth_scale", "intrinsics", "ground_truth",
-                 "depth_topic", "color_topic", "camera_info_topic", "gt_topic", "color_extrinsics"):
+                 "depth_topic", "color_topic", "camera_info_topic", "gt_topic", "color_extrinsics", "camera"):
         value = getattr(args, name, None)
         if value is not None:
             setattr(ds, name, value)

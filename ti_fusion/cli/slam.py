@@ -38,7 +38,8 @@ def run(ctx) -> dict:
         if d["format"] == "synthetic":
             name = "the synthetic sequence" + ("" if d["scene"] == "room" else f" (scene {d['scene']})") + \
                 (f" along {d['trajectory']}" if d.get("trajectory") else "")
-        ctx.log(f"{name}: {d['frames']} frames at {d['width']}x{d['height']}")
+        frames = "frames until Ctrl-C" if d["frames"] is None else f"{d['frames']} frames"  # None: a live camera
+        ctx.log(f"{name}: {frames} at {d['width']}x{d['height']}")
     live = _live_server(ctx)
     try:
         summary = SLAMPipeline(dataset, cfg, ctx.out, ctx.backend, show_progress=not ctx.quiet, live=live).run()

@@ -27,6 +27,7 @@ from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import RunLogger, software_versions
 from ti_fusion.io.outputs import RunDir, progress
 from ti_fusion.io.prefetch import Prefetcher
+from ti_fusion.io.datasets.realsense_live import StreamEnded
 from ti_fusion.io.registration import ColourRegistrar
 from ti_fusion.io.trajectory import write_tum
 from ti_fusion.slam.checks import check_first_frames
@@ -150,7 +151,10 @@ class Pipeline:
         with Prefetcher(self.dataset, READ_AHEAD, threaded) as frames:
             for i in progress(range(n), n, self.step.name, self.show_progress):
                 with self.timer.stage("load"):  # the wait for the frame: what reading it did not overlap
-                    _, frame, read_ms = next(frames)
+                    try:
+                        _, frame, read_ms = next(frames)
+                    except StreamEnded:  # a camera's played-back recording ended: the run ends here
+                        break
                     frame = register_colour(frame)
                 self.timer.add("read", read_ms)
                 result = self.step.register_frame(frame)

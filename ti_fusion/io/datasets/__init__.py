@@ -101,6 +101,16 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
     logs the format line (``Dataset.describe_format``) for the CLI to print.
     """
     common = dict(downsample=cfg.downsample, start=cfg.start, stop=cfg.stop, stride=cfg.stride)
+    if cfg.camera:  # a live camera (or the SDK's playback of its recording): ti_fusion/io/datasets/realsense_live.py
+        if cfg.path:
+            raise InputError(None, f"--camera {cfg.camera} and the dataset {cfg.path}: give one source of frames")
+        from ti_fusion.io.datasets.realsense_live import RealSenseCamera
+
+        dataset = RealSenseCamera(cfg.camera, cfg, **common)
+        dataset.format_from = "--camera"
+        dataset.check_selection()
+        log.info(dataset.describe_format())
+        return dataset
     if not cfg.path:
         if cfg.format not in ("auto", "synthetic"):
             raise InputError(None, f"format {cfg.format} needs a dataset folder (DATA)")

@@ -22,7 +22,6 @@ from pathlib import Path
 import numpy as np
 
 from ti_fusion.camera import Intrinsics
-from ti_fusion.config import DatasetConfig
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.datasets.imageio import depth_to_metres
@@ -66,11 +65,13 @@ class RealSenseCamera(Dataset):
 
     format = "realsense"
 
-    def __init__(self, spec: str = "realsense", config: DatasetConfig | None = None, downsample: int = 1,
+    def __init__(self, spec: str = "realsense", config=None, downsample: int = 1,
                  start: int = 0, stop: int | None = None, stride: int = 1):
         serial, recording = parse_camera(spec)
         super().__init__(recording or Path(f"realsense{':' + serial if serial else ''}"), downsample=downsample,
                          start=start, stop=stop, stride=stride)
+        from ti_fusion.config import DatasetConfig
+
         # not ``config``: the run's first-frame check would read frames ahead of the loop (a short playback ends)
         self.dataset_config = config or DatasetConfig()
         self.name = recording.stem if recording else f"realsense-{serial or 'camera'}"

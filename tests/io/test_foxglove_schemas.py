@@ -181,14 +181,14 @@ def test_the_declaration_helpers_refuse_what_foxglove_cannot_read(kind, extra):
 def test_a_loop_keyframes_stats_validate_against_the_declared_schema():
     """The loop entry of /slam/stats (candidates with and without ICP numbers, no loop applied, then one
     applied) validates with jsonschema, after log_stats leaves out the values not measured."""
-    from types import SimpleNamespace
-
     import jsonschema
+    import numpy as np
 
     from ti_fusion.io.mcap_log import without_nulls
     from ti_fusion.io.outputs import jsonable
     from ti_fusion.loop.closure import LoopReport
     from ti_fusion.loop.verification import LoopCandidate
+    from ti_fusion.slam.dense import FrameResult
     from ti_fusion.slam.slam_step import frame_stats
 
     validator = jsonschema.Draft202012Validator(_stats_schemas()["/slam/stats"])
@@ -198,8 +198,8 @@ def test_a_loop_keyframes_stats_validate_against_the_declared_schema():
     for closed in (None, (0, 4)):
         report = LoopReport(4, "moved", [rejected, verified], closed, "applied" if closed else "",
                             {"keyframe": 0.4, "detect": 1.0, "verify": 20.0, "optimise": 3.0, "correct": 5.0})
-        result = SimpleNamespace(index=40, status="ok", ms={"maps": 1.0, "track": 9.0, "loop": 29.4}, icp=None,
-                                 fusion=None, loop=report)
+        result = FrameResult(index=40, timestamp=2.0, pose=np.eye(4), status="ok",
+                             ms={"maps": 1.0, "track": 9.0, "loop": 29.4}, loop=report)
         message = without_nulls(jsonable(frame_stats(result, 1000)))
         errors = [f"{'.'.join(map(str, e.absolute_path))}: {e.message}" for e in validator.iter_errors(message)]
         assert not errors, errors

@@ -596,3 +596,15 @@ def test_the_foxglove_layout_is_in_the_form_every_client_imports():
     for plot in xy:  # the x and y of one topic, so that their values pair message by message
         ((series,),) = [plot["paths"]]
         assert series["value"].rpartition(".")[0] == plot["xAxisPath"]["value"].rpartition(".")[0]
+
+
+def test_the_real_client_check_script_parses():
+    """scripts/foxglove_client_check.mjs (run by hand: it needs chromium and npm) is valid JavaScript."""
+    import subprocess
+
+    node = shutil.which("node")
+    if node is None:
+        pytest.skip("node is not installed")
+    script = DOCS.parents[1] / "scripts" / "foxglove_client_check.mjs"
+    result = subprocess.run([node, "--check", str(script)], capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr

@@ -72,3 +72,28 @@ def _print_summary(ctx, s: dict) -> None:
     ctx.log(line)
     if s.get("gt_note"):
         log.warning(s["gt_note"])
+    hint = _small_frames_hint(ctx.config, s)
+    if hint:
+        log.warning(hint)
+
+
+def _small_frames_hint(cfg, s: dict) -> str | None:
+    """Where most frames were lost for too few ICP inliers and the frames are small for ICP's pyramid: the
+    icp.iterations with fewer levels that leaves the coarsest level pixels enough (None otherwise)."""
+    from ti_fusion.slam.dense import COARSE_PIXELS_PER_INLIER
+
+    lost = [f for f in s.get("failed_frames", []) if "too few inliers" in f["reason"]]
+    if not s.get("frames") or 2 * len(lost) < s["frames"] - 1 or "resolution" not in s:
+        return None
+    width, height = s["resolution"]["tracked_at"]
+    iterations, needed = list(cfg.icp.iterations), COARSE_PIXELS_PER_INLIER * cfg.icp.min_inliers
+    levels = len(iterations)
+    while levels > 1 and (width >> (levels - 1)) * (height >> (levels - 1)) < needed:
+        levels -= 1
+    if levels == len(iterations):
+        return None
+    keep = iterations[:levels]
+    return (f"{s['tracking_failures']} of {s['frames']} frames were lost with too few ICP inliers: frames tracked at "
+            f"{width}x{height} are small for ICP's {len(iterations)} pyramid levels (its coarsest "
+            f"{width >> (len(iterations) - 1)}x{height >> (len(iterations) - 1)}); --set icp.iterations="
+            f"[{','.join(map(str, keep))}] keeps {levels} (coarsest {width >> (levels - 1)}x{height >> (levels - 1)})")

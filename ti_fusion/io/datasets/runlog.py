@@ -9,6 +9,10 @@ did to within that rounding, not bit for bit.
 
 Detected from an ``.mcap`` file whose profile is not ``ros2`` and that has a ``/camera/depth`` channel of
 ``foxglove.RawImage`` (a ROS 2 bag is ``rosbag``'s), or from a folder holding such a ``log.mcap``.
+
+A log whose run was killed ends without its summary (the index at the end of the file), possibly in the
+middle of a record: it is read from the start up to the last whole chunk (``UnfinalisedLog``), as
+``inspect`` reads it, and a note says so; frames are then found by the file offset of their chunk.
 """
 
 from __future__ import annotations
@@ -46,16 +50,97 @@ def _log_file(root: Path) -> Path:
     return root / LOG_NAME if root.is_dir() else root
 
 
+def _summary(reader):
+    """The MCAP summary, or None for a file without one (a killed run's: its tail may be anything)."""
+    try:
+        return reader.get_summary()
+    except Exception:  # a torn file: whatever the footer's place holds is not a footer
+        return None
+
+
 def _channels(path: Path) -> dict[str, str]:
-    """{topic: schema name} of a finalised MCAP file (from its summary)."""
+    """{topic: schema name} of an MCAP file: from its summary, or read from the start when it has none."""
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
-        summary = make_reader(f).get_summary()
-    if summary is None:
-        return {}
+        summary = _summary(make_reader(f))
+        if summary is None:
+            return UnfinalisedLog(f, until_topic=DEPTH).topics()
     return {c.topic: summary.schemas[c.schema_id].name if c.schema_id in summary.schemas else ""
             for c in summary.channels.values()}
+
+
+class UnfinalisedLog:
+    """An MCAP file without a summary read from the start to its last whole record: its schemas and
+    channels, and where each message is (the file offset of its chunk), so that one can be read again."""
+
+    def __init__(self, f, until_topic: str | None = None):
+        from mcap.records import Channel, Chunk, Message, Metadata, Schema
+        from mcap.stream_reader import StreamReader, breakup_chunk
+
+        self.file = f
+        self.schemas, self.channels, self.metadata = {}, {}, {}
+        self.messages: list[tuple[str, int, int | None, object]] = []  # (topic, log time, chunk offset, unchunked)
+        self.torn = False  # the file ends inside a record
+        self._chunk = (None, [])  # the last chunk read again: (offset, its messages)
+        f.seek(0)
+        reader = StreamReader(f, skip_magic=False, emit_chunks=True)
+        stream, records = reader._stream, reader.records
+        while True:
+            offset = stream.count
+            try:
+                record = next(records)
+            except StopIteration:
+                break
+            except Exception:  # a torn record: the cut of a killed run
+                self.torn = True
+                break
+            inner = breakup_chunk(record) if isinstance(record, Chunk) else [record]
+            for item in inner:
+                if isinstance(item, Schema):
+                    self.schemas[item.id] = item
+                elif isinstance(item, Channel):
+                    self.channels[item.id] = item
+                elif isinstance(item, Metadata):
+                    self.metadata[item.name] = dict(item.metadata)
+                elif isinstance(item, Message) and item.channel_id in self.channels:
+                    topic = self.channels[item.channel_id].topic
+                    chunked = isinstance(record, Chunk)
+                    self.messages.append((topic, item.log_time, offset if chunked else None,
+                                          None if chunked else item))
+            if until_topic is not None and any(c.topic == until_topic for c in self.channels.values()):
+                break
+
+    def topics(self) -> dict[str, str]:
+        return {c.topic: self.schemas[c.schema_id].name if c.schema_id in self.schemas else ""
+                for c in self.channels.values()}
+
+    def message(self, topic: str, t: int, offset: int | None, unchunked):
+        """The raw ``Message`` record of ``topic`` at log time ``t`` in the chunk at ``offset``."""
+        if unchunked is not None:
+            return unchunked
+        from mcap.records import Message
+        from mcap.stream_reader import StreamReader, breakup_chunk
+
+        if self._chunk[0] != offset:
+            self.file.seek(offset)
+            chunk = next(StreamReader(self.file, skip_magic=True, emit_chunks=True).records)
+            self._chunk = (offset, [m for m in breakup_chunk(chunk) if isinstance(m, Message)])
+        for m in self._chunk[1]:
+            if m.log_time == t and self.channels[m.channel_id].topic == topic:
+                return m
+        return None
+
+    def decoded(self, topic: str, t: int, offset: int | None, unchunked):
+        """The decoded protobuf message (None when the chunk does not hold it)."""
+        from mcap_protobuf.decoder import DecoderFactory
+
+        m = self.message(topic, t, offset, unchunked)
+        if m is None:
+            return None
+        channel = self.channels[m.channel_id]
+        decode = DecoderFactory().decoder_for(channel.message_encoding, self.schemas.get(channel.schema_id))
+        return decode(m.data)
 
 
 class RunLogDataset(RecordedSequence):
@@ -81,20 +166,22 @@ class RunLogDataset(RecordedSequence):
             raise InputError(self.path, "run log does not exist")
         self._file = open(self.path, "rb")
         self._closer = weakref.finalize(self, self._file.close)
+        self._unfinalised = None  # an UnfinalisedLog, and where each message is, for a log without summary
         try:
             self._reader = make_reader(self._file, decoder_factories=[DecoderFactory()])
-            if self._reader.get_summary() is None:
-                raise InputError(self.path, "the log has no summary (its run did not finish writing it): not "
-                                            "replayable")
+            if _summary(self._reader) is None:
+                messages = self._read_unfinalised()
+            else:
+                messages = ((channel.topic, message.log_time, msg) for _, channel, message, msg in
+                            self._reader.iter_decoded_messages(topics=[DEPTH, COLOR, CALIBRATION, GROUND_TRUTH],
+                                                               log_time_order=True))
             depth, color, gt, calibration = [], {}, {}, None
-            for _, channel, message, msg in self._reader.iter_decoded_messages(
-                    topics=[DEPTH, COLOR, CALIBRATION, GROUND_TRUTH], log_time_order=True):
-                t = message.log_time
-                if channel.topic == DEPTH:
+            for topic, t, msg in messages:
+                if topic == DEPTH:
                     depth.append((t, (msg.width, msg.height, msg.encoding)))
-                elif channel.topic == COLOR:
+                elif topic == COLOR:
                     color[t] = True
-                elif channel.topic == CALIBRATION:
+                elif topic == CALIBRATION:
                     calibration = calibration or msg
                 else:
                     from ti_fusion.io.mcap_log import pose_from_msg
@@ -109,6 +196,15 @@ class RunLogDataset(RecordedSequence):
         encodings = {e for _, (_, _, e) in depth}
         if encodings != {"16UC1"}:
             raise InputError(self.path, f"{DEPTH} images in {', '.join(sorted(encodings))}, expected 16UC1")
+        if self._unfinalised is not None:
+            torn = ""
+            if len(depth) > 1 and depth[-1][0] not in color and any(t in color for t, _ in depth[:-1]):
+                depth = depth[:-1]  # the cut fell between the last frame's depth and its colour
+                self.dropped_frames += 1
+                torn = " (the last depth image's colour was cut off: left out)"
+            self.note(f"the log ends without its summary (its run was stopped before finishing it"
+                      f"{', in the middle of a record' if self._unfinalised.torn else ''}): the {len(depth)} depth "
+                      f"images written before the cut are replayed{torn}")
         self._times = [t for t, _ in depth]
         self._has_color = [t in color for t in self._times]
         self._gt_poses = [gt.get(t) for t in self._times]
@@ -122,9 +218,24 @@ class RunLogDataset(RecordedSequence):
         else:
             raise InputError(self.path, f"no {CALIBRATION} in the log: pass --intrinsics fx,fy,cx,cy or FILE")
         frames = self._frames_of_run()
-        if frames is not None and frames > len(self._times):
+        if frames is not None and frames > len(self._times) and self._unfinalised is None:
             self.note(f"the run had {frames} frames and logged the depth of {len(self._times)} (log.depth_every > 1): "
                       "those are replayed")
+
+    def _read_unfinalised(self):
+        """(topic, log time, decoded message) of the replayed topics of a log without summary, in log-time
+        order, read up to the cut; a note says how far the log goes."""
+        log = self._unfinalised = UnfinalisedLog(self._file)
+        wanted = sorted((m for m in log.messages if m[0] in (DEPTH, COLOR, CALIBRATION, GROUND_TRUTH)),
+                        key=lambda m: m[1])
+        self._where = {(topic, t): (offset, unchunked) for topic, t, offset, unchunked in wanted}
+        for topic, t, offset, unchunked in wanted:
+            if topic == DEPTH:  # only the size and encoding are needed now: read from the chunk's raw bytes
+                yield topic, t, log.decoded(topic, t, offset, unchunked)
+            elif topic == COLOR:
+                yield topic, t, None
+            else:
+                yield topic, t, log.decoded(topic, t, offset, unchunked)
 
     def _frames_of_run(self) -> int | None:
         """The frame count of the run's dataset record (metadata "dataset", JSON values), if the log has it."""
@@ -141,6 +252,11 @@ class RunLogDataset(RecordedSequence):
         return len(self._times)
 
     def _message(self, topic: str, t: int):
+        if self._unfinalised is not None:
+            msg = self._unfinalised.decoded(topic, t, *self._where.get((topic, t), (None, None)))
+            if msg is None:
+                raise InputError(self.path, f"no {topic} message at {t} ns (was the log changed while read?)")
+            return msg
         try:
             found = self._reader.iter_decoded_messages(topics=[topic], starting_at=t, ending_at=t)
         except TypeError:  # mcap before 1.6 names the bounds start_time and end_time (exclusive)

@@ -5,7 +5,7 @@
 // browser console's errors.
 //
 //   node scripts/foxglove_client_check.mjs --log RUN/log.mcap [--layout docs/foxglove-layout.json]
-//        [--out logs/foxglove-check] [--chromium /usr/bin/chromium] [--seconds 20]
+//        [--out logs/foxglove-check] [--chromium /usr/bin/chromium] [--seconds 60]
 //   node scripts/foxglove_client_check.mjs --live ws://127.0.0.1:8765 [--relay yes] ...
 //   node scripts/foxglove_client_check.mjs --live-frames 300 ...   (starts ti-fusion slam --live itself)
 //
@@ -36,7 +36,7 @@ const CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disabl
 function parseArgs(argv) {
   const args = { layout: path.join(ROOT, "docs", "foxglove-layout.json"), out: path.join(ROOT, "logs", "foxglove-check"),
     client: path.join(ROOT, "logs", "foxglove-client"), chromium: "/usr/bin/chromium", log: undefined, live: undefined,
-    seconds: 20, width: 1600, height: 1000, relay: "yes", "live-frames": undefined };
+    seconds: 60, width: 1600, height: 1000, relay: "yes", "live-frames": undefined };
   for (let i = 0; i < argv.length; i += 2) {
     const key = argv[i].replace(/^--/, "");
     if (!(key in args) || argv[i + 1] == undefined) {
@@ -229,7 +229,7 @@ async function main() {
     if (await hint.count()) await hint.locator("xpath=..").getByRole("button").first().click().catch(() => {});
     await shot("1-layout");
     if (args.log) {
-      await playToEnd(page, args.seconds);
+      report.played_to_end = await playToEnd(page, args.seconds);
     } else {
       await page.waitForTimeout(args.seconds * 1000);
     }
@@ -264,7 +264,8 @@ async function main() {
   for (const p of report.problems) console.log(`  ${p}`);
   console.log(`console errors: ${report.console_errors.length}; page errors: ${report.page_errors.length}`);
   console.log(`report ${path.join(args.out, "report.json")}`);
-  const clean = report.problems.length === 0 && report.alerts.length === 0 && report.panels.missing.length === 0 &&
+  if (report.played_to_end === false) console.log(`the log did not play to its end within ${args.seconds} s`);
+  const clean = report.played_to_end !== false && report.problems.length === 0 && report.alerts.length === 0 && report.panels.missing.length === 0 &&
     !report.panels.unknown_panel_type;
   process.exit(clean ? 0 : 1);
 }
@@ -277,13 +278,17 @@ async function importLayout(page) {
   await page.waitForTimeout(2000);
 }
 
-// Plays the log from its start at 1x until the end (or for ``seconds``), as a user pressing play does.
+// Plays the log from its start at Studio's fastest speed (5x) until its end, as a user does, so that every
+// message reaches the panels and the 3D panel ends on the last map; gives up after ``seconds``.
 async function playToEnd(page, seconds) {
+  await page.locator('[data-testid="PlaybackSpeedControls-Dropdown"]').click();
+  await page.getByRole("menuitem", { name: "5×", exact: true }).click();
   await page.locator('[title="Play"]').first().click();
   const deadline = Date.now() + seconds * 1000;
   while (Date.now() < deadline && (await page.locator('[title="Pause"]').count())) {
     await page.waitForTimeout(500);
   }
+  return (await page.locator('[title="Pause"]').count()) === 0;
 }
 
 // The data source sidebar's Problems tab: each problem's message, or none ("No problems found").

@@ -14,7 +14,8 @@ The 3D panel in ``world``: the map in its own colours (``colorMode`` "rgba-field
 named: without one the client picks a colour field itself and colours the map by x with a colour map), the
 estimated and ground-truth poses, the camera frustum with the colour image in it, and the loop edges. Below
 it the colour and depth images; on the right plots of the stage milliseconds, the ICP inlier ratio, the
-surfel count, and each trajectory seen from above.
+surfel count, and each trajectory in the world's x-y plane (seen from above where z is up, as in the synthetic
+scenes).
 
 To add a panel: make it with ``panel(TYPE, NAME, CONFIG)`` and put the returned id into the tree in
 ``layout()``; a 3D topic is one more entry of ``SCENE_TOPICS``.
@@ -101,9 +102,9 @@ def layout() -> dict:
                      ("/slam/stats.ms.maps", "maps"), ("/slam/stats.ms.log", "log"))
     inliers = ui.plot("inliers", "ICP inlier ratio", ("/slam/stats.icp.inlier_ratio", "inlier ratio"))
     surfels = ui.plot("surfels", "surfels", ("/slam/stats.surfels", "surfels"))
-    estimate = ui.plot("trajectory-estimate", "estimate from above (y against x, m)",
+    estimate = ui.plot("trajectory-estimate", "estimate, y against x (m)",
                        ("/camera/pose.pose.position.y", "estimate"), x_path="/camera/pose.pose.position.x", color=EST)
-    truth = ui.plot("trajectory-truth", "ground truth from above (y against x, m)",
+    truth = ui.plot("trajectory-truth", "ground truth, y against x (m)",
                     ("/gt/pose.pose.position.y", "ground truth"), x_path="/gt/pose.pose.position.x",
                     color=GT)
     tree = split("row",

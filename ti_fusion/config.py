@@ -15,7 +15,9 @@ A config file holds one table per section, e.g.::
 and any field can be overridden from the command line with ``--set icp.dist_threshold=0.05``. Every
 field says what it allows (a type, and a range or a set of choices, in its annotation); a value from a
 file or ``--set`` that breaks its rule is refused with one line naming the key, the value and what is
-allowed.
+allowed; so is a file that is not UTF-8, not parseable, not a table at its top level, or that gives a value
+where a section goes. Relative paths in a config file (``dataset.path``, ``dataset.intrinsics``, ...,
+``PATH_SETTINGS``) are relative to the file's folder; those of ``--set`` to the working directory.
 """
 
 from __future__ import annotations

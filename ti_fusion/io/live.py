@@ -32,6 +32,7 @@ import logging
 import re
 import threading
 import time
+import weakref
 
 from ti_fusion.errors import InputError
 
@@ -78,14 +79,15 @@ class LiveServer:
         self._time_ns = -1  # the last time sent to the clients
         self._lock = threading.Lock()  # the server's threads call the listener
         host, port = parse_address(address)
-        self._refused = _RefusedClients()
-        logging.getLogger(SDK_LOGGER).addFilter(self._refused)
+        self.refused = 0  # clients refused so far (counted by _REFUSED)
+        _REFUSED.servers.add(self)
+        logging.getLogger(SDK_LOGGER).addFilter(_REFUSED)  # once for the process (a filter is added once)
         try:
             self._server = foxglove.start_server(name=name, host=host, port=port, context=self._context,
                                                  server_listener=_Listener(self), message_backlog_size=BACKLOG,
                                                  capabilities=[foxglove.websocket.Capability.Time])
         except Exception as exc:  # noqa: BLE001 - the SDK raises a RuntimeError with the OS's reason
-            logging.getLogger(SDK_LOGGER).removeFilter(self._refused)
+            _REFUSED.servers.discard(self)
             raise InputError(None, f"--live {address}: cannot serve on {host}:{port}: {exc}") from None
         self.host, self.port = host, self._server.port
         self.closed = False
@@ -147,7 +149,7 @@ class LiveServer:
                     time.sleep(LINGER_S)  # the SDK has no flush: its sender threads drain the queues meanwhile
             finally:  # a second Ctrl-C during the wait still stops the server
                 self._server.stop()
-                logging.getLogger(SDK_LOGGER).removeFilter(self._refused)
+                _REFUSED.servers.discard(self)
 
     # -- internals --------------------------------------------------------------------------------
     def _subscribed(self, topic: str) -> None:
@@ -166,23 +168,29 @@ class LiveServer:
 
 class _RefusedClients(logging.Filter):
     """Turns the SDK's "Dropping client HOST:PORT: handshake failed" records, one per retry of a refused
-    client, into one warning for the first (what most likely happened and which clients connect); the
-    rest are dropped."""
+    client, into one warning for a server's first (what most likely happened and which clients connect);
+    the rest are dropped. One filter for the process, since a record does not say which server refused: it
+    counts for every open server."""
 
     def __init__(self):
         super().__init__()
-        self.count = 0
+        self.servers: weakref.WeakSet = weakref.WeakSet()
 
     def filter(self, record: logging.LogRecord) -> bool:
         match = REFUSED.search(record.getMessage())
         if match is None:
             return True
-        self.count += 1
-        if self.count == 1:
+        servers = list(self.servers)
+        for server in servers:
+            server.refused += 1
+        if any(server.refused == 1 for server in servers):
             log.warning(f"live: refused a client at {match.group(1)}: its WebSocket handshake failed, most likely "
                         f"because it does not offer the sub-protocol foxglove.sdk.v1 ({CLIENTS}); further "
                         "refusals are not shown")
         return False
+
+
+_REFUSED = _RefusedClients()
 
 
 class _Listener:

@@ -403,7 +403,21 @@ class FusionConfig:
 class SLAMConfig:
     tracking: Annotated[str, OneOf("model", "frame")] = "model"
                                      # model: align to the map rendered at the last pose | frame: previous frame
-    motion_model: bool = True        # constant-velocity initialisation
+    motion_model: bool = True        # constant-velocity initialisation (per second: scaled by the time between frames)
+    motion_damping: Fraction = 0.5   # the velocity is multiplied by this after a step the guess missed by more
+                                     # than half (the speed changed); at rest after a failure
+    hypotheses: Annotated[str, OneOf("doubt", "always", "motion")] = "doubt"
+                                     # doubt: ICP again from the last good pose when the motion model's alignment
+                                     # fails or is in doubt, then ORB+PnP and a wide-basin re-localisation before a
+                                     # failure | always: the last pose every frame | motion: the guess alone
+    doubt_inlier_ratio: Fraction = 0.5  # an alignment with a lower inlier ratio is in doubt ...
+    doubt_residual: Fraction = 0.5   # ... or with a residual above this × max_residual
+    relocalise_iterations: Annotated[list[int], Range(ge=0), Length(ge=1)] = field(
+        default_factory=lambda: [20, 10, 4])  # dense re-localisation's ICP iterations per level (coarse → fine;
+                                     # as many levels as icp.iterations, else icp.iterations)
+    relocalise_level_dist_scale: Positive = 3.0  # its d_thr at level l: icp.dist_threshold × this**l
+    score_gate: Positive = 0.03      # metres: starts that pass the checks are compared by the fraction of the
+                                     # prediction within this of the frame at their pose (and its residual)
     min_inlier_ratio: Fraction = 0.15  # below → tracking failure (frame not fused)
     max_residual: Positive = 0.02    # metres RMS: above → tracking failure
     max_update_deg: Positive = 20.0  # pose change against the motion model above this → failure

@@ -343,4 +343,4 @@ def test_a_failed_health_check_shows_the_value_on_its_side_of_the_limit():
     jump[0, 3] = 0.30004
     icp = ICPResult(pose=np.eye(4), inlier_ratio=0.5, residual_rms=0.001)
     assert DenseSLAM._health(fake, icp, jump, np.eye(4)) == \
-        "lost: jump of 0.0 deg / 30.004 cm from the motion model (at most 20 deg / 30 cm)"
+        "lost: jump of 0.0 deg / 30.004 cm from its start (at most 20 deg / 30 cm)"

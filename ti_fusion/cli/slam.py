@@ -67,7 +67,8 @@ def _print_summary(ctx, s: dict) -> None:
     line += f"; {s['process_s']:.1f} s since the process started)" if s.get("process_s") is not None else ")"
     if "ate_rmse_m" in s:
         line += (f", ATE {s['ate_rmse_m'] * 100:.2f} cm ({s['ate_percent_of_path']:.2f}% of "
-                 f"{s['path_length_m']:.2f} m), RPE {s['rpe_trans_m'] * 1000:.1f} mm")
+                 f"{s['path_length_m']:.2f} m) over all {s['ate_frames']} frames{_tracked_only(s, 100, 'cm')}, "
+                 f"RPE {s['rpe_trans_m'] * 1000:.1f} mm")
     line += f", tracking failures: {s['tracking_failures']}"
     ctx.log(line)
     if s.get("gt_note"):
@@ -97,3 +98,12 @@ def _small_frames_hint(cfg, s: dict) -> str | None:
             f"{width}x{height} are small for ICP's {len(iterations)} pyramid levels (its coarsest "
             f"{width >> (len(iterations) - 1)}x{height >> (len(iterations) - 1)}); --set icp.iterations="
             f"[{','.join(map(str, keep))}] keeps {levels} (coarsest {width >> (levels - 1)}x{height >> (levels - 1)})")
+
+
+def _tracked_only(s: dict, scale: float, unit: str) -> str:
+    """The ATE over the tracked frames alone, labelled, where some frames were not tracked (else nothing)."""
+    if not s.get("untracked_frames"):
+        return ""
+    value = s.get("ate_tracked_only_rmse_m")
+    shown = "n/a" if value is None else f"{value * scale:.2f} {unit}"
+    return f" (lost or rejected frames hold the last pose; over the {s['tracked_frames']} tracked alone: {shown})"

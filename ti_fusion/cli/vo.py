@@ -74,10 +74,13 @@ def _write_matches(ctx, dataset) -> dict:
 
 
 def _print_summary(s: dict) -> None:
+    from ti_fusion.cli.slam import _tracked_only
+
     rej = ", ".join(f"{k} {v}" for k, v in s["rejected"].items()) or "none"
     line = f"vo: {s['accepted']}/{s['frames']} frames accepted (rejected: {rej})"
     if "ate_rmse_m" in s:
-        line += f"  ATE {s['ate_rmse_m']:.4f} m  RPE {s['rpe_trans_m']:.4f} m"
+        line += f"  ATE {s['ate_rmse_m']:.4f} m over all {s['ate_frames']} frames"
+        line += _tracked_only(s, 1, "m") + f"  RPE {s['rpe_trans_m']:.4f} m"
     line += f"  tracking {s['tracking_fps']} fps" if s["tracking_fps"] is not None else ""
     print(line, flush=True)
     if s.get("gt_note"):

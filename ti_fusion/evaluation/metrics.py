@@ -121,6 +121,37 @@ def trajectory_metrics(est_poses, gt_poses, delta: int = 1, all_pairs: bool = Fa
     }
 
 
+def held_trajectory(results, gts) -> tuple[list[float], list[np.ndarray], list, list[bool]]:
+    """(timestamps, poses, ground truths, tracked) of every frame of a run from the first that got a pose:
+    a frame the run rejected without a pose (``vo``) holds the last pose reported before it, a failed one
+    (``slam``) the pose it reported. ``results`` have ``timestamp``, ``pose`` (None: none) and, where the
+    run tells them apart, ``tracked``; ``gts`` are the frames' ground-truth poses (None: none)."""
+    stamps, poses, truths, tracked, held = [], [], [], [], None
+    for r, g in zip(results, gts):
+        held = r.pose if r.pose is not None else held
+        if held is None:
+            continue  # before the first pose (slam's skipped frames): nothing reported to evaluate
+        stamps.append(r.timestamp)
+        poses.append(held)
+        truths.append(g)
+        tracked.append(bool(getattr(r, "tracked", r.pose is not None)) and r.pose is not None)
+    return stamps, poses, truths, tracked
+
+
+def tracked_ate(est_poses, gt_poses, tracked) -> dict:
+    """The counts of a run's evaluated frames, tracked and not, and the ATE over the tracked frames alone
+    (aligned on their own; None with fewer than 3), labelled so it is never read as the run's ATE."""
+    est, gt = _as_poses(est_poses, "est_poses"), _as_poses(gt_poses, "gt_poses")
+    tracked = np.asarray(tracked, dtype=bool)
+    n = int(tracked.sum())
+    out = {"ate_frames": int(len(est)), "tracked_frames": n, "untracked_frames": int(len(est) - n),
+           "ate_tracked_only_rmse_m": None}
+    if n >= 3:
+        errors, _ = ate_errors(est[tracked], gt[tracked])
+        out["ate_tracked_only_rmse_m"] = _rmse(errors)
+    return out
+
+
 def associate_trajectories(est_stamps, est_poses, gt_stamps, gt_poses, max_difference: float = 0.02):
     """(timestamps, est N×4×4, gt N×4×4) of the pose pairs matched by timestamp (estimate's stamps)."""
     est_stamps = np.asarray(est_stamps, dtype=np.float64)

@@ -31,16 +31,24 @@ dataset): on others the term stays off, with one warning.
 
 The map starts at the first usable frame: one with depth enough for ICP to track the next frame against
 (``usable``); frames before it (a sensor that starts blank) are skipped: no pose, status "skipped: ...".
-The pose is initialised by a constant-velocity motion model. A frame whose tracking is unhealthy (few
-inliers, large residual, ill-conditioned system, implausible jump) is not fused; the failure is logged,
-and the next frame is tracked from the motion model, or re-localised with ORB + PnP features against the
-last well-tracked frame when ``slam.relocalise = "features"``.
+Hypotheses (``slam.hypotheses``). ICP starts from the motion model's guess: the last motion per second
+times the time since the last frame (``Frame.timestamp``), halved after a step whose speed changed
+(``slam.motion_damping``), none after a failure. When that alignment fails the health checks (few inliers,
+large residual, ill-conditioned system, implausible jump) or is in doubt (inlier ratio below
+``slam.doubt_inlier_ratio``, residual above ``slam.doubt_residual`` × ``slam.max_residual``), ICP runs
+again from the last good pose, then from ORB + PnP against the last well-tracked frame
+(``slam.relocalise = "features"``), then, as a dense re-localisation, from the last good pose with a wider
+basin (``slam.relocalise_iterations``, ``slam.relocalise_level_dist_scale``). Every start aligns the same
+prediction to the same frame, so their results compare: of those that pass the checks the one with the
+best ``alignment_score`` (inlier ratio × (1 − residual / max_residual)) wins, and ``FrameResult.hypothesis``
+says which. Only when none passes is the frame lost: it is not fused, it holds the last good pose, and the
+motion model restarts from rest.
 """
 
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -48,7 +56,7 @@ from ti_fusion.camera import Intrinsics
 from ti_fusion.config import Config, ICPConfig
 from ti_fusion.io.datasets.base import Frame
 from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
-from ti_fusion.geometry import invert, pose_error, renormalize, se3_log
+from ti_fusion.geometry import invert, pose_error, renormalize, se3_exp, se3_log
 from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.maps import FrameMaps, grey_image
 from ti_fusion.slam.checks import check_frame
@@ -59,6 +67,25 @@ log = logging.getLogger(__name__)
 # ICP's coarsest level must hold many times icp.min_inliers pixels: at small sizes only a fifth to a third of
 # them find a correspondence (image borders, depth edges and missing normals take a larger share).
 COARSE_PIXELS_PER_INLIER = 6
+# The motion model's guess goes at most this far (twist norm, radians and metres together) from the last
+# pose, and a guess that misses the step by more than this (and by half the step) marks the speed as changed.
+MAX_EXTRAPOLATION = 0.5
+IRREGULAR_FLOOR = 0.01
+
+
+@dataclass
+class Hypothesis:
+    """One start of ICP for a frame and what came of it."""
+
+    name: str  # "motion" (the motion model), "last" (the last good pose), "features" (ORB + PnP), "wide"
+    icp: ICPResult
+    pose: np.ndarray  # camera-to-world
+    status: str  # "ok" or "lost: <reason>" (``DenseSLAM._health`` against the start)
+    score: float = 0.0  # ``DenseSLAM.alignment_score`` where more than one start passed the checks
+
+    @property
+    def ok(self) -> bool:
+        return self.status == "ok"
 
 
 @dataclass
@@ -73,6 +100,8 @@ class FrameResult:
     fusion: FusionStats | None = None
     ms: dict[str, float] = field(default_factory=dict)
     loop: object | None = None  # the loop closure's report on a keyframe (``ti_fusion.loop.closure.LoopReport``)
+    hypothesis: str | None = None  # the start whose alignment won: "motion", "last", "features" or "wide"
+    tried: list[str] = field(default_factory=list)  # every start tried, in order, with its outcome
 
     @property
     def tracked(self) -> bool:
@@ -109,6 +138,14 @@ class DenseSLAM:
         self.previous_maps = FrameMaps(config.maps, H, W, levels, input_level=frame_level) \
             if config.slam.tracking == "frame" else None
         self.icp = ICP(config.icp)
+        # Dense re-localisation: the same levels with more iterations and wider gates at the coarse ones.
+        wide = config.slam.relocalise_iterations
+        self.wide_icp = ICP(replace(config.icp, level_dist_scale=config.slam.relocalise_level_dist_scale,
+                                    iterations=list(wide) if len(wide) == levels else config.icp.iterations))
+        # The comparable measure between starts: one pass at the finest level with a tight gate, where an
+        # alignment in a wrong minimum (that the wide gates of tracking let pass) finds few correspondences.
+        self.score_icp = ICP(replace(config.icp, iterations=[0] * (levels - 1) + [1],
+                                     dist_threshold=config.slam.score_gate))
         self.mapper = SurfelMapper(config.fusion)
         warning = coarse_level_warning(config.icp, self.model_maps.shapes[-1], (self.frame_maps.height,
                                                                                self.frame_maps.width))
@@ -117,7 +154,8 @@ class DenseSLAM:
         self.poses: list[np.ndarray] = []
         self.skipped: list[tuple[int, str]] = []  # (frame, reason) of the frames before the map started
         self.last_good: tuple[Frame, np.ndarray] | None = None  # for feature re-localisation
-        self._velocity = np.eye(4)  # last inter-frame motion, camera-to-camera
+        self._velocity = np.zeros(6)  # last motion per second, twist (ω, v) of the camera-to-camera step
+        self._last_stamp: float | None = None  # timestamp of the last tracked frame
         self._frames_fused = 0
         self._colour_warned = False  # the warning that the photometric term is off for unregistered colour
         self._degeneracy_warned = False  # the warning that depth (and colour) leave directions unconstrained
@@ -170,7 +208,7 @@ class DenseSLAM:
                                                       self._frames_fused)
             self._frames_fused += 1
             self.last_good = (frame, result.pose)
-        self._update_motion(result)
+        self._update_motion(result, frame.timestamp)
         if self.previous_maps is not None:
             self.frame_maps, self.previous_maps = self.previous_maps, self.frame_maps
         result.ms = dict(timer.last)
@@ -189,9 +227,22 @@ class DenseSLAM:
         return None
 
     # -- tracking -------------------------------------------------------------------------------
-    def _predicted_pose(self) -> np.ndarray:
+    def _predicted_pose(self, timestamp: float) -> np.ndarray:
+        """The motion model's guess at ``timestamp``: the last motion per second over the time since the
+        last posed frame (at rest after a failure), capped like a glitch."""
         last = self.poses[-1]
-        return renormalize(last @ self._velocity) if self.config.slam.motion_model else last.copy()
+        if not self.config.slam.motion_model:
+            return last.copy()
+        xi = self._velocity * self._elapsed(timestamp)
+        size = np.linalg.norm(xi)
+        if size > MAX_EXTRAPOLATION:  # a guess far beyond any step seen is more likely wrong than right
+            xi = xi * (MAX_EXTRAPOLATION / size)
+        return renormalize(last @ se3_exp(xi))
+
+    def _elapsed(self, timestamp: float) -> float:
+        """Seconds since the last posed frame, or 1 (a frame) where the timestamps do not increase."""
+        dt = timestamp - self._last_stamp if self._last_stamp is not None else 0.0
+        return dt if np.isfinite(dt) and dt > 0 else 1.0
 
     def _reference(self, colour: bool = False) -> tuple[FrameMaps, np.ndarray]:
         """The ICP source and the camera-to-world pose of its camera frame (with ``colour``, its intensity
@@ -216,23 +267,58 @@ class DenseSLAM:
         return self.model_maps, last
 
     def _track(self, frame: Frame, colour: bool = False) -> FrameResult:
-        predicted = self._predicted_pose()
+        cfg = self.config.slam
+        predicted = self._predicted_pose(frame.timestamp)
         source, last = self._reference(colour)
         # frame-to-frame: the previous frame's intensity, made when it was the live frame (if it was)
         colour = colour and source.intensity is not None
-        # ICP maps source points (camera frame of `last`) into the new camera: T = inv(T_wc_new) · T_wc_last.
-        icp = self.icp.align(source, self.frame_maps, init=invert(predicted) @ last, photometric=colour)
-        pose = renormalize(last @ invert(icp.pose))
-        status = self._health(icp, pose, predicted)
-        self._report_degeneracy(frame, icp)
-        if status != "ok" and self.config.slam.relocalise == "features":
-            relocalised = self._relocalise(frame, source, last, colour)
-            if relocalised is not None:
-                icp, pose = relocalised
-                status = "relocalised"
-        if status.startswith("lost"):
-            pose = predicted  # keep going on the motion model; the frame is not fused
-        return FrameResult(frame.index, frame.timestamp, pose, status, icp)
+        tried: list[Hypothesis] = []
+
+        def attempt(name: str, guess: np.ndarray, icp: ICP | None = None) -> Hypothesis:
+            # ICP maps source points (camera frame of `last`) into the new camera: T = inv(T_wc_new) · T_wc_last.
+            result = (icp or self.icp).align(source, self.frame_maps, init=invert(guess) @ last, photometric=colour)
+            pose = renormalize(last @ invert(result.pose))
+            tried.append(Hypothesis(name, result, pose, self._health(result, pose, guess)))
+            return tried[-1]
+
+        def settled() -> bool:  # the best so far passes the checks without doubt
+            return cfg.hypotheses != "always" and any(h.ok and not self._doubtful(h) for h in tried)
+
+        first = attempt("motion", predicted)
+        self._report_degeneracy(frame, first.icp)
+        if cfg.hypotheses != "motion":
+            held = self.poses[-1] if self.previous_maps is not None else last
+            apart = pose_error(predicted, held)
+            if not settled() and (apart[0] > 0.1 or apart[1] > 1e-3):
+                attempt("last", held)
+        if not settled() and cfg.relocalise == "features" and (cfg.hypotheses != "motion" or not first.ok):
+            self._relocalise(frame, source, last, colour, tried)
+        if not settled() and cfg.hypotheses != "motion":
+            attempt("wide", last, self.wide_icp)  # dense re-localisation: the last good pose, a wider basin
+        passed = [h for h in tried if h.ok]
+        if len(passed) > 1:
+            for h in passed:
+                h.score = self.alignment_score(source, h, colour)
+        best = max(passed, key=lambda h: h.score) if passed else \
+            max(tried, key=lambda h: h.icp.inlier_ratio)
+        status = best.status if not best.ok else ("ok" if best.name in ("motion", "last") else "relocalised")
+        pose = best.pose if best.ok else last.copy()  # a lost frame holds the last good pose; it is not fused
+        return FrameResult(frame.index, frame.timestamp, pose, status, best.icp, hypothesis=best.name,
+                           tried=[f"{h.name}: {h.status}" for h in tried])
+
+    def alignment_score(self, source: FrameMaps, h: Hypothesis, colour: bool) -> float:
+        """How well a start's alignment of this frame's prediction fits the frame, comparable between starts
+        (the same prediction and frame): the fraction of the prediction's pixels within slam.score_gate of
+        the frame at its pose, times 1 − their RMS residual / slam.score_gate."""
+        fit = self.score_icp.align(source, self.frame_maps, init=h.icp.pose, photometric=colour)
+        residual = fit.residual_rms if np.isfinite(fit.residual_rms) else self.config.slam.score_gate
+        return float(fit.inlier_ratio * max(0.0, 1.0 - residual / self.config.slam.score_gate))
+
+    def _doubtful(self, h: Hypothesis) -> bool:
+        """The alignment failed the checks, or passed them with a poor inlier ratio or residual."""
+        cfg = self.config.slam
+        return not h.ok or h.icp.inlier_ratio < cfg.doubt_inlier_ratio or \
+            h.icp.residual_rms > cfg.doubt_residual * cfg.max_residual
 
     def _health(self, icp: ICPResult, pose: np.ndarray, predicted: np.ndarray) -> str:
         cfg = self.config.slam
@@ -246,7 +332,7 @@ class DenseSLAM:
         rot_deg, trans_m = pose_error(pose, predicted)
         if rot_deg > cfg.max_update_deg or trans_m > cfg.max_update_m:
             return (f"lost: jump of {_beside(rot_deg, cfg.max_update_deg, 1)} deg / "
-                    f"{_beside(trans_m * 100, cfg.max_update_m * 100, 1)} cm from the motion model (at most "
+                    f"{_beside(trans_m * 100, cfg.max_update_m * 100, 1)} cm from its start (at most "
                     f"{cfg.max_update_deg:g} deg / {cfg.max_update_m * 100:g} cm)")
         return "ok"
 
@@ -268,30 +354,42 @@ class DenseSLAM:
                         f"the camera's motion, and colour {d['constrained_by_colour']} of the other {d['weak']}: "
                         f"tracking may slide{hint}")
 
-    def _relocalise(self, frame: Frame, source: FrameMaps, last: np.ndarray, colour: bool = False):
-        """ICP again, initialised by ORB + PnP against the last well-tracked frame."""
+    def _relocalise(self, frame: Frame, source: FrameMaps, last: np.ndarray, colour: bool,
+                    tried: list[Hypothesis]) -> None:
+        """ICP again, initialised by ORB + PnP against the last well-tracked frame (a "features" hypothesis,
+        checked against the PnP estimate)."""
         if self.last_good is None or frame.color is None or self.last_good[0].color is None:
-            return None
+            return
         from ti_fusion.tracking.features import estimate_relative_pose
 
         reference, reference_pose = self.last_good
         estimate = estimate_relative_pose(reference, frame, self.config.vo)
         if estimate.pose is None:
-            return None
+            return
         # The estimate maps the reference frame's camera into the new one; ICP's source sits at `last`
         # (the same camera in model tracking, the previous frame's in frame-to-frame tracking).
         init = estimate.pose @ invert(reference_pose) @ last
         icp = self.icp.align(source, self.frame_maps, init=init, photometric=colour)
         pose = renormalize(last @ invert(icp.pose))
         rough = renormalize(reference_pose @ invert(estimate.pose))
-        return (icp, pose) if self._health(icp, pose, rough) == "ok" else None
+        tried.append(Hypothesis("features", icp, pose, self._health(icp, pose, rough)))
 
-    def _update_motion(self, result: FrameResult) -> None:
+    def _update_motion(self, result: FrameResult, timestamp: float) -> None:
+        """The motion per second of the step just tracked, damped when the guess missed it by more than half
+        the step (the speed changed); at rest after a failure, so nothing is extrapolated through lost frames."""
+        cfg = self.config.slam
         if self.poses and result.tracked:
-            step = renormalize(invert(self.poses[-1]) @ result.pose)
-            # A constant-velocity model that extrapolates a glitch makes the next frame harder: cap it.
-            if np.linalg.norm(se3_log(step)) < 0.5:
-                self._velocity = step
+            dt = self._elapsed(timestamp)
+            step = se3_log(renormalize(invert(self.poses[-1]) @ result.pose))
+            predicted = self.poses[-1] @ se3_exp(self._velocity * dt)
+            missed = np.linalg.norm(se3_log(renormalize(invert(predicted) @ result.pose)))
+            irregular = bool(np.any(self._velocity)) and (  # from rest, a miss says nothing of the speed
+                result.hypothesis != "motion" or missed > max(0.5 * np.linalg.norm(step), IRREGULAR_FLOOR))
+            self._velocity = step / dt * (cfg.motion_damping if irregular else 1.0)
+        elif result.lost:
+            self._velocity = np.zeros(6)
+        if result.tracked:
+            self._last_stamp = timestamp
         self.poses.append(result.pose)
 
     # -- results --------------------------------------------------------------------------------

@@ -22,7 +22,7 @@ from ti_fusion import __version__
 from ti_fusion.backend import BackendInfo
 from ti_fusion.config import Config
 from ti_fusion.errors import InputError
-from ti_fusion.evaluation.metrics import trajectory_metrics
+from ti_fusion.evaluation.metrics import held_trajectory, tracked_ate, trajectory_metrics
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import RunLogger, software_versions
 from ti_fusion.io.outputs import RunDir, progress
@@ -247,11 +247,13 @@ class Pipeline:
         that is not every posed frame), and trajectory.png."""
         if not self.step.estimates_poses:
             return {}
-        stamps, poses = self.trajectory()
-        if not poses:
+        if all(r.pose is None for r in self.results):
             return {}
-        gt = [g for r, g in zip(self.results, self.gt) if r.pose is not None]
+        # every frame from the first posed one (a rejected or failed frame holds the pose reported for it):
+        # no headline from the tracked minority; that one is ate_tracked_only_rmse_m, with the counts
+        stamps, poses, gt, tracked = held_trajectory(self.results, self.gt)
         pairs = [(p, g) for p, g in zip(poses, gt) if g is not None]
+        tracked = [t for t, g in zip(tracked, gt) if g is not None]
         fields, metrics = {"gt_frames": len(pairs)}, None
         if pairs and 2 * len(pairs) < len(poses):  # a few matches, maybe by chance: no figure to quote as the run's
             fields["gt_note"] = (f"no ATE or RPE: only {len(pairs)} of the {len(poses)} posed frames have ground "
@@ -265,6 +267,7 @@ class Pipeline:
             path_length = float(np.linalg.norm(np.diff(ref[:, :3, 3], axis=0), axis=1).sum())
             fields["path_length_m"] = round(path_length, 3)
             fields["ate_percent_of_path"] = round(100 * metrics["ate_rmse_m"] / max(path_length, 1e-9), 3)
+            fields.update(tracked_ate(est, ref, tracked))
         if pairs and len(pairs) < len(poses):  # some frames lack ground truth: say what the figures are over
             fields["gt_note"] = (f"ATE and RPE are over the {len(pairs)} of {len(poses)} posed frames that have "
                                  "ground truth" if metrics is not None else

@@ -35,10 +35,15 @@ LOOP_CANDIDATE_SCHEMA = json_object({
 STATS_SCHEMA = json_object({
     "frame": json_field("integer", "index of the frame in the run (0 = the first frame selected)"),
     "status": json_field("string", '"ok" (a tracked frame, the map\'s first one included), "relocalised", '
-                                   '"lost: <reason>" (not fused; its pose is the motion model\'s) or "skipped: '
+                                   '"lost: <reason>" (not fused; it holds the last good pose) or "skipped: '
                                    '<reason>" (before the map started: no depth enough to start it on; no pose)'),
     "tracking": json_field("string", 'the tracker\'s own word: "init" for the map\'s first frame, else as status'),
     "surfels": json_field("integer", "surfels in the map after this frame"),
+    "hypothesis": json_field("string", 'the start of ICP whose alignment was kept: "motion" (the motion model), '
+                                       '"last" (the last good pose), "features" (ORB + PnP) or "wide" (dense '
+                                       're-localisation); every frame but the first'),
+    "hypotheses_tried": json_field("array", "every start tried for the frame, in order, each with its outcome "
+                                            '("motion: ok", "last: lost: <reason>", ...)', items={"type": "string"}),
     "ms": json_object({
         "maps": json_field("number", "the frame's depth, vertex and normal pyramids, milliseconds"),
         "track": json_field("number", "rendering the model and ICP (with feature relocalisation when it runs), "
@@ -96,6 +101,9 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
     """The /slam/stats message of one frame (``STATS_SCHEMA``)."""
     stats = {"frame": result.index, "status": "ok" if result.status in ("ok", "init") else result.status,
              "tracking": result.status, "surfels": surfels, "ms": {k: round(v, 3) for k, v in result.ms.items()}}
+    if result.hypothesis is not None:
+        stats["hypothesis"] = result.hypothesis
+        stats["hypotheses_tried"] = list(result.tried)
     icp = result.icp
     if icp is not None:
         per_level = [0] * (max((it.level for it in icp.iterations), default=-1) + 1)
@@ -190,6 +198,9 @@ class SLAMStep:
             "tracking_failures": len(lost),
             "failed_frames": [{"frame": r.index, "reason": r.status} for r in lost][:50],
             "relocalised": sum(r.status == "relocalised" for r in run.results),
+            "hypotheses_won": {name: sum(r.hypothesis == name and r.tracked for r in run.results)
+                               for name in ("motion", "last", "features", "wide")},
+            "frames_with_second_start": sum(len(r.tried) > 1 for r in run.results),
             "map_started_at": None if first is None else first.index,
             "skipped_frames": [{"frame": f, "reason": reason} for f, reason in slam.skipped][:50],
             **self.loop_summary(),

@@ -358,11 +358,11 @@ def cabinet_times(frames: int) -> np.ndarray:
 
 def cabinet_path(times: np.ndarray) -> np.ndarray:
     """Once round the cabinet (a lap in 45 s, ≈ 0.22 m/s on average), slowing down and speeding up
-    (0.2–1.8 × the mean every 9 s), 1.35–1.75 m from its axis, at 1.1–1.5 m height, looking at the
+    (0.2–1.8 × the mean every 2.5 s), 1.35–1.75 m from its axis, at 1.1–1.5 m height, looking at the
     cabinet with the gaze wandering ±0.35 m over it: every view holds the box, the floor and a wall."""
     t = np.asarray(times, dtype=np.float64)
     cx, cy = CABINET_CENTER
-    w = 2 * np.pi / 4.0
+    w = 2 * np.pi / 2.5
     angle = -2.2 + 2 * np.pi / CABINET_LAP_S * (t - 0.8 / w * np.sin(w * t))
     r = CABINET_RADIUS + 0.2 * np.sin(0.33 * t + 0.5)
     x = cx + r * np.cos(angle)

@@ -1,0 +1,95 @@
+"""Tracking that survives a bad guess (``DenseSLAM._track``): the motion model scaled by the time between
+frames, damped after a step it missed, at rest after a failure (a lost frame holds the last good pose and
+nothing is extrapolated through it); a wrong guess tracked again from the last good pose, the start that won
+in the stats. Synthetic room at 320×240, a few frames."""
+
+import numpy as np
+import pytest
+
+from ti_fusion.config import Config
+from ti_fusion.geometry import pose_error, se3_exp, se3_log
+from ti_fusion.io.datasets import open_dataset
+from ti_fusion.slam.dense import DenseSLAM, FrameResult
+from ti_fusion.slam.slam_step import STATS_SCHEMA, frame_stats
+
+
+def _slam(frames: int = 6, **slam) -> tuple[DenseSLAM, object]:
+    cfg = Config()
+    cfg.dataset.downsample = 2
+    cfg.dataset.stop = frames
+    for key, value in slam.items():
+        setattr(cfg.slam, key, value)
+    dataset = open_dataset(cfg.dataset, cfg.synth)
+    return DenseSLAM(cfg, dataset.intrinsics), dataset
+
+
+def test_a_wrong_guess_is_tracked_again_from_the_last_pose(cpu):
+    """A motion model pointing 25 cm and 17 degrees the wrong way: the frame still tracks, from another
+    start, and the stats say which; with the guess alone (slam.hypotheses = motion, no feature
+    re-localisation) the same guess loses or misplaces it."""
+    outcomes = {}
+    for mode in ("doubt", "motion"):
+        slam, dataset = _slam(hypotheses=mode, relocalise="features" if mode == "doubt" else "none")
+        for i in range(4):
+            slam.register_frame(dataset[i])
+        slam._velocity = np.array([0.0, 0.3, 0.0, 0.25, 0.0, 0.0]) / (1 / 30)  # per second, one frame's worth
+        frame = dataset[4]
+        result = slam.register_frame(frame)
+        outcomes[mode] = result
+        if mode == "doubt":
+            assert result.tracked and result.hypothesis != "motion", (result.status, result.tried)
+            assert result.tried[0].startswith("motion: ") and result.tried[1].startswith("last: ")
+            rot, trans = pose_error(result.pose, frame.gt_pose)
+            assert rot < 0.3 and trans < 0.005
+            stats = frame_stats(result, slam.surfels)
+            assert stats["hypothesis"] == result.hypothesis and stats["hypotheses_tried"] == result.tried
+            assert {"hypothesis", "hypotheses_tried"} <= set(STATS_SCHEMA["properties"])
+    assert outcomes["motion"].hypothesis == "motion" and outcomes["motion"].tried == [outcomes["motion"].tried[0]]
+    assert outcomes["motion"].lost or pose_error(outcomes["motion"].pose, dataset[4].gt_pose)[1] > 0.01
+
+
+def test_a_lost_frame_holds_the_last_good_pose_and_the_model_restarts_at_rest(cpu):
+    slam, dataset = _slam()
+    for i in range(3):
+        slam.register_frame(dataset[i])
+    assert np.linalg.norm(slam._velocity) > 0
+    good = slam.poses[-1].copy()
+    blank = dataset[3]
+    blank.depth = np.zeros_like(blank.depth)
+    result = slam.register_frame(blank)
+    assert result.lost
+    np.testing.assert_array_equal(result.pose, good)  # held, not extrapolated
+    assert not np.any(slam._velocity)
+    np.testing.assert_allclose(slam._predicted_pose(dataset[4].timestamp), good, rtol=0, atol=1e-12)  # nothing through the gap
+    result = slam.register_frame(dataset[4])
+    assert result.tracked and pose_error(result.pose, dataset[4].gt_pose)[1] < 0.005
+
+
+def test_the_guess_scales_with_the_time_between_frames(cpu):
+    slam, dataset = _slam()
+    for i in range(3):
+        slam.register_frame(dataset[i])
+    last, t = slam.poses[-1], dataset[2].timestamp
+    one = se3_log(np.linalg.inv(last) @ slam._predicted_pose(t + 1 / 30))
+    three = se3_log(np.linalg.inv(last) @ slam._predicted_pose(t + 3 / 30))
+    np.testing.assert_allclose(three, 3 * one, rtol=1e-6, atol=1e-9)
+    # timestamps that do not increase: one frame's worth
+    np.testing.assert_allclose(se3_log(np.linalg.inv(last) @ slam._predicted_pose(t)),
+                               slam._velocity, rtol=1e-6, atol=1e-9)
+
+
+@pytest.mark.parametrize("missed", [False, True])
+def test_the_velocity_is_damped_after_a_step_the_guess_missed(cpu, missed):
+    slam, dataset = _slam(motion_damping=0.5)
+    slam.poses = [np.eye(4)]
+    slam._last_stamp = 1.0
+    slam._velocity = np.array([0, 0, 0, 0.3, 0, 0])  # 0.3 m/s along x
+    step = np.array([0, 0, 0, 0.03 if not missed else 0.09, 0, 0])  # 0.1 s later: as guessed, or 3× as far
+    result = FrameResult(5, 1.1, se3_exp(step), "ok", hypothesis="motion")
+    slam._update_motion(result, 1.1)
+    expected = step / 0.1 * (0.5 if missed else 1.0)
+    np.testing.assert_allclose(slam._velocity, expected, atol=1e-9)
+    # a step won by another start than the motion model's is irregular too
+    slam._velocity = np.array([0, 0, 0, 0.3, 0, 0])
+    slam._update_motion(FrameResult(6, 1.2, slam.poses[-1] @ se3_exp(step), "ok", hypothesis="last"), 1.2)
+    np.testing.assert_allclose(slam._velocity, step / 0.1 * 0.5, atol=1e-9)

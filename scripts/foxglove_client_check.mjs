@@ -115,6 +115,11 @@ const appConfiguration = {
 })();
 </script></body></html>`;
 
+const notFound = [];
+function report404(pathname) {
+  notFound.push(pathname);
+}
+
 function serve(args) {
   const studio = path.join(args.client, "node_modules", "@foxglove", "studio-base");
   const files = {
@@ -132,7 +137,12 @@ function serve(args) {
       const file = path.join(studio, "assets", path.basename(url.pathname));
       if (fs.existsSync(file)) entry = { file };
     }
+    if (url.pathname === "/favicon.ico") {  // the browser asks for one: not a problem of the client
+      res.writeHead(204).end();
+      return;
+    }
     if (!entry) {
+      report404(url.pathname);
       res.writeHead(404).end();
       return;
     }
@@ -213,14 +223,15 @@ async function main() {
     page.on("pageerror", (err) => report.page_errors.push(String(err).slice(0, 500)));
     page.on("response", (res) => { if (res.status() >= 400) report.console_errors.push(`HTTP ${res.status()} ${res.url()}`); });
     await page.addInitScript((name) => { window.__layoutName = name; }, path.basename(args.layout));
-    await page.goto(`${base}/index.html?${source}`);
+    await page.goto(`${base}/index.html?${source}`, { waitUntil: "domcontentloaded", timeout: 180000 });
     const shot = async (name) => {
       const file = path.join(args.out, `${name}.png`);
       await page.screenshot({ path: file });
       report.screenshots.push(file);
       console.log(`screenshot ${file}`);
     };
-    await page.waitForTimeout(8000);
+    await page.locator('[data-sidebar-key="layouts"]').waitFor({ timeout: 180000 });  // the app is up
+    await page.waitForTimeout(5000);  // the source opens
     await shot("0-opened");
     await importLayout(page);
     await page.waitForTimeout(3000);
@@ -252,6 +263,7 @@ async function main() {
     }
   }
   report.topics = [...new Set(report.topics ?? [])].sort();
+  report.not_found = notFound;
   report.relay = relayServer != undefined;
   for (const line of report.run_output ?? []) console.log(`run: ${line}`);
   fs.writeFileSync(path.join(args.out, "report.json"), JSON.stringify(report, null, 1) + "\n");
@@ -274,7 +286,7 @@ async function main() {
 async function importLayout(page) {
   await page.locator('[data-sidebar-key="layouts"]').click();
   await page.waitForTimeout(1000);
-  await page.locator('[title="Import layout"]').first().click();
+  await page.locator('[title="Import layout"]').first().click({ timeout: 60000 });
   await page.waitForTimeout(2000);
 }
 

@@ -43,6 +43,8 @@ SCENE_TOPICS = {
     "/camera/calibration": {"visible": True, "distance": 0.3, "color": EST},
     # loop edges (slam.loop_closure): the colours are the message's own (applied green, not applied red)
     "/loop_closures": {"visible": True},
+    # slam --mesh: the mesh of the map at the end of the run, its own vertex colours
+    "/map/mesh": {"visible": True},
 }
 # Looking down at the scene from 8 m, 45 degrees off vertical (every key: the clients replace the whole state).
 CAMERA = {"distance": 8, "perspective": True, "phi": 45, "thetaOffset": 45, "target": [0, 0, 0],

@@ -512,6 +512,7 @@ class MeshConfig:
     max_voxels: Count = 40_000_000   # the sparse grid's bound (~2 GB with marching cubes' copies): more stops with a message
     max_triangles: NonNegativeInt = 0  # > 0: decimate the mesh to at most this many triangles (vertex clustering)
     log_triangles: NonNegativeInt = 300_000  # /map/mesh in the log: decimated to at most this many triangles; 0 = not logged
+    after_run: bool = False          # slam: mesh the map at the end of the run (slam --mesh): mesh.ply, mesh.glb, /map/mesh
 
 
 @dataclass

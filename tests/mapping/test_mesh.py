@@ -222,3 +222,56 @@ def test_mesh_command(cpu, rng, tmp_path, capsys):
         assert main(argv + ["--out", str(tmp_path / f"bad{k}"), "--quiet"]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and words in err, err
+
+
+def test_mesh_in_the_log(cpu, rng, tmp_path):
+    """/map/mesh: one SceneUpdate whose triangle list holds the mesh (vertices, indices, colours) in world."""
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    from ti_fusion.io.mcap_log import RunLogger
+
+    mesh = M.mesh_surfels(plane_surfels(rng, (0, 0.3, 1), (0, 0, 1), 0.1, 0.004, 0.02), MeshConfig())
+    with RunLogger(tmp_path / "log.mcap") as log:
+        log.log_mesh(12.5, mesh)
+    with open(tmp_path / "log.mcap", "rb") as f:
+        (_, channel, message, decoded), = make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()
+    assert channel.topic == "/map/mesh" and message.log_time == 12_500_000_000
+    (entity,) = decoded.entities
+    assert entity.frame_id == "world" and entity.id == "mesh"
+    (tri,) = entity.triangles
+    np.testing.assert_allclose([[p.x, p.y, p.z] for p in tri.points], mesh.vertices, atol=1e-6)
+    np.testing.assert_array_equal(np.reshape(tri.indices, (-1, 3)), mesh.faces)
+    np.testing.assert_allclose([[c.r, c.g, c.b] for c in tri.colors], mesh.colours / 255.0, atol=1e-9)
+    assert all(c.a == 1.0 for c in tri.colors) and tri.pose.orientation.w == 1.0
+
+
+def test_run_mesh_warns_instead_of_failing(cpu, caplog):
+    """slam --mesh on a map with no confirmed surfel: a warning and no mesh; the run's other outputs stand."""
+
+    class Mapper:
+        def to_numpy(self):
+            n = 10
+            return {"position": np.zeros((n, 3), np.float32), "normal": np.tile([0, 0, 1.0], (n, 1)),
+                    "colour": np.zeros((n, 3)), "weight": np.ones(n), "radius": np.full(n, 0.01)}
+
+    run = M.RunMesh(MeshConfig())
+    run.make(Mapper())
+    assert run.mesh is None and "confirmed" in run.summary["mesh_error"]
+    assert any("no mesh" in r.getMessage() for r in caplog.records)
+
+
+@pytest.mark.slow
+def test_slam_mesh(cpu, tmp_path):
+    """``slam --mesh``: mesh.ply and mesh.glb beside map.ply, /map/mesh in the log, the mesh in summary.json."""
+    import json
+
+    from ti_fusion.cli.main import main
+    from ti_fusion.io.mcap_log import read_log
+
+    out = tmp_path / "run"
+    assert main(["slam", "--frames", "6", "--downsample", "2", "--mesh", "--set", "mesh.min_weight=0",
+                 "--out", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())["mesh"]
+    assert summary["triangles"] > 1000 and (out / "mesh.ply").is_file() and (out / "mesh.glb").is_file()
+    assert read_log(out / "log.mcap").channels["/map/mesh"].count == 1

@@ -60,14 +60,6 @@ def apply_options(args, mesh_config) -> None:
         mesh_config.max_triangles = args.max_triangles
 
 
-def write_mesh_files(out, mesh) -> dict:
-    """mesh.ply and mesh.glb in the run folder ``out``; their paths."""
-    from ti_fusion.io.mesh_files import write_glb, write_mesh_ply
-
-    return {"mesh_ply": str(write_mesh_ply(out.file("mesh.ply"), mesh)),
-            "mesh_glb": str(write_glb(out.file("mesh.glb"), mesh))}
-
-
 def run(ctx) -> dict:
     from ti_fusion.mapping.mesh import mesh_surfels, surfels_from_ply
 
@@ -77,7 +69,9 @@ def run(ctx) -> dict:
     surfels = surfels_from_ply(path)
     stats: dict = {}
     mesh = mesh_surfels(surfels, cfg, source=path, stats=stats)
-    files = write_mesh_files(ctx.out, mesh)
+    from ti_fusion.io.mesh_files import write_run_mesh
+
+    files = write_run_mesh(ctx.out, mesh)
     ctx.log(f"{len(mesh)} triangles, {len(mesh.vertices)} vertices, {mesh.area():.2f} m² from "
             f"{stats['surfels_meshed']} of {stats['surfels_in_map']} surfels at {cfg.voxel_size * 100:g} cm voxels "
             f"({stats['ms']['splat'] / 1e3:.2f} s splat, {stats['ms']['extract'] / 1e3:.2f} s marching cubes)")

@@ -17,6 +17,9 @@ def add_arguments(parser) -> None:
                              "the previous frame (for comparison)")
     parser.add_argument("--no-relocalise", action="store_true",
                         help="after a tracking failure, do not re-initialise with ORB + PnP features")
+    parser.add_argument("--mesh", action="store_true",
+                        help="also a coloured triangle mesh of the map: mesh.ply, mesh.glb and /map/mesh in the log "
+                             "(settings: the [mesh] config section; docs/MESH.md)")
     parser.add_argument("--live", metavar="[HOST:]PORT", default=None,
                         help="serve the run to Foxglove while it runs (Open connection > Foxglove WebSocket, "
                              "ws://HOST:PORT); HOST defaults to 127.0.0.1, PORT 0 picks a free port")
@@ -31,6 +34,8 @@ def run(ctx) -> dict:
         cfg.slam.tracking = ctx.args.tracking
     if ctx.args.no_relocalise:
         cfg.slam.relocalise = "none"
+    if ctx.args.mesh:
+        cfg.mesh.after_run = True
     dataset = open_dataset(cfg.dataset, cfg.synth)
     if not ctx.quiet:  # what the format line (format, depth scale, intrinsics) does not say
         d = dataset.describe()

@@ -11,6 +11,7 @@ Channels (log time = the frame's dataset timestamp; ``docs/LOGS.md`` has the ful
     /camera/color       foxglove.CompressedImage   protobuf  jpeg (or png)
     /camera/calibration foxglove.CameraCalibration protobuf  pinhole K, P
     /loop_closures      foxglove.SceneUpdate       protobuf  loop edges as one LINE_LIST, frame "world"
+    /map/mesh           foxglove.SceneUpdate       protobuf  slam --mesh: the mesh as one TRIANGLE_LIST, frame "world"
 
 Why this encoding. The geometry channels use Foxglove's official protobuf schemas from
 ``foxglove-schemas-protobuf``: the schema names are the ones Foxglove recognises, the messages are
@@ -84,6 +85,8 @@ LOOP_ENTITY = "loop_closures"  # one entity, replaced by each message: it holds 
 # RGBA in [0, 1]: loop closures applied green, candidates not applied red
 LOOP_APPLIED_RGBA = (0.17, 0.80, 0.25, 1.0)
 LOOP_NOT_APPLIED_RGBA = (0.90, 0.15, 0.15, 1.0)
+MESH_TOPIC = "/map/mesh"
+MESH_ENTITY = "mesh"
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
 
@@ -407,6 +410,22 @@ class RunLogger:
         self._write_proto(topic, msg, ns)
         self._file.flush()
         return written
+
+    def log_mesh(self, t: float, mesh, topic: str = MESH_TOPIC) -> None:
+        """A triangle mesh (``ti_fusion.mapping.mesh.Mesh``) as a ``foxglove.SceneUpdate`` in the world frame:
+        one entity holding one TriangleListPrimitive with a colour per vertex (packed by
+        ``mesh_files.scene_update_bytes``: protobuf's classes take seconds over 100 k vertices)."""
+        from ti_fusion.io.mesh_files import scene_update_bytes
+
+        ns = self._ns(t)
+        head = SceneUpdate().entities.add()
+        _set_stamp(head.timestamp, ns)
+        head.frame_id = WORLD_FRAME
+        head.id = MESH_ENTITY
+        head.frame_locked = False
+        self._proto_channel(topic, SceneUpdate)
+        self._write(topic, scene_update_bytes(head.SerializeToString(), mesh.vertices, mesh.faces, mesh.colours), ns)
+        self._file.flush()
 
     # -- internals --------------------------------------------------------------------------------
     def _ns(self, t: float) -> int:

@@ -95,7 +95,65 @@ def write_glb(path: str | Path, mesh) -> Path:
     return path
 
 
+def write_run_mesh(out, mesh) -> dict:
+    """mesh.ply and mesh.glb in the run folder ``out`` (``RunDir``); their paths, for summary.json."""
+    return {"mesh_ply": str(write_mesh_ply(out.file("mesh.ply"), mesh)),
+            "mesh_glb": str(write_glb(out.file("mesh.glb"), mesh))}
+
+
 def write_mesh(path: str | Path, mesh) -> Path:
     """By extension: .ply or .glb."""
     path = Path(path)
     return write_glb(path, mesh) if path.suffix.lower() == ".glb" else write_mesh_ply(path, mesh)
+
+
+# -- the mesh as a Foxglove scene entity -------------------------------------------------------------------------
+# foxglove.TriangleListPrimitive's points and colors are repeated messages: built one by one with protobuf's
+# classes, a 150 k-vertex mesh takes seconds. Their wire format has a fixed size per element when every field
+# is written (proto3 parsers accept explicit zeros), so NumPy packs them as records instead; the result parses
+# as the same message (tests/mapping/test_mesh.py reads it back with the generated classes).
+_POINT = np.dtype([("tag", "u1"), ("len", "u1"), ("tx", "u1"), ("x", "<f8"), ("ty", "u1"), ("y", "<f8"),
+                   ("tz", "u1"), ("z", "<f8")])
+_COLOR = np.dtype([("tag", "u1"), ("len", "u1"), ("tr", "u1"), ("r", "<f8"), ("tg", "u1"), ("g", "<f8"),
+                   ("tb", "u1"), ("b", "<f8"), ("ta", "u1"), ("a", "<f8")])
+
+
+def _varint(n: int) -> bytes:
+    out = bytearray()
+    while True:
+        byte = n & 0x7F
+        n >>= 7
+        out.append(byte | (0x80 if n else 0))
+        if not n:
+            return bytes(out)
+
+
+def _field(number: int, payload: bytes) -> bytes:
+    """A length-delimited field (a message, packed numbers or a string)."""
+    return _varint(number << 3 | 2) + _varint(len(payload)) + payload
+
+
+def triangle_list_bytes(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> bytes:
+    """A serialised foxglove.TriangleListPrimitive: identity pose, the vertices as ``points``, one RGBA per
+    vertex in ``colors`` (``colours`` uint8 RGB), ``indices`` three per triangle."""
+    n = len(vertices)
+    pts = np.zeros(n, _POINT)
+    pts["tag"], pts["len"] = 2 << 3 | 2, _POINT.itemsize - 2  # points = 2
+    pts["tx"], pts["ty"], pts["tz"] = 1 << 3 | 1, 2 << 3 | 1, 3 << 3 | 1  # x, y, z: fixed64 doubles
+    pts["x"], pts["y"], pts["z"] = np.asarray(vertices, np.float64).T
+    col = np.zeros(n, _COLOR)
+    col["tag"], col["len"] = 4 << 3 | 2, _COLOR.itemsize - 2  # colors = 4
+    col["tr"], col["tg"], col["tb"], col["ta"] = 1 << 3 | 1, 2 << 3 | 1, 3 << 3 | 1, 4 << 3 | 1
+    rgb = np.asarray(colours, np.float64) / 255.0
+    col["r"], col["g"], col["b"], col["a"] = rgb[:, 0], rgb[:, 1], rgb[:, 2], 1.0
+    pose = _field(1, _field(2, b"\x21" + struct.pack("<d", 1.0)))  # pose.orientation.w = 1 (field 4, fixed64)
+    colour = _field(3, b"".join(b + struct.pack("<d", 0.8) for b in (b"\x09", b"\x11", b"\x19", b"\x21")))
+    indices = _field(5, np.ascontiguousarray(faces, "<u4").tobytes())  # packed fixed32
+    return pose + pts.tobytes() + colour + col.tobytes() + indices
+
+
+def scene_update_bytes(entity_head: bytes, vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> bytes:
+    """A serialised foxglove.SceneUpdate of one entity: ``entity_head`` (the entity's own fields, serialised,
+    without primitives) and one triangle list (entity field 12)."""
+    entity = entity_head + _field(12, triangle_list_bytes(vertices, faces, colours))
+    return _field(2, entity)  # SceneUpdate.entities = 2

@@ -320,6 +320,45 @@ def mesh_surfels(surfels: dict, settings: MeshConfig | None = None, source=None,
     return mesh
 
 
+class RunMesh:
+    """``slam --mesh``: the mesh of the map at the end of a run, on the log's /map/mesh before the log
+    closes, then mesh.ply and mesh.glb with the run's other files. A map that cannot be meshed (no confirmed
+    surfel, too large for the bound) costs the run a warning, not its other outputs."""
+
+    def __init__(self, config: MeshConfig):
+        self.config = config
+        self.mesh: Mesh | None = None
+        self.summary: dict = {}
+
+    def make(self, mapper, run_log=None, t: float = 0.0) -> None:
+        import time
+
+        t0 = time.perf_counter()
+        stats: dict = {}
+        try:
+            self.mesh = mesh_surfels(mapper.to_numpy(), self.config, stats=stats)
+        except InputError as exc:
+            log.warning(f"no mesh: {exc.problem}")
+            self.summary = {"mesh_error": str(exc)}
+            return
+        self.summary = {"triangles": len(self.mesh), "vertices": len(self.mesh.vertices),
+                        "area_m2": round(self.mesh.area(), 4), "voxel_size": self.config.voxel_size,
+                        "mesh_s": round(time.perf_counter() - t0, 3), **stats}
+        log.info(f"mesh: {len(self.mesh)} triangles, {self.summary['area_m2']:.2f} m² from {stats['surfels_meshed']} "
+                 f"confirmed surfels at {self.config.voxel_size * 100:g} cm voxels in {self.summary['mesh_s']:.2f} s")
+        cap = self.config.log_triangles
+        if run_log is not None and cap and len(self.mesh):
+            run_log.log_mesh(t, self.mesh if len(self.mesh) <= cap else decimate(self.mesh, cap))
+
+    def outputs(self, out) -> dict:
+        """mesh.ply and mesh.glb in ``out``; the ``mesh`` field of summary.json."""
+        from ti_fusion.io.mesh_files import write_run_mesh
+
+        if self.mesh is not None:
+            self.summary.update(write_run_mesh(out, self.mesh))
+        return {"mesh": self.summary} if self.summary else {}
+
+
 def decimate(mesh: Mesh, max_triangles: int) -> Mesh:
     """At most ``max_triangles`` triangles by vertex clustering: vertices in one cell of a coarser grid become
     their mean (colours and normals averaged too), and triangles that collapse are dropped. The cell is the

@@ -148,6 +148,11 @@ class SLAMStep:
             from ti_fusion.loop.closure import LoopClosure  # GTSAM: imported only when loop closure is on
 
             self.loop = LoopClosure(config, self.slam)
+        self.mesh = None
+        if config.mesh.after_run:  # slam --mesh
+            from ti_fusion.mapping.mesh import RunMesh
+
+            self.mesh = RunMesh(config.mesh)
 
     @property
     def warmup_frames(self) -> int:
@@ -168,6 +173,11 @@ class SLAMStep:
         report = result.loop
         if report is not None and report.candidates and hasattr(log, "log_loop_edges"):
             log.log_loop_edges(frame.timestamp, self.loop.edges())
+
+    def log_end(self, log, t: float) -> None:
+        """slam --mesh: the mesh of the map, made while the log is open so that /map/mesh carries it."""
+        if self.mesh is not None and self.slam.surfels:
+            self.mesh.make(self.slam.mapper, log, t)
 
     def loop_edges(self) -> list | None:
         """Every verified loop candidate as (from, to, accepted) world points, for trajectory.png."""
@@ -204,6 +214,7 @@ class SLAMStep:
             "map_started_at": None if first is None else first.index,
             "skipped_frames": [{"frame": f, "reason": reason} for f, reason in slam.skipped][:50],
             **self.loop_summary(),
+            **(self.mesh.outputs(run.out) if self.mesh is not None else {}),
         }
 
     def loop_summary(self) -> dict:

@@ -232,3 +232,5 @@ def test_frames_lost_for_being_small_get_a_hint():
         "levels (its coarsest 16x12); --set icp.iterations=[10,5] keeps 2 (coarsest 32x24)")
     summary["resolution"]["tracked_at"] = [320, 240]
     assert _small_frames_hint(Config(), summary) is None
+    one = {"frames": 1, "tracking_failures": 0, "failed_frames": [], "resolution": {"tracked_at": [64, 48]}}
+    assert _small_frames_hint(Config(), one) is None  # nothing lost: nothing to explain

@@ -89,7 +89,7 @@ def _small_frames_hint(cfg, s: dict) -> str | None:
     from ti_fusion.slam.dense import COARSE_PIXELS_PER_INLIER
 
     lost = [f for f in s.get("failed_frames", []) if "too few inliers" in f["reason"]]
-    if not s.get("frames") or 2 * len(lost) < s["frames"] - 1 or "resolution" not in s:
+    if not lost or 2 * len(lost) < s["frames"] - 1 or "resolution" not in s:  # most tracked frames lost that way
         return None
     width, height = s["resolution"]["tracked_at"]
     iterations, needed = list(cfg.icp.iterations), COARSE_PIXELS_PER_INLIER * cfg.icp.min_inliers

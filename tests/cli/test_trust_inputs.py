@@ -204,6 +204,22 @@ def test_depth_in_the_wrong_units_is_refused_before_the_first_frame(cpu, tum, tm
     assert not (out / "log.mcap").exists()  # refused before the run
 
 
+def test_a_32fc1_bag_holding_millimetres_is_refused_naming_the_scale(tmp_path, rng, capsys):
+    import dataclasses
+
+    from tests.io.test_rosbag import small_shots, write_bag
+
+    shots = [dataclasses.replace(s, depth=s.depth * 1000) for s in small_shots(rng)]  # 500 to 3000 "metres"
+    bag = write_bag(tmp_path / "bag", shots, depth_encoding="32FC1")
+    out = tmp_path / "run"
+    assert main(["vo", str(bag), "--out", str(out), "--quiet"]) == 2
+    lines = _stderr_lines(capsys)
+    assert len(lines) == 1 and lines[0].startswith(f"ti-fusion vo: error: {bag}: the first frames' depth with depth "
+                                                   "scale 1 units per metre (")
+    assert ("100% of it beyond dataset.depth_max = 4 m, so nothing would be left; --depth-scale 1000 would make its "
+            "median") in lines[0]
+
+
 def test_a_run_in_which_no_frame_had_depth_exits_non_zero(cpu, tum, tmp_path, capsys):
     data = folder(tum, tmp_path / "cam", camera_info())
     for path in (data / "depth").glob("*.png"):

@@ -208,5 +208,8 @@ def _check_frame_list(dataset) -> None:
 
 
 def _scale_source(dataset) -> str:
+    source = getattr(dataset, "depth_scale_source", None)  # where a loader says where it took the scale from
+    if source:
+        return str(source)
     given = getattr(dataset, "config", None) is not None and getattr(dataset.config, "depth_scale", 0)
     return "--depth-scale / dataset.depth_scale" if given else f"the {dataset.format} format's own"

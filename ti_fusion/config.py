@@ -661,13 +661,13 @@ def apply_dict(config: Config, data: dict, where: str = "config", base: Path | N
 
 # Settings that name a file or folder: a relative one in a config file is relative to that file's folder.
 PATH_SETTINGS = {("dataset", "path"), ("dataset", "intrinsics_file"), ("dataset", "intrinsics"),
-                 ("dataset", "ground_truth"), ("synth", "trajectory")}
+                 ("dataset", "color_intrinsics"), ("dataset", "ground_truth"), ("synth", "trajectory")}
 
 
 def _relative_to(base: Path, section: str, key: str, value: Any) -> Any:
     if (section, key) not in PATH_SETTINGS or not isinstance(value, str) or not value.strip():
         return value
-    if key == "intrinsics" and len(value.replace(",", " ").split()) == 4 and not (base / value).exists():
+    if key.endswith("intrinsics") and len(value.replace(",", " ").split()) == 4 and not (base / value).exists():
         return value  # "fx,fy,cx,cy", not a file
     path = Path(value).expanduser()
     return value if path.is_absolute() else str(base / path)

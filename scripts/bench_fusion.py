@@ -30,7 +30,7 @@ STAGES = ("project", "filter", "merge", "add", "remove")
 def bench_size(width: int, height: int, target: int, steps: int) -> dict:
     from ti_fusion.config import FusionConfig
     from ti_fusion.reference.fusion import NumpyFusion, build_map
-    from ti_fusion.slam.timing import StageTimer
+    from ti_fusion.timing import StageTimer
 
     cfg = FusionConfig(level=0)  # the step at this resolution (the SLAM default fuses 640×480 input at 320×240)
     mapper, maps, seq, frame = build_map(width, height, target, cfg)

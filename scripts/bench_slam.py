@@ -121,7 +121,7 @@ def run_open3d(args) -> dict:
         import open3d.core as o3c
     except ImportError as e:
         return {"system": "Open3D", "error": f"not available ({e}; pip install open3d-cpu, or --open3d-python PY)"}
-    from ti_fusion.slam.timing import process_age_s
+    from ti_fusion.timing import process_age_s
 
     _, dataset = _dataset(args)
     K = dataset.intrinsics
@@ -164,7 +164,7 @@ def run_opencv(args) -> dict:
     _add_parent_site()
     import cv2
 
-    from ti_fusion.slam.timing import process_age_s
+    from ti_fusion.timing import process_age_s
 
     if not hasattr(cv2.utils, "logging"):  # OpenCV 4 wheels lack it; ti-fusion's image reading silences through it
         import types

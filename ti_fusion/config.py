@@ -35,6 +35,7 @@ from pathlib import Path
 from typing import Annotated, Any, Callable, Iterable
 
 from ti_fusion.errors import InputError
+from ti_fusion.io.formats import FORMATS
 
 # --------------------------------------------------------------------------------------------------
 # What a field allows, written beside it: ``name: Annotated[type, rule, ...] = default``. A bool is true
@@ -220,8 +221,6 @@ def _rule_of(hint: Any) -> Rule | None:
 
 
 def _dataset_formats() -> tuple[str, ...]:
-    from ti_fusion.io.datasets import FORMATS  # the loaders' list (imported late: it imports this module)
-
     return ("auto", *FORMATS)
 
 

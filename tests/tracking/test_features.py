@@ -14,7 +14,7 @@ import pytest
 
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import SynthConfig, VOConfig
-from ti_fusion.io.datasets.base import Frame
+from ti_fusion.frame import Frame
 from ti_fusion.tracking.features import (FEW_INLIERS, FEW_MATCHES, LARGE_MOTION, NO_COLOR, NO_DEPTH, FeatureOdometry,
                                 estimate_relative_pose, motion_norm, relocalise)
 from ti_fusion.geometry import invert, make_pose, pose_error, se3_exp, so3_exp

@@ -175,7 +175,7 @@ def test_dense_slam_uses_colour_only_where_registered(cpu, caplog):
     import dataclasses
 
     from ti_fusion.config import Config, SynthConfig
-    from ti_fusion.io.datasets.base import Frame
+    from ti_fusion.frame import Frame
     from ti_fusion.slam.dense import DenseSLAM
     from ti_fusion.synthetic.scene import SyntheticSequence
 

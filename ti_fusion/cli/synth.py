@@ -24,7 +24,7 @@ from ti_fusion.errors import InputError
 from ti_fusion.geometry import rot_to_quat
 from ti_fusion.io.datasets.base import MIN_FRAME_SIZE
 from ti_fusion.io.outputs import atomic_write, progress, write_image
-from ti_fusion.slam.timing import StageTimer
+from ti_fusion.timing import StageTimer
 
 HELP = "write the synthetic RGB-D sequence to OUT_DIR in TUM format (rgb/, depth/, groundtruth.txt, ...)"
 USES_DATASET = False

@@ -14,14 +14,13 @@ import numpy as np
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import make_pose, orthonormalize, quat_to_rot, rigidity_error, rot_to_quat
 from ti_fusion.io.outputs import atomic_write
+from ti_fusion.io.tables import parse_floats, read_table
 
 _QUAT_NORM_TOL = 1e-2  # files with 4-6 printed decimals have norms within ~1e-4 of 1
 
 
 def read_tum(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     """(timestamps (N,), camera-to-world poses (N, 4, 4)) from a TUM trajectory file, in file order."""
-    from ti_fusion.io.datasets.imageio import parse_floats, read_table
-
     path = Path(path)
     stamps, poses = [], []
     for lineno, fields in read_table(path, "trajectory file"):

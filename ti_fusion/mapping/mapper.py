@@ -24,7 +24,7 @@ import taichi as ti
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import FusionConfig
 from ti_fusion.kernels.surfel_map import SurfelMap
-from ti_fusion.slam.timing import StageTimer
+from ti_fusion.timing import StageTimer
 
 STAGES = ("project", "filter", "merge", "add", "remove")
 

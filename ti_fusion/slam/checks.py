@@ -42,7 +42,7 @@ class FrameChecks:
         self.depth_frames_checked = 0
 
     def check(self, frame) -> None:
-        from ti_fusion.io.datasets.base import Frame
+        from ti_fusion.frame import Frame
 
         if not isinstance(frame, Frame):
             raise InputError(None, f"register_frame takes a Frame (ti_fusion.io.datasets.rgbd_frame makes one from "

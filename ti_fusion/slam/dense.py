@@ -54,13 +54,13 @@ import numpy as np
 
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import Config, ICPConfig
-from ti_fusion.io.datasets.base import Frame
+from ti_fusion.frame import Frame
 from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
 from ti_fusion.geometry import invert, pose_error, renormalize, se3_exp, se3_log
 from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.maps import FrameMaps, grey_image
 from ti_fusion.slam.checks import check_frame
-from ti_fusion.slam.timing import StageTimer
+from ti_fusion.timing import StageTimer
 
 log = logging.getLogger(__name__)
 

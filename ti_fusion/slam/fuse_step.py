@@ -19,7 +19,7 @@ from ti_fusion.io.mcap_log import json_field, json_object
 from ti_fusion.kernels.maps import FrameMaps
 from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
 from ti_fusion.mapping.views import save_views, view_pose
-from ti_fusion.slam.timing import StageTimer
+from ti_fusion.timing import StageTimer
 
 
 _MS = "milliseconds, a part of fuse"

@@ -1,6 +1,6 @@
 """The catalogue of synthetic scenes, each with its own hand-held camera path and length.
 
-``room``      the furnished 5 m × 4 m room (``scene.default_scene``), 120 frames circling the table.
+``room``      the furnished 5 m × 4 m room (``shapes.default_scene``), 120 frames circling the table.
 ``loop``      a closed corridor loop, 12 m × 8 m outside around an 8 m × 4 m block, corridors 2 m wide and
               2.6 m high, textured walls and furniture (no door frames or pilasters: long stretches of wall and
               floor give depth-only tracking room to drift); the camera walks once around it
@@ -20,7 +20,7 @@
               camera whose speed changes; one frame every 0.67 s (every 20th of the 30 Hz path), steps of up
               to ~23 cm and ~17°: wide baselines on low texture, where feature re-localisation has little to match.
 
-World frame as in ``scene``: metres, z up. The loop scenes are centred under the renderer's point light
+World frame as in ``shapes``: metres, z up. The loop scenes are centred under the renderer's point light
 (``kernels.raycast.LIGHT``) so their shading, like their geometry, is symmetric under a half turn about
 the centre (what makes the twins identical, light included). Paths are functions of time (seconds from
 the first frame) sampled at 30 Hz, except where a scene's ``times`` samples them otherwise (``jerky``,
@@ -35,8 +35,8 @@ from typing import Callable
 
 import numpy as np
 
-from ti_fusion.synthetic.scene import (FPS, Box, Cylinder, Material, Plane, Primitive, Scene, Sphere,
-                                       camera_path, default_scene, look_at)
+from ti_fusion.synthetic.shapes import (FPS, Box, Cylinder, Material, Plane, Primitive, Scene, Sphere,
+                                        camera_path, default_scene, look_at)
 
 
 def regular_times(frames: int) -> np.ndarray:

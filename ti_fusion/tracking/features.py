@@ -38,7 +38,7 @@ import cv2
 import numpy as np
 
 from ti_fusion.config import VOConfig
-from ti_fusion.io.datasets.base import Frame
+from ti_fusion.frame import Frame
 from ti_fusion.geometry import invert, make_pose, orthonormalize
 
 # Why a frame (or a pair) was rejected; None means accepted.

@@ -21,11 +21,10 @@ from pathlib import Path
 from ti_fusion.config import DatasetConfig, SynthConfig
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets.base import Dataset, Frame
+from ti_fusion.io.formats import FORMATS
 
 __all__ = ["Dataset", "Frame", "open_dataset", "detect_format", "loader_class", "FORMATS", "rgbd_frame",
            "FrameList"]
-
-FORMATS = ("tum", "iclnuim", "7scenes", "folder", "rosbag", "log", "synthetic")
 
 log = logging.getLogger(__name__)
 

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import logging
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator
 
@@ -12,33 +11,13 @@ import numpy as np
 
 from ti_fusion.camera import Intrinsics
 from ti_fusion.errors import InputError
+from ti_fusion.frame import Frame  # noqa: F401 (the loaders build frames; it lives below tracking)
 
 log = logging.getLogger(__name__)
 
 # Pixels per side of the smallest frame a loader hands out (after --downsample): a frame of a few pixels
 # has nothing to track, and OpenCV's ORB fails outright on one of 1x1.
 MIN_FRAME_SIZE = 8
-
-
-@dataclass
-class Frame:
-    """One RGB-D frame as every loader yields it.
-
-    depth: float32 H×W in metres, 0 = invalid.
-    color: uint8 H×W×3 RGB, or None when the set has no colour.
-    gt_pose: float64 4×4 camera-to-world ground truth, or None.
-    color_registered: pixel (u, v) of ``color`` sees the point of ``depth`` at (u, v) (photometric tracking
-    uses colour only then); set by the dataset (``Dataset.colour_for_tracking``).
-    """
-
-    index: int
-    timestamp: float
-    depth: np.ndarray
-    intrinsics: Intrinsics
-    color: np.ndarray | None = None
-    gt_pose: np.ndarray | None = None
-    meta: dict = field(default_factory=dict)
-    color_registered: bool = False
 
 
 class Dataset(ABC):

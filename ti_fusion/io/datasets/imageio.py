@@ -17,6 +17,7 @@ import numpy as np
 
 from ti_fusion.camera import Intrinsics
 from ti_fusion.errors import InputError
+from ti_fusion.io.tables import parse_floats, read_table
 
 
 def _imread(path: Path, flags: int) -> np.ndarray:
@@ -118,33 +119,6 @@ def check_same_size(color: np.ndarray, color_path: Path, depth: np.ndarray, dept
         ch, cw = color.shape[:2]
         dh, dw = depth.shape[:2]
         raise InputError(color_path, f"colour image is {cw}x{ch} but its depth image {Path(depth_path).name} is {dw}x{dh}")
-
-
-def read_table(path: str | Path, what: str = "file") -> list[tuple[int, list[str]]]:
-    """Whitespace-separated rows of a text file as (line number, fields), skipping blanks and # comments."""
-    path = Path(path)
-    if not path.is_file():
-        raise InputError(path, f"{what} not found")
-    try:
-        text = path.read_text()
-    except (OSError, UnicodeDecodeError) as exc:
-        raise InputError(path, f"cannot read {what}: {exc}") from None
-    rows = []
-    for lineno, line in enumerate(text.splitlines(), start=1):
-        line = line.strip()
-        if line and not line.startswith("#"):
-            rows.append((lineno, line.replace(",", " ").split()))
-    return rows
-
-
-def parse_floats(fields: list[str], path: Path, lineno: int) -> np.ndarray:
-    try:
-        values = np.array([float(f) for f in fields], dtype=np.float64)
-    except ValueError:
-        raise InputError(path, f"line {lineno}: expected numbers, got {' '.join(fields)!r}") from None
-    if not np.all(np.isfinite(values)):
-        raise InputError(path, f"line {lineno}: contains NaN or infinite values")
-    return values
 
 
 def read_numbers(path: str | Path, what: str) -> np.ndarray:

@@ -227,7 +227,6 @@ def extract(grid: SparseGrid, voxels: dict, voxel: float) -> Mesh:
     local = np.concatenate(verts).astype(np.float64)
     faces = np.concatenate(faces).astype(np.int64)
     owner = np.concatenate(owner)
-    rgb = _trilinear(colour, valid, owner, local)
     gridpos = local + ((grid.blocks[owner] + grid.origin) * E).astype(np.float64)  # voxel units
     # blocks that share a face compute the same vertices on it from the same two values: weld them
     key = np.round(gridpos * 4096.0).astype(np.int64)
@@ -235,7 +234,8 @@ def extract(grid: SparseGrid, voxels: dict, voxel: float) -> Mesh:
     faces = inverse.reshape(-1)[faces]
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
     vertices = (gridpos[first] * voxel).astype(np.float32)
-    mesh = Mesh(vertices, faces, vertex_normals(vertices, faces), rgb[first])
+    rgb = _trilinear(colour, valid, owner[first], local[first])
+    mesh = Mesh(vertices, faces, vertex_normals(vertices, faces), rgb)
     return _orient(mesh, grid, voxels, voxel)
 
 
@@ -260,8 +260,9 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     v = vertices.astype(np.float64)
     fn = np.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]])
     acc = np.zeros_like(v)
-    for k in range(3):
-        np.add.at(acc, faces[:, k], fn)
+    for k in range(3):  # bincount: np.add.at is several times slower at a million triangles
+        for c in range(3):
+            acc[:, c] += np.bincount(faces[:, k], weights=fn[:, c], minlength=len(v))
     norm = np.linalg.norm(acc, axis=1, keepdims=True)
     out = np.where(norm > 0, acc / np.maximum(norm, 1e-300), np.array([0.0, 0.0, 1.0]))
     return out.astype(np.float32)

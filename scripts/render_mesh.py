@@ -8,8 +8,8 @@ Each mesh becomes one panel, seen from ``--eye`` towards ``--target`` (default: 
 the mesh's centre, 1.2 × its extent away), shaded by the vertex colours times a headlight (0.35 + 0.65 ·
 |n · view|: a triangle seen from behind is drawn too, darker), with a z-buffer. The picture is made from
 the file alone, so it shows what a viewer (MeshLab, Blender) opens, not the map. Small triangles (a few
-pixels) are rasterised exactly; the few larger than ``MAX_BOX`` pixels across are drawn by their corners'
-box only where it fits, which at these sizes does not happen for 1 cm meshes.
+pixels) are rasterised directly; larger ones are first split in four until they fit ``MAX_BOX`` (screen-space
+interpolation, exact for the flat triangles' depth up to perspective).
 """
 
 from __future__ import annotations
@@ -61,6 +61,7 @@ def render(v, f, rgb, n, eye, target, up, size=(960, 720), fov=60.0, background=
     zbuf = np.full(w * h, np.inf)
     image = np.full((w * h, 3), background)
     f = f[(z[f] > 0.05).all(axis=1)]
+    uv, z, col, f = _split_large(uv, z, col, f, w, h)
     for chunk in np.array_split(f, max(1, len(f) // 40000)):
         a, b, c = uv[chunk[:, 0]], uv[chunk[:, 1]], uv[chunk[:, 2]]
         lo = np.floor(np.minimum(np.minimum(a, b), c)).astype(int)
@@ -93,6 +94,32 @@ def render(v, f, rgb, n, eye, target, up, size=(960, 720), fov=60.0, background=
         zbuf[pix[nearer]] = depth[nearer]
         image[pix[nearer]] = colour[nearer]
     return np.clip(image.reshape(h, w, 3), 0, 255).astype(np.uint8)
+
+
+def _split_large(uv, z, col, f, w, h, levels: int = 8):
+    """Triangles wider than ``MAX_BOX`` pixels on screen split in four at their edges' midpoints (screen
+    position, depth and colour interpolated linearly), until every one fits or ``levels`` splits were made."""
+    for _ in range(levels):
+        span = np.ptp(uv[f], axis=1).max(axis=1)
+        big = span > MAX_BOX - 1
+        on = (uv[f].max(axis=1) >= 0).all(1) & (uv[f].min(axis=1) < [w, h]).all(1)
+        big &= on
+        if not big.any():
+            break
+        fb = f[big]
+        n0 = len(uv)
+        mids = []
+        for a, b in ((0, 1), (1, 2), (2, 0)):
+            i, j = fb[:, a], fb[:, b]
+            mids.append((0.5 * (uv[i] + uv[j]), 0.5 * (z[i] + z[j]), 0.5 * (col[i] + col[j])))
+        k = len(fb)
+        uv = np.concatenate([uv] + [m[0] for m in mids])
+        z = np.concatenate([z] + [m[1] for m in mids])
+        col = np.concatenate([col] + [m[2] for m in mids])
+        m01, m12, m20 = n0 + np.arange(k), n0 + k + np.arange(k), n0 + 2 * k + np.arange(k)
+        f = np.concatenate([f[~big], np.stack([fb[:, 0], m01, m20], 1), np.stack([m01, fb[:, 1], m12], 1),
+                            np.stack([m20, m12, fb[:, 2]], 1), np.stack([m01, m12, m20], 1)])
+    return uv, z, col, f
 
 
 def vec(text: str | None):

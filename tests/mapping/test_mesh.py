@@ -275,3 +275,31 @@ def test_slam_mesh(cpu, tmp_path):
     summary = json.loads((out / "summary.json").read_text())["mesh"]
     assert summary["triangles"] > 1000 and (out / "mesh.ply").is_file() and (out / "mesh.glb").is_file()
     assert read_log(out / "log.mcap").channels["/map/mesh"].count == 1
+
+
+def test_bench_metrics_and_render(script, rng, tmp_path):
+    """scripts/bench_mesh.py's metrics on a known case (a square mesh; half the truth 2 cm off it), and
+    scripts/render_mesh.py draws a mesh file read back from disk."""
+    from ti_fusion.io.mesh_files import write_mesh_ply
+
+    bench = script("bench_mesh")
+    vertices = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]], np.float64)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+
+    class Plane:
+        def surface_distance(self, p):
+            return np.abs(p[:, 2])
+
+    truth = np.column_stack([rng.uniform(0.1, 0.9, (2000, 2)), np.r_[np.zeros(1000), np.full(1000, 0.02)]])
+    m = bench.metrics(vertices, faces, Plane(), truth, rng)
+    assert m["precision_1cm"] == 1.0 and abs(m["completeness_1cm"] - 0.5) < 1e-9 and m["f_5cm"] == 1.0
+    assert abs(m["f_1cm"] - 2 * 0.5 / 1.5) < 1e-3 and m["accuracy_mm"] < 1e-6
+
+    render = script("render_mesh")
+    mesh = M.Mesh(vertices.astype(np.float32), faces, np.tile([0, 0, 1.0], (4, 1)).astype(np.float32),
+                  np.tile([250, 10, 10], (4, 1)).astype(np.uint8))
+    v, f, rgb, n = render.load(str(write_mesh_ply(tmp_path / "m.ply", mesh)))
+    img = render.render(v, f, rgb, n, np.array([0.5, 0.5, 2.0]), np.array([0.5, 0.5, 0.0]), np.array([0, 1.0, 0]),
+                        size=(64, 48), fov=60)
+    red = (img[..., 0] > 200) & (img[..., 1] < 50)
+    assert 0.2 < red.mean() < 0.9  # the square fills the middle of the view, in its own colour

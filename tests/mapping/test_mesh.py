@@ -303,3 +303,15 @@ def test_bench_metrics_and_render(script, rng, tmp_path):
                         size=(64, 48), fov=60)
     red = (img[..., 0] > 200) & (img[..., 1] < 50)
     assert 0.2 < red.mean() < 0.9  # the square fills the middle of the view, in its own colour
+
+
+def test_memory_follows_the_surface(cpu, rng):
+    """Two small patches 40 m apart need the blocks of two patches, not of the 40 m box between them."""
+    near = plane_surfels(rng, (0, 0, 1), (0, 0, 1), 0.1, 0.005)
+    far = plane_surfels(rng, (0, 0, 1), (40.0, 0, 1), 0.1, 0.005)
+    both = {k: np.concatenate([near[k], far[k]]) for k in near}
+    cfg = MeshConfig()
+    one, _ = M.splat_surfels(M.select_surfels(near, cfg.min_weight), cfg)
+    two, _ = M.splat_surfels(M.select_surfels(both, cfg.min_weight), cfg)
+    assert len(two) <= 2 * len(one) + 8
+    assert len(M.mesh_surfels(both, cfg)) > 0

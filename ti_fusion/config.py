@@ -404,7 +404,7 @@ class SLAMConfig:
                                      # model: align to the map rendered at the last pose | frame: previous frame
     motion_model: bool = True        # constant-velocity initialisation (per second: scaled by the time between frames)
     motion_damping: Fraction = 0.5   # the velocity is multiplied by this after a step the guess missed by more
-                                     # than half (the speed changed); at rest after a failure
+                                     # than half (the speed changed)
     hypotheses: Annotated[str, OneOf("doubt", "always", "motion")] = "doubt"
                                      # doubt: ICP again from the last good pose when the motion model's alignment
                                      # fails or is in doubt, then ORB+PnP and a wide-basin re-localisation before a

@@ -1,7 +1,7 @@
 """Tracking that survives a bad guess (``DenseSLAM._track``): the motion model scaled by the time between
-frames, damped after a step it missed, at rest after a failure (a lost frame holds the last good pose and
-nothing is extrapolated through it); a wrong guess tracked again from the last good pose, the start that won
-in the stats. Synthetic room at 320×240, a few frames."""
+frames and damped after a step it missed; a lost frame never feeds it (the guess is always from the last
+tracked frame, and the next frame is tried from rest too); a wrong guess tracked again from the last good
+pose, the start that won in the stats. Synthetic room at 320×240, a few frames."""
 
 import numpy as np
 import pytest
@@ -48,21 +48,27 @@ def test_a_wrong_guess_is_tracked_again_from_the_last_pose(cpu):
     assert outcomes["motion"].lost or pose_error(outcomes["motion"].pose, dataset[4].gt_pose)[1] > 0.01
 
 
-def test_a_lost_frame_holds_the_last_good_pose_and_the_model_restarts_at_rest(cpu):
+def test_a_lost_frame_never_feeds_the_motion_model_and_the_next_is_tried_from_rest(cpu):
     slam, dataset = _slam()
     for i in range(3):
         slam.register_frame(dataset[i])
-    assert np.linalg.norm(slam._velocity) > 0
-    good = slam.poses[-1].copy()
+    velocity = slam._velocity.copy()
+    assert np.linalg.norm(velocity) > 0
+    good, t_good = slam.poses[-1].copy(), dataset[2].timestamp
     blank = dataset[3]
     blank.depth = np.zeros_like(blank.depth)
     result = slam.register_frame(blank)
-    assert result.lost
-    np.testing.assert_array_equal(result.pose, good)  # held, not extrapolated
-    assert not np.any(slam._velocity)
-    np.testing.assert_allclose(slam._predicted_pose(dataset[4].timestamp), good, rtol=0, atol=1e-12)  # nothing through the gap
+    assert result.lost and slam._lost_streak == 1
+    np.testing.assert_array_equal(slam._velocity, velocity)
+    # its pose is the guess from the last tracked frame; the next guess is from that frame again, over the
+    # time since it (never from the lost frame's pose)
+    np.testing.assert_allclose(result.pose, good @ se3_exp(velocity * (blank.timestamp - t_good)), atol=1e-9)
+    np.testing.assert_allclose(slam._predicted_pose(dataset[4].timestamp),
+                               good @ se3_exp(velocity * (dataset[4].timestamp - t_good)), atol=1e-9)
     result = slam.register_frame(dataset[4])
     assert result.tracked and pose_error(result.pose, dataset[4].gt_pose)[1] < 0.005
+    assert [t.split(":")[0] for t in result.tried][:2] == ["motion", "last"]  # from rest too, after a failure
+    assert slam._lost_streak == 0
 
 
 def test_the_guess_scales_with_the_time_between_frames(cpu):
@@ -86,10 +92,11 @@ def test_the_velocity_is_damped_after_a_step_the_guess_missed(cpu, missed):
     slam._velocity = np.array([0, 0, 0, 0.3, 0, 0])  # 0.3 m/s along x
     step = np.array([0, 0, 0, 0.03 if not missed else 0.09, 0, 0])  # 0.1 s later: as guessed, or 3× as far
     result = FrameResult(5, 1.1, se3_exp(step), "ok", hypothesis="motion")
-    slam._update_motion(result, 1.1)
+    slam._update_motion(result, 1.1, np.eye(4))
     expected = step / 0.1 * (0.5 if missed else 1.0)
     np.testing.assert_allclose(slam._velocity, expected, atol=1e-9)
     # a step won by another start than the motion model's is irregular too
     slam._velocity = np.array([0, 0, 0, 0.3, 0, 0])
-    slam._update_motion(FrameResult(6, 1.2, slam.poses[-1] @ se3_exp(step), "ok", hypothesis="last"), 1.2)
+    slam._update_motion(FrameResult(6, 1.2, slam.poses[-1] @ se3_exp(step), "ok", hypothesis="last"), 1.2,
+                        slam.poses[-1])
     np.testing.assert_allclose(slam._velocity, step / 0.1 * 0.5, atol=1e-9)

@@ -31,9 +31,10 @@ dataset): on others the term stays off, with one warning.
 
 The map starts at the first usable frame: one with depth enough for ICP to track the next frame against
 (``usable``); frames before it (a sensor that starts blank) are skipped: no pose, status "skipped: ...".
-Hypotheses (``slam.hypotheses``). ICP starts from the motion model's guess: the last motion per second
-times the time since the last frame (``Frame.timestamp``), halved after a step whose speed changed
-(``slam.motion_damping``), none after a failure. When that alignment fails the health checks (few inliers,
+Hypotheses (``slam.hypotheses``, docs/TRACKING.md). ICP starts from the motion model's guess: the last
+tracked motion per second times the time since the last tracked frame (``Frame.timestamp``), from that
+frame's pose, halved after a step whose speed changed (``slam.motion_damping``); a lost frame never feeds
+it. When that alignment fails the health checks (few inliers,
 large residual, ill-conditioned system, implausible jump) or is in doubt (inlier ratio below
 ``slam.doubt_inlier_ratio``, residual above ``slam.doubt_residual`` × ``slam.max_residual``), ICP runs
 again from the last good pose, then from ORB + PnP against the last well-tracked frame
@@ -41,8 +42,8 @@ again from the last good pose, then from ORB + PnP against the last well-tracked
 basin (``slam.relocalise_iterations``, ``slam.relocalise_level_dist_scale``). Every start aligns the same
 prediction to the same frame, so their results compare: of those that pass the checks the one with the
 best ``alignment_score`` (inlier ratio × (1 − residual / max_residual)) wins, and ``FrameResult.hypothesis``
-says which. Only when none passes is the frame lost: it is not fused, it holds the last good pose, and the
-motion model restarts from rest.
+says which; after a failure the start from rest (the last good pose) is always tried beside the guess. Only
+when none passes is the frame lost: it is not fused, and it reports the motion model's guess.
 """
 
 from __future__ import annotations
@@ -67,10 +68,12 @@ log = logging.getLogger(__name__)
 # ICP's coarsest level must hold many times icp.min_inliers pixels: at small sizes only a fifth to a third of
 # them find a correspondence (image borders, depth edges and missing normals take a larger share).
 COARSE_PIXELS_PER_INLIER = 6
-# The motion model's guess goes at most this far (twist norm, radians and metres together) from the last
-# pose, and a guess that misses the step by more than this (and by half the step) marks the speed as changed.
-MAX_EXTRAPOLATION = 0.5
+# A guess that misses the step by more than this (twist norm, radians and metres together) and by half the
+# step marks the speed as changed.
 IRREGULAR_FLOOR = 0.01
+# Between starts that converged to about the same pose the scores differ by noise: another start replaces the
+# motion model's alignment only when it fits better by more than this.
+SCORE_MARGIN = 0.02
 
 
 @dataclass
@@ -156,6 +159,7 @@ class DenseSLAM:
         self.last_good: tuple[Frame, np.ndarray] | None = None  # for feature re-localisation
         self._velocity = np.zeros(6)  # last motion per second, twist (ω, v) of the camera-to-camera step
         self._last_stamp: float | None = None  # timestamp of the last tracked frame
+        self._lost_streak = 0  # frames lost since the last tracked one
         self._frames_fused = 0
         self._colour_warned = False  # the warning that the photometric term is off for unregistered colour
         self._degeneracy_warned = False  # the warning that depth (and colour) leave directions unconstrained
@@ -202,13 +206,14 @@ class DenseSLAM:
         else:
             with timer.stage("track"):
                 result = self._track(frame, colour)
+        anchor = self._anchor() if self.poses else None  # the motion model's pose before this frame
         if result.tracked:
             with timer.stage("fuse"):
                 result.fusion = self.mapper.integrate(self.frame_maps, frame.color, result.pose,
                                                       self._frames_fused)
             self._frames_fused += 1
             self.last_good = (frame, result.pose)
-        self._update_motion(result, frame.timestamp)
+        self._update_motion(result, frame.timestamp, anchor)
         if self.previous_maps is not None:
             self.frame_maps, self.previous_maps = self.previous_maps, self.frame_maps
         result.ms = dict(timer.last)
@@ -227,17 +232,17 @@ class DenseSLAM:
         return None
 
     # -- tracking -------------------------------------------------------------------------------
+    def _anchor(self) -> np.ndarray:
+        """The pose the motion model extrapolates from: the last tracked frame's (never a lost frame's)."""
+        return self.last_good[1] if self.last_good is not None and self.previous_maps is None else self.poses[-1]
+
     def _predicted_pose(self, timestamp: float) -> np.ndarray:
-        """The motion model's guess at ``timestamp``: the last motion per second over the time since the
-        last posed frame (at rest after a failure), capped like a glitch."""
-        last = self.poses[-1]
+        """The motion model's guess at ``timestamp``: the last tracked motion per second over the time since
+        the last tracked frame, from that frame's pose (so lost frames never compound it)."""
+        last = self._anchor()
         if not self.config.slam.motion_model:
             return last.copy()
-        xi = self._velocity * self._elapsed(timestamp)
-        size = np.linalg.norm(xi)
-        if size > MAX_EXTRAPOLATION:  # a guess far beyond any step seen is more likely wrong than right
-            xi = xi * (MAX_EXTRAPOLATION / size)
-        return renormalize(last @ se3_exp(xi))
+        return renormalize(last @ se3_exp(self._velocity * self._elapsed(timestamp)))
 
     def _elapsed(self, timestamp: float) -> float:
         """Seconds since the last posed frame, or 1 (a frame) where the timestamps do not increase."""
@@ -287,9 +292,10 @@ class DenseSLAM:
         first = attempt("motion", predicted)
         self._report_degeneracy(frame, first.icp)
         if cfg.hypotheses != "motion":
-            held = self.poses[-1] if self.previous_maps is not None else last
+            held = self._anchor()
             apart = pose_error(predicted, held)
-            if not settled() and (apart[0] > 0.1 or apart[1] > 1e-3):
+            # after a failure the start from rest is tried as well as the guess that coasts on
+            if (not settled() or self._lost_streak) and (apart[0] > 0.1 or apart[1] > 1e-3):
                 attempt("last", held)
         if not settled() and cfg.relocalise == "features" and (cfg.hypotheses != "motion" or not first.ok):
             self._relocalise(frame, source, last, colour, tried)
@@ -299,10 +305,10 @@ class DenseSLAM:
         if len(passed) > 1:
             for h in passed:
                 h.score = self.alignment_score(source, h, colour)
-        best = max(passed, key=lambda h: h.score) if passed else \
+        best = max(passed, key=lambda h: h.score + (SCORE_MARGIN if h is first else 0.0)) if passed else \
             max(tried, key=lambda h: h.icp.inlier_ratio)
         status = best.status if not best.ok else ("ok" if best.name in ("motion", "last") else "relocalised")
-        pose = best.pose if best.ok else last.copy()  # a lost frame holds the last good pose; it is not fused
+        pose = best.pose if best.ok else predicted  # a lost frame reports the guess; it is not fused
         return FrameResult(frame.index, frame.timestamp, pose, status, best.icp, hypothesis=best.name,
                            tried=[f"{h.name}: {h.status}" for h in tried])
 
@@ -374,20 +380,20 @@ class DenseSLAM:
         rough = renormalize(reference_pose @ invert(estimate.pose))
         tried.append(Hypothesis("features", icp, pose, self._health(icp, pose, rough)))
 
-    def _update_motion(self, result: FrameResult, timestamp: float) -> None:
-        """The motion per second of the step just tracked, damped when the guess missed it by more than half
-        the step (the speed changed); at rest after a failure, so nothing is extrapolated through lost frames."""
+    def _update_motion(self, result: FrameResult, timestamp: float, anchor: np.ndarray | None) -> None:
+        """The motion per second of the step just tracked (from the last tracked frame, over the lost ones
+        between), damped when the guess missed it by more than half the step (the speed changed); a lost frame
+        leaves it as it was."""
         cfg = self.config.slam
-        if self.poses and result.tracked:
+        self._lost_streak = self._lost_streak + 1 if result.lost else 0
+        if anchor is not None and result.tracked:
             dt = self._elapsed(timestamp)
-            step = se3_log(renormalize(invert(self.poses[-1]) @ result.pose))
-            predicted = self.poses[-1] @ se3_exp(self._velocity * dt)
+            step = se3_log(renormalize(invert(anchor) @ result.pose))
+            predicted = anchor @ se3_exp(self._velocity * dt)
             missed = np.linalg.norm(se3_log(renormalize(invert(predicted) @ result.pose)))
             irregular = bool(np.any(self._velocity)) and (  # from rest, a miss says nothing of the speed
                 result.hypothesis != "motion" or missed > max(0.5 * np.linalg.norm(step), IRREGULAR_FLOOR))
             self._velocity = step / dt * (cfg.motion_damping if irregular else 1.0)
-        elif result.lost:
-            self._velocity = np.zeros(6)
         if result.tracked:
             self._last_stamp = timestamp
         self.poses.append(result.pose)

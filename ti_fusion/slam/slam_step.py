@@ -35,7 +35,7 @@ LOOP_CANDIDATE_SCHEMA = json_object({
 STATS_SCHEMA = json_object({
     "frame": json_field("integer", "index of the frame in the run (0 = the first frame selected)"),
     "status": json_field("string", '"ok" (a tracked frame, the map\'s first one included), "relocalised", '
-                                   '"lost: <reason>" (not fused; it holds the last good pose) or "skipped: '
+                                   '"lost: <reason>" (not fused; its pose is the motion model\'s guess) or "skipped: '
                                    '<reason>" (before the map started: no depth enough to start it on; no pose)'),
     "tracking": json_field("string", 'the tracker\'s own word: "init" for the map\'s first frame, else as status'),
     "surfels": json_field("integer", "surfels in the map after this frame"),

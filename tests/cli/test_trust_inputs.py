@@ -233,6 +233,19 @@ def test_a_run_in_which_no_frame_had_depth_exits_non_zero(cpu, tum, tmp_path, ca
     assert (out / "log.mcap").is_file()
 
 
+def test_feature_odometry_that_posed_no_frame_exits_non_zero(tum, tmp_path, capsys):
+    data = folder(tum, tmp_path / "cam", camera_info())
+    for path in (data / "rgb").glob("*.png"):
+        cv2.imwrite(str(path), np.zeros((H, W, 3), np.uint8))  # nothing for ORB to find
+    out = tmp_path / "run"
+    assert main(["vo", str(data), "--format", "folder", "--depth-scale", "5000", "--frames", "3", "--out", str(out),
+                 "--quiet"]) == 2
+    lines = _stderr_lines(capsys)
+    assert len(lines) == 1 and lines[0].startswith(f"ti-fusion vo: error: {data}: none of the 3 frames got a pose "
+                                                   "(rejected: ")
+    assert "depth" not in lines[0]  # not a depth problem: no advice about the depth scale
+
+
 # --------------------------------------------------------------------------------------------------
 # Class 14: frames too small for ICP's pyramid get the setting that fits them
 # --------------------------------------------------------------------------------------------------

@@ -139,11 +139,15 @@ class Pipeline:
         """The line for a run in which no frame got a pose (nothing to map or evaluate), else None."""
         if not self.step.estimates_poses or not self.results or any(r.pose is not None for r in self.results):
             return None
-        reasons = sorted({str(getattr(r, "status", "")).removeprefix("skipped: ") for r in self.results})
+        status = [getattr(r, "status", None) or getattr(getattr(r, "vo", None), "status", None) for r in self.results]
+        reasons = sorted({str(s).removeprefix("skipped: ") for s in status if s})
+        line = f"none of the {len(self.results)} frames got a pose ({'; '.join(reasons[:2]) or 'no reason given'})"
+        if not any("depth" in r for r in reasons):
+            return line
         scale = self.dataset.depth_scale
         stated = f"depth scale {scale:g} units per metre (--depth-scale), " if scale else ""
-        return (f"none of the {len(self.results)} frames got a pose ({'; '.join(reasons[:2])}): nothing was mapped. "
-                f"Check the depth's units and range: {stated}dataset.depth_max = {self.config.dataset.depth_max:g} m")
+        return (f"{line}: nothing was mapped. Check the depth's units and range: {stated}dataset.depth_max = "
+                f"{self.config.dataset.depth_max:g} m")
 
     # -- the loop -------------------------------------------------------------------------------
     def _loop(self, log: RunLogger) -> None:

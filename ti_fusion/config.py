@@ -266,6 +266,9 @@ class DatasetConfig:
                                     # T_color_depth (p_colour = T p_depth, metres): a file (4x4 or 3x4 matrix, or
                                     # tx ty tz qx qy qz qw) or a bag's Transform/TransformStamped/TFMessage topic;
                                     # colour is then registered to depth (RealSense recordings: the recorded one)
+    color_intrinsics: Annotated[str, Text("fx,fy,cx,cy or a file path")] = ""
+                                    # the colour camera's intrinsics at the colour images' size, for registration with
+                                    # color_extrinsics (folder, 7-Scenes; a bag's colour camera_info otherwise)
     camera: Annotated[str, Text("realsense[:SERIAL] or realsense:FILE.bag")] = ""
                                     # a live camera instead of a dataset (pyrealsense2: pip install ti-fusion[realsense]);
                                     # realsense:FILE.bag plays a recording back through the SDK

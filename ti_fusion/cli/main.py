@@ -139,6 +139,8 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
         d.add_argument("--color-extrinsics", default=None, metavar="FILE|TOPIC",
                        help="the colour camera's T_color_depth (a 4x4 matrix or tx ty tz qx qy qz qw file, or a "
                             "bag's transform topic): colour is registered to depth through it")
+        d.add_argument("--color-intrinsics", default=None, metavar="fx,fy,cx,cy|FILE",
+                       help="the colour camera's intrinsics, with --color-extrinsics on a folder or 7-Scenes")
         d.add_argument("--downsample", type=int, default=None, help="integer subsampling factor (2 → 320×240)")
         d.add_argument("--start", type=int, default=None, help="first frame (0 = the first)")
         d.add_argument("--stop", type=int, default=None, help="one past the last frame")
@@ -189,7 +191,8 @@ def _apply_dataset_args(args: argparse.Namespace, config: Config) -> None:
     if getattr(args, "data", ""):
         ds.path = args.data
     for name in ("format", "downsample", "start", "stop", "stride", "depth_scale", "intrinsics", "ground_truth",
-                 "depth_topic", "color_topic", "camera_info_topic", "gt_topic", "color_extrinsics", "camera"):
+                 "depth_topic", "color_topic", "camera_info_topic", "gt_topic", "color_extrinsics", "color_intrinsics",
+                 "camera"):
         value = getattr(args, name, None)
         if value is not None:
             setattr(ds, name, value)

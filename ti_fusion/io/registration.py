@@ -8,18 +8,37 @@ the colour camera did not see in ``meta["color_valid"]`` (False: no colour; the 
 
 from __future__ import annotations
 
+from dataclasses import replace
+
+from ti_fusion.camera import Intrinsics
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets.base import Frame
 
 
-class ColourRegistrar:
-    """Registers frames' colour, keeping one kernel object (its fields) per pair of image sizes."""
+def resized(K: Intrinsics, w: int, h: int, index: int) -> Intrinsics:
+    """The colour camera of an image that was subsampled (``--downsample``: ``img[::f, ::f]``) or resized
+    (a loader that fits colour to the depth's size: pixel edges scale, so centres move by half a pixel)."""
+    f = round(K.width / w)
+    if f >= 1 and K.downsampled(f).width == w and K.downsampled(f).height == h:
+        return K.downsampled(f)
+    sx, sy = w / K.width, h / K.height
+    if not (0.1 < sx < 10 and 0.1 < sy < 10):
+        raise InputError(None, f"frame {index}: colour image of {w}x{h}, its camera is {K.width}x{K.height}")
+    return replace(K, fx=K.fx * sx, fy=K.fy * sy, cx=(K.cx + 0.5) * sx - 0.5, cy=(K.cy + 0.5) * sy - 0.5,
+                   skew=K.skew * sx, width=w, height=h)
 
-    def __init__(self):
+
+class ColourRegistrar:
+    """Registers frames' colour, keeping one kernel object (its fields) per pair of image sizes.
+    ``camera``: the dataset's colour camera (``Dataset.color_camera``: a folder or 7-Scenes run with
+    ``--color-extrinsics``) for frames that carry none of their own."""
+
+    def __init__(self, camera=None):
         self._kernels = {}
+        self._camera = camera
 
     def __call__(self, frame: Frame) -> Frame:
-        camera = frame.meta.get("color_camera")
+        camera = frame.meta.get("color_camera", self._camera)
         if camera is None or frame.color is None:
             return frame
         from ti_fusion.backend import current_backend
@@ -29,17 +48,13 @@ class ColourRegistrar:
 
         K_colour, T = camera
         h, w = frame.color.shape[:2]
-        if (K_colour.width, K_colour.height) != (w, h):  # downsampled with the frame (--downsample)
-            f = round(K_colour.width / w)
-            if f < 1 or K_colour.downsampled(f).width != w:
-                raise InputError(None, f"frame {frame.index}: colour image of {w}x{h}, its camera is "
-                                       f"{K_colour.width}x{K_colour.height}")
-            K_colour = K_colour.downsampled(f)
+        if (K_colour.width, K_colour.height) != (w, h):
+            K_colour = resized(K_colour, w, h, frame.index)
         key = (frame.depth.shape, (h, w))
         if key not in self._kernels:
             self._kernels[key] = ColorRegistration(frame.depth.shape, (h, w))
         frame.color, valid = self._kernels[key].register(frame.depth, frame.color, frame.intrinsics, K_colour, T)
         frame.meta["color_valid"] = valid
-        frame.meta.pop("color_camera")
+        frame.meta.pop("color_camera", None)
         frame.color_registered = True
         return frame

@@ -153,7 +153,8 @@ class Pipeline:
     def _loop(self, log: RunLogger) -> None:
         n = len(self.dataset)
         threaded = not getattr(self.dataset, "renders_on_taichi", False)
-        register_colour = ColourRegistrar()  # colour of a separate camera, reprojected here: Taichi's thread
+        # colour of a separate camera, reprojected here (Taichi's thread)
+        register_colour = ColourRegistrar(getattr(self.dataset, "color_camera", None))
         with Prefetcher(self.dataset, READ_AHEAD, threaded) as frames:
             for i in progress(range(n), n, self.step.name, self.show_progress):
                 with self.timer.stage("load"):  # the wait for the frame: what reading it did not overlap

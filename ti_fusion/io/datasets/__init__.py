@@ -142,9 +142,39 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
             _replace_intrinsics(dataset, cfg.intrinsics)
         if cfg.depth_scale:
             dataset.depth_scale = float(cfg.depth_scale)  # read by ImageFileDataset for every frame
+    if (cfg.color_extrinsics or cfg.color_intrinsics) and fmt != "rosbag":
+        _colour_camera(dataset, cfg)
     dataset.check_selection()
     log.info(dataset.describe_format())
     return dataset
+
+
+def _colour_camera(dataset: Dataset, cfg: DatasetConfig) -> None:
+    """A folder's or a benchmark's colour camera (``--color-intrinsics``, ``--color-extrinsics`` FILE), so
+    that its colour is registered to depth in the run loop (``ti_fusion/io/registration.py``)."""
+    from ti_fusion.io.datasets.extrinsics import read_extrinsics_file
+    from ti_fusion.io.datasets.imageio import parse_intrinsics, read_color
+
+    if not (cfg.color_extrinsics and cfg.color_intrinsics):
+        given, missing = ("--color-extrinsics", "--color-intrinsics fx,fy,cx,cy|FILE") if cfg.color_extrinsics \
+            else ("--color-intrinsics", "--color-extrinsics FILE")
+        raise InputError(None, f"{given} registers colour to depth together with {missing} (the colour camera's "
+                               "pose from the depth camera and its intrinsics)")
+    if not Path(cfg.color_extrinsics).is_file():
+        raise InputError(cfg.color_extrinsics, "--color-extrinsics: no such file (a transform topic is for bags)")
+    first = next((c for c in getattr(dataset, "_color_files", []) if c is not None), None)
+    if first is None:
+        raise InputError(dataset.root, "--color-extrinsics: the dataset has no colour images to register")
+    h, w = read_color(first).shape[:2]
+    K = parse_intrinsics(cfg.color_intrinsics, w, h, option="--color-intrinsics")
+    T = read_extrinsics_file(cfg.color_extrinsics)
+    dataset.color_camera = (K, T)
+    dataset.color_registered = False  # registered by the kernel in the run loop, from the stated calibration
+    dataset.notes = [n for n in dataset.notes if "only colours the map" not in n]
+    t = T[:3, 3]
+    log.info(f"colour camera fx {K.fx:g} fy {K.fy:g} cx {K.cx:g} cy {K.cy:g} at {w}x{h} ({cfg.color_intrinsics}), "
+             f"depth-to-colour translation ({t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}) m ({cfg.color_extrinsics}): colour is "
+             "registered to depth")
 
 
 def _replace_intrinsics(dataset: Dataset, spec) -> None:

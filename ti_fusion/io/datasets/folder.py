@@ -265,7 +265,8 @@ class FolderDataset(ImageFileDataset):
                 if self.color_registered:
                     raise InputError(color_path, f"colour image is {color.shape[1]}x{color.shape[0]}, the "
                                                  f"depth images and the first colour image {K.width}x{K.height}")
-                color = cv2.resize(color, (K.width, K.height), interpolation=cv2.INTER_AREA)
+                if getattr(self, "color_camera", None) is None:  # else registered at full size in the run loop
+                    color = cv2.resize(color, (K.width, K.height), interpolation=cv2.INTER_AREA)
         return self._frame(raw_index, float(self._stamps[raw_index]), depth, color,
                            {"depth_file": str(depth_path), "color_file": str(color_path) if color_path else None})
 

@@ -378,6 +378,9 @@ class RosbagDataset(RecordedSequence):
             self._realsense_calibration()
         if self.config.color_extrinsics:
             self._stated_colour_camera(self.config.color_extrinsics)
+        elif self.config.color_intrinsics:
+            raise InputError(None, "--color-intrinsics registers colour to depth together with --color-extrinsics "
+                                   "FILE|TOPIC (the colour camera's pose from the depth camera)")
         self._gt_poses = self._ground_truth()
 
     # -- topics ---------------------------------------------------------------------------------
@@ -640,7 +643,12 @@ class RosbagDataset(RecordedSequence):
             T = read_extrinsics_file(spec)
         else:
             raise InputError(None, f"{option}: neither a file nor a topic of the bag")
-        if self.color_intrinsics is None:
+        if self.config.color_intrinsics:
+            w, h = self._color_size
+            self.color_intrinsics = parse_intrinsics(self.config.color_intrinsics, w, h, option="--color-intrinsics")
+            self.color_calibration_source = f"{self.config.color_intrinsics} (--color-intrinsics) and {spec} " \
+                                            "(--color-extrinsics)"
+        elif self.color_intrinsics is None:
             base = topic.rsplit("/", 2 if self.bag.topics[topic][0] == COMPRESSED else 1)[0]
             info = f"{base}/camera_info"
             if info not in self.bag.topics:

@@ -298,14 +298,15 @@ def test_the_map_starts_at_the_first_usable_frame(cpu, tmp_path):
     assert log.channels["/camera/pose"].count == 9
 
 
-def test_a_sequence_without_usable_depth_leaves_an_empty_map_and_says_so(cpu, tmp_path, caplog):
+def test_a_sequence_without_usable_depth_is_an_error_naming_the_depth_settings(cpu, tmp_path):
+    """Nothing mapped is not a result (issue 32): the run ends with one InputError, and a finalised log."""
     cfg = _config()
     cfg.dataset.stop = 3
     run = RunDir("slam", tmp_path / "run")
-    summary = SLAMPipeline(BlankFirst(open_dataset(cfg.dataset, cfg.synth), blank=3), cfg, run, current_backend(),
-                           show_progress=False).run()
-    assert summary["surfels"] == 0 and summary["map_started_at"] is None and len(summary["skipped_frames"]) == 3
-    assert "no frame had depth enough to start the map (no valid depth in the first)" in caplog.text
+    with pytest.raises(InputError, match=r"none of the 3 frames got a pose \(no valid depth\): nothing was mapped. "
+                                         r"Check the depth's units and range: dataset.depth_max = 4 m"):
+        SLAMPipeline(BlankFirst(open_dataset(cfg.dataset, cfg.synth), blank=3), cfg, run, current_backend(),
+                     show_progress=False).run()
     assert not run.file("trajectory.tum").exists() and read_log(run.file("log.mcap")).complete
 
 

@@ -51,9 +51,12 @@ DEPTH_WEIGHT_MAX = 4.0
 FAR = 1e10  # world vertex of an invalid pixel (its world normal is zero, which is what project_compatible tests)
 COVERED = -2  # ``assoc`` of a pixel that a neighbour's merged surfel already covers: neither merged nor added
 
-# What a step did, read by name: pixels that become new surfels, pixels merged, covered pixels, new
-# surfels that found no room (``append_new``), surfels removed.
-StepCounts = ti.types.struct(new=ti.i32, merged=ti.i32, covered=ti.i32, lost=ti.i32, removed=ti.i32)
+# What a step did, one int32 each in a ``counts`` field of N_COUNTS (read back in one copy): pixels that
+# become new surfels, pixels merged, covered pixels, new surfels that found no room (``append_new``),
+# surfels removed; the surfel count after the add (the removal's n) and after the removal (its m). The
+# stages after the add take their loop bounds from TOTAL and KEPT on the device, so that a step needs no
+# count from the host between its kernels.
+C_NEW, C_MERGED, C_COVERED, C_LOST, C_REMOVED, C_TOTAL, C_KEPT, N_COUNTS = range(8)
 
 
 def weight_bits(radial: bool, depth: bool) -> int:
@@ -314,9 +317,9 @@ def segment_range(g, W):
     return ti.min(g * width, W), ti.min((g + 1) * width, W)
 
 
-@ti.kernel
-def count_segments(img: ti.template(), vertex: ti.template(), normal: ti.template(), pose: Rigid,
-                   dist_threshold: ti.f32, cos_threshold: ti.f32, cover: ti.template()):
+@ti.func
+def count_segments_loops(img: ti.template(), vertex: ti.template(), normal: ti.template(), pose: ti.template(),
+                         dist_threshold, cos_threshold, cover: ti.template()):
     """Per row segment: pixels merged, valid pixels without an association (the new surfels), and covered
     pixels. With ``cover``, each valid unassociated pixel is first tested against the discs of the surfels
     merged at its 8 neighbours (``covered_by_neighbour``) and marked COVERED if one holds its point.
@@ -360,9 +363,18 @@ def count_segments(img: ti.template(), vertex: ti.template(), normal: ti.templat
 
 
 @ti.kernel
-def scan_segments(img: ti.template(), counts: ti.template()):
+def count_segments(img: ti.template(), vertex: ti.template(), normal: ti.template(), pose: Rigid,
+                   dist_threshold: ti.f32, cos_threshold: ti.f32, cover: ti.template()):
+    """``count_segments_loops`` in one launch."""
+    count_segments_loops(img, vertex, normal, pose, dist_threshold, cos_threshold, cover)
+
+
+
+@ti.func
+def scan_segments_loops(img: ti.template(), counts: ti.template(), n):
     """Exclusive prefix sum of the new-surfel counts in row-major order, and the step's new, merged and
-    covered totals."""
+    covered totals; with ``n`` surfels before the add, the count after it (TOTAL, and KEPT until a
+    removal says otherwise), no losses and no removals yet."""
     new = 0
     merged = 0
     covered = 0
@@ -373,17 +385,28 @@ def scan_segments(img: ti.template(), counts: ti.template()):
         new += img.seg_new[v, g]
         merged += img.seg_merged[v, g]
         covered += img.seg_covered[v, g]
-    counts[None].new = new
-    counts[None].merged = merged
-    counts[None].covered = covered
+    counts[C_NEW] = new
+    counts[C_MERGED] = merged
+    counts[C_COVERED] = covered
+    counts[C_LOST] = 0
+    counts[C_REMOVED] = 0
+    counts[C_TOTAL] = n + new
+    counts[C_KEPT] = n + new
 
 
 @ti.kernel
-def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
-               pose: Rigid, f: ti.f32, confidence: ti.template(), has_colour: ti.i32, frame_index: ti.i32,
-               anchor: ti.i32, counts: ti.template()):
+def scan_segments(img: ti.template(), counts: ti.template(), n: ti.i32):
+    """``scan_segments_loops`` in one launch."""
+    scan_segments_loops(img, counts, n)
+
+
+
+@ti.func
+def append_new_loops(s: ti.template(), n, img: ti.template(), vertex: ti.template(), normal: ti.template(),
+                     pose: ti.template(), f, confidence: ti.template(), has_colour, frame_index, anchor,
+                     counts: ti.template()):
     """Write the new surfels at n + seg_offset[v, g] + (rank within the segment), so in row-major pixel
-    order; count any that do not fit (``counts.lost``).
+    order; count any that do not fit (``counts[C_LOST]``).
 
     The caller has grown the map first, so ``lost`` stays 0: it is the guard against an out-of-bounds
     write, not the capacity check.
@@ -414,25 +437,35 @@ def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.templ
                     lost += 1
                 k += 1
         if lost > 0:
-            ti.atomic_add(counts[None].lost, lost)
+            ti.atomic_add(counts[C_LOST], lost)
+
+
+@ti.kernel
+def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
+               pose: Rigid, f: ti.f32, confidence: ti.template(), has_colour: ti.i32, frame_index: ti.i32,
+               anchor: ti.i32, counts: ti.template()):
+    """``append_new_loops`` in one launch."""
+    append_new_loops(s, n, img, vertex, normal, pose, f, confidence, has_colour, frame_index, anchor, counts)
+
 
 
 # -- 6. remove (in-place compaction that keeps the order of the survivors below the new count) -----------
 
 
-@ti.kernel
-def mark_removal(s: ti.template(), n: ti.i32, n_projected: ti.i32, frame_index: ti.i32,
-                 unstable: ti.i32, unstable_weight: ti.f32, unstable_age: ti.i32,
-                 free_space: ti.template(), margin: ti.f32, depth: ti.template()):
+@ti.func
+def mark_removal_loops(s: ti.template(), counts: ti.template(), n_projected, frame_index, unstable, unstable_weight,
+                       unstable_age, free_space: ti.template(), margin, depth: ti.template()):
     """The surfels to drop: ``block_removals[b]`` of them in block b, listed in index order at
     ``removals_by_block[b·BLOCK:]``. No per-surfel flags are written: the lists are all the later passes
     read.
 
     Unstable: weight < unstable_weight and not updated for unstable_age frames. Free space: the frame
     measures a depth more than ``margin`` behind the surfel along its ray, so the camera sees through
-    it (only surfels that existed at projection time, i < n_projected, and were not merged now).
+    it (only surfels that existed at projection time, i < n_projected, and were not merged now). The
+    surfels are the first n = ``counts[C_TOTAL]``.
     """
     W = depth.shape[1]
+    n = counts[C_TOTAL]
     for b in range((n + BLOCK - 1) // BLOCK):
         removed = 0
         for j in range(ti.min(BLOCK, n - b * BLOCK)):  # a trip count, as in project_compatible
@@ -454,21 +487,31 @@ def mark_removal(s: ti.template(), n: ti.i32, n_projected: ti.i32, frame_index: 
 
 
 @ti.kernel
-def sum_removals(s: ti.template(), n: ti.i32, counts: ti.template()):
+def mark_removal(s: ti.template(), counts: ti.template(), n_projected: ti.i32, frame_index: ti.i32,
+                 unstable: ti.i32, unstable_weight: ti.f32, unstable_age: ti.i32,
+                 free_space: ti.template(), margin: ti.f32, depth: ti.template()):
+    """``mark_removal_loops`` in one launch."""
+    mark_removal_loops(s, counts, n_projected, frame_index, unstable, unstable_weight, unstable_age, free_space,
+                       margin, depth)
+
+
+
+@ti.func
+def sum_removals_loops(s: ti.template(), counts: ti.template()):
+    """The removals of the n = ``counts[C_TOTAL]`` surfels (REMOVED) and the count m they leave (KEPT);
+    then, per block, holes (removed, index < m: ``block_holes``) and movers (kept, index ≥ m), and where
+    each block's go (``hole_offset``, ``mover_offset``). There are as many of each (``n_holes``). Blocks
+    wholly below or above m take their counts from ``block_removals``; only the block that straddles m is
+    re-counted. Both serial, on one thread, in one launch.
+    """
+    n = counts[C_TOTAL]
     total = 0
     ti.loop_config(serialize=True)
     for b in range((n + BLOCK - 1) // BLOCK):
         total += s.block_removals[b]
-    counts[None].removed = total
-
-
-@ti.kernel
-def scan_blocks(s: ti.template(), n: ti.i32, m: ti.i32):
-    """Per block, holes (removed, index < m: ``block_holes``) and movers (kept, index ≥ m), and where
-    each block's go (``hole_offset``, ``mover_offset``). There are as many of each (``n_holes``). Blocks
-    wholly below or above m take their counts from ``block_removals``; only the block that straddles m is
-    re-counted.
-    """
+    counts[C_REMOVED] = total
+    m = n - total
+    counts[C_KEPT] = m
     holes = 0
     movers = 0
     ti.loop_config(serialize=True)
@@ -495,21 +538,27 @@ def scan_blocks(s: ti.template(), n: ti.i32, m: ti.i32):
 
 
 @ti.kernel
-def list_holes(s: ti.template(), m: ti.i32):
-    """holes[k] = the k-th hole below m, in index order: the first ``block_holes[b]`` entries of each
-    block's list of removals (in index order, so those below m come first)."""
+def sum_removals(s: ti.template(), counts: ti.template()):
+    """``sum_removals_loops`` in one launch."""
+    sum_removals_loops(s, counts)
+
+
+
+@ti.func
+def fill_holes_loops(s: ti.template(), counts: ti.template()):
+    """After ``sum_removals``, with n = TOTAL and m = KEPT: the k-th surviving surfel at or above m moves
+    into the k-th hole below m (no overlap), in three loops of one launch. First the holes are listed
+    (``holes[k]`` = the k-th hole below m, in index order: the first ``block_holes[b]`` entries of each
+    block's list of removals, in index order, so those below m come first); then the movers
+    (``movers``), so that the copies run in parallel over the surfels: the tail [m, n) spans too few
+    blocks for a loop over blocks to use more than one thread. With no removals every loop is empty."""
+    n = counts[C_TOTAL]
+    m = counts[C_KEPT]
     for b in range((m + BLOCK - 1) // BLOCK):
         k = s.hole_offset[b]
         for j in range(s.block_holes[b]):
             s.holes[k + j] = s.removals_by_block[b * BLOCK + j]
-
-
-@ti.kernel
-def fill_holes(s: ti.template(), n: ti.i32, m: ti.i32):
-    """The k-th surviving surfel at or above m moves into the k-th hole below m (no overlap). The movers
-    are listed first (``movers``), so that the copies run in parallel over the surfels: the tail [m, n)
-    spans too few blocks for a loop over blocks to use more than one thread."""
-    for b in range(m // BLOCK, (n + BLOCK - 1) // BLOCK):
+    for b in range(ti.select(m < n, m // BLOCK, 0), ti.select(m < n, (n + BLOCK - 1) // BLOCK, 0)):
         k = s.mover_offset[b]
         lo = b * BLOCK
         removals = s.block_removals[b]
@@ -524,6 +573,38 @@ def fill_holes(s: ti.template(), n: ti.i32, m: ti.i32):
                 k += 1
     for k in range(s.n_holes[None]):
         copy_surfel(s, s.movers[k], s, s.holes[k])
+
+
+@ti.kernel
+def fill_holes(s: ti.template(), counts: ti.template()):
+    """``fill_holes_loops`` in one launch."""
+    fill_holes_loops(s, counts)
+
+
+
+@ti.kernel
+def add_step(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
+             pose: Rigid, dist_threshold: ti.f32, cos_threshold: ti.f32, cover: ti.template(), f: ti.f32,
+             confidence: ti.template(), has_colour: ti.i32, frame_index: ti.i32, anchor: ti.i32,
+             counts: ti.template()):
+    """The add of a step in one launch, when the map has room for every pixel: ``count_segments``,
+    ``scan_segments`` and ``append_new``, one after the other (each reads what the one before wrote)."""
+    count_segments_loops(img, vertex, normal, pose, dist_threshold, cos_threshold, cover)
+    scan_segments_loops(img, counts, n)
+    append_new_loops(s, n, img, vertex, normal, pose, f, confidence, has_colour, frame_index, anchor, counts)
+
+
+@ti.kernel
+def remove_step(s: ti.template(), counts: ti.template(), n_projected: ti.i32, frame_index: ti.i32,
+                unstable: ti.i32, unstable_weight: ti.f32, unstable_age: ti.i32, free_space: ti.template(),
+                margin: ti.f32, depth: ti.template()):
+    """The removal of a step in one launch, with its counts on the device: ``mark_removal``,
+    ``sum_removals`` and ``fill_holes`` one after the other (with no removals the last one's loops are
+    empty)."""
+    mark_removal_loops(s, counts, n_projected, frame_index, unstable, unstable_weight, unstable_age, free_space,
+                       margin, depth)
+    sum_removals_loops(s, counts)
+    fill_holes_loops(s, counts)
 
 
 # -- loop closure: per-anchor rigid corrections ----------------------------------------------------------

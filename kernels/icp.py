@@ -188,13 +188,21 @@ def _blocks(n: int) -> list:
     return [range(b, min(b + 30, n)) for b in range(0, n, 30)]
 
 
-# Layout of the ``params`` array every kernel takes (float64 on cpu, float32 elsewhere): the pose, the
+# Layout of the ``params`` array every kernel takes (2-D, float64 on cpu, float32 elsewhere): the pose, the
 # target intrinsics and the thresholds travel as one small array (cheaper to pass than matrix arguments).
+# Row STATE holds the pose (and, for ``reduce``, ``status_map`` and ``write_rows``, the settings too);
+# ``iterate`` reads a level's settings from row SETTINGS + level and keeps its records from row RECORDS on,
+# so one array written once per ``align`` and read once after it holds everything that crosses.
 P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE = 0, 9, 12, 16, 17, 18
-# ``iterate`` only: the system's checks, where its record goes, and what it tells the caller
+# ``iterate`` only: the system's checks (settings row), where its record goes and what it tells the caller
+# (state row)
 P_MIN_INLIERS, P_STOP, P_LEVEL, P_ITERATION, P_RECORDS, P_DONE = 19, 20, 21, 22, 23, 24
 # the joint pass only: λ of the colour term, Huber's k on the intensity residual
-P_COLOR_WEIGHT, P_COLOR_SCALE, N_PARAMS = 25, 26, 27
+P_COLOR_WEIGHT, P_COLOR_SCALE = 25, 26
+# ``iterate`` only: the level's images (source first row, height, width; the target's) and its chunk count
+P_S0, P_HS, P_WS, P_T0, P_HT, P_WT, P_CHUNKS, N_PARAMS = 27, 28, 29, 30, 31, 32, 33, 34
+STATE, SETTINGS, MAX_LEVELS = 0, 1, 15
+RECORDS = SETTINGS + MAX_LEVELS
 
 # One ``iterate`` record: the 30 sums, the pose before the update (R row-major, t), level, iteration,
 # ‖δξ‖ and the outcome
@@ -203,26 +211,30 @@ R_COLOUR = RECORD_LEN  # ``iterate_joint``: the colour term's 29 sums (SUM_C_ATA
 RECORD_LEN_JOINT = R_COLOUR + N_SUMS_JOINT - N_SUMS
 UPDATED, TOO_FEW_INLIERS, NOT_POSITIVE_DEFINITE = 0, 1, 2
 STOPPED, FAILED = 1, 2  # ``params[P_DONE]``: the update fell below P_STOP; the system was not solved
+PARAMS_WIDTH = max(N_PARAMS, RECORD_LEN_JOINT)
 
 
 def _build_kernels(real):
     """The kernels for one arithmetic type (ti.f64 on cpu, ti.f32 on GPU backends)."""
     vec3 = ti.types.vector(3, real)
-    params_t = ti.types.ndarray(dtype=real, ndim=1)
+    params_t = ti.types.ndarray(dtype=real, ndim=2)
+    out_t = ti.types.ndarray(dtype=real, ndim=1)
 
     @ti.func
-    def _pose(params: ti.template()):
-        R = ti.Matrix([[params[P_R + 3 * i + j] for j in ti.static(range(3))] for i in ti.static(range(3))], dt=real)
-        t = ti.Vector([params[P_T + i] for i in ti.static(range(3))], dt=real)
-        K = ti.Vector([params[P_K + i] for i in ti.static(range(4))], dt=real)
+    def _pose(params: ti.template(), row):
+        """(R, t) of the pose in the state row, K of settings row ``row`` (module docstring: params)."""
+        R = ti.Matrix([[params[STATE, P_R + 3 * i + j] for j in ti.static(range(3))] for i in ti.static(range(3))],
+                      dt=real)
+        t = ti.Vector([params[STATE, P_T + i] for i in ti.static(range(3))], dt=real)
+        K = ti.Vector([params[row, P_K + i] for i in ti.static(range(4))], dt=real)
         return R, t, K
 
     @ti.func
-    def _target_pixel(src_v: ti.template(), src_n: ti.template(), s0, Ht, Wt, v, u, params: ti.template()):
+    def _target_pixel(src_v: ti.template(), src_n: ti.template(), s0, Ht, Wt, v, u, params: ti.template(), row):
         """The first three tests of the association, without branches: the target pixel vi·Wt + ui that
         source pixel (v, u) projects to; else, the first test it fails: SOURCE_INVALID (no vertex or
         normal), BEHIND_TARGET (z′ ≤ 0), NO_TARGET (outside the target image)."""
-        R, t, K = _pose(params)  # per pixel, as the surfel projections (hoisted, it ran slower: docs/KERNELS.md)
+        R, t, K = _pose(params, row)  # per pixel, as the surfel projections (hoisted, it ran slower: docs/KERNELS.md)
         p = ti.cast(src_v[s0 + v, u], real)
         n = ti.cast(src_n[s0 + v, u], real)
         pt = R @ p + t
@@ -275,7 +287,7 @@ def _build_kernels(real):
 
     @ti.func
     def _project_chunk(src_v: ti.template(), src_n: ti.template(), s0, W, Ht, Wt, begin, end,
-                       params: ti.template(), target: ti.template()):
+                       params: ti.template(), row, target: ti.template()):
         """First pass over a chunk: ``target[k]`` = ``_target_pixel`` of each of its pixels k.
 
         Every kernel that tests correspondences makes two passes over a chunk: this one projects (no
@@ -286,7 +298,7 @@ def _build_kernels(real):
         v = begin // W
         u = begin - v * W
         for k in range(begin, end):
-            target[k] = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params)
+            target[k] = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params, row)
             u += 1
             if u == W:
                 u = 0
@@ -358,14 +370,14 @@ def _build_kernels(real):
 
     @ti.func
     def _chunk_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                    s0, Hs, W, t0, Ht, Wt, c, n_chunks, robust: ti.template(), params: ti.template(),
+                    s0, Hs, W, t0, Ht, Wt, c, n_chunks, robust: ti.template(), params: ti.template(), row,
                     target: ti.template(), joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template()):
         """The 30 sums of chunk c of ``n_chunks``, in registers (two passes: ``_project_chunk``); with
         ``joint``, the colour term's 29 after them (``src_i``, ``tgt_ig``: module docstring)."""
         begin, end = _chunk_range(Hs, W, c, n_chunks)
-        _project_chunk(src_v, src_n, s0, W, Ht, Wt, begin, end, params, target)
-        R, t, K = _pose(params)
-        dist2_thr, cos_thr, scale = params[P_DIST2], params[P_COS], params[P_SCALE]
+        _project_chunk(src_v, src_n, s0, W, Ht, Wt, begin, end, params, row, target)
+        R, t, K = _pose(params, row)
+        dist2_thr, cos_thr, scale = params[row, P_DIST2], params[row, P_COS], params[row, P_SCALE]
         acc = ti.Vector([0.0] * ti.static(N_SUMS_JOINT if joint else N_SUMS), dt=real)
         v = begin // W
         u = begin - v * W
@@ -388,7 +400,7 @@ def _build_kernels(real):
                     acc[SUM_INLIERS] += 1.0
                     if ti.static(joint):
                         ok, Ac, rc, wc = _photo_row(src_i, tgt_ig, s0, t0, Ht, Wt, v, u, pt, K,
-                                                    params[P_COLOR_SCALE])
+                                                    params[row, P_COLOR_SCALE])
                         if ok:
                             wAc = wc * Ac
                             for e in ti.static(range(21)):
@@ -406,15 +418,15 @@ def _build_kernels(real):
     @ti.func
     def _partial_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                       s0, Hs, Ws, t0, Ht, Wt, partials: ti.template(), n_chunks, robust: ti.template(),
-                      params: ti.template(), serial: ti.template(), target: ti.template(), joint: ti.template(),
-                      src_i: ti.template(), tgt_ig: ti.template()):
+                      params: ti.template(), row, serial: ti.template(), target: ti.template(),
+                      joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template()):
         """``partials[c, :]`` = the sums of chunk c, for every chunk. Call it at a kernel's top level: its
         loop is then the kernel's parallel loop over chunks (on the calling thread with ``serial``)."""
         if ti.static(serial):
             ti.loop_config(serialize=True)
         for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
             acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, c, n_chunks, robust, params,
-                              target, joint, src_i, tgt_ig)
+                              row, target, joint, src_i, tgt_ig)
             for block in ti.static(_blocks(N_SUMS_JOINT if joint else N_SUMS)):
                 for e in ti.static(block):
                     partials[c, e] = acc[e]
@@ -434,14 +446,14 @@ def _build_kernels(real):
     def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32,
                partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
-               out: params_t, serial: ti.template(), target: ti.template(), joint: ti.template(),
+               out: out_t, serial: ti.template(), target: ti.template(), joint: ti.template(),
                src_i: ti.template(), tgt_ig: ti.template()):
         """The 30 sums (59 with ``joint``) into ``out`` (and the per-chunk partials into
         ``partials[:n_chunks]``); ``serial``: the chunks run on the calling thread (small levels on the
         CPU, see ``PointToPlane``); ``target``: scratch of one int per source pixel; ``src_i``, ``tgt_ig``:
         the intensities of the joint pass (any field when not ``joint``: unused)."""
         _partial_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, n_chunks, robust, params,
-                      serial, target, joint, src_i, tgt_ig)
+                      STATE, serial, target, joint, src_i, tgt_ig)
         n_sums = ti.static(N_SUMS_JOINT if joint else N_SUMS)
         # Runs after the loop above has finished: add the partials.
         if ti.static(real == ti.f64):  # cpu: one serial pass, 30 independent running sums in registers
@@ -464,9 +476,22 @@ def _build_kernels(real):
                 out[k] = s
 
     @ti.func
-    def _solve_cholesky(total):
+    def _solve_cholesky(system):
         """(δξ, ok) with (Σ w AᵀA) δξ = −Σ w Aᵀb from the 30 sums, by Cholesky; ok is False when a pivot is
-        not positive (or not a number): the system is not positive definite."""
+        not positive (or not a number): the system is not positive definite. In float32 the system is first
+        scaled to a unit diagonal (Jacobi), which takes the ratio of the rotation and translation columns'
+        scales out of the condition number the float32 factorisation sees."""
+        total = system
+        d = ti.Vector([1.0] * 6, dt=real)
+        if ti.static(real == ti.f32):
+            for i in ti.static(range(6)):
+                a = system[ti.static(UPPER.index((i, i)))]
+                if a > 0:
+                    d[i] = 1.0 / ti.sqrt(a)
+            for e in ti.static(range(21)):
+                total[e] = system[e] * d[UPPER[e][0]] * d[UPPER[e][1]]
+            for i in ti.static(range(6)):
+                total[SUM_ATB + i] = system[SUM_ATB + i] * d[i]
         L = ti.Matrix.zero(real, 6, 6)
         ok = True
         for i in ti.static(range(6)):
@@ -477,7 +502,7 @@ def _build_kernels(real):
                 if ti.static(i == j):
                     if not a > 0:  # also NaN
                         ok = False
-                    L[i, i] = ti.sqrt(ti.max(a, 1e-300))
+                    L[i, i] = ti.sqrt(ti.max(a, ti.static(1e-300 if real == ti.f64 else 1e-30)))
                 else:
                     L[i, j] = a / L[j, j]
         y = ti.Vector.zero(real, 6)
@@ -492,7 +517,7 @@ def _build_kernels(real):
             for k in ti.static(range(i + 1, 6)):
                 a -= L[k, i] * x[k]
             x[i] = a / L[i, i]
-        return x, ok
+        return x * d, ok
 
     @ti.func
     def _se3_exp(xi):
@@ -502,7 +527,10 @@ def _build_kernels(real):
         W = ti.Matrix([[0.0, -w.z, w.y], [w.z, 0.0, -w.x], [-w.y, w.x, 0.0]], dt=real)
         WW = W @ W
         a, b, c = ti.cast(1.0, real), ti.cast(0.5, real), ti.cast(1.0 / 6.0, real)
-        if theta >= 1e-8:
+        if ti.static(real == ti.f32):  # float32: the series, where 1 − cos θ and θ − sin θ cancel to noise
+            t2 = theta * theta
+            a, b, c = 1.0 - t2 / 6.0, 0.5 - t2 / 24.0, 1.0 / 6.0 - t2 / 120.0
+        if theta >= ti.static(1e-8 if real == ti.f64 else 1e-2):
             a = ti.sin(theta) / theta
             b = (1.0 - ti.cos(theta)) / (theta * theta)
             c = (theta - ti.sin(theta)) / (theta * theta * theta)
@@ -511,72 +539,125 @@ def _build_kernels(real):
         J = eye + b * W + c * WW
         return R, J @ ti.Vector([xi[3], xi[4], xi[5]], dt=real)
 
+    @ti.func
+    def _runs(params: ti.template(), it):
+        """Whether an ``iterate`` launch does its iteration: not after a failure, and within a level not
+        after the update fell below the stop threshold (a level's first iteration starts it again)."""
+        done = params[STATE, P_DONE]
+        return (done != FAILED) & ((done != STOPPED) | (it == 0))
+
     @ti.kernel
     def iterate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32,
-                partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
-                serial: ti.template(), target: ti.template(), records: ti.template(), joint: ti.template(),
-                src_i: ti.template(), tgt_ig: ti.template()):
-        """One whole ICP iteration in one launch (float64 backends): the sums as ``reduce``, then on the
-        calling thread the checks, the Cholesky solve and the update T ← exp(δξ) T of the pose in
-        ``params`` (written back in place). Appends a record (R_* layout) at ``params[P_RECORDS]`` and
-        sets ``params[P_DONE]`` to FAILED when the system was not solved, STOPPED when ‖δξ‖ fell below
-        ``params[P_STOP]``. The caller replays the records (``ti_fusion.tracking.icp``), with the condition-number
-        check of ``ti_fusion.tracking.solve`` too, which is why it is not repeated here. With ``joint``, the
-        system solved is the geometric one plus λ × the colour one (module docstring), and the record holds
-        the colour's sums at R_COLOUR."""
+                partials: ti.template(), robust: ti.template(), params: params_t, serial: ti.template(),
+                target: ti.template(), joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template(),
+                row: ti.i32, it: ti.i32):
+        """One whole ICP iteration in one launch, at the level of settings row ``row`` (its images' first
+        rows and sizes and its chunk count are in that row, written once per ``align``): the sums as
+        ``reduce``, then on one thread the checks, the Cholesky solve and the update T ← exp(δξ) T of the
+        pose in the state row (written back in place). Appends a record (R_* layout) at row RECORDS +
+        ``params[STATE, P_RECORDS]`` and sets ``params[STATE, P_DONE]`` to FAILED when the system was not
+        solved, STOPPED when ‖δξ‖ fell below the level's P_STOP. After FAILED, and after STOPPED until the
+        next level's first iteration (``it`` = 0), a launch does nothing: its loops run zero times, so the
+        caller may launch every iteration of the schedule without reading anything back. The caller
+        replays the records (``ti_fusion.tracking.icp``), with the condition-number check of
+        ``ti_fusion.tracking.solve`` too, which is why it is not repeated here. With ``joint``, the system
+        solved is the geometric one plus λ × the colour one (module docstring), and the record holds the
+        colour's sums at R_COLOUR. Float64 backends add the partials serially, float32 ones one thread
+        per sum (Kahan-compensated, as ``reduce``) into the record, which the solve then reads."""
+        n_sums = ti.static(N_SUMS_JOINT if joint else N_SUMS)
+        runs = _runs(params, it)
+        n_chunks = ti.select(runs, ti.cast(params[row, P_CHUNKS], ti.i32), 0)
+        s0 = ti.cast(params[row, P_S0], ti.i32)
+        Hs = ti.cast(params[row, P_HS], ti.i32)
+        Ws = ti.cast(params[row, P_WS], ti.i32)
+        t0 = ti.cast(params[row, P_T0], ti.i32)
+        Ht = ti.cast(params[row, P_HT], ti.i32)
+        Wt = ti.cast(params[row, P_WT], ti.i32)
         _partial_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, n_chunks, robust, params,
-                      serial, target, joint, src_i, tgt_ig)
+                      row, serial, target, joint, src_i, tgt_ig)
+        if ti.static(real == ti.f32):  # one thread per sum, into the record
+            for e in range(ti.select(runs, n_sums, 0)):
+                k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
+                s = ti.cast(0.0, real)
+                comp = ti.cast(0.0, real)
+                for c in range(n_chunks):
+                    y = partials[c, e] - comp
+                    s_new = s + y
+                    comp = (s_new - s) - y
+                    s = s_new
+                params[k, ti.select(e < N_SUMS, R_SUMS + e, R_COLOUR + e - N_SUMS)] = s
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
-        for _ in range(1):
-            total = _total(partials, n_chunks, ti.static(N_SUMS_JOINT if joint else N_SUMS))
-            k = ti.cast(params[P_RECORDS], ti.i32)
-            for e in ti.static(range(N_SUMS)):
-                records[k, R_SUMS + e] = total[e]
+        for _ in range(ti.select(runs, 1, 0)):
+            k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
+            total = ti.Vector([0.0] * n_sums, dt=real)
+            if ti.static(real == ti.f64):
+                total = _total(partials, n_chunks, n_sums)
+                for e in ti.static(range(N_SUMS)):
+                    params[k, R_SUMS + e] = total[e]
+                if ti.static(joint):
+                    for e in ti.static(range(N_SUMS_JOINT - N_SUMS)):
+                        params[k, R_COLOUR + e] = total[N_SUMS + e]
+            else:
+                for e in ti.static(range(N_SUMS)):
+                    total[e] = params[k, R_SUMS + e]
+                if ti.static(joint):
+                    for e in ti.static(range(N_SUMS_JOINT - N_SUMS)):
+                        total[N_SUMS + e] = params[k, R_COLOUR + e]
             system = ti.Vector([total[e] for e in ti.static(range(N_SUMS))], dt=real)
             if ti.static(joint):
-                for e in ti.static(range(N_SUMS_JOINT - N_SUMS)):
-                    records[k, R_COLOUR + e] = total[N_SUMS + e]
-                lam = params[P_COLOR_WEIGHT]
+                lam = params[row, P_COLOR_WEIGHT]
                 for e in ti.static(range(27)):
                     system[e] += lam * total[SUM_C_ATA + e]
             for e in ti.static(range(12)):
-                records[k, R_POSE + e] = params[P_R + e]
-            records[k, R_LEVEL] = params[P_LEVEL]
-            records[k, R_ITERATION] = params[P_ITERATION]
+                params[k, R_POSE + e] = params[STATE, P_R + e]
+            params[k, R_LEVEL] = params[row, P_LEVEL]
+            params[k, R_ITERATION] = it
             outcome = TOO_FEW_INLIERS
             update = ti.cast(0.0, real)
-            if total[SUM_INLIERS] >= params[P_MIN_INLIERS]:
+            if total[SUM_INLIERS] >= params[row, P_MIN_INLIERS]:
                 xi, ok = _solve_cholesky(system)
                 update = xi.norm()
                 outcome = NOT_POSITIVE_DEFINITE
                 if ok and update < 1e30:  # (a NaN fails the comparison)
                     outcome = UPDATED
                     dR, dt = _se3_exp(xi)
-                    R, t, K = _pose(params)
+                    R, t, K = _pose(params, row)
                     R_new = dR @ R
                     t_new = dR @ t + dt
                     for i in ti.static(range(3)):
                         for j in ti.static(range(3)):
-                            params[P_R + 3 * i + j] = R_new[i, j]
-                        params[P_T + i] = t_new[i]
-            records[k, R_UPDATE] = update
-            records[k, R_OUTCOME] = outcome
-            params[P_RECORDS] = k + 1
-            params[P_DONE] = ti.select(outcome != UPDATED, FAILED, ti.select(update < params[P_STOP], STOPPED, 0.0))
+                            params[STATE, P_R + 3 * i + j] = R_new[i, j]
+                        params[STATE, P_T + i] = t_new[i]
+            params[k, R_UPDATE] = update
+            params[k, R_OUTCOME] = outcome
+            params[STATE, P_RECORDS] = k + 1 - RECORDS
+            params[STATE, P_DONE] = ti.select(outcome != UPDATED, FAILED,
+                                              ti.select(update < params[row, P_STOP], STOPPED, 0.0))
+
+    @ti.kernel
+    def start(params: params_t, pose: ti.types.vector(12, real)):
+        """Off the CPU, the start of an ``align``: the pose into the state row, no records, not done. A
+        launch with the pose as an argument, where copying the state array from NumPy would wait for the
+        device (Taichi copies a NumPy argument back after the kernel)."""
+        ti.loop_config(serialize=True)
+        for _ in range(1):
+            for e in ti.static(range(12)):
+                params[STATE, P_R + e] = pose[e]
+            params[STATE, P_RECORDS] = 0
+            params[STATE, P_DONE] = 0
 
     @ti.kernel
     def status_map(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                    s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32,
                    status: ti.template(), params: params_t):
         for v, u in ti.ndrange(Hs, Ws):
-            tp = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params)
+            tp = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params, STATE)
             s = ti.select(tp == SOURCE_INVALID, STATUS_SOURCE_INVALID,
                           ti.select(tp == BEHIND_TARGET, STATUS_BEHIND, STATUS_OUT_OF_IMAGE))
             if tp >= 0:
-                R, t, K = _pose(params)
+                R, t, K = _pose(params, STATE)
                 s, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, t0, Wt, tp, v, u, R, t,
-                                               params[P_DIST2], params[P_COS])
+                                               params[STATE, P_DIST2], params[STATE, P_COS])
             status[v, u] = s
 
     @ti.kernel
@@ -589,8 +670,8 @@ def _build_kernels(real):
         W = Ws
         for c in range(n_chunks):
             begin, end = _chunk_range(Hs, Ws, c, n_chunks)
-            _project_chunk(src_v, src_n, s0, Ws, Ht, Wt, begin, end, params, target)
-            R, t, K = _pose(params)
+            _project_chunk(src_v, src_n, s0, Ws, Ht, Wt, begin, end, params, STATE, target)
+            R, t, K = _pose(params, STATE)
             v = begin // W
             u = begin - v * W
             k = offsets[c]
@@ -598,10 +679,10 @@ def _build_kernels(real):
                 tp = target[i]
                 if tp >= 0:
                     status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, t0, Wt, tp, v, u, R, t,
-                                                        params[P_DIST2], params[P_COS])
+                                                        params[STATE, P_DIST2], params[STATE, P_COS])
                     if status == STATUS_OK:
                         A, r = _row(pt, q, nq)
-                        sw = ti.sqrt(_weight(r, robust, params[P_SCALE], q.z))
+                        sw = ti.sqrt(_weight(r, robust, params[STATE, P_SCALE], q.z))
                         for j in ti.static(range(6)):
                             rows[k, j] = sw * A[j]
                         rows[k, 6] = sw * r
@@ -611,7 +692,8 @@ def _build_kernels(real):
                     u = 0
                     v += 1
 
-    return {"reduce": reduce, "iterate": iterate, "status_map": status_map, "write_rows": write_rows}
+    return {"reduce": reduce, "iterate": iterate, "start": start, "status_map": status_map,
+            "write_rows": write_rows}
 
 
 def kernels_for(real):
@@ -655,8 +737,12 @@ class PointToPlane:
         self.partials = ti.field(self.real, shape=(self.n_chunks, N_SUMS))
         self.partials_joint = None  # (n_chunks, N_SUMS_JOINT), allocated by the first joint pass
         self.target = ti.field(ti.i32, shape=self.max_pixels)  # per-pixel scratch (``_project_chunk``)
-        self.records = None  # ``iterate``'s records, allocated by ``begin_iterations``
-        self.params = np.zeros(N_PARAMS, dtype=self.np_real)
+        self.on_host = arch == "cpu"  # kernels read and write NumPy arrays in place: nothing to copy
+        self.state = None  # ``iterate``'s params: state, settings, records (``begin_iterations``)
+        self.state_device = None  # off the CPU, its copy on the device (a Taichi ndarray)
+        self._device_newer = False  # the device copy has records the host copy lacks
+        self._settings_on_device = None  # the settings rows last copied to the device
+        self.params = np.zeros((1, N_PARAMS), dtype=self.np_real)
         self.out = np.zeros(N_SUMS, dtype=self.np_real)  # written by the kernel (no copy on cpu)
         self.out_joint = np.zeros(N_SUMS_JOINT, dtype=self.np_real)
         self.offsets = None  # allocated on the first rows() call (QR only)
@@ -665,8 +751,14 @@ class PointToPlane:
 
     def _set_params(self, T: np.ndarray | None, K, dist_threshold: float, normal_threshold_deg: float,
                     robust_scale: float = 0.01, photometric=None) -> np.ndarray:
-        """Fill ``params`` for a pass (T None: keep the pose there, as ``iterate`` leaves it)."""
-        p = self.params
+        """Fill ``params`` for a pass (T None: leave the pose as it is)."""
+        self._fill(self.params[STATE], T, K, dist_threshold, normal_threshold_deg, robust_scale, photometric)
+        return self.params
+
+    @staticmethod
+    def _fill(p: np.ndarray, T, K, dist_threshold: float, normal_threshold_deg: float, robust_scale: float,
+              photometric) -> None:
+        """One row of params: the pose (unless T is None) and a pass's settings."""
         if T is not None:
             p[P_R:P_T + 3] = flatten_pose(T)
         p[P_K:P_K + 4] = [float(x) for x in K]
@@ -676,7 +768,6 @@ class PointToPlane:
         if photometric is not None:
             p[P_COLOR_WEIGHT] = float(photometric.weight)
             p[P_COLOR_SCALE] = float(photometric.scale)
-        return p
 
     @staticmethod
     def _images(src_v, src_n, tgt_v, tgt_n) -> tuple:
@@ -723,52 +814,104 @@ class PointToPlane:
                          src_i, tgt_ig)
         return out.astype(np.float64)
 
-    # -- whole iterations in the kernel (float64 backends) ---------------------------------------------
+    # -- whole iterations in the kernel ----------------------------------------------------------------
     @property
     def solves_in_kernel(self) -> bool:
-        """Whether ``iterate`` is available: the in-kernel solve is float64 (cpu) only; on float32 backends
-        the sums go to NumPy and are solved in float64 there."""
-        return self.real == ti.f64
+        """Whether ``iterate`` is available: on every backend (float64 on the CPU, float32 with a Jacobi-
+        scaled Cholesky elsewhere)."""
+        return True
+
+    @property
+    def records(self) -> np.ndarray:
+        """The host copy of ``iterate``'s record rows (capacity × PARAMS_WIDTH)."""
+        return self.state[RECORDS:]
 
     def begin_iterations(self, T: np.ndarray, max_records: int) -> None:
-        """Start a run of ``iterate`` calls at pose ``T`` with room for ``max_records`` records."""
-        if self.records is None or self.records.shape[0] < max_records:
-            self.records = ti.field(self.real, shape=(max(64, max_records), RECORD_LEN_JOINT))
-        self.params[P_R:P_T + 3] = flatten_pose(T)
-        self.params[P_RECORDS] = 0
+        """Start a run of ``iterate`` calls at pose ``T`` with room for ``max_records`` records. Then
+        ``begin_level`` for every level, before the first ``iterate``: off the CPU the settings cross to the
+        device once, with the first launch."""
+        rows = RECORDS + max(64, max_records)
+        if self.state is None or self.state.shape[0] < rows:
+            self.state = np.zeros((rows, PARAMS_WIDTH), dtype=self.np_real)
+            if not self.on_host:
+                self.state_device = ti.ndarray(self.real, shape=self.state.shape)
+                self._settings_on_device = None
+        self.state[STATE, P_R:P_T + 3] = flatten_pose(T)
+        self.state[STATE, P_RECORDS] = 0
+        self.state[STATE, P_DONE] = 0
+        self._levels = {}
+        self._launched = 0
+        self._uploaded = False
+        self._device_newer = False
 
     def begin_level(self, src_v, src_n, tgt_v, tgt_n, K, dist_threshold: float, normal_threshold_deg: float,
                     robust: str, robust_scale: float, level: int, min_inliers: int, stop_update: float,
                     photometric: "Photometric | None" = None) -> None:
-        """Settings of the next ``iterate`` calls: one pyramid level's images (source vertex and normal,
-        target vertex and normal; with ``photometric``, joint iterations with its images and weights); the
-        pose stays as the last call left it."""
-        p = self._set_params(None, K, dist_threshold, normal_threshold_deg, robust_scale, photometric)
+        """Settings of the ``iterate`` calls at ``level``: its images (source vertex and normal, target
+        vertex and normal; with ``photometric``, joint iterations with its images and weights) and
+        thresholds, in its settings row; the pose is the one the previous iteration left."""
+        if not 0 <= level < MAX_LEVELS:
+            raise ValueError(f"pyramid level {level}: ICP runs on levels 0 to {MAX_LEVELS - 1}")
+        if self._uploaded:
+            raise ValueError("begin_level after the first iterate of a run: call begin_iterations first")
+        p = self.state[SETTINGS + level]
+        self._fill(p, None, K, dist_threshold, normal_threshold_deg, robust_scale, photometric)
         p[P_LEVEL], p[P_MIN_INLIERS], p[P_STOP] = level, min_inliers, stop_update
         # worked out once per level: a Taichi field's .shape costs microseconds per call
         images = self._images(src_v, src_n, tgt_v, tgt_n)
-        self._level = (images, self._chunks(images), _code(robust)) + self._joint_args(images, photometric)
+        n_chunks = self._chunks(images)
+        p[P_S0], p[P_HS], p[P_WS], p[P_T0], p[P_HT], p[P_WT] = images[4:10]
+        p[P_CHUNKS] = n_chunks
+        self._levels[level] = (images[:4], _code(robust)) + self._joint_args(images, photometric)
+        self._level = level
 
-    def iterate(self, iteration: int) -> int:
-        """One ICP iteration in one launch (``iterate`` kernel) with the images and settings of
-        ``begin_level``: 0, or STOPPED / FAILED (stop the level / the run)."""
-        images, n_chunks, robust, joint, partials, src_i, tgt_ig = self._level
-        if self.params[P_RECORDS] >= self.records.shape[0]:  # the kernel would write past the records
+    def iterate(self, iteration: int, level: int | None = None) -> int:
+        """One ICP iteration in one launch (``iterate`` kernel) at ``level`` (default: the last one begun).
+        On the CPU, where the kernel writes the host's array in place: 0, or STOPPED / FAILED (stop the
+        level / the run), so the caller launches no more than needed. Elsewhere nothing is read back: 0,
+        and the caller launches the whole schedule, whose iterations after a stop are no-ops on the device."""
+        level = self._level if level is None else level
+        images, robust, joint, partials, src_i, tgt_ig = self._levels[level]
+        if self._launched >= self.records.shape[0]:  # the kernel could write past the records
             raise ValueError(f"more than {self.records.shape[0]} iterations since begin_iterations")
-        self.params[P_ITERATION] = iteration
-        self.k["iterate"](*images, partials, n_chunks, robust, self.params, self.serial, self.target, self.records,
-                          joint, src_i, tgt_ig)
-        return int(self.params[P_DONE])
+        self._launched += 1
+        params = self.state
+        if not self.on_host:
+            if not self._uploaded:
+                self._start_on_device()
+            params = self.state_device
+            self._device_newer = True
+        self._uploaded = True
+        self.k["iterate"](*images, partials, robust, params, self.serial, self.target, joint, src_i, tgt_ig,
+                          SETTINGS + level, iteration)
+        return int(self.state[STATE, P_DONE]) if self.on_host else 0
+
+    def _start_on_device(self) -> None:
+        """The settings rows to the device where they changed (a copy from NumPy waits for the device, so
+        only when an ``align`` brings other thresholds, images or sizes, not every frame), then the pose."""
+        settings = self.state[SETTINGS:RECORDS]
+        if self._settings_on_device is None or not np.array_equal(settings, self._settings_on_device):
+            self.state_device.from_numpy(self.state)
+            self._settings_on_device = settings.copy()
+        self.k["start"](self.state_device, self.state[STATE, P_R:P_T + 3].copy())
+
+    def _host_state(self) -> np.ndarray:
+        """The state array with the device's records and pose: off the CPU, one read for the whole run."""
+        if self._device_newer:
+            self.state = self.state_device.to_numpy()
+            self._device_newer = False
+        return self.state
 
     def iteration_records(self) -> np.ndarray:
         """The records of the iterations since ``begin_iterations`` (float64, one row each, R_* layout;
         R_COLOUR onwards only from joint iterations)."""
-        n = int(self.params[P_RECORDS])
-        return self.records.to_numpy()[:n].astype(np.float64)
+        state = self._host_state()
+        n = int(state[STATE, P_RECORDS])
+        return state[RECORDS:RECORDS + n, :RECORD_LEN_JOINT].astype(np.float64)
 
     def pose(self) -> np.ndarray:
         """The pose ``iterate`` has reached (4×4 float64)."""
-        return unflatten_pose(self.params[P_R:P_T + 3])
+        return unflatten_pose(self._host_state()[STATE, P_R:P_T + 3].astype(np.float64))
 
     def chunk_inliers(self, n_chunks: int) -> np.ndarray:
         """Per-chunk inlier counts of the last ``reduce``."""

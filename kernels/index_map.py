@@ -82,8 +82,8 @@ def project_surfels(s: ti.template(), n: ti.i32, imap: ti.template(), pose: Rigi
         s.block_listed[b] = found
 
 
-@ti.kernel
-def gather_listed(s: ti.template(), n: ti.i32):
+@ti.func
+def gather_listed(s: ti.template(), n):
     """The per-block lists of the last projection (``project_surfels`` or ``fusion.project_compatible``)
     into one list in index order, ``listed[:n_listed]``: a serial scan over the blocks, then one parallel
     copy per block."""
@@ -98,7 +98,7 @@ def gather_listed(s: ti.template(), n: ti.i32):
             s.listed[s.listed_offset[b] + k] = s.listed_by_block[b * BLOCK + k]
 
 
-@ti.kernel
+@ti.func
 def nearest_listed(s: ti.template(), imap: ti.template()):
     """Pass 1 of the index map, over the listed surfels: the nearest depth per pixel."""
     W = imap.index.shape[1]
@@ -111,7 +111,7 @@ def nearest_listed(s: ti.template(), imap: ti.template()):
             ti.atomic_min(imap.depth_key[v, u], key)
 
 
-@ti.kernel
+@ti.func
 def claim_listed(s: ti.template(), imap: ti.template()):
     """Pass 2 of the index map, over the listed surfels: among those at a pixel's nearest depth, the
     smallest index wins."""
@@ -124,10 +124,17 @@ def claim_listed(s: ti.template(), imap: ti.template()):
             ti.atomic_min(imap.index[v, u], i)
 
 
+@ti.kernel
+def build_listed(s: ti.template(), n: ti.i32, imap: ti.template(), with_index: ti.template()):
+    """``gather_listed``, then with ``with_index`` ``nearest_listed`` and ``claim_listed``: their loops one
+    after the other in one launch (each reads what the one before wrote, ``n_listed`` included)."""
+    gather_listed(s, n)
+    if ti.static(with_index):
+        nearest_listed(s, imap)
+        claim_listed(s, imap)
+
+
 def build(s, n: int, imap: IndexMap, with_index: bool = True) -> None:
     """After a projection of the first ``n`` surfels of arrays ``s``: list the surfels it kept in index
     order and, with ``with_index``, fill ``imap`` from them (``clear`` it before the projection)."""
-    gather_listed(s, n)
-    if with_index:
-        nearest_listed(s, imap)
-        claim_listed(s, imap)
+    build_listed(s, n, imap, bool(with_index))

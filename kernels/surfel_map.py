@@ -37,8 +37,21 @@ class SurfelMap(SurfelStore):
 
     def __init__(self, capacity: int = 4_000_000, grow: bool = True):
         super().__init__(capacity, grow)
-        # per-call results, read by name (one field serves every map)
-        self.counts = Pool.field("step_counts", lambda: fusion.StepCounts.field(shape=()))
+        # per-call results (fusion.C_*; one field serves every map)
+        self.counts = Pool.field("step_counts", lambda: ti.field(ti.i32, shape=fusion.N_COUNTS))
+        self._count_on_device = False  # a deferred add or removal changed the count: ``step_counts`` reads it
+
+    @property
+    def count(self) -> int:
+        """Live surfels: after a deferred add or removal, read from the device (``step_counts``)."""
+        if getattr(self, "_count_on_device", False):
+            self.step_counts()
+        return self._count
+
+    @count.setter
+    def count(self, value: int) -> None:
+        self._count = int(value)
+        self._count_on_device = False  # set from the host: the host's count holds
 
     def fusion_images(self, height: int, width: int) -> FusionImages:
         """The fusion step's work images at this resolution: shared by all maps, overwritten by the next
@@ -111,54 +124,91 @@ class SurfelMap(SurfelStore):
 
     def add(self, img: FusionImages, vertex, normal, pose, intrinsics, frame_index: int, confidence: bool,
             sigma: float, has_colour: bool, depth_weighted: bool = False,
-            cover: tuple[float, float] | None = None, anchor: int = 0) -> AddCounts:
+            cover: tuple[float, float] | None = None, anchor: int = 0, defer: bool = False) -> AddCounts | None:
         """Append the valid unassociated pixels as surfels (with ``anchor``). With ``cover`` = (dist_threshold,
         normal_threshold_deg), pixels that ``mark_covered`` would mark are marked first, in the same pass,
-        and not added."""
+        and not added.
+
+        With ``defer``, nothing is read back: the map is grown for the worst case (every pixel new) unless
+        it already has room for it, the count stays on the device, and None is returned; ``step_counts``
+        reads what the step did, once, after ``remove(..., defer=True)``."""
         dist, angle = cover if cover is not None else (0.0, 0.0)
         to_world = camera_to_world(pose)
+        H, W = img.assoc.shape
+        weights = fusion.weight_bits(confidence, depth_weighted)
+        if confidence:
+            img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
+        if defer and self.count + H * W <= self.capacity:  # room for every pixel: one launch, nothing read
+            fusion.add_step(self.arrays, self.count, img, vertex, normal, to_world, dist, math.cos(math.radians(angle)),
+                            cover is not None, intrinsics.fx, weights, int(has_colour), frame_index, int(anchor),
+                            self.counts)
+            self._count_on_device = True
+            return None
         fusion.count_segments(img, vertex, normal, to_world, dist, math.cos(math.radians(angle)), cover is not None)
-        fusion.scan_segments(img, self.counts)
-        counts = AddCounts(int(self.counts.new[None]), int(self.counts.merged[None]),
-                           int(self.counts.covered[None]))
+        fusion.scan_segments(img, self.counts, self.count)
+        c = self.counts.to_numpy()  # the exact count, to grow the map for it
+        counts = AddCounts(int(c[fusion.C_NEW]), int(c[fusion.C_MERGED]), int(c[fusion.C_COVERED]))
         self.ensure_capacity(self.count + counts.new)  # before any write: grow or raise
-        if counts.new > 0:
-            if confidence:
-                img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
-            self.counts.lost[None] = 0
-            fusion.append_new(self.arrays, self.count, img, vertex, normal, to_world, intrinsics.fx,
-                              fusion.weight_bits(confidence, depth_weighted), int(has_colour), frame_index,
-                              int(anchor), self.counts)
-            lost = int(self.counts.lost[None])
-            if lost:  # cannot happen after ensure_capacity; never let it pass silently
-                raise MapCapacityError(f"{lost} new surfels did not fit (capacity {self.capacity}): "
-                                       f"raise fusion.capacity")
-            self.count += counts.new
+        if counts.new == 0:
+            return None if defer else counts
+        fusion.append_new(self.arrays, self.count, img, vertex, normal, to_world, intrinsics.fx, weights,
+                          int(has_colour), frame_index, int(anchor), self.counts)
+        if defer:
+            self._count_on_device = True
+            return None
+        self._check_lost(int(self.counts[fusion.C_LOST]))
+        self.count += counts.new
         return counts
+
+    def _check_lost(self, lost: int) -> None:
+        if lost:  # cannot happen after ensure_capacity; never let it pass silently
+            raise MapCapacityError(f"{lost} new surfels did not fit (capacity {self.capacity}): "
+                                   f"raise fusion.capacity")
 
     # -- 6: remove ------------------------------------------------------------------------------------------
     def remove(self, frame_index: int, unstable: bool, unstable_weight: float, unstable_age: int,
-               free_space: bool = False, free_space_margin: float = 0.05, depth=None) -> int:
-        """Drop unstable / free-space-violating surfels and compact in place; returns how many went."""
-        n = self.count
-        if n == 0 or not (unstable or free_space):
-            return 0
+               free_space: bool = False, free_space_margin: float = 0.05, depth=None,
+               defer: bool = False) -> int | None:
+        """Drop unstable / free-space-violating surfels and compact in place; returns how many went. With
+        ``defer`` (after ``add(..., defer=True)``), every kernel runs with the counts on the device, even
+        when nothing goes (they then do nothing), and None is returned (``step_counts``)."""
+        if not (unstable or free_space):
+            return None if defer else 0
         if free_space and depth is None:
             raise ValueError("free-space removal needs the frame's depth field")
+        if not self._count_on_device:
+            if self.count == 0:
+                return None if defer else 0
+            self.counts[fusion.C_TOTAL] = self.count  # the removal's n
         if depth is None:
             depth = Pool.field("no_depth", lambda: ti.field(ti.f32, shape=(1, 1)))  # never read
-        fusion.mark_removal(self.arrays, n, min(self._projected, n), frame_index, int(unstable), unstable_weight,
-                            unstable_age, bool(free_space), free_space_margin, depth)
-        fusion.sum_removals(self.arrays, n, self.counts)
-        removed = int(self.counts.removed[None])
+        args = (self.arrays, self.counts, self._projected, frame_index, int(unstable), unstable_weight, unstable_age,
+                bool(free_space), free_space_margin, depth)
+        if defer:
+            fusion.remove_step(*args)
+            self._count_on_device = True
+            return None
+        fusion.mark_removal(*args)
+        fusion.sum_removals(self.arrays, self.counts)
+        removed = int(self.counts[fusion.C_REMOVED])
         if removed > 0:
-            m = n - removed
-            fusion.scan_blocks(self.arrays, n, m)
-            fusion.list_holes(self.arrays, m)
-            fusion.fill_holes(self.arrays, n, m)
-            self.count = m
+            fusion.fill_holes(self.arrays, self.counts)
+            self.count -= removed
             self._projected = 0  # indices moved: the projection scratch is stale
         return removed
+
+    def step_counts(self) -> dict[str, int]:
+        """What the last step did (new, merged, covered, removed, surfels): one read of the counts, which
+        also brings the host's ``count`` up to date after a deferred add and removal."""
+        c = self.counts.to_numpy()
+        if self._count_on_device:
+            self._count_on_device = False
+            self._check_lost(int(c[fusion.C_LOST]))
+            self.count = int(c[fusion.C_KEPT])
+            if c[fusion.C_REMOVED] > 0:
+                self._projected = 0  # indices moved: the projection scratch is stale
+        return {"new": int(c[fusion.C_NEW]), "merged": int(c[fusion.C_MERGED]), "covered": int(c[fusion.C_COVERED]),
+                "removed": int(c[fusion.C_REMOVED]), "surfels": self.count}
 
     # -- loop closure ---------------------------------------------------------------------------------------
     def apply_corrections(self, corrections: np.ndarray) -> int:

@@ -590,3 +590,48 @@ def test_align_compiles_one_iterate_instance_for_every_level(cpu, sequence):
     result = icp.align(maps, maps)
     assert result.failure is None and {r.level for r in result.iterations} == {0, 1, 2}
     assert len(iterate.compiled_kernels) - before == 1
+
+
+@pytest.mark.parametrize("stop_update", [1e-4, 0.0])
+def test_whole_schedule_on_the_device_matches_numpy(arch, rng, sequence, stop_update):
+    """On every backend the whole schedule runs in ``iterate`` launches (solve, stop test and the no-ops
+    after a stop on the device) to the pose of solving each iteration's sums in NumPy: float64 on the CPU
+    to rounding; float32 elsewhere (Jacobi-scaled Cholesky, the pose kept in float32) within 1e-5 m and
+    1e-3°. Off the CPU every iteration of the schedule is launched, and the records show that the device
+    stopped each level where NumPy does."""
+    cfg = ICPConfig(stop_update=stop_update)
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg, smooth=2)
+    in_kernel = ICP(cfg).align(src, tgt)
+    in_numpy = _align_in_python(cfg, src, tgt)
+    assert in_kernel.failure is None and in_numpy.failure is None
+    assert [(r.level, r.iteration) for r in in_kernel.iterations] == \
+        [(r.level, r.iteration) for r in in_numpy.iterations]
+    if stop_update:
+        assert len(in_kernel.iterations) < sum(cfg.iterations)  # the stop ended a level early somewhere
+    if arch == "cpu":
+        assert_same_run(in_kernel, in_numpy)
+    else:
+        err = pose_error(in_kernel.pose, in_numpy.pose)
+        assert err[0] < 1e-3 and err[1] < 1e-5
+        assert in_kernel.inliers == pytest.approx(in_numpy.inliers, abs=2)
+
+
+def test_align_reads_back_at_most_once(arch, rng, sequence, script):
+    """One ``align`` (three levels, up to 19 iterations) reads nothing back from the device until its end,
+    and then once (the state array with the pose and the records); on the CPU the kernels write the host's
+    array in place, so not even that. Counted by ``bench_host.py``'s wrappers around Taichi."""
+    cfg = ICPConfig()
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=cfg, smooth=2)
+    ICP(cfg).align(src, tgt)  # compiled before counting
+    counter = script("bench_host").Counter(current_backend().arch)
+    counter.install()
+    try:
+        counter.active = True
+        result = ICP(cfg).align(src, tgt)
+        counter.active = False
+    finally:
+        counter.uninstall()
+    assert result.failure is None
+    assert counter.total_reads() == (0 if arch == "cpu" else 1), counter.reads
+    launched = counter.launches["iterate"]
+    assert launched == (len(result.iterations) if arch == "cpu" else sum(cfg.iterations))

@@ -107,22 +107,32 @@ class SurfelMapper:
         with stage("merge"):
             self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
                            cfg.confidence_sigma, has_colour, cfg.depth_weighting, self.anchor)
+        # add and remove pass their counts on the device (defer): the step's counts cross once, at its end
         with stage("add"):  # with skip_covered, covered pixels are marked in the same pass and not added
             cover = (cfg.dist_threshold, cfg.normal_threshold_deg) if cfg.skip_covered else None
-            counts = self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
-                                  cfg.confidence_sigma, has_colour, cfg.depth_weighting, cover, self.anchor)
+            self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting, cfg.confidence_sigma,
+                         has_colour, cfg.depth_weighting, cover, self.anchor, defer=True)
         with stage("remove"):
-            removed = self.map.remove(frame_index, cfg.remove_unstable, cfg.unstable_weight, cfg.unstable_age,
-                                      cfg.remove_free_space, cfg.free_space_margin, depth)
-        return FusionStats(counts.merged, counts.new, removed, self.map.count,
-                           counts.merged + counts.new + counts.covered, counts.covered, ms)
+            self.map.remove(frame_index, cfg.remove_unstable, cfg.unstable_weight, cfg.unstable_age,
+                            cfg.remove_free_space, cfg.free_space_margin, depth, defer=True)
+        c = self.map.step_counts()
+        return FusionStats(c["merged"], c["new"], c["removed"], c["surfels"], c["merged"] + c["new"] + c["covered"],
+                           c["covered"], ms)
 
-    def apply_corrections(self, corrections: np.ndarray) -> int:
+    def apply_corrections(self, corrections: np.ndarray, reactivate_at: int | None = None) -> int:
         """Loop closure: move the map with the corrected poses. ``corrections`` (K, 4, 4): the rigid
         transform T_k = T_k,new · T_k,old⁻¹ (world frame) of anchor k; every surfel of anchor k < K gets
         p ← R_k p + t_k, n ← R_k n; surfels of anchors ≥ K, and of anchors whose T_k is the identity,
-        are untouched. Returns how many anchors moved."""
-        return self.map.apply_corrections(corrections)
+        are untouched. Returns how many anchors moved.
+
+        With ``reactivate_at`` (a frame count), every surfel of weight ≥ ``fusion.unstable_weight`` counts
+        as updated then: the corrected old surfels agree with the current pose again, so they are active
+        (tracked against) again, as ElasticFusion reactivates the model after a loop; only confirmed ones,
+        or loops every few frames would keep unstable surfels from removal."""
+        moved = self.map.apply_corrections(corrections)
+        if reactivate_at is not None:
+            self.map.reactivate(reactivate_at, self.config.unstable_weight)
+        return moved
 
     def anchors(self) -> np.ndarray:
         """The anchor of every live surfel (int32, in map order)."""

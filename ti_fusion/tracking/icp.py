@@ -160,14 +160,16 @@ class ICP:
         cfg = self.config
         robust = self.robust
         kernels.begin_iterations(result.pose, sum(n for _, n in schedule))
+        for level, n_iter in schedule:  # every level's settings first: they cross to a GPU in one copy
+            if n_iter:
+                kernels.begin_level(source.vertex[level], source.normal[level], target.vertex[level],
+                                    target.normal[level], target.intrinsics[level].as_tuple(),
+                                    self.dist_threshold(level), cfg.normal_threshold_deg, robust, cfg.robust_scale,
+                                    level, cfg.min_inliers, cfg.stop_update, self._colour(source, target, level))
         for level, n_iter in schedule:
-            kernels.begin_level(source.vertex[level], source.normal[level], target.vertex[level],
-                                target.normal[level], target.intrinsics[level].as_tuple(), self.dist_threshold(level),
-                                cfg.normal_threshold_deg, robust, cfg.robust_scale, level, cfg.min_inliers,
-                                cfg.stop_update, self._colour(source, target, level))
             done = 0
             for it in range(n_iter):
-                done = kernels.iterate(it)
+                done = kernels.iterate(it, level)  # on a GPU always 0: the device skips what follows a stop
                 if done:
                     break
             if done == FAILED:

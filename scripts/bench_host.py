@@ -1,0 +1,251 @@
+#!/usr/bin/env python3
+"""Where a frame's time goes between the host and the device: per frame, Taichi kernel launches, device→host
+reads, kernel time and host overhead, on any backend.
+
+    python scripts/bench_host.py [DATA ...] [--frames N] [--downsample F] [--arch cpu|cuda|vulkan]
+                                 [--json OUT] [--top K]
+
+DATA: dataset folders, and ``synthetic`` for the synthetic sequence (default: redkitchen at
+../shared/data/redkitchen-7scenes when present, and the synthetic sequence). The frames are read into memory
+first; then ``DenseSLAM.register_frame`` runs on each (maps, tracking, fusion: what ``fps processing``
+counts), with ``ti.sync()`` after it so that a GPU's queued work is inside the frame's time. The first two
+frames (kernel compilation) are left out of every column.
+
+Each data set runs twice, each in a child process of its own:
+- counting (no profiler): ``launches`` = calls of Taichi's ``Kernel.launch_kernel`` (this project's kernels
+  and Taichi's own, e.g. the copy kernels behind ``to_numpy``/``from_numpy``/``fill``); ``reads`` =
+  device→host reads, counted by wrappers around Taichi's Python API, not by hand: ``to_numpy`` of a field
+  or ndarray, a field element read from Python (``field[i]``), a kernel that returns a value, and, off the
+  CPU, a launch that is given a NumPy array (Taichi copies it to the device and back, waiting for the
+  kernel). On the CPU a NumPy argument is passed by address, so it is no read. ``processing ms`` = wall
+  time of ``register_frame`` + sync;
+- profiling (``kernel_profiler=True``): ``kernel ms`` = Taichi's kernel profiler's total per frame (cpu
+  and cuda; Taichi has no kernel profiler on vulkan: n/a), ``profiled ms`` the processing time of that run
+  (the profiler synchronises after every kernel, which adds to it), ``host ms`` = profiled ms − kernel ms:
+  Python, launches, waiting for reads; ``busy`` = kernel / profiled ms. Both from one process, so that
+  a load on the machine that changes between the two runs does not enter the difference.
+``--top K`` also prints the K kernels launched most per frame.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen-7scenes"
+WARMUP = 2  # frames left out: kernel compilation
+
+
+class Counter:
+    """Counts Taichi kernel launches (by kernel name) and device→host reads through wrappers around
+    Taichi's Python API (module docstring)."""
+
+    def __init__(self, arch: str):
+        self.arch = arch
+        self.launches: dict[str, int] = {}
+        self.reads: dict[str, int] = {}
+        self._depth = 0  # inside a wrapped read: its internal launches and reads are not reads of their own
+        self.active = False
+        self._originals: list = []  # (class, name, method) to put back (``uninstall``)
+
+    def _read(self, what: str) -> None:
+        if self.active and self._depth == 0:
+            self.reads[what] = self.reads.get(what, 0) + 1
+
+    def install(self) -> None:
+        import numpy as np
+        import importlib
+
+        _ndarray, field, kernel_impl, matrix = (importlib.import_module(f"taichi.lang.{m}")
+                                                for m in ("_ndarray", "field", "kernel_impl", "matrix"))
+
+        from taichi.types.ndarray_type import NdarrayType  # a NumPy array for a vector argument is copied by value
+
+        counter = self
+        launch = kernel_impl.Kernel.launch_kernel
+
+        def launch_kernel(kernel, t_kernel, *args):
+            if counter.active:
+                name = kernel.func.__name__
+                counter.launches[name] = counter.launches.get(name, 0) + 1
+                if kernel.return_type:
+                    counter._read(f"return of {name}")
+                elif counter.arch != "cpu" and any(isinstance(a, np.ndarray) and isinstance(p.annotation, NdarrayType)
+                                                   for a, p in zip(args, kernel.arguments)):
+                    counter._read(f"NumPy argument of {name}")
+            return launch(kernel, t_kernel, *args)
+
+        self._originals.append((kernel_impl.Kernel, "launch_kernel", launch))
+        kernel_impl.Kernel.launch_kernel = launch_kernel
+
+        def reading(cls, method: str, what: str):
+            original = cls.__dict__.get(method, getattr(cls, method))
+            self._originals.append((cls, method, original))
+
+            def wrapper(self, *args, **kwargs):
+                counter._read(what)
+                counter._depth += 1
+                try:
+                    return original(self, *args, **kwargs)
+                finally:
+                    counter._depth -= 1
+
+            setattr(cls, method, wrapper)
+
+        for cls in (field.ScalarField, matrix.MatrixField, _ndarray.ScalarNdarray, matrix.MatrixNdarray,
+                    matrix.VectorNdarray):
+            reading(cls, "to_numpy", f"{cls.__name__}.to_numpy")
+        for cls in (field.ScalarField, matrix.MatrixField, _ndarray.ScalarNdarray, matrix.MatrixNdarray,
+                    matrix.VectorNdarray):
+            reading(cls, "__getitem__", f"{cls.__name__}[...]")
+
+    def uninstall(self) -> None:
+        """Put Taichi's methods back (tests)."""
+        for cls, name, method in reversed(self._originals):
+            setattr(cls, name, method)
+        self._originals.clear()
+
+    def total_reads(self) -> int:
+        return sum(self.reads.values())
+
+    def reset(self) -> None:
+        self.launches.clear()
+        self.reads.clear()
+
+
+def _frames(data: str, frames: int, downsample: int):
+    """(config, dataset, frames in memory): the synthetic sequence's are made by Taichi kernels, so they are
+    made here, before anything is counted."""
+    from ti_fusion.config import Config
+    from ti_fusion.io.datasets import open_dataset
+
+    cfg = Config()
+    cfg.dataset.path = None if data == "synthetic" else data
+    cfg.dataset.downsample = downsample
+    cfg.dataset.stop = frames
+    cfg.log.progress = False
+    dataset = open_dataset(cfg.dataset, cfg.synth)
+    return cfg, dataset, [dataset[i] for i in range(len(dataset))]
+
+
+def child(args) -> dict:
+    """One run on one data set (counting, or with the kernel profiler): a JSON object on stdout."""
+    import taichi as ti
+
+    from ti_fusion.backend import init_backend
+
+    kwargs = {"kernel_profiler": True} if args.profile else {}
+    backend = init_backend(args.arch, **kwargs)
+    counter = Counter(backend.arch)
+    counter.install()
+    cfg, dataset, frames = _frames(args.data[0], args.frames, args.downsample)
+    from ti_fusion.slam.dense import DenseSLAM
+
+    slam = DenseSLAM(cfg, dataset.intrinsics)
+    wall, kernel_ms, tracked, poses = [], [], 0, []
+    for i, frame in enumerate(frames):
+        steady = i >= WARMUP
+        if steady:
+            counter.active = True
+            if args.profile:
+                ti.profiler.clear_kernel_profiler_info()
+        t0 = time.perf_counter()
+        result = slam.register_frame(frame)
+        ti.sync()
+        t1 = time.perf_counter()
+        counter.active = False
+        if steady:
+            wall.append((t1 - t0) * 1e3)
+            if args.profile:
+                kernel_ms.append(ti.profiler.get_kernel_profiler_total_time() * 1e3)
+        tracked += int(result.tracked)
+        poses.append(None if result.pose is None else [float(x) for x in result.pose.ravel()])
+    n = max(1, len(wall))
+    return {"data": args.data[0], "arch": backend.arch, "frames": len(frames), "timed_frames": len(wall),
+            "tracked": tracked, "processing_ms": sum(wall) / n,
+            "launches": sum(counter.launches.values()) / n, "reads": sum(counter.reads.values()) / n,
+            "by_kernel": {k: v / n for k, v in sorted(counter.launches.items(), key=lambda kv: -kv[1])},
+            "by_read": {k: v / n for k, v in sorted(counter.reads.items(), key=lambda kv: -kv[1])},
+            "kernel_ms": sum(kernel_ms) / n if kernel_ms else None, "poses": poses}
+
+
+def _run_child(args, data: str, profile: bool) -> dict:
+    cmd = [sys.executable, __file__, data, "--child", "--frames", str(args.frames), "--downsample",
+           str(args.downsample), "--arch", args.arch] + (["--profile"] if profile else [])
+    out = subprocess.run(cmd, capture_output=True, text=True)
+    if out.returncode != 0:
+        tail = (out.stderr.strip().splitlines() or ["no output"])[-1]
+        return {"data": data, "error": f"exit {out.returncode}: {tail}"}
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def _name(data: str) -> str:
+    return "synthetic" if data == "synthetic" else Path(data).name
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("data", nargs="*", help="dataset folders, or 'synthetic'")
+    parser.add_argument("--frames", type=int, default=120)
+    parser.add_argument("--downsample", type=int, default=1)
+    parser.add_argument("--arch", default="cpu", choices=("cpu", "cuda", "vulkan"))
+    parser.add_argument("--json", help="write the rows (with per-kernel launches and poses) to this file")
+    parser.add_argument("--top", type=int, default=0, help="also print the K kernels launched most per frame")
+    parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--profile", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.child:
+        print(json.dumps(child(args)))
+        return 0
+    if not args.data:
+        args.data = ([str(DEFAULT_DATA)] if (DEFAULT_DATA / "frame-000000.depth.png").is_file() else []) + ["synthetic"]
+    for data in args.data:
+        if data != "synthetic" and not Path(data).is_dir():
+            print(f"bench_host.py: {data}: not a folder (give a dataset folder or 'synthetic')", file=sys.stderr)
+            return 2
+    rows = []
+    print(f"bench_host.py --arch {args.arch} --frames {args.frames} --downsample {args.downsample} "
+          f"({os.cpu_count()} CPUs; first {WARMUP} frames left out)")
+    print(f"| data | arch | frames | launches/frame | reads/frame | kernel ms | host ms | profiled ms | busy | "
+          f"processing ms | fps processing |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|")
+    for data in args.data:
+        count = _run_child(args, data, profile=False)
+        prof = _run_child(args, data, profile=True)
+        row = dict(count)
+        if "error" in count:
+            print(f"| {_name(data)} | {args.arch} | {count['error']} |")
+            rows.append(row)
+            continue
+        row["kernel_ms"] = prof.get("kernel_ms")
+        row["profiled_processing_ms"] = prof.get("processing_ms")
+        k, p, q = row["kernel_ms"], row["processing_ms"], row["profiled_processing_ms"]
+        host = f"{q - k:.2f}" if k is not None and q is not None else "n/a"
+        busy = f"{100 * k / q:.0f} %" if k is not None and q else "n/a"
+        kernel = f"{k:.2f}" if k is not None else "n/a"
+        profiled = f"{q:.2f}" if q is not None else "n/a"
+        print(f"| {_name(data)} | {count['arch']} | {count['frames']} ({count['tracked']} tracked) | "
+              f"{count['launches']:.1f} | {count['reads']:.2f} | {kernel} | {host} | {profiled} | {busy} | {p:.2f} | "
+              f"{1e3 / p:.1f} |")
+        rows.append(row)
+    if args.top:
+        for row in rows:
+            if "error" in row:
+                continue
+            print(f"\n{_name(row['data'])}: launches per frame by kernel (top {args.top}); reads per frame by kind")
+            for name, n in list(row["by_kernel"].items())[:args.top]:
+                print(f"  {n:7.2f}  {name}")
+            for name, n in row["by_read"].items():
+                print(f"  {n:7.2f}  read: {name}")
+    if args.json:
+        Path(args.json).write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

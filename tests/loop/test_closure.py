@@ -13,43 +13,65 @@ from ti_fusion.geometry import make_pose, se3_exp
 from ti_fusion.io.datasets.arrays import FrameList
 from ti_fusion.io.mcap_log import read_log
 from ti_fusion.io.outputs import RunDir
+from ti_fusion.io.trajectory import read_tum
 from ti_fusion.loop.closure import LoopClosure
+from ti_fusion.slam.dense import DenseSLAM
 from ti_fusion.slam.pipeline import SLAMPipeline
+from ti_fusion.slam.poses import PoseStore
 from tests.conftest import _use
 from tests.loop.scenes import sequence, view
 
 
-class _FakeMapper:
-    anchor = 0
-
-    def __init__(self):
-        self.calls = []
-
-    def apply_corrections(self, corrections):
-        self.calls.append(np.array(corrections))
-        return len(corrections)
-
-
 def test_corrections_move_each_pose_with_its_keyframe():
     """Frames anchored to keyframe k (it and the frames after it) move by C_k, each pose once, in place."""
-    slam = SimpleNamespace(mapper=_FakeMapper())
-    loop = LoopClosure(Config(), slam)
+    store = PoseStore()
     poses = [np.eye(4) for _ in range(5)]
-    loop._posed = [(poses[0], 0), (poses[1], 0), (poses[2], 1), (poses[3], 1), (poses[3], 1), (poses[4], 2)]
+    for i, k in enumerate((None, None, 1, None, 2)):  # keyframe 1 at frame 2, keyframe 2 at frame 4
+        store.append(poses[i])
+        if i == 3:
+            store.append(poses[3])  # an array appended twice moves once
+        if k is not None:
+            store.start_keyframe(k)
+    assert store.anchors == [0, 0, 1, 1, 1, 2]
     C = np.stack([np.eye(4), make_pose(np.eye(3), [0.1, 0, 0]),
                   make_pose(se3_exp(np.r_[0, 0.1, 0, 0, 0, 0])[:3, :3], [0, 0.2, 0])])
-    kept = [p for p in poses]
-    loop._apply(C)
-    assert all(p is q for p, q in zip(poses, kept))  # in place: slam.poses and the run's results see it
+    assert store.correct(C) == 5
+    assert all(any(p is q for q in store) for p in poses)  # in place: the run's results hold these arrays
     for p, k in zip(poses, (0, 0, 1, 1, 2)):
         assert np.allclose(p, C[k])
-    assert len(slam.mapper.calls) == 1 and np.allclose(slam.mapper.calls[0], C)
+
+
+def test_a_correction_reaches_the_poses_results_and_map(cpu):
+    """DenseSLAM's door: start_keyframe anchors the poses and the surfels fused after it; apply_corrections
+    moves the trajectory, the results' poses, the pose re-localisation starts from and the surfels."""
+    seq = sequence()
+    cfg = Config()
+    slam = DenseSLAM(cfg, seq.intrinsics)
+    results = [slam.register_frame(view(seq, seq.poses[0], 0, seed=1))]
+    slam.start_keyframe(0)
+    results.append(slam.register_frame(view(seq, seq.poses[2], 1, seed=2)))
+    slam.start_keyframe(1)
+    results.append(slam.register_frame(view(seq, seq.poses[4], 2, seed=3)))  # its surfels: anchor 1
+    assert slam.poses.anchors == [0, 1, 1] and all(r.tracked for r in results)
+    before = slam.mapper.map.to_numpy(("position", "anchor"))
+    C = np.stack([np.eye(4), make_pose(np.eye(3), [0.0, 0.0, 0.05])])  # keyframe 1 moves 5 cm
+    kept = [r.pose.copy() for r in results]
+    slam.apply_corrections(C)
+    assert np.allclose(results[0].pose, kept[0])
+    assert all(np.allclose(r.pose, C[1] @ k, atol=1e-9) for r, k in zip(results[1:], kept[1:]))
+    assert slam.poses[2] is results[2].pose and slam.last_good[1] is results[2].pose
+    after = slam.mapper.map.to_numpy(("position", "anchor"))
+    moved = before["anchor"] == 1
+    assert moved.any() and not moved.all()
+    assert np.array_equal(after["anchor"], before["anchor"])
+    np.testing.assert_allclose(after["position"][~moved], before["position"][~moved])
+    np.testing.assert_allclose(after["position"][moved], before["position"][moved] + [0, 0, 0.05], atol=1e-5)
 
 
 def test_edges_are_green_only_for_loops_applied():
     """A candidate verification accepted but the pose graph refused (a look-alike place) is drawn as not
     applied, like one verification rejected: green in trajectory.png and /loop_closures means the map moved."""
-    loop = LoopClosure(Config(), SimpleNamespace(mapper=_FakeMapper()))
+    loop = LoopClosure(Config(), SimpleNamespace())
     loop.keyframes = [SimpleNamespace(centre=np.array([k, 0.0, 0.0])) for k in range(4)]
     loop.candidates = [SimpleNamespace(match=0, query=3, accepted=True),
                        SimpleNamespace(match=1, query=3, accepted=True),
@@ -98,6 +120,17 @@ def test_the_return_is_closed_onto_the_start(run):
     odometry = [e for e in run.pipeline.step.loop.graph.edges if not e.loop]
     assert odometry and all(e.covariance is not None and np.all(np.linalg.eigvalsh(e.covariance) > 0)
                             for e in odometry)
+
+
+def test_the_corrected_trajectory_is_written(run):
+    """trajectory.tum holds the poses as loop closure corrected them, not as they were tracked (and logged as
+    /camera/pose at their frame): the frames before the closed loop moved."""
+    stamps, written = read_tum(run.out / "trajectory.tum")
+    store = run.pipeline.step.slam.poses
+    np.testing.assert_allclose(written, np.stack([p for p in store if p is not None]), atol=1e-6)
+    logged = read_log(run.out / "log.mcap").est_poses
+    shift = np.linalg.norm(written[:, :3, 3] - logged[:, :3, 3], axis=1)
+    assert shift.max() > 1e-4, "no pose moved with the loop's correction"
 
 
 def test_surfels_carry_keyframe_anchors(run):

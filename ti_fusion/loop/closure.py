@@ -11,10 +11,14 @@ its id (the surfels fused from then on move with it), and place recognition (``p
 proposes earlier keyframes, verified best first (``verification.py``) until one is accepted. An accepted
 loop goes into the pose graph (``pose_graph.py``); if the optimisation keeps it (not an outlier of the
 robust kernel, and within ``loop.max_loop_error`` of the optimised poses), every keyframe k gets its
-world-frame correction C_k = T_k,new · T_k,old⁻¹, and with it every frame pose anchored to k (in place:
-``slam.poses``, ``slam.last_good`` and the run's results share those arrays) and every surfel anchored to k
-(``SurfelMapper.apply_corrections``). Tracking then goes on from the corrected last pose against the
-corrected map; the motion model is a relative motion and needs nothing.
+world-frame correction C_k = T_k,new · T_k,old⁻¹, and with it every frame pose and every surfel anchored
+to k. Tracking then goes on from the corrected last pose against the corrected map; the motion model is a
+relative motion and needs nothing.
+
+Loop closure sees SLAM through a narrow door (``DenseSLAM``'s "loop closure's door"): ``keyframe_depth()``,
+``current_frame_maps()`` (read only: the target of verification), ``start_keyframe(k)`` and
+``apply_corrections(C)``, which moves the trajectory (``slam/poses.py``) and the map. Verification renders
+the earlier keyframe into maps of its own.
 """
 
 from __future__ import annotations
@@ -29,6 +33,7 @@ import numpy as np
 
 from ti_fusion.config import Config
 from ti_fusion.geometry import invert, renormalize
+from ti_fusion.kernels.maps import FrameMaps
 from ti_fusion.loop.keyframes import Keyframe, KeyframeSelector, grid_points
 from ti_fusion.loop.place_recognition import PlaceDatabase
 from ti_fusion.loop.pose_graph import PoseGraph, edge_covariance, frame_covariance
@@ -62,7 +67,7 @@ class LoopClosure:
 
     def __init__(self, config: Config, slam):
         self.config = config
-        self.slam = slam  # a DenseSLAM: its mapper, maps and intrinsics are used, its code is not changed
+        self.slam = slam  # a DenseSLAM, used through its loop-closure door only (see the module's docstring)
         self.selector = KeyframeSelector(config.loop)
         self.database = PlaceDatabase(config.loop)
         self.graph = PoseGraph(config.loop)
@@ -70,17 +75,13 @@ class LoopClosure:
         self.keyframes: list[Keyframe] = []
         self._orb = cv2.ORB_create(config.loop.n_features)
         self._vo = dataclasses.replace(config.vo, n_features=config.loop.n_features)
-        self._posed: list[tuple[np.ndarray, int]] = []  # every frame pose and the keyframe it is anchored to
         self._since: list[tuple[np.ndarray, np.ndarray]] = []  # loop.odometry_from_icp: (pose, covariance) of the
         # frames since the last keyframe, for the next odometry edge
         self.candidates: list[LoopCandidate] = []  # every candidate verified, in order
         self.closures: list[tuple[int, int]] = []  # loops applied
         self.refused: list[tuple[int, int, str]] = []  # verified loops the pose graph refused, and why
         self.ms: dict[str, list[float]] = {"detect": [], "verify": [], "optimise": [], "correct": []}
-        self._map_correction = getattr(slam.mapper, "apply_corrections", None)
-        if self._map_correction is None:
-            log.warning("this surfel map cannot move with corrected poses (no SurfelMapper.apply_corrections): "
-                        "loops are detected and verified but not applied")
+        self._source: FrameMaps | None = None  # an earlier keyframe's maps for verification (first keyframe on)
 
     # -- the verb -------------------------------------------------------------------------------
     def after_frame(self, frame, result) -> LoopReport | None:
@@ -90,14 +91,11 @@ class LoopClosure:
         if self.config.loop.odometry_from_icp and self.keyframes:
             self._since.append((np.array(result.pose, dtype=np.float64),
                                 frame_covariance(self._information(result), self.config.loop)))
-        anchor = len(self.keyframes) - 1
         if not result.tracked or (why := self.selector.why(self.keyframes[-1] if self.keyframes else None,
                                                            result.pose, frame.index)) is None:
-            self._posed.append((result.pose, max(anchor, 0)))
             return None
         t0 = time.perf_counter()
         kf = self._make_keyframe(frame, result.pose)
-        self._posed.append((result.pose, kf.id))
         report = LoopReport(kf.id, why)
         t1 = time.perf_counter()
         report.ms["keyframe"] = (t1 - t0) * 1e3
@@ -110,12 +108,12 @@ class LoopClosure:
             # first candidate (the prediction is rendered into these maps again before the next frame is
             # tracked); not counted as detection.
             t2 = time.perf_counter()
-            fill(self.slam.model_maps, kf)
+            fill(self._source_maps(kf), kf)
             report.ms["warmup"] = (time.perf_counter() - t2) * 1e3
         accepted = None
         for place in places:
-            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self.slam.model_maps,
-                                     self.slam.frame_maps, target_ready=True)
+            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self._source_maps(kf),
+                                     self.slam.current_frame_maps(), target_ready=True)
             report.candidates.append(c)
             self.candidates.append(c)
             log.info(f"loop candidate: keyframe {c.query} (frame {kf.frame}) with keyframe {c.match} (frame "
@@ -145,11 +143,15 @@ class LoopClosure:
             return combined_system(icp.sums, self.config.icp.color_weight)[0]
         return unpack_sums(icp.sums)["AtA"]
 
+    def _source_maps(self, kf: Keyframe) -> FrameMaps:
+        """Verification's own maps for an earlier keyframe's stored depth (a keyframe's size: the map's)."""
+        if self._source is None:
+            h, w = kf.depth.shape
+            self._source = FrameMaps(self.config.maps, h, w, len(self.config.icp.iterations))
+        return self._source
+
     def _make_keyframe(self, frame, pose: np.ndarray) -> Keyframe:
-        slam = self.slam
-        level = slam.map_level - slam.frame_maps.input_level  # the fused level, at the map's resolution
-        depth = slam.frame_maps.depth[level].to_numpy()
-        K = slam.frame_maps.intrinsics[level]
+        depth, K = self.slam.keyframe_depth()  # at the map's resolution
         features = extract_features(frame, self._vo, self._orb)
         kf = Keyframe(len(self.keyframes), frame.index, frame.timestamp, pose, features, frame.intrinsics,
                       depth, K, grid_points(depth, K))
@@ -161,7 +163,7 @@ class LoopClosure:
         self.graph.add_keyframe(pose, covariance)
         if self.config.loop.keyframe_pnp and kf.id > 0:
             self._pnp_edge(self.keyframes[-2], kf)
-        slam.mapper.anchor = kf.id  # surfels fused from the next frame on move with this keyframe
+        self.slam.start_keyframe(kf.id)
         return kf
 
     def _pnp_edge(self, previous: Keyframe, kf: Keyframe) -> None:
@@ -190,13 +192,9 @@ class LoopClosure:
             self.refused.append((i, j, why))
             log.info(f"loop {i}-{j} {report.outcome}")
             return
-        if self._map_correction is None:
-            self.graph.remove_loop(i, j)
-            report.outcome = "not applied: the map cannot be corrected"
-            return
         t0 = time.perf_counter()
         corrections = np.stack([renormalize(new @ invert(kf.pose)) for new, kf in zip(opt.poses, self.keyframes)])
-        self._apply(corrections)
+        self.slam.apply_corrections(corrections)  # a keyframe's pose is its frame's: moved with the trajectory
         self.graph.accept(opt.poses)
         report.ms["correct"] = (time.perf_counter() - t0) * 1e3
         self.ms["correct"].append(report.ms["correct"])
@@ -205,20 +203,6 @@ class LoopClosure:
         moved = float(np.linalg.norm(corrections[-1][:3, 3]))
         log.info(f"loop {i}-{j} closed: {opt.iterations} iterations, error {opt.error_before:.1f} → "
                  f"{opt.error_after:.2f}, the current keyframe moved {moved * 100:.1f} cm")
-
-    def _apply(self, corrections: np.ndarray) -> None:
-        """Every keyframe pose, every frame pose anchored to a keyframe, and the map, by its correction."""
-        seen: set[int] = set()
-        for pose, k in self._posed:  # a keyframe's pose is its frame's pose, anchored to itself
-            if id(pose) not in seen:
-                seen.add(id(pose))
-                pose[:] = renormalize(corrections[k] @ pose)
-        self._map_correction(corrections)
-        if self.config.slam.active_window > 0:
-            # the corrected old surfels agree with the current pose again: active (tracked against) for
-            # the next slam.active_window frames, as ElasticFusion reactivates the model after a loop;
-            # only confirmed ones, or loops every few frames would keep unstable surfels from removal
-            self.slam.mapper.map.reactivate(self.slam._frames_fused, self.config.fusion.unstable_weight)
 
     # -- results --------------------------------------------------------------------------------
     def loop_segments(self, candidates: list[LoopCandidate]) -> list[tuple[np.ndarray, np.ndarray, bool]]:

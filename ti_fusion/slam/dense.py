@@ -61,6 +61,7 @@ from ti_fusion.geometry import invert, pose_error, renormalize, se3_exp, se3_log
 from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.maps import FrameMaps, grey_image
 from ti_fusion.slam.checks import check_frame
+from ti_fusion.slam.poses import PoseStore
 from ti_fusion.timing import StageTimer
 
 log = logging.getLogger(__name__)
@@ -154,7 +155,7 @@ class DenseSLAM:
                                                                                self.frame_maps.width))
         if warning:
             log.warning(warning)
-        self.poses: list[np.ndarray] = []
+        self.poses = PoseStore()  # the trajectory, each pose with its keyframe (loop closure corrects it)
         self.skipped: list[tuple[int, str]] = []  # (frame, reason) of the frames before the map started
         self.last_good: tuple[Frame, np.ndarray] | None = None  # for feature re-localisation
         self._velocity = np.zeros(6)  # last motion per second, twist (ω, v) of the camera-to-camera step
@@ -397,6 +398,29 @@ class DenseSLAM:
         if result.tracked:
             self._last_stamp = timestamp
         self.poses.append(result.pose)
+
+    # -- loop closure's door: ti_fusion/loop/closure.py uses these and nothing else of this class --------
+    def keyframe_depth(self) -> tuple[np.ndarray, Intrinsics]:
+        """The depth of the frame just registered at the map's resolution, and the camera of that image."""
+        level = self.map_level - self.frame_maps.input_level
+        return self.frame_maps.depth[level].to_numpy(), self.frame_maps.intrinsics[level]
+
+    def current_frame_maps(self) -> FrameMaps:
+        """The maps of the frame just registered, for reading: the target of loop verification."""
+        return self.frame_maps
+
+    def start_keyframe(self, keyframe: int) -> None:
+        """The frame just registered became keyframe ``keyframe``: its pose, the poses after it and the
+        surfels fused from the next frame on move with it."""
+        self.poses.start_keyframe(keyframe)
+        self.mapper.anchor = keyframe
+
+    def apply_corrections(self, corrections: np.ndarray) -> None:
+        """A loop closed: every pose and surfel moves by its keyframe's correction C_k (K×4×4, world
+        frame); with ``slam.active_window`` the corrected confirmed surfels are active again."""
+        self.poses.correct(corrections)
+        window = self.config.slam.active_window
+        self.mapper.apply_corrections(corrections, reactivate_at=self._frames_fused if window > 0 else None)
 
     # -- results --------------------------------------------------------------------------------
     @property

@@ -164,14 +164,14 @@ class SLAMStep:
         result = self.slam.register_frame(frame)
         if self.loop is not None:
             t0 = time.perf_counter()
-            result.loop = self.loop.after_frame(frame, result)  # corrects earlier poses in place on a loop
+            result.loop = self.loop.after_frame(frame, result)  # on a loop, corrects the trajectory and the map
             result.ms["loop"] = (time.perf_counter() - t0) * 1e3
         return result
 
     def log_frame(self, log, frame: Frame, result: FrameResult) -> None:
         """The loop edges so far (at the keyframes' current poses) after a frame that verified candidates."""
         report = result.loop
-        if report is not None and report.candidates and hasattr(log, "log_loop_edges"):
+        if report is not None and report.candidates:
             log.log_loop_edges(frame.timestamp, self.loop.edges())
 
     def log_end(self, log, t: float) -> None:

@@ -154,13 +154,22 @@ def pyramid_pixel(fine: ti.template(), f0, H, W, v, u, max_diff):
 @ti.kernel
 def pyramid_down(fine: ti.template(), f0: ti.i32, H: ti.i32, W: ti.i32, coarse: ti.template(), c0: ti.i32,
                  max_diff: ti.f32, packed: ti.template(), serial: ti.template()):
+    """One level of ``pyramid_loop`` in one launch."""
+    pyramid_loop(fine, f0, H, W, coarse, c0, max_diff, packed, serial)
+
+
+@ti.func
+def pyramid_loop(fine: ti.template(), f0, H, W, coarse: ti.template(), c0, max_diff, packed: ti.template(),
+                 serial: ti.template()):
     """coarse = fine averaged down one level (see the module docstring): the H × W image at row ``f0`` of
     ``fine`` into the one at row ``c0`` of ``coarse`` (levels of stacked fields, see ``Level``); ``packed``:
     coarse is a packed image (``LANES`` pixels per element, see ``smooth_rows``) rather than a plain one.
 
     Eight coarse pixels of a row per iteration, as 8-vectors (SLP-vectorised, see ``LANES``): each of the
     three fine rows is read once as the 17 pixels the eight 3×3 windows span, and every tap is a fixed
-    selection of them. Packs on the image border take the pixel-at-a-time path (``pyramid_pixel``)."""
+    selection of them. Packs on the image border take the pixel-at-a-time path (``pyramid_pixel``). A
+    function with one loop: called at a kernel's top level, that loop is one of the kernel's parallel loops
+    (``pyramid_down``, ``pyramid_maps``)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
     Wc = (W + 1) // 2
@@ -234,6 +243,12 @@ def range_mean_at(src: ti.template(), v, u, radius, n, along_rows: ti.template()
 
 @ti.kernel
 def smooth_rows(src: ti.template(), dst: ti.template(), width: ti.i32, radius: ti.template(), max_diff: ti.f32):
+    """``smooth_rows_loop`` in one launch."""
+    smooth_rows_loop(src, dst, width, radius, max_diff)
+
+
+@ti.func
+def smooth_rows_loop(src: ti.template(), dst: ti.template(), width, radius: ti.template(), max_diff):
     """The row pass of the range-checked mean on packed images (H × ⌈W/8⌉ packs of 8 pixels): dst = the mean
     of the 2r+1 neighbours along the row that are valid and within ``max_diff`` of the centre; invalid
     stays invalid. Near the image border the window is the symmetric radius that fits (a one-sided window
@@ -266,6 +281,12 @@ def smooth_rows(src: ti.template(), dst: ti.template(), width: ti.i32, radius: t
 
 @ti.kernel
 def smooth_columns(src: ti.template(), dst: ti.template(), radius: ti.template(), max_diff: ti.f32):
+    """``smooth_columns_loop`` in one launch."""
+    smooth_columns_loop(src, dst, radius, max_diff)
+
+
+@ti.func
+def smooth_columns_loop(src: ti.template(), dst: ti.template(), radius: ti.template(), max_diff):
     """The column pass of the range-checked mean (as ``smooth_rows``, along columns) from a packed H × ⌈W/8⌉
     image into the H × W image at row 0 of ``dst`` (W its width: level 0 of a stack). The 8 lanes of a
     pack share their window, border rows included."""
@@ -332,6 +353,13 @@ def row_pack(depth: ti.template(), v, u0):
 def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.template(), r0: ti.i32, H: ti.i32,
                        W: ti.i32, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, max_depth_jump: ti.f32,
                        serial: ti.template()):
+    """One level of ``vertex_normal_loop`` in one launch."""
+    vertex_normal_loop(depth, vertex, normal, r0, H, W, fx, fy, cx, cy, max_depth_jump, serial)
+
+
+@ti.func
+def vertex_normal_loop(depth: ti.template(), vertex: ti.template(), normal: ti.template(), r0, H, W, fx, fy, cx,
+                       cy, max_depth_jump, serial: ti.template()):
     """vertex[v, u] = ((u - cx) z / fx, (v - cy) z / fy, z), zero where the depth is invalid (≤ 0 or NaN);
     normal[v, u] = the cross product of central differences of the vertices, facing the camera, zero where
     undefined: on the image border, where the pixel or one of its four neighbours is invalid, or where a
@@ -342,11 +370,12 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
     Eight pixels of a row per iteration, as 8-vectors (see ``LANES``): LLVM's SLP vectoriser turns their
     arithmetic into SIMD (at 320×240 on one core, both maps 0.94 → 0.69 ms, the normals alone 0.94 →
     0.46 ms). Packs on the image border, where a neighbour would fall outside, take the pixel-at-a-time
-    path. The three images are the H × W level at row ``r0`` of their stacked fields (see ``Level``).
+    path. The three images are the H × W level at row ``r0`` of their stacked fields (see ``Level``). A
+    function with one loop, as ``pyramid_loop``.
     """
+    ifx = 1.0 / fx
     if ti.static(serial):
-        ti.loop_config(serialize=True)
-    ifx = 1.0 / fx  # one division per launch, not two per pixel
+        ti.loop_config(serialize=True)  # one division per launch, not two per pixel
     ify = 1.0 / fy
     for v, b in ti.ndrange(H, (W + LANES - 1) // LANES):  # a range-for: ``serialize`` skips a struct-for
         u0 = b * LANES
@@ -398,6 +427,51 @@ def vertex_normal_maps(depth: ti.template(), vertex: ti.template(), normal: ti.t
                     c = backproject_pixel(depth, r0, v, u, ifx, ify, cx, cy)
                     vertex[r0 + v, u] = c
                     normal[r0 + v, u] = normal_at(depth, r0, H, W, v, u, c, ifx, ify, cx, cy, max_depth_jump)
+
+
+# ``pyramid_maps``'s per-level settings, one row per level: first row in the stack, height, width, fx, fy,
+# cx, cy, the depth-jump threshold of the normals
+G_ROW0, G_H, G_W, G_FX, G_FY, G_CX, G_CY, G_JUMP, N_GEOMETRY = range(9)
+
+
+@ti.kernel
+def pyramid_maps(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
+                 levels: ti.template(), first_maps: ti.template(), max_diff: ti.f32, serial: ti.template()):
+    """``pyramid_maps_loops`` in one launch."""
+    pyramid_maps_loops(depth, vertex, normal, geometry, levels, first_maps, max_diff, serial)
+
+
+@ti.kernel
+def input_maps(fine: ti.template(), raw: ti.template(), rows: ti.template(), depth: ti.template(),
+               vertex: ti.template(), normal: ti.template(), geometry: ti.template(), levels: ti.template(),
+               radius: ti.template(), max_diff: ti.f32, serial_input: ti.template(), serial: ti.template()):
+    """A frame's maps in one launch, for an input averaged down once and smoothed (the default at
+    640×480): ``pyramid_loop`` from the input ``fine`` into the packed ``raw``, the smoothing's row and
+    column passes (``smooth_rows_loop``, ``smooth_columns_loop``) into level 0 of ``depth``, then
+    ``pyramid_maps_loops``: the loops of ``FrameMaps.compute``'s five launches, one after the other."""
+    H, W = fine.shape
+    pyramid_loop(fine, 0, H, W, raw, 0, max_diff, True, serial_input)
+    smooth_rows_loop(raw, rows, ti.cast(geometry[0, G_W], ti.i32), radius, max_diff)
+    smooth_columns_loop(rows, depth, radius, max_diff)
+    pyramid_maps_loops(depth, vertex, normal, geometry, levels, 0, max_diff, serial)
+
+
+@ti.func
+def pyramid_maps_loops(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
+                       levels: ti.template(), first_maps: ti.template(), max_diff, serial: ti.template()):
+    """Every level of a stack in one launch: the depth pyramid from level 0 (``pyramid_loop`` per level,
+    each after the one it reads), then the vertex and normal maps of levels ``first_maps`` .. levels − 1
+    (``vertex_normal_loop``), as consecutive loops of one kernel (Taichi runs a kernel's top-level loops in
+    order). The levels' rows, sizes and intrinsics are read from ``geometry`` (G_* columns), written when
+    they change, so a frame passes one scalar."""
+    for l in ti.static(range(1, levels)):
+        pyramid_loop(depth, ti.cast(geometry[l - 1, G_ROW0], ti.i32), ti.cast(geometry[l - 1, G_H], ti.i32),
+                     ti.cast(geometry[l - 1, G_W], ti.i32), depth, ti.cast(geometry[l, G_ROW0], ti.i32), max_diff,
+                     False, serial)
+    for l in ti.static(range(first_maps, levels)):
+        vertex_normal_loop(depth, vertex, normal, ti.cast(geometry[l, G_ROW0], ti.i32),
+                           ti.cast(geometry[l, G_H], ti.i32), ti.cast(geometry[l, G_W], ti.i32), geometry[l, G_FX],
+                           geometry[l, G_FY], geometry[l, G_CX], geometry[l, G_CY], geometry[l, G_JUMP], serial)
 
 
 GREY = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights of R, G, B
@@ -519,6 +593,8 @@ class FrameMaps:
         self.intensity: list | None = None  # per level, f32 in [0, 1], −1 = none
         self.intensity_grad: list | None = None  # per level, (I, ∂I/∂x, ∂I/∂y) (live frames only)
         self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
+        self._geometry = None  # ``pyramid_maps``'s per-level rows, sizes and intrinsics (G_* columns)
+        self._geometry_for = None  # the intrinsics it holds
 
     def _levels(self, stack) -> list[Level]:
         return [Level(stack, r, s) for r, s in zip(self.row0, self.shapes)]
@@ -538,6 +614,8 @@ class FrameMaps:
         if depth.shape != self.input_shape:
             raise ValueError(f"depth of shape {depth.shape} given to FrameMaps of shape {self.input_shape}")
         depth = np.ascontiguousarray(depth, dtype=np.float32)
+        if self._one_launch(depth, intrinsics):
+            return
         smooth = self.smooth_radius > 0
         stack = self.depth[0].field
         if self.input_level == 0:
@@ -560,6 +638,20 @@ class FrameMaps:
             smooth_rows(raw, rows, self.width, self.smooth_radius, self.max_depth_diff)
             smooth_columns(rows, stack, self.smooth_radius, self.max_depth_diff)
         self.compute_from_field(intrinsics)
+
+    def _one_launch(self, depth: np.ndarray, intrinsics: Intrinsics) -> bool:
+        """``compute`` of an input averaged down once and smoothed (the default at 640×480) as one upload
+        and one launch (``input_maps``); False for any other layout."""
+        if self.input_level != 1 or self.smooth_radius <= 0:
+            return False
+        self._inputs[0].from_numpy(depth)
+        self._set_geometry(intrinsics.downsampled(2))
+        raw, rows = self._packed_fields()
+        h, w = self.input_shape
+        input_maps(self._inputs[0], raw, rows, self.depth[0].field, self.vertex[0].field, self.normal[0].field,
+                   self._geometry, self.levels, self.smooth_radius, self.max_depth_diff,
+                   serial_for(((h + 1) // 2) * ((w + 1) // 2)), self._serial)
+        return True
 
     def _intensity_fields(self, gradients: bool) -> None:
         if self.intensity is None:
@@ -623,13 +715,20 @@ class FrameMaps:
     def compute_from_field(self, intrinsics: Intrinsics, level0_maps: bool = True) -> None:
         """Build every level from ``self.depth[0]`` already on the Taichi side (without level 0's vertex
         and normal maps when ``level0_maps`` is False: a renderer that writes them itself). No smoothing."""
+        self._set_geometry(intrinsics)
+        pyramid_maps(self.depth[0].field, self.vertex[0].field, self.normal[0].field, self._geometry, self.levels,
+                     0 if level0_maps else 1, self.max_depth_diff, self._serial)
+
+    def _set_geometry(self, intrinsics: Intrinsics) -> None:
+        """``intrinsics`` (of level 0) and the levels' rows and sizes into ``_geometry``, where they changed."""
         self.intrinsics = [intrinsics.downsampled(2**l) for l in range(self.levels)]
-        depth, vertex, normal = self.depth[0].field, self.vertex[0].field, self.normal[0].field
-        for l in range(1, self.levels):
-            h, w = self.shapes[l - 1]
-            pyramid_down(depth, self.row0[l - 1], h, w, depth, self.row0[l], self.max_depth_diff, False,
-                         self._serial)
-        for l in range(0 if level0_maps else 1, self.levels):
-            # A depth edge at a coarse level spans 2**l fine pixels: scale the jump threshold with it.
-            vertex_normal_maps(depth, vertex, normal, self.row0[l], *self.shapes[l], *self.intrinsics[l].as_tuple(),
-                               self.max_depth_jump * 2**l, self._serial)
+        key = tuple(K.as_tuple() for K in self.intrinsics)
+        if self._geometry_for != key:  # once per run: a copy from NumPy waits for a GPU
+            g = np.zeros((self.levels, N_GEOMETRY), np.float32)
+            for l, (K, (h, w)) in enumerate(zip(self.intrinsics, self.shapes)):
+                # A depth edge at a coarse level spans 2**l fine pixels: scale the jump threshold with it.
+                g[l] = (self.row0[l], h, w, *K.as_tuple(), self.max_depth_jump * 2**l)
+            if self._geometry is None:
+                self._geometry = ti.field(ti.f32, shape=(self.levels, N_GEOMETRY))
+            self._geometry.from_numpy(g)
+            self._geometry_for = key

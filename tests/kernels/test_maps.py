@@ -352,15 +352,17 @@ def _instances(kernel) -> int:
 
 def test_every_level_shares_one_kernel_instance(cpu, rng):
     """The levels of a pyramid are rows of one field per quantity, so a new FrameMaps adds one instance
-    of the pyramid and vertex/normal kernels for all of its levels, not one per level."""
+    of the kernel that builds the pyramid and the vertex/normal maps of all of its levels (in one launch),
+    not one per level, and no instance of the one-level kernels."""
     from ti_fusion.kernels import maps as kmaps
 
     depth = random_depth(rng, shape=(40, 48))
-    counts = [_instances(k) for k in (kmaps.pyramid_down, kmaps.vertex_normal_maps)]
+    kernels = (kmaps.pyramid_maps, kmaps.pyramid_down, kmaps.vertex_normal_maps)
+    counts = [_instances(k) for k in kernels]
     maps = FrameMaps(settings(), *depth.shape, levels=4)
     maps.compute(depth, Intrinsics(60.0, 60.0, 24.0, 20.0, 48, 40))
     maps.compute(depth, Intrinsics(60.0, 60.0, 24.0, 20.0, 48, 40))
-    assert [_instances(k) - n for k, n in zip((kmaps.pyramid_down, kmaps.vertex_normal_maps), counts)] == [1, 1]
+    assert [_instances(k) - n for k, n in zip(kernels, counts)] == [1, 0, 0]
     assert maps.depth[3].shape == (5, 6) and maps.depth[3].row0 == 40 + 20 + 10
 
 

@@ -412,8 +412,8 @@ class SLAMConfig:
                                      # doubt: ICP again from the last good pose when the motion model's alignment
                                      # fails or is in doubt, then ORB+PnP and a wide-basin re-localisation before a
                                      # failure | always: the last pose every frame | motion: the guess alone
-    doubt_inlier_ratio: Fraction = 0.5  # an alignment with a lower inlier ratio is in doubt ...
-    doubt_residual: Fraction = 0.5   # ... or with a residual above this × max_residual
+    doubt_residual_ratio: Positive = 1.5  # an alignment is in doubt when its residual is above this × the median
+                                     # residual of the last tracked frames (their own level, not a fixed one)
     relocalise_iterations: Annotated[list[int], Range(ge=0), Length(ge=1)] = field(
         default_factory=lambda: [20, 10, 4])  # dense re-localisation's ICP iterations per level (coarse → fine;
                                      # as many levels as icp.iterations, else icp.iterations)

@@ -35,8 +35,8 @@ Hypotheses (``slam.hypotheses``, docs/TRACKING.md). ICP starts from the motion m
 tracked motion per second times the time since the last tracked frame (``Frame.timestamp``), from that
 frame's pose, halved after a step whose speed changed (``slam.motion_damping``); a lost frame never feeds
 it. When that alignment fails the health checks (few inliers,
-large residual, ill-conditioned system, implausible jump) or is in doubt (inlier ratio below
-``slam.doubt_inlier_ratio``, residual above ``slam.doubt_residual`` × ``slam.max_residual``), ICP runs
+large residual, ill-conditioned system, implausible jump) or is in doubt (residual above
+``slam.doubt_residual_ratio`` × the median residual of the last tracked frames), ICP runs
 again from the last good pose, then from ORB + PnP against the last well-tracked frame
 (``slam.relocalise = "features"``), then, as a dense re-localisation, from the last good pose with a wider
 basin (``slam.relocalise_iterations``, ``slam.relocalise_level_dist_scale``). Every start aligns the same
@@ -49,6 +49,7 @@ when none passes is the frame lost: it is not fused, and it reports the motion m
 from __future__ import annotations
 
 import logging
+from collections import deque
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -75,6 +76,9 @@ IRREGULAR_FLOOR = 0.01
 # Between starts that converged to about the same pose the scores differ by noise: another start replaces the
 # motion model's alignment only when it fits better by more than this.
 SCORE_MARGIN = 0.02
+# The residual a start is judged against: the median of the last this many tracked frames (doubt is off until
+# half of them are there).
+RECENT_FRAMES = 10
 
 
 @dataclass
@@ -161,6 +165,7 @@ class DenseSLAM:
         self._velocity = np.zeros(6)  # last motion per second, twist (ω, v) of the camera-to-camera step
         self._last_stamp: float | None = None  # timestamp of the last tracked frame
         self._lost_streak = 0  # frames lost since the last tracked one
+        self._residuals: deque[float] = deque(maxlen=RECENT_FRAMES)  # ICP residuals of the last tracked frames
         self._frames_fused = 0
         self._colour_warned = False  # the warning that the photometric term is off for unregistered colour
         self._degeneracy_warned = False  # the warning that depth (and colour) leave directions unconstrained
@@ -322,10 +327,12 @@ class DenseSLAM:
         return float(fit.inlier_ratio * max(0.0, 1.0 - residual / self.config.slam.score_gate))
 
     def _doubtful(self, h: Hypothesis) -> bool:
-        """The alignment failed the checks, or passed them with a poor inlier ratio or residual."""
-        cfg = self.config.slam
-        return not h.ok or h.icp.inlier_ratio < cfg.doubt_inlier_ratio or \
-            h.icp.residual_rms > cfg.doubt_residual * cfg.max_residual
+        """The alignment failed the checks, or passed them with a residual well above the recent frames'."""
+        if not h.ok:
+            return True
+        if len(self._residuals) < RECENT_FRAMES // 2:
+            return False
+        return h.icp.residual_rms > self.config.slam.doubt_residual_ratio * float(np.median(self._residuals))
 
     def _health(self, icp: ICPResult, pose: np.ndarray, predicted: np.ndarray) -> str:
         cfg = self.config.slam
@@ -397,6 +404,8 @@ class DenseSLAM:
             self._velocity = step / dt * (cfg.motion_damping if irregular else 1.0)
         if result.tracked:
             self._last_stamp = timestamp
+            if result.icp is not None and np.isfinite(result.icp.residual_rms):
+                self._residuals.append(float(result.icp.residual_rms))
         self.poses.append(result.pose)
 
     # -- loop closure's door: ti_fusion/loop/closure.py uses these and nothing else of this class --------

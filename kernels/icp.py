@@ -442,6 +442,18 @@ def _build_kernels(real):
                     total[e] += partials[c, e]
         return total
 
+    @ti.func
+    def _kahan_total(partials: ti.template(), n_chunks, k):
+        """Sum ``k`` of the partials of ``n_chunks`` chunks, Kahan-compensated (float32 stays near float64)."""
+        s = ti.cast(0.0, real)
+        comp = ti.cast(0.0, real)
+        for c in range(n_chunks):
+            y = partials[c, k] - comp
+            s_new = s + y
+            comp = (s_new - s) - y
+            s = s_new
+        return s
+
     @ti.kernel
     def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32,
@@ -466,14 +478,7 @@ def _build_kernels(real):
                         out[k] = total[k]
         else:  # float32 (GPU backends): one thread per sum, Kahan-compensated to stay near float64
             for k in range(n_sums):
-                s = ti.cast(0.0, real)
-                comp = ti.cast(0.0, real)
-                for c in range(n_chunks):
-                    y = partials[c, k] - comp
-                    s_new = s + y
-                    comp = (s_new - s) - y
-                    s = s_new
-                out[k] = s
+                out[k] = _kahan_total(partials, n_chunks, k)
 
     @ti.func
     def _solve_cholesky(system):
@@ -578,14 +583,7 @@ def _build_kernels(real):
         if ti.static(real == ti.f32):  # one thread per sum, into the record
             for e in range(ti.select(runs, n_sums, 0)):
                 k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
-                s = ti.cast(0.0, real)
-                comp = ti.cast(0.0, real)
-                for c in range(n_chunks):
-                    y = partials[c, e] - comp
-                    s_new = s + y
-                    comp = (s_new - s) - y
-                    s = s_new
-                params[k, ti.select(e < N_SUMS, R_SUMS + e, R_COLOUR + e - N_SUMS)] = s
+                params[k, ti.select(e < N_SUMS, R_SUMS + e, R_COLOUR + e - N_SUMS)] = _kahan_total(partials, n_chunks, e)
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
         for _ in range(ti.select(runs, 1, 0)):
             k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)

@@ -67,8 +67,8 @@ def splat(position: Vec3Array, normal: Vec3Array, colour: Vec3Array, weight: Flo
         lo = ti.cast(ti.ceil((p - half) / voxel), ti.i32)
         hi = ti.cast(ti.floor((p + half) / voxel), ti.i32)
         na = pick(nrm, a)
-        for i1 in range(pick_i(lo, o1), pick_i(hi, o1) + 1):
-            for i2 in range(pick_i(lo, o2), pick_i(hi, o2) + 1):
+        for i1 in range(pick(lo, o1), pick(hi, o1) + 1):
+            for i2 in range(pick(lo, o2), pick(hi, o2) + 1):
                 s = pick(nrm, o1) * (i1 * voxel - pick(p, o1)) + pick(nrm, o2) * (i2 * voxel - pick(p, o2))
                 centre = pick(p, a) - s / na  # where this column meets the plane
                 hw = band / ti.abs(na)
@@ -81,19 +81,8 @@ def splat(position: Vec3Array, normal: Vec3Array, colour: Vec3Array, weight: Flo
 
 
 @ti.func
-def pick(v, k: ti.i32) -> ti.f32:
-    """Component ``k`` of a float 3-vector (a run-time index)."""
-    out = v.z
-    if k == 0:
-        out = v.x
-    elif k == 1:
-        out = v.y
-    return out
-
-
-@ti.func
-def pick_i(v, k: ti.i32) -> ti.i32:
-    """Component ``k`` of an integer 3-vector (a run-time index)."""
+def pick(v, k: ti.i32):
+    """Component ``k`` of a 3-vector (a run-time index), in the vector's own type."""
     out = v.z
     if k == 0:
         out = v.x

@@ -8,6 +8,7 @@ the values, so that 32-bit atomics can take a nearest depth on every backend.
 
 import numpy as np
 import taichi as ti
+from taichi.lang import impl
 
 from ti_fusion.geometry import flatten_pose
 from ti_fusion.sensor import SIGMA_1M, SIGMA_A, SIGMA_B, SIGMA_Z0
@@ -34,6 +35,47 @@ def rigid(pose: ti.template()):
 def rigid_arg(T: np.ndarray) -> np.ndarray:
     """A 4×4 rigid transform as a ``Rigid`` kernel argument: R row-major, then t, float32."""
     return flatten_pose(T).astype(np.float32)
+
+
+@ti.kernel
+def _write_pose_pair(to_world: Rigid, to_camera: Rigid,
+                     w0: ti.f32, w1: ti.f32, w2: ti.f32, w3: ti.f32, w4: ti.f32, w5: ti.f32,
+                     w6: ti.f32, w7: ti.f32, w8: ti.f32, w9: ti.f32, w10: ti.f32, w11: ti.f32,
+                     c0: ti.f32, c1: ti.f32, c2: ti.f32, c3: ti.f32, c4: ti.f32, c5: ti.f32,
+                     c6: ti.f32, c7: ti.f32, c8: ti.f32, c9: ti.f32, c10: ti.f32, c11: ti.f32):
+    for i in ti.static(range(12)):
+        to_world[i] = ti.static((w0, w1, w2, w3, w4, w5, w6, w7, w8, w9, w10, w11))[i]
+        to_camera[i] = ti.static((c0, c1, c2, c3, c4, c5, c6, c7, c8, c9, c10, c11))[i]
+
+
+class PoseArgs:
+    """A camera-to-world pose as the pair of ``Rigid`` arguments the map's kernels take: (to world, to camera).
+
+    On the CPU these are NumPy arrays, which a launch passes by address. On a GPU backend a NumPy argument is
+    copied to the device and back with a wait for the device at every launch, so there the pair is written
+    into two device arrays by one launch with scalar arguments, which queues behind the frame's other work.
+    The last pose is remembered: the stages of one frame convert it once.
+    """
+
+    def __init__(self):
+        self.on_host = impl.current_cfg().arch in (ti.x64, ti.arm64)
+        self._key = None
+        self._pair = None
+        if not self.on_host:
+            self._device = (ti.ndarray(ti.f32, 12), ti.ndarray(ti.f32, 12))
+
+    def __call__(self, pose: np.ndarray):
+        pose = np.asarray(pose, dtype=np.float64)
+        key = pose.tobytes()
+        if key != self._key:
+            to_world, to_camera = camera_to_world(pose), world_to_camera(pose)
+            if self.on_host:
+                self._pair = (to_world, to_camera)
+            else:
+                _write_pose_pair(*self._device, *to_world.tolist(), *to_camera.tolist())
+                self._pair = self._device
+            self._key = key
+        return self._pair
 
 
 def world_to_camera(pose: np.ndarray) -> np.ndarray:

@@ -15,7 +15,7 @@ import taichi as ti
 
 from ti_fusion.errors import MapCapacityError
 from ti_fusion.kernels import fusion, index_map, prediction
-from ti_fusion.kernels.common import camera_to_world, world_to_camera
+from ti_fusion.kernels.common import PoseArgs
 from ti_fusion.kernels.fusion import FusionImages
 from ti_fusion.kernels.prediction import PredictionImages
 from ti_fusion.kernels.surfels import Pool, SurfelStore
@@ -40,6 +40,7 @@ class SurfelMap(SurfelStore):
         # per-call results (fusion.C_*; one field serves every map)
         self.counts = Pool.field("step_counts", lambda: ti.field(ti.i32, shape=fusion.N_COUNTS))
         self._count_on_device = False  # a deferred add or removal changed the count: ``step_counts`` reads it
+        self._pose = Pool.field("pose_args", PoseArgs)  # (to world, to camera) of the last pose, on the device
 
     @property
     def count(self) -> int:
@@ -69,7 +70,7 @@ class SurfelMap(SurfelStore):
         img = self.fusion_images(height, width)
         index_map.clear(img.index_map)
         if self.count > 0:
-            index_map.project_surfels(self.arrays, self.count, img.index_map, world_to_camera(pose),
+            index_map.project_surfels(self.arrays, self.count, img.index_map, self._pose(pose)[1],
                                       *intrinsics.as_tuple(), False, 0.0, 0)
             index_map.build(self.arrays, self.count, img.index_map, with_index)
         self._projected = self.count
@@ -79,7 +80,7 @@ class SurfelMap(SurfelStore):
                   normal_threshold_deg: float) -> None:
         """Filter pass 2 into ``img.assoc``."""
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
-        fusion.associate(self.arrays, img, vertex, normal, camera_to_world(pose), dist_threshold, cos_threshold)
+        fusion.associate(self.arrays, img, vertex, normal, self._pose(pose)[0], dist_threshold, cos_threshold)
 
     def associate_compatible(self, pose: np.ndarray, intrinsics, vertex, normal, dist_threshold: float,
                              normal_threshold_deg: float) -> FusionImages:
@@ -90,8 +91,8 @@ class SurfelMap(SurfelStore):
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
         index_map.clear(img.index_map)
         if self.count > 0:
-            fusion.world_measurements(img, vertex, normal, camera_to_world(pose))
-            fusion.project_compatible(self.arrays, self.count, img, world_to_camera(pose), *intrinsics.as_tuple(),
+            fusion.world_measurements(img, vertex, normal, self._pose(pose)[0])
+            fusion.project_compatible(self.arrays, self.count, img, self._pose(pose)[1], *intrinsics.as_tuple(),
                                       dist_threshold, cos_threshold)
             index_map.build(self.arrays, self.count, img.index_map)
         self._projected = self.count
@@ -103,7 +104,7 @@ class SurfelMap(SurfelStore):
         """After ``merge``: unassociated pixels on the disc of a neighbour's merged surfel are not added
         (``img.assoc`` = COVERED). ``add(..., cover=...)`` does the same in its own pass; this is the test on
         its own (the counts it also makes are made again by ``add``)."""
-        fusion.count_segments(img, vertex, normal, camera_to_world(pose), dist_threshold,
+        fusion.count_segments(img, vertex, normal, self._pose(pose)[0], dist_threshold,
                               math.cos(math.radians(normal_threshold_deg)), True)
 
     def pass1_mask(self) -> np.ndarray:
@@ -118,7 +119,7 @@ class SurfelMap(SurfelStore):
         if self._projected > 0:
             if confidence:
                 img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
-            fusion.merge_listed(self.arrays, img, vertex, normal, camera_to_world(pose), intrinsics.fx,
+            fusion.merge_listed(self.arrays, img, vertex, normal, self._pose(pose)[0], intrinsics.fx,
                                 fusion.weight_bits(confidence, depth_weighted), int(has_colour), frame_index,
                                 int(anchor))
 
@@ -133,7 +134,7 @@ class SurfelMap(SurfelStore):
         it already has room for it, the count stays on the device, and None is returned; ``step_counts``
         reads what the step did, once, after ``remove(..., defer=True)``."""
         dist, angle = cover if cover is not None else (0.0, 0.0)
-        to_world = camera_to_world(pose)
+        to_world = self._pose(pose)[0]
         H, W = img.assoc.shape
         weights = fusion.weight_bits(confidence, depth_weighted)
         if confidence:
@@ -256,7 +257,7 @@ class SurfelMap(SurfelStore):
         Surfels last updated before frame ``min_time`` (inactive: ElasticFusion's time window) are left out.
         """
         img = self.prediction_images(intrinsics.height, intrinsics.width)
-        to_camera = world_to_camera(pose)
+        to_camera = self._pose(pose)[1]
         fx, fy, cx, cy = intrinsics.as_tuple()
         index_map.clear(img.index_map)
         if self.count > 0:

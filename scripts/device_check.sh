@@ -3,7 +3,7 @@
 # bench_slam.py on cuda, cpu and vulkan, and one table of it all (docs/PERFORMANCE.md, issue 29).
 #
 #   scripts/device_check.sh pack [--frames N]     # here, with network: wheels and data into .device/
-#   scripts/device_check.sh run  [--frames N] [--archs "cuda cpu vulkan"] [--out DIR] [--no-tests]
+#   scripts/device_check.sh run  [--frames N] [--archs "cuda cpu vulkan"] [--out DIR] [--no-tests] [--jobs J]
 #   scripts/device_check.sh run --dry-run          # print the commands only
 #
 # The lent GPU machine has no network; its Python (3.12) has numpy, OpenCV, matplotlib, pytest and
@@ -17,7 +17,8 @@
 # ``run`` installs the wheels with ``pip --no-index --target .device/site`` where Taichi is not importable,
 # puts that and the repository on PYTHONPATH, makes the ti_fusion.kernels mapping of an uninstalled copy
 # (the link ti_fusion/kernels -> ../kernels, which setup.py's package-dir mapping stands for in an install;
-# removed again at exit if it made it), then writes $OUT/device_check.md (default .device/out).
+# removed again at exit if it made it), then writes $OUT/device_check.md (default .device/out). --jobs J runs
+# the kernel tests on J pytest-xdist workers (default 0: in one process).
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -29,6 +30,7 @@ FRAMES=120
 ARCHS="cuda cpu vulkan"
 OUT="$DEVICE/out"
 TESTS=1
+JOBS=0
 DRY=0
 while [ $# -gt 0 ]; do
     case "$1" in
@@ -36,6 +38,7 @@ while [ $# -gt 0 ]; do
         --archs) ARCHS="$2"; shift 2 ;;
         --out) OUT="$2"; shift 2 ;;
         --no-tests) TESTS=0; shift ;;
+        --jobs) JOBS="$2"; shift 2 ;;
         --dry-run) DRY=1; shift ;;
         *) echo "device_check.sh: unknown option $1 (see the head of scripts/device_check.sh)" >&2; exit 2 ;;
     esac
@@ -46,7 +49,7 @@ KERNEL_TESTS="tests/kernels tests/tracking/test_icp.py tests/tracking/test_photo
 tests/mapping/test_corrections.py tests/mapping/test_mesh.py tests/loop/test_active_window.py tests/synthetic/test_scene.py"
 # What a slam run imports beyond the lent machine's own packages (pure Python, or binary wheels for cp312).
 WHEELS="mcap mcap-protobuf-support protobuf foxglove-schemas-protobuf foxglove-sdk zstandard lz4 rosbags ruamel.yaml
-ruamel.yaml.clib pyyaml"
+ruamel.yaml.clib pyyaml dill"
 
 PLATFORMS="--platform manylinux2014_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux_2_27_x86_64
 --platform manylinux_2_28_x86_64 --platform any"
@@ -120,7 +123,7 @@ run() {
     if [ "$TESTS" = 1 ]; then
         for arch in cuda vulkan; do
             # shellcheck disable=SC2086
-            say "$PY" -m pytest -q -p no:cacheprovider -n 0 $KERNEL_TESTS -k "$arch" -o addopts="" \
+            say "$PY" -m pytest -q -p no:cacheprovider -n "$JOBS" $KERNEL_TESTS -k "$arch" -o addopts="" \
                 2>&1 | tee "$OUT/tests_$arch.txt" | tail -1 || true
         done
     fi

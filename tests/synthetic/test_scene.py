@@ -117,7 +117,7 @@ def random_pose(rng: np.random.Generator) -> np.ndarray:
     return look_at(position, target, roll=float(rng.uniform(-0.5, 0.5)))
 
 
-def test_raycast_kernel_matches_reference(arch, rng):
+def test_scene_render_kernel_matches_reference(arch, rng):
     scene = random_scene(rng)
     cfg = SynthConfig(frames=1, width=64, height=48, fx=50.0, noise=False)
     seq = SyntheticSequence(cfg, scene=scene)
@@ -153,7 +153,7 @@ def test_raycast_kernel_matches_reference(arch, rng):
 # --------------------------------------------------------------------------------------------------
 def every_primitive(caster, pose, K, step, H, W):
     """Tile lists holding every primitive (planes first, then near to far, as the renderer orders them)."""
-    from ti_fusion.kernels import raycast as rc
+    from ti_fusion.kernels import scene_render as rc
 
     table = caster.table.astype(np.float64)
     bound = table[:, rc.BOUND]
@@ -193,7 +193,7 @@ def test_log_and_cos_of_the_noise_match_float64(arch):
     the inputs Box–Muller gives them: u1 in (0, 1] and u2 in [0, 1) in steps of 2⁻²⁴."""
     import taichi as ti
 
-    from ti_fusion.kernels.raycast import cos_turns, log_unit
+    from ti_fusion.kernels.scene_render import cos_turns, log_unit
 
     def evaluate(x, ln, cos):
         for i in x:

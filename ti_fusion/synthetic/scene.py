@@ -74,7 +74,7 @@ class SyntheticSequence:
     """
 
     def __init__(self, cfg: SynthConfig | None = None, scene: Scene | None = None):
-        from ti_fusion.kernels.raycast import RayCaster, SensorModel
+        from ti_fusion.kernels.scene_render import SceneRenderer, SensorModel
 
         self.cfg = cfg or SynthConfig()
         c = self.cfg
@@ -92,7 +92,7 @@ class SyntheticSequence:
         self.sensor = SensorModel(min_range=c.min_range, max_range=c.max_range, grazing_deg=c.grazing_deg,
                                   baseline=c.baseline, subpixel=c.subpixel, sensor_width=c.sensor_width,
                                   color_sigma=c.color_noise, depth_noise_scale=c.depth_noise_scale)
-        self._caster = RayCaster(self.scene.table())
+        self._caster = SceneRenderer(self.scene.table())
         self.last_labels: np.ndarray | None = None  # primitive index per pixel of the last render, −1 = none
 
     def __len__(self) -> int:

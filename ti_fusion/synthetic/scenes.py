@@ -21,7 +21,7 @@
               to ~23 cm and ~17°: wide baselines on low texture, where feature re-localisation has little to match.
 
 World frame as in ``shapes``: metres, z up. The loop scenes are centred under the renderer's point light
-(``kernels.raycast.LIGHT``) so their shading, like their geometry, is symmetric under a half turn about
+(``kernels.scene_render.LIGHT``) so their shading, like their geometry, is symmetric under a half turn about
 the centre (what makes the twins identical, light included). Paths are functions of time (seconds from
 the first frame) sampled at 30 Hz, except where a scene's ``times`` samples them otherwise (``jerky``,
 ``cabinet``); evaluated past their default length they go on (the loop keeps walking round, so ``frames``
@@ -46,7 +46,7 @@ def regular_times(frames: int) -> np.ndarray:
 M = Material
 
 # -- the loop ------------------------------------------------------------------------------------------
-LOOP_CENTER = np.array([0.4, -0.3])  # under kernels.raycast.LIGHT: shading symmetric under a half turn
+LOOP_CENTER = np.array([0.4, -0.3])  # under kernels.scene_render.LIGHT: shading symmetric under a half turn
 LOOP_OUTER = np.array([6.0, 4.0])    # half extents of the outside walls
 LOOP_BLOCK = np.array([4.0, 2.0])    # half extents of the central block
 LOOP_HEIGHT = 2.6
@@ -325,7 +325,7 @@ def jerky_path(times: np.ndarray) -> np.ndarray:
 
 
 # -- a low-texture object circled ----------------------------------------------------------------------
-CABINET_CENTER = (0.4, -0.3)   # under kernels.raycast.LIGHT
+CABINET_CENTER = (0.4, -0.3)   # under kernels.scene_render.LIGHT
 CABINET_HALF = (0.45, 0.3, 0.5)  # metres: a waist-high cabinet
 CABINET_STRIDE = 20            # one frame every 20th of the 30 Hz path (0.67 s apart)
 CABINET_RADIUS = 1.55          # metres: the camera's mean distance from the cabinet's axis

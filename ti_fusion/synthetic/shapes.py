@@ -6,7 +6,7 @@ x right, y down, z forward (as every loader's). Poses are camera-to-world.
 
 The scene is a list of analytic primitives (walls, boxes rotated about z, spheres, vertical cylinders),
 each with a procedural material; ``Scene.table()`` packs them for the ray caster in
-``ti_fusion.kernels.raycast`` and ``Scene.distances`` gives exact point-to-surface distances, so tests
+``ti_fusion.kernels.scene_render`` and ``Scene.distances`` gives exact point-to-surface distances, so tests
 can check that reconstructed points lie on the true surfaces. The other scenes are in ``scenes.py``; the
 sequence that renders them is in ``scene.py``.
 """
@@ -85,8 +85,8 @@ class Scene:
         return len(self.primitives)
 
     def table(self) -> np.ndarray:
-        """P × NUM_COLUMNS float32 rows as ``ti_fusion.kernels.raycast`` reads them."""
-        from ti_fusion.kernels import raycast as rc
+        """P × NUM_COLUMNS float32 rows as ``ti_fusion.kernels.scene_render`` reads them."""
+        from ti_fusion.kernels import scene_render as rc
 
         patterns = {"checker": rc.CHECKER, "tiles": rc.TILES, "bricks": rc.BRICKS, "plaid": rc.PLAID,
                     "blobs": rc.BLOBS}

@@ -168,7 +168,7 @@ def to_world(l, c, s):
 @ti.func
 def intersect(prims: ti.template(), seen: ti.template(), k, d):
     """Distance along the unit ray d from the camera to primitive k's front surface; NO_HIT when missed.
-    ``seen`` holds what depends on the camera position alone (``RayCaster._seen_from``)."""
+    ``seen`` holds what depends on the camera position alone (``SceneRenderer._seen_from``)."""
     kind = ti.cast(prims[k, KIND], ti.i32)
     oc = ti.Vector([seen[k, REL], seen[k, REL + 1], seen[k, REL + 2]])  # camera − centre
     t = NO_HIT
@@ -478,7 +478,7 @@ def render_kernel(
                         color[v, u0 + g * LANES + l, c] = q[c][l]
 
 
-class RayCaster:
+class SceneRenderer:
     """Renders a primitive table (rows as above) from any camera pose."""
 
     def __init__(self, table: np.ndarray):

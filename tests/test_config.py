@@ -1,21 +1,29 @@
-"""The typed config: sections, overrides, and settings that moved section."""
+"""The typed config: sections, overrides, and settings that were removed."""
 
 import pytest
 
-from ti_fusion.config import Config, load_config
+from ti_fusion.config import REMOVED, Config, load_config
 from ti_fusion.errors import InputError
 
 
-def test_maps_section_and_moved_keys(tmp_path):
+def test_maps_section_and_removed_keys(tmp_path):
     cfg = load_config(None, ["maps.depth_smooth_radius=3", "maps.normal_max_depth_jump=0.07"])
     assert cfg.maps.depth_smooth_radius == 3 and cfg.maps.normal_max_depth_jump == 0.07
-    # the frame-map settings used to be in [icp]: the old names set the new ones
-    path = tmp_path / "old.toml"
-    path.write_text("[icp]\ndepth_smooth_radius = 2\npyramid_depth_sigma = 0.02\ndist_threshold = 0.05\n")
-    cfg = load_config(path)
-    assert (cfg.maps.depth_smooth_radius, cfg.maps.pyramid_depth_sigma, cfg.icp.dist_threshold) == (2, 0.02, 0.05)
-    assert not hasattr(cfg.icp, "depth_smooth_radius")
     assert "maps" in Config().to_dict()
+    # the frame-map settings used to be in [icp]: the old name is one line saying where it went
+    path = tmp_path / "old.toml"
+    path.write_text("[icp]\ndepth_smooth_radius = 2\ndist_threshold = 0.05\n")
+    with pytest.raises(InputError, match=r"icp.depth_smooth_radius was removed: moved to maps.depth_smooth_radius$"):
+        load_config(path)
+
+
+@pytest.mark.parametrize("key", sorted(f"{s}.{k}" for s, k in REMOVED))
+def test_a_removed_setting_is_one_line_naming_it(key):
+    with pytest.raises(InputError, match=rf"^--set: {key} was removed: \S") as info:
+        load_config(None, [f"{key}=1"])
+    assert "\n" not in str(info.value)
+    section, name = key.split(".")
+    assert name not in Config().to_dict()[section]
 
 
 def test_unknown_setting_is_one_clear_line():

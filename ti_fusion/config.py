@@ -325,7 +325,6 @@ class ICPConfig:
                                      # 10.1 iterations per frame)
     level_dist_scale: Positive = 2.0  # d_thr at pyramid level l is dist_threshold · level_dist_scale**l (coarse
                                       # levels gate wider)
-    converged_update: Positive = 1e-4  # result.converged: the last ‖δξ‖ (rad, m) fell below this
     color_weight: NonNegative = 0.0  # weight of the photometric term's normal equations beside ICP's (intensity
                                      # in [0, 1] against metres); 0 = depth only. Off where colour is not
                                      # registered to depth. 0.01 measured best on wall/corridor/room
@@ -484,11 +483,6 @@ class LoopConfig:
     odometry_sigma_deg: Positive = 0.5  # and of its rotation, degrees
     odometry_from_icp: bool = False  # pose graph: shape each odometry edge's covariance by the tracked frames' ICP
                                      # AᵀA (directions ICP could not observe get large variance; docs/LOOP_CLOSURE.md)
-    odometry_info_ratio: Fraction = 1.0  # odometry_from_icp: a direction whose AᵀA eigenvalue (whitened by the sigmas
-                                     # above) is below this fraction of the largest gets variance × ratio / eigenvalue
-                                     # (1: the inverse information, the strongest direction at the sigmas above)
-    odometry_max_scale: Annotated[float, Range(ge=1)] = 1e6  # odometry_from_icp: that variance factor at most
-                                     # (dimensionless; 1e6 = the sigma × 1000); untracked frames get it in every direction
     keyframe_pnp: bool = False       # pose graph: also an edge between consecutive keyframes from PnP RANSAC on
                                      # their ORB features (loop sigmas, Huber): their motion observed apart from ICP
     loop_sigma_m: Positive = 0.02    # standard deviation of a loop edge's translation, metres
@@ -497,7 +491,6 @@ class LoopConfig:
                                      # Geman–McClure by graduated non-convexity (GTSAM's GncLMOptimizer), which
                                      # also closes loops that start many sigmas away; cauchy / huber: plain LM
     robust_scale: Positive = 1.0     # cauchy / huber: the kernel's k, in standard deviations of the loop edge
-    gnc_min_weight: Fraction = 0.1   # gnc: a loop edge whose final weight is below this is an outlier (dropped)
     max_loop_error: Positive = 5.0   # after optimisation a loop edge further than this (its standard deviations,
                                      # Mahalanobis over 6 components) from the optimised poses was rejected by the
                                      # kernel: the poses and the map are left as they were
@@ -628,18 +621,26 @@ def check_config(config: Config, where: str = "config") -> Config:
 
 
 def _set_field(config: Config, section: str, key: str, value: Any, where: str) -> None:
-    """Set ``section.key`` (or the setting it moved to) to ``value`` checked against its rule."""
-    to_section, to_key = MOVED.get((section, key), (section, key))
-    section_obj = getattr(config, to_section)
+    """Set ``section.key`` to ``value`` checked against its rule."""
+    section_obj = getattr(config, section)
     names = {f.name for f in dataclasses.fields(section_obj)}
-    if to_key not in names:
+    if key not in names:
+        if (section, key) in REMOVED:
+            raise InputError(None, f"{where}: {section}.{key} was removed: {REMOVED[section, key]}")
         raise InputError(None, f"{where} [{section}]: unknown setting {key!r} (known: {', '.join(sorted(names))})")
-    setattr(section_obj, to_key, check_value(to_section, to_key, value, where))
+    setattr(section_obj, key, check_value(section, key, value, where))
 
 
-# Settings that moved to another section: the old name still sets the new one.
-MOVED = {("icp", name): ("maps", name)
-         for name in ("normal_max_depth_jump", "pyramid_depth_sigma", "depth_smooth_radius")}
+# Settings that are gone, with what replaced them, so an old config file is told why in its one error line
+# (what each removed ablation measured is in docs/BENCHMARKS.md, "Settled and removed settings").
+REMOVED = {
+    **{("icp", name): f"moved to maps.{name}" for name in ("normal_max_depth_jump", "pyramid_depth_sigma",
+                                                             "depth_smooth_radius")},
+    ("icp", "converged_update"): "the result is converged when the last update is below icp.stop_update",
+    ("loop", "odometry_info_ratio"): "fixed at 1 (the inverse information; docs/BENCHMARKS.md)",
+    ("loop", "odometry_max_scale"): "fixed at 1e6 (docs/BENCHMARKS.md)",
+    ("loop", "gnc_min_weight"): "fixed at 0.1 (GNC leaves outliers near 0; docs/BENCHMARKS.md)",
+}
 
 
 def apply_dict(config: Config, data: dict, where: str = "config", base: Path | None = None) -> Config:
@@ -687,7 +688,7 @@ def parse_override(text: str) -> tuple[str, str, Any]:
         value = ast.literal_eval(rhs)
     except (ValueError, SyntaxError):
         value = rhs
-    if not isinstance(value, str) and _kind(*MOVED.get((section, key), (section, key))) is str:
+    if not isinstance(value, str) and _kind(section, key) is str:
         value = rhs
     return section, key, value
 

@@ -6,7 +6,7 @@ import pytest
 
 from ti_fusion.config import LoopConfig
 from ti_fusion.geometry import invert, se3_exp
-from ti_fusion.loop.pose_graph import PoseGraph, adjoint, edge_covariance, frame_covariance
+from ti_fusion.loop.pose_graph import ODOMETRY_MAX_SCALE, PoseGraph, adjoint, edge_covariance, frame_covariance
 
 K = 40  # keyframes around a circle of 2 m radius
 
@@ -147,8 +147,8 @@ def test_frame_covariance_is_the_constant_sigmas_where_observed_and_large_where_
     assert np.allclose(frame_covariance(strong, config), D2)
     strong[3, 3] = 0.0
     weak = frame_covariance(strong, config)
-    assert np.isclose(weak[3, 3], config.odometry_max_scale * config.odometry_sigma_m ** 2)
-    assert np.allclose(frame_covariance(None, config), D2 * config.odometry_max_scale)
+    assert np.isclose(weak[3, 3], ODOMETRY_MAX_SCALE * config.odometry_sigma_m ** 2)
+    assert np.allclose(frame_covariance(None, config), D2 * ODOMETRY_MAX_SCALE)
 
 
 def test_relative_edges_place_two_opposite_slides_that_one_loop_sees_as_their_net(rng):

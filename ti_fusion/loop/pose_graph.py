@@ -11,7 +11,7 @@ The default kernel is Geman–McClure, minimised by graduated non-convexity (GTS
 Yang et al. 2020) with the odometry edges and the prior known inliers: it starts from the convex (least
 squares) problem and makes the kernel less convex step by step, so a true loop that starts tens of
 standard deviations away (drift) is still pulled closed, while a loop that contradicts the odometry chain
-ends with a weight near zero. Loops whose final weight is below ``loop.gnc_min_weight`` are outliers;
+ends with a weight near zero. Loops whose final weight is below ``GNC_MIN_WEIGHT`` are outliers;
 the poses are then polished by Levenberg–Marquardt over the odometry and the inlier loops (Gaussian).
 Plain LM with a Cauchy or Huber kernel (``loop.robust = "cauchy"`` / ``"huber"``) from the drifted
 estimate leaves such a loop open: its residual starts where the kernel's weight is already tiny.
@@ -33,6 +33,11 @@ from ti_fusion.config import LoopConfig
 from ti_fusion.geometry import hat, invert, renormalize, se3_log
 
 PRIOR_SIGMA = 1e-6  # radians and metres: the first keyframe does not move
+# With odometry_from_icp, a whitened direction weaker than the strongest gets variance × 1 / (λ/λmax): the inverse
+# information, scaled so that the strongest keeps the constant sigma (the ratio 0.01 tried first did worse).
+ODOMETRY_INFO_RATIO = 1.0
+ODOMETRY_MAX_SCALE = 1e6  # that variance factor at most (the sigma × 1000); an untracked frame's in every direction
+GNC_MIN_WEIGHT = 0.1  # a loop edge that GNC leaves with a weight below this is an outlier (GNC drives them to ~0)
 
 
 @dataclass
@@ -81,11 +86,11 @@ def frame_covariance(AtA: np.ndarray | None, config: LoopConfig) -> np.ndarray:
     """One tracked frame's share of an odometry edge's covariance, in its camera's frame ((ω, v), right
     perturbation of its camera-to-world pose), before the 1/frames scaling: the constant sigmas' diagonal D², reshaped
     by ICP's geometric AᵀA. Whitened by D, the eigen-directions whose eigenvalue is at least
-    ``odometry_info_ratio`` of the largest keep variance 1 (the constant sigma); weaker ones get
-    ``odometry_info_ratio / (λ/λmax)``, at most ``odometry_max_scale``. No (or a non-finite, or zero) AᵀA: the
+    ``ODOMETRY_INFO_RATIO`` of the largest keep variance 1 (the constant sigma); weaker ones get
+    ``ODOMETRY_INFO_RATIO / (λ/λmax)``, at most ``ODOMETRY_MAX_SCALE``. No (or a non-finite, or zero) AᵀA: the
     maximum in every direction (a frame that was not tracked)."""
     D = np.diag(_sigmas(config.odometry_sigma_deg, config.odometry_sigma_m))
-    scale = np.full(6, config.odometry_max_scale)
+    scale = np.full(6, ODOMETRY_MAX_SCALE)
     vec = np.eye(6)
     if AtA is not None and np.all(np.isfinite(AtA)):
         Hw = D @ np.asarray(AtA, dtype=np.float64) @ D
@@ -93,7 +98,7 @@ def frame_covariance(AtA: np.ndarray | None, config: LoopConfig) -> np.ndarray:
         if lam[-1] > 0:
             ratio = np.maximum(lam, 0.0) / lam[-1]
             with np.errstate(divide="ignore"):
-                scale = np.clip(config.odometry_info_ratio / ratio, 1.0, config.odometry_max_scale)
+                scale = np.clip(ODOMETRY_INFO_RATIO / ratio, 1.0, ODOMETRY_MAX_SCALE)
         else:
             vec = np.eye(6)
     return D @ (vec * scale) @ vec.T @ D
@@ -182,7 +187,7 @@ class PoseGraph:
             optimizer = gtsam.GncLMOptimizer(graph, initial, params)
             initial = optimizer.optimize()
             weights = np.asarray(optimizer.getWeights())[-len(loops):]
-            inliers = [e for e, w in zip(loops, weights) if w >= self.config.gnc_min_weight]
+            inliers = [e for e, w in zip(loops, weights) if w >= GNC_MIN_WEIGHT]
         graph = self._graph(inliers, self._loop_gaussian if gnc else self._loop_noise)
         start = gtsam.Values()
         for k, pose in enumerate(self.poses):

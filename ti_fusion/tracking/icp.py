@@ -54,7 +54,7 @@ class ICPResult:
 
     pose: 4×4 float64, source camera → target camera (p_target = T p_source). On a failure, the last
     good estimate (the pose before the degenerate iteration).
-    converged: no failure and the last update ‖δξ‖ is below ``config.converged_update``.
+    converged: no failure and the last update ‖δξ‖ is below ``config.stop_update`` (the level's stop test).
     failure: None, or a short reason ("too few inliers (12 < 100)", "ill-conditioned AᵀA (cond ...)").
     inliers, inlier_ratio (inliers / valid source pixels), residual_rms (metres), condition (cond AᵀA),
     update_norm: of the last iteration that ran.
@@ -188,7 +188,7 @@ class ICP:
                 return n_levels - 1 - level, it
             result.iterations[-1].update_norm = result.update_norm = float(record[R_UPDATE])
         result.pose = kernels.pose()
-        result.converged = result.update_norm < cfg.converged_update
+        result.converged = result.update_norm < cfg.stop_update
         return None
 
     def _align_in_python(self, kernels: PointToPlane, source, target, schedule, result: ICPResult,
@@ -207,7 +207,7 @@ class ICP:
                 result.iterations[-1].update_norm = result.update_norm = float(np.linalg.norm(delta))
                 if result.update_norm < cfg.stop_update:
                     break
-        result.converged = result.update_norm < cfg.converged_update
+        result.converged = result.update_norm < cfg.stop_update
 
     def _record(self, result: ICPResult, level: int, it: int, sums: np.ndarray) -> dict | None:
         """Record an iteration's sums in ``result`` and check its system: the unpacked sums, or None (with

@@ -381,13 +381,6 @@ class FusionConfig:
     render_min_weight: NonNegative = 0.0  # rendering for tracking: only surfels at least this confident (Keller's
                                      # stable points; from frame unstable_age on, before that all surfels).
                                      # Redkitchen 500 frames: 1 / 2 / 4 → ATE 2.77 / 2.81 / 2.80 cm vs 2.73 at 0
-    render_max_half: NonNegativeInt = 0  # rendering for tracking: a surfel's disc reaches at most this many pixels
-                                     # from its centre. 0: each pixel shows its own front surfel; 1 dilated
-                                     # occluding edges by a pixel and cost ATE (redkitchen 320×240: 4.5 → 3.4 cm)
-    render_fill_half: NonNegativeInt = 1  # rendering for tracking: before the model's pyramid is built, a pixel no
-                                     # surfel projects to takes the nearest disc its ray meets within this many
-                                     # pixels (with render_max_half 0, level 0 keeps the surfels' own pixels). 0: the
-                                     # coarse levels empty out when the camera walks forward (synthetic loop lost)
     view_back: Annotated[float, Range()] = 1.0  # PNG views: metres the first camera is pulled back along its axis
 
     def map_level(self, width: int) -> int:
@@ -639,6 +632,8 @@ REMOVED = {
     ("icp", "converged_update"): "the result is converged when the last update is below icp.stop_update",
     ("loop", "odometry_info_ratio"): "fixed at 1 (the inverse information; docs/BENCHMARKS.md)",
     ("loop", "odometry_max_scale"): "fixed at 1e6 (docs/BENCHMARKS.md)",
+    ("fusion", "render_max_half"): "fixed at 0: each surfel at its own pixel (1 cost ATE; docs/BENCHMARKS.md)",
+    ("fusion", "render_fill_half"): "fixed at 1, coarse levels only (0 lost the synthetic loop; BENCHMARKS.md)",
     ("loop", "gnc_min_weight"): "fixed at 0.1 (GNC leaves outliers near 0; docs/BENCHMARKS.md)",
 }
 

@@ -6,7 +6,7 @@ pixel (``fusion.skip_covered``), so a render that shows each surfel at its own p
 lattice up to two pixels wide. A coarse pyramid pixel exists only where its centre fine pixel has depth,
 so the coarse levels aliased against that lattice and emptied: on the synthetic corridor loop tracking
 was lost at the coarsest level. ``SurfelMapper.render_maps`` therefore builds the pyramid from a render
-whose holes take a neighbour's disc (``fusion.render_fill_half``), and level 0 keeps the surfels' own
+whose holes take a neighbour's disc (``mapper.FILL_HALF``), and level 0 keeps the surfels' own
 pixels (filling it too doubled the synthetic room's ATE).
 """
 
@@ -15,6 +15,7 @@ import numpy as np
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import FusionConfig, MapsConfig
 from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.mapping import mapper
 from ti_fusion.mapping.mapper import SurfelMapper
 
 K = Intrinsics(fx=64.0, fy=64.0, cx=39.5, cy=29.5, width=80, height=60)
@@ -28,10 +29,10 @@ def wall_depth(c: float) -> np.ndarray:
     return ((3.0 - c) / (1.0 + 0.3 * (u - K.cx) / K.fx)).astype(np.float32)
 
 
-def walk(fill_half: int) -> tuple[np.ndarray, list[np.ndarray]]:
+def walk() -> tuple[np.ndarray, list[np.ndarray]]:
     """Fuse the wall at known poses while walking towards it. Before each frame, the prediction at its pose:
     per step the fraction of pixels with depth at levels 0, 1, 2, and level 0's depth."""
-    mapper = SurfelMapper(FusionConfig(capacity=100_000, render_fill_half=fill_half))
+    mapper = SurfelMapper(FusionConfig(capacity=100_000))
     maps = FrameMaps(RAW, K.height, K.width, levels=1)
     predicted = FrameMaps(RAW, K.height, K.width, levels=3)
     covered, level0 = [], []
@@ -48,11 +49,12 @@ def walk(fill_half: int) -> tuple[np.ndarray, list[np.ndarray]]:
     return np.array(covered), level0
 
 
-def test_coarse_levels_stay_dense_walking_forward(cpu):
-    filled, level0 = walk(1)
+def test_coarse_levels_stay_dense_walking_forward(cpu, monkeypatch):
+    filled, level0 = walk()
     assert filled[:, 1:].min() > 0.95, filled
     # what the default prevents: without the fill, level 0 thins out and the coarse levels alias against it
-    sparse, level0_sparse = walk(0)
+    monkeypatch.setattr(mapper, "FILL_HALF", 0)
+    sparse, level0_sparse = walk()
     assert sparse[-1, 0] < 0.8 and sparse[-1, 2] < filled[-1, 2] - 0.15, sparse
     # level 0 is the surfels' own pixels either way
     for a, b in zip(level0, level0_sparse):

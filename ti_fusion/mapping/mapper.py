@@ -27,6 +27,10 @@ from ti_fusion.kernels.surfel_map import SurfelMap
 from ti_fusion.timing import StageTimer
 
 STAGES = ("project", "filter", "merge", "add", "remove")
+# The prediction for tracking shows each surfel at its own pixel (a disc reaching a pixel further dilated occluding
+# edges and cost ATE), and builds its coarse levels from a render whose holes take the nearest disc within this
+# many pixels (without it they empty out walking forward; docs/BENCHMARKS.md, "Settled and removed settings").
+FILL_HALF = 1
 
 
 @dataclass
@@ -142,8 +146,7 @@ class SurfelMapper:
     def render(self, pose: np.ndarray, intrinsics: Intrinsics, out_vertex, out_normal, out_depth) -> None:
         """Predicted camera-frame vertex / normal / depth maps at ``pose`` (zero where no surfel): one level,
         so without the hole fill that ``render_maps`` gives the coarse levels."""
-        self.map.render(pose, intrinsics, out_vertex, out_normal, out_depth, self.config.render_min_weight,
-                        self.config.render_max_half)
+        self.map.render(pose, intrinsics, out_vertex, out_normal, out_depth, self.config.render_min_weight, 0)
 
     def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics,
                     min_weight: float | None = None, min_time: int = -2**31) -> None:
@@ -154,19 +157,17 @@ class SurfelMapper:
         (inactive: ElasticFusion's time window, ``slam.active_window``) are left out.
 
         The pyramid is built from a render whose holes (pixels no surfel projects to) take a neighbour's
-        disc (``fusion.render_fill_half``); with ``render_max_half`` = 0, level 0 then goes back to the
-        surfels' own pixels. Why: surfels fused from afar lie up to two pixels apart once the camera comes
-        nearer (fusion adds none where a neighbour's disc covers the pixel), and a coarse pixel exists only
-        where its centre fine pixel has depth, so the coarse levels emptied (tracking lost on the synthetic
-        corridor loop); filled at level 0 too, the synthetic room's ATE doubled (docs/KERNELS.md)."""
+        disc (``FILL_HALF``); level 0 then goes back to the surfels' own pixels. Why: surfels fused from afar
+        lie up to two pixels apart once the camera comes nearer (fusion adds none where a neighbour's disc
+        covers the pixel), and a coarse pixel exists only where its centre fine pixel has depth, so the coarse
+        levels emptied (tracking lost on the synthetic corridor loop); filled at level 0 too, the synthetic
+        room's ATE doubled (docs/KERNELS.md)."""
         if min_weight is None:
             min_weight = self.config.render_min_weight
-        cfg = self.config
         level0 = frame_maps.vertex[0], frame_maps.normal[0], frame_maps.depth[0]
-        self.map.render(pose, intrinsics, *level0, min_weight, cfg.render_max_half, cfg.render_fill_half,
-                        min_time)
+        self.map.render(pose, intrinsics, *level0, min_weight, 0, FILL_HALF, min_time)
         frame_maps.compute_from_field(intrinsics, level0_maps=False)
-        if cfg.render_max_half == 0 < cfg.render_fill_half:
+        if FILL_HALF > 0:
             self.map.clear_holes(intrinsics, *level0)
 
     def render_image(self, pose: np.ndarray, intrinsics: Intrinsics, by_normal: bool = False) -> np.ndarray:

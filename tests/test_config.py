@@ -177,3 +177,29 @@ def test_relative_paths_in_a_config_file_are_relative_to_the_file(tmp_path, monk
     assert load_config(path).dataset.intrinsics == "525,525,319.5,239.5"
     # --set paths stay the working directory's
     assert load_config(path, ["dataset.path=seq"]).dataset.path == "seq"
+
+
+# --------------------------------------------------------------------------------------------------
+# docs/CONFIG.md: every key, generated from this module, main settings and advanced ones apart
+# --------------------------------------------------------------------------------------------------
+def test_docs_config_is_what_config_py_gives(script):
+    """A key added, removed or changed without ``python scripts/config_doc.py`` fails here."""
+    assert script("config_doc").main(["--check"]) == 0, "docs/CONFIG.md is out of date: python scripts/config_doc.py"
+
+
+def test_every_key_has_a_meaning_and_the_advanced_list_names_real_keys(script):
+    import dataclasses
+    from pathlib import Path
+
+    from ti_fusion import config as config_module
+    from ti_fusion.config import ADVANCED
+
+    comments = script("config_doc").field_comments(Path(config_module.__file__).read_text(encoding="utf-8"))
+    sections = {f.name: type(getattr(Config(), f.name)) for f in dataclasses.fields(Config)}
+    for name, section_type in sections.items():
+        for f in dataclasses.fields(section_type):
+            assert comments.get((section_type.__name__, f.name)), f"{name}.{f.name} has no comment in config.py"
+    for name, keys in ADVANCED.items():
+        assert set(keys) <= {f.name for f in dataclasses.fields(sections[name])}, name
+    for section, key in REMOVED:
+        assert key not in {f.name for f in dataclasses.fields(sections[section])}, (section, key)

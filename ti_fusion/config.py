@@ -288,8 +288,8 @@ class SynthConfig:
                                     # one frame per pose at the file's timestamps; "" = the scene's own path
     frames: NonNegativeInt = 0      # frames in the embedded synthetic sequence; 0 = the scene's own length
                                     # (room 120, ~4 s at 30 Hz; a trajectory file: all its poses)
-    width: Count = 640
-    height: Count = 480
+    width: Count = 640              # pixels: image width
+    height: Count = 480             # pixels: image height
     fx: Positive = 525.0            # fx = fy; principal point at the image centre
     noise: bool = True              # Kinect-like depth noise (axial Gaussian, quantisation, dropouts)
     seed: NonNegativeInt = 0        # same seed → same frames
@@ -302,7 +302,7 @@ class SynthConfig:
     sensor_width: Count = 640       # ... of a sensor this wide with the same field of view (fx · sensor_width / width)
     color_noise: NonNegative = 2.0  # grey levels: Gaussian noise per colour channel (noise on)
     depth_noise_scale: NonNegative = 1.0  # the axial depth noise is this × the sensor's σ(z) (ti_fusion/sensor.py;
-                                    # dimensionless, noise on): more noise, more drift (the loop scene, issue 22)
+                                    # dimensionless, noise on): more noise, more drift (docs/DATA.md)
 
 
 @dataclass
@@ -316,13 +316,12 @@ class ICPConfig:
     robust_scale: Positive = 0.01    # metres: Huber's k or Tukey's c (at 1 m depth with depth_weighting)
     depth_weighting: bool = True     # weight residuals by Kinect's depth noise σ(z) at the target point:
                                      # residual / σ(z) into the robust weight, times 1/σ(z)² (both relative
-                                     # to 1 m); redkitchen 500 frames: ATE 6.9 → 4.7 cm
+                                     # to 1 m); off doubled redkitchen's ATE (docs/BENCHMARKS.md, Ablations)
     min_inliers: Annotated[int, Range(ge=6)] = 100  # fewer correspondences → degenerate, reported as a failure
                                      # (the 6×6 system needs six at the very least)
     max_condition: Annotated[float, Range(ge=1)] = 1e7  # cond(AᵀA) above this → degenerate (cond is >= 1)
     stop_update: NonNegative = 1e-4  # stop a level when ‖δξ‖ (rad, m) falls below this: 0.1 mm, below the
-                                     # noise (redkitchen 500 frames: 1e-5 → 1e-4 gave the same ATE with 13.3 →
-                                     # 10.1 iterations per frame)
+                                     # noise; also what ICPResult.converged tests
     level_dist_scale: Positive = 2.0  # d_thr at pyramid level l is dist_threshold · level_dist_scale**l (coarse
                                       # levels gate wider)
     color_weight: NonNegative = 0.0  # weight of the photometric term's normal equations beside ICP's (intensity
@@ -346,8 +345,7 @@ class MapsConfig:
                                             # neighbours within 3σ of the centre depth (no mixing across edges)
     depth_smooth_radius: Annotated[int, Range(ge=-1)] = -1
                                      # edge-preserving (2r+1)² depth mean before the maps; 0 = raw; -1 = auto,
-                                     # width // 50 (12 px at 640, 6 at 320). Redkitchen 500 frames, 640×480 with
-                                     # the map at 320×240: r = 2 → 3.95 cm, 6 → 2.98, 12 → 2.67, 24 → 2.69
+                                     # width // 50 (12 px at 640, 6 at 320; docs/BENCHMARKS.md has the sweep)
 
     def smooth_radius(self, width: int) -> int:
         """``depth_smooth_radius`` for maps ``width`` pixels wide (resolves -1 = auto)."""
@@ -360,15 +358,15 @@ class FusionConfig:
     level: Annotated[int, Range(ge=-1)] = -1
                                      # pyramid level the map is fused from and rendered at for tracking: 0 = the
                                      # input resolution, 1 = half (range-checked 3×3 mean, ¼ the surfels); -1 =
-                                     # auto, the finest level at most 320 px wide. Redkitchen 500 frames at
-                                     # 640×480: level 0 → 4.6 cm at 3.0 fps, level 1 → 4.0 cm at 9.4 fps
+                                     # auto, the finest level at most 320 px wide (on redkitchen more accurate
+                                     # and faster than 640×480: docs/BENCHMARKS.md)
     grow: bool = True                # when full: reallocate ×2 (True) or stop with an error (False)
     dist_threshold: Positive = 0.03  # metres: stricter than ICP association
-    normal_threshold_deg: Degrees = 20.0
+    normal_threshold_deg: Degrees = 20.0  # max angle between a pixel's normal and the surfel's it merges into
     confidence_weighting: bool = True  # weight measurements by radial distance from the image centre
     remove_unstable: bool = True     # drop surfels with low confidence not seen for `unstable_age` frames
-    unstable_weight: NonNegative = 3.0
-    unstable_age: NonNegativeInt = 20
+    unstable_weight: NonNegative = 3.0  # confidence below which a surfel is unstable (at or above: confirmed)
+    unstable_age: NonNegativeInt = 20  # frames an unstable surfel may go unseen before it is removed
     remove_free_space: bool = False  # drop surfels observed clearly in front of the measured surface
     free_space_margin: NonNegative = 0.05  # metres
     depth_weighting: bool = False    # measurement weight also × (σ(1 m)/σ(z))², capped at 4 (Kinect depth noise)
@@ -380,7 +378,7 @@ class FusionConfig:
                                      # surfel (keeps the map from growing at every frame)
     render_min_weight: NonNegative = 0.0  # rendering for tracking: only surfels at least this confident (Keller's
                                      # stable points; from frame unstable_age on, before that all surfels).
-                                     # Redkitchen 500 frames: 1 / 2 / 4 → ATE 2.77 / 2.81 / 2.80 cm vs 2.73 at 0
+                                     # Above 0 did not help on redkitchen (docs/BENCHMARKS.md)
     view_back: Annotated[float, Range()] = 1.0  # PNG views: metres the first camera is pulled back along its axis
 
     def map_level(self, width: int) -> int:
@@ -415,7 +413,7 @@ class SLAMConfig:
     min_inlier_ratio: Fraction = 0.15  # below → tracking failure (frame not fused)
     max_residual: Positive = 0.02    # metres RMS: above → tracking failure
     max_update_deg: Positive = 20.0  # pose change against the motion model above this → failure
-    max_update_m: Positive = 0.3
+    max_update_m: Positive = 0.3     # ... and this (metres) → failure
     relocalise: Annotated[str, OneOf("features", "none")] = "features"
                                      # after a failure, re-initialise with ORB+PnP (features) or not (none)
     anchor_to_ground_truth: bool = True  # start at the first frame's GT pose (same frame as GT in viewers)
@@ -635,6 +633,31 @@ REMOVED = {
     ("fusion", "render_max_half"): "fixed at 0: each surfel at its own pixel (1 cost ATE; docs/BENCHMARKS.md)",
     ("fusion", "render_fill_half"): "fixed at 1, coarse levels only (0 lost the synthetic loop; BENCHMARKS.md)",
     ("loop", "gnc_min_weight"): "fixed at 0.1 (GNC leaves outliers near 0; docs/BENCHMARKS.md)",
+}
+
+# The tuning knobs: docs/CONFIG.md lists them apart from the main settings, because their defaults are what the
+# benchmarks settled on and most runs leave them alone. They stay in their stage's section, so that a key keeps
+# one name in files, --set and the code.
+ADVANCED = {
+    "synth": ("fx", "min_range", "max_range", "grazing_deg", "baseline", "subpixel", "sensor_width", "color_noise",
+              "depth_noise_scale"),
+    "maps": ("normal_max_depth_jump", "pyramid_depth_sigma", "depth_smooth_radius"),
+    "icp": ("normal_threshold_deg", "solver", "robust_scale", "depth_weighting", "min_inliers", "max_condition",
+            "stop_update", "level_dist_scale", "color_robust_scale", "weak_ratio"),
+    "fusion": ("dist_threshold", "normal_threshold_deg", "confidence_weighting", "remove_unstable", "unstable_weight",
+               "unstable_age", "remove_free_space", "free_space_margin", "depth_weighting", "confidence_sigma",
+               "association", "skip_covered", "render_min_weight"),
+    "slam": ("tracking", "motion_model", "motion_damping", "hypotheses", "doubt_residual_ratio",
+             "relocalise_iterations", "relocalise_level_dist_scale", "score_gate", "min_inlier_ratio", "max_residual",
+             "max_update_deg", "max_update_m", "track_at_map_level", "active_window"),
+    "vo": ("match", "min_distance_factor", "min_distance_floor", "ratio", "min_good_match", "min_inliers",
+           "min_inliers_init", "max_norm", "ransac_reprojection_px", "ransac_iterations", "cloud_stride"),
+    "loop": ("keyframe_translation", "keyframe_rotation_deg", "keyframe_overlap", "keyframe_min_frames", "n_features",
+             "max_hamming", "min_score", "candidates", "min_frame_gap", "min_consistent", "consistent_m",
+             "min_pnp_inliers", "min_inlier_ratio", "max_residual", "max_icp_change_deg", "max_icp_change_m",
+             "odometry_sigma_m", "odometry_sigma_deg", "odometry_from_icp", "keyframe_pnp", "loop_sigma_m",
+             "loop_sigma_deg", "robust", "robust_scale", "max_loop_error"),
+    "mesh": ("min_weight", "band", "max_reach", "max_voxels"),
 }
 
 

@@ -1,0 +1,168 @@
+"""Write docs/CONFIG.md, the list of every config key, from ti_fusion/config.py itself.
+
+    python scripts/config_doc.py          # rewrite docs/CONFIG.md
+    python scripts/config_doc.py --check  # exit 1 when docs/CONFIG.md is not what config.py gives
+
+Each key's default and what it allows come from its dataclass field and annotation, its meaning from the
+comment beside it in config.py, so the page cannot drift from the code (tests/test_config.py runs the
+check). The main settings come first, then the tuning knobs (``ti_fusion.config.ADVANCED``) apart, then
+the settings that were removed (``ti_fusion.config.REMOVED``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import ast
+import dataclasses
+import io
+import sys
+import tokenize
+from pathlib import Path
+
+from ti_fusion import config as config_module
+from ti_fusion.config import ADVANCED, REMOVED, Config, rules
+
+DOC = Path(__file__).resolve().parent.parent / "docs" / "CONFIG.md"
+
+# One line per section: what it configures.
+SECTIONS = {
+    "dataset": "The input: which frames, their depth units, intrinsics, topics and colour camera",
+    "synth": "The embedded synthetic sequence (used when `dataset.path` is empty): scene, size, sensor noise",
+    "maps": "The per-frame maps that tracking aligns and fusion merges (depth smoothing, pyramid, normals)",
+    "icp": "Dense tracking: projective point-to-plane ICP, with the optional photometric term",
+    "fusion": "The surfel map: its size, the level it is built at, merging and removal",
+    "slam": "The tracking loop around ICP: motion model, failure checks, re-localisation, loop closure on/off",
+    "vo": "Feature odometry (`ti-fusion vo`, the ICP initialiser and the re-localiser): ORB, matching, PnP",
+    "loop": "Loop closure (with `slam.loop_closure`): keyframes, place recognition, verification, pose graph",
+    "mesh": "The triangle mesh (`ti-fusion mesh`, `slam --mesh`)",
+    "log": "The MCAP log and the terminal",
+}
+
+HEAD = """# Configuration
+
+Every setting of `ti-fusion`, generated from `ti_fusion/config.py` by `python scripts/config_doc.py`
+(do not edit by hand: `tests/test_config.py` fails when this page and the code differ).
+
+Set them in a config file given with `--config FILE` (TOML, YAML or JSON; one table per section) or one at
+a time with `--set SECTION.KEY=VALUE` (repeatable), e.g.
+
+```toml
+[dataset]
+downsample = 2
+
+[icp]
+iterations = [10, 5, 4]   # coarse to fine
+dist_threshold = 0.10
+```
+
+```
+ti-fusion slam DATA --config my.toml --set icp.dist_threshold=0.05
+```
+
+Defaults, then the file, then `--set`. Every value is checked against what its key allows (the column
+below): a value that breaks it, an unknown key or a removed one stops the run with one line naming the
+key. Relative paths in a config file are relative to the file's folder. Lengths are in metres, angles in
+degrees unless a key says otherwise. From Python: `ti_fusion.config.load_config(path, ["icp.dist_threshold=0.05"])`.
+
+The **main settings** are the ones a run is usually given. The **advanced settings** are tuning knobs:
+their defaults are what the benchmarks settled on ([BENCHMARKS.md](BENCHMARKS.md)), and most runs should
+leave them alone.
+"""
+
+
+def field_comments(source: str) -> dict[tuple[str, str], str]:
+    """(class name, field name) → the comment text beside the field in ``source``: the comments on the
+    field's own lines and on the comment-only lines that follow it, joined."""
+    comments: dict[int, str] = {}
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type == tokenize.COMMENT:
+            comments[tok.start[0]] = tok.string.lstrip("#").strip()
+    lines = source.splitlines()
+    out = {}
+    for node in ast.parse(source).body:
+        if not isinstance(node, ast.ClassDef):
+            continue
+        for stmt in node.body:
+            if not isinstance(stmt, ast.AnnAssign) or not isinstance(stmt.target, ast.Name):
+                continue
+            parts = [comments[n] for n in range(stmt.lineno, stmt.end_lineno + 1) if n in comments]
+            n = stmt.end_lineno + 1
+            while n <= len(lines) and lines[n - 1].strip().startswith("#"):
+                parts.append(comments[n])
+                n += 1
+            out[node.name, stmt.target.id] = " ".join(p for p in parts if p)
+    return out
+
+
+def _default(value) -> str:
+    if value is None:
+        return "None"
+    if isinstance(value, str):
+        return f'`"{value}"`'
+    if isinstance(value, bool):
+        return f"`{str(value).lower()}`"
+    if isinstance(value, float):
+        return f"`{value:g}`"
+    if isinstance(value, int):
+        return f"`{value:,}`".replace(",", "_") if value >= 100_000 else f"`{value}`"
+    return f"`{value}`"
+
+
+def _cell(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def _table(section: str, keys: list[str], comments: dict) -> list[str]:
+    values = getattr(Config(), section)
+    section_type = type(values)
+    section_rules = rules(section_type)
+    rows = ["| key | default | allowed | meaning |", "| --- | --- | --- | --- |"]
+    for key in keys:
+        meaning = comments.get((section_type.__name__, key), "")
+        rows.append(f"| `{section}.{key}` | {_default(getattr(values, key))} | "
+                    f"{_cell(section_rules[key].describe())} | {_cell(meaning)} |")
+    return rows
+
+
+def render() -> str:
+    comments = field_comments(Path(config_module.__file__).read_text(encoding="utf-8"))
+    sections = [f.name for f in dataclasses.fields(Config)]
+    keys = {s: [f.name for f in dataclasses.fields(type(getattr(Config(), s)))] for s in sections}
+    main = {s: [k for k in keys[s] if k not in ADVANCED.get(s, ())] for s in sections}
+    advanced = {s: [k for k in keys[s] if k in ADVANCED.get(s, ())] for s in sections}
+    n_main, n_advanced = sum(map(len, main.values())), sum(map(len, advanced.values()))
+    out = [HEAD, f"{n_main + n_advanced} keys: {n_main} main, {n_advanced} advanced.", "", "## Main settings", ""]
+    for s in sections:
+        if main[s]:
+            out += [f"### [{s}]", "", SECTIONS[s] + ".", ""] + _table(s, main[s], comments) + [""]
+    out += ["## Advanced settings (tuning knobs)", "",
+            "The same sections as above (`--set icp.min_inliers=200`, `[icp]` in a file); listed apart because "
+            "their defaults are settled.", ""]
+    for s in sections:
+        if advanced[s]:
+            out += [f"### [{s}], advanced", ""] + _table(s, advanced[s], comments) + [""]
+    out += ["## Removed settings", "",
+            "Setting one of these stops the run with one line saying it was removed and why; what the settled "
+            "ones measured is in [BENCHMARKS.md](BENCHMARKS.md#settled-and-removed-settings).", "",
+            "| key | why |", "| --- | --- |"]
+    out += [f"| `{s}.{k}` | {_cell(why)} |" for (s, k), why in sorted(REMOVED.items())]
+    return "\n".join(out) + "\n"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--check", action="store_true", help="exit 1 when docs/CONFIG.md is out of date")
+    args = parser.parse_args(argv)
+    text = render()
+    if args.check:
+        if not DOC.is_file() or DOC.read_text(encoding="utf-8") != text:
+            print(f"{DOC} is out of date: run python scripts/config_doc.py", file=sys.stderr)
+            return 1
+        return 0
+    DOC.write_text(text, encoding="utf-8")
+    print(f"wrote {DOC}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

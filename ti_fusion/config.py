@@ -337,7 +337,7 @@ class ICPConfig:
 class MapsConfig:
     """The per-frame maps (``kernels/maps.py`` FrameMaps) that ICP aligns and fusion merges: depth
     smoothing, pyramid, vertex and normal maps. How far the input is averaged down first is
-    ``Config.frame_input_level`` (``fusion.level`` and ``slam.track_at_map_level``)."""
+    ``Config.frame_input_level`` (the map's level, ``fusion.level``)."""
 
     normal_max_depth_jump: Positive = 0.05  # metres: neighbours further apart in depth give no normal
                                             # (× 2**l at pyramid level l)
@@ -417,10 +417,6 @@ class SLAMConfig:
     relocalise: Annotated[str, OneOf("features", "none")] = "features"
                                      # after a failure, re-initialise with ORB+PnP (features) or not (none)
     anchor_to_ground_truth: bool = True  # start at the first frame's GT pose (same frame as GT in viewers)
-    track_at_map_level: bool = True  # with fusion.level > 0, average the frame down to the map's resolution
-                                     # before smoothing and tracking (False: smooth and track at the input
-                                     # resolution, each model point aligned to a finer frame). Redkitchen 500
-                                     # frames at 640×480: ATE 2.73 vs 2.67 cm, maps 8 vs 33 ms per frame
     loop_closure: bool = False       # keyframes, place recognition, loop verification and pose-graph correction
                                      # of the poses and the map ([loop]; docs/LOOP_CLOSURE.md)
     active_window: NonNegativeInt = 0  # frames: tracking renders only surfels updated within this many fused frames
@@ -524,8 +520,8 @@ class Config:
 
     def frame_input_level(self, width: int) -> int:
         """How many pyramid steps a frame ``width`` px wide is averaged down on input: to the map's level
-        (``fusion.level``) unless ``slam.track_at_map_level`` is off."""
-        return self.fusion.map_level(width) if self.slam.track_at_map_level else 0
+        (``fusion.level``), so the frame is smoothed and tracked at the map's resolution."""
+        return self.fusion.map_level(width)
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -632,6 +628,7 @@ REMOVED = {
     ("loop", "odometry_max_scale"): "fixed at 1e6 (docs/BENCHMARKS.md)",
     ("fusion", "render_max_half"): "fixed at 0: each surfel at its own pixel (1 cost ATE; docs/BENCHMARKS.md)",
     ("fusion", "render_fill_half"): "fixed at 1, coarse levels only (0 lost the synthetic loop; BENCHMARKS.md)",
+    ("slam", "track_at_map_level"): "the frame is always tracked at the map's resolution (docs/BENCHMARKS.md)",
     ("loop", "gnc_min_weight"): "fixed at 0.1 (GNC leaves outliers near 0; docs/BENCHMARKS.md)",
 }
 
@@ -649,7 +646,7 @@ ADVANCED = {
                "association", "skip_covered", "render_min_weight"),
     "slam": ("tracking", "motion_model", "motion_damping", "hypotheses", "doubt_residual_ratio",
              "relocalise_iterations", "relocalise_level_dist_scale", "score_gate", "min_inlier_ratio", "max_residual",
-             "max_update_deg", "max_update_m", "track_at_map_level", "active_window"),
+             "max_update_deg", "max_update_m", "active_window"),
     "vo": ("match", "min_distance_factor", "min_distance_floor", "ratio", "min_good_match", "min_inliers",
            "min_inliers_init", "max_norm", "ransac_reprojection_px", "ransac_iterations", "cloud_stride"),
     "loop": ("keyframe_translation", "keyframe_rotation_deg", "keyframe_overlap", "keyframe_min_frames", "n_features",

@@ -134,13 +134,12 @@ class DenseSLAM:
         levels = len(config.icp.iterations)
         H, W = intrinsics.height, intrinsics.width
         self.map_level = map_level = config.fusion.map_level(W)
-        # The incoming frame: ICP target (averaged down to the map's level first, by default).
+        # The incoming frame: ICP target (averaged down to the map's level first).
         frame_level = config.frame_input_level(W)
         self.frame_maps = FrameMaps(config.maps, H, W, max(levels, map_level - frame_level + 1),
                                     input_level=frame_level)
-        # The map rendered at the last pose: ICP source, at the map's resolution. Level l of the model is
-        # aligned to level l of the frame maps: the same resolution by default, or with
-        # slam.track_at_map_level off and fusion.level 1, each model point to a twice finer frame.
+        # The map rendered at the last pose: ICP source, at the map's resolution: level l of the model is
+        # aligned to level l of the frame maps, at the same resolution.
         self.model_intrinsics = intrinsics.downsampled(2**map_level)
         self.model_maps = FrameMaps(config.maps, self.model_intrinsics.height, self.model_intrinsics.width, levels)
         self.previous_maps = FrameMaps(config.maps, H, W, levels, input_level=frame_level) \

@@ -198,7 +198,7 @@ def test_a_loop_keyframes_stats_validate_against_the_declared_schema():
     for closed in (None, (0, 4)):
         report = LoopReport(4, "moved", [rejected, verified], closed, "applied" if closed else "",
                             {"keyframe": 0.4, "detect": 1.0, "verify": 20.0, "optimise": 3.0, "correct": 5.0})
-        result = FrameResult(index=40, timestamp=2.0, pose=np.eye(4), status="ok",
+        result = FrameResult(index=40, timestamp=2.0, pose=np.eye(4), tracking="ok",
                              ms={"maps": 1.0, "track": 9.0, "loop": 29.4}, loop=report)
         message = without_nulls(jsonable(frame_stats(result, 1000)))
         errors = [f"{'.'.join(map(str, e.absolute_path))}: {e.message}" for e in validator.iter_errors(message)]

@@ -337,11 +337,11 @@ def test_a_failed_health_check_shows_the_value_on_its_side_of_the_limit():
 
     fake = SimpleNamespace(config=Config())
     icp = ICPResult(pose=np.eye(4), inlier_ratio=0.14996, residual_rms=0.001)
-    assert DenseSLAM._health(fake, icp, np.eye(4), np.eye(4)) == "lost: inlier ratio 0.14996 < 0.15"
+    assert DenseSLAM._health(fake, icp, np.eye(4), np.eye(4)) == "inlier ratio 0.14996 < 0.15"
     icp = ICPResult(pose=np.eye(4), inlier_ratio=0.5, residual_rms=0.02004)
-    assert DenseSLAM._health(fake, icp, np.eye(4), np.eye(4)) == "lost: residual 20.04 mm > 20 mm"
+    assert DenseSLAM._health(fake, icp, np.eye(4), np.eye(4)) == "residual 20.04 mm > 20 mm"
     jump = np.eye(4)
     jump[0, 3] = 0.30004
     icp = ICPResult(pose=np.eye(4), inlier_ratio=0.5, residual_rms=0.001)
     assert DenseSLAM._health(fake, icp, jump, np.eye(4)) == \
-        "lost: jump of 0.0 deg / 30.004 cm from its start (at most 20 deg / 30 cm)"
+        "jump of 0.0 deg / 30.004 cm from its start (at most 20 deg / 30 cm)"

@@ -63,6 +63,7 @@ from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.maps import FrameMaps, grey_image
 from ti_fusion.slam.checks import check_frame
 from ti_fusion.slam.poses import PoseStore
+from ti_fusion.status import Tracking, status_text
 from ti_fusion.timing import StageTimer
 
 log = logging.getLogger(__name__)
@@ -88,12 +89,16 @@ class Hypothesis:
     name: str  # "motion" (the motion model), "last" (the last good pose), "features" (ORB + PnP), "wide"
     icp: ICPResult
     pose: np.ndarray  # camera-to-world
-    status: str  # "ok" or "lost: <reason>" (``DenseSLAM._health`` against the start)
+    failure: str  # "" where the alignment passed the checks (``DenseSLAM._health`` against the start)
     score: float = 0.0  # ``DenseSLAM.alignment_score`` where more than one start passed the checks
 
     @property
     def ok(self) -> bool:
-        return self.status == "ok"
+        return not self.failure
+
+    @property
+    def status(self) -> str:
+        return status_text(Tracking.LOST, self.failure) if self.failure else Tracking.OK.value
 
 
 @dataclass
@@ -103,7 +108,8 @@ class FrameResult:
     index: int
     timestamp: float
     pose: np.ndarray | None  # camera-to-world estimate; None for a frame skipped before the map starts
-    status: str  # "init", "ok", "relocalised", "lost: <reason>" or "skipped: <reason>"
+    tracking: Tracking
+    reason: str = ""  # why the frame was lost or skipped
     icp: ICPResult | None = None
     fusion: FusionStats | None = None
     ms: dict[str, float] = field(default_factory=dict)
@@ -111,18 +117,26 @@ class FrameResult:
     hypothesis: str | None = None  # the start whose alignment won: "motion", "last", "features" or "wide"
     tried: list[str] = field(default_factory=list)  # every start tried, in order, with its outcome
 
+    def __post_init__(self):
+        self.tracking = Tracking(self.tracking)  # also from its value ("ok")
+
+    @property
+    def status(self) -> str:
+        """As logs and summaries write it: "init", "ok", "relocalised", "lost: <reason>", "skipped: <reason>"."""
+        return status_text(self.tracking, self.reason)
+
     @property
     def tracked(self) -> bool:
         """The frame got a pose (tracked, or the first of the map) and was fused."""
-        return not self.status.startswith(("lost", "skipped"))
+        return self.tracking.tracked
 
     @property
     def lost(self) -> bool:
-        return self.status.startswith("lost")
+        return self.tracking is Tracking.LOST
 
     @property
     def skipped(self) -> bool:
-        return self.status.startswith("skipped")
+        return self.tracking is Tracking.SKIPPED
 
 
 class DenseSLAM:
@@ -198,11 +212,11 @@ class DenseSLAM:
                 self.frame_maps.compute_intensity(grey)
         if not self.poses and (problem := self.unusable(frame)):
             self.skipped.append((frame.index, problem))
-            return FrameResult(frame.index, frame.timestamp, None, f"skipped: {problem}", ms=dict(timer.last))
+            return FrameResult(frame.index, frame.timestamp, None, Tracking.SKIPPED, problem, ms=dict(timer.last))
         if not self.poses:
             pose = frame.gt_pose if frame.gt_pose is not None and self.config.slam.anchor_to_ground_truth \
                 else np.eye(4)
-            result = FrameResult(frame.index, frame.timestamp, pose.copy(), "init")
+            result = FrameResult(frame.index, frame.timestamp, pose.copy(), Tracking.INIT)
             if self.skipped:
                 (first, reason), n = self.skipped[0], len(self.skipped)
                 which = f"frame {first} was" if n == 1 else \
@@ -312,10 +326,11 @@ class DenseSLAM:
                 h.score = self.alignment_score(source, h, colour)
         best = max(passed, key=lambda h: h.score + (SCORE_MARGIN if h is first else 0.0)) if passed else \
             max(tried, key=lambda h: h.icp.inlier_ratio)
-        status = best.status if not best.ok else ("ok" if best.name in ("motion", "last") else "relocalised")
+        tracking = Tracking.LOST if not best.ok else \
+            Tracking.OK if best.name in ("motion", "last") else Tracking.RELOCALISED
         pose = best.pose if best.ok else predicted  # a lost frame reports the guess; it is not fused
-        return FrameResult(frame.index, frame.timestamp, pose, status, best.icp, hypothesis=best.name,
-                           tried=[f"{h.name}: {h.status}" for h in tried])
+        return FrameResult(frame.index, frame.timestamp, pose, tracking, best.failure, icp=best.icp,
+                           hypothesis=best.name, tried=[f"{h.name}: {h.status}" for h in tried])
 
     def alignment_score(self, source: FrameMaps, h: Hypothesis, colour: bool) -> float:
         """How well a start's alignment of this frame's prediction fits the frame, comparable between starts
@@ -334,20 +349,21 @@ class DenseSLAM:
         return h.icp.residual_rms > self.config.slam.doubt_residual_ratio * float(np.median(self._residuals))
 
     def _health(self, icp: ICPResult, pose: np.ndarray, predicted: np.ndarray) -> str:
+        """Why the alignment fails the checks, or "" where it passes them."""
         cfg = self.config.slam
         if icp.failure:
-            return f"lost: {icp.failure}"
+            return icp.failure
         if icp.inlier_ratio < cfg.min_inlier_ratio:
-            return f"lost: inlier ratio {_beside(icp.inlier_ratio, cfg.min_inlier_ratio, 2)} < {cfg.min_inlier_ratio:g}"
+            return f"inlier ratio {_beside(icp.inlier_ratio, cfg.min_inlier_ratio, 2)} < {cfg.min_inlier_ratio:g}"
         if icp.residual_rms > cfg.max_residual:
-            return (f"lost: residual {_beside(icp.residual_rms * 1e3, cfg.max_residual * 1e3, 1)} mm > "
+            return (f"residual {_beside(icp.residual_rms * 1e3, cfg.max_residual * 1e3, 1)} mm > "
                     f"{cfg.max_residual * 1e3:g} mm")
         rot_deg, trans_m = pose_error(pose, predicted)
         if rot_deg > cfg.max_update_deg or trans_m > cfg.max_update_m:
-            return (f"lost: jump of {_beside(rot_deg, cfg.max_update_deg, 1)} deg / "
+            return (f"jump of {_beside(rot_deg, cfg.max_update_deg, 1)} deg / "
                     f"{_beside(trans_m * 100, cfg.max_update_m * 100, 1)} cm from its start (at most "
                     f"{cfg.max_update_deg:g} deg / {cfg.max_update_m * 100:g} cm)")
-        return "ok"
+        return ""
 
     def _report_degeneracy(self, frame: Frame, icp: ICPResult) -> None:
         """Log the weak directions of the geometry (debug, every frame that has any), and warn once when

@@ -12,6 +12,7 @@ from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import json_field, json_object
 from ti_fusion.mapping.views import save_views, view_pose
 from ti_fusion.slam.dense import DenseSLAM, FrameResult
+from ti_fusion.status import Tracking
 
 log = logging.getLogger(__name__)
 
@@ -99,7 +100,7 @@ STATS_SCHEMA = json_object({
 
 def frame_stats(result: FrameResult, surfels: int) -> dict:
     """The /slam/stats message of one frame (``STATS_SCHEMA``)."""
-    stats = {"frame": result.index, "status": "ok" if result.status in ("ok", "init") else result.status,
+    stats = {"frame": result.index, "status": "ok" if result.tracking is Tracking.INIT else result.status,
              "tracking": result.status, "surfels": surfels, "ms": {k: round(v, 3) for k, v in result.ms.items()}}
     if result.hypothesis is not None:
         stats["hypothesis"] = result.hypothesis
@@ -166,6 +167,8 @@ class SLAMStep:
             t0 = time.perf_counter()
             result.loop = self.loop.after_frame(frame, result)  # on a loop, corrects the trajectory and the map
             result.ms["loop"] = (time.perf_counter() - t0) * 1e3
+        if self.mesh is not None and result.tracked:  # slam --mesh with mesh.method = "depth"
+            self.mesh.integrate(frame, result.pose)
         return result
 
     def log_frame(self, log, frame: Frame, result: FrameResult) -> None:
@@ -207,7 +210,7 @@ class SLAMStep:
             "resolution": slam.resolution(),
             "tracking_failures": len(lost),
             "failed_frames": [{"frame": r.index, "reason": r.status} for r in lost][:50],
-            "relocalised": sum(r.status == "relocalised" for r in run.results),
+            "relocalised": sum(r.tracking is Tracking.RELOCALISED for r in run.results),
             "hypotheses_won": {name: sum(r.hypothesis == name and r.tracked for r in run.results)
                                for name in ("motion", "last", "features", "wide")},
             "frames_with_second_start": sum(len(r.tried) > 1 for r in run.results),

@@ -1,0 +1,25 @@
+"""What became of a frame: ``Tracking``, the first word of a frame's status as logs and summaries write it."""
+
+from __future__ import annotations
+
+from enum import Enum
+
+
+class Tracking(str, Enum):
+    """A frame's outcome; a lost or skipped frame also has a reason (``status`` joins them)."""
+
+    INIT = "init"  # the map's first frame: its pose is the start (identity or ground truth)
+    OK = "ok"  # tracked from the motion model or the last pose, and fused
+    RELOCALISED = "relocalised"  # tracked from another start (features or the wide basin), and fused
+    LOST = "lost"  # no start passed the checks: the frame reports its guess and is not fused
+    SKIPPED = "skipped"  # before the map starts (e.g. a blank sensor): no pose
+
+    @property
+    def tracked(self) -> bool:
+        """The frame got a pose of its own and was fused."""
+        return self not in (Tracking.LOST, Tracking.SKIPPED)
+
+
+def status_text(tracking: Tracking, reason: str = "") -> str:
+    """The status string of logs and summaries: "ok", or "lost: <reason>"."""
+    return f"{tracking.value}: {reason}" if reason else tracking.value

@@ -99,18 +99,6 @@ class SurfelMap(SurfelStore):
         fusion.assoc_from_index(img)
         return img
 
-    def mark_covered(self, img: FusionImages, vertex, normal, pose: np.ndarray, dist_threshold: float,
-                     normal_threshold_deg: float) -> None:
-        """After ``merge``: unassociated pixels on the disc of a neighbour's merged surfel are not added
-        (``img.assoc`` = COVERED). ``add(..., cover=...)`` does the same in its own pass; this is the test on
-        its own (the counts it also makes are made again by ``add``)."""
-        fusion.count_segments(img, vertex, normal, self._pose(pose)[0], dist_threshold,
-                              math.cos(math.radians(normal_threshold_deg)), True)
-
-    def pass1_mask(self) -> np.ndarray:
-        """Filter pass 1 of the last projection: surfels inside the image with positive depth."""
-        return self.arrays.proj_pixel.to_numpy()[: self._projected] >= 0
-
     # -- 4-5: merge and add --------------------------------------------------------------------------------
     def merge(self, img: FusionImages, vertex, normal, pose, intrinsics, frame_index: int,
               confidence: bool, sigma: float, has_colour: bool, depth_weighted: bool = False,
@@ -127,8 +115,8 @@ class SurfelMap(SurfelStore):
             sigma: float, has_colour: bool, depth_weighted: bool = False,
             cover: tuple[float, float] | None = None, anchor: int = 0, defer: bool = False) -> AddCounts | None:
         """Append the valid unassociated pixels as surfels (with ``anchor``). With ``cover`` = (dist_threshold,
-        normal_threshold_deg), pixels that ``mark_covered`` would mark are marked first, in the same pass,
-        and not added.
+        normal_threshold_deg), unassociated pixels on the disc of a neighbour's merged surfel are marked
+        (``img.assoc`` = COVERED) in the same pass, and not added.
 
         With ``defer``, nothing is read back: the map is grown for the worst case (every pixel new) unless
         it already has room for it, the count stays on the device, and None is returned; ``step_counts``

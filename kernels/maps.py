@@ -12,17 +12,15 @@ Smoothing (``maps.depth_smooth_radius`` > 0, the role of KinectFusion's bilatera
 replaced by the mean of the (2r+1)×(2r+1) neighbours within the same range of the centre depth, computed
 separably (a row pass, then a column pass, each range-checked against its own centre). Normals from
 central differences of raw Kinect-like depth are noisy enough at full resolution that most of them fail
-ICP's normal-angle test; r = 2 cuts the normal noise several-fold at ~3 ms per 640×480 frame.
+ICP's normal-angle test; r = 2 cuts the normal noise several-fold (its cost: docs/KERNELS.md, maps.py).
 
 Speed: Taichi's CPU backend does not vectorise a loop over pixels (the field's root pointer is reloaded
 in every iteration, which stops LLVM's loop vectoriser; checked in the generated IR), but LLVM's SLP
 vectoriser does turn the same operation on the components of a small vector into SIMD. So the smoothing
 passes, the pyramid and the vertex/normal maps take eight pixels of a row per iteration as an 8-vector
-(``LANES``, ``Pack``), which made them 2-3x faster than one pixel at a time; the packs on the image border,
-where a window or a neighbour would fall outside, take a pixel-at-a-time path, written as a loop rather
-than unrolled eight times (unrolled, it was most of the compile time). One 640×480 frame's maps with
-smoothing r = 12 take 7.8 ms on one core of the 2-core machine, a 320×240 frame's with r = 6 1.9 ms.
-Loops over images smaller than ``SERIAL_BELOW`` pixels run on the calling thread.
+(``LANES``, ``Pack``), several times faster than one pixel at a time (docs/KERNELS.md); the packs on the
+image border, where a window or a neighbour would fall outside, take a pixel-at-a-time path, written as a
+loop rather than unrolled eight times (unrolled, it was most of the compile time). Loops over images smaller than ``SERIAL_BELOW`` pixels run on the calling thread.
 
 Intensity (the photometric tracking term, ``icp.color_weight`` > 0; allocated on first use): per level an
 intensity image in [0, 1] (−1 = none) and, for the live frame, (I, ∂I/∂x, ∂I/∂y) with Sobel / 8 (per pixel;
@@ -40,8 +38,8 @@ per quantity (depth, vertex, normal, intensity: level l at rows ``row0[l]`` .. `
 fields needed one per level. ``FrameMaps.depth[l]`` (likewise ``vertex``, ``normal``, ``intensity``,
 ``intensity_grad``) is a ``Level``, a view that reads and writes like an H_l × W_l field inside other
 kernels and has ``to_numpy`` / ``from_numpy``. Runtime offsets were chosen over ``ti.types.ndarray``
-arguments (one instance per dtype for every pyramid) because an ndarray argument costs about 8 µs more per
-launch than a field, and ICP launches four of them per iteration (docs/PERFORMANCE.md). Allocate FrameMaps
+arguments (one instance per dtype for every pyramid) because an ndarray argument costs more per launch than
+a field, and ICP passes four images per launch (docs/KERNELS.md). Allocate FrameMaps
 once and reuse them: a new one compiles (or loads) its own instances.
 """
 
@@ -60,9 +58,8 @@ from ti_fusion.errors import InputError
 
 # Pixels per pack in the packed depth images of the smoothing. Taichi's CPU backend does not vectorise a
 # loop over pixels (see the module docstring), but LLVM's SLP vectoriser does turn the same operation on
-# the components of a small vector into SIMD instructions. A row of 8 depths stored as one 8-vector, and
-# the 2r + 1 taps applied to all 8 at once, made a smoothing pass 2.6x (r = 12) to 3.4x (r = 6) faster on
-# one core than one pixel per iteration.
+# the components of a small vector into SIMD instructions: a row of 8 depths stored as one 8-vector, the
+# 2r + 1 taps applied to all 8 at once (docs/KERNELS.md has the speed-up).
 LANES = 8
 Pack = ti.types.vector(LANES, ti.f32)
 
@@ -368,8 +365,7 @@ def vertex_normal_loop(depth: ti.template(), vertex: ti.template(), normal: ti.t
     One pass: the neighbours' vertices are back-projected again where they are needed rather than read
     back from the vertex map, so the two maps cost one loop (and one thread-pool dispatch) instead of two.
     Eight pixels of a row per iteration, as 8-vectors (see ``LANES``): LLVM's SLP vectoriser turns their
-    arithmetic into SIMD (at 320×240 on one core, both maps 0.94 → 0.69 ms, the normals alone 0.94 →
-    0.46 ms). Packs on the image border, where a neighbour would fall outside, take the pixel-at-a-time
+    arithmetic into SIMD. Packs on the image border, where a neighbour would fall outside, take the pixel-at-a-time
     path. The three images are the H × W level at row ``r0`` of their stacked fields (see ``Level``). A
     function with one loop, as ``pyramid_loop``.
     """

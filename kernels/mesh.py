@@ -117,3 +117,92 @@ def add_voxel(g, p, nrm, c, w: ti.f32, r: ti.f32, voxel: ti.f32, band: ti.f32, k
             ti.atomic_add(sdf[slot], wt * d)
             ti.atomic_add(wsum[slot], wt)
             ti.atomic_add(rgb[slot], wt * c)
+
+
+# --- the depth frames re-integrated (mesh.method = "depth"): a truncated signed distance per voxel ---------------
+#
+# Each valid pixel walks its ray from depth − trunc to depth + trunc in steps of ``step`` (along z) and writes, into
+# every voxel whose centre is nearest to a sample, the projective signed distance d − z_c (the pixel's depth minus
+# the voxel centre's depth in the camera; positive in front of the surface) where |d − z_c| ≤ trunc, with weight 1,
+# and the pixel's colour. A voxel seen by many pixels of a frame gets many samples: near views, whose pixels are
+# finer and whose depth is less noisy, weigh more. Blocks are looked up in ``table``, a dense int32 array over the
+# frame's box of blocks (block − lo), holding each block's slot in the pool or −1; ``touch_blocks`` marks that box's
+# blocks the samples reach, so that the caller can give them slots before ``integrate_depth`` runs.
+
+DepthArray = ti.types.ndarray(dtype=ti.f32, ndim=2)
+ColourArray = ti.types.ndarray(dtype=ti.math.vec3, ndim=2)
+TableArray = ti.types.ndarray(dtype=ti.i32, ndim=3)
+Mat3 = ti.types.matrix(3, 3, ti.f32)
+
+
+@ti.func
+def ray_direction(u: ti.i32, v: ti.i32, K: ti.math.vec4, rot):
+    """Pixel (u, v)'s ray in the world, per metre of depth (z = 1 in the camera)."""
+    return rot @ ti.math.vec3((u - K[2]) / K[0], (v - K[3]) / K[1], 1.0)
+
+
+@ti.func
+def nearest_voxel(x, voxel: ti.f32):
+    """The voxel (grid coordinates) whose centre is nearest to the world point x."""
+    return ti.cast(ti.floor(x / voxel + 0.5), ti.i32)
+
+
+@ti.func
+def table_block(g, lo, table: ti.template()):
+    """Voxel g's block relative to ``lo``, or (−1, −1, −1) outside the table."""
+    b = ti.math.ivec3((g.x >> 3) - lo.x, (g.y >> 3) - lo.y, (g.z >> 3) - lo.z)
+    out = ti.math.ivec3(-1)
+    if 0 <= b.x < table.shape[0] and 0 <= b.y < table.shape[1] and 0 <= b.z < table.shape[2]:
+        out = b
+    return out
+
+
+@ti.kernel
+def touch_blocks(depth: DepthArray, K: ti.math.vec4, rot: Mat3, trans: ti.math.vec3, voxel: ti.f32, trunc: ti.f32,
+                 step: ti.f32, lo: ti.math.ivec3, table: TableArray):
+    """Set ``table[block − lo]`` to 1 for every block in the box of the blocks of a pixel's first and last sample
+    (its samples' blocks lie in that box: the nearest voxel moves monotonically along each axis), others left."""
+    n = ti.cast(ti.floor(2.0 * trunc / step), ti.i32)
+    for v, u in depth:
+        d = depth[v, u]
+        if d > 0:
+            r = ray_direction(u, v, K, rot)
+            a = nearest_voxel(trans + r * ti.max(d - trunc, 0.0), voxel) >> 3
+            b = nearest_voxel(trans + r * (d - trunc + n * step), voxel) >> 3
+            for x, y, z in ti.ndrange((ti.min(a.x, b.x), ti.max(a.x, b.x) + 1), (ti.min(a.y, b.y), ti.max(a.y, b.y) + 1),
+                                      (ti.min(a.z, b.z), ti.max(a.z, b.z) + 1)):
+                c = ti.math.ivec3(x, y, z) - lo
+                if 0 <= c.x < table.shape[0] and 0 <= c.y < table.shape[1] and 0 <= c.z < table.shape[2]:
+                    table[c] = 1
+
+
+@ti.kernel
+def integrate_depth(depth: DepthArray, colour: ColourArray, has_colour: ti.i32, K: ti.math.vec4, rot: Mat3,
+                    trans: ti.math.vec3, voxel: ti.f32, trunc: ti.f32, step: ti.f32, lo: ti.math.ivec3,
+                    table: TableArray, sdf: FloatArray, wsum: FloatArray, rgb: Vec3Array):
+    """Add one frame's samples: ``sdf`` Σ w·(d − z_c), ``wsum`` Σ w, ``rgb`` Σ w·colour at
+    ``slot·BLOCK_VOXELS + (lx·E + ly)·E + lz``; a voxel whose block has no slot (−1) is skipped."""
+    n = ti.cast(ti.floor(2.0 * trunc / step), ti.i32) + 1
+    axis = ti.math.vec3(rot[0, 2], rot[1, 2], rot[2, 2])  # the camera's z axis in the world
+    for v, u in depth:
+        d = depth[v, u]
+        if d > 0:
+            c = ti.math.vec3(200.0)
+            if has_colour:
+                c = colour[v, u]
+            r = ray_direction(u, v, K, rot)
+            prev = ti.math.ivec3(-(1 << 30))
+            for s in range(n):
+                z = d - trunc + s * step
+                g = nearest_voxel(trans + r * z, voxel)
+                if z > 0 and (g != prev).any():
+                    prev = g  # a ray stays in a voxel for consecutive samples only: write each voxel once
+                    sd = d - axis.dot(ti.cast(g, ti.f32) * voxel - trans)
+                    b = table_block(g, lo, table)
+                    if ti.abs(sd) <= trunc and b.x >= 0:
+                        slot = table[b]
+                        if slot >= 0:
+                            i = slot * BLOCK_VOXELS + ((g.x & 7) * BLOCK_EDGE + (g.y & 7)) * BLOCK_EDGE + (g.z & 7)
+                            ti.atomic_add(sdf[i], sd)
+                            ti.atomic_add(wsum[i], 1.0)
+                            ti.atomic_add(rgb[i], c)

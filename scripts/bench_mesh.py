@@ -20,6 +20,9 @@ Rows:
   map.ply (``ti_fusion.mapping.mesh``) at ``--voxel``;
 - ti-fusion, tracked poses: ``ti-fusion slam`` (its own poses, anchored at the first ground-truth pose), then
   the mesh;
+- each with ``--method``: ``surfels`` meshes the run's map.ply; ``depth`` integrates the dataset's frames at the
+  run's poses (the ground truth, or the slam run's trajectory.tum) into a truncated signed-distance grid
+  (``ti_fusion.mapping.mesh.DepthFusion``, what ``slam --mesh --set mesh.method=depth`` does during the run);
 - Open3D TSDF (optional peer, never a dependency: ``pip install open3d-cpu``, here or in the interpreter
   ``--open3d-python`` names): a ``o3d.t.geometry.VoxelBlockGrid`` TSDF (its reconstruction system's, as in
   ``o3d.t.pipelines.slam.Model``) at the same voxel size, truncation ``--sdf-trunc`` voxels (4: Open3D's
@@ -153,6 +156,40 @@ def run_ti_fusion(command: str, args, out: Path) -> dict:
             "ate_cm": None if summary.get("ate_rmse_m") is None else summary["ate_rmse_m"] * 100}
 
 
+def depth_mesh(args, dataset, frames, poses) -> dict:
+    """``mesh.method = "depth"``: the dataset's frames integrated at ``poses`` (one per frame, None: skipped), as
+    ``slam --mesh --set mesh.method=depth`` integrates each tracked frame at its pose; the mesh and its timing."""
+    from ti_fusion.config import MeshConfig
+    from ti_fusion.mapping.mesh import DepthFusion
+
+    cfg = MeshConfig(voxel_size=args.voxel, method="depth")
+    for item in args.mesh_set:
+        key, value = item.split("=", 1)
+        setattr(cfg, key, type(getattr(cfg, key))(value))
+    fusion = DepthFusion(cfg)
+    t0 = time.perf_counter()
+    for f, pose in zip(frames, poses):
+        if pose is not None:
+            fusion.integrate(f.depth, f.color, f.intrinsics, pose)
+    t1 = time.perf_counter()
+    stats: dict = {}
+    mesh = fusion.mesh(stats)
+    stats["integrate_s"] = round(t1 - t0, 2)
+    return {"mesh": mesh, "mesh_s": time.perf_counter() - t0, "stats": stats}
+
+
+def run_poses(run: Path, frames) -> list:
+    """Each frame's pose in a run's trajectory.tum (matched by timestamp), None where the run gave it none."""
+    from ti_fusion.io.trajectory import read_tum
+
+    stamps, poses = read_tum(run / "trajectory.tum")
+    out = []
+    for f in frames:
+        i = int(np.argmin(np.abs(stamps - f.timestamp)))
+        out.append(poses[i] if abs(stamps[i] - f.timestamp) < 1e-4 else None)
+    return out
+
+
 def run_open3d(args, dataset, tmp: Path) -> dict:
     dataset.downsample = args.open3d_downsample
     frames = [dataset[i] for i in range(len(dataset))]
@@ -194,6 +231,10 @@ def main() -> int:
     p.add_argument("--reuse", action="store_true", help="reuse the fuse and slam runs already in --out")
     p.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                    help="a config value for the ti-fusion runs (e.g. fusion.level=0), repeatable")
+    p.add_argument("--method", default="surfels,depth",
+                   help="ti-fusion's mesh methods (mesh.method): surfels (the map's), depth (the frames re-integrated)")
+    p.add_argument("--mesh-set", action="append", default=[], metavar="KEY=VALUE",
+                   help="a [mesh] value for the depth method (e.g. truncation=3), repeatable")
     p.add_argument("--open3d-downsample", type=int, default=1, metavar="F",
                    help="Open3D integrates every F-th pixel (2: the 320x240 the surfel map is fused at by default)")
     args = p.parse_args()
@@ -216,14 +257,23 @@ def main() -> int:
     truth = observed_truth(dataset, args.truth_stride)
     scene = dataset.sequence.scene
     rows = []
+    methods = [m.strip() for m in args.method.split(",")]
+    frames = [dataset[i] for i in range(len(dataset))] if "depth" in methods else []
     for poses in args.poses.split(","):
         command = {"gt": "fuse", "tracked": "slam"}[poses.strip()]
         r = run_ti_fusion(command, args, out / command)
-        m = r["mesh"]
-        write_mesh_ply(out / f"mesh_ti-fusion_{poses}.ply", m)
-        rows.append({"system": f"ti-fusion ({poses} poses{', ' if args.set else ''}{', '.join(args.set)})", "mesh_s": round(r["mesh_s"], 2),
-                     "ate_cm": r["ate_cm"], "stats": r["stats"],
-                     **metrics(m.vertices, m.faces, scene, truth, rng)})
+        for method in methods:
+            res = r
+            if method == "depth":
+                pose_list = [f.gt_pose for f in frames] if poses == "gt" else run_poses(out / command, frames)
+                res = {**r, **depth_mesh(args, dataset, frames, pose_list)}
+            m = res["mesh"]
+            suffix = "" if method == "surfels" else f"_{method}"
+            write_mesh_ply(out / f"mesh_ti-fusion_{poses}{suffix}.ply", m)
+            extra = args.set + (args.mesh_set if method == "depth" else [])
+            rows.append({"system": f"ti-fusion {method} ({poses} poses{', ' if extra else ''}{', '.join(extra)})",
+                         "mesh_s": round(res["mesh_s"], 2), "ate_cm": res["ate_cm"], "stats": res["stats"],
+                         **metrics(m.vertices, m.faces, scene, truth, rng)})
     if not args.no_open3d:
         with tempfile.TemporaryDirectory() as tmp:
             o = run_open3d(args, dataset, Path(tmp))

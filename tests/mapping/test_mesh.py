@@ -214,7 +214,8 @@ def test_mesh_command(cpu, rng, tmp_path, capsys):
            (["mesh", str(run), "--voxel", "0"], "--voxel 0"),
            (["mesh", str(run), "--voxel", "10"], "--voxel 10"),
            (["mesh", str(run), "--set", "mesh.voxel_size=0"], "mesh.voxel_size"),
-           (["mesh", str(tmp_path / "nothing.ply")], "no such file")]
+           (["mesh", str(tmp_path / "nothing.ply")], "no such file"),
+           (["mesh", str(run), "--method", "depth"], "--mesh-method depth")]
     empty = tmp_path / "empty.ply"
     write_ply(empty, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
     bad.append((["mesh", str(empty)], "empty"))
@@ -277,6 +278,21 @@ def test_slam_mesh(cpu, tmp_path):
     assert read_log(out / "log.mcap").channels["/map/mesh"].count == 1
 
 
+@pytest.mark.slow
+def test_slam_mesh_depth(cpu, tmp_path):
+    """``slam --mesh-method depth``: the tracked frames integrated as the run goes, meshed at its end."""
+    import json
+
+    from ti_fusion.cli.main import main
+
+    out = tmp_path / "run"
+    assert main(["slam", "--frames", "6", "--downsample", "2", "--mesh-method", "depth", "--out", str(out),
+                 "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())["mesh"]
+    assert summary["method"] == "depth" and summary["frames_integrated"] == 6 and summary["triangles"] > 1000
+    assert (out / "mesh.ply").is_file() and (out / "mesh.glb").is_file()
+
+
 def test_bench_metrics_and_render(script, rng, tmp_path):
     """scripts/bench_mesh.py's metrics on a known case (a square mesh; half the truth 2 cm off it), and
     scripts/render_mesh.py draws a mesh file read back from disk."""
@@ -315,3 +331,156 @@ def test_memory_follows_the_surface(cpu, rng):
     two, _ = M.splat_surfels(M.select_surfels(both, cfg.min_weight), cfg)
     assert len(two) <= 2 * len(one) + 8
     assert len(M.mesh_surfels(both, cfg)) > 0
+
+
+# --- mesh.method = "depth": the frames re-integrated at their poses -------------------------------------------------
+
+class Pinhole:
+    def __init__(self, fx, fy, cx, cy):
+        self.fx, self.fy, self.cx, self.cy = fx, fy, cx, cy
+
+
+def random_pose(rng, centre) -> np.ndarray:
+    q = rng.normal(size=4)
+    q /= np.linalg.norm(q)
+    x, y, z, w = q
+    pose = np.eye(4)
+    pose[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                    [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                    [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    pose[:3, 3] = centre
+    return pose
+
+
+def reference_depth(depth, colour, K, pose, cfg: MeshConfig, out: dict, check: bool = False):
+    """The kernel's walk in float64: every valid pixel's samples z = d − trunc + s·step (s = 0 … 2·trunc/step),
+    each voxel whose centre is nearest to a sample once per ray, d − z_c added where |d − z_c| ≤ trunc.
+    ``out`` maps voxel → [Σ d − z_c, count, Σ colour]. With ``check``, returns the pixels whose walk float32
+    could take otherwise (a sample within 1e-4 voxel of a cell's face, or |d − z_c| within 1e-5 of trunc)."""
+    v, trunc = cfg.voxel_size, cfg.truncation * cfg.voxel_size
+    step = v
+    n = int(np.floor(2 * trunc / step)) + 1
+    R, t = pose[:3, :3], pose[:3, 3]
+    doubtful = np.zeros(depth.shape, bool)
+    for (r, c), d in np.ndenumerate(depth.astype(np.float64)):
+        if not d > 0:
+            continue
+        ray = R @ np.array([(c - K.cx) / K.fx, (r - K.cy) / K.fy, 1.0])
+        prev = None
+        for s in range(n):
+            z = d - trunc + s * step
+            x = t + ray * z
+            f = x / v + 0.5
+            if check and (np.abs(f - np.round(f)) < 1e-4).any():
+                doubtful[r, c] = True
+            g = tuple(np.floor(f).astype(int))
+            if z <= 0 or g == prev:
+                continue
+            prev = g
+            sd = d - R[:, 2] @ (np.array(g) * v - t)
+            if check and abs(abs(sd) - trunc) < 1e-5:
+                doubtful[r, c] = True
+            if abs(sd) <= trunc:
+                acc = out.setdefault(g, [0.0, 0, np.zeros(3)])
+                acc[0] += sd
+                acc[1] += 1
+                acc[2] += colour[r, c]
+    return doubtful
+
+
+@pytest.mark.parametrize("centre", [(0.0, 0.0, 0.0), (-1.3, 2.05, 0.6)])
+def test_depth_integration_matches_numpy(arch, rng, centre):
+    """Two random frames (random poses, depth 0.4–1.2 m with invalid pixels, random colour) against the
+    float64 walk: the same voxels, the same counts, the same mean distance and colour."""
+    cfg = MeshConfig(voxel_size=0.01, method="depth", truncation=3.0)
+    K = Pinhole(30.0, 31.0, 11.5, 8.5)
+    frames = []
+    for k in range(2):
+        depth = rng.uniform(0.4, 1.2, (18, 24)).astype(np.float32)
+        depth[rng.random(depth.shape) < 0.15] = 0.0
+        depth[0, :3] = np.nan
+        colour = rng.integers(0, 256, (18, 24, 3)).astype(np.uint8)
+        pose = random_pose(rng, np.asarray(centre) + rng.uniform(-0.05, 0.05, 3))
+        doubtful = reference_depth(depth, colour, K, pose, cfg, {}, check=True)
+        depth[doubtful] = 0.0  # float32 may round those the other way: keep the comparison exact
+        frames.append((depth, colour, pose))
+    fusion = M.DepthFusion(cfg)
+    ref: dict = {}
+    for depth, colour, pose in frames:
+        fusion.integrate(depth, colour, K, pose)
+        reference_depth(depth, colour, K, pose, cfg, ref)
+    grid, vox = fusion.grid()
+    keys = np.array(list(ref))
+    idx = grid.find(np.floor_divide(keys, E) - grid.origin)
+    assert (idx >= 0).all(), "a voxel a ray reaches lies in no block of the grid"
+    loc = np.mod(keys, E)
+    at = (idx, loc[:, 0], loc[:, 1], loc[:, 2])
+    count = np.array([ref[k][1] for k in ref], float)
+    np.testing.assert_array_equal(vox["weight"][at], count)
+    np.testing.assert_allclose(vox["sdf"][at], np.array([ref[k][0] for k in ref]) / count, rtol=1e-4, atol=2e-6)
+    np.testing.assert_allclose(vox["colour"][at], np.array([ref[k][2] for k in ref]) / count[:, None],
+                               rtol=1e-4, atol=1e-3)
+    assert int((vox["weight"] > 0).sum()) == len(ref), "the kernel wrote voxels the reference did not"
+
+
+def plane_frames(n: int = 4, hole: bool = True):
+    """Depth frames of the plane z = 1.5 (world) seen from cameras 1.0–1.3 m in front of it, looking along
+    +z, with a disc of invalid depth around the world point (0.1, 0, 1.5) in every frame when ``hole``."""
+    K = Pinhole(120.0, 120.0, 63.5, 47.5)
+    out = []
+    for k in range(n):
+        pose = np.eye(4)
+        pose[:3, 3] = [0.02 * k, -0.015 * k, 0.2 + 0.1 * k]
+        vv, uu = np.mgrid[0:96, 0:128].astype(np.float64)
+        depth = np.full((96, 128), 1.5 - pose[2, 3])
+        x = pose[0, 3] + (uu - K.cx) / K.fx * depth
+        y = pose[1, 3] + (vv - K.cy) / K.fy * depth
+        if hole:
+            depth[np.hypot(x - 0.1, y) < 0.06] = 0.0
+        colour = np.zeros((96, 128, 3), np.uint8)
+        colour[:] = [30, 160, 220]
+        out.append((depth.astype(np.float32), colour, K, pose))
+    return out
+
+
+def test_depth_mesh_of_a_plane(cpu):
+    """The frames of a plane: a flat mesh on it facing the cameras, in the frames' colour, the unseen disc
+    left open, every triangle within the cameras' views."""
+    fusion = M.DepthFusion(MeshConfig(method="depth"))
+    for frame in plane_frames():
+        fusion.integrate(*frame)
+    stats: dict = {}
+    mesh = fusion.mesh(stats)
+    assert len(mesh) > 1000 and stats["frames_integrated"] == 4
+    assert np.abs(mesh.vertices[:, 2] - 1.5).max() < 1e-3
+    assert (mesh.normals[:, 2] < -0.99).all(), "the mesh faces away from the cameras"
+    assert (np.abs(mesh.colours.astype(int) - [30, 160, 220]) <= 1).all()
+    assert np.hypot(mesh.vertices[:, 0] - 0.1, mesh.vertices[:, 1]).min() > 0.06 - 0.02, "the hole was closed"
+
+
+def test_depth_bad_input_and_bound(cpu):
+    fusion = M.DepthFusion(MeshConfig(method="depth"))
+    fusion.integrate(np.zeros((8, 8), np.float32), None, Pinhole(10, 10, 3.5, 3.5), np.eye(4))
+    with pytest.raises(InputError, match="no frame had valid depth"):
+        fusion.mesh()
+    small = M.DepthFusion(MeshConfig(method="depth", max_voxels=2000))
+    with pytest.raises(InputError, match="mesh.max_voxels"):
+        for frame in plane_frames(2, hole=False):
+            small.integrate(*frame)
+    with pytest.raises(InputError, match="voxel_size"):
+        M.DepthFusion(MeshConfig(voxel_size=0.0))
+
+
+def test_depth_memory_follows_the_surface(cpu):
+    """Frames of one plane from far apart places: blocks of the seen surface's band, not of the box between."""
+    frames = plane_frames(1, hole=False)
+    depth, colour, K, pose = frames[0]
+    one = M.DepthFusion(MeshConfig(method="depth"))
+    one.integrate(depth, colour, K, pose)
+    two = M.DepthFusion(MeshConfig(method="depth"))
+    two.integrate(depth, colour, K, pose)
+    far = pose.copy()
+    far[:3, 3] += [30.0, 0, 0]
+    two.integrate(depth, colour, K, far)
+    assert len(two) == 2 * len(one)
+    assert len(two.mesh()) > 0

@@ -24,6 +24,9 @@ def add_arguments(parser) -> None:
                         help="edge of the grid's cubes (mesh.voxel_size, default 0.01)")
     parser.add_argument("--min-weight", type=float, default=None, metavar="CONFIDENCE",
                         help="mesh only surfels at least this confident (mesh.min_weight, default 3: confirmed)")
+    parser.add_argument("--method", choices=("surfels", "depth"), default="surfels",
+                        help="surfels (the map's confirmed surfels; the only one here) or depth (the frames "
+                             "re-integrated at the run's poses: made during the run by slam --mesh)")
     parser.add_argument("--max-triangles", type=int, default=None, metavar="N",
                         help="decimate to at most N triangles (mesh.max_triangles; default 0: no decimation)")
 
@@ -63,8 +66,13 @@ def apply_options(args, mesh_config) -> None:
 def run(ctx) -> dict:
     from ti_fusion.mapping.mesh import mesh_surfels, surfels_from_ply
 
+    from ti_fusion.errors import InputError
+
     cfg = ctx.config.mesh
     apply_options(ctx.args, cfg)
+    if getattr(ctx.args, "method", "surfels") == "depth":
+        raise InputError(None, "--method depth re-integrates a run's depth frames, which a run folder does not "
+                               "keep: it is made during the run (slam DATA --mesh-method depth)")
     path = map_file(ctx.args.map)
     surfels = surfels_from_ply(path)
     stats: dict = {}

@@ -20,6 +20,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--mesh", action="store_true",
                         help="also a coloured triangle mesh of the map: mesh.ply, mesh.glb and /map/mesh in the log "
                              "(settings: the [mesh] config section; docs/MESH.md)")
+    parser.add_argument("--mesh-method", choices=("depth", "surfels"), default=None,
+                        help="--mesh from: depth = the frames re-integrated at their poses (mesh.method, default), "
+                             "surfels = the map's confirmed surfels; implies --mesh")
     parser.add_argument("--live", metavar="[HOST:]PORT", default=None,
                         help="serve the run to Foxglove while it runs (Open connection > Foxglove WebSocket, "
                              "ws://HOST:PORT); HOST defaults to 127.0.0.1, PORT 0 picks a free port")
@@ -34,8 +37,10 @@ def run(ctx) -> dict:
         cfg.slam.tracking = ctx.args.tracking
     if ctx.args.no_relocalise:
         cfg.slam.relocalise = "none"
-    if ctx.args.mesh:
+    if ctx.args.mesh or ctx.args.mesh_method:
         cfg.mesh.after_run = True
+    if ctx.args.mesh_method:
+        cfg.mesh.method = ctx.args.mesh_method
     dataset = open_dataset(cfg.dataset, cfg.synth)
     if not ctx.quiet:  # what the format line (format, depth scale, intrinsics) does not say
         d = dataset.describe()

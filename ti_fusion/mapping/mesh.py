@@ -111,6 +111,24 @@ class SparseGrid:
         mask = KEY_SPAN - 1
         self.blocks = np.stack([k >> (2 * KEY_BITS), (k >> KEY_BITS) & mask, k & mask], axis=1)  # relative coords
 
+    @classmethod
+    def of_blocks(cls, blocks: np.ndarray, voxel: float, source=None) -> "SparseGrid":
+        """The grid of the given absolute block coordinates (B × 3 int64, sorted as their keys: x, then y, z)."""
+        from ti_fusion.kernels.mesh import KEY_BITS, KEY_SPAN
+
+        grid = cls.__new__(cls)
+        grid.origin = blocks.min(axis=0) if len(blocks) else np.zeros(3, np.int64)
+        rel = blocks - grid.origin
+        span = rel.max(axis=0) + 1 if len(blocks) else np.ones(3, np.int64)
+        if (span > KEY_SPAN).any():
+            axis = "xyz"[int(np.argmax(span))]
+            raise InputError(source, f"the frames span {span.max() * E * voxel:.1f} m along {axis}: at a voxel size "
+                                     f"of {voxel:g} m the mesh grid reaches {KEY_SPAN * E * voxel:.1f} m at most; "
+                                     "choose a larger mesh.voxel_size")
+        grid.blocks = rel
+        grid.keys = ((rel[:, 0] << (2 * KEY_BITS)) | (rel[:, 1] << KEY_BITS) | rel[:, 2]).astype(np.int32)
+        return grid
+
     def __len__(self) -> int:
         return len(self.keys)
 
@@ -182,12 +200,13 @@ def _padded(grid: SparseGrid, values: np.ndarray, fill) -> np.ndarray:
     return out
 
 
-def extract(grid: SparseGrid, voxels: dict, voxel: float) -> Mesh:
-    """Marching cubes on every block whose complete cubes (all eight corners reached) change sign."""
+def extract(grid: SparseGrid, voxels: dict, voxel: float, min_weight: float = 0.0) -> Mesh:
+    """Marching cubes on every block whose complete cubes (all eight corners reached, with a weight above
+    ``min_weight``) change sign."""
     from skimage.measure import marching_cubes
 
     sdf = _padded(grid, voxels["sdf"], np.float32(0))
-    valid = _padded(grid, voxels["weight"] > 0, False)
+    valid = _padded(grid, voxels["weight"] > min_weight, False)
     colour = _padded(grid, voxels["colour"], np.float32(0))
     # a cube is complete when its eight corners are valid; skimage tests the mask at a cube's far corner
     # (cube (x, y, z) is made where mask[x + 1, y + 1, z + 1]: checked in tests/mapping/test_mesh.py)
@@ -236,7 +255,7 @@ def extract(grid: SparseGrid, voxels: dict, voxel: float) -> Mesh:
     vertices = (gridpos[first] * voxel).astype(np.float32)
     rgb = _trilinear(colour, valid, owner[first], local[first])
     mesh = Mesh(vertices, faces, vertex_normals(vertices, faces), rgb)
-    return _orient(mesh, grid, voxels, voxel)
+    return _orient(mesh, grid, voxels, voxel, min_weight)
 
 
 def _trilinear(colour: np.ndarray, valid: np.ndarray, owner: np.ndarray, local: np.ndarray) -> np.ndarray:
@@ -268,7 +287,7 @@ def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return out.astype(np.float32)
 
 
-def _orient(mesh: Mesh, grid: SparseGrid, voxels: dict, voxel: float) -> Mesh:
+def _orient(mesh: Mesh, grid: SparseGrid, voxels: dict, voxel: float, min_weight: float = 0.0) -> Mesh:
     """Triangles wound so that their normals point where the distance grows (the surfels' front side).
 
     Marching cubes winds all triangles one way for a given gradient direction; this checks which against
@@ -281,7 +300,7 @@ def _orient(mesh: Mesh, grid: SparseGrid, voxels: dict, voxel: float) -> Mesh:
         loc = np.mod(g, E)
         ok = idx >= 0
         idx, loc = np.where(ok, idx, 0), np.where(ok[:, None], loc, 0)
-        ok &= voxels["weight"][idx, loc[:, 0], loc[:, 1], loc[:, 2]] > 0
+        ok &= voxels["weight"][idx, loc[:, 0], loc[:, 1], loc[:, 2]] > min_weight
         return voxels["sdf"][idx, loc[:, 0], loc[:, 1], loc[:, 2]], ok
 
     # one voxel in front of and behind each vertex: never both on the vertex's own layer of voxels
@@ -321,6 +340,153 @@ def mesh_surfels(surfels: dict, settings: MeshConfig | None = None, source=None,
     return mesh
 
 
+class DepthFusion:
+    """``mesh.method = "depth"``: the run's depth frames re-integrated at their poses into a sparse truncated
+    signed-distance grid (``kernels/mesh.py``: each pixel writes d − z_c into the voxels its ray crosses within
+    ``mesh.truncation`` voxels of its depth), then the same marching cubes as the surfels' grid.
+
+    Blocks of 8³ voxels get a slot in a pool when a frame's samples first reach them, so memory grows with the
+    observed surface (and a band of ± the truncation about it), never with the bounding box; a frame's own
+    lookup table spans only the box of its samples. More than ``mesh.max_voxels`` stops the integration with
+    one line naming the setting."""
+
+    OFFSET = 1 << 20  # block coordinates are packed into 21 bits each, shifted by this
+
+    def __init__(self, settings: MeshConfig, source=None):
+        check_voxel_size(settings.voxel_size)
+        self.settings = settings
+        self.source = source
+        self.voxel = float(settings.voxel_size)
+        self.trunc = float(settings.truncation) * self.voxel
+        self.step = self.voxel  # along z: about one sample per voxel a ray crosses (neighbouring rays fill the rest)
+        self.keys = np.zeros(0, np.int64)   # packed block keys, sorted
+        self.slots = np.zeros(0, np.int64)  # the pool slot of each key
+        self.capacity = 0
+        self.sdf = np.zeros(0, np.float32)
+        self.wsum = np.zeros(0, np.float32)
+        self.rgb = np.zeros((0, 3), np.float32)
+        self.frames = 0
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def _grow(self, blocks: int) -> None:
+        if blocks * E ** 3 > self.settings.max_voxels:
+            raise InputError(self.source, f"the frames' surface needs {blocks * E ** 3 / 1e6:.1f} M voxels of "
+                                          f"{self.voxel:g} m (~{blocks * E ** 3 * BYTES_PER_VOXEL / 2**30:.1f} GB), "
+                                          f"more than mesh.max_voxels ({self.settings.max_voxels / 1e6:.1f} M): "
+                                          "choose a larger mesh.voxel_size or raise the bound")
+        if blocks <= self.capacity:
+            return
+        cap = max(blocks, 2 * self.capacity, 256)
+        cap = min(cap, max(blocks, self.settings.max_voxels // E ** 3))
+        for name, shape in (("sdf", ()), ("wsum", ()), ("rgb", (3,))):
+            new = np.zeros((cap * E ** 3,) + shape, np.float32)
+            old = getattr(self, name)
+            new[:len(old)] = old
+            setattr(self, name, new)
+        self.capacity = cap
+
+    def integrate(self, depth: np.ndarray, colour: np.ndarray | None, intrinsics, pose: np.ndarray) -> None:
+        """Add one frame (depth in metres, 0 = invalid; colour H×W×3 uint8 or None) at ``pose`` (camera to world)."""
+        from ti_fusion.backend import current_backend
+        from ti_fusion.kernels import mesh as kmesh
+        import taichi as ti
+
+        current_backend()
+        depth = np.ascontiguousarray(np.where(np.isfinite(depth), depth, 0), np.float32)
+        h, w = depth.shape
+        valid = depth[depth > 0]
+        if len(valid) == 0:
+            return
+        K = intrinsics
+        pose = np.asarray(pose, np.float64)
+        # a box holding every sample: the frustum's corners at the nearest and farthest sample depths
+        z0, z1 = max(float(valid.min()) - self.trunc, 0.0), float(valid.max()) + self.trunc
+        u = np.array([0.0, w - 1.0, 0.0, w - 1.0])
+        v = np.array([0.0, 0.0, h - 1.0, h - 1.0])
+        cam = np.concatenate([np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, np.full(4, z)], axis=1)
+                              for z in (z0, z1)])
+        pts = cam @ pose[:3, :3].T + pose[:3, 3]
+        lo = np.floor(np.floor(pts.min(axis=0) / self.voxel - 0.5) / E).astype(np.int64) - 1
+        hi = np.floor(np.floor(pts.max(axis=0) / self.voxel + 1.5) / E).astype(np.int64) + 1
+        dims = hi - lo + 1
+        if np.prod(dims) > max(self.settings.max_voxels // E ** 3, 1 << 22):
+            raise InputError(self.source, f"a frame's depth spans {dims.max() * E * self.voxel:.1f} m: more blocks "
+                                          f"of {E * self.voxel:g} m than mesh.max_voxels allows; choose a larger "
+                                          "mesh.voxel_size or cut the depth range")
+        table = np.zeros(tuple(int(x) for x in dims), np.int32)
+        args = (ti.math.vec4(K.fx, K.fy, K.cx, K.cy), ti.Matrix(pose[:3, :3].astype(np.float32)),
+                ti.math.vec3(*pose[:3, 3].astype(np.float32)), self.voxel, self.trunc, self.step,
+                ti.math.ivec3(*(int(x) for x in lo)))
+        kmesh.touch_blocks(depth, *args, table)
+        touched = np.flatnonzero(table)
+        rel = np.stack(np.unravel_index(touched, table.shape), axis=1)
+        absolute = rel + lo
+        o = self.OFFSET
+        key = ((absolute[:, 0] + o) << 42) | ((absolute[:, 1] + o) << 21) | (absolute[:, 2] + o)
+        pos = np.searchsorted(self.keys, key)
+        known = (pos < len(self.keys)) & (self.keys[np.minimum(pos, max(len(self.keys) - 1, 0))] == key) \
+            if len(self.keys) else np.zeros(len(key), bool)
+        slot = np.empty(len(key), np.int64)
+        slot[known] = self.slots[pos[known]]
+        fresh = np.flatnonzero(~known)
+        if len(fresh):
+            self._grow(len(self.keys) + len(fresh))
+            slot[fresh] = len(self.keys) + np.arange(len(fresh))
+            keys = np.concatenate([self.keys, key[fresh]])
+            slots = np.concatenate([self.slots, slot[fresh]])
+            order = np.argsort(keys, kind="stable")
+            self.keys, self.slots = keys[order], slots[order]
+        table[...] = -1
+        table.reshape(-1)[touched] = slot.astype(np.int32)
+        has_colour = colour is not None
+        if has_colour:
+            c = np.asarray(colour)
+            if c.shape[:2] != (h, w):  # nearest pixel of a colour image of another size
+                c = c[(np.arange(h) * c.shape[0] // h)[:, None], (np.arange(w) * c.shape[1] // w)[None, :]]
+            c = np.ascontiguousarray(c[..., :3], np.float32)
+        else:
+            c = np.zeros((1, 1, 3), np.float32)
+        kmesh.integrate_depth(depth, c, int(has_colour), *args, table, self.sdf, self.wsum, self.rgb)
+        self.frames += 1
+
+    def grid(self) -> tuple[SparseGrid, dict]:
+        """The sparse grid of the blocks so far and its voxels (as ``splat_surfels`` returns them)."""
+        if not len(self.keys):
+            raise InputError(self.source, "no frame had valid depth: no surface to mesh")
+        o, m = self.OFFSET, (1 << 21) - 1
+        blocks = np.stack([(self.keys >> 42) - o, ((self.keys >> 21) & m) - o, (self.keys & m) - o], axis=1)
+        grid = SparseGrid.of_blocks(blocks, self.voxel, self.source)
+        idx = (self.slots[:, None] * E ** 3 + np.arange(E ** 3)).reshape(-1)
+        wsum = self.wsum[idx]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            inv = np.where(wsum > 0, 1.0 / wsum, 0.0).astype(np.float32)
+        shape = (len(grid), E, E, E)
+        return grid, {"sdf": (self.sdf[idx] * inv).reshape(shape), "weight": wsum.reshape(shape),
+                      "colour": (self.rgb[idx] * inv[:, None]).reshape(shape + (3,))}
+
+    def mesh(self, stats: dict | None = None) -> Mesh:
+        """Marching cubes over the voxels with more than ``mesh.depth_min_weight`` samples."""
+        import time
+
+        stats = {} if stats is None else stats
+        t0 = time.perf_counter()
+        grid, voxels = self.grid()
+        t1 = time.perf_counter()
+        mesh = extract(grid, voxels, self.voxel, self.settings.depth_min_weight)
+        t2 = time.perf_counter()
+        if self.settings.max_triangles and len(mesh) > self.settings.max_triangles:
+            mesh = decimate(mesh, self.settings.max_triangles)
+        t3 = time.perf_counter()
+        stats.update({"method": "depth", "frames_integrated": self.frames, "blocks": len(grid),
+                      "voxels": len(grid) * E ** 3,
+                      "voxels_reached": int((voxels["weight"] > self.settings.depth_min_weight).sum()),
+                      "ms": {"gather": round((t1 - t0) * 1e3, 1), "extract": round((t2 - t1) * 1e3, 1),
+                             "decimate": round((t3 - t2) * 1e3, 1)}})
+        return mesh
+
+
 class RunMesh:
     """``slam --mesh``: the mesh of the map at the end of a run, on the log's /map/mesh before the log
     closes, then mesh.ply and mesh.glb with the run's other files. A map that cannot be meshed (no confirmed
@@ -330,6 +496,24 @@ class RunMesh:
         self.config = config
         self.mesh: Mesh | None = None
         self.summary: dict = {}
+        # mesh.method = "depth": each tracked frame goes into the grid at its pose as the run goes
+        self.depth = DepthFusion(config) if config.method == "depth" else None
+        self.depth_error: InputError | None = None
+        self.integrate_s = 0.0
+
+    def integrate(self, frame, pose: np.ndarray | None) -> None:
+        """A tracked frame's depth and colour at its pose (mesh.method = "depth"; otherwise nothing)."""
+        if self.depth is None or pose is None or self.depth_error is not None:
+            return
+        import time
+
+        t0 = time.perf_counter()
+        try:
+            self.depth.integrate(frame.depth, frame.color, frame.intrinsics, pose)
+        except InputError as exc:  # over the bound: the mesh is given up, the run goes on
+            log.warning(f"no mesh: {exc.problem}")
+            self.depth_error = exc
+        self.integrate_s += time.perf_counter() - t0
 
     def make(self, mapper, run_log=None, t: float = 0.0) -> None:
         import time
@@ -337,16 +521,25 @@ class RunMesh:
         t0 = time.perf_counter()
         stats: dict = {}
         try:
-            self.mesh = mesh_surfels(mapper.to_numpy(), self.config, stats=stats)
+            if self.depth_error is not None:
+                raise self.depth_error
+            if self.depth is not None:
+                self.mesh = self.depth.mesh(stats)
+                stats["integrate_s"] = round(self.integrate_s, 3)
+            else:
+                self.mesh = mesh_surfels(mapper.to_numpy(), self.config, stats=stats)
         except InputError as exc:
-            log.warning(f"no mesh: {exc.problem}")
+            if exc is not self.depth_error:
+                log.warning(f"no mesh: {exc.problem}")
             self.summary = {"mesh_error": str(exc)}
             return
-        self.summary = {"triangles": len(self.mesh), "vertices": len(self.mesh.vertices),
+        self.summary = {"method": self.config.method, "triangles": len(self.mesh), "vertices": len(self.mesh.vertices),
                         "area_m2": round(self.mesh.area(), 4), "voxel_size": self.config.voxel_size,
                         "mesh_s": round(time.perf_counter() - t0, 3), **stats}
-        log.info(f"mesh: {len(self.mesh)} triangles, {self.summary['area_m2']:.2f} m² from {stats['surfels_meshed']} "
-                 f"confirmed surfels at {self.config.voxel_size * 100:g} cm voxels in {self.summary['mesh_s']:.2f} s")
+        source = (f"{stats['frames_integrated']} depth frames" if self.depth is not None
+                  else f"{stats['surfels_meshed']} confirmed surfels")
+        log.info(f"mesh: {len(self.mesh)} triangles, {self.summary['area_m2']:.2f} m² from {source} "
+                 f"at {self.config.voxel_size * 100:g} cm voxels in {self.summary['mesh_s']:.2f} s")
         cap = self.config.log_triangles
         if run_log is not None and cap and len(self.mesh):
             run_log.log_mesh(t, self.mesh if len(self.mesh) <= cap else decimate(self.mesh, cap))

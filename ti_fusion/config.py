@@ -311,6 +311,7 @@ class ICPConfig:
                                      # per pyramid level, coarse → fine
     dist_threshold: Positive = 0.10  # metres: max ‖p′ − q‖ for a correspondence (finest level)
     normal_threshold_deg: Degrees = 30.0  # max angle between the source and target normals
+    solver: Annotated[str, OneOf("cholesky", "lu", "qr")] = "cholesky"  # QR solves the stacked n×6 system
     robust: Annotated[str, OneOf("none", "huber", "tukey")] = "huber"  # weights on the point-to-plane residual
     robust_scale: Positive = 0.01    # metres: Huber's k or Tukey's c (at 1 m depth with depth_weighting)
     depth_weighting: bool = True     # weight residuals by Kinect's depth noise σ(z) at the target point:
@@ -370,6 +371,9 @@ class FusionConfig:
     free_space_margin: NonNegative = 0.05  # metres
     depth_weighting: bool = False    # measurement weight also × (σ(1 m)/σ(z))², capped at 4 (Kinect depth noise)
     confidence_sigma: Positive = 0.6  # Keller's σ: measurement weight exp(−γ²/2σ²), γ = radial distance / max
+    association: Annotated[str, OneOf("nearest", "compatible")] = "compatible"
+                                     # a pixel merges into: nearest = its nearest surfel if that one passes
+                                     # filter 2 | compatible = the nearest of its surfels that pass (Keller)
     skip_covered: bool = True        # a pixel on the disc of a surfel merged at a neighbouring pixel adds no
                                      # surfel (keeps the map from growing at every frame)
     render_min_weight: NonNegative = 0.0  # rendering for tracking: only surfels at least this confident (Keller's
@@ -623,11 +627,9 @@ def _set_field(config: Config, section: str, key: str, value: Any, where: str) -
 REMOVED = {
     **{("icp", name): f"moved to maps.{name}" for name in ("normal_max_depth_jump", "pyramid_depth_sigma",
                                                              "depth_smooth_radius")},
-    ("icp", "solver"): "the 6×6 step is always solved by Cholesky (LU and QR agreed with it; docs/BENCHMARKS.md)",
     ("icp", "converged_update"): "the result is converged when the last update is below icp.stop_update",
     ("loop", "odometry_info_ratio"): "fixed at 1 (the inverse information; docs/BENCHMARKS.md)",
     ("loop", "odometry_max_scale"): "fixed at 1e6 (docs/BENCHMARKS.md)",
-    ("fusion", "association"): "always Keller's: the nearest surfel that passes the filters (docs/BENCHMARKS.md)",
     ("fusion", "render_max_half"): "fixed at 0: each surfel at its own pixel (1 cost ATE; docs/BENCHMARKS.md)",
     ("fusion", "render_fill_half"): "fixed at 1, coarse levels only (0 lost the synthetic loop; BENCHMARKS.md)",
     ("slam", "track_at_map_level"): "the frame is always tracked at the map's resolution (docs/BENCHMARKS.md)",
@@ -641,11 +643,11 @@ ADVANCED = {
     "synth": ("fx", "min_range", "max_range", "grazing_deg", "baseline", "subpixel", "sensor_width", "color_noise",
               "depth_noise_scale"),
     "maps": ("normal_max_depth_jump", "pyramid_depth_sigma", "depth_smooth_radius"),
-    "icp": ("normal_threshold_deg", "robust_scale", "depth_weighting", "min_inliers", "max_condition",
+    "icp": ("normal_threshold_deg", "solver", "robust_scale", "depth_weighting", "min_inliers", "max_condition",
             "stop_update", "level_dist_scale", "color_robust_scale", "weak_ratio"),
     "fusion": ("dist_threshold", "normal_threshold_deg", "confidence_weighting", "remove_unstable", "unstable_weight",
                "unstable_age", "remove_free_space", "free_space_margin", "depth_weighting", "confidence_sigma",
-               "skip_covered", "render_min_weight"),
+               "association", "skip_covered", "render_min_weight"),
     "slam": ("tracking", "motion_model", "motion_damping", "hypotheses", "doubt_residual_ratio",
              "relocalise_iterations", "relocalise_level_dist_scale", "score_gate", "min_inlier_ratio", "max_residual",
              "max_update_deg", "max_update_m", "active_window"),

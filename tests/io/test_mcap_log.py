@@ -553,7 +553,8 @@ def test_the_foxglove_layout_shows_what_the_logs_have():
     text = (DOCS.parent / "foxglove-layout.json").read_text()
     assert json.loads(text) == _layout_module().layout()
     topics = {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points", "/camera/depth", "/camera/color",
-              "/camera/calibration", LOOP_TOPIC, "/map/mesh"}  # /map/mesh: slam --mesh (tests/mapping/test_mesh.py)
+              "/camera/calibration", LOOP_TOPIC, "/map/mesh",  # /map/mesh: slam --mesh (tests/mapping/test_mesh.py)
+              "/trajectory"}
     slam_fields = set(_field_names(_steps()["/slam/stats"])) | {"ms.load", "ms.log"}
     paths = set(re.findall(r'"(/[a-z/_]+(?:\.[a-z_.]+)?)"', text))
     assert paths

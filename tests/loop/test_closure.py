@@ -131,6 +131,16 @@ def test_the_corrected_trajectory_is_written(run):
     logged = read_log(run.out / "log.mcap").est_poses
     shift = np.linalg.norm(written[:, :3, 3] - logged[:, :3, 3], axis=1)
     assert shift.max() > 1e-4, "no pose moved with the loop's correction"
+    # the log ends with the trajectory as written: /trajectory, corrections included
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    with open(run.out / "log.mcap", "rb") as f:
+        ends = [m for _, _, _, m in make_reader(f, decoder_factories=[DecoderFactory()])
+                .iter_decoded_messages(topics=["/trajectory"])]
+    assert len(ends) == 1 and len(ends[0].poses) == len(written)
+    centres = np.array([[p.position.x, p.position.y, p.position.z] for p in ends[0].poses])
+    np.testing.assert_allclose(centres, written[:, :3, 3], atol=1e-9)
 
 
 def test_surfels_carry_keyframe_anchors(run):

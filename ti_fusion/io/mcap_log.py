@@ -12,6 +12,8 @@ Channels (log time = the frame's dataset timestamp; ``docs/LOGS.md`` has the ful
     /camera/calibration foxglove.CameraCalibration protobuf  pinhole K, P
     /loop_closures      foxglove.SceneUpdate       protobuf  loop edges as one LINE_LIST, frame "world"
     /map/mesh           foxglove.SceneUpdate       protobuf  slam --mesh: the mesh as one TRIANGLE_LIST, frame "world"
+    /trajectory         foxglove.PosesInFrame      protobuf  at the end: every pose as trajectory.tum has it (after
+                                                             loop closure's corrections), frame "world"
 
 Why this encoding. The geometry channels use Foxglove's official protobuf schemas from
 ``foxglove-schemas-protobuf``: the schema names are the ones Foxglove recognises, the messages are
@@ -62,6 +64,7 @@ from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 from foxglove_schemas_protobuf.PackedElementField_pb2 import PackedElementField
 from foxglove_schemas_protobuf.PointCloud_pb2 import PointCloud
 from foxglove_schemas_protobuf.PoseInFrame_pb2 import PoseInFrame
+from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.records import Channel, Footer, Message, Metadata, Schema
@@ -86,6 +89,7 @@ LOOP_ENTITY = "loop_closures"  # one entity, replaced by each message: it holds 
 LOOP_APPLIED_RGBA = (0.17, 0.80, 0.25, 1.0)
 LOOP_NOT_APPLIED_RGBA = (0.90, 0.15, 0.15, 1.0)
 MESH_TOPIC = "/map/mesh"
+TRAJECTORY_TOPIC = "/trajectory"
 MESH_ENTITY = "mesh"
 JSON_SCHEMA_DIALECT = "https://json-schema.org/draft/2020-12/schema"
 MCAP_MAGIC = b"\x89MCAP0\r\n"
@@ -265,6 +269,19 @@ class RunLogger:
             gt_pose = np.asarray(gt_pose, dtype=np.float64)
             if np.all(np.isfinite(gt_pose)):
                 self._write_proto("/gt/pose", _pose_in_frame(ns, gt_pose), ns)
+        self._file.flush()
+
+    def log_trajectory(self, t: float, poses, topic: str = TRAJECTORY_TOPIC) -> None:
+        """The run's camera-to-world ``poses`` as one message (at the end: /camera/pose has each frame's pose as
+        it was tracked, this one the trajectory as written, loop closure's corrections included)."""
+        ns = self._ns(t)
+        msg = PosesInFrame(frame_id=WORLD_FRAME)
+        _set_stamp(msg.timestamp, ns)
+        for pose in poses:
+            pose = np.asarray(pose, dtype=np.float64)
+            if np.all(np.isfinite(pose)):
+                _fill_pose(msg.poses.add(), pose)
+        self._write_proto(topic, msg, ns)
         self._file.flush()
 
     def declare_json(self, topic: str, schema: dict) -> None:

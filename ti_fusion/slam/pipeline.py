@@ -106,6 +106,8 @@ class Pipeline:
                 self._write_trajectory()
                 if self.results:
                     self._log_map(log, self.results[-1].timestamp)
+                    if self.step.estimates_poses and (trajectory := self.trajectory())[0]:
+                        log.log_trajectory(self.results[-1].timestamp, trajectory[1])
                     if hasattr(self.step, "log_end"):  # slam --mesh: the mesh, while the log is open
                         self.step.log_end(log, self.results[-1].timestamp)
         if error is not None:

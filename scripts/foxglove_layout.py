@@ -46,7 +46,7 @@ SCENE_TOPICS = {
     # slam --mesh: the mesh of the map at the end of the run, its own vertex colours
     "/map/mesh": {"visible": True},
     # the trajectory as written at the end (loop closure's corrections included), as a line
-    "/trajectory": {"visible": True, "type": "line", "color": EST},
+    "/trajectory": {"visible": True, "type": "line", "lineWidth": 0.02, "gradient": [EST, EST]},
 }
 # Looking down at the scene from 8 m, 45 degrees off vertical (every key: the clients replace the whole state).
 CAMERA = {"distance": 8, "perspective": True, "phi": 45, "thetaOffset": 45, "target": [0, 0, 0],

@@ -190,7 +190,7 @@ def _blocks(n: int) -> list:
 
 # Layout of the ``params`` array every kernel takes (2-D, float64 on cpu, float32 elsewhere): the pose, the
 # target intrinsics and the thresholds travel as one small array (cheaper to pass than matrix arguments).
-# Row STATE holds the pose (and, for ``reduce``, ``status_map`` and ``write_rows``, the settings too);
+# Row STATE holds the pose (and, for ``reduce`` and ``status_map``, the settings too);
 # ``iterate`` reads a level's settings from row SETTINGS + level and keeps its records from row RECORDS on,
 # so one array written once per ``align`` and read once after it holds everything that crosses.
 P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE = 0, 9, 12, 16, 17, 18
@@ -294,7 +294,7 @@ def _build_kernels(real):
         branches, no reads of the target), the second reads the target pixel and tests
         (``_correspondence``), while the chunk's ``target`` entries are still in cache: fused into one
         pass, the projection and the target read that depends on it ran slower (docs/KERNELS.md).
-        ``reduce``, ``iterate`` and ``write_rows`` share both passes, so they find the same correspondences."""
+        ``reduce`` and ``iterate`` share both passes, so they find the same correspondences."""
         v = begin // W
         u = begin - v * W
         for k in range(begin, end):
@@ -658,40 +658,7 @@ def _build_kernels(real):
                                                params[STATE, P_DIST2], params[STATE, P_COS])
             status[v, u] = s
 
-    @ti.kernel
-    def write_rows(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                   s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32, offsets: ti.template(), rows: ti.template(), n_chunks: ti.i32, robust: ti.template(),
-                   params: params_t, target: ti.template()):
-        """Rows √w [A | r] of the correspondences, compact and in pixel order: chunk c writes from
-        ``offsets[c]`` (the exclusive prefix sum of the per-chunk inlier counts of ``reduce``, whose two
-        passes it shares, so each chunk writes exactly its count)."""
-        W = Ws
-        for c in range(n_chunks):
-            begin, end = _chunk_range(Hs, Ws, c, n_chunks)
-            _project_chunk(src_v, src_n, s0, Ws, Ht, Wt, begin, end, params, STATE, target)
-            R, t, K = _pose(params, STATE)
-            v = begin // W
-            u = begin - v * W
-            k = offsets[c]
-            for i in range(begin, end):
-                tp = target[i]
-                if tp >= 0:
-                    status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, t0, Wt, tp, v, u, R, t,
-                                                        params[STATE, P_DIST2], params[STATE, P_COS])
-                    if status == STATUS_OK:
-                        A, r = _row(pt, q, nq)
-                        sw = ti.sqrt(_weight(r, robust, params[STATE, P_SCALE], q.z))
-                        for j in ti.static(range(6)):
-                            rows[k, j] = sw * A[j]
-                        rows[k, 6] = sw * r
-                        k += 1
-                u += 1
-                if u == W:
-                    u = 0
-                    v += 1
-
-    return {"reduce": reduce, "iterate": iterate, "start": start, "status_map": status_map,
-            "write_rows": write_rows}
+    return {"reduce": reduce, "iterate": iterate, "start": start, "status_map": status_map}
 
 
 def kernels_for(real):
@@ -743,8 +710,6 @@ class PointToPlane:
         self.params = np.zeros((1, N_PARAMS), dtype=self.np_real)
         self.out = np.zeros(N_SUMS, dtype=self.np_real)  # written by the kernel (no copy on cpu)
         self.out_joint = np.zeros(N_SUMS_JOINT, dtype=self.np_real)
-        self.offsets = None  # allocated on the first rows() call (QR only)
-        self.rows_field = None
         self.status_field = {}
 
     def _set_params(self, T: np.ndarray | None, K, dist_threshold: float, normal_threshold_deg: float,
@@ -910,33 +875,6 @@ class PointToPlane:
     def pose(self) -> np.ndarray:
         """The pose ``iterate`` has reached (4×4 float64)."""
         return unflatten_pose(self._host_state()[STATE, P_R:P_T + 3].astype(np.float64))
-
-    def chunk_inliers(self, n_chunks: int) -> np.ndarray:
-        """Per-chunk inlier counts of the last ``reduce``."""
-        return np.rint(self.partials.to_numpy()[:n_chunks, SUM_INLIERS]).astype(np.int64)
-
-    def rows(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
-             robust: str = "none", robust_scale: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
-        """(the 30 sums, the stacked system √w [A | b]) of one pass: the rows are n × 7, float64 NumPy, one
-        per correspondence in pixel order.
-
-        Runs ``reduce`` first (its per-chunk inlier counts give each chunk its output offset), so it costs
-        two passes: it is for the QR solver and for tests, not for the default path."""
-        images = self._images(src_v, src_n, tgt_v, tgt_n)
-        n_chunks = self._chunks(images)
-        sums = self.reduce(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold, normal_threshold_deg, robust,
-                           robust_scale)
-        counts = self.chunk_inliers(n_chunks)
-        offsets = np.zeros(self.n_chunks, dtype=np.int32)
-        offsets[1:n_chunks] = np.cumsum(counts)[:-1]
-        if self.offsets is None:
-            self.offsets = ti.field(ti.i32, shape=self.n_chunks)
-            self.rows_field = ti.field(self.real, shape=(self.max_pixels, 7))
-        self.offsets.from_numpy(offsets)
-        params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale)
-        self.k["write_rows"](*images, self.offsets, self.rows_field, n_chunks, _code(robust), params, self.target)
-        n = int(counts.sum())
-        return sums, self.rows_field.to_numpy()[:n].astype(np.float64)
 
     def status(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float,
                normal_threshold_deg: float) -> np.ndarray:

@@ -257,7 +257,7 @@ class FinestIteration:
         self.K = tgt.intrinsics[0].as_tuple()
         self.thresholds = (icp.dist_threshold(0), c.normal_threshold_deg, icp.robust, c.robust_scale)
         self.kernels = icp._kernels(src.shapes[0][0] * src.shapes[0][1])
-        self.in_kernel = self.kernels.solves_in_kernel and c.solver == "cholesky"  # as ICP.align decides
+        self.in_kernel = self.kernels.solves_in_kernel  # as ICP.align decides
         self.numpy_level = icp_numpy.LevelIteration(*(f.to_numpy() for f in self.fields), self.K, *self.thresholds)
 
     def start(self) -> None:

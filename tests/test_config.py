@@ -115,7 +115,7 @@ def test_values_are_read_as_their_field_type():
 
 def test_a_file_value_against_its_rule_names_the_file(tmp_path):
     path = tmp_path / "run.toml"
-    path.write_text("[icp]\nsolver = \"cholesky\"\nrobust = \"hubber\"\n")
+    path.write_text("[icp]\ndist_threshold = 0.05\nrobust = \"hubber\"\n")
     with pytest.raises(InputError, match=r"run\.toml: icp\.robust = 'hubber': must be one of none, huber, tukey"):
         load_config(path)
     # YAML reads 1e-4 (no dot) as text: a number written as text is still that number
@@ -129,11 +129,9 @@ def test_choices_match_the_code_that_uses_them():
     from ti_fusion.config import rules, ICPConfig
     from ti_fusion.io.datasets import FORMATS
     from ti_fusion.kernels.icp import ROBUST_CODES
-    from ti_fusion.tracking.solve import SOLVERS
     from ti_fusion.config import DatasetConfig
 
     icp = rules(ICPConfig)
-    assert icp["solver"].choices.choices == SOLVERS
     assert set(icp["robust"].choices.choices) == set(ROBUST_CODES)
     assert rules(DatasetConfig)["format"].choices.choices == ("auto", *FORMATS)
 
@@ -146,7 +144,7 @@ def test_choices_match_the_code_that_uses_them():
                             "settings)"),
     ("list.json", b"[1, 2]", "config's top level is a list: expected a table of sections (e.g. icp: with its "
                              "settings)"),
-    ("latin1.yaml", "icp:\n  solver: 'lu' # é\n".encode("latin-1"),
+    ("latin1.yaml", "icp:\n  robust: 'huber' # é\n".encode("latin-1"),
      "config is not UTF-8 text (line 2, byte b'\\xe9'): save it as UTF-8"),
     ("broken.yaml", b"icp: [\n  a: b\n", "cannot parse config: line 3, column 1: expected ',' or ']', but got "
                                          "'<stream end>'"),

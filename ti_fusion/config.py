@@ -311,7 +311,6 @@ class ICPConfig:
                                      # per pyramid level, coarse → fine
     dist_threshold: Positive = 0.10  # metres: max ‖p′ − q‖ for a correspondence (finest level)
     normal_threshold_deg: Degrees = 30.0  # max angle between the source and target normals
-    solver: Annotated[str, OneOf("cholesky", "lu", "qr")] = "cholesky"  # QR solves the stacked n×6 system
     robust: Annotated[str, OneOf("none", "huber", "tukey")] = "huber"  # weights on the point-to-plane residual
     robust_scale: Positive = 0.01    # metres: Huber's k or Tukey's c (at 1 m depth with depth_weighting)
     depth_weighting: bool = True     # weight residuals by Kinect's depth noise σ(z) at the target point:
@@ -627,6 +626,7 @@ def _set_field(config: Config, section: str, key: str, value: Any, where: str) -
 REMOVED = {
     **{("icp", name): f"moved to maps.{name}" for name in ("normal_max_depth_jump", "pyramid_depth_sigma",
                                                              "depth_smooth_radius")},
+    ("icp", "solver"): "the 6×6 step is always solved by Cholesky (LU and QR agreed with it; docs/BENCHMARKS.md)",
     ("icp", "converged_update"): "the result is converged when the last update is below icp.stop_update",
     ("loop", "odometry_info_ratio"): "fixed at 1 (the inverse information; docs/BENCHMARKS.md)",
     ("loop", "odometry_max_scale"): "fixed at 1e6 (docs/BENCHMARKS.md)",
@@ -643,7 +643,7 @@ ADVANCED = {
     "synth": ("fx", "min_range", "max_range", "grazing_deg", "baseline", "subpixel", "sensor_width", "color_noise",
               "depth_noise_scale"),
     "maps": ("normal_max_depth_jump", "pyramid_depth_sigma", "depth_smooth_radius"),
-    "icp": ("normal_threshold_deg", "solver", "robust_scale", "depth_weighting", "min_inliers", "max_condition",
+    "icp": ("normal_threshold_deg", "robust_scale", "depth_weighting", "min_inliers", "max_condition",
             "stop_update", "level_dist_scale", "color_robust_scale", "weak_ratio"),
     "fusion": ("dist_threshold", "normal_threshold_deg", "confidence_weighting", "remove_unstable", "unstable_weight",
                "unstable_age", "remove_free_space", "free_space_margin", "depth_weighting", "confidence_sigma",

@@ -108,15 +108,6 @@ def icp_pass(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_thr
     return status, reduce_sums(A, r, robust_weights(r, robust, robust_scale, c["q"][:, 2]), c["sources"])
 
 
-def stacked_rows(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
-                 robust: str = "none", robust_scale: float = 0.01) -> np.ndarray:
-    """√w [A | r] (m×7) in pixel order: the reference of ``PointToPlane.rows``."""
-    _, c = associate(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold, normal_threshold_deg)
-    A, r = linearise(c["p"], c["q"], c["nq"])
-    sw = np.sqrt(robust_weights(r, robust, robust_scale, c["q"][:, 2]))
-    return np.concatenate([A, r[:, None]], axis=1) * sw[:, None]
-
-
 def bilinear(ig: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(m×3 values, valid) of the H×W×3 image ``ig`` = (I, ∂I/∂x, ∂I/∂y) at continuous pixels (x, y) inside
     [0, W − 1) × [0, H − 1); valid where all four taps have I ≥ 0."""

@@ -6,17 +6,16 @@ camera, p_target = T p_source. Each iteration is one Taichi pass (association + 
 reduction, ``ti_fusion.kernels.icp``), the 6×6 system is checked and solved and the pose updated on the
 left with the exact exponential, T ← exp(δξ) · T, the twist δξ = (ω, v) rotation first.
 
-Where the solve runs: with the default Cholesky solver on a float64 backend (cpu), inside the same kernel
-launch (``PointToPlane.iterate``), and the records of the iterations are replayed here afterwards through
-the same checks (too few inliers, rank, condition number) and bookkeeping, so the result is the same as
-solving in NumPy: a failure found on replay rewinds to the pose before that iteration. Otherwise (LU, QR,
-float32 backends) the sums cross to NumPy every iteration and are solved there in float64.
+Where the solve runs: inside the same kernel launch (``PointToPlane.iterate``: a Cholesky solve, float64 on
+the CPU, Jacobi-scaled float32 elsewhere), and the records of the iterations are replayed here afterwards
+through the same checks (too few inliers, rank, condition number) and bookkeeping, so the result is the
+same as solving in NumPy: a failure found on replay rewinds to the pose before that iteration, and a system
+the kernel refused but NumPy accepts goes on in NumPy (the sums cross every iteration, Cholesky in float64).
 
 Photometric term (``icp.color_weight`` λ > 0 and ``align(..., photometric=True)``; docs/PHOTOMETRIC.md): each
 iteration's pass is the joint one (``ti_fusion.kernels.icp``: the colour term's sums beside the geometric
 ones, in the same pass) and the system solved is AᵀA + λ A_cᵀA_c, Aᵀb + λ A_cᵀr_c; the checks (condition
-number) are those of that system. The QR solver has no stacked colour rows: with the term on it solves
-the joint normal equations by Cholesky. ``ICPResult.degeneracy`` reports the weak eigen-directions of the
+number) are those of that system. ``ICPResult.degeneracy`` reports the weak eigen-directions of the
 geometric AᵀA of the last iteration and whether the colour term constrained them.
 """
 
@@ -32,8 +31,7 @@ from ti_fusion.geometry import rigidity_error, se3_exp, unflatten_pose
 from ti_fusion.kernels.icp import (FAILED, N_SUMS, N_SUMS_JOINT, R_COLOUR, R_ITERATION, R_LEVEL, R_OUTCOME, R_POSE,
                                    R_SUMS, R_UPDATE, ROBUST_CODES, UPDATED, Photometric, PointToPlane,
                                    combined_system, unpack_colour_sums, unpack_sums)
-from ti_fusion.tracking.solve import (SOLVERS, check_system, solve_normal_equations, solve_stacked_qr,
-                                      weak_directions)
+from ti_fusion.tracking.solve import check_system, solve_normal_equations, weak_directions
 
 
 @dataclass
@@ -88,8 +86,6 @@ class ICP:
 
     def __init__(self, config: ICPConfig | None = None):
         self.config = config or ICPConfig()
-        if self.config.solver not in SOLVERS:
-            raise ValueError(f"icp.solver {self.config.solver!r}: choose one of {', '.join(SOLVERS)}")
         if self.config.robust not in ROBUST_CODES:
             raise ValueError(f"icp.robust {self.config.robust!r}: choose one of {', '.join(ROBUST_CODES)}")
         self._photometric = False  # this align call's: the joint cost (``align``)
@@ -133,7 +129,7 @@ class ICP:
         result = ICPResult(pose=T)
         schedule = list(zip(reversed(range(n_levels)), cfg.iterations))  # (level, iterations), coarse → fine
         resume = (0, 0)
-        if cfg.solver == "cholesky" and kernels.solves_in_kernel:
+        if kernels.solves_in_kernel:
             resume = self._align_in_kernel(kernels, source, target, schedule, result)
         if resume is not None:
             self._align_in_python(kernels, source, target, schedule, result, resume)
@@ -193,7 +189,7 @@ class ICP:
 
     def _align_in_python(self, kernels: PointToPlane, source, target, schedule, result: ICPResult,
                          start: tuple[int, int] = (0, 0)) -> None:
-        """The sums of each iteration to NumPy, checked, solved (``icp.solver``) and applied there; from
+        """The sums of each iteration to NumPy, checked, solved (Cholesky) and applied there; from
         ``start`` = (stage of ``schedule``, iteration) at ``result.pose``."""
         cfg = self.config
         for stage, (level, n_iter) in enumerate(schedule):
@@ -240,18 +236,13 @@ class ICP:
         args = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level],
                 result.pose, target.intrinsics[level].as_tuple(), self.dist_threshold(level),
                 cfg.normal_threshold_deg, self.robust, cfg.robust_scale)
-        colour = self._colour(source, target, level)
-        if cfg.solver == "qr" and colour is None:
-            sums, rows = kernels.rows(*args)
-        else:  # (with the colour term, QR's place is taken by Cholesky on the joint normal equations)
-            sums, rows = kernels.reduce(*args, photometric=colour), None
+        sums = kernels.reduce(*args, photometric=self._colour(source, target, level))
         s = self._record(result, level, it, sums)
         if s is None:
             return None
         failure = delta = None
         try:
-            delta = solve_stacked_qr(rows) if rows is not None else \
-                solve_normal_equations(s["AtA"], s["Atb"], "cholesky" if cfg.solver == "qr" else cfg.solver)
+            delta = solve_normal_equations(s["AtA"], s["Atb"])
             if not np.all(np.isfinite(delta)):
                 failure, delta = "non-finite update", None
         except np.linalg.LinAlgError as exc:

@@ -1,17 +1,14 @@
 """The 6×6 Gauss–Newton step of point-to-plane ICP, and the checks that refuse a degenerate system.
 
-All three solvers minimise ‖A δ + b‖² over the twist δ = (ω, v) (rotation first):
-- ``cholesky`` (default) and ``lu`` solve the normal equations AᵀA δ = −Aᵀb from the reduced 6×6 sums;
-- ``qr`` factorises the stacked n×6 system A = QR and solves R δ = −Qᵀ b, which never forms AᵀA and so
-  squares no condition number (it needs the per-correspondence rows, see ``PointToPlane.rows``).
+The step minimises ‖A δ + b‖² over the twist δ = (ω, v) (rotation first) by a Cholesky solve of the normal
+equations AᵀA δ = −Aᵀb from the reduced 6×6 sums. Forming AᵀA squares the condition number, but
+``check_system`` refuses cond(AᵀA) above ``icp.max_condition`` (1e7), so float64 keeps about nine digits of δ:
+a QR factorisation of the stacked rows, which avoids the squaring, gave the same steps.
 """
 
 from __future__ import annotations
 
 import numpy as np
-
-SOLVERS = ("cholesky", "lu", "qr")
-
 
 def condition_number(AtA: np.ndarray) -> float:
     """cond(AᵀA) = λmax / λmin of the symmetric matrix; inf when it is singular or not positive."""
@@ -36,23 +33,12 @@ def check_system(AtA: np.ndarray, inliers: int, min_inliers: int, max_condition:
     return None, cond
 
 
-def solve_normal_equations(AtA: np.ndarray, Atb: np.ndarray, method: str = "cholesky") -> np.ndarray:
-    """δ with AᵀA δ = −Aᵀb; ``method`` cholesky (AᵀA = L Lᵀ) or lu (partial pivoting)."""
+def solve_normal_equations(AtA: np.ndarray, Atb: np.ndarray) -> np.ndarray:
+    """δ with AᵀA δ = −Aᵀb, by Cholesky (AᵀA = L Lᵀ)."""
     AtA = np.asarray(AtA, dtype=np.float64)
     rhs = -np.asarray(Atb, dtype=np.float64)
-    if method == "cholesky":
-        L = np.linalg.cholesky(AtA)  # LinAlgError when AᵀA is not positive definite
-        return np.linalg.solve(L.T, np.linalg.solve(L, rhs))  # two triangular solves
-    if method == "lu":
-        return np.linalg.solve(AtA, rhs)  # LAPACK gesv: LU with partial pivoting
-    raise ValueError(f"unknown solver {method!r}: choose one of {', '.join(SOLVERS)}")
-
-
-def solve_stacked_qr(rows: np.ndarray) -> np.ndarray:
-    """δ minimising ‖A δ + b‖ for the stacked rows [A | b] (n×7) by a reduced QR of A."""
-    rows = np.asarray(rows, dtype=np.float64)
-    Q, R = np.linalg.qr(rows[:, :6], mode="reduced")
-    return np.linalg.solve(R, -(Q.T @ rows[:, 6]))  # R is upper triangular
+    L = np.linalg.cholesky(AtA)  # LinAlgError when AᵀA is not positive definite
+    return np.linalg.solve(L.T, np.linalg.solve(L, rhs))  # two triangular solves
 
 
 def weak_directions(AtA: np.ndarray, colour_AtA: np.ndarray | None, color_weight: float,

@@ -256,7 +256,7 @@ def test_run_mesh_warns_instead_of_failing(cpu, caplog):
             return {"position": np.zeros((n, 3), np.float32), "normal": np.tile([0, 0, 1.0], (n, 1)),
                     "colour": np.zeros((n, 3)), "weight": np.ones(n), "radius": np.full(n, 0.01)}
 
-    run = M.RunMesh(MeshConfig())
+    run = M.RunMesh(MeshConfig(method="surfels"))
     run.make(Mapper())
     assert run.mesh is None and "confirmed" in run.summary["mesh_error"]
     assert any("no mesh" in r.getMessage() for r in caplog.records)

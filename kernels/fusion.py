@@ -6,13 +6,11 @@ runs the kernels, ``ti_fusion.mapping.mapper.SurfelMapper`` strings the stages t
 1. project    every surfel into the frame; per pixel, the surfel nearest in depth (``index_map``);
 2. filter 1   the per-surfel mask "projects inside the image with positive depth" (``proj_pixel >= 0``,
               from the same projection);
-3. filter 2   per pixel, the index-map surfel is associated when the frame's vertex is within a distance
-              and its normal within an angle of the surfel's (``associate``: the ``assoc`` image).
-              Alternatively (``fusion.association = "compatible"``, Keller's order) every surfel of pass 1
-              is tested against its pixel's measurement first and the index map keeps the nearest that
-              passed (``project_compatible``): a compatible surfel behind an incompatible one still
-              merges. Either way a pixel merges into at most one surfel and a surfel takes at most one
-              pixel;
+3. filter 2   in Keller's order, in the same projection: every surfel of pass 1 is tested against its
+              pixel's measurement (the frame's vertex within a distance and its normal within an angle of
+              the surfel's) and the index map keeps the nearest that passed (``project_compatible``; the
+              ``assoc`` image), so a compatible surfel behind an incompatible one still merges. A pixel
+              merges into at most one surfel and a surfel takes at most one pixel;
 4. merge      associated surfels average in the measurement (weight 1, or Keller's radial confidence,
               optionally times the depth noise's inverse variance);
 5. add        every valid pixel without an association becomes a new surfel, unless the disc of a surfel
@@ -138,32 +136,6 @@ def measurement_radius(z, nz, f):
 @ti.func
 def unpack_colour(c):
     return Vec3(c & 255, (c >> 8) & 255, (c >> 16) & 255)
-
-
-# -- 3. filter pass 2 (nearest surfel first) -------------------------------------------------------------
-
-
-@ti.kernel
-def associate(s: ti.template(), img: ti.template(), vertex: ti.template(), normal: ti.template(),
-              pose: Rigid, dist_threshold: ti.f32, cos_threshold: ti.f32):
-    """assoc[v, u] = the index-map surfel if the frame's point is within the thresholds, else -1.
-
-    (R, t) maps camera to world. One pixel merges into at most one surfel (its index-map surfel), and a
-    surfel projects to one pixel, so no surfel is merged twice.
-    """
-    for v, u in img.assoc:
-        R, t = rigid(pose)
-        i = img.index_map.index[v, u]
-        a = -1
-        if i != INT_MAX:
-            q = vertex[v, u]
-            nq = normal[v, u]
-            if is_valid(q, nq):
-                qw = R @ q + t
-                nw = R @ nq
-                if (qw - s.position[i]).norm() <= dist_threshold and nw.dot(s.normal[i]) >= cos_threshold:
-                    a = i
-        img.assoc[v, u] = a
 
 
 # -- 1-3 in Keller's order (compatible surfels only) -----------------------------------------------------

@@ -76,16 +76,10 @@ class SurfelMap(SurfelStore):
         self._projected = self.count
         return img
 
-    def associate(self, img: FusionImages, vertex, normal, pose: np.ndarray, dist_threshold: float,
-                  normal_threshold_deg: float) -> None:
-        """Filter pass 2 into ``img.assoc``."""
-        cos_threshold = math.cos(math.radians(normal_threshold_deg))
-        fusion.associate(self.arrays, img, vertex, normal, self._pose(pose)[0], dist_threshold, cos_threshold)
-
     def associate_compatible(self, pose: np.ndarray, intrinsics, vertex, normal, dist_threshold: float,
                              normal_threshold_deg: float) -> FusionImages:
-        """Keller's order instead of ``project`` + ``associate``: filter passes 1 and 2 for every surfel in
-        one projection, then per pixel the nearest surfel that passed: ``img.assoc`` holds it or -1."""
+        """Keller's order: filter passes 1 and 2 for every surfel in one projection, then per pixel the
+        nearest surfel that passed: ``img.assoc`` holds it or -1."""
         H, W = vertex.shape
         img = self.fusion_images(H, W)
         cos_threshold = math.cos(math.radians(normal_threshold_deg))

@@ -5,8 +5,8 @@
 
 For each resolution: fuse frames of the synthetic sequence (noise on) with the Taichi mapper until the
 map holds ``--surfels`` surfels, copy that map into a NumPy implementation of the same step
-(``ti_fusion.reference.fusion.NumpyFusion``: project, filter passes 1 and 2 in the configured order
-(Keller's "compatible" by default), the nearest-depth index map, merge, add with the covered-pixel test,
+(``ti_fusion.reference.fusion.NumpyFusion``: project with filter passes 1 and 2 in Keller's order,
+the nearest-depth index map, merge, add with the covered-pixel test,
 remove, with the same thresholds), then run the next ``--steps`` frames through both, each on its own
 copy, and print the median milliseconds per stage and the ratio, measured in the same run. The first
 Taichi step of each size (kernel compilation) is not timed, and each Taichi step starts 0.2 s after the
@@ -24,7 +24,7 @@ import numpy as np
 
 from benchlib import BLAS_SETTLE_S, keep_freed_memory, numpy_conditions
 
-STAGES = ("project", "filter", "merge", "add", "remove")
+STAGES = ("project", "merge", "add", "remove")
 
 
 def bench_size(width: int, height: int, target: int, steps: int) -> dict:
@@ -92,11 +92,6 @@ def main() -> int:
         t, n = r["final_counts"]
         print(f"{'':<9} surfels after the timed steps: taichi {t:,}, numpy {n:,}")
     print("\nms per stage: median over the timed steps (Taichi stages synchronised with ti.sync()).")
-    from ti_fusion.config import FusionConfig
-
-    if FusionConfig().association == "compatible":
-        print("With Keller's order (fusion.association = compatible) the Taichi step runs filter pass 2 inside its "
-              "projection kernel, so its filter stage is empty: compare the step totals.")
     return 0
 
 

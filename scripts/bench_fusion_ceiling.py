@@ -44,8 +44,8 @@ C_SOURCE = Path(__file__).resolve().parent / "fusion_step.c"
 
 def check_config(cfg) -> None:
     """fusion_step.c implements the default step only."""
-    if (cfg.association, cfg.confidence_weighting, cfg.depth_weighting, cfg.skip_covered, cfg.remove_unstable,
-            cfg.remove_free_space) != ("compatible", True, False, True, True, False):
+    if (cfg.confidence_weighting, cfg.depth_weighting, cfg.skip_covered, cfg.remove_unstable,
+            cfg.remove_free_space) != (True, False, True, True, False):
         raise SystemExit("bench_fusion_ceiling: the C step implements the default fusion settings only")
 
 

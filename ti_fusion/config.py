@@ -370,9 +370,6 @@ class FusionConfig:
     free_space_margin: NonNegative = 0.05  # metres
     depth_weighting: bool = False    # measurement weight also × (σ(1 m)/σ(z))², capped at 4 (Kinect depth noise)
     confidence_sigma: Positive = 0.6  # Keller's σ: measurement weight exp(−γ²/2σ²), γ = radial distance / max
-    association: Annotated[str, OneOf("nearest", "compatible")] = "compatible"
-                                     # a pixel merges into: nearest = its nearest surfel if that one passes
-                                     # filter 2 | compatible = the nearest of its surfels that pass (Keller)
     skip_covered: bool = True        # a pixel on the disc of a surfel merged at a neighbouring pixel adds no
                                      # surfel (keeps the map from growing at every frame)
     render_min_weight: NonNegative = 0.0  # rendering for tracking: only surfels at least this confident (Keller's
@@ -392,8 +389,6 @@ class FusionConfig:
 
 @dataclass
 class SLAMConfig:
-    tracking: Annotated[str, OneOf("model", "frame")] = "model"
-                                     # model: align to the map rendered at the last pose | frame: previous frame
     motion_model: bool = True        # constant-velocity initialisation (per second: scaled by the time between frames)
     motion_damping: Fraction = 0.5   # the velocity is multiplied by this after a step the guess missed by more
                                      # than half (the speed changed)
@@ -631,8 +626,10 @@ REMOVED = {
     ("icp", "converged_update"): "the result is converged when the last update is below icp.stop_update",
     ("loop", "odometry_info_ratio"): "fixed at 1 (the inverse information; docs/BENCHMARKS.md)",
     ("loop", "odometry_max_scale"): "fixed at 1e6 (docs/BENCHMARKS.md)",
+    ("fusion", "association"): "always Keller's: the nearest surfel that passes the filters (docs/BENCHMARKS.md)",
     ("fusion", "render_max_half"): "fixed at 0: each surfel at its own pixel (1 cost ATE; docs/BENCHMARKS.md)",
     ("fusion", "render_fill_half"): "fixed at 1, coarse levels only (0 lost the synthetic loop; BENCHMARKS.md)",
+    ("slam", "tracking"): "the frame is always aligned to the map rendered at the last pose (docs/BENCHMARKS.md)",
     ("slam", "track_at_map_level"): "the frame is always tracked at the map's resolution (docs/BENCHMARKS.md)",
     ("loop", "gnc_min_weight"): "fixed at 0.1 (GNC leaves outliers near 0; docs/BENCHMARKS.md)",
 }
@@ -648,8 +645,8 @@ ADVANCED = {
             "stop_update", "level_dist_scale", "color_robust_scale", "weak_ratio"),
     "fusion": ("dist_threshold", "normal_threshold_deg", "confidence_weighting", "remove_unstable", "unstable_weight",
                "unstable_age", "remove_free_space", "free_space_margin", "depth_weighting", "confidence_sigma",
-               "association", "skip_covered", "render_min_weight"),
-    "slam": ("tracking", "motion_model", "motion_damping", "hypotheses", "doubt_residual_ratio",
+               "skip_covered", "render_min_weight"),
+    "slam": ("motion_model", "motion_damping", "hypotheses", "doubt_residual_ratio",
              "relocalise_iterations", "relocalise_level_dist_scale", "score_gate", "min_inlier_ratio", "max_residual",
              "max_update_deg", "max_update_m", "active_window"),
     "vo": ("match", "min_distance_factor", "min_distance_floor", "ratio", "min_good_match", "min_inliers",

@@ -311,23 +311,6 @@ def test_index_map_and_pass1(arch, rng):
     assert counts.max() >= 2
 
 
-def test_filter_pass2(arch, rng):
-    pose, vertex, normal, depth, colour, data, smap = setup(rng)
-    fv, fn, _ = frame_fields(vertex, normal, depth)
-    img = smap.project(pose, K, H, W)
-    smap.associate(img, fv, fn, pose, DIST, ANGLE)
-    pix, z = ref_project(data["position"].astype(np.float64), pose)
-    index = ref_index_map(pix, z)
-    want = ref_associate(index, data, vertex, normal, pose)
-    got_index = img.index.to_numpy()
-    got_index[got_index == INT_MAX] = -1
-    np.testing.assert_array_equal(got_index, index)
-    np.testing.assert_array_equal(img.assoc.to_numpy(), want)
-    # both outcomes of pass 2 occur, for in-image surfels on valid pixels
-    valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
-    assert (want >= 0).sum() > 50 and ((index >= 0) & valid & (want < 0)).sum() > 50
-
-
 def test_compatible_association(arch, rng):
     pose, vertex, normal, depth, colour, data, smap = setup(rng)
     fv, fn, _ = frame_fields(vertex, normal, depth)
@@ -339,16 +322,11 @@ def test_compatible_association(arch, rng):
     assert (want >= 0).sum() > (nearest >= 0).sum()  # a compatible surfel behind the nearest one now merges
 
 
-@pytest.mark.parametrize("confidence,association", [(False, "nearest"), (True, "nearest"), (True, "compatible"),
-                                                     ("radial+depth", "compatible")])
-def test_merge_and_add(arch, rng, confidence, association):
+@pytest.mark.parametrize("confidence", [False, True, "radial+depth"])
+def test_merge_and_add(arch, rng, confidence):
     pose, vertex, normal, depth, colour, data, smap = setup(rng)
     fv, fn, _ = frame_fields(vertex, normal, depth)
-    if association == "nearest":
-        img = smap.project(pose, K, H, W)
-        smap.associate(img, fv, fn, pose, DIST, ANGLE)
-    else:
-        img = smap.associate_compatible(pose, K, fv, fn, DIST, ANGLE)
+    img = smap.associate_compatible(pose, K, fv, fn, DIST, ANGLE)
     img.colour.from_numpy(pack_colour(colour))
     frame = 12
     depth_weighted = confidence == "radial+depth"
@@ -357,10 +335,7 @@ def test_merge_and_add(arch, rng, confidence, association):
     added, merged, _ = smap.add(img, fv, fn, pose, K, frame, bool(confidence), SIGMA, True, depth_weighted)
 
     pix, z = ref_project(data["position"].astype(np.float64), pose)
-    if association == "nearest":
-        assoc = ref_associate(ref_index_map(pix, z), data, vertex, normal, pose)
-    else:
-        assoc = ref_associate_compatible(pix, z, data, vertex, normal, pose)
+    assoc = ref_associate_compatible(pix, z, data, vertex, normal, pose)
     want = ref_merge(data, assoc, vertex, normal, colour, pose, frame, confidence)
     new = ref_new_surfels(assoc, vertex, normal, colour, pose, frame, confidence)
     got = smap.to_numpy()
@@ -670,12 +645,12 @@ def plane_frame(tilt=0.002):
     return maps, depth
 
 
-@pytest.mark.parametrize("confidence,association", [(False, "nearest"), (True, "nearest"), (True, "compatible")])
-def test_same_frame_twice_adds_nothing(cpu, rng, confidence, association):
+@pytest.mark.parametrize("confidence", [False, True])
+def test_same_frame_twice_adds_nothing(cpu, rng, confidence):
     maps, _ = plane_frame()
     colour = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
     pose = random_pose(rng)
-    mapper = SurfelMapper(FusionConfig(capacity=10_000, confidence_weighting=confidence, association=association))
+    mapper = SurfelMapper(FusionConfig(capacity=10_000, confidence_weighting=confidence))
     first = mapper.integrate(maps, colour, pose, 0)
     before = mapper.to_numpy()
     second = mapper.integrate(maps, colour, pose, 1)
@@ -887,7 +862,7 @@ def _run_fuse(tmp_path, *args):
     summary = json.loads((tmp_path / "summary.json").read_text())
     assert 0 < summary["surfels"] <= summary["naive_points"]
     assert summary["compression_ratio"] == pytest.approx(summary["surfels"] / summary["naive_points"])
-    assert set(summary["ms_per_stage"]) >= {"project", "filter", "merge", "add", "remove"}
+    assert set(summary["ms_per_stage"]) >= {"project", "merge", "add", "remove"}
     assert len(read_ply(tmp_path / "map.ply")) == summary["surfels"]
     import cv2
 

@@ -12,9 +12,6 @@ USES_TAICHI = True
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--tracking", choices=("model", "frame"), default=None,
-                        help="reference for ICP: the fused model rendered at the last pose (default), or "
-                             "the previous frame (for comparison)")
     parser.add_argument("--no-relocalise", action="store_true",
                         help="after a tracking failure, do not re-initialise with ORB + PnP features")
     parser.add_argument("--mesh", action="store_true",
@@ -33,8 +30,6 @@ def run(ctx) -> dict:
     from ti_fusion.slam.pipeline import SLAMPipeline
 
     cfg = ctx.config
-    if ctx.args.tracking:
-        cfg.slam.tracking = ctx.args.tracking
     if ctx.args.no_relocalise:
         cfg.slam.relocalise = "none"
     if ctx.args.mesh or ctx.args.mesh_method:

@@ -26,7 +26,7 @@ from ti_fusion.config import FusionConfig
 from ti_fusion.kernels.surfel_map import SurfelMap
 from ti_fusion.timing import StageTimer
 
-STAGES = ("project", "filter", "merge", "add", "remove")
+STAGES = ("project", "merge", "add", "remove")
 # The prediction for tracking shows each surfel at its own pixel (a disc reaching a pixel further dilated occluding
 # edges and cost ATE), and builds its coarse levels from a render whose holes take the nearest disc within this
 # many pixels (without it they empty out walking forward; docs/BENCHMARKS.md, "Settled and removed settings").
@@ -91,23 +91,13 @@ class SurfelMapper:
         ms: dict[str, float] = {}
         stage = _Stages(timer, ms)
 
-        keller = cfg.association == "compatible"
-        if cfg.association not in ("nearest", "compatible"):
-            raise ValueError(f"fusion.association must be nearest or compatible, not {cfg.association!r}")
-        with stage("project"):  # with Keller's order, filter pass 2 runs inside the projection
-            if keller:
-                img = self.map.associate_compatible(pose, K, vertex, normal, cfg.dist_threshold,
-                                                    cfg.normal_threshold_deg)
-            else:
-                img = self.map.project(pose, K, H, W)
+        with stage("project"):  # Keller's order: each pixel's nearest surfel among those that pass the filters
+            img = self.map.associate_compatible(pose, K, vertex, normal, cfg.dist_threshold, cfg.normal_threshold_deg)
             has_colour = color is not None
             if has_colour:
                 if color.shape[:2] != (H, W):
                     raise ValueError(f"colour of shape {color.shape[:2]} for a depth map of shape {(H, W)}")
                 img.colour.from_numpy(pack_colour(color))
-        with stage("filter"):
-            if not keller:
-                self.map.associate(img, vertex, normal, pose, cfg.dist_threshold, cfg.normal_threshold_deg)
         with stage("merge"):
             self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
                            cfg.confidence_sigma, has_colour, cfg.depth_weighting, self.anchor)

@@ -80,7 +80,6 @@ class NumpyFusion:
     def integrate(self, vertex, normal, depth, colour, pose, K, frame) -> dict:
         cfg, a, n = self.cfg, self.a, self.n
         H, W = depth.shape
-        keller = cfg.association == "compatible"
         ms = {}
         t0 = time.perf_counter()
         # project + filter pass 1 + nearest surfel per pixel
@@ -92,9 +91,9 @@ class NumpyFusion:
         # positive depth and a non-zero normal (three column tests: np.any(nq != 0, axis=1) is much slower)
         valid = (q[:, 2] > 0) & ((nq[:, 0] != 0) | (nq[:, 1] != 0) | (nq[:, 2] != 0))
         cos_thr = math.cos(math.radians(cfg.normal_threshold_deg))
-        if keller:  # the frame's measurements in the world frame, as the kernels' world_measurements
-            q_world = _rigid(q, R, t)
-            n_world = nq @ R.T
+        # the frame's measurements in the world frame, as the kernels' world_measurements
+        q_world = _rigid(q, R, t)
+        n_world = nq @ R.T
         found = [(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.float32))]  # (an empty map)
         for s in range(0, n, self.BLOCK):
             # the camera-frame coordinates as three contiguous rows (the same sums as position @ Rw.T + tw): on
@@ -109,14 +108,13 @@ class NumpyFusion:
             pix = vf[ids].astype(np.int64) * W + uf[ids].astype(np.int64)
             zi = z[ids]
             ids += s
-            if keller:
-                # Keller's order: filter pass 2 for every surfel of pass 1, in the world frame, then (below) the
-                # nearest that passed. The normal test first, the distance for the surfels it keeps
-                ok = np.flatnonzero(_dot(np.take(a["normal"], ids, axis=0), np.take(n_world, pix, axis=0)) >= cos_thr)
-                ids, pix, zi = ids[ok], pix[ok], zi[ok]
-                d = np.take(a["position"], ids, axis=0) - np.take(q_world, pix, axis=0)
-                ok = np.flatnonzero(valid[pix] & (_dot(d, d) <= cfg.dist_threshold ** 2))
-                ids, pix, zi = ids[ok], pix[ok], zi[ok]
+            # Keller's order: filter pass 2 for every surfel of pass 1, in the world frame, then (below) the
+            # nearest that passed. The normal test first, the distance for the surfels it keeps
+            ok = np.flatnonzero(_dot(np.take(a["normal"], ids, axis=0), np.take(n_world, pix, axis=0)) >= cos_thr)
+            ids, pix, zi = ids[ok], pix[ok], zi[ok]
+            d = np.take(a["position"], ids, axis=0) - np.take(q_world, pix, axis=0)
+            ok = np.flatnonzero(valid[pix] & (_dot(d, d) <= cfg.dist_threshold ** 2))
+            ids, pix, zi = ids[ok], pix[ok], zi[ok]
             found.append((ids, pix, zi))
         ids, pix, zi = (np.concatenate(v) for v in zip(*found))
         # the kernels' two passes: nearest depth per pixel, then the smallest index at that depth (with
@@ -127,23 +125,13 @@ class NumpyFusion:
         index = np.full(H * W, np.iinfo(np.int64).max, np.int64)
         np.minimum.at(index, pix[won], ids[won])
         index[index == np.iinfo(np.int64).max] = -1
-        t1 = time.perf_counter()
-        ms["project"] = (t1 - t0) * 1e3
-        # filter pass 2 (in the projection above for Keller's order). In pixel order, not in index order as the
-        # kernels' merge: the frame's arrays are then read in order, and so are the coverage test's reads of
-        # the merged surfels
+        # the associated pixels in pixel order, not in index order as the kernels' merge: the frame's arrays are
+        # then read in order, and so are the coverage test's reads of the merged surfels
         px = np.flatnonzero((index >= 0) & valid)
         i = index[px]
-        if keller:
-            qw, nw = np.take(q_world, px, axis=0), np.take(n_world, px, axis=0)
-        else:
-            qw, nw = _rigid(np.take(q, px, axis=0), R, t), np.take(nq, px, axis=0) @ R.T
-            d = qw - np.take(a["position"], i, axis=0)
-            ok = np.flatnonzero((np.sqrt(_dot(d, d)) <= cfg.dist_threshold) &
-                                (_dot(nw, np.take(a["normal"], i, axis=0)) >= cos_thr))
-            px, i, qw, nw = px[ok], i[ok], np.take(qw, ok, axis=0), np.take(nw, ok, axis=0)
+        qw, nw = np.take(q_world, px, axis=0), np.take(n_world, px, axis=0)
         t2 = time.perf_counter()
-        ms["filter"] = (t2 - t1) * 1e3
+        ms["project"] = (t2 - t0) * 1e3
         # merge
         rgb = colour.reshape(-1, 3)  # uint8: only the rows used are converted
         alpha = self._alpha(px, q[:, 2][px], K, (H, W))[:, None]
@@ -166,10 +154,7 @@ class NumpyFusion:
         merged_at = np.full(H * W, -1, np.int64)  # the surfel merged at each pixel, as a row of p_new, n_new, r_new
         merged_at[px] = np.arange(len(px))
         new = np.flatnonzero(valid & (merged_at < 0))
-        if keller:  # the frame's measurements were turned into the world frame in the projection
-            qw, nw = np.take(q_world, new, axis=0), np.take(n_world, new, axis=0)
-        else:
-            qw, nw = _rigid(np.take(q, new, axis=0), R, t), np.take(nq, new, axis=0) @ R.T
+        qw, nw = np.take(q_world, new, axis=0), np.take(n_world, new, axis=0)  # turned in the projection
         if cfg.skip_covered:
             keep = np.flatnonzero(~self._covered(new, qw, nw, merged_at.reshape(H, W), p_new, n_new, r_new, cos_thr))
             new, qw, nw = new[keep], np.take(qw, keep, axis=0), np.take(nw, keep, axis=0)

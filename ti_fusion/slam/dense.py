@@ -156,8 +156,6 @@ class DenseSLAM:
         # aligned to level l of the frame maps, at the same resolution.
         self.model_intrinsics = intrinsics.downsampled(2**map_level)
         self.model_maps = FrameMaps(config.maps, self.model_intrinsics.height, self.model_intrinsics.width, levels)
-        self.previous_maps = FrameMaps(config.maps, H, W, levels, input_level=frame_level) \
-            if config.slam.tracking == "frame" else None
         self.icp = ICP(config.icp)
         # Dense re-localisation: the same levels with more iterations and wider gates at the coarse ones.
         wide = config.slam.relocalise_iterations
@@ -233,8 +231,6 @@ class DenseSLAM:
             self._frames_fused += 1
             self.last_good = (frame, result.pose)
         self._update_motion(result, frame.timestamp, anchor)
-        if self.previous_maps is not None:
-            self.frame_maps, self.previous_maps = self.previous_maps, self.frame_maps
         result.ms = dict(timer.last)
         return result
 
@@ -253,7 +249,7 @@ class DenseSLAM:
     # -- tracking -------------------------------------------------------------------------------
     def _anchor(self) -> np.ndarray:
         """The pose the motion model extrapolates from: the last tracked frame's (never a lost frame's)."""
-        return self.last_good[1] if self.last_good is not None and self.previous_maps is None else self.poses[-1]
+        return self.last_good[1] if self.last_good is not None else self.poses[-1]
 
     def _predicted_pose(self, timestamp: float) -> np.ndarray:
         """The motion model's guess at ``timestamp``: the last tracked motion per second over the time since
@@ -271,8 +267,6 @@ class DenseSLAM:
     def _reference(self, colour: bool = False) -> tuple[FrameMaps, np.ndarray]:
         """The ICP source and the camera-to-world pose of its camera frame (with ``colour``, its intensity
         too: the model's colour at each pixel of the prediction)."""
-        if self.previous_maps is not None:  # frame-to-frame, for comparison only
-            return self.previous_maps, self.poses[-1]
         last = self.last_good[1] if self.last_good is not None else self.poses[-1]
         fusion = self.config.fusion
         # Only confirmed surfels predict the surface (Keller's stable points, fusion.render_min_weight),
@@ -294,7 +288,6 @@ class DenseSLAM:
         cfg = self.config.slam
         predicted = self._predicted_pose(frame.timestamp)
         source, last = self._reference(colour)
-        # frame-to-frame: the previous frame's intensity, made when it was the live frame (if it was)
         colour = colour and source.intensity is not None
         tried: list[Hypothesis] = []
 
@@ -395,8 +388,8 @@ class DenseSLAM:
         estimate = estimate_relative_pose(reference, frame, self.config.vo)
         if estimate.pose is None:
             return
-        # The estimate maps the reference frame's camera into the new one; ICP's source sits at `last`
-        # (the same camera in model tracking, the previous frame's in frame-to-frame tracking).
+        # The estimate maps the reference frame's camera into the new one; ICP's source (the prediction) sits
+        # at `last`, the reference frame's pose.
         init = estimate.pose @ invert(reference_pose) @ last
         icp = self.icp.align(source, self.frame_maps, init=init, photometric=colour)
         pose = renormalize(last @ invert(icp.pose))

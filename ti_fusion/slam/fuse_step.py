@@ -38,12 +38,11 @@ STATS_SCHEMA = json_object({
     "ms": json_object({
         "maps": json_field("number", "the frame's depth, vertex and normal pyramids, milliseconds"),
         "project": json_field("number", "projecting the map into the frame and associating, " + _MS),
-        "filter": json_field("number", "the second association pass (nearest association only), " + _MS),
         "merge": json_field("number", "averaging associated pixels into their surfels, " + _MS),
         "add": json_field("number", "adding unassociated pixels as new surfels, " + _MS),
         "remove": json_field("number", "removing unstable and free-space surfels, " + _MS),
         "fuse": json_field("number", "fusing the frame into the map (project to remove), milliseconds"),
-    }, required=("maps", "project", "filter", "merge", "add", "remove", "fuse"),
+    }, required=("maps", "project", "merge", "add", "remove", "fuse"),
         description="time per stage, milliseconds"),
 }, required=("frame", "status", "surfels", "merged", "added", "covered", "removed", "ms"))
 

@@ -64,18 +64,6 @@ class SurfelMap(SurfelStore):
         return Pool.image_set(PredictionImages, height, width)
 
     # -- 1-3: project, filter pass 1, filter pass 2 ------------------------------------------------------
-    def project(self, pose: np.ndarray, intrinsics, height: int, width: int, with_index: bool = True) -> FusionImages:
-        """Filter pass 1 of the surfels in the frame with camera-to-world ``pose`` and, with ``with_index``,
-        the index map (per pixel the surfel nearest in depth, ties to the smaller index)."""
-        img = self.fusion_images(height, width)
-        index_map.clear(img.index_map)
-        if self.count > 0:
-            index_map.project_surfels(self.arrays, self.count, img.index_map, self._pose(pose)[1],
-                                      *intrinsics.as_tuple(), False, 0.0, 0)
-            index_map.build(self.arrays, self.count, img.index_map, with_index)
-        self._projected = self.count
-        return img
-
     def associate_compatible(self, pose: np.ndarray, intrinsics, vertex, normal, dist_threshold: float,
                              normal_threshold_deg: float) -> FusionImages:
         """Keller's order: filter passes 1 and 2 for every surfel in one projection, then per pixel the

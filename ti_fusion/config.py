@@ -323,10 +323,10 @@ class ICPConfig:
                                      # noise; also what ICPResult.converged tests
     level_dist_scale: Positive = 2.0  # d_thr at pyramid level l is dist_threshold · level_dist_scale**l (coarse
                                       # levels gate wider)
-    color_weight: NonNegative = 0.0  # weight of the photometric term's normal equations beside ICP's (intensity
+    color_weight: NonNegative = 0.01  # weight of the photometric term's normal equations beside ICP's (intensity
                                      # in [0, 1] against metres); 0 = depth only. Off where colour is not
-                                     # registered to depth. 0.01 measured best on wall/corridor/room
-                                     # (docs/PHOTOMETRIC.md: wall ATE 161 cm → 0.08 cm)
+                                     # registered to depth (7-Scenes). 0.01 measured best on every synthetic scene
+                                     # (docs/BENCHMARKS.md, colour by default: wall 147 → 0.09 cm)
     color_robust_scale: Positive = 0.05  # intensity in [0, 1]: Huber's k on the photometric residual
     weak_ratio: Annotated[float, Range(gt=0, lt=1)] = 1e-3  # a direction of the geometric AᵀA whose eigenvalue
                                      # is below this fraction of the largest is reported weak (degeneracy)

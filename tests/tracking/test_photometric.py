@@ -143,7 +143,7 @@ def plane_pair(cpu):
 
 def test_colour_tracks_what_depth_cannot_see(plane_pair):
     source, target, G = plane_pair
-    cfg = ICPConfig(iterations=[10, 10])
+    cfg = ICPConfig(iterations=[10, 10], color_weight=0.0)
     depth_only = ICP(cfg).align(source, target, photometric=True)  # λ = 0: the term stays off
     assert depth_only.colour_inliers == 0
     assert depth_only.failure is not None and ("rank" in depth_only.failure or "ill-conditioned" in depth_only.failure)
@@ -169,11 +169,14 @@ def test_joint_solve_in_kernel_matches_numpy(plane_pair, monkeypatch):
 
 
 # -- in the SLAM loop ------------------------------------------------------------------------------------
-def test_dense_slam_uses_colour_only_where_registered(cpu, caplog):
+@pytest.mark.parametrize("weight", [None, 0.02])
+def test_dense_slam_uses_colour_only_where_registered(cpu, caplog, weight):
     """Frames with registered colour are tracked with the joint cost (colour residuals, degeneracy
     reported); on frames whose colour is not registered (7-Scenes) the term stays off (the depth-only pass
-    runs: no colour residual), with one warning."""
+    runs: no colour residual), said once: a warning where the user set the weight, at info level with the
+    default weight (a 7-Scenes run with the defaults is not warned about a setting it never made)."""
     import dataclasses
+    import logging
 
     from ti_fusion.config import Config, SynthConfig
     from ti_fusion.frame import Frame
@@ -182,9 +185,11 @@ def test_dense_slam_uses_colour_only_where_registered(cpu, caplog):
 
     seq = SyntheticSequence(SynthConfig(width=160, height=120, fx=131.25, frames=5))
     cfg = Config()
-    cfg.icp = dataclasses.replace(cfg.icp, color_weight=0.01)
+    if weight is not None:
+        cfg.icp = dataclasses.replace(cfg.icp, color_weight=weight)
     slam = DenseSLAM(cfg, seq.intrinsics)
     caplog.clear()
+    caplog.set_level(logging.INFO, logger="ti_fusion.slam.dense")
     results = []
     for i in range(5):
         depth, colour = seq.frame(i)
@@ -193,5 +198,6 @@ def test_dense_slam_uses_colour_only_where_registered(cpu, caplog):
     assert all(r.tracked for r in results)
     assert all(r.icp.colour_inliers > 500 and r.icp.degeneracy is not None for r in results[1:3])
     assert all(r.icp.colour_inliers == 0 for r in results[3:])
-    warnings = [m for m in caplog.messages if "not registered to depth" in m]
-    assert len(warnings) == 1 and "icp.color_weight = 0.01" in warnings[0] and "frame 3" in warnings[0]
+    said = [r for r in caplog.records if "not registered to depth" in r.getMessage()]
+    assert len(said) == 1 and f"icp.color_weight = {weight or 0.01:g}" in said[0].getMessage()
+    assert "frame 3" in said[0].getMessage() and said[0].levelno == (logging.WARNING if weight else logging.INFO)

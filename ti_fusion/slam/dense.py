@@ -192,8 +192,10 @@ class DenseSLAM:
         if not self._colour_warned:
             self._colour_warned = True
             why = "has no colour" if frame.color is None else "has colour that is not registered to depth"
-            log.warning(f"icp.color_weight = {weight:g}, but frame {frame.index} {why}: the photometric tracking "
-                        "term is off for such frames (depth only); see docs/PHOTOMETRIC.md")
+            # the default weight asks for colour only where it can be used: elsewhere its absence is no news
+            say = log.info if weight == ICPConfig.color_weight else log.warning
+            say(f"icp.color_weight = {weight:g}, but frame {frame.index} {why}: the photometric tracking "
+                "term is off for such frames (depth only); see docs/PHOTOMETRIC.md")
         return False
 
     # -- the verb -------------------------------------------------------------------------------

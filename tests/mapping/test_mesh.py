@@ -264,17 +264,19 @@ def test_run_mesh_warns_instead_of_failing(cpu, caplog):
 
 @pytest.mark.slow
 def test_slam_mesh(cpu, tmp_path):
-    """``slam --mesh``: mesh.ply and mesh.glb beside map.ply, /map/mesh in the log, the mesh in summary.json."""
+    """``slam --mesh`` (of the surfels): mesh.ply and mesh.glb beside map.ply, /map/mesh in the log, the mesh in
+    summary.json."""
     import json
 
     from ti_fusion.cli.main import main
     from ti_fusion.io.mcap_log import read_log
 
     out = tmp_path / "run"
-    assert main(["slam", "--frames", "6", "--downsample", "2", "--mesh", "--set", "mesh.min_weight=0",
-                 "--out", str(out), "--quiet"]) == 0
+    assert main(["slam", "--frames", "6", "--downsample", "2", "--mesh", "--mesh-method", "surfels",
+                 "--set", "mesh.min_weight=0", "--out", str(out), "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())["mesh"]
-    assert summary["triangles"] > 1000 and (out / "mesh.ply").is_file() and (out / "mesh.glb").is_file()
+    assert summary["method"] == "surfels" and summary["triangles"] > 1000
+    assert (out / "mesh.ply").is_file() and (out / "mesh.glb").is_file()
     assert read_log(out / "log.mcap").channels["/map/mesh"].count == 1
 
 
@@ -284,6 +286,7 @@ def test_slam_mesh_depth(cpu, tmp_path):
     import json
 
     from ti_fusion.cli.main import main
+    from ti_fusion.io.mcap_log import read_log
 
     out = tmp_path / "run"
     assert main(["slam", "--frames", "6", "--downsample", "2", "--mesh-method", "depth", "--out", str(out),
@@ -291,6 +294,7 @@ def test_slam_mesh_depth(cpu, tmp_path):
     summary = json.loads((out / "summary.json").read_text())["mesh"]
     assert summary["method"] == "depth" and summary["frames_integrated"] == 6 and summary["triangles"] > 1000
     assert (out / "mesh.ply").is_file() and (out / "mesh.glb").is_file()
+    assert read_log(out / "log.mcap").channels["/map/mesh"].count == 1
 
 
 def test_bench_metrics_and_render(script, rng, tmp_path):

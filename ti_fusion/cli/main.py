@@ -102,7 +102,8 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
                    help=f"replace the earlier run in {positional.upper() if positional else '--out'} "
                         "(its files are removed first)")
     g.add_argument("--quiet", action="store_true", help="no progress bar and no informational lines")
-    g.add_argument("--config", metavar="FILE", help="config file (.toml, .yaml or .json)")
+    g.add_argument("--config", metavar="FILE", help="config file (.toml, .yaml or .json); every key with its "
+                   "default and unit: docs/CONFIG.md")
     g.add_argument("--set", metavar="SECTION.KEY=VALUE", action="append", default=[],
                    help="override one config value, e.g. --set icp.dist_threshold=0.05 (repeatable)")
     if getattr(module, "USES_TAICHI", False):

@@ -1,4 +1,6 @@
-"""Per-stage wall-clock timing (``with timer.stage("track"): ...``) and the age of the process."""
+"""Wall-clock timing, the one place for it: per-stage samples (``with timer.stage("track"): ...``), a
+``Stopwatch`` for one measurement (``with Stopwatch(result.ms, "log"): ...``, ``lap()``) and the age of the
+process."""
 
 from __future__ import annotations
 
@@ -6,8 +8,36 @@ import os
 import time
 from collections import defaultdict
 from contextlib import contextmanager
+from typing import Callable
 
 import numpy as np
+
+
+class Stopwatch:
+    """Milliseconds from its start: ``ms`` so far, ``lap()`` since the last lap. As a context manager it starts
+    at the block and, at its end, writes the block's milliseconds into ``into[name]`` where given."""
+
+    def __init__(self, into: dict[str, float] | None = None, name: str | None = None):
+        self.into, self.name = into, name
+        self.t0 = self._lap = time.perf_counter()
+
+    @property
+    def ms(self) -> float:
+        return (time.perf_counter() - self.t0) * 1e3
+
+    def lap(self) -> float:
+        now = time.perf_counter()
+        ms, self._lap = (now - self._lap) * 1e3, now
+        return ms
+
+    def __enter__(self) -> "Stopwatch":
+        self.t0 = self._lap = time.perf_counter()
+        return self
+
+    def __exit__(self, *exc) -> bool:
+        if self.into is not None:
+            self.into[self.name] = self.ms
+        return False
 
 
 class StageTimer:
@@ -18,14 +48,22 @@ class StageTimer:
         self.last: dict[str, float] = {}
 
     @contextmanager
-    def stage(self, name: str):
+    def stage(self, name: str, sync: Callable[[], None] | None = None, into: dict[str, float] | None = None):
+        """Times the block. ``sync`` runs before and after it (``ti.sync``: a GPU's queued work then counts
+        where it is done, not where it is waited for); ``into`` also gets the milliseconds under ``name``."""
+        if sync is not None:
+            sync()
         t0 = time.perf_counter()
         try:
             yield
         finally:
+            if sync is not None:
+                sync()
             ms = (time.perf_counter() - t0) * 1e3
             self.samples[name].append(ms)
             self.last[name] = ms
+            if into is not None:
+                into[name] = ms
 
     def add(self, name: str, ms: float) -> None:
         self.samples[name].append(ms)
@@ -43,6 +81,16 @@ class StageTimer:
                 "total": round(float(v.sum()), 3),
             }
         return out
+
+
+@contextmanager
+def timed_stage(timer: StageTimer | None, name: str, **kwargs):
+    """``timer.stage(name, **kwargs)``, or nothing where there is no timer."""
+    if timer is None:
+        yield
+        return
+    with timer.stage(name, **kwargs):
+        yield
 
 
 def process_age_s() -> float | None:

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -39,6 +38,7 @@ from ti_fusion.loop.place_recognition import PlaceDatabase
 from ti_fusion.loop.pose_graph import PoseGraph, edge_covariance, frame_covariance
 from ti_fusion.loop.verification import LoopCandidate, LoopVerifier, fill
 from ti_fusion.tracking.features import extract_features, solve_pnp
+from ti_fusion.timing import Stopwatch
 
 log = logging.getLogger(__name__)
 
@@ -94,22 +94,20 @@ class LoopClosure:
         if not result.tracked or (why := self.selector.why(self.keyframes[-1] if self.keyframes else None,
                                                            result.pose, frame.index)) is None:
             return None
-        t0 = time.perf_counter()
+        watch = Stopwatch()
         kf = self._make_keyframe(frame, result.pose)
         report = LoopReport(kf.id, why)
-        t1 = time.perf_counter()
-        report.ms["keyframe"] = (t1 - t0) * 1e3
+        report.ms["keyframe"] = watch.lap()
         places = self.database.query(kf)
         self.database.add(kf)
-        report.ms["detect"] = (time.perf_counter() - t1) * 1e3
+        report.ms["detect"] = watch.lap()
         self.ms["detect"].append(report.ms["keyframe"] + report.ms["detect"])
         if kf.id == 0:
             # Compile the source maps' kernels for stored depth now, in the run's warm-up frames, not at the
             # first candidate (the prediction is rendered into these maps again before the next frame is
             # tracked); not counted as detection.
-            t2 = time.perf_counter()
-            fill(self._source_maps(kf), kf)
-            report.ms["warmup"] = (time.perf_counter() - t2) * 1e3
+            with Stopwatch(report.ms, "warmup"):
+                fill(self._source_maps(kf), kf)
         accepted = None
         for place in places:
             c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self._source_maps(kf),
@@ -192,11 +190,10 @@ class LoopClosure:
             self.refused.append((i, j, why))
             log.info(f"loop {i}-{j} {report.outcome}")
             return
-        t0 = time.perf_counter()
-        corrections = np.stack([renormalize(new @ invert(kf.pose)) for new, kf in zip(opt.poses, self.keyframes)])
-        self.slam.apply_corrections(corrections)  # a keyframe's pose is its frame's: moved with the trajectory
-        self.graph.accept(opt.poses)
-        report.ms["correct"] = (time.perf_counter() - t0) * 1e3
+        with Stopwatch(report.ms, "correct"):
+            corrections = np.stack([renormalize(new @ invert(kf.pose)) for new, kf in zip(opt.poses, self.keyframes)])
+            self.slam.apply_corrections(corrections)  # a keyframe's pose is its frame's: moved with the trajectory
+            self.graph.accept(opt.poses)
         self.ms["correct"].append(report.ms["correct"])
         report.closed, report.outcome = (i, j), "applied"
         self.closures.append((i, j))

@@ -23,7 +23,6 @@ to hundreds of keyframes) solve in milliseconds, so nothing incremental is neede
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import gtsam
@@ -31,6 +30,7 @@ import numpy as np
 
 from ti_fusion.config import LoopConfig
 from ti_fusion.geometry import hat, invert, renormalize, se3_log
+from ti_fusion.timing import Stopwatch
 
 PRIOR_SIGMA = 1e-6  # radians and metres: the first keyframe does not move
 # With odometry_from_icp, a whitened direction weaker than the strongest gets variance × 1 / (λ/λmax): the inverse
@@ -171,7 +171,7 @@ class PoseGraph:
     def optimise(self) -> Optimised:
         """Optimise every keyframe pose from the current estimates (GNC, then LM over the inliers; or LM
         with the configured kernel). ``loop_errors`` covers every loop edge, outliers included."""
-        t0 = time.perf_counter()
+        watch = Stopwatch()
         initial = gtsam.Values()
         for k, pose in enumerate(self.poses):
             initial.insert(k, gtsam.Pose3(pose))
@@ -205,7 +205,7 @@ class PoseGraph:
                         iterations=iterations)
         out.loop_errors = {(e.i, e.j): self.loop_error(e, poses) for e in loops}
         out.outliers = [(e.i, e.j) for e in loops if e not in inliers]
-        out.ms = (time.perf_counter() - t0) * 1e3
+        out.ms = watch.ms
         return out
 
     def _graph(self, loops: list[Edge], loop_noise) -> gtsam.NonlinearFactorGraph:

@@ -14,7 +14,6 @@ Three gates, cheapest first, every outcome recorded with its reason (``LoopCandi
 from __future__ import annotations
 
 import dataclasses
-import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +24,7 @@ from ti_fusion.loop.keyframes import Keyframe
 from ti_fusion.loop.place_recognition import precheck
 from ti_fusion.tracking.features import solve_pnp
 from ti_fusion.tracking.icp import ICP
+from ti_fusion.timing import Stopwatch
 
 
 @dataclass
@@ -69,12 +69,12 @@ class LoopVerifier:
 
     def verify(self, query: Keyframe, match: Keyframe, score: float, source, target,
                target_ready: bool = False) -> LoopCandidate:
-        t0 = time.perf_counter()
+        watch = Stopwatch()
         candidate = LoopCandidate(query.id, match.id, score)
         try:
             self._verify(candidate, query, match, source, target, target_ready)
         finally:
-            candidate.ms = (time.perf_counter() - t0) * 1e3
+            candidate.ms = watch.ms
         return candidate
 
     def _verify(self, c: LoopCandidate, query: Keyframe, match: Keyframe, source, target,

@@ -2,7 +2,7 @@
 
     mapper = SurfelMapper(config.fusion)
     stats = mapper.integrate(frame_maps, frame.color, pose, frame_index)   # merged, added, removed, surfels
-    mapper.render(pose, intrinsics, maps.vertex[0], maps.normal[0], maps.depth[0])  # prediction for ICP
+    mapper.render_maps(frame_maps, pose, intrinsics)   # the prediction that ICP tracks against
     mapper.export_ply("map.ply")
 
     mapper.anchor = keyframe_id       # written into every surfel the next integrate calls create or update
@@ -16,6 +16,7 @@ stages and reports what changed.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -24,7 +25,7 @@ import taichi as ti
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import FusionConfig
 from ti_fusion.kernels.surfel_map import SurfelMap
-from ti_fusion.timing import StageTimer
+from ti_fusion.timing import StageTimer, timed_stage
 
 STAGES = ("project", "merge", "add", "remove")
 # The prediction for tracking shows each surfel at its own pixel (a disc reaching a pixel further dilated occluding
@@ -89,7 +90,7 @@ class SurfelMapper:
             color = color[:: 2**map_level, :: 2**map_level]
         pose = np.asarray(pose, dtype=np.float64)
         ms: dict[str, float] = {}
-        stage = _Stages(timer, ms)
+        stage = partial(timed_stage, timer, sync=ti.sync, into=ms)
 
         with stage("project"):  # Keller's order: each pixel's nearest surfel among those that pass the filters
             img = self.map.associate_compatible(pose, K, vertex, normal, cfg.dist_threshold, cfg.normal_threshold_deg)
@@ -133,11 +134,6 @@ class SurfelMapper:
         return self.map.to_numpy(("anchor",))["anchor"]
 
     # -- rendering -----------------------------------------------------------------------------------------
-    def render(self, pose: np.ndarray, intrinsics: Intrinsics, out_vertex, out_normal, out_depth) -> None:
-        """Predicted camera-frame vertex / normal / depth maps at ``pose`` (zero where no surfel): one level,
-        so without the hole fill that ``render_maps`` gives the coarse levels."""
-        self.map.render(pose, intrinsics, out_vertex, out_normal, out_depth, self.config.render_min_weight, 0)
-
     def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics,
                     min_weight: float | None = None, min_time: int = -2**31) -> None:
         """Fill a ``FrameMaps`` with the prediction: every pyramid level from the rendered depth (with the
@@ -182,50 +178,3 @@ class SurfelMapper:
         # confidence and radius: what ``ti-fusion mesh map.ply`` needs to keep only confirmed surfels
         return write_ply(path, data["position"], data["normal"], data["colour"],
                          {"confidence": data["weight"], "radius": data["radius"]})
-
-
-Fusion = SurfelMapper  # the name the issue uses
-
-
-class _Stages:
-    """``with stage("x"):`` times a stage when there is a timer (synchronising the backend first)."""
-
-    def __init__(self, timer: StageTimer | None, ms: dict[str, float]):
-        self.timer, self.ms = timer, ms
-
-    def __call__(self, name: str):
-        if self.timer is None:
-            return _NULL
-        return _Timed(self.timer, self.ms, name)
-
-
-class _Null:
-    def __enter__(self):
-        return self
-
-    def __exit__(self, *exc):
-        return False
-
-
-_NULL = _Null()
-
-
-class _Timed:
-    def __init__(self, timer: StageTimer, ms: dict[str, float], name: str):
-        self.timer, self.ms, self.name = timer, ms, name
-
-    def __enter__(self):
-        import time
-
-        ti.sync()
-        self.t0 = time.perf_counter()
-        return self
-
-    def __exit__(self, *exc):
-        import time
-
-        ti.sync()
-        elapsed = (time.perf_counter() - self.t0) * 1e3
-        self.ms[self.name] = elapsed
-        self.timer.add(self.name, elapsed)
-        return False

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import time
 from typing import Any, Protocol
 
 import numpy as np
@@ -32,6 +31,7 @@ from ti_fusion.io.registration import ColourRegistrar
 from ti_fusion.io.trajectory import write_tum
 from ti_fusion.slam.checks import check_first_frames
 from ti_fusion.timing import StageTimer, process_age_s
+from ti_fusion.timing import Stopwatch
 
 # The log's record of a run without a Taichi backend (feature odometry runs in OpenCV).
 NO_BACKEND = {"arch": "none (OpenCV on the CPU)"}
@@ -94,7 +94,7 @@ class Pipeline:
         if len(self.dataset) == 0:
             raise InputError(self.dataset.root, "no frames selected (check --start/--stop/--frames)")
         check_first_frames(self.dataset, self.config)  # what can be refused before the first frame is, here
-        t_start = time.perf_counter()
+        run_watch = Stopwatch()
         error = None
         with RunLogger(self.out.file("log.mcap"), self._metadata(), live=self.live) as log:
             log.declare_json(self.step.stats_channel, self._stats_schema())
@@ -116,7 +116,7 @@ class Pipeline:
         nothing = self._nothing_done()
         if nothing:
             raise InputError(self.dataset.root, nothing)
-        wall = time.perf_counter() - t_start
+        wall = run_watch.ms / 1e3
         with self.timer.stage("export"):
             summary = self._summary(wall)
             summary.update(self._evaluate())
@@ -167,9 +167,8 @@ class Pipeline:
                     frame = register_colour(frame)
                 self.timer.add("read", read_ms)
                 result = self.step.register_frame(frame)
-                t0 = time.perf_counter()
-                self._log_frame(log, i, frame, result)
-                result.ms["log"] = (time.perf_counter() - t0) * 1e3
+                with Stopwatch(result.ms, "log"):
+                    self._log_frame(log, i, frame, result)
                 for name, value in result.ms.items():
                     self.timer.add(name, value)
                 result.ms["load"] = self.timer.last["load"]

@@ -5,7 +5,6 @@ map for /map/points, the loop edges for /loop_closures, and the map's files afte
 from __future__ import annotations
 
 import logging
-import time
 
 from ti_fusion.config import Config
 from ti_fusion.io.datasets.base import Dataset, Frame
@@ -13,6 +12,7 @@ from ti_fusion.io.mcap_log import json_field, json_object
 from ti_fusion.mapping.views import save_views, view_pose
 from ti_fusion.slam.dense import DenseSLAM, FrameResult
 from ti_fusion.status import Tracking
+from ti_fusion.timing import Stopwatch
 
 log = logging.getLogger(__name__)
 
@@ -164,9 +164,8 @@ class SLAMStep:
     def register_frame(self, frame: Frame) -> FrameResult:
         result = self.slam.register_frame(frame)
         if self.loop is not None:
-            t0 = time.perf_counter()
-            result.loop = self.loop.after_frame(frame, result)  # on a loop, corrects the trajectory and the map
-            result.ms["loop"] = (time.perf_counter() - t0) * 1e3
+            with Stopwatch(result.ms, "loop"):
+                result.loop = self.loop.after_frame(frame, result)  # on a loop, corrects the trajectory and the map
         if self.mesh is not None and result.tracked:  # slam --mesh with mesh.method = "depth"
             self.mesh.integrate(frame, result.pose)
         return result

@@ -9,7 +9,6 @@ logged with the reason and left out of trajectory.tum. Writes ``cloud.ply`` afte
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -21,6 +20,7 @@ from ti_fusion.io.mcap_log import json_field, json_object
 from ti_fusion.io.ply import write_ply
 from ti_fusion.mapping.pointcloud import VoxelCloud, backproject
 from ti_fusion.tracking.features import REASONS, FeatureOdometry, VOResult
+from ti_fusion.timing import Stopwatch
 
 
 # The /vo/stats message, every field (VOResult.stats() and the step's ms; the pipeline adds ms.load and ms.log).
@@ -89,10 +89,9 @@ class VOStep:
         result = VOFrame(self.odometry.register_frame(frame))
         result.ms["track"] = result.vo.ms
         if result.vo.accepted:
-            t0 = time.perf_counter()
-            xyz, rgb = backproject(frame.depth, frame.intrinsics, _color_at_depth(frame), self.config.cloud_stride)
-            self.cloud.add(xyz, rgb, result.pose)
-            result.ms["cloud"] = (time.perf_counter() - t0) * 1e3
+            with Stopwatch(result.ms, "cloud"):
+                xyz, rgb = backproject(frame.depth, frame.intrinsics, _color_at_depth(frame), self.config.cloud_stride)
+                self.cloud.add(xyz, rgb, result.pose)
         else:
             self.rejected[result.vo.reason] = self.rejected.get(result.vo.reason, 0) + 1
             self.rejected_frames.append((frame.index, result.vo.reason))

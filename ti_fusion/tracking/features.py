@@ -31,7 +31,6 @@ than replacing it.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import cv2
@@ -40,6 +39,7 @@ import numpy as np
 from ti_fusion.config import VOConfig
 from ti_fusion.frame import Frame
 from ti_fusion.geometry import invert, make_pose, orthonormalize
+from ti_fusion.timing import Stopwatch
 
 # Why a frame (or a pair) was rejected; None means accepted.
 NO_COLOR = "no_color"            # the frame has no colour image: nothing to detect features in
@@ -324,9 +324,9 @@ class FeatureOdometry:
         self.anchor: str | None = None  # where the first pose came from: "given" | "ground truth" | "identity"
 
     def register_frame(self, frame: Frame) -> VOResult:
-        t0 = time.perf_counter()
+        watch = Stopwatch()
         result = self._register(frame)
-        result.ms = (time.perf_counter() - t0) * 1e3
+        result.ms = watch.ms
         return result
 
     def _register(self, frame: Frame) -> VOResult:

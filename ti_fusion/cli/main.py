@@ -29,7 +29,6 @@ import re
 import signal
 import sys
 import threading
-import time
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +40,7 @@ from ti_fusion.config import Config, load_config
 from ti_fusion.errors import InputError, OutputError, TiFusionError
 from ti_fusion.interrupts import interrupt
 from ti_fusion.io.outputs import RunDir, base_summary
+from ti_fusion.timing import Stopwatch
 
 
 # A command module defines:
@@ -359,9 +359,9 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
             if backend is not None and not args.quiet:
                 print(f"backend: {backend.arch} ({backend.reason})", flush=True)
             ctx = RunContext(command, args, config, out, backend, args.quiet)
-            t0 = time.perf_counter()
+            watch = Stopwatch()
             result = module.run(ctx) or {}
-            wall = time.perf_counter() - t0
+            wall = watch.ms / 1e3
             summary = base_summary(command, result.pop("frames", 0), result.pop("wall_s", wall),
                                    result.pop("ms_per_stage", {}))
             if backend is not None:

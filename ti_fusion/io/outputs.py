@@ -9,7 +9,6 @@ import secrets
 import shutil
 import socket
 import sys
-import time
 import weakref
 from contextlib import contextmanager, suppress
 from datetime import datetime
@@ -19,6 +18,7 @@ from typing import IO, Iterable, Iterator, TypeVar
 import numpy as np
 
 from ti_fusion.errors import OutputError
+from ti_fusion.timing import Stopwatch
 
 try:
     import fcntl
@@ -54,7 +54,6 @@ class RunDir:
 
     def __init__(self, command: str, out: str | Path | None = None, overwrite: bool = False):
         self.command = command
-        self.t_start = time.perf_counter()
         self._fd: int | None = None
         self._created = False
         for _ in range(5):  # another run may remove the folder it emptied between our steps: start again
@@ -318,12 +317,12 @@ def jsonable(obj):
 def progress(items: Iterable[T], total: int, desc: str, enabled: bool = True) -> Iterator[T]:
     """A one-line progress bar on stderr (only on a terminal, and not with --quiet)."""
     enabled = enabled and sys.stderr.isatty()
-    t0 = time.perf_counter()
+    watch = Stopwatch()
     for i, item in enumerate(items):
         yield item
         if enabled:
             done = i + 1
-            rate = done / max(time.perf_counter() - t0, 1e-9)
+            rate = done / max(watch.ms / 1e3, 1e-9)
             bar = "#" * int(30 * done / max(total, 1))
             sys.stderr.write(f"\r{desc} [{bar:<30}] {done}/{total} {rate:5.1f} it/s")
             sys.stderr.flush()

@@ -20,8 +20,9 @@ from __future__ import annotations
 import queue
 import sys
 import threading
-import time
 from typing import Iterator, Sequence
+
+from ti_fusion.timing import Stopwatch
 
 _STOP_POLL_S = 0.05  # how often a reader blocked on a full queue checks whether it is asked to stop
 # The GIL's switch interval while the reader runs: the loop's thread holds the GIL through every Taichi
@@ -73,9 +74,9 @@ class Prefetcher:
     # -- the caller's side ----------------------------------------------------------------------
     def _inline(self) -> Iterator[tuple[int, object, float]]:
         for i in range(self.n):
-            t0 = time.perf_counter()
+            watch = Stopwatch()
             frame = self.dataset[i]
-            yield i, frame, (time.perf_counter() - t0) * 1e3
+            yield i, frame, watch.ms
 
     def _from_queue(self) -> Iterator[tuple[int, object, float]]:
         for i in range(self.n):
@@ -96,9 +97,9 @@ class Prefetcher:
         for i in range(self.n):
             if self._stop.is_set():
                 return
-            t0 = time.perf_counter()
+            watch = Stopwatch()
             try:
-                item = ("frame", self.dataset[i], (time.perf_counter() - t0) * 1e3)
+                item = ("frame", self.dataset[i], watch.ms)
             except BaseException as exc:  # handed to the caller, raised there at frame i
                 item = ("error", exc, 0.0)
             if not self._put(item) or item[0] == "error":

@@ -18,6 +18,7 @@ import numpy as np
 
 from ti_fusion.config import MeshConfig
 from ti_fusion.errors import InputError
+from ti_fusion.timing import Stopwatch
 
 log = logging.getLogger(__name__)
 
@@ -318,25 +319,23 @@ def mesh_surfels(surfels: dict, settings: MeshConfig | None = None, source=None,
     """The mesh of a map's confirmed surfels (``surfels``: position, normal, colour, weight, radius arrays).
 
     ``stats``, when given, receives the counts (surfels meshed, blocks, voxels) and milliseconds per stage."""
-    import time
-
+    
     settings = settings or MeshConfig()
     check_voxel_size(settings.voxel_size)
     stats = {} if stats is None else stats
-    t0 = time.perf_counter()
+    watch, ms = Stopwatch(), {}
     selected = select_surfels(surfels, settings.min_weight, source)
     grid, voxels = splat_surfels(selected, settings, source)
-    t1 = time.perf_counter()
+    ms["splat"] = round(watch.lap(), 1)
     mesh = extract(grid, voxels, settings.voxel_size)
-    t2 = time.perf_counter()
+    ms["extract"] = round(watch.lap(), 1)
     if settings.max_triangles and len(mesh) > settings.max_triangles:
         mesh = decimate(mesh, settings.max_triangles)
-    t3 = time.perf_counter()
+    ms["decimate"] = round(watch.lap(), 1)
     stats.update({"surfels_meshed": len(selected["position"]), "surfels_in_map": len(surfels["position"]),
                   "blocks": len(grid), "voxels": len(grid) * E ** 3,
                   "voxels_reached": int((voxels["weight"] > 0).sum()),
-                  "ms": {"splat": round((t1 - t0) * 1e3, 1), "extract": round((t2 - t1) * 1e3, 1),
-                         "decimate": round((t3 - t2) * 1e3, 1)}})
+                  "ms": ms})
     return mesh
 
 
@@ -468,22 +467,19 @@ class DepthFusion:
 
     def mesh(self, stats: dict | None = None) -> Mesh:
         """Marching cubes over the voxels with more than ``mesh.depth_min_weight`` samples."""
-        import time
-
         stats = {} if stats is None else stats
-        t0 = time.perf_counter()
+        watch, ms = Stopwatch(), {}
         grid, voxels = self.grid()
-        t1 = time.perf_counter()
+        ms["gather"] = round(watch.lap(), 1)
         mesh = extract(grid, voxels, self.voxel, self.settings.depth_min_weight)
-        t2 = time.perf_counter()
+        ms["extract"] = round(watch.lap(), 1)
         if self.settings.max_triangles and len(mesh) > self.settings.max_triangles:
             mesh = decimate(mesh, self.settings.max_triangles)
-        t3 = time.perf_counter()
+        ms["decimate"] = round(watch.lap(), 1)
         stats.update({"method": "depth", "frames_integrated": self.frames, "blocks": len(grid),
                       "voxels": len(grid) * E ** 3,
                       "voxels_reached": int((voxels["weight"] > self.settings.depth_min_weight).sum()),
-                      "ms": {"gather": round((t1 - t0) * 1e3, 1), "extract": round((t2 - t1) * 1e3, 1),
-                             "decimate": round((t3 - t2) * 1e3, 1)}})
+                      "ms": ms})
         return mesh
 
 
@@ -505,20 +501,16 @@ class RunMesh:
         """A tracked frame's depth and colour at its pose (mesh.method = "depth"; otherwise nothing)."""
         if self.depth is None or pose is None or self.depth_error is not None:
             return
-        import time
-
-        t0 = time.perf_counter()
+        watch = Stopwatch()
         try:
             self.depth.integrate(frame.depth, frame.color, frame.intrinsics, pose)
         except InputError as exc:  # over the bound: the mesh is given up, the run goes on
             log.warning(f"no mesh: {exc.problem}")
             self.depth_error = exc
-        self.integrate_s += time.perf_counter() - t0
+        self.integrate_s += watch.ms / 1e3
 
     def make(self, mapper, run_log=None, t: float = 0.0) -> None:
-        import time
-
-        t0 = time.perf_counter()
+        watch = Stopwatch()
         stats: dict = {}
         try:
             if self.depth_error is not None:
@@ -535,7 +527,7 @@ class RunMesh:
             return
         self.summary = {"method": self.config.method, "triangles": len(self.mesh), "vertices": len(self.mesh.vertices),
                         "area_m2": round(self.mesh.area(), 4), "voxel_size": self.config.voxel_size,
-                        "mesh_s": round(time.perf_counter() - t0, 3), **stats}
+                        "mesh_s": round(watch.ms / 1e3, 3), **stats}
         source = (f"{stats['frames_integrated']} depth frames" if self.depth is not None
                   else f"{stats['surfels_meshed']} confirmed surfels")
         log.info(f"mesh: {len(self.mesh)} triangles, {self.summary['area_m2']:.2f} m² from {source} "

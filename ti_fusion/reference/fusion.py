@@ -10,11 +10,11 @@ much of one map agrees with another.
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 
 from ti_fusion.kernels.surfels import ATTRIBUTES
+from ti_fusion.timing import Stopwatch
 
 
 def _dot(a, b):
@@ -81,7 +81,7 @@ class NumpyFusion:
         cfg, a, n = self.cfg, self.a, self.n
         H, W = depth.shape
         ms = {}
-        t0 = time.perf_counter()
+        watch = Stopwatch()
         # project + filter pass 1 + nearest surfel per pixel
         inv = np.linalg.inv(pose)
         Rw, tw = inv[:3, :3].astype(np.float32), inv[:3, 3].astype(np.float32)
@@ -130,8 +130,7 @@ class NumpyFusion:
         px = np.flatnonzero((index >= 0) & valid)
         i = index[px]
         qw, nw = np.take(q_world, px, axis=0), np.take(n_world, px, axis=0)
-        t2 = time.perf_counter()
-        ms["project"] = (t2 - t0) * 1e3
+        ms["project"] = watch.lap()
         # merge
         rgb = colour.reshape(-1, 3)  # uint8: only the rows used are converted
         alpha = self._alpha(px, q[:, 2][px], K, (H, W))[:, None]
@@ -148,8 +147,7 @@ class NumpyFusion:
         a["weight"][i] = wa[:, 0]
         a["radius"][i] = r_new
         a["t_updated"][i] = frame
-        t3 = time.perf_counter()
-        ms["merge"] = (t3 - t2) * 1e3
+        ms["merge"] = watch.lap()
         # add (skipping pixels covered by the disc of a surfel merged at a neighbouring pixel)
         merged_at = np.full(H * W, -1, np.int64)  # the surfel merged at each pixel, as a row of p_new, n_new, r_new
         merged_at[px] = np.arange(len(px))
@@ -168,8 +166,7 @@ class NumpyFusion:
         a["t_created"][sl] = frame
         a["t_updated"][sl] = frame
         n += k
-        t4 = time.perf_counter()
-        ms["add"] = (t4 - t3) * 1e3
+        ms["add"] = watch.lap()
         # remove unstable surfels and compact as the kernels do: the k-th survivor at or above the new count
         # m moves into the k-th hole below m, so only the holes are written, not the whole map (as copying
         # every survivor through a boolean mask would)
@@ -183,7 +180,7 @@ class NumpyFusion:
                 _put_rows(arr, holes, np.take(arr, movers, axis=0))
             n = m
         self.n = n
-        ms["remove"] = (time.perf_counter() - t4) * 1e3
+        ms["remove"] = watch.lap()
         return ms
 
     def _covered(self, pixels, qw, nw, merged_at, position, normal, radius, cos_thr) -> np.ndarray:

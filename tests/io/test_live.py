@@ -204,7 +204,7 @@ def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
     in_file, schemas = _file_messages(run.file("log.mcap"))
     advertised = {c["topic"] for c in client.channels.values()}
     assert advertised == set(in_file) == {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points",
-                                          "/camera/depth", "/camera/color", "/camera/calibration"}
+                                          "/camera/depth", "/camera/color", "/camera/calibration", "/trajectory"}
     for topic in advertised:  # the same schema records: name, encoding and bytes
         schema = client.schema(topic)
         assert (schema.name, schema.encoding, schema.data) == (

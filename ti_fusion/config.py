@@ -410,7 +410,7 @@ class SLAMConfig:
     max_update_m: Positive = 0.3     # ... and this (metres) → failure
     relocalise: Annotated[str, OneOf("features", "none")] = "features"
                                      # after a failure, re-initialise with ORB+PnP (features) or not (none)
-    anchor_to_ground_truth: bool = True  # start at the first frame's GT pose (same frame as GT in viewers)
+    start_at_ground_truth: bool = True  # start at the first frame's GT pose (same frame as GT in viewers)
     loop_closure: bool = False       # keyframes, place recognition, loop verification and pose-graph correction
                                      # of the poses and the map ([loop]; docs/LOOP_CLOSURE.md)
     active_window: NonNegativeInt = 0  # frames: tracking renders only surfels updated within this many fused frames
@@ -632,6 +632,7 @@ REMOVED = {
     ("slam", "tracking"): "the frame is always aligned to the map rendered at the last pose (docs/BENCHMARKS.md)",
     ("slam", "track_at_map_level"): "the frame is always tracked at the map's resolution (docs/BENCHMARKS.md)",
     ("loop", "gnc_min_weight"): "fixed at 0.1 (GNC leaves outliers near 0; docs/BENCHMARKS.md)",
+    ("slam", "anchor_to_ground_truth"): "renamed slam.start_at_ground_truth ('anchor' is a surfel's keyframe)",
 }
 
 # The tuning knobs: docs/CONFIG.md lists them apart from the main settings, because their defaults are what the

@@ -214,7 +214,7 @@ class DenseSLAM:
             self.skipped.append((frame.index, problem))
             return FrameResult(frame.index, frame.timestamp, None, Tracking.SKIPPED, problem, ms=dict(timer.last))
         if not self.poses:
-            pose = frame.gt_pose if frame.gt_pose is not None and self.config.slam.anchor_to_ground_truth \
+            pose = frame.gt_pose if frame.gt_pose is not None and self.config.slam.start_at_ground_truth \
                 else np.eye(4)
             result = FrameResult(frame.index, frame.timestamp, pose.copy(), Tracking.INIT)
             if self.skipped:
@@ -225,14 +225,14 @@ class DenseSLAM:
         else:
             with timer.stage("track"):
                 result = self._track(frame, colour)
-        anchor = self._anchor() if self.poses else None  # the motion model's pose before this frame
+        before = self._held_pose() if self.poses else None  # the motion model's pose before this frame
         if result.tracked:
             with timer.stage("fuse"):
                 result.fusion = self.mapper.integrate(self.frame_maps, frame.color, result.pose,
                                                       self._frames_fused)
             self._frames_fused += 1
             self.last_good = (frame, result.pose)
-        self._update_motion(result, frame.timestamp, anchor)
+        self._update_motion(result, frame.timestamp, before)
         result.ms = dict(timer.last)
         return result
 
@@ -249,14 +249,14 @@ class DenseSLAM:
         return None
 
     # -- tracking -------------------------------------------------------------------------------
-    def _anchor(self) -> np.ndarray:
+    def _held_pose(self) -> np.ndarray:
         """The pose the motion model extrapolates from: the last tracked frame's (never a lost frame's)."""
         return self.last_good[1] if self.last_good is not None else self.poses[-1]
 
     def _predicted_pose(self, timestamp: float) -> np.ndarray:
         """The motion model's guess at ``timestamp``: the last tracked motion per second over the time since
         the last tracked frame, from that frame's pose (so lost frames never compound it)."""
-        last = self._anchor()
+        last = self._held_pose()
         if not self.config.slam.motion_model:
             return last.copy()
         return renormalize(last @ se3_exp(self._velocity * self._elapsed(timestamp)))
@@ -306,7 +306,7 @@ class DenseSLAM:
         first = attempt("motion", predicted)
         self._report_degeneracy(frame, first.icp)
         if cfg.hypotheses != "motion":
-            held = self._anchor()
+            held = self._held_pose()
             apart = pose_error(predicted, held)
             # after a failure the start from rest is tried as well as the guess that coasts on
             if (not settled() or self._lost_streak) and (apart[0] > 0.1 or apart[1] > 1e-3):
@@ -398,16 +398,16 @@ class DenseSLAM:
         rough = renormalize(reference_pose @ invert(estimate.pose))
         tried.append(Hypothesis("features", icp, pose, self._health(icp, pose, rough)))
 
-    def _update_motion(self, result: FrameResult, timestamp: float, anchor: np.ndarray | None) -> None:
+    def _update_motion(self, result: FrameResult, timestamp: float, before: np.ndarray | None) -> None:
         """The motion per second of the step just tracked (from the last tracked frame, over the lost ones
         between), damped when the guess missed it by more than half the step (the speed changed); a lost frame
         leaves it as it was."""
         cfg = self.config.slam
         self._lost_streak = self._lost_streak + 1 if result.lost else 0
-        if anchor is not None and result.tracked:
+        if before is not None and result.tracked:
             dt = self._elapsed(timestamp)
-            step = se3_log(renormalize(invert(anchor) @ result.pose))
-            predicted = anchor @ se3_exp(self._velocity * dt)
+            step = se3_log(renormalize(invert(before) @ result.pose))
+            predicted = before @ se3_exp(self._velocity * dt)
             missed = np.linalg.norm(se3_log(renormalize(invert(predicted) @ result.pose)))
             irregular = bool(np.any(self._velocity)) and (  # from rest, a miss says nothing of the speed
                 result.hypothesis != "motion" or missed > max(0.5 * np.linalg.norm(step), IRREGULAR_FLOOR))

@@ -118,7 +118,7 @@ class VOStep:
             "rejected": {k: v for k, v in self.rejected.items() if v},
             "rejected_total": done - accepted,
             "rejected_frames": self.rejected_frames[:200],
-            "first_pose": self.odometry.anchor,  # ground truth (of the first accepted frame) | identity
+            "first_pose": self.odometry.first_pose_source,  # ground truth (of the first accepted frame) | identity
             "tracking_fps": round(done / track_s, 3) if track_s > 0 else None,
             "cloud_points": int(len(xyz)),
         }

@@ -309,8 +309,7 @@ class FeatureOdometry:
     """Frame-to-keyframe ORB + PnP odometry with the tutorial's three rejection rules.
 
     Each frame is matched against the keyframe, the last ACCEPTED frame; a rejected frame is skipped
-    (no pose) and the next one is matched against the same keyframe. The first accepted frame is the
-    anchor: its pose is ``initial_pose`` if given, else its ground-truth pose when the dataset has one
+    (no pose) and the next one is matched against the same keyframe. The first accepted frame's pose is ``initial_pose`` if given, else its ground-truth pose when the dataset has one
     (so the trajectory is directly comparable with ground truth), else the identity.
     """
 
@@ -321,7 +320,7 @@ class FeatureOdometry:
         self.keyframe: FrameFeatures | None = None
         self.keyframe_index: int | None = None
         self.keyframe_pose: np.ndarray | None = None
-        self.anchor: str | None = None  # where the first pose came from: "given" | "ground truth" | "identity"
+        self.first_pose_source: str | None = None  # "given" | "ground truth" | "identity"
 
     def register_frame(self, frame: Frame) -> VOResult:
         watch = Stopwatch()
@@ -336,11 +335,11 @@ class FeatureOdometry:
             return VOResult(accepted=False, reason=NO_COLOR, pose=None, relative=None, **base)
         features = extract_features(frame, cfg, self._orb)
         if self.keyframe is None:
-            # The anchor needs enough keypoints to be matched against at all.
+            # The first keyframe needs enough keypoints to be matched against at all.
             if len(features) < cfg.min_good_match:
                 return VOResult(accepted=False, reason=FEW_MATCHES, pose=None, relative=None,
                                 keypoints=len(features), **base)
-            pose = self._anchor_pose(frame)
+            pose = self._first_pose(frame)
             self._make_keyframe(frame, features, pose)
             return VOResult(accepted=True, reason=None, pose=pose.copy(), relative=np.eye(4),
                             keypoints=len(features), motion_norm=0.0, **base)
@@ -353,14 +352,14 @@ class FeatureOdometry:
         self._make_keyframe(frame, features, pose)
         return VOResult(accepted=True, reason=None, pose=pose.copy(), relative=est.T, **counts, **base)
 
-    def _anchor_pose(self, frame: Frame) -> np.ndarray:
+    def _first_pose(self, frame: Frame) -> np.ndarray:
         if self.initial_pose is not None:
-            self.anchor = "given"
+            self.first_pose_source = "given"
             return np.asarray(self.initial_pose, dtype=np.float64).copy()
         if frame.gt_pose is not None and np.all(np.isfinite(frame.gt_pose)):
-            self.anchor = "ground truth"
+            self.first_pose_source = "ground truth"
             return make_pose(orthonormalize(frame.gt_pose[:3, :3]), frame.gt_pose[:3, 3])
-        self.anchor = "identity"
+        self.first_pose_source = "identity"
         return np.eye(4)
 
     def _make_keyframe(self, frame: Frame, features: FrameFeatures, pose: np.ndarray) -> None:

@@ -73,8 +73,9 @@ class SurfelMap(SurfelStore):
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
         index_map.clear(img.index_map)
         if self.count > 0:
-            fusion.world_measurements(img, vertex, normal, self._pose(pose)[0])
-            fusion.project_compatible(self.arrays, self.count, img, self._pose(pose)[1], *intrinsics.as_tuple(),
+            to_world, to_camera = self._pose(pose)
+            fusion.world_measurements(img, vertex, normal, to_world)
+            fusion.project_compatible(self.arrays, self.count, img, to_camera, *intrinsics.as_tuple(),
                                       dist_threshold, cos_threshold)
             index_map.build(self.arrays, self.count, img.index_map)
         self._projected = self.count

@@ -53,17 +53,15 @@ class StageTimer:
         where it is done, not where it is waited for); ``into`` also gets the milliseconds under ``name``."""
         if sync is not None:
             sync()
-        t0 = time.perf_counter()
+        watch = Stopwatch()
         try:
             yield
         finally:
             if sync is not None:
                 sync()
-            ms = (time.perf_counter() - t0) * 1e3
-            self.samples[name].append(ms)
-            self.last[name] = ms
+            self.add(name, watch.ms)
             if into is not None:
-                into[name] = ms
+                into[name] = self.last[name]
 
     def add(self, name: str, ms: float) -> None:
         self.samples[name].append(ms)

@@ -103,11 +103,11 @@ class Pipeline:
             except Exception as exc:  # bad input in frame 300: the frames done so far still give their outputs
                 error = exc
             finally:  # whatever ended the loop: keep the trajectory so far, and the map in the log
-                self._write_trajectory()
+                poses = self._write_trajectory()
                 if self.results:
                     self._log_map(log, self.results[-1].timestamp)
-                    if self.step.estimates_poses and (trajectory := self.trajectory())[0]:
-                        log.log_trajectory(self.results[-1].timestamp, trajectory[1])
+                    if self.step.estimates_poses and poses:
+                        log.log_trajectory(self.results[-1].timestamp, poses)
                     if hasattr(self.step, "log_end"):  # slam --mesh: the mesh, while the log is open
                         self.step.log_end(log, self.results[-1].timestamp)
         if error is not None:
@@ -218,10 +218,12 @@ class Pipeline:
         return {"config": self.config.to_dict(), "dataset": self.dataset.describe(), "backend": backend,
                 "versions": {**software_versions(), "ti-fusion": __version__}}
 
-    def _write_trajectory(self) -> None:
+    def _write_trajectory(self) -> list[np.ndarray]:
+        """trajectory.tum of the frames done that got a pose; returns those poses (the log's /trajectory)."""
         stamps, poses = self.trajectory()
         if stamps:
             write_tum(self.out.file("trajectory.tum"), stamps, np.stack(poses))
+        return poses
 
     # -- after the loop -------------------------------------------------------------------------
     def trajectory(self) -> tuple[list[float], list[np.ndarray]]:

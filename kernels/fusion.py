@@ -71,7 +71,7 @@ class FusionImages:
         shape = (height, width)
         self.index_map = IndexMap(height, width)
         self.assoc = ti.field(ti.i32, shape=shape)  # the pixel's associated surfel; -1 none; COVERED
-        self.colour = ti.field(ti.i32, shape=shape)  # the frame's colour packed r | g << 8 | b << 16
+        self.color = ti.field(ti.i32, shape=shape)  # the frame's colour packed r | g << 8 | b << 16
         # the frame's measurements in the world frame (``world_measurements``, for ``project_compatible``)
         self.world_vertex = ti.Vector.field(3, ti.f32, shape=shape)  # FAR where the pixel is invalid
         self.world_normal = ti.Vector.field(3, ti.f32, shape=shape)  # zero where the pixel is invalid
@@ -134,7 +134,7 @@ def measurement_radius(z, nz, f):
 
 
 @ti.func
-def unpack_colour(c):
+def unpack_color(c):
     return Vec3(c & 255, (c >> 8) & 255, (c >> 16) & 255)
 
 
@@ -209,7 +209,7 @@ def assoc_from_index(img: ti.template()):
 
 @ti.func
 def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), normal: ti.template(), v, u,
-              R, t, f, confidence: ti.template(), has_colour, frame_index, anchor):
+              R, t, f, confidence: ti.template(), has_color, frame_index, anchor):
     """p ← (w p + α (R q + t)) / (w + α), n likewise then normalised, colour likewise, w ← w + α; the
     surfel takes the frame's anchor."""
     q = vertex[v, u]
@@ -221,8 +221,8 @@ def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), no
     length = n_sum.norm()
     if length > 0:
         s.normal[i] = n_sum / length
-    if has_colour:
-        s.colour[i] = (w * s.colour[i] + a * unpack_colour(img.colour[v, u])) / (w + a)
+    if has_color:
+        s.color[i] = (w * s.color[i] + a * unpack_color(img.color[v, u])) / (w + a)
     s.weight[i] = w + a
     s.radius[i] = ti.min(s.radius[i], measurement_radius(q.z, nq.z, f))
     s.t_updated[i] = frame_index
@@ -234,7 +234,7 @@ def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), no
 
 @ti.kernel
 def merge_listed(s: ti.template(), img: ti.template(), vertex: ti.template(), normal: ti.template(),
-                 pose: Rigid, f: ti.f32, confidence: ti.template(), has_colour: ti.i32, frame_index: ti.i32,
+                 pose: Rigid, f: ti.f32, confidence: ti.template(), has_color: ti.i32, frame_index: ti.i32,
                  anchor: ti.i32):
     """Every surfel that a pixel's association chose averages in that pixel's measurement.
 
@@ -250,7 +250,7 @@ def merge_listed(s: ti.template(), img: ti.template(), vertex: ti.template(), no
         pix = s.proj_pixel[i]
         v, u = pix // W, pix % W
         if img.assoc[v, u] == i:
-            merge_one(s, i, img, vertex, normal, v, u, R, t, f, confidence, has_colour, frame_index, anchor)
+            merge_one(s, i, img, vertex, normal, v, u, R, t, f, confidence, has_color, frame_index, anchor)
 
 
 # -- 5. add (stream compaction in row-major pixel order) -------------------------------------------------
@@ -375,7 +375,7 @@ def scan_segments(img: ti.template(), counts: ti.template(), n: ti.i32):
 
 @ti.func
 def append_new_loops(s: ti.template(), n, img: ti.template(), vertex: ti.template(), normal: ti.template(),
-                     pose: ti.template(), f, confidence: ti.template(), has_colour, frame_index, anchor,
+                     pose: ti.template(), f, confidence: ti.template(), has_color, frame_index, anchor,
                      counts: ti.template()):
     """Write the new surfels at n + seg_offset[v, g] + (rank within the segment), so in row-major pixel
     order; count any that do not fit (``counts[C_LOST]``).
@@ -397,9 +397,9 @@ def append_new_loops(s: ti.template(), n, img: ti.template(), vertex: ti.templat
                     s.position[k] = R @ q + t
                     s.normal[k] = R @ nq
                     c = Vec3(128.0, 128.0, 128.0)
-                    if has_colour:
-                        c = unpack_colour(img.colour[v, u])
-                    s.colour[k] = c
+                    if has_color:
+                        c = unpack_color(img.color[v, u])
+                    s.color[k] = c
                     s.weight[k] = measurement_weight(img, v, u, q.z, confidence)
                     s.radius[k] = measurement_radius(q.z, nq.z, f)
                     s.t_created[k] = frame_index
@@ -414,10 +414,10 @@ def append_new_loops(s: ti.template(), n, img: ti.template(), vertex: ti.templat
 
 @ti.kernel
 def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
-               pose: Rigid, f: ti.f32, confidence: ti.template(), has_colour: ti.i32, frame_index: ti.i32,
+               pose: Rigid, f: ti.f32, confidence: ti.template(), has_color: ti.i32, frame_index: ti.i32,
                anchor: ti.i32, counts: ti.template()):
     """``append_new_loops`` in one launch."""
-    append_new_loops(s, n, img, vertex, normal, pose, f, confidence, has_colour, frame_index, anchor, counts)
+    append_new_loops(s, n, img, vertex, normal, pose, f, confidence, has_color, frame_index, anchor, counts)
 
 
 
@@ -557,13 +557,13 @@ def fill_holes(s: ti.template(), counts: ti.template()):
 @ti.kernel
 def add_step(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
              pose: Rigid, dist_threshold: ti.f32, cos_threshold: ti.f32, cover: ti.template(), f: ti.f32,
-             confidence: ti.template(), has_colour: ti.i32, frame_index: ti.i32, anchor: ti.i32,
+             confidence: ti.template(), has_color: ti.i32, frame_index: ti.i32, anchor: ti.i32,
              counts: ti.template()):
     """The add of a step in one launch, when the map has room for every pixel: ``count_segments``,
     ``scan_segments`` and ``append_new``, one after the other (each reads what the one before wrote)."""
     count_segments_loops(img, vertex, normal, pose, dist_threshold, cos_threshold, cover)
     scan_segments_loops(img, counts, n)
-    append_new_loops(s, n, img, vertex, normal, pose, f, confidence, has_colour, frame_index, anchor, counts)
+    append_new_loops(s, n, img, vertex, normal, pose, f, confidence, has_color, frame_index, anchor, counts)
 
 
 @ti.kernel

@@ -58,7 +58,7 @@ photometric term (``joint``, a compile-time switch: the depth-only kernels are t
     (k = ``params[P_COLOR_SCALE]``). The joint pass accumulates N_SUMS_JOINT = 59 numbers: the 30 above, then
     the colour's 21 AᵀA, 6 Aᵀb, Σr_c² and its count, in the same registers and partials. ``iterate_joint``
     solves (Σ w AᵀA + λ Σ w_c A_cᵀA_c) δξ = −(Σ w Aᵀb + λ Σ w_c A_cᵀ r_c), λ = ``params[P_COLOR_WEIGHT]``
-    (``icp.color_weight``), and records the colour's sums after the geometric record (R_COLOUR).
+    (``icp.color_weight``), and records the colour's sums after the geometric record (R_COLOR).
 
 Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
 (vulkan, cuda), chosen when ``PointToPlane`` is built. Fields stay float32.
@@ -139,7 +139,7 @@ def unpack_sums(sums: np.ndarray) -> dict:
             "inliers": int(round(sums[SUM_INLIERS])), "sources": int(round(sums[SUM_SOURCE]))}
 
 
-def unpack_colour_sums(sums: np.ndarray) -> dict | None:
+def unpack_color_sums(sums: np.ndarray) -> dict | None:
     """The colour term of a joint pass's 59 sums as AtA, Atb, r2 and count (None for a depth-only pass)."""
     sums = np.asarray(sums, dtype=np.float64)
     if sums.shape[0] < N_SUMS_JOINT:
@@ -152,7 +152,7 @@ def combined_system(sums: np.ndarray, color_weight: float) -> tuple[np.ndarray, 
     """(AᵀA, Aᵀb) of the system solved: the geometric one, plus ``color_weight`` × the colour one when the
     sums are a joint pass's."""
     s = unpack_sums(sums)
-    c = unpack_colour_sums(sums)
+    c = unpack_color_sums(sums)
     if c is None:
         return s["AtA"], s["Atb"]
     return s["AtA"] + color_weight * c["AtA"], s["Atb"] + color_weight * c["Atb"]
@@ -207,8 +207,8 @@ RECORDS = SETTINGS + MAX_LEVELS
 # One ``iterate`` record: the 30 sums, the pose before the update (R row-major, t), level, iteration,
 # ‖δξ‖ and the outcome
 R_SUMS, R_POSE, R_LEVEL, R_ITERATION, R_UPDATE, R_OUTCOME, RECORD_LEN = 0, 30, 42, 43, 44, 45, 46
-R_COLOUR = RECORD_LEN  # ``iterate_joint``: the colour term's 29 sums (SUM_C_ATA onwards) follow
-RECORD_LEN_JOINT = R_COLOUR + N_SUMS_JOINT - N_SUMS
+R_COLOR = RECORD_LEN  # ``iterate_joint``: the colour term's 29 sums (SUM_C_ATA onwards) follow
+RECORD_LEN_JOINT = R_COLOR + N_SUMS_JOINT - N_SUMS
 UPDATED, TOO_FEW_INLIERS, NOT_POSITIVE_DEFINITE = 0, 1, 2
 STOPPED, FAILED = 1, 2  # ``params[P_DONE]``: the update fell below P_STOP; the system was not solved
 PARAMS_WIDTH = max(N_PARAMS, RECORD_LEN_JOINT)
@@ -567,7 +567,7 @@ def _build_kernels(real):
         replays the records (``ti_fusion.tracking.icp``), with the condition-number check of
         ``ti_fusion.tracking.solve`` too, which is why it is not repeated here. With ``joint``, the system
         solved is the geometric one plus λ × the colour one (module docstring), and the record holds the
-        colour's sums at R_COLOUR. Float64 backends add the partials serially, float32 ones one thread
+        colour's sums at R_COLOR. Float64 backends add the partials serially, float32 ones one thread
         per sum (Kahan-compensated, as ``reduce``) into the record, which the solve then reads."""
         n_sums = ti.static(N_SUMS_JOINT if joint else N_SUMS)
         runs = _runs(params, it)
@@ -583,7 +583,7 @@ def _build_kernels(real):
         if ti.static(real == ti.f32):  # one thread per sum, into the record
             for e in range(ti.select(runs, n_sums, 0)):
                 k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
-                params[k, ti.select(e < N_SUMS, R_SUMS + e, R_COLOUR + e - N_SUMS)] = _kahan_total(partials, n_chunks, e)
+                params[k, ti.select(e < N_SUMS, R_SUMS + e, R_COLOR + e - N_SUMS)] = _kahan_total(partials, n_chunks, e)
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
         for _ in range(ti.select(runs, 1, 0)):
             k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
@@ -594,13 +594,13 @@ def _build_kernels(real):
                     params[k, R_SUMS + e] = total[e]
                 if ti.static(joint):
                     for e in ti.static(range(N_SUMS_JOINT - N_SUMS)):
-                        params[k, R_COLOUR + e] = total[N_SUMS + e]
+                        params[k, R_COLOR + e] = total[N_SUMS + e]
             else:
                 for e in ti.static(range(N_SUMS)):
                     total[e] = params[k, R_SUMS + e]
                 if ti.static(joint):
                     for e in ti.static(range(N_SUMS_JOINT - N_SUMS)):
-                        total[N_SUMS + e] = params[k, R_COLOUR + e]
+                        total[N_SUMS + e] = params[k, R_COLOR + e]
             system = ti.Vector([total[e] for e in ti.static(range(N_SUMS))], dt=real)
             if ti.static(joint):
                 lam = params[row, P_COLOR_WEIGHT]
@@ -867,7 +867,7 @@ class PointToPlane:
 
     def iteration_records(self) -> np.ndarray:
         """The records of the iterations since ``begin_iterations`` (float64, one row each, R_* layout;
-        R_COLOUR onwards only from joint iterations)."""
+        R_COLOR onwards only from joint iterations)."""
         state = self._host_state()
         n = int(state[STATE, P_RECORDS])
         return state[RECORDS:RECORDS + n, :RECORD_LEN_JOINT].astype(np.float64)

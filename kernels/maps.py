@@ -517,8 +517,8 @@ def intensity_gradient(image: ti.template(), out: ti.template(), r0: ti.i32, H: 
 
 
 @ti.kernel
-def surfel_intensity(view_index: ti.template(), colour: ti.template(), out: ti.template(), serial: ti.template()):
-    """out[v, u] = the grey level in [0, 1] of the surfel seen at the pixel (``colour`` RGB in [0, 255]), −1
+def surfel_intensity(view_index: ti.template(), color: ti.template(), out: ti.template(), serial: ti.template()):
+    """out[v, u] = the grey level in [0, 1] of the surfel seen at the pixel (``color`` RGB in [0, 255]), −1
     where none is (``view_index`` INT_MAX); ``out`` level 0 of a stack (row 0), of ``view_index``'s size."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
@@ -527,7 +527,7 @@ def surfel_intensity(view_index: ti.template(), colour: ti.template(), out: ti.t
         i = view_index[v, u]
         g = -1.0
         if i != INT_MAX:
-            c = colour[i]
+            c = color[i]
             g = (GREY[0] * c[0] + GREY[1] * c[1] + GREY[2] * c[2]) / 255.0
         out[v, u] = g
 
@@ -677,14 +677,14 @@ class FrameMaps:
         for r0, (h, w) in zip(self.row0, self.shapes):
             intensity_gradient(stack, grad, r0, h, w, self._serial)
 
-    def intensity_from_surfels(self, view_index, colour) -> None:
+    def intensity_from_surfels(self, view_index, color) -> None:
         """The model's intensity pyramid: level 0 the grey level of the surfel seen at each pixel
-        (``view_index`` of a prediction of this size, ``colour`` the surfels' RGB field), the others averaged
+        (``view_index`` of a prediction of this size, ``color`` the surfels' RGB field), the others averaged
         down; no gradients (the model's intensity is compared, the live frame's differentiated)."""
         if tuple(view_index.shape) != self.shapes[0]:
             raise ValueError(f"view_index of shape {view_index.shape} for maps of shape {self.shapes[0]}")
         self._intensity_fields(False)
-        surfel_intensity(view_index, colour, self.intensity[0].field, self._serial)
+        surfel_intensity(view_index, color, self.intensity[0].field, self._serial)
         self._intensity_levels()
 
     def _intensity_levels(self) -> None:

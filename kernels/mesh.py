@@ -43,7 +43,7 @@ def find_block(keys: ti.template(), n_blocks: ti.i32, key: ti.i32) -> ti.i32:
 
 
 @ti.kernel
-def splat(position: Vec3Array, normal: Vec3Array, colour: Vec3Array, weight: FloatArray, reach: FloatArray,
+def splat(position: Vec3Array, normal: Vec3Array, color: Vec3Array, weight: FloatArray, reach: FloatArray,
           n: ti.i32, keys: IntArray, n_blocks: ti.i32, origin: ti.math.ivec3, voxel: ti.f32, band: ti.f32,
           sdf: FloatArray, wsum: FloatArray, rgb: Vec3Array):
     """Add surfels ``[0, n)`` into the blocks ``keys[:n_blocks]`` (``sdf`` holds Σ w·d, ``wsum`` Σ w, ``rgb``
@@ -77,7 +77,7 @@ def splat(position: Vec3Array, normal: Vec3Array, colour: Vec3Array, weight: Flo
                     g = ti.math.ivec3(0)
                     for k in ti.static(range(3)):
                         g[k] = i1 if k == o1 else (i2 if k == o2 else ia)
-                    add_voxel(g, p, nrm, colour[i], weight[i], r, voxel, band, keys, n_blocks, origin, sdf, wsum, rgb)
+                    add_voxel(g, p, nrm, color[i], weight[i], r, voxel, band, keys, n_blocks, origin, sdf, wsum, rgb)
 
 
 @ti.func
@@ -130,7 +130,7 @@ def add_voxel(g, p, nrm, c, w: ti.f32, r: ti.f32, voxel: ti.f32, band: ti.f32, k
 # blocks the samples reach, so that the caller can give them slots before ``integrate_depth`` runs.
 
 DepthArray = ti.types.ndarray(dtype=ti.f32, ndim=2)
-ColourArray = ti.types.ndarray(dtype=ti.math.vec3, ndim=2)
+ColorArray = ti.types.ndarray(dtype=ti.math.vec3, ndim=2)
 TableArray = ti.types.ndarray(dtype=ti.i32, ndim=3)
 Mat3 = ti.types.matrix(3, 3, ti.f32)
 
@@ -177,7 +177,7 @@ def touch_blocks(depth: DepthArray, K: ti.math.vec4, rot: Mat3, trans: ti.math.v
 
 
 @ti.kernel
-def integrate_depth(depth: DepthArray, colour: ColourArray, has_colour: ti.i32, K: ti.math.vec4, rot: Mat3,
+def integrate_depth(depth: DepthArray, color: ColorArray, has_color: ti.i32, K: ti.math.vec4, rot: Mat3,
                     trans: ti.math.vec3, voxel: ti.f32, trunc: ti.f32, step: ti.f32, lo: ti.math.ivec3,
                     table: TableArray, sdf: FloatArray, wsum: FloatArray, rgb: Vec3Array):
     """Add one frame's samples: ``sdf`` Σ w·(d − z_c), ``wsum`` Σ w, ``rgb`` Σ w·colour at
@@ -188,8 +188,8 @@ def integrate_depth(depth: DepthArray, colour: ColourArray, has_colour: ti.i32, 
         d = depth[v, u]
         if d > 0:
             c = ti.math.vec3(200.0)
-            if has_colour:
-                c = colour[v, u]
+            if has_color:
+                c = color[v, u]
             r = ray_direction(u, v, K, rot)
             prev = ti.math.ivec3(-(1 << 30))
             for s in range(n):

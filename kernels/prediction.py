@@ -144,7 +144,7 @@ def shade(s: ti.template(), img: ti.template(), by_normal: ti.i32, background: V
             if by_normal:
                 c = 0.5 * (s.normal[i] + 1.0)
             else:
-                c = s.colour[i] / 255.0
+                c = s.color[i] / 255.0
         img.image[v, u] = c
 
 

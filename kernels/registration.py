@@ -30,7 +30,7 @@ EDGE = 0.01
 
 
 @ti.func
-def _to_colour(depth: ti.template(), v, u, kd, T: ti.template()):
+def _to_color(depth: ti.template(), v, u, kd, T: ti.template()):
     """(q in the colour camera, z) of depth pixel (v, u); z = 0 where no depth."""
     R, t = rigid(T)
     z = depth[v, u]
@@ -52,7 +52,7 @@ def splat_depth(depth: ti.template(), h: ti.i32, w: ti.i32, kd: Vec4, kc: Vec4, 
                 hc: ti.i32, wc: ti.i32):
     """zbuf[colour pixel] = the nearest colour-camera depth of the points whose footprint covers it."""
     for v, u in ti.ndrange(h, w):
-        q, z = _to_colour(depth, v, u, kd, T)
+        q, z = _to_color(depth, v, u, kd, T)
         if z > 0 and q[2] > 0:
             uc = kc[0] * q[0] / q[2] + kc[2]
             vc = kc[1] * q[1] / q[2] + kc[3]
@@ -68,13 +68,13 @@ def splat_depth(depth: ti.template(), h: ti.i32, w: ti.i32, kd: Vec4, kc: Vec4, 
 
 
 @ti.kernel
-def sample_colour(depth: ti.template(), h: ti.i32, w: ti.i32, kd: Vec4, kc: Vec4, T: Rigid, zbuf: ti.template(),
-                  colour: ti.template(), hc: ti.i32, wc: ti.i32, margin: ti.f32, out: ti.template(),
+def sample_color(depth: ti.template(), h: ti.i32, w: ti.i32, kd: Vec4, kc: Vec4, T: Rigid, zbuf: ti.template(),
+                  color: ti.template(), hc: ti.i32, wc: ti.i32, margin: ti.f32, out: ti.template(),
                   valid: ti.template()):
     """out[v, u] = the colour at depth pixel (v, u)'s point in the colour image (bilinear), valid 1; else
     (0, 0, 0) and valid 0."""
     for v, u in ti.ndrange(h, w):
-        q, z = _to_colour(depth, v, u, kd, T)
+        q, z = _to_color(depth, v, u, kd, T)
         c = Vec3(0.0, 0.0, 0.0)
         ok = 0
         if z > 0 and q[2] > 0:
@@ -89,8 +89,8 @@ def sample_colour(depth: ti.template(), h: ti.i32, w: ti.i32, kd: Vec4, kc: Vec4
                     v0 = ti.max(v0, 0)
                     a = ti.min(ti.max(uc - u0, 0.0), 1.0)
                     b = ti.min(ti.max(vc - v0, 0.0), 1.0)
-                    c = (1 - a) * (1 - b) * colour[v0, u0] + a * (1 - b) * colour[v0, u0 + 1] \
-                        + (1 - a) * b * colour[v0 + 1, u0] + a * b * colour[v0 + 1, u0 + 1]
+                    c = (1 - a) * (1 - b) * color[v0, u0] + a * (1 - b) * color[v0, u0 + 1] \
+                        + (1 - a) * b * color[v0 + 1, u0] + a * b * color[v0 + 1, u0 + 1]
                     ok = 1
         out[v, u] = c
         valid[v, u] = ok
@@ -104,27 +104,27 @@ def _vec(K: Intrinsics) -> np.ndarray:
 class ColorRegistration:
     """The fields of one depth size (h, w) and colour size (hc, wc), and the three kernels' launches."""
 
-    def __init__(self, depth_shape: tuple[int, int], colour_shape: tuple[int, int]):
-        (h, w), (hc, wc) = depth_shape, colour_shape
-        self.depth_shape, self.colour_shape = (h, w), (hc, wc)
+    def __init__(self, depth_shape: tuple[int, int], color_shape: tuple[int, int]):
+        (h, w), (hc, wc) = depth_shape, color_shape
+        self.depth_shape, self.color_shape = (h, w), (hc, wc)
         self.depth = ti.field(ti.f32, shape=(h, w))
-        self.colour = ti.Vector.field(3, ti.f32, shape=(hc, wc))
+        self.color = ti.Vector.field(3, ti.f32, shape=(hc, wc))
         self.zbuf = ti.field(ti.i32, shape=(hc, wc))
         self.out = ti.Vector.field(3, ti.f32, shape=(h, w))
         self.valid = ti.field(ti.i32, shape=(h, w))
 
-    def register(self, depth: np.ndarray, colour: np.ndarray, K_depth: Intrinsics, K_colour: Intrinsics,
+    def register(self, depth: np.ndarray, color: np.ndarray, K_depth: Intrinsics, K_color: Intrinsics,
                  T_color_depth: np.ndarray, margin: float = OCCLUSION_MARGIN) -> tuple[np.ndarray, np.ndarray]:
-        """(colour uint8 h×w×3 in the depth camera, valid bool h×w) of ``colour`` (uint8 hc×wc×3)."""
-        if depth.shape != self.depth_shape or colour.shape[:2] != self.colour_shape:
-            raise ValueError(f"depth {depth.shape} and colour {colour.shape} given to a registration of "
-                             f"{self.depth_shape} and {self.colour_shape}")
-        (h, w), (hc, wc) = self.depth_shape, self.colour_shape
+        """(colour uint8 h×w×3 in the depth camera, valid bool h×w) of ``color`` (uint8 hc×wc×3)."""
+        if depth.shape != self.depth_shape or color.shape[:2] != self.color_shape:
+            raise ValueError(f"depth {depth.shape} and colour {color.shape} given to a registration of "
+                             f"{self.depth_shape} and {self.color_shape}")
+        (h, w), (hc, wc) = self.depth_shape, self.color_shape
         self.depth.from_numpy(np.ascontiguousarray(depth, dtype=np.float32))
-        self.colour.from_numpy(np.ascontiguousarray(colour, dtype=np.float32))
-        kd, kc, T = _vec(K_depth), _vec(K_colour), rigid_arg(T_color_depth)
+        self.color.from_numpy(np.ascontiguousarray(color, dtype=np.float32))
+        kd, kc, T = _vec(K_depth), _vec(K_color), rigid_arg(T_color_depth)
         clear_zbuffer(self.zbuf, hc, wc)
         splat_depth(self.depth, h, w, kd, kc, T, self.zbuf, hc, wc)
-        sample_colour(self.depth, h, w, kd, kc, T, self.zbuf, self.colour, hc, wc, margin, self.out, self.valid)
+        sample_color(self.depth, h, w, kd, kc, T, self.zbuf, self.color, hc, wc, margin, self.out, self.valid)
         out = np.clip(np.rint(self.out.to_numpy()), 0, 255).astype(np.uint8)
         return out, self.valid.to_numpy().astype(bool)

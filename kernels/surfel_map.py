@@ -84,18 +84,18 @@ class SurfelMap(SurfelStore):
 
     # -- 4-5: merge and add --------------------------------------------------------------------------------
     def merge(self, img: FusionImages, vertex, normal, pose, intrinsics, frame_index: int,
-              confidence: bool, sigma: float, has_colour: bool, depth_weighted: bool = False,
+              confidence: bool, sigma: float, has_color: bool, depth_weighted: bool = False,
               anchor: int = 0) -> None:
         """Average the frame into the surfels ``img.assoc`` chose; they take ``anchor``."""
         if self._projected > 0:
             if confidence:
                 img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
             fusion.merge_listed(self.arrays, img, vertex, normal, self._pose(pose)[0], intrinsics.fx,
-                                fusion.weight_bits(confidence, depth_weighted), int(has_colour), frame_index,
+                                fusion.weight_bits(confidence, depth_weighted), int(has_color), frame_index,
                                 int(anchor))
 
     def add(self, img: FusionImages, vertex, normal, pose, intrinsics, frame_index: int, confidence: bool,
-            sigma: float, has_colour: bool, depth_weighted: bool = False,
+            sigma: float, has_color: bool, depth_weighted: bool = False,
             cover: tuple[float, float] | None = None, anchor: int = 0, defer: bool = False) -> AddCounts | None:
         """Append the valid unassociated pixels as surfels (with ``anchor``). With ``cover`` = (dist_threshold,
         normal_threshold_deg), unassociated pixels on the disc of a neighbour's merged surfel are marked
@@ -112,7 +112,7 @@ class SurfelMap(SurfelStore):
             img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
         if defer and self.count + H * W <= self.capacity:  # room for every pixel: one launch, nothing read
             fusion.add_step(self.arrays, self.count, img, vertex, normal, to_world, dist, math.cos(math.radians(angle)),
-                            cover is not None, intrinsics.fx, weights, int(has_colour), frame_index, int(anchor),
+                            cover is not None, intrinsics.fx, weights, int(has_color), frame_index, int(anchor),
                             self.counts)
             self._count_on_device = True
             return None
@@ -124,7 +124,7 @@ class SurfelMap(SurfelStore):
         if counts.new == 0:
             return None if defer else counts
         fusion.append_new(self.arrays, self.count, img, vertex, normal, to_world, intrinsics.fx, weights,
-                          int(has_colour), frame_index, int(anchor), self.counts)
+                          int(has_color), frame_index, int(anchor), self.counts)
         if defer:
             self._count_on_device = True
             return None

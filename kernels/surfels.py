@@ -21,7 +21,7 @@ from ti_fusion.errors import MapCapacityError
 from ti_fusion.kernels.common import BLOCK
 
 # Fields of one surfel, in the order of ``SurfelArrays.attributes``.
-ATTRIBUTES = ("position", "normal", "colour", "weight", "radius", "t_created", "t_updated")
+ATTRIBUTES = ("position", "normal", "color", "weight", "radius", "t_created", "t_updated")
 # Stored beside them and moved with them (compaction, growth), but not part of the fused geometry that the
 # references compare: the anchor (keyframe id) of the frame that last created or updated the surfel.
 STORED = ATTRIBUTES + ("anchor",)
@@ -40,7 +40,7 @@ class SurfelArrays:
         fb = ti.FieldsBuilder()
         self.position = ti.Vector.field(3, ti.f32)  # world frame, metres
         self.normal = ti.Vector.field(3, ti.f32)  # world frame, unit
-        self.colour = ti.Vector.field(3, ti.f32)  # RGB in [0, 255]
+        self.color = ti.Vector.field(3, ti.f32)  # RGB in [0, 255]
         self.weight = ti.field(ti.f32)  # confidence: sum of measurement weights
         self.radius = ti.field(ti.f32)  # metres
         self.t_created = ti.field(ti.i32)  # frame index
@@ -63,7 +63,7 @@ class SurfelArrays:
         # leave below m and the survivors at or above m that fill them (as many of each: at most half the
         # map), in index order.
         self.removals_by_block = ti.field(ti.i32)
-        for f in (self.position, self.normal, self.colour, self.weight, self.radius, self.t_created,
+        for f in (self.position, self.normal, self.color, self.weight, self.radius, self.t_created,
                   self.t_updated, self.anchor, self.proj_pixel, self.proj_depth, self.listed_by_block,
                   self.listed, self.removals_by_block):
             fb.dense(ti.i, self.capacity).place(f)  # one array per attribute: SoA
@@ -228,7 +228,7 @@ def copy_surfel(src: ti.template(), i, dst: ti.template(), k):
     """Surfel i of ``src`` to index k of ``dst`` (the attributes and the anchor; no scratch)."""
     dst.position[k] = src.position[i]
     dst.normal[k] = src.normal[i]
-    dst.colour[k] = src.colour[i]
+    dst.color[k] = src.color[i]
     dst.weight[k] = src.weight[i]
     dst.radius[k] = src.radius[i]
     dst.t_created[k] = src.t_created[i]

@@ -42,10 +42,10 @@ def bench_size(width: int, height: int, target: int, steps: int) -> dict:
     counts = []
     for k in range(steps + 1):
         i = frame + k
-        depth, colour = seq.frame(i)
+        depth, color = seq.frame(i)
         maps.compute(depth, K)
-        stats = mapper.integrate(maps, colour, seq.poses[i], frame + k, timer)
-        ms = ref.integrate(maps.vertex[0].to_numpy(), maps.normal[0].to_numpy(), depth, colour, seq.poses[i], K,
+        stats = mapper.integrate(maps, color, seq.poses[i], frame + k, timer)
+        ms = ref.integrate(maps.vertex[0].to_numpy(), maps.normal[0].to_numpy(), depth, color, seq.poses[i], K,
                            frame + k)
         time.sleep(BLAS_SETTLE_S)  # OpenBLAS's threads asleep before the next Taichi step
         if k > 0:  # the first Taichi step compiles the kernels

@@ -168,11 +168,11 @@ def open3d_runner(depth_s, depth_t, K, iterations, depth_max, python) -> "Open3D
 class OpenCVPair:
     """One frame pair for OpenCV's odometry (this interpreter's cv2); ``run()`` aligns it once."""
 
-    def __init__(self, depth_s, depth_t, K, depth_max: float, kind: str, colour_s=None, colour_t=None):
+    def __init__(self, depth_s, depth_t, K, depth_max: float, kind: str, color_s=None, color_t=None):
         self.odometry = OpenCVOdometry(kind, K, depth_max)  # ImportError when this cv2 has none
         self.version, self.api = self.odometry.name, self.odometry.api
         grey = self.odometry.uses_grey
-        self.inputs = [(d, grey_of(c) if grey else None) for d, c in ((depth_s, colour_s), (depth_t, colour_t))]
+        self.inputs = [(d, grey_of(c) if grey else None) for d, c in ((depth_s, color_s), (depth_t, color_t))]
 
     def run(self) -> tuple[float, float, list]:
         """(wall ms, CPU ms of this process, 4×4 pose source → target; the identity when it failed)."""
@@ -185,9 +185,9 @@ class OpenCVPair:
         pass
 
 
-def opencv_pair(depth_s, depth_t, K, depth_max, kind, colour_s=None, colour_t=None) -> "OpenCVPair | None":
+def opencv_pair(depth_s, depth_t, K, depth_max, kind, color_s=None, color_t=None) -> "OpenCVPair | None":
     try:
-        return OpenCVPair(depth_s, depth_t, K, depth_max, kind, colour_s, colour_t)
+        return OpenCVPair(depth_s, depth_t, K, depth_max, kind, color_s, color_t)
     except (ImportError, AttributeError):
         return None
 

@@ -138,7 +138,7 @@ def run_logger(log, frames, xyz, rgb, timer: Timer, ready=lambda: None) -> None:
         timer("pose", log.log_pose, t, f.gt_pose, f.gt_pose)
         if i % DEPTH_EVERY == 0:
             timer("depth", log.log_depth, t, f.depth)
-            timer("colour", log.log_image, t, f.color)
+            timer("color", log.log_image, t, f.color)
         if i > 0 and i % MAP_EVERY == 0:
             timer("map", log.log_points, t, xyz, rgb, max_points=MAP_POINTS)
         timer("stats", log.log_stats, t, slam_stats(i))
@@ -272,7 +272,7 @@ def sdk_messages(path: Path, frames, xyz, rgb, timer: Timer) -> None:
         timer("pose", log_pose, ns, f.gt_pose, f.gt_pose)
         if i % DEPTH_EVERY == 0:
             timer("depth", log_depth, ns, f.depth)
-            timer("colour", log_image, ns, f.color)
+            timer("color", log_image, ns, f.color)
         if i > 0 and i % MAP_EVERY == 0:
             timer("map", log_points, ns, xyz, rgb)
         timer("stats", lambda: stats_ch.log(json.dumps(slam_stats(i), separators=(",", ":")).encode(), log_time=ns))
@@ -317,7 +317,7 @@ def part_log(tmp: Path) -> None:
         mb, _, complete, n_stats, received = runs[name][-1]
         ms = statistics.median(sum(sum(v) for v in timings.values()) / FRAMES for _, timings, *_ in runs[name])
         per_call = {k: statistics.median(statistics.mean(t[k]) for _, t, *_ in runs[name]) for k in runs[name][0][1]}
-        calls = "  ".join(f"{per_call.get(k, 0):5.2f}" for k in ("pose", "stats", "depth", "colour", "map"))
+        calls = "  ".join(f"{per_call.get(k, 0):5.2f}" for k in ("pose", "stats", "depth", "color", "map"))
         note = f"complete, {n_stats} stats" if complete else "NOT complete"
         if received:
             note += f"; client got {sum(received['messages'].values())} messages, {received['bytes'] / 1e6:.0f} MB"

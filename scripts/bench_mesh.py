@@ -58,7 +58,7 @@ import open3d as o3d
 import open3d.core as o3c
 frames, out, voxel, trunc_voxels, depth_max = sys.argv[1], sys.argv[2], float(sys.argv[3]), float(sys.argv[4]), float(sys.argv[5])
 d = np.load(frames)
-depth, colour, poses, K = d["depth"], d["colour"], d["poses"], d["K"]
+depth, color, poses, K = d["depth"], d["color"], d["poses"], d["K"]
 t0 = time.perf_counter()
 vbg = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight", "color"),
                                     attr_dtypes=(o3c.float32, o3c.float32, o3c.float32), attr_channels=((1), (1), (3)),
@@ -66,7 +66,7 @@ vbg = o3d.t.geometry.VoxelBlockGrid(attr_names=("tsdf", "weight", "color"),
 intr = o3c.Tensor(np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1]]), o3c.float64)
 for i in range(len(depth)):
     dt = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(depth[i][:, :, None])))
-    ct = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(colour[i].astype(np.float32) / 255.0)))
+    ct = o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color[i].astype(np.float32) / 255.0)))
     extr = o3c.Tensor(np.linalg.inv(poses[i]), o3c.float64)
     blocks = vbg.compute_unique_block_coordinates(dt, intr, extr, 1.0, depth_max, trunc_voxels)
     vbg.integrate(blocks, dt, ct, intr, intr, extr, 1.0, depth_max, trunc_voxels)
@@ -197,7 +197,7 @@ def run_open3d(args, dataset, tmp: Path) -> dict:
     K = frames[0].intrinsics
     npz = tmp / "frames.npz"
     np.savez(npz, depth=np.stack([f.depth for f in frames]).astype(np.float32),
-             colour=np.stack([f.color for f in frames]).astype(np.uint8),
+             color=np.stack([f.color for f in frames]).astype(np.uint8),
              poses=np.stack([f.gt_pose for f in frames]), K=np.array([K.fx, K.fy, K.cx, K.cy]))
     out = tmp / "open3d.ply"
     python = args.open3d_python or sys.executable

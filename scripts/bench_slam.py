@@ -139,10 +139,10 @@ def run_open3d(args) -> dict:
     for i in range(len(dataset)):
         frame = first if i == 0 else dataset[i]  # reading counts in fps_wall, not in fps
         depth = o3d.t.geometry.Image(o3c.Tensor(np.round(frame.depth * depth_scale).astype(np.uint16)))
-        colour = frame.color if frame.color is not None else np.zeros((K.height, K.width, 3), np.uint8)
+        color = frame.color if frame.color is not None else np.zeros((K.height, K.width, 3), np.uint8)
         t0 = time.perf_counter()
         input_frame.set_data_from_image("depth", depth)
-        input_frame.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(colour))))
+        input_frame.set_data_from_image("color", o3d.t.geometry.Image(o3c.Tensor(np.ascontiguousarray(color))))
         if i > 0:
             result = model.track_frame_to_model(input_frame, raycast_frame, depth_scale, depth_max)
             T = T @ result.transformation

@@ -115,8 +115,8 @@ class OpenCVOdometry:
         return bool(ok), (np.asarray(Rt, dtype=np.float64) if ok else np.eye(4))
 
 
-def grey_of(colour: np.ndarray | None) -> np.ndarray | None:
-    if colour is None:
+def grey_of(color: np.ndarray | None) -> np.ndarray | None:
+    if color is None:
         return None
-    c = colour.astype(np.float32)
+    c = color.astype(np.float32)
     return np.clip(0.299 * c[..., 0] + 0.587 * c[..., 1] + 0.114 * c[..., 2] + 0.5, 0, 255).astype(np.uint8)

@@ -24,7 +24,7 @@ from ti_fusion.geometry import make_pose, rot_to_quat, so3_exp
 
 FX = 262.5  # the synthetic camera at 320×240
 T_OFFSET = make_pose(so3_exp(np.array([0.01, -0.02, 0.01])), [0.025, 0.003, -0.002])  # colour camera, 2.5 cm aside
-K_COLOUR = Intrinsics(fx=300.0, fy=301.0, cx=165.0, cy=118.0, width=320, height=240)
+K_COLOR = Intrinsics(fx=300.0, fy=301.0, cx=165.0, cy=118.0, width=320, height=240)
 DEPTH, COLOR, INFO, COLOR_INFO, GT = ("/camera/depth/image_rect_raw", "/camera/color/image_raw",
                                       "/camera/depth/camera_info", "/camera/color/camera_info", "/ground_truth/pose")
 
@@ -87,8 +87,8 @@ def ros1(msg):
     return cls(**values)
 
 
-def write_bag(path: Path, shots, *, ros1_bag: bool, depth: str, colour: str, colour_k=None, colour_frame="camera_optical"):
-    """``shots`` = [(t, depth metres, RGB, pose)]; ``depth`` raw32 | raw16 | cd16 | cd32; ``colour`` rgb8 | jpeg."""
+def write_bag(path: Path, shots, *, ros1_bag: bool, depth: str, color: str, color_k=None, color_frame="camera_optical"):
+    """``shots`` = [(t, depth metres, RGB, pose)]; ``depth`` raw32 | raw16 | cd16 | cd32; ``color`` rgb8 | jpeg."""
     from rosbags import rosbag1, rosbag2
 
     from ti_fusion.io.datasets.compressed import encode_compressed_depth
@@ -100,9 +100,9 @@ def write_bag(path: Path, shots, *, ros1_bag: bool, depth: str, colour: str, col
     with writer as w:
         depth_topic = DEPTH + "/compressedDepth" if compressed else DEPTH
         conns = {k: w.add_connection(topic, t, typestore=store) for k, topic, t in (
-            ("d", depth_topic, comp_t if compressed else image_t), ("c", COLOR, comp_t if colour == "jpeg" else image_t),
+            ("d", depth_topic, comp_t if compressed else image_t), ("c", COLOR, comp_t if color == "jpeg" else image_t),
             ("i", INFO, info_t), ("g", GT, "geometry_msgs/msg/PoseStamped"))}
-        if colour_k is not None:
+        if color_k is not None:
             conns["ci"] = w.add_connection(COLOR_INFO, info_t, typestore=store)
         for t, z, rgb, T in shots:
             h, wd = z.shape
@@ -119,14 +119,14 @@ def write_bag(path: Path, shots, *, ros1_bag: bool, depth: str, colour: str, col
                 else:
                     records.append(("d", image_t, _image(t, units, enc, "camera_optical")))
             records.append(("i", info_t, _info(t, wd, h, (FX, FX, (wd - 1) / 2, (h - 1) / 2), "camera_optical")))
-            if colour == "jpeg":
+            if color == "jpeg":
                 data = cv2.imencode(".jpg", rgb[..., ::-1])[1].reshape(-1)
-                records.append(("c", comp_t, MSG[comp_t](header=_header(t, colour_frame),
+                records.append(("c", comp_t, MSG[comp_t](header=_header(t, color_frame),
                                                          format="rgb8; jpeg compressed bgr8", data=data)))
             else:
-                records.append(("c", image_t, _image(t, rgb, "rgb8", colour_frame)))
-            if colour_k is not None:
-                records.append(("ci", info_t, _info(t, rgb.shape[1], rgb.shape[0], colour_k, colour_frame)))
+                records.append(("c", image_t, _image(t, rgb, "rgb8", color_frame)))
+            if color_k is not None:
+                records.append(("ci", info_t, _info(t, rgb.shape[1], rgb.shape[0], color_k, color_frame)))
             records.append(("g", "geometry_msgs/msg/PoseStamped", _pose(t, T)))
             for key, msgtype, msg in records:
                 raw = STORE1.serialize_ros1(ros1(msg), msgtype) if ros1_bag else STORE.serialize_cdr(msg, msgtype)
@@ -151,7 +151,7 @@ def write_realsense_bag(path: Path, shots, units: float = 0.001):
 
         t0 = shots[0][0]
         put(f"{d}/info/camera_info", "sensor_msgs/msg/CameraInfo", _info(0, w, h, (FX, FX, (w - 1) / 2, (h - 1) / 2), ""), t0)
-        put(f"{c}/info/camera_info", "sensor_msgs/msg/CameraInfo", _info(0, w, h, K_COLOUR.as_tuple(), ""), t0)
+        put(f"{c}/info/camera_info", "sensor_msgs/msg/CameraInfo", _info(0, w, h, K_COLOR.as_tuple(), ""), t0)
         put("/device_0/sensor_0/option/Depth Units/value", "std_msgs/msg/Float32", MSG["std_msgs/msg/Float32"](data=units), t0)
         put(f"{d}/tf/0", "geometry_msgs/msg/Transform", _transform(np.eye(4)), t0)
         put(f"{c}/tf/0", "geometry_msgs/msg/Transform", _transform(T_OFFSET), t0)
@@ -193,26 +193,26 @@ def main() -> None:
         z = cv2.imread(str(tum / dep), cv2.IMREAD_UNCHANGED).astype(np.float32) / np.float32(5000.0)
         rgb_img = cv2.cvtColor(cv2.imread(str(tum / rgb)), cv2.COLOR_BGR2RGB)
         shots.append((float(t), z, rgb_img, T))
-        offset.append((float(t), z, seq.render_offset_colour(T, T_OFFSET, K_COLOUR), T))
+        offset.append((float(t), z, seq.render_offset_color(T, T_OFFSET, K_COLOR), T))
     (out / "T_color_depth.txt").write_text("\n".join(" ".join(f"{x:.12g}" for x in r) for r in T_OFFSET) + "\n")
     extr = str(out / "T_color_depth.txt")
     rows = {
         "tum": ("TUM folder (ti-fusion synth)", lambda p: tum, []),
-        "ros2-32": ("ROS 2 bag, 32FC1 + rgb8", lambda p: write_bag(p, shots, ros1_bag=False, depth="raw32", colour="rgb8"),
+        "ros2-32": ("ROS 2 bag, 32FC1 + rgb8", lambda p: write_bag(p, shots, ros1_bag=False, depth="raw32", color="rgb8"),
                     ["--gt-topic", GT]),
         "ros2-cd16": ("ROS 2 bag, compressedDepth 16UC1 PNG + JPEG", lambda p: write_bag(
-            p, shots, ros1_bag=False, depth="cd16", colour="jpeg"), ["--gt-topic", GT]),
+            p, shots, ros1_bag=False, depth="cd16", color="jpeg"), ["--gt-topic", GT]),
         "ros2-cd32": ("ROS 2 bag, compressedDepth 32FC1 (quantised) + JPEG", lambda p: write_bag(
-            p, shots, ros1_bag=False, depth="cd32", colour="jpeg"), ["--gt-topic", GT]),
+            p, shots, ros1_bag=False, depth="cd32", color="jpeg"), ["--gt-topic", GT]),
         "ros1-16": ("ROS 1 bag, 16UC1 mm + rgb8", lambda p: write_bag(
-            p.with_suffix(".bag"), shots, ros1_bag=True, depth="raw16", colour="rgb8"), ["--gt-topic", GT]),
+            p.with_suffix(".bag"), shots, ros1_bag=True, depth="raw16", color="rgb8"), ["--gt-topic", GT]),
         "ros1-cd16": ("ROS 1 bag, compressedDepth 16UC1 + JPEG", lambda p: write_bag(
-            p.with_suffix(".bag"), shots, ros1_bag=True, depth="cd16", colour="jpeg"), ["--gt-topic", GT]),
+            p.with_suffix(".bag"), shots, ros1_bag=True, depth="cd16", color="jpeg"), ["--gt-topic", GT]),
         "offset": ("ROS 1 bag, 16UC1 mm, colour camera 2.5 cm aside + --color-extrinsics", lambda p: write_bag(
-            p.with_suffix(".bag"), offset, ros1_bag=True, depth="raw16", colour="rgb8", colour_k=K_COLOUR.as_tuple(),
-            colour_frame="camera_color_optical"), ["--gt-topic", GT, "--color-extrinsics", extr]),
+            p.with_suffix(".bag"), offset, ros1_bag=True, depth="raw16", color="rgb8", color_k=K_COLOR.as_tuple(),
+            color_frame="camera_color_optical"), ["--gt-topic", GT, "--color-extrinsics", extr]),
         "offset-unregistered": ("the same, colour taken as registered (no extrinsics: wrong)", lambda p: write_bag(
-            p.with_suffix(".bag"), offset, ros1_bag=True, depth="raw16", colour="rgb8", colour_k=K_COLOUR.as_tuple()),
+            p.with_suffix(".bag"), offset, ros1_bag=True, depth="raw16", color="rgb8", color_k=K_COLOR.as_tuple()),
             ["--gt-topic", GT]),
         "realsense": ("ROS 1 bag in the RealSense SDK's layout (units, tf/0, colour aside)", lambda p: write_realsense_bag(
             p.with_suffix(".bag"), offset), ["--gt-topic", GT]),
@@ -232,7 +232,7 @@ def main() -> None:
             continue
         s = json.loads((run / "summary.json").read_text())
         d = s["dataset"]
-        used = "registered by the kernel" if d.get("colour_camera") else ("yes" if d.get("colour_for_tracking") else "no")
+        used = "registered by the kernel" if d.get("color_camera") else ("yes" if d.get("color_for_tracking") else "no")
         lines.append(f"| {title} | {100 * s['ate_rmse_m']:.3f} | {s['tracking_failures']} | {used} |")
         print(lines[-1], flush=True)
     table = "\n".join(lines)

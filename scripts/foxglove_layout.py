@@ -97,7 +97,7 @@ def layout() -> dict:
     scene = ui.panel("3D", "map", {
         TITLE: "map and poses", "followTf": "world", "followMode": "follow-none", "cameraState": CAMERA,
         "scene": {}, "transforms": {}, "topics": SCENE_TOPICS, "layers": {}})
-    colour = ui.panel("ImageViewPanel", "colour", {TITLE: "colour", "cameraTopic": "/camera/color",
+    color = ui.panel("ImageViewPanel", "color", {TITLE: "color", "cameraTopic": "/camera/color",
                                                    "enabledMarkerTopics": [], "mode": "fit", "synchronize": False})
     depth = ui.panel("ImageViewPanel", "depth", {TITLE: "depth (mm, 0 to 5000)", "cameraTopic": "/camera/depth",
                                                  "enabledMarkerTopics": [], "mode": "fit", "synchronize": False,
@@ -112,7 +112,7 @@ def layout() -> dict:
                     ("/gt/pose.pose.position.y", "ground truth"), x_path="/gt/pose.pose.position.x",
                     color=GT)
     tree = split("row",
-                 (3, split("column", (2, scene), (1, split("row", (1, colour), (1, depth))))),
+                 (3, split("column", (2, scene), (1, split("row", (1, color), (1, depth))))),
                  (2, split("column", (1, stages), (1, inliers), (1, surfels),
                            (1, split("row", (1, estimate), (1, truth))))))
     return {"configById": ui.configs, "globalVariables": {}, "userNodes": {}, "playbackConfig": {"speed": 1.0},

@@ -30,7 +30,7 @@
 #define SQRT2 1.41421356237f
 #define MIN_COS_VIEW 0.2f
 
-typedef struct { float *position, *normal, *colour, *weight, *radius; int32_t *t_created, *t_updated; } Map;
+typedef struct { float *position, *normal, *color, *weight, *radius; int32_t *t_created, *t_updated; } Map;
 
 static void *read_file(const char *dir, const char *name, size_t *bytes) {
   char path[4096];
@@ -171,7 +171,7 @@ static Counts fusion_step(Map *m, int *n, const Frame *fr, Scratch *s) {
     if (len > 0)
       for (int k = 0; k < 3; k++) m->normal[3 * i + k] = nsum[k] / len;
     for (int k = 0; k < 3; k++)
-      m->colour[3 * i + k] = (w * m->colour[3 * i + k] + a * (float)fr->rgb[3 * p + k]) / (w + a);
+      m->color[3 * i + k] = (w * m->color[3 * i + k] + a * (float)fr->rgb[3 * p + k]) / (w + a);
     m->weight[i] = w + a;
     float r = measurement_radius(q[2], nq[2], fr->fx);
     m->radius[i] = m->radius[i] < r ? m->radius[i] : r;
@@ -214,7 +214,7 @@ static Counts fusion_step(Map *m, int *n, const Frame *fr, Scratch *s) {
       int k = k_new++;
       memcpy(m->position + 3 * k, qw, 12);
       memcpy(m->normal + 3 * k, nw, 12);
-      for (int e = 0; e < 3; e++) m->colour[3 * k + e] = (float)fr->rgb[3 * p + e];
+      for (int e = 0; e < 3; e++) m->color[3 * k + e] = (float)fr->rgb[3 * p + e];
       m->weight[k] = fr->radial[p];
       m->radius[k] = measurement_radius(q[2], nq[2], fr->fx);
       m->t_created[k] = fr->frame;
@@ -243,7 +243,7 @@ static Counts fusion_step(Map *m, int *n, const Frame *fr, Scratch *s) {
     int i = s->movers[k], h = s->holes[k];
     memcpy(m->position + 3 * h, m->position + 3 * i, 12);
     memcpy(m->normal + 3 * h, m->normal + 3 * i, 12);
-    memcpy(m->colour + 3 * h, m->colour + 3 * i, 12);
+    memcpy(m->color + 3 * h, m->color + 3 * i, 12);
     m->weight[h] = m->weight[i];
     m->radius[h] = m->radius[i];
     m->t_created[h] = m->t_created[i];
@@ -274,7 +274,7 @@ int main(int argc, char **argv) {
   fr.normal = read_file(dir, "normal_map.bin", &bytes);
   fr.radial = read_file(dir, "radial.bin", &bytes);
   fr.rgb = read_file(dir, "rgb.bin", &bytes);
-  const char *names[7] = {"position.bin", "normal.bin", "colour.bin", "weight.bin", "radius.bin", "t_created.bin",
+  const char *names[7] = {"position.bin", "normal.bin", "color.bin", "weight.bin", "radius.bin", "t_created.bin",
                           "t_updated.bin"};
   const int width[7] = {12, 12, 12, 4, 4, 4, 4};
   void *orig[7], *work[7];

@@ -28,14 +28,14 @@ def load(path: str):
     m = trimesh.load(path, process=False)
     if hasattr(m, "geometry"):  # a glTF scene: its one mesh
         (m,) = m.geometry.values()
-    colours = None
+    colors = None
     if getattr(m.visual, "kind", None) == "vertex":
-        colours = np.asarray(m.visual.vertex_colors)[:, :3]
+        colors = np.asarray(m.visual.vertex_colors)[:, :3]
     elif "color" in getattr(m.visual, "vertex_attributes", {}):
-        colours = np.asarray(m.visual.vertex_attributes["color"])[:, :3]
-    if colours is None:
-        colours = np.full((len(m.vertices), 3), 200)
-    return np.asarray(m.vertices, np.float64), np.asarray(m.faces), colours.astype(np.float64), \
+        colors = np.asarray(m.visual.vertex_attributes["color"])[:, :3]
+    if colors is None:
+        colors = np.full((len(m.vertices), 3), 200)
+    return np.asarray(m.vertices, np.float64), np.asarray(m.faces), colors.astype(np.float64), \
         np.asarray(m.vertex_normals, np.float64)
 
 
@@ -84,15 +84,15 @@ def render(v, f, rgb, n, eye, target, up, size=(960, 720), fov=60.0, background=
         tri = chunk[t]
         L = np.stack([l1[t, k], l2[t, k], l3[t, k]], 1)
         depth = np.einsum("ij,ij->i", L, z[tri])
-        colour = np.einsum("ij,ijk->ik", L, col[tri])
+        color = np.einsum("ij,ijk->ik", L, col[tri])
         pix = (py[t, k].astype(int)) * w + px[t, k].astype(int)
         order = np.lexsort((depth, pix))
-        pix, depth, colour = pix[order], depth[order], colour[order]
+        pix, depth, color = pix[order], depth[order], color[order]
         first = np.r_[True, pix[1:] != pix[:-1]]
-        pix, depth, colour = pix[first], depth[first], colour[first]
+        pix, depth, color = pix[first], depth[first], color[first]
         nearer = depth < zbuf[pix]
         zbuf[pix[nearer]] = depth[nearer]
-        image[pix[nearer]] = colour[nearer]
+        image[pix[nearer]] = color[nearer]
     return np.clip(image.reshape(h, w, 3), 0, 255).astype(np.uint8)
 
 

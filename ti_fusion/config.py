@@ -263,7 +263,7 @@ class DatasetConfig:
     camera_info_topic: Topic = ""   # bags: CameraInfo of the depth images; "" = the depth topic's camera_info, or the only one
     gt_topic: Topic = ""            # bags: a PoseStamped or Odometry topic of ground truth; "" = none
     color_extrinsics: Annotated[str, Text("a file path or a bag topic")] = ""
-                                    # T_color_depth (p_colour = T p_depth, metres): a file (4x4 or 3x4 matrix, or
+                                    # T_color_depth (p_color = T p_depth, metres): a file (4x4 or 3x4 matrix, or
                                     # tx ty tz qx qy qz qw) or a bag's Transform/TransformStamped/TFMessage topic;
                                     # colour is then registered to depth (RealSense recordings: the recorded one)
     color_intrinsics: Annotated[str, Text("fx,fy,cx,cy or a file path")] = ""

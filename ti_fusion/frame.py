@@ -18,7 +18,7 @@ class Frame:
     color: uint8 H×W×3 RGB, or None when the set has no colour.
     gt_pose: float64 4×4 camera-to-world ground truth, or None.
     color_registered: pixel (u, v) of ``color`` sees the point of ``depth`` at (u, v) (photometric tracking
-    uses colour only then); set by the dataset (``Dataset.colour_for_tracking``).
+    uses colour only then); set by the dataset (``Dataset.color_for_tracking``).
     """
 
     index: int

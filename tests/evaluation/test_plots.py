@@ -20,7 +20,7 @@ def circle(n=60, radius=1.0, drift=0.0):
     return poses
 
 
-def colour_pixels(image_bgr, rgb, tol=50):
+def color_pixels(image_bgr, rgb, tol=50):
     """Pixels within ``tol`` of an RGB colour."""
     return int((np.abs(image_bgr[..., ::-1].astype(int) - rgb).max(axis=-1) <= tol).sum())
 
@@ -41,15 +41,15 @@ def test_loop_edges_are_drawn(tmp_path):
     plain = cv2.imread(str(plot_trajectory(tmp_path / "plain.png", est)))
     drawn = cv2.imread(str(plot_trajectory(tmp_path / "loops.png", est, loop_edges=edges)))
     assert drawn.shape == plain.shape
-    green, red = colour_pixels(plain, GREEN), reddish_pixels(plain)  # anti-aliased blue may come close
-    assert colour_pixels(drawn, GREEN) > green + 200 and reddish_pixels(drawn) > red + 200
+    green, red = color_pixels(plain, GREEN), reddish_pixels(plain)  # anti-aliased blue may come close
+    assert color_pixels(drawn, GREEN) > green + 200 and reddish_pixels(drawn) > red + 200
     # with ground truth, the edges follow the rigidly aligned estimate; an empty list draws nothing
     world = se3_exp(np.array([0.1, -0.2, 0.3, 1.0, 2.0, -0.5]))
     gt = circle()
     aligned = cv2.imread(str(plot_trajectory(tmp_path / "gt.png", world @ est, gt, loop_edges=[
         ((world @ est[59])[:3, 3], (world @ est[0])[:3, 3], True), (40, 10, False)])))
     gt_only = cv2.imread(str(plot_trajectory(tmp_path / "gt_only.png", world @ est, gt)))
-    assert colour_pixels(aligned, GREEN) > colour_pixels(gt_only, GREEN) + 50
+    assert color_pixels(aligned, GREEN) > color_pixels(gt_only, GREEN) + 50
     assert reddish_pixels(aligned) > reddish_pixels(gt_only) + 50  # one thin, faint, dashed line
     none = cv2.imread(str(plot_trajectory(tmp_path / "none.png", est, loop_edges=[])))
     assert np.array_equal(none, plain)

@@ -615,7 +615,7 @@ def test_describe_and_the_format_line_say_scale_intrinsics_and_their_source(tmp_
     assert d["depth_scale"] == 5000.0
     assert d["intrinsics"] == {"fx": 517.3, "fy": 516.5, "cx": 318.6, "cy": 255.3, "width": W, "height": H,
                                "source": "the TUM freiburg1 calibration, named by the folder name"}
-    assert d["ground_truth_frames"] == 2 and d["dropped_frames"] == 1 and d["colour"] is True
+    assert d["ground_truth_frames"] == 2 and d["dropped_frames"] == 1 and d["color"] is True
     json.dumps(d)  # goes into summary.json and the log's metadata as it is
     assert ("format: tum (detected from depth.txt); depth 5000 units per metre; intrinsics fx 517.3 fy 516.5 "
             f"cx 318.6 cy 255.3 at {W}x{H} (the TUM freiburg1 calibration, named by the folder name)") in caplog.messages
@@ -669,7 +669,7 @@ def test_tum_depth_images_without_rgb_are_counted_and_named(tmp_path, rng, caplo
     assert TUMDataset(make_tum(tmp_path / "b", rng, n=2)["root"]).describe()["dropped_frames"] == 1
 
 
-def test_a_missing_colour_image_stops_every_format(tmp_path, rng):
+def test_a_missing_color_image_stops_every_format(tmp_path, rng):
     """A file missing from a sequence that has one per frame stops the loader, in each format (no frame
     quietly without colour, no frame quietly left out); a sequence with no colour at all is depth-only."""
     seven = make_7scenes(tmp_path / "a", rng, n=4)["root"]
@@ -679,7 +679,7 @@ def test_a_missing_colour_image_stops_every_format(tmp_path, rng):
     for p in seven.glob("*.color.png"):
         p.unlink()
     ds = SevenScenesDataset(seven)
-    assert len(ds) == 4 and ds[0].color is None and ds.describe()["colour"] is False
+    assert len(ds) == 4 and ds[0].color is None and ds.describe()["color"] is False
     icl = make_icl(tmp_path / "b", rng, n=3)["root"]
     (icl / "rgb" / "1.png").unlink()
     with pytest.raises(InputError, match="1.png: colour image for depth/1.png does not exist"):

@@ -105,7 +105,7 @@ def test_the_tum_pngs_as_a_plain_folder_give_the_same_trajectory(cpu, tum_sequen
                         color_registered=True)  # as TUM's are: colour tracking (the default) on in both runs
     run = slam(cfg, tmp_path / "run")
     d = run["dataset"]
-    assert d["format"] == "folder" and d["frames"] == FRAMES and d["colour_registered"] is True
+    assert d["format"] == "folder" and d["frames"] == FRAMES and d["color_registered"] is True
     assert d["timestamps_from"] == "timestamps.txt" and d["ground_truth_from"] == "groundtruth.txt in the dataset folder"
     stamps, poses = run["trajectory"]
     tum_stamps, tum_poses = tum_run["trajectory"]
@@ -188,7 +188,7 @@ def test_frames_in_numeric_order_with_depth_in_metres(tmp_path, rng):
     assert [ds[i].timestamp for i in range(3)] == [1.0, 2.0, 10.0]
     raw = cv2.imread(str(root / "depth" / "frame_2.png"), cv2.IMREAD_UNCHANGED)
     np.testing.assert_allclose(ds[1].depth, np.where(raw / 1000.0 > 4.0, 0.0, raw / 1000.0), rtol=1e-6)
-    assert ds[1].color.shape == (H, W, 3) and ds.describe()["colour_registered"] is True
+    assert ds[1].color.shape == (H, W, 3) and ds.describe()["color_registered"] is True
 
 
 def test_two_files_of_one_number_are_refused(tmp_path, rng):
@@ -197,16 +197,16 @@ def test_two_files_of_one_number_are_refused(tmp_path, rng):
         open_dataset(folder_cfg(root))
 
 
-def test_colour_of_another_size_is_not_registered_and_said(tmp_path, rng, caplog):
+def test_color_of_another_size_is_not_registered_and_said(tmp_path, rng, caplog):
     root = make_folder(tmp_path / "cam", rng, color="color", color_size=(64, 48))
     ds = open_dataset(folder_cfg(root))
     assert ds[0].color.shape == (H, W, 3)
     d = ds.describe()
-    assert d["colour_registered"] is False and any("not registered" in n for n in d["notes"])
+    assert d["color_registered"] is False and any("not registered" in n for n in d["notes"])
     assert "not registered" in caplog.text
 
 
-def test_a_missing_colour_image_is_refused(tmp_path, rng):
+def test_a_missing_color_image_is_refused(tmp_path, rng):
     root = make_folder(tmp_path / "cam", rng)
     (root / "rgb" / "1.png").unlink()
     with pytest.raises(InputError, match="colour image of depth/1.png does not exist"):
@@ -215,7 +215,7 @@ def test_a_missing_colour_image_is_refused(tmp_path, rng):
 
 def test_depth_only_folder(tmp_path, rng):
     ds = open_dataset(folder_cfg(make_folder(tmp_path / "cam", rng, color=None)))
-    assert ds[0].color is None and ds.describe()["colour_registered"] is None
+    assert ds[0].color is None and ds.describe()["color_registered"] is None
 
 
 def test_timestamps_one_per_line_or_by_frame_number(tmp_path, rng):

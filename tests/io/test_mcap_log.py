@@ -184,9 +184,9 @@ def test_loop_edges_read_back(tmp_path, rng):
     for (a, b, _), (c, d, _) in zip(got, want):
         np.testing.assert_allclose(a, c, atol=1e-12)
         np.testing.assert_allclose(b, d, atol=1e-12)
-    colours = [(c.r, c.g, c.b) for c in two.entities[0].lines[0].colors]
-    assert colours[0] == colours[1] and colours[0][1] > colours[0][0]  # green
-    assert colours[2] == colours[3] and colours[2][0] > colours[2][1]  # red
+    colors = [(c.r, c.g, c.b) for c in two.entities[0].lines[0].colors]
+    assert colors[0] == colors[1] and colors[0][1] > colors[0][0]  # green
+    assert colors[2] == colors[3] and colors[2][0] > colors[2][1]  # red
     assert len(loop_edges_from_msg(one)) == 1 and loop_edges_from_msg(none) == []
     contents = read_log(path)
     assert contents.channels[LOOP_TOPIC].count == 3 and contents.complete
@@ -271,7 +271,7 @@ def test_time_guards(tmp_path):
     assert times == [0, 2_500_000_000, 2_500_000_000, 2_500_000_000]
 
 
-def test_points_downsampling_is_deterministic_and_float_colours(tmp_path, rng):
+def test_points_downsampling_is_deterministic_and_float_colors(tmp_path, rng):
     xyz = rng.normal(size=(1000, 3))
     rgb = rng.uniform(0, 1, (1000, 3))
     clouds = []

@@ -243,7 +243,7 @@ def test_a_32fc1_bag_gives_the_tum_runs_trajectory(cpu, synthetic_shots, tum_run
     d = run["dataset"]
     assert d["format"] == "rosbag" and d["frames"] == FRAMES and d["depth_encoding"] == "32FC1"
     assert d["topics"] == {"depth": DEPTH, "color": COLOR, "camera_info": INFO, "ground_truth": GT}
-    assert d["intrinsics"]["source"] == f"{INFO} (CameraInfo K)" and d["colour_registered"] is True
+    assert d["intrinsics"]["source"] == f"{INFO} (CameraInfo K)" and d["color_registered"] is True
     stamps, poses = run["trajectory"]
     tum_stamps, tum_poses = tum_run["trajectory"]
     np.testing.assert_array_equal(stamps, tum_stamps)
@@ -251,7 +251,7 @@ def test_a_32fc1_bag_gives_the_tum_runs_trajectory(cpu, synthetic_shots, tum_run
     assert run["ate_rmse_m"] == pytest.approx(tum_run["ate_rmse_m"], abs=1e-6)
 
 
-def test_a_16uc1_mcap_file_with_lagging_bgr_colour_from_the_command_line(cpu, synthetic_shots, tum_run, tmp_path):
+def test_a_16uc1_mcap_file_with_lagging_bgr_color_from_the_command_line(cpu, synthetic_shots, tum_run, tmp_path):
     """Millimetres (REP 118), a bare .mcap file, colour 8 ms behind depth, ground truth from Odometry."""
     bag = write_bag(tmp_path / "bag", synthetic_shots, depth_encoding="16UC1", color_encoding="bgr8",
                     color_lag=0.008, gt="odom")
@@ -261,7 +261,7 @@ def test_a_16uc1_mcap_file_with_lagging_bgr_colour_from_the_command_line(cpu, sy
     summary = json.loads((out / "summary.json").read_text())
     d = summary["dataset"]
     assert d["format_from"] == "detected from a .mcap file" and d["depth_scale"] == 1000
-    assert d["notes"] == [] and d["colour"] is True  # every depth frame found its colour
+    assert d["notes"] == [] and d["color"] is True  # every depth frame found its colour
     assert summary["tracking_failures"] == 0
     assert summary["ate_rmse_m"] < 0.01 and abs(summary["ate_rmse_m"] - tum_run["ate_rmse_m"]) < 1e-3
     stamps, _ = read_tum(out / "trajectory.tum")
@@ -271,7 +271,7 @@ def test_a_16uc1_mcap_file_with_lagging_bgr_colour_from_the_command_line(cpu, sy
 # --------------------------------------------------------------------------------------------------
 # Small bags: topics, encodings, stamps, damage
 # --------------------------------------------------------------------------------------------------
-def test_frames_colour_intrinsics_and_ground_truth(tmp_path, rng):
+def test_frames_color_intrinsics_and_ground_truth(tmp_path, rng):
     shots = small_shots(rng)
     ds = open_dataset(small_cfg(write_bag(tmp_path / "bag", shots, gt="pose"), gt_topic=GT))
     assert isinstance(ds, RosbagDataset) and len(ds) == 4 and ds.intrinsics.as_tuple() == K_SMALL
@@ -284,7 +284,7 @@ def test_frames_colour_intrinsics_and_ground_truth(tmp_path, rng):
 
 
 @pytest.mark.parametrize("encoding", ["bgr8", "mono8", "jpeg"])
-def test_colour_encodings_come_out_rgb(tmp_path, rng, encoding):
+def test_color_encodings_come_out_rgb(tmp_path, rng, encoding):
     shots = small_shots(rng, n=2)
     ds = open_dataset(small_cfg(write_bag(tmp_path / "bag", shots, color_encoding=encoding)))
     color = ds[1].color
@@ -356,7 +356,7 @@ def test_the_command_line_lists_the_candidates_in_one_line(tmp_path, rng, capsys
     assert len(err.splitlines()) == 1 and "--depth-topic TOPIC" in err and "/other/depth" in err
 
 
-def test_colour_outside_the_window_is_left_out_and_counted(tmp_path, rng, caplog):
+def test_color_outside_the_window_is_left_out_and_counted(tmp_path, rng, caplog):
     shots = small_shots(rng, n=4)
     bag = write_bag(tmp_path / "bag", shots, color_lag=0.015)
     ds = open_dataset(small_cfg(bag))  # 15 ms: within the 20 ms window
@@ -368,10 +368,10 @@ def test_colour_outside_the_window_is_left_out_and_counted(tmp_path, rng, caplog
     assert ds[0].color is None and ds.topics["color"] is None
 
 
-def test_colour_in_another_frame_is_not_registered(tmp_path, rng):
+def test_color_in_another_frame_is_not_registered(tmp_path, rng):
     bag = write_bag(tmp_path / "bag", small_shots(rng, n=2), color_frame="camera_color_optical")
     d = open_dataset(small_cfg(bag)).describe()
-    assert d["colour_registered"] is False and "not registered" in d["notes"][0]
+    assert d["color_registered"] is False and "not registered" in d["notes"][0]
 
 
 def test_intrinsics_without_camera_info(tmp_path, rng):
@@ -464,7 +464,7 @@ def test_a_run_log_with_every_depth_image_replays(cpu, tmp_path):
     assert detect(tmp_path / "run" / "log.mcap")[0] == "log"
     replay = slam(small_cfg(tmp_path / "run"), tmp_path / "replay")
     d = replay["dataset"]
-    assert d["format"] == "log" and d["frames"] == 12 and d["ground_truth_frames"] == 12 and d["colour"]
+    assert d["format"] == "log" and d["frames"] == 12 and d["ground_truth_frames"] == 12 and d["color"]
     assert d["intrinsics"]["source"] == "/camera/calibration in the log"
     np.testing.assert_allclose(replay["trajectory"][0], run["trajectory"][0], atol=1e-6)
     assert replay["tracking_failures"] == 0 and abs(replay["ate_rmse_m"] - run["ate_rmse_m"]) < 1e-3
@@ -515,19 +515,19 @@ def test_the_synthetic_sequence_as_a_ros1_bag_tracks_as_its_tum_copy(cpu, synthe
 
 # the colour camera of the offset-colour bags: 2.5 cm beside the depth camera, turned about 1.3 degrees
 T_OFFSET = make_pose(so3_exp(np.array([0.01, -0.02, 0.01])), [0.025, 0.003, -0.002])
-K_COLOUR = Intrinsics(fx=300.0, fy=301.0, cx=165.0, cy=118.0, width=320, height=240)
+K_COLOR = Intrinsics(fx=300.0, fy=301.0, cx=165.0, cy=118.0, width=320, height=240)
 
 
-def offset_colour_shots(shots: list[Shot], scene: str = "room") -> list[Shot]:
-    """``shots`` with their colour rendered by a camera at T_OFFSET from the depth camera, K_COLOUR."""
+def offset_color_shots(shots: list[Shot], scene: str = "room") -> list[Shot]:
+    """``shots`` with their colour rendered by a camera at T_OFFSET from the depth camera, K_COLOR."""
     from ti_fusion.synthetic.scene import SyntheticSequence
 
     seq = SyntheticSequence(SynthConfig(scene=scene, frames=len(shots), width=320, height=240, fx=K[0]))
-    return [Shot(s.t, s.depth, seq.render_offset_colour(s.pose, T_OFFSET, K_COLOUR), s.pose) for s in shots]
+    return [Shot(s.t, s.depth, seq.render_offset_color(s.pose, T_OFFSET, K_COLOR), s.pose) for s in shots]
 
 
 @pytest.mark.parametrize("color_weight", [0.0, 0.01])
-def test_unregistered_colour_with_its_extrinsics_tracks_as_registered_colour(cpu, synthetic_shots, tum_sequence,
+def test_unregistered_color_with_its_extrinsics_tracks_as_registered_color(cpu, synthetic_shots, tum_sequence,
                                                                               tmp_path, color_weight):
     """The synthetic sequence as a ROS 1 bag, millimetres, its colour from a camera 2.5 cm aside (its own
     camera_info, --color-extrinsics a file): registered to depth in the loop, the photometric term uses it
@@ -535,13 +535,13 @@ def test_unregistered_colour_with_its_extrinsics_tracks_as_registered_colour(cpu
     cfg = Config()
     cfg.icp.color_weight = color_weight
     tum = slam(DatasetConfig(path=str(tum_sequence)), tmp_path / "tum", copy.deepcopy(cfg))
-    bag = write_bag(tmp_path / "seq.bag", offset_colour_shots(synthetic_shots), depth_encoding="16UC1", ros1=True,
-                    color_frame="camera_color_optical", color_k=K_COLOUR.as_tuple())
+    bag = write_bag(tmp_path / "seq.bag", offset_color_shots(synthetic_shots), depth_encoding="16UC1", ros1=True,
+                    color_frame="camera_color_optical", color_k=K_COLOR.as_tuple())
     T = T_OFFSET
     (tmp_path / "extrinsics.txt").write_text("\n".join(" ".join(f"{x:.12g}" for x in row) for row in T) + "\n")
     run = slam(small_cfg(bag, gt_topic=GT, color_extrinsics=str(tmp_path / "extrinsics.txt")), tmp_path / "run", cfg)
     d = run["dataset"]
-    assert d["notes"] == [] and d["colour_camera"]["source"].endswith("(--color-extrinsics)")
+    assert d["notes"] == [] and d["color_camera"]["source"].endswith("(--color-extrinsics)")
     assert run["tracking_failures"] == 0 and abs(run["ate_rmse_m"] - tum["ate_rmse_m"]) < 1e-3
 
 
@@ -561,7 +561,7 @@ def test_compressed_depth_on_ros2_tracks_as_the_raw_images(cpu, synthetic_shots,
 
 
 @pytest.mark.parametrize("ros1", [False, True])
-def test_compressed_depth_and_colour_decode(tmp_path, rng, ros1):
+def test_compressed_depth_and_color_decode(tmp_path, rng, ros1):
     """compressedDepth 16UC1 is the raw millimetres; 32FC1 is within its quantisation of inverse depth
     (z² / (A) with A = 100·101: 0.9 mm at 3 m); PNG colour is exact."""
     shots = small_shots(rng, n=2)
@@ -642,7 +642,7 @@ def test_a_realsense_recording_takes_its_units_intrinsics_and_extrinsics(tmp_pat
     assert d["realsense"] is True and d["depth_scale"] == 10000 and "Depth Units/value (0.0001 m per unit" in \
         d["depth_scale_from"]
     assert d["topics"]["camera_info"] == "/device_0/sensor_0/Depth_0/info/camera_info"
-    assert d["colour_registered"] is False and d["colour_for_tracking"] is False
+    assert d["color_registered"] is False and d["color_for_tracking"] is False
     np.testing.assert_allclose(ds.color_extrinsics, T, atol=1e-6)
     assert ds.color_intrinsics.as_tuple() == (30.0, 30.0, 20.0, 15.0)
     expected = np.round(shots[2].depth / 0.0001).astype(np.uint16) / 10000  # as written
@@ -693,13 +693,13 @@ def test_all_zero_header_stamps_fall_back_to_the_receive_times(tmp_path, rng):
     assert ds.describe()["times_from"].startswith("receive times")
 
 
-def test_colour_of_another_size_in_the_depths_frame_is_resized_with_a_warning(tmp_path, rng, capsys):
+def test_color_of_another_size_in_the_depths_frame_is_resized_with_a_warning(tmp_path, rng, capsys):
     shots = small_shots(rng, n=3)
     for s in shots:
         s.color = cv2.resize(s.color, (80, 60))
     bag = write_bag(tmp_path / "b", shots)
     ds = open_dataset(small_cfg(bag))
-    assert ds.describe()["colour_registered"] is False and ds[0].color.shape == (30, 40, 3)
+    assert ds.describe()["color_registered"] is False and ds[0].color.shape == (30, 40, 3)
     assert "are 80x60 in the depth's frame (camera_optical) and the depth images 40x30" in ds.notes[0]
     assert "--color-topic none" in ds.notes[0]
     shots[2].color = shots[2].color[:50]  # one colour image of yet another size: refused, with the way out
@@ -708,7 +708,7 @@ def test_colour_of_another_size_in_the_depths_frame_is_resized_with_a_warning(tm
         open_dataset(small_cfg(bag))[2]
 
 
-def test_colour_extrinsics_from_a_file_or_a_topic_and_what_is_refused(tmp_path, rng):
+def test_color_extrinsics_from_a_file_or_a_topic_and_what_is_refused(tmp_path, rng):
     from ti_fusion.io.datasets.extrinsics import read_extrinsics_file
 
     T = make_pose(so3_exp(np.array([0.0, 0.05, 0.0])), [0.02, 0.0, 0.001])

@@ -62,7 +62,7 @@ def test_the_maps_match_the_numpy_reference(name):
     assert undistortion_maps(K) is undistortion_maps(K)  # computed once per calibration
 
 
-def test_depth_is_read_at_the_nearest_pixel_and_colour_bilinearly(rng):
+def test_depth_is_read_at_the_nearest_pixel_and_color_bilinearly(rng):
     K = CAMERAS["plumb_bob with skew"]
     depth = rng.uniform(0.5, 3.0, (H, W)).astype(np.float32)
     depth[rng.random((H, W)) < 0.1] = 0.0  # invalid pixels stay invalid, never averaged into their neighbours

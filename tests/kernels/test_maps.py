@@ -328,15 +328,15 @@ def test_surfel_intensity_matches_reference(arch, rng):
     from ti_fusion.kernels.maps import GREY, grey_image
 
     n = 50
-    colour = rng.uniform(0, 255, (n, 3)).astype(np.float32)
+    color = rng.uniform(0, 255, (n, 3)).astype(np.float32)
     index = rng.integers(0, n, (13, 17)).astype(np.int32)
     index[rng.random(index.shape) < 0.2] = INT_MAX
     view, col = ti.field(ti.i32, shape=index.shape), ti.Vector.field(3, ti.f32, shape=n)
     view.from_numpy(index)
-    col.from_numpy(colour)
+    col.from_numpy(color)
     maps = FrameMaps(settings(), 13, 17, levels=2)
     maps.intensity_from_surfels(view, col)
-    expected = np.where(index == INT_MAX, -1.0, (colour[np.minimum(index, n - 1)] @ np.array(GREY)) / 255.0)
+    expected = np.where(index == INT_MAX, -1.0, (color[np.minimum(index, n - 1)] @ np.array(GREY)) / 255.0)
     np.testing.assert_allclose(maps.intensity[0].to_numpy(), expected, atol=1e-6)
     np.testing.assert_allclose(maps.intensity[1].to_numpy(), intensity_down_ref(maps.intensity[0].to_numpy()),
                                rtol=1e-5, atol=1e-6)

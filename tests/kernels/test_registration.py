@@ -12,10 +12,10 @@ KD = Intrinsics(fx=60.0, fy=58.0, cx=39.5, cy=29.25, width=80, height=60)
 KC = Intrinsics(fx=95.0, fy=96.0, cx=50.0, cy=37.5, width=100, height=76)
 
 
-def register_ref(depth, colour, Kd, Kc, T, margin=OCCLUSION_MARGIN):
+def register_ref(depth, color, Kd, Kc, T, margin=OCCLUSION_MARGIN):
     """The kernel's rule in float64: z-buffer of footprints, then bilinear colour where not hidden."""
     h, w = depth.shape
-    hc, wc = colour.shape[:2]
+    hc, wc = color.shape[:2]
     v, u = np.mgrid[0:h, 0:w].astype(np.float64)
     z = depth.astype(np.float64)
     p = np.stack([(u - Kd.cx) / Kd.fx * z, (v - Kd.cy) / Kd.fy * z, z], -1)
@@ -34,7 +34,7 @@ def register_ref(depth, colour, Kd, Kc, T, margin=OCCLUSION_MARGIN):
     inside = has & (uc >= -EDGE) & (uc <= wc - 1 + EDGE) & (vc >= -EDGE) & (vc <= hc - 1 + EDGE)
     out = np.zeros((h, w, 3))
     valid = np.zeros((h, w), bool)
-    c = colour.astype(np.float64)
+    c = color.astype(np.float64)
     for y, x in zip(*np.nonzero(inside)):
         if qz[y, x] > zbuf[int(np.rint(vc[y, x])), int(np.rint(uc[y, x]))] * (1 + margin):
             continue
@@ -59,11 +59,11 @@ def random_depth(rng, shape=(60, 80), invalid=0.1):
 def test_random_scenes_match_the_float64_reference(arch, rng):
     for _ in range(3):
         depth = random_depth(rng)
-        colour = rng.integers(0, 256, (KC.height, KC.width, 3), dtype=np.uint8)
+        color = rng.integers(0, 256, (KC.height, KC.width, 3), dtype=np.uint8)
         T = make_pose(so3_exp(rng.normal(0, 0.03, 3)), rng.uniform(-0.06, 0.06, 3))
-        reg = ColorRegistration(depth.shape, colour.shape[:2])
-        out, valid = reg.register(depth, colour, KD, KC, T)
-        ref, ref_valid = register_ref(depth, colour, KD, KC, T)
+        reg = ColorRegistration(depth.shape, color.shape[:2])
+        out, valid = reg.register(depth, color, KD, KC, T)
+        ref, ref_valid = register_ref(depth, color, KD, KC, T)
         assert (valid != ref_valid).mean() < 0.003  # float32 against float64 at the borders and the margin
         both = valid & ref_valid
         assert both.sum() > 0.4 * valid.size
@@ -71,16 +71,16 @@ def test_random_scenes_match_the_float64_reference(arch, rng):
         assert np.all(out[~valid] == 0) and not np.any(valid[depth == 0])
 
 
-def test_the_same_camera_gives_the_colour_back(arch, rng):
+def test_the_same_camera_gives_the_color_back(arch, rng):
     """Identity extrinsics and the depth camera's intrinsics: every pixel with depth keeps its colour."""
     depth = random_depth(rng)
-    colour = rng.integers(0, 256, (KD.height, KD.width, 3), dtype=np.uint8)
-    out, valid = ColorRegistration(depth.shape, depth.shape).register(depth, colour, KD, KD, np.eye(4))
+    color = rng.integers(0, 256, (KD.height, KD.width, 3), dtype=np.uint8)
+    out, valid = ColorRegistration(depth.shape, depth.shape).register(depth, color, KD, KD, np.eye(4))
     np.testing.assert_array_equal(valid, depth > 0)
-    np.testing.assert_array_equal(out[valid], colour[valid])
+    np.testing.assert_array_equal(out[valid], color[valid])
 
 
-def test_outside_behind_and_hidden_points_get_no_colour(arch):
+def test_outside_behind_and_hidden_points_get_no_color(arch):
     """A wall at 2 m and a near square at 1 m; the colour camera 10 cm to the right (x): in its image the
     square moves 6 pixels left and the wall 3, so the strip of wall just left of the square, seen by depth,
     is hidden from colour; points that land outside
@@ -89,21 +89,21 @@ def test_outside_behind_and_hidden_points_get_no_colour(arch):
     depth = np.full((h, w), 2.0, np.float32)
     depth[20:40, 30:50] = 1.0
     depth[0, 0] = 0.0
-    colour = np.full((KD.height, KD.width, 3), 100, np.uint8)
-    T = make_pose(np.eye(3), [-0.10, 0.0, 0.0])  # p_colour = p_depth - (0.1, 0, 0): colour camera at x = +0.1
-    out, valid = ColorRegistration(depth.shape, colour.shape[:2]).register(depth, colour, KD, KD, T)
-    ref, ref_valid = register_ref(depth, colour, KD, KD, T)
+    color = np.full((KD.height, KD.width, 3), 100, np.uint8)
+    T = make_pose(np.eye(3), [-0.10, 0.0, 0.0])  # p_color = p_depth - (0.1, 0, 0): colour camera at x = +0.1
+    out, valid = ColorRegistration(depth.shape, color.shape[:2]).register(depth, color, KD, KD, T)
+    ref, ref_valid = register_ref(depth, color, KD, KD, T)
     np.testing.assert_array_equal(valid, ref_valid)
     assert not valid[25:35, 27:30].any() and valid[25:35, 20:27].all() and valid[25:35, 50:60].all()
     assert valid[25:35, 30:50].all()  # the square itself is seen
     assert not valid[:, :3].any() and not valid[0, 0]  # the colour camera's image ends 3 px in; no depth
     behind = make_pose(np.eye(3), [0.0, 0.0, -3.0])  # every point behind the colour camera
-    _, valid = ColorRegistration(depth.shape, colour.shape[:2]).register(depth, colour, KD, KD, behind)
+    _, valid = ColorRegistration(depth.shape, color.shape[:2]).register(depth, color, KD, KD, behind)
     assert not valid.any()
 
 
 @pytest.mark.parametrize("scene", ["room", "wall", "corridor"])
-def test_the_synthetic_scene_seen_by_an_offset_colour_camera(cpu, scene):
+def test_the_synthetic_scene_seen_by_an_offset_color_camera(cpu, scene):
     """The target: a colour camera 2.5 cm aside, turned 1.3 degrees, with its own intrinsics: the registered
     colour matches the colour rendered at the depth camera within 2 grey levels (median) on the pixels both
     see, where the unregistered colour is off by many."""
@@ -118,7 +118,7 @@ def test_the_synthetic_scene_seen_by_an_offset_colour_camera(cpu, scene):
     reg = ColorRegistration((240, 320), (240, 320))
     for i in (0, len(seq) // 2):
         depth, at_depth = seq.render(seq.poses[i], noise=False)
-        offset = seq.render_offset_colour(seq.poses[i], T, Kc, noise=False)
+        offset = seq.render_offset_color(seq.poses[i], T, Kc, noise=False)
         out, valid = reg.register(depth, offset, seq.intrinsics, Kc, T)
         grey = [cv2.cvtColor(c, cv2.COLOR_RGB2GRAY).astype(int) for c in (out, at_depth, offset)]
         assert valid.mean() > 0.6

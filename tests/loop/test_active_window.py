@@ -19,7 +19,7 @@ def test_surfels_older_than_the_window_are_not_rendered(arch, rng):
     pos = np.column_stack([(u - K.cx) * z / K.fx, (v - K.cy) * z / K.fy, z]).astype(np.float32)
     t_updated = rng.integers(0, 20, n).astype(np.int32)
     data = {"position": pos, "normal": np.tile(np.float32([0, 0, -1]), (n, 1)),
-            "colour": np.full((n, 3), 128, np.float32), "weight": np.full(n, 5.0, np.float32),
+            "color": np.full((n, 3), 128, np.float32), "weight": np.full(n, 5.0, np.float32),
             "radius": np.full(n, 0.01, np.float32), "t_created": np.zeros(n, np.int32), "t_updated": t_updated}
     smap = SurfelMap(2048)
     smap.from_numpy(data)

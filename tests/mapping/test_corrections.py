@@ -21,7 +21,7 @@ def random_surfels(rng, n, anchors):
     return {
         "position": rng.uniform(-3.0, 3.0, (n, 3)).astype(np.float32),
         "normal": unit.astype(np.float32),
-        "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+        "color": rng.uniform(0, 255, (n, 3)).astype(np.float32),
         "weight": rng.uniform(0, 10, n).astype(np.float32),
         "radius": rng.uniform(0, 0.1, n).astype(np.float32),
         "t_created": np.arange(n, dtype=np.int32),  # the surfel's original index

@@ -17,7 +17,7 @@ import taichi as ti
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import FusionConfig, MapsConfig
 from ti_fusion.errors import MapCapacityError
-from ti_fusion.mapping.mapper import SurfelMapper, pack_colour
+from ti_fusion.mapping.mapper import SurfelMapper, pack_color
 from ti_fusion.geometry import se3_exp
 from ti_fusion.kernels import fusion as F
 from ti_fusion.kernels import index_map
@@ -63,8 +63,8 @@ def random_frame(rng):
     vertex[no_depth] = 0.0
     normal[no_depth | no_normal] = 0.0
     depth[no_depth] = 0.0
-    colour = rng.integers(0, 256, size=(H, W, 3), dtype=np.uint8)
-    return vertex.astype(np.float32), normal.astype(np.float32), depth.astype(np.float32), colour
+    color = rng.integers(0, 256, size=(H, W, 3), dtype=np.uint8)
+    return vertex.astype(np.float32), normal.astype(np.float32), depth.astype(np.float32), color
 
 
 def rotate_towards(n, angle_deg, rng):
@@ -107,7 +107,7 @@ def random_map(rng, vertex, normal, pose, n_hit=600):
     data = {
         "position": world.astype(np.float32),
         "normal": nworld.astype(np.float32),
-        "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+        "color": rng.uniform(0, 255, (n, 3)).astype(np.float32),
         "weight": rng.uniform(0.3, 8.0, n).astype(np.float32),
         "radius": rng.uniform(0.005, 0.05, n).astype(np.float32),
         "t_created": rng.integers(0, 5, n).astype(np.int32),
@@ -216,7 +216,7 @@ def ref_radius(z, nz):
     return math.sqrt(2.0) * z / (K.fx * np.maximum(np.abs(nz), F.MIN_COS_VIEW))
 
 
-def ref_merge(data, assoc, vertex, normal, colour, pose, frame, confidence):
+def ref_merge(data, assoc, vertex, normal, color, pose, frame, confidence):
     out = {k: a.astype(np.float64) if a.dtype.kind == "f" else a.copy() for k, a in data.items()}
     v, u = np.nonzero(assoc >= 0)
     i = assoc[v, u]
@@ -227,14 +227,14 @@ def ref_merge(data, assoc, vertex, normal, colour, pose, frame, confidence):
     out["position"][i] = (w * out["position"][i] + a * (q @ pose[:3, :3].T + pose[:3, 3])) / (w + a)
     n = w * out["normal"][i] + a * (nq @ pose[:3, :3].T)
     out["normal"][i] = n / np.linalg.norm(n, axis=-1, keepdims=True)
-    out["colour"][i] = (w * out["colour"][i] + a * colour[v, u]) / (w + a)
+    out["color"][i] = (w * out["color"][i] + a * color[v, u]) / (w + a)
     out["weight"][i] = (w + a)[:, 0]
     out["radius"][i] = np.minimum(out["radius"][i], ref_radius(q[:, 2], nq[:, 2]))
     out["t_updated"][i] = frame
     return out
 
 
-def ref_new_surfels(assoc, vertex, normal, colour, pose, frame, confidence):
+def ref_new_surfels(assoc, vertex, normal, color, pose, frame, confidence):
     valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
     v, u = np.nonzero(valid & (assoc == -1))  # row-major order; -2 = covered
     q = vertex[v, u].astype(np.float64)
@@ -242,7 +242,7 @@ def ref_new_surfels(assoc, vertex, normal, colour, pose, frame, confidence):
     return {
         "position": q @ pose[:3, :3].T + pose[:3, 3],
         "normal": nq @ pose[:3, :3].T,
-        "colour": colour[v, u].astype(np.float64),
+        "color": color[v, u].astype(np.float64),
         "weight": ref_alpha(u, v, confidence, q[:, 2]),
         "radius": ref_radius(q[:, 2], nq[:, 2]),
         "t_created": np.full(len(v), frame),
@@ -272,11 +272,11 @@ def frame_fields(vertex, normal, depth):
 
 def setup(rng, capacity=4096):
     pose = random_pose(rng)
-    vertex, normal, depth, colour = random_frame(rng)
+    vertex, normal, depth, color = random_frame(rng)
     data = random_map(rng, vertex, normal, pose)
     smap = SurfelMap(capacity)
     smap.from_numpy(data)
-    return pose, vertex, normal, depth, colour, data, smap
+    return pose, vertex, normal, depth, color, data, smap
 
 
 def assert_close(got, want, atol, rtol=1e-5):
@@ -311,7 +311,7 @@ def mark_covered(smap: SurfelMap, img, vertex, normal, pose, dist_threshold, nor
 
 
 def test_index_map_and_pass1(arch, rng):
-    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    pose, vertex, normal, depth, color, data, smap = setup(rng)
     img = project(smap, pose, K, H, W)
     pix, z = ref_project(data["position"].astype(np.float64), pose)
     np.testing.assert_array_equal(pass1_mask(smap), pix >= 0)
@@ -326,7 +326,7 @@ def test_index_map_and_pass1(arch, rng):
 
 
 def test_compatible_association(arch, rng):
-    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    pose, vertex, normal, depth, color, data, smap = setup(rng)
     fv, fn, _ = frame_fields(vertex, normal, depth)
     img = smap.associate_compatible(pose, K, fv, fn, DIST, ANGLE)
     pix, z = ref_project(data["position"].astype(np.float64), pose)
@@ -338,10 +338,10 @@ def test_compatible_association(arch, rng):
 
 @pytest.mark.parametrize("confidence", [False, True, "radial+depth"])
 def test_merge_and_add(arch, rng, confidence):
-    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    pose, vertex, normal, depth, color, data, smap = setup(rng)
     fv, fn, _ = frame_fields(vertex, normal, depth)
     img = smap.associate_compatible(pose, K, fv, fn, DIST, ANGLE)
-    img.colour.from_numpy(pack_colour(colour))
+    img.color.from_numpy(pack_color(color))
     frame = 12
     depth_weighted = confidence == "radial+depth"
     smap.merge(img, fv, fn, pose, K, frame, bool(confidence), SIGMA, True, depth_weighted)
@@ -350,11 +350,11 @@ def test_merge_and_add(arch, rng, confidence):
 
     pix, z = ref_project(data["position"].astype(np.float64), pose)
     assoc = ref_associate_compatible(pix, z, data, vertex, normal, pose)
-    want = ref_merge(data, assoc, vertex, normal, colour, pose, frame, confidence)
-    new = ref_new_surfels(assoc, vertex, normal, colour, pose, frame, confidence)
+    want = ref_merge(data, assoc, vertex, normal, color, pose, frame, confidence)
+    new = ref_new_surfels(assoc, vertex, normal, color, pose, frame, confidence)
     got = smap.to_numpy()
     assert merged == (assoc >= 0).sum() and added == len(new["position"]) and smap.count == n0 + added
-    tolerances = {"position": 2e-5, "normal": 2e-5, "colour": 1e-3, "weight": 1e-5, "radius": 1e-7}
+    tolerances = {"position": 2e-5, "normal": 2e-5, "color": 1e-3, "weight": 1e-5, "radius": 1e-7}
     for name in ATTRIBUTES:  # merge: in place, same order
         if name in tolerances:
             assert_close(got[name][:n0], want[name], tolerances[name])
@@ -419,7 +419,7 @@ def test_covered_pixels_add_nothing(arch, rng, fused):
     data = {
         "position": (q @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32),
         "normal": (normal[at[:, 0], at[:, 1]].astype(np.float64) @ pose[:3, :3].T).astype(np.float32),
-        "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+        "color": rng.uniform(0, 255, (n, 3)).astype(np.float32),
         "weight": rng.uniform(1.0, 5.0, n).astype(np.float32),
         "radius": (rng.uniform(0.4, 2.5, n) * q[:, 2] / K.fx).astype(np.float32),
         "t_created": np.zeros(n, np.int32),
@@ -451,7 +451,7 @@ def test_covered_pixels_add_nothing(arch, rng, fused):
 
 @pytest.mark.parametrize("free_space", [False, True])
 def test_remove(arch, rng, free_space):
-    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    pose, vertex, normal, depth, color, data, smap = setup(rng)
     fv, fn, fd = frame_fields(vertex, normal, depth)
     frame, w_min, age, margin = 30, 3.0, 20, 0.05
     n = len(data["position"])
@@ -486,7 +486,7 @@ def test_compaction_across_blocks(arch, rng, pattern):
     data = {
         "position": rng.normal(size=(n, 3)).astype(np.float32),
         "normal": rng.normal(size=(n, 3)).astype(np.float32),
-        "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+        "color": rng.uniform(0, 255, (n, 3)).astype(np.float32),
         "weight": rng.uniform(0, 10, n).astype(np.float32),
         "radius": rng.uniform(0, 0.1, n).astype(np.float32),
         "t_created": np.arange(n, dtype=np.int32),
@@ -524,7 +524,7 @@ def test_compaction_edge_cases(arch, rng, pattern):
     data = {
         "position": rng.normal(size=(n, 3)).astype(np.float32),
         "normal": rng.normal(size=(n, 3)).astype(np.float32),
-        "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+        "color": rng.uniform(0, 255, (n, 3)).astype(np.float32),
         "weight": np.full(n, 5.0, np.float32),
         "radius": rng.uniform(0, 0.1, n).astype(np.float32),
         "t_created": np.arange(n, dtype=np.int32),
@@ -597,7 +597,7 @@ def ref_render(data, pose, half, min_weight=0.0, fill=0):
 
 
 def test_render_matches_reference(arch, rng):
-    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+    pose, vertex, normal, depth, color, data, smap = setup(rng)
     data["radius"] = rng.uniform(0.0, 0.08, len(data["radius"])).astype(np.float32)
     smap.from_numpy(data)
     out_v = ti.Vector.field(3, ti.f32, shape=(H, W))
@@ -633,15 +633,15 @@ def test_render_matches_reference(arch, rng):
     assert (want_i >= 0).sum() > (ref_render(data, pose, 0, 1.0)[0] >= 0).sum()
 
 
-def test_render_image_colours(arch, rng):
-    pose, vertex, normal, depth, colour, data, smap = setup(rng)
+def test_render_image_colors(arch, rng):
+    pose, vertex, normal, depth, color, data, smap = setup(rng)
     rgb = smap.render_image(pose, K, by_normal=False, max_half=1)
     nrm = smap.render_image(pose, K, by_normal=True, max_half=1)
     img = smap.prediction_images(H, W)
     idx = img.view_index.to_numpy()
     hit = idx != INT_MAX
     assert rgb.shape == (H, W, 3) and rgb.dtype == np.uint8 and hit.sum() > 300
-    np.testing.assert_allclose(rgb[hit], np.rint(data["colour"][idx[hit]]), atol=1)
+    np.testing.assert_allclose(rgb[hit], np.rint(data["color"][idx[hit]]), atol=1)
     np.testing.assert_allclose(nrm[hit], np.rint((data["normal"][idx[hit]] + 1) / 2 * 255), atol=1)
     assert np.all(rgb[~hit] == round(0.12 * 255))
 
@@ -662,18 +662,18 @@ def plane_frame(tilt=0.002):
 @pytest.mark.parametrize("confidence", [False, True])
 def test_same_frame_twice_adds_nothing(cpu, rng, confidence):
     maps, _ = plane_frame()
-    colour = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
     pose = random_pose(rng)
     mapper = SurfelMapper(FusionConfig(capacity=10_000, confidence_weighting=confidence))
-    first = mapper.integrate(maps, colour, pose, 0)
+    first = mapper.integrate(maps, color, pose, 0)
     before = mapper.to_numpy()
-    second = mapper.integrate(maps, colour, pose, 1)
+    second = mapper.integrate(maps, color, pose, 1)
     after = mapper.to_numpy()
     assert first.added > 0.8 * H * W and first.merged == 0
     assert second.added == 0 and second.merged == first.added and second.surfels == first.surfels
     assert_close(after["position"], before["position"], 1e-5)
     assert_close(after["normal"], before["normal"], 1e-5)
-    assert_close(after["colour"], before["colour"], 1e-3)
+    assert_close(after["color"], before["color"], 1e-3)
     assert_close(after["weight"], 2 * before["weight"], 1e-6)  # +1 each, or +α for α the first weight
     if not confidence:
         assert np.all(after["weight"] == 2.0)
@@ -693,24 +693,24 @@ def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
     depth = (2.0 + 0.002 * u).astype(np.float32)
     maps = FrameMaps(RAW, H, W, levels=2)
     maps.compute(depth, K)
-    colour = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
     pose = random_pose(rng)
     mapper = SurfelMapper(FusionConfig(capacity=10_000, level=1))
-    stats = mapper.integrate(maps, colour, pose, 0)
+    stats = mapper.integrate(maps, color, pose, 0)
     vertex, normal = maps.vertex[1].to_numpy(), maps.normal[1].to_numpy()
     valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
     assert stats.added == valid.sum() == stats.surfels and stats.merged == 0
     fused = mapper.to_numpy()
     expected = vertex[valid] @ pose[:3, :3].T + pose[:3, 3]  # row-major pixel order, as appended
     assert_close(fused["position"], expected, 1e-5)
-    assert_close(fused["colour"], colour[::2, ::2][valid].astype(np.float64), 1e-4)
+    assert_close(fused["color"], color[::2, ::2][valid].astype(np.float64), 1e-4)
     with pytest.raises(ValueError, match="fusion.level 1"):
         mapper.integrate(FrameMaps(RAW, H, W, levels=1), None, pose, 1)
     # Maps averaged down to level 1 on input (as the SLAM builds them) give the same surfels
     decimated = FrameMaps(RAW, H, W, levels=1, input_level=1)
     decimated.compute(depth, K)
     again = SurfelMapper(FusionConfig(capacity=10_000, level=1))
-    again.integrate(decimated, colour, pose, 0)
+    again.integrate(decimated, color, pose, 0)
     assert_close(again.to_numpy()["position"], fused["position"], 1e-6)
 
 
@@ -749,8 +749,8 @@ def test_capacity_grows(cpu, rng):
 def test_export_copies_the_live_surfels_or_every_kth(cpu, rng):
     maps, _ = plane_frame()
     mapper = SurfelMapper(FusionConfig(capacity=50_000, remove_unstable=False))
-    colour = rng.integers(0, 256, size=maps.input_shape + (3,), dtype=np.uint8)
-    mapper.integrate(maps, colour, np.eye(4), 0)
+    color = rng.integers(0, 256, size=maps.input_shape + (3,), dtype=np.uint8)
+    mapper.integrate(maps, color, np.eye(4), 0)
     full = {name: field.to_numpy()[: mapper.count] for name, field in
             zip(ATTRIBUTES, mapper.map.arrays.attributes)}  # the whole capacity, cut: the slow way
     got = mapper.to_numpy()
@@ -760,7 +760,7 @@ def test_export_copies_the_live_surfels_or_every_kth(cpu, rng):
     k = -(-mapper.count // (mapper.count // 3))
     np.testing.assert_array_equal(xyz, full["position"][::k])
     assert rgb.dtype == np.uint8 and len(xyz) <= mapper.count // 3
-    np.testing.assert_array_equal(rgb, np.rint(full["colour"][::k]).astype(np.uint8))
+    np.testing.assert_array_equal(rgb, np.rint(full["color"][::k]).astype(np.uint8))
 
 
 def test_capacity_error_names_the_setting(cpu):
@@ -821,9 +821,9 @@ def fuse_synthetic(noise, frames, stride=3):
     mapper = SurfelMapper(FusionConfig(capacity=200_000))
     first = None
     for k, i in enumerate(range(0, frames * stride, stride)):
-        depth, colour = seq.frame(i)
+        depth, color = seq.frame(i)
         maps.compute(depth, Ks)
-        mapper.integrate(maps, colour, seq.poses[i], k)
+        mapper.integrate(maps, color, seq.poses[i], k)
         if first is None:
             v = maps.vertex[0].to_numpy().astype(np.float64)
             world = v @ seq.poses[i][:3, :3].T + seq.poses[i][:3, 3]

@@ -20,7 +20,7 @@ def reference_splat(sel: dict, cfg: MeshConfig):
     reach = M.reach_of(sel, cfg).astype(np.float64)
     out: dict = {}
     for p, n, c, w, r in zip(sel["position"].astype(np.float64), sel["normal"].astype(np.float64),
-                             sel["colour"].astype(np.float64), sel["weight"].astype(np.float64), reach):
+                             sel["color"].astype(np.float64), sel["weight"].astype(np.float64), reach):
         ext = np.sqrt(r * r + band * band) + v
         lo, hi = np.floor((p - ext) / v).astype(int), np.ceil((p + ext) / v).astype(int)
         g = np.stack(np.meshgrid(*[np.arange(a, b + 1) for a, b in zip(lo, hi)], indexing="ij"), -1).reshape(-1, 3)
@@ -42,7 +42,7 @@ def random_surfels(rng, n: int, voxel: float, centre=(0.0, 0.0, 0.0)) -> dict:
     n_ = rng.normal(size=(n, 3))
     return {"position": (np.asarray(centre) + rng.uniform(-6 * voxel, 6 * voxel, (n, 3))).astype(np.float32),
             "normal": (n_ / np.linalg.norm(n_, axis=1, keepdims=True)).astype(np.float32),
-            "colour": rng.uniform(0, 255, (n, 3)).astype(np.float32),
+            "color": rng.uniform(0, 255, (n, 3)).astype(np.float32),
             "weight": rng.uniform(0.5, 20.0, n).astype(np.float32),
             "radius": rng.uniform(voxel / 3, 3 * voxel, n).astype(np.float32)}
 
@@ -63,7 +63,7 @@ def test_splat_matches_numpy(arch, rng, centre):
     np.testing.assert_allclose(w, sums[:, 1], rtol=1e-4, atol=1e-5)
     np.testing.assert_allclose(vox["sdf"][idx, loc[:, 0], loc[:, 1], loc[:, 2]], sums[:, 0] / sums[:, 1],
                                rtol=1e-3, atol=2e-6)
-    np.testing.assert_allclose(vox["colour"][idx, loc[:, 0], loc[:, 1], loc[:, 2]], rgb / sums[:, 1:2],
+    np.testing.assert_allclose(vox["color"][idx, loc[:, 0], loc[:, 1], loc[:, 2]], rgb / sums[:, 1:2],
                                rtol=1e-3, atol=1e-2)
     assert int((vox["weight"] > 0).sum()) == len(ref), "the kernel reached voxels the reference did not"
 
@@ -78,7 +78,7 @@ def test_splat_selects_confirmed_finite(rng):
     assert np.allclose(np.linalg.norm(sel["normal"], axis=1), 1.0, atol=1e-6)
 
 
-def plane_surfels(rng, normal, centre, half: float, spacing: float, hole: float = 0.0, colour=(200, 40, 30)):
+def plane_surfels(rng, normal, centre, half: float, spacing: float, hole: float = 0.0, color=(200, 40, 30)):
     """Surfels on a square of side 2·half through ``centre`` with ``normal``, jittered grid, an optional round
     hole of radius ``hole`` in the middle."""
     n = np.asarray(normal, float)
@@ -94,7 +94,7 @@ def plane_surfels(rng, normal, centre, half: float, spacing: float, hole: float 
     p = np.asarray(centre) + a[:, None] * u + b[:, None] * w
     m = len(p)
     return {"position": p.astype(np.float32), "normal": np.tile(n, (m, 1)).astype(np.float32),
-            "colour": np.tile(colour, (m, 1)).astype(np.float32), "weight": np.full(m, 10.0, np.float32),
+            "color": np.tile(color, (m, 1)).astype(np.float32), "weight": np.full(m, 10.0, np.float32),
             "radius": np.full(m, spacing, np.float32)}
 
 
@@ -116,7 +116,7 @@ def test_plane_with_hole(cpu, rng, normal):
     assert lateral.min() > hole - 2 * v, "the hole was closed"
     square, disc = (2 * half) ** 2, np.pi * hole ** 2
     assert square - disc - 0.1 * square < mesh.area() < square - disc * 0.3 + 0.05 * square
-    assert (np.abs(mesh.colours.astype(int) - [200, 40, 30]) <= 1).all()
+    assert (np.abs(mesh.colors.astype(int) - [200, 40, 30]) <= 1).all()
 
 
 def test_sphere_closed_and_outward(cpu, rng):
@@ -125,7 +125,7 @@ def test_sphere_closed_and_outward(cpu, rng):
     d /= np.linalg.norm(d, axis=1, keepdims=True)
     c, r = np.array([0.3, -0.2, 1.0]), 0.25
     s = {"position": (c + r * d).astype(np.float32), "normal": d.astype(np.float32),
-         "colour": np.tile([10, 200, 30], (n, 1)).astype(np.float32), "weight": np.full(n, 5.0, np.float32),
+         "color": np.tile([10, 200, 30], (n, 1)).astype(np.float32), "weight": np.full(n, 5.0, np.float32),
          "radius": np.full(n, 0.004, np.float32)}
     mesh = M.mesh_surfels(s, MeshConfig(voxel_size=0.01))
     rad = np.linalg.norm(mesh.vertices - c, axis=1)
@@ -147,7 +147,7 @@ def test_decimate(cpu, rng):
 
 
 def test_bad_input_one_line(cpu, rng, tmp_path):
-    empty = {k: np.zeros((0, 3), np.float32) for k in ("position", "normal", "colour")}
+    empty = {k: np.zeros((0, 3), np.float32) for k in ("position", "normal", "color")}
     with pytest.raises(InputError, match="empty"):
         M.mesh_surfels(empty)
     weak = plane_surfels(rng, (0, 0, 1), (0, 0, 1), 0.1, 0.005)
@@ -173,7 +173,7 @@ def test_files_read_back_by_trimesh(cpu, rng, tmp_path):
     ply = trimesh.load(write_mesh_ply(tmp_path / "m.ply", mesh), process=False)
     np.testing.assert_allclose(ply.vertices, mesh.vertices, atol=1e-6)
     np.testing.assert_array_equal(ply.faces, mesh.faces)
-    np.testing.assert_array_equal(ply.visual.vertex_colors[:, :3], mesh.colours)
+    np.testing.assert_array_equal(ply.visual.vertex_colors[:, :3], mesh.colors)
     np.testing.assert_allclose(ply.vertex_normals, mesh.normals, atol=1e-3)
     scene = trimesh.load(write_glb(tmp_path / "m.glb", mesh), process=False)
     (glb,) = scene.geometry.values()
@@ -181,7 +181,7 @@ def test_files_read_back_by_trimesh(cpu, rng, tmp_path):
     np.testing.assert_array_equal(glb.faces, mesh.faces)
     np.testing.assert_allclose(glb.vertex_normals, mesh.normals, atol=1e-3)
     # with a material, trimesh keeps COLOR_0 as a vertex attribute beside it
-    np.testing.assert_array_equal(glb.visual.vertex_attributes["color"][:, :3], mesh.colours)
+    np.testing.assert_array_equal(glb.visual.vertex_attributes["color"][:, :3], mesh.colors)
 
 
 def test_map_ply_round_trip(cpu, rng, tmp_path):
@@ -190,7 +190,7 @@ def test_map_ply_round_trip(cpu, rng, tmp_path):
 
     s = plane_surfels(rng, (0, 0, 1), (0, 0, 1), 0.1, 0.005)
     s["weight"][::2] = 1.0
-    path = write_ply(tmp_path / "map.ply", s["position"], s["normal"], s["colour"],
+    path = write_ply(tmp_path / "map.ply", s["position"], s["normal"], s["color"],
                      {"confidence": s["weight"], "radius": s["radius"]})
     back = M.surfels_from_ply(path)
     np.testing.assert_array_equal(back["weight"], s["weight"])
@@ -205,7 +205,7 @@ def test_mesh_command(cpu, rng, tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()
     s = plane_surfels(rng, (0, 0, 1), (0, 0, 1), 0.1, 0.004)
-    write_ply(run / "map.ply", s["position"], s["normal"], s["colour"], {"confidence": s["weight"],
+    write_ply(run / "map.ply", s["position"], s["normal"], s["color"], {"confidence": s["weight"],
                                                                        "radius": s["radius"]})
     assert main(["mesh", str(run), "--out", str(tmp_path / "out"), "--quiet"]) == 0
     assert (tmp_path / "out" / "mesh.ply").stat().st_size > 0 and (tmp_path / "out" / "mesh.glb").stat().st_size > 0
@@ -243,7 +243,7 @@ def test_mesh_in_the_log(cpu, rng, tmp_path):
     (tri,) = entity.triangles
     np.testing.assert_allclose([[p.x, p.y, p.z] for p in tri.points], mesh.vertices, atol=1e-6)
     np.testing.assert_array_equal(np.reshape(tri.indices, (-1, 3)), mesh.faces)
-    np.testing.assert_allclose([[c.r, c.g, c.b] for c in tri.colors], mesh.colours / 255.0, atol=1e-9)
+    np.testing.assert_allclose([[c.r, c.g, c.b] for c in tri.colors], mesh.colors / 255.0, atol=1e-9)
     assert all(c.a == 1.0 for c in tri.colors) and tri.pose.orientation.w == 1.0
 
 
@@ -254,7 +254,7 @@ def test_run_mesh_warns_instead_of_failing(cpu, caplog):
         def to_numpy(self):
             n = 10
             return {"position": np.zeros((n, 3), np.float32), "normal": np.tile([0, 0, 1.0], (n, 1)),
-                    "colour": np.zeros((n, 3)), "weight": np.ones(n), "radius": np.full(n, 0.01)}
+                    "color": np.zeros((n, 3)), "weight": np.ones(n), "radius": np.full(n, 0.01)}
 
     run = M.RunMesh(MeshConfig(method="surfels"))
     run.make(Mapper())
@@ -356,7 +356,7 @@ def random_pose(rng, centre) -> np.ndarray:
     return pose
 
 
-def reference_depth(depth, colour, K, pose, cfg: MeshConfig, out: dict, check: bool = False):
+def reference_depth(depth, color, K, pose, cfg: MeshConfig, out: dict, check: bool = False):
     """The kernel's walk in float64: every valid pixel's samples z = d − trunc + s·step (s = 0 … 2·trunc/step),
     each voxel whose centre is nearest to a sample once per ray, d − z_c added where |d − z_c| ≤ trunc.
     ``out`` maps voxel → [Σ d − z_c, count, Σ colour]. With ``check``, returns the pixels whose walk float32
@@ -388,7 +388,7 @@ def reference_depth(depth, colour, K, pose, cfg: MeshConfig, out: dict, check: b
                 acc = out.setdefault(g, [0.0, 0, np.zeros(3)])
                 acc[0] += sd
                 acc[1] += 1
-                acc[2] += colour[r, c]
+                acc[2] += color[r, c]
     return doubtful
 
 
@@ -403,16 +403,16 @@ def test_depth_integration_matches_numpy(arch, rng, centre):
         depth = rng.uniform(0.4, 1.2, (18, 24)).astype(np.float32)
         depth[rng.random(depth.shape) < 0.15] = 0.0
         depth[0, :3] = np.nan
-        colour = rng.integers(0, 256, (18, 24, 3)).astype(np.uint8)
+        color = rng.integers(0, 256, (18, 24, 3)).astype(np.uint8)
         pose = random_pose(rng, np.asarray(centre) + rng.uniform(-0.05, 0.05, 3))
-        doubtful = reference_depth(depth, colour, K, pose, cfg, {}, check=True)
+        doubtful = reference_depth(depth, color, K, pose, cfg, {}, check=True)
         depth[doubtful] = 0.0  # float32 may round those the other way: keep the comparison exact
-        frames.append((depth, colour, pose))
+        frames.append((depth, color, pose))
     fusion = M.DepthFusion(cfg)
     ref: dict = {}
-    for depth, colour, pose in frames:
-        fusion.integrate(depth, colour, K, pose)
-        reference_depth(depth, colour, K, pose, cfg, ref)
+    for depth, color, pose in frames:
+        fusion.integrate(depth, color, K, pose)
+        reference_depth(depth, color, K, pose, cfg, ref)
     grid, vox = fusion.grid()
     keys = np.array(list(ref))
     idx = grid.find(np.floor_divide(keys, E) - grid.origin)
@@ -422,7 +422,7 @@ def test_depth_integration_matches_numpy(arch, rng, centre):
     count = np.array([ref[k][1] for k in ref], float)
     np.testing.assert_array_equal(vox["weight"][at], count)
     np.testing.assert_allclose(vox["sdf"][at], np.array([ref[k][0] for k in ref]) / count, rtol=1e-4, atol=2e-6)
-    np.testing.assert_allclose(vox["colour"][at], np.array([ref[k][2] for k in ref]) / count[:, None],
+    np.testing.assert_allclose(vox["color"][at], np.array([ref[k][2] for k in ref]) / count[:, None],
                                rtol=1e-4, atol=1e-3)
     assert int((vox["weight"] > 0).sum()) == len(ref), "the kernel wrote voxels the reference did not"
 
@@ -441,9 +441,9 @@ def plane_frames(n: int = 4, hole: bool = True):
         y = pose[1, 3] + (vv - K.cy) / K.fy * depth
         if hole:
             depth[np.hypot(x - 0.1, y) < 0.06] = 0.0
-        colour = np.zeros((96, 128, 3), np.uint8)
-        colour[:] = [30, 160, 220]
-        out.append((depth.astype(np.float32), colour, K, pose))
+        color = np.zeros((96, 128, 3), np.uint8)
+        color[:] = [30, 160, 220]
+        out.append((depth.astype(np.float32), color, K, pose))
     return out
 
 
@@ -458,7 +458,7 @@ def test_depth_mesh_of_a_plane(cpu):
     assert len(mesh) > 1000 and stats["frames_integrated"] == 4
     assert np.abs(mesh.vertices[:, 2] - 1.5).max() < 1e-3
     assert (mesh.normals[:, 2] < -0.99).all(), "the mesh faces away from the cameras"
-    assert (np.abs(mesh.colours.astype(int) - [30, 160, 220]) <= 1).all()
+    assert (np.abs(mesh.colors.astype(int) - [30, 160, 220]) <= 1).all()
     assert np.hypot(mesh.vertices[:, 0] - 0.1, mesh.vertices[:, 1]).min() > 0.06 - 0.02, "the hole was closed"
 
 
@@ -478,13 +478,13 @@ def test_depth_bad_input_and_bound(cpu):
 def test_depth_memory_follows_the_surface(cpu):
     """Frames of one plane from far apart places: blocks of the seen surface's band, not of the box between."""
     frames = plane_frames(1, hole=False)
-    depth, colour, K, pose = frames[0]
+    depth, color, K, pose = frames[0]
     one = M.DepthFusion(MeshConfig(method="depth"))
-    one.integrate(depth, colour, K, pose)
+    one.integrate(depth, color, K, pose)
     two = M.DepthFusion(MeshConfig(method="depth"))
-    two.integrate(depth, colour, K, pose)
+    two.integrate(depth, color, K, pose)
     far = pose.copy()
     far[:3, 3] += [30.0, 0, 0]
-    two.integrate(depth, colour, K, far)
+    two.integrate(depth, color, K, far)
     assert len(two) == 2 * len(one)
     assert len(two.mesh()) > 0

@@ -39,7 +39,7 @@ def test_millimetres_with_a_scale_and_metres_without():
     assert np.isnan(metres[0, 0])  # the caller's array is left as it was
 
 
-def test_colour_grey_is_made_rgb_and_the_pose_is_kept():
+def test_color_grey_is_made_rgb_and_the_pose_is_kept():
     grey = np.arange(1200, dtype=np.uint8).reshape(30, 40)
     frame = rgbd_frame(np.ones((30, 40)), K, color=grey, gt_pose=np.eye(4))
     assert frame.color.shape == (30, 40, 3) and (frame.color[..., 2] == grey).all()

@@ -356,7 +356,7 @@ def test_orb_finds_hundreds_of_keypoints(cpu):
         assert len(keypoints) > 300, (i, len(keypoints))
 
 
-def test_colour_is_shaded_by_geometry_not_viewpoint(cpu):
+def test_color_is_shaded_by_geometry_not_viewpoint(cpu):
     """A surface point has the same colour from two viewpoints (Lambert, no specular), noise off."""
     seq = SyntheticSequence(replace(SMALL, noise=False))
     a, b = seq.poses[0], seq.poses[6]

@@ -314,7 +314,7 @@ def test_cabinet_is_low_texture_at_wide_baselines(cpu, paths):
 
     for i in sampled(len(seq), 4):
         assert keypoints(seq, i) < 0.25 * keypoints(room, min(i, len(room) - 1)), i
-        _, colour = seq.render(seq.poses[i], noise=False)
-        grey = cv2.cvtColor(colour, cv2.COLOR_RGB2GRAY).astype(np.float64)
+        _, color = seq.render(seq.poses[i], noise=False)
+        grey = cv2.cvtColor(color, cv2.COLOR_RGB2GRAY).astype(np.float64)
         gradient = np.hypot(*np.gradient(grey))
         assert np.median(gradient) < 1.0, i  # grey levels per pixel: flat almost everywhere

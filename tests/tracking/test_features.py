@@ -114,7 +114,7 @@ def test_motion_norm():
 # --------------------------------------------------------------------------------------------------
 # Rejection rules
 # --------------------------------------------------------------------------------------------------
-def test_blank_colour_frame_is_rejected_and_skipped(synth):
+def test_blank_color_frame_is_rejected_and_skipped(synth):
     _, frames, _ = synth
     blank = replace(frames[3], color=np.full_like(frames[3].color, 128))
     vo = FeatureOdometry()
@@ -153,7 +153,7 @@ def test_min_inliers_rule(synth):
     assert not r.accepted and r.reason == FEW_INLIERS and 0 < r.inliers < 100_000
 
 
-def test_no_depth_and_no_colour(synth):
+def test_no_depth_and_no_color(synth):
     _, frames, _ = synth
     no_depth = replace(frames[0], depth=np.zeros_like(frames[0].depth))
     failed = estimate_relative_pose(no_depth, frames[1])
@@ -214,17 +214,17 @@ def test_voxel_downsample_matches_brute_force(rng, size):
 def test_joining_clouds_equals_downsampling_all_at_once(rng):
     size = 0.04
     parts = [rng.uniform(-1, 1, (n, 3)) for n in (500, 2000, 50, 1500)]
-    colours = [rng.integers(0, 256, (len(p), 3), dtype=np.uint8) for p in parts]
+    colors = [rng.integers(0, 256, (len(p), 3), dtype=np.uint8) for p in parts]
     poses = [se3_exp(rng.normal(0, 0.3, 6)) for _ in parts]
     cloud = VoxelCloud(size)
-    cloud.add(parts[0], colours[0], poses[0])
-    cloud.add(parts[1], colours[1], poses[1])
+    cloud.add(parts[0], colors[0], poses[0])
+    cloud.add(parts[1], colors[1], poses[1])
     assert len(cloud) > 0  # merges what is pending; the next adds merge into it
-    for p, c, T in zip(parts[2:], colours[2:], poses[2:]):
+    for p, c, T in zip(parts[2:], colors[2:], poses[2:]):
         cloud.add(p, c, T)
     xyz, rgb = cloud.points()
     world = np.concatenate([transform(T, p) for p, T in zip(parts, poses)])
-    ref_xyz, ref_rgb = voxel_downsample(world, np.concatenate(colours), size)
+    ref_xyz, ref_rgb = voxel_downsample(world, np.concatenate(colors), size)
     np.testing.assert_allclose(xyz, ref_xyz, atol=1e-12)
     np.testing.assert_array_equal(rgb, ref_rgb)
     with pytest.raises(ValueError):

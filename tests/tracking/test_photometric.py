@@ -76,12 +76,12 @@ def test_joint_sums_match_reference(arch, rng, chunks):
     if chunks != "default":
         kp.serial_below = 0
     args = (vec_field(P), vec_field(N), vec_field(Vt), vec_field(Nt))
-    colour = kicp.Photometric(scalar_field(src_i), vec_field(tgt_ig), 0.3, 0.2)
-    sums = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05, photometric=colour)
+    color = kicp.Photometric(scalar_field(src_i), vec_field(tgt_ig), 0.3, 0.2)
+    sums = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05, photometric=color)
     ref = icp_numpy.joint_pass(P, N, Vt, Nt, src_i, tgt_ig, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05, 0.2)
     assert sums.shape == (kicp.N_SUMS_JOINT,)
-    inliers, with_colour = ref[kicp.SUM_INLIERS], ref[kicp.SUM_C_COUNT]
-    assert 50 < with_colour < inliers, (with_colour, inliers)  # some correspondences have no colour residual
+    inliers, with_color = ref[kicp.SUM_INLIERS], ref[kicp.SUM_C_COUNT]
+    assert 50 < with_color < inliers, (with_color, inliers)  # some correspondences have no colour residual
     assert_joint_close(sums, ref)
     # the depth-only pass of the same inputs: the first 30 sums, unchanged
     plain = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05)
@@ -93,18 +93,18 @@ def test_combined_system_and_weak_directions():
     rng = np.random.default_rng(3)
     sums = rng.normal(size=kicp.N_SUMS_JOINT)
     AtA, Atb = kicp.combined_system(sums, 0.5)
-    s, c = kicp.unpack_sums(sums), kicp.unpack_colour_sums(sums)
+    s, c = kicp.unpack_sums(sums), kicp.unpack_color_sums(sums)
     np.testing.assert_allclose(AtA, s["AtA"] + 0.5 * c["AtA"])
     np.testing.assert_allclose(Atb, s["Atb"] + 0.5 * c["Atb"])
-    assert kicp.unpack_colour_sums(sums[:kicp.N_SUMS]) is None
+    assert kicp.unpack_color_sums(sums[:kicp.N_SUMS]) is None
     geo = np.diag([1.0, 1.0, 1e-6, 1.0, 1e-7, 1.0])  # weak: ω_z and v_y
-    colour = np.zeros((6, 6))
-    colour[2, 2] = 1.0  # colour constrains ω_z only
-    d = weak_directions(geo, colour, 0.1, 1e-3)
-    assert d["weak"] == 2 and d["constrained_by_colour"] == 1
-    assert d["directions"][0]["twist"] == [0, 0, 0, 0, 1, 0] and not d["directions"][0]["colour"]
-    assert d["directions"][1]["twist"] == [0, 0, 1, 0, 0, 0] and d["directions"][1]["colour"]
-    assert weak_directions(geo, None, 0.0, 1e-3)["constrained_by_colour"] == 0
+    color = np.zeros((6, 6))
+    color[2, 2] = 1.0  # colour constrains ω_z only
+    d = weak_directions(geo, color, 0.1, 1e-3)
+    assert d["weak"] == 2 and d["constrained_by_color"] == 1
+    assert d["directions"][0]["twist"] == [0, 0, 0, 0, 1, 0] and not d["directions"][0]["color"]
+    assert d["directions"][1]["twist"] == [0, 0, 1, 0, 0, 0] and d["directions"][1]["color"]
+    assert weak_directions(geo, None, 0.0, 1e-3)["constrained_by_color"] == 0
 
 
 # -- a textured plane: depth sees 3 of the 6 directions ------------------------------------------------
@@ -141,17 +141,17 @@ def plane_pair(cpu):
     return source, target, G
 
 
-def test_colour_tracks_what_depth_cannot_see(plane_pair):
+def test_color_tracks_what_depth_cannot_see(plane_pair):
     source, target, G = plane_pair
     cfg = ICPConfig(iterations=[10, 10], color_weight=0.0)
     depth_only = ICP(cfg).align(source, target, photometric=True)  # λ = 0: the term stays off
-    assert depth_only.colour_inliers == 0
+    assert depth_only.color_inliers == 0
     assert depth_only.failure is not None and ("rank" in depth_only.failure or "ill-conditioned" in depth_only.failure)
     joint = ICP(ICPConfig(iterations=[10, 10], color_weight=0.01)).align(source, target, photometric=True)
     rot, trans = pose_error(joint.pose, G)
     assert joint.failure is None and rot < 0.05 and trans < 1e-3, (joint.failure, rot, trans)
     d = joint.degeneracy
-    assert d["weak"] == 3 and d["constrained_by_colour"] == 3, d
+    assert d["weak"] == 3 and d["constrained_by_color"] == 3, d
 
 
 def test_joint_solve_in_kernel_matches_numpy(plane_pair, monkeypatch):
@@ -164,13 +164,13 @@ def test_joint_solve_in_kernel_matches_numpy(plane_pair, monkeypatch):
     assert [(r.level, r.iteration, r.inliers) for r in in_kernel.iterations] == \
         [(r.level, r.iteration, r.inliers) for r in in_numpy.iterations]
     np.testing.assert_allclose(in_kernel.pose, in_numpy.pose, atol=1e-9)
-    assert in_kernel.colour_inliers == in_numpy.colour_inliers > 1000
-    assert math.isfinite(in_kernel.colour_rms) and in_kernel.colour_rms < 0.01
+    assert in_kernel.color_inliers == in_numpy.color_inliers > 1000
+    assert math.isfinite(in_kernel.color_rms) and in_kernel.color_rms < 0.01
 
 
 # -- in the SLAM loop ------------------------------------------------------------------------------------
 @pytest.mark.parametrize("weight", [None, 0.02])
-def test_dense_slam_uses_colour_only_where_registered(cpu, caplog, weight):
+def test_dense_slam_uses_color_only_where_registered(cpu, caplog, weight):
     """Frames with registered colour are tracked with the joint cost (colour residuals, degeneracy
     reported); on frames whose colour is not registered (7-Scenes) the term stays off (the depth-only pass
     runs: no colour residual), said once: a warning where the user set the weight, at info level with the
@@ -192,12 +192,12 @@ def test_dense_slam_uses_colour_only_where_registered(cpu, caplog, weight):
     caplog.set_level(logging.INFO, logger="ti_fusion.slam.dense")
     results = []
     for i in range(5):
-        depth, colour = seq.frame(i)
-        results.append(slam.register_frame(Frame(i, float(i), depth, seq.intrinsics, colour,
+        depth, color = seq.frame(i)
+        results.append(slam.register_frame(Frame(i, float(i), depth, seq.intrinsics, color,
                                                  color_registered=i < 3)))
     assert all(r.tracked for r in results)
-    assert all(r.icp.colour_inliers > 500 and r.icp.degeneracy is not None for r in results[1:3])
-    assert all(r.icp.colour_inliers == 0 for r in results[3:])
+    assert all(r.icp.color_inliers > 500 and r.icp.degeneracy is not None for r in results[1:3])
+    assert all(r.icp.color_inliers == 0 for r in results[3:])
     said = [r for r in caplog.records if "not registered to depth" in r.getMessage()]
     assert len(said) == 1 and f"icp.color_weight = {weight or 0.01:g}" in said[0].getMessage()
     assert "frame 3" in said[0].getMessage() and said[0].levelno == (logging.WARNING if weight else logging.INFO)

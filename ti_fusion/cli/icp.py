@@ -122,7 +122,7 @@ def save_figure(path, source: Frame, target: Frame, before: np.ndarray, after: n
     step = max(1, int(np.sqrt(source.depth.size / 40000)))  # about 40k points per cloud
     src, tgt = _cloud(source, step), _cloud(target, step)
     R, eye = _viewer(tgt)
-    colours = np.array([[0.12, 0.40, 0.85], [0.98, 0.55, 0.05]])  # target blue, source orange
+    colors = np.array([[0.12, 0.40, 0.85], [0.98, 0.55, 0.05]])  # target blue, source orange
     fig, axes = plt.subplots(1, 2, figsize=(13, 5.8), dpi=110)
     for ax, (name, T) in zip(axes, (("before (initial pose)", before), ("after ICP", after))):
         pts = np.concatenate([tgt, src @ T[:3, :3].T + T[:3, 3]])
@@ -132,13 +132,13 @@ def save_figure(path, source: Frame, target: Frame, before: np.ndarray, after: n
         cam, which = cam[keep], which[keep]
         order = np.argsort(-cam[:, 2])
         cam, which = cam[order], which[order]
-        ax.scatter(cam[:, 0] / cam[:, 2], cam[:, 1] / cam[:, 2], s=0.6, c=colours[which], linewidths=0)
+        ax.scatter(cam[:, 0] / cam[:, 2], cam[:, 1] / cam[:, 2], s=0.6, c=colors[which], linewidths=0)
         ax.set_aspect("equal")
         ax.invert_yaxis()
         ax.set_axis_off()
         ax.set_title(name)
-    axes[0].legend(handles=[Patch(color=colours[1], label=f"source (frame {source.index})"),
-                            Patch(color=colours[0], label=f"target (frame {target.index})")],
+    axes[0].legend(handles=[Patch(color=colors[1], label=f"source (frame {source.index})"),
+                            Patch(color=colors[0], label=f"target (frame {target.index})")],
                    loc="lower left", fontsize=9)
     fig.suptitle(title, fontsize=10)
     fig.tight_layout()

@@ -337,8 +337,8 @@ class RunLogger:
         if shared:
             del kept["live"]
         for sink, idx in kept.items():
-            colours = None if rgb is None else _as_rgba8(np.asarray(rgb)[idx], len(idx))
-            cloud = _point_cloud(ns, xyz[idx].astype(np.float32), colours)
+            colors = None if rgb is None else _as_rgba8(np.asarray(rgb)[idx], len(idx))
+            cloud = _point_cloud(ns, xyz[idx].astype(np.float32), colors)
             self._write_proto(topic, cloud, ns, file=sink == "file", live=sink == "live" or shared)
         if file:
             self._file.flush()
@@ -420,8 +420,8 @@ class RunLogger:
             for e in ends:
                 point = line.points.add()
                 point.x, point.y, point.z = (float(v) for v in e)
-                colour = line.colors.add()
-                colour.r, colour.g, colour.b, colour.a = rgba
+                color = line.colors.add()
+                color.r, color.g, color.b, color.a = rgba
             written += 1
         line.color.r, line.color.g, line.color.b, line.color.a = LOOP_APPLIED_RGBA  # used only without colors
         self._write_proto(topic, msg, ns)
@@ -441,7 +441,7 @@ class RunLogger:
         head.id = MESH_ENTITY
         head.frame_locked = False
         self._proto_channel(topic, SceneUpdate)
-        self._write(topic, scene_update_bytes(head.SerializeToString(), mesh.vertices, mesh.faces, mesh.colours), ns)
+        self._write(topic, scene_update_bytes(head.SerializeToString(), mesh.vertices, mesh.faces, mesh.colors), ns)
         self._file.flush()
 
     # -- internals --------------------------------------------------------------------------------

@@ -27,7 +27,7 @@ def write_mesh_ply(path: str | Path, mesh) -> Path:
     v = np.zeros(len(mesh.vertices), PLY_VERTEX)
     v["x"], v["y"], v["z"] = np.asarray(mesh.vertices, np.float32).T
     v["nx"], v["ny"], v["nz"] = np.asarray(mesh.normals, np.float32).T
-    v["red"], v["green"], v["blue"] = np.asarray(mesh.colours, np.uint8).T
+    v["red"], v["green"], v["blue"] = np.asarray(mesh.colors, np.uint8).T
     f = np.zeros(len(mesh.faces), PLY_FACE)
     f["n"] = 3
     f["v"] = mesh.faces
@@ -50,7 +50,7 @@ def glb_bytes(mesh, generator: str = "ti-fusion") -> bytes:
     pos = np.ascontiguousarray(mesh.vertices, np.float32)
     nrm = np.ascontiguousarray(mesh.normals, np.float32)
     rgba = np.empty((len(pos), 4), np.uint8)
-    rgba[:, :3] = mesh.colours
+    rgba[:, :3] = mesh.colors
     rgba[:, 3] = 255
     idx = np.ascontiguousarray(mesh.faces, np.uint32).reshape(-1)
     chunks, views, offset = [], [], 0
@@ -133,9 +133,9 @@ def _field(number: int, payload: bytes) -> bytes:
     return _varint(number << 3 | 2) + _varint(len(payload)) + payload
 
 
-def triangle_list_bytes(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> bytes:
+def triangle_list_bytes(vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> bytes:
     """A serialised foxglove.TriangleListPrimitive: identity pose, the vertices as ``points``, one RGBA per
-    vertex in ``colors`` (``colours`` uint8 RGB), ``indices`` three per triangle."""
+    vertex in ``colors`` (``colors`` uint8 RGB), ``indices`` three per triangle."""
     n = len(vertices)
     pts = np.zeros(n, _POINT)
     pts["tag"], pts["len"] = 2 << 3 | 2, _POINT.itemsize - 2  # points = 2
@@ -144,16 +144,16 @@ def triangle_list_bytes(vertices: np.ndarray, faces: np.ndarray, colours: np.nda
     col = np.zeros(n, _COLOR)
     col["tag"], col["len"] = 4 << 3 | 2, _COLOR.itemsize - 2  # colors = 4
     col["tr"], col["tg"], col["tb"], col["ta"] = 1 << 3 | 1, 2 << 3 | 1, 3 << 3 | 1, 4 << 3 | 1
-    rgb = np.asarray(colours, np.float64) / 255.0
+    rgb = np.asarray(colors, np.float64) / 255.0
     col["r"], col["g"], col["b"], col["a"] = rgb[:, 0], rgb[:, 1], rgb[:, 2], 1.0
     pose = _field(1, _field(2, b"\x21" + struct.pack("<d", 1.0)))  # pose.orientation.w = 1 (field 4, fixed64)
-    colour = _field(3, b"".join(b + struct.pack("<d", 0.8) for b in (b"\x09", b"\x11", b"\x19", b"\x21")))
+    color = _field(3, b"".join(b + struct.pack("<d", 0.8) for b in (b"\x09", b"\x11", b"\x19", b"\x21")))
     indices = _field(5, np.ascontiguousarray(faces, "<u4").tobytes())  # packed fixed32
-    return pose + pts.tobytes() + colour + col.tobytes() + indices
+    return pose + pts.tobytes() + color + col.tobytes() + indices
 
 
-def scene_update_bytes(entity_head: bytes, vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> bytes:
+def scene_update_bytes(entity_head: bytes, vertices: np.ndarray, faces: np.ndarray, colors: np.ndarray) -> bytes:
     """A serialised foxglove.SceneUpdate of one entity: ``entity_head`` (the entity's own fields, serialised,
     without primitives) and one triangle list (entity field 12)."""
-    entity = entity_head + _field(12, triangle_list_bytes(vertices, faces, colours))
+    entity = entity_head + _field(12, triangle_list_bytes(vertices, faces, colors))
     return _field(2, entity)  # SceneUpdate.entities = 2

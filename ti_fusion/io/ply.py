@@ -24,8 +24,8 @@ _PLY_TYPES = {"float": "<f4", "float32": "<f4", "double": "<f8", "float64": "<f8
 
 
 def write_ply(path: str | Path, position: np.ndarray, normal: np.ndarray | None = None,
-              colour: np.ndarray | None = None, extra: dict[str, np.ndarray] | None = None) -> Path:
-    """Write N points; ``colour`` is RGB in [0, 255] (any numeric dtype, rounded and clipped); ``extra``:
+              color: np.ndarray | None = None, extra: dict[str, np.ndarray] | None = None) -> Path:
+    """Write N points; ``color`` is RGB in [0, 255] (any numeric dtype, rounded and clipped); ``extra``:
     more float32 vertex properties after blue, by name (a map's confidence and radius, which viewers ignore).
 
     The file appears whole or not at all (``outputs.atomic_path``); a failed write raises ``OutputError``.
@@ -38,8 +38,8 @@ def write_ply(path: str | Path, position: np.ndarray, normal: np.ndarray | None 
     data["x"], data["y"], data["z"] = np.asarray(position, dtype=np.float32).T
     if normal is not None:
         data["nx"], data["ny"], data["nz"] = np.asarray(normal, dtype=np.float32).T
-    if colour is not None:
-        rgb = np.clip(np.rint(np.asarray(colour, dtype=np.float64)), 0, 255).astype(np.uint8)
+    if color is not None:
+        rgb = np.clip(np.rint(np.asarray(color, dtype=np.float64)), 0, 255).astype(np.uint8)
     else:
         rgb = np.full((n, 3), 200, dtype=np.uint8)
     data["red"], data["green"], data["blue"] = rgb.T

@@ -1,7 +1,7 @@
 """Colour registered to depth in the run loop's thread (Taichi kernels are launched from one thread only):
 a frame whose colour comes from a separate camera carries ``meta["color_camera"]`` = (that camera's
 ``Intrinsics`` at full resolution, T_color_depth), set by the loader that knows them (a RealSense
-recording, a bag with ``--color-extrinsics``); ``ColourRegistrar`` replaces its colour by the colour
+recording, a bag with ``--color-extrinsics``); ``ColorRegistrar`` replaces its colour by the colour
 reprojected into the depth camera (``kernels/registration.py``), marks it registered, and puts the pixels
 the colour camera did not see in ``meta["color_valid"]`` (False: no colour; the photometric term skips them).
 """
@@ -28,7 +28,7 @@ def resized(K: Intrinsics, w: int, h: int, index: int) -> Intrinsics:
                    skew=K.skew * sx, width=w, height=h)
 
 
-class ColourRegistrar:
+class ColorRegistrar:
     """Registers frames' colour, keeping one kernel object (its fields) per pair of image sizes.
     ``camera``: the dataset's colour camera (``Dataset.color_camera``: a folder or 7-Scenes run with
     ``--color-extrinsics``) for frames that carry none of their own."""
@@ -46,14 +46,14 @@ class ColourRegistrar:
 
         current_backend()  # commands without Taichi of their own (vo) start it on the CPU here
 
-        K_colour, T = camera
+        K_color, T = camera
         h, w = frame.color.shape[:2]
-        if (K_colour.width, K_colour.height) != (w, h):
-            K_colour = resized(K_colour, w, h, frame.index)
+        if (K_color.width, K_color.height) != (w, h):
+            K_color = resized(K_color, w, h, frame.index)
         key = (frame.depth.shape, (h, w))
         if key not in self._kernels:
             self._kernels[key] = ColorRegistration(frame.depth.shape, (h, w))
-        frame.color, valid = self._kernels[key].register(frame.depth, frame.color, frame.intrinsics, K_colour, T)
+        frame.color, valid = self._kernels[key].register(frame.depth, frame.color, frame.intrinsics, K_color, T)
         frame.meta["color_valid"] = valid
         frame.meta.pop("color_camera", None)
         frame.color_registered = True

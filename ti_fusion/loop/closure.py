@@ -137,7 +137,7 @@ class LoopClosure:
             return None
         from ti_fusion.kernels.icp import combined_system, unpack_sums
 
-        if icp.colour_inliers > 0:
+        if icp.color_inliers > 0:
             return combined_system(icp.sums, self.config.icp.color_weight)[0]
         return unpack_sums(icp.sums)["AtA"]
 

@@ -47,7 +47,7 @@ class FusionStats:
     ms: dict[str, float] = field(default_factory=dict)  # per stage (only with a timer)
 
 
-def pack_colour(color: np.ndarray) -> np.ndarray:
+def pack_color(color: np.ndarray) -> np.ndarray:
     """uint8 H×W×3 RGB → int32 H×W as r | g << 8 | b << 16 (one 32-bit word per pixel on every backend)."""
     c = np.asarray(color).astype(np.int32)
     return c[..., 0] | (c[..., 1] << 8) | (c[..., 2] << 16)
@@ -94,19 +94,19 @@ class SurfelMapper:
 
         with stage("project"):  # Keller's order: each pixel's nearest surfel among those that pass the filters
             img = self.map.associate_compatible(pose, K, vertex, normal, cfg.dist_threshold, cfg.normal_threshold_deg)
-            has_colour = color is not None
-            if has_colour:
+            has_color = color is not None
+            if has_color:
                 if color.shape[:2] != (H, W):
                     raise ValueError(f"colour of shape {color.shape[:2]} for a depth map of shape {(H, W)}")
-                img.colour.from_numpy(pack_colour(color))
+                img.color.from_numpy(pack_color(color))
         with stage("merge"):
             self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
-                           cfg.confidence_sigma, has_colour, cfg.depth_weighting, self.anchor)
+                           cfg.confidence_sigma, has_color, cfg.depth_weighting, self.anchor)
         # add and remove pass their counts on the device (defer): the step's counts cross once, at its end
         with stage("add"):  # with skip_covered, covered pixels are marked in the same pass and not added
             cover = (cfg.dist_threshold, cfg.normal_threshold_deg) if cfg.skip_covered else None
             self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting, cfg.confidence_sigma,
-                         has_colour, cfg.depth_weighting, cover, self.anchor, defer=True)
+                         has_color, cfg.depth_weighting, cover, self.anchor, defer=True)
         with stage("remove"):
             self.map.remove(frame_index, cfg.remove_unstable, cfg.unstable_weight, cfg.unstable_age,
                             cfg.remove_free_space, cfg.free_space_margin, depth, defer=True)
@@ -167,14 +167,14 @@ class SurfelMapper:
     def sample_points(self, max_points: int) -> tuple[np.ndarray, np.ndarray]:
         """(positions, uint8 RGB colours) of at most ``max_points`` surfels: every k-th, for log snapshots."""
         stride = max(1, -(-self.count // max(1, int(max_points))))
-        data = self.map.to_numpy(("position", "colour"), stride)
+        data = self.map.to_numpy(("position", "color"), stride)
         # surfel colours are floats in [0, 255]; log_points reads float colours as [0, 1]
-        return data["position"], np.clip(np.rint(data["colour"]), 0, 255).astype(np.uint8)
+        return data["position"], np.clip(np.rint(data["color"]), 0, 255).astype(np.uint8)
 
     def export_ply(self, path: str | Path) -> Path:
         from ti_fusion.io.ply import write_ply
 
         data = self.map.to_numpy()
         # confidence and radius: what ``ti-fusion mesh map.ply`` needs to keep only confirmed surfels
-        return write_ply(path, data["position"], data["normal"], data["colour"],
+        return write_ply(path, data["position"], data["normal"], data["color"],
                          {"confidence": data["weight"], "radius": data["radius"]})

@@ -34,7 +34,7 @@ class Mesh:
     vertices: np.ndarray   # V × 3 float32
     faces: np.ndarray      # F × 3 int64, counter-clockwise seen from the side the normals point to
     normals: np.ndarray    # V × 3 float32, unit
-    colours: np.ndarray    # V × 3 uint8 RGB
+    colors: np.ndarray    # V × 3 uint8 RGB
 
     def __len__(self) -> int:
         return len(self.faces)
@@ -68,12 +68,12 @@ def select_surfels(surfels: dict, min_weight: float, source: str | Path | None =
         raise InputError(source, f"none of the map's {len(p)} surfels is confirmed (confidence ≥ {min_weight:g}, "
                                  "mesh.min_weight): no surface to mesh")
     radius = surfels.get("radius")
-    colour = surfels.get("colour")
+    color = surfels.get("color")
     return {
         "position": p[keep],
         "normal": (n[keep] / norm[keep, None]).astype(np.float32),
-        "colour": np.full((int(keep.sum()), 3), 200, np.float32) if colour is None
-        else np.asarray(colour, np.float32).reshape(-1, 3)[keep],
+        "color": np.full((int(keep.sum()), 3), 200, np.float32) if color is None
+        else np.asarray(color, np.float32).reshape(-1, 3)[keep],
         "weight": np.where(np.isfinite(w), w, 1.0).astype(np.float32)[keep],
         "radius": None if radius is None else np.asarray(radius, np.float32).reshape(-1)[keep],
     }
@@ -153,7 +153,7 @@ def reach_of(selected: dict, settings: MeshSettings) -> np.ndarray:
 
 
 def splat_surfels(selected: dict, settings: MeshSettings, source=None) -> tuple[SparseGrid, dict]:
-    """The sparse grid and its voxels: ``sdf`` (weighted mean distance), ``weight`` and ``colour`` per voxel,
+    """The sparse grid and its voxels: ``sdf`` (weighted mean distance), ``weight`` and ``color`` per voxel,
     each (blocks, E, E, E[, 3]) float32; the Taichi kernel does the per-surfel work."""
     from ti_fusion.backend import current_backend
     from ti_fusion.kernels import mesh as kmesh
@@ -172,13 +172,13 @@ def splat_surfels(selected: dict, settings: MeshSettings, source=None) -> tuple[
     import taichi as ti
 
     kmesh.splat(np.ascontiguousarray(selected["position"]), np.ascontiguousarray(selected["normal"]),
-                np.ascontiguousarray(selected["colour"]), np.ascontiguousarray(selected["weight"]), reach,
+                np.ascontiguousarray(selected["color"]), np.ascontiguousarray(selected["weight"]), reach,
                 len(reach), grid.keys, nb, ti.math.ivec3(*(int(o) for o in grid.origin)), v, band, sdf, wsum, rgb)
     with np.errstate(invalid="ignore", divide="ignore"):
         inv = np.where(wsum > 0, 1.0 / wsum, 0.0).astype(np.float32)
     shape = (nb, E, E, E)
     return grid, {"sdf": (sdf * inv).reshape(shape), "weight": wsum.reshape(shape),
-                  "colour": (rgb * inv[:, None]).reshape(shape + (3,))}
+                  "color": (rgb * inv[:, None]).reshape(shape + (3,))}
 
 
 def _padded(grid: SparseGrid, values: np.ndarray, fill) -> np.ndarray:
@@ -208,7 +208,7 @@ def extract(grid: SparseGrid, voxels: dict, voxel: float, min_weight: float = 0.
 
     sdf = _padded(grid, voxels["sdf"], np.float32(0))
     valid = _padded(grid, voxels["weight"] > min_weight, False)
-    colour = _padded(grid, voxels["colour"], np.float32(0))
+    color = _padded(grid, voxels["color"], np.float32(0))
     # a cube is complete when its eight corners are valid; skimage tests the mask at a cube's far corner
     # (cube (x, y, z) is made where mask[x + 1, y + 1, z + 1]: checked in tests/mapping/test_mesh.py)
     cube = valid[:, :-1, :-1, :-1].copy()
@@ -254,12 +254,12 @@ def extract(grid: SparseGrid, voxels: dict, voxel: float, min_weight: float = 0.
     faces = inverse.reshape(-1)[faces]
     faces = faces[(faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])]
     vertices = (gridpos[first] * voxel).astype(np.float32)
-    rgb = _trilinear(colour, valid, owner[first], local[first])
+    rgb = _trilinear(color, valid, owner[first], local[first])
     mesh = Mesh(vertices, faces, vertex_normals(vertices, faces), rgb)
     return _orient(mesh, grid, voxels, voxel, min_weight)
 
 
-def _trilinear(colour: np.ndarray, valid: np.ndarray, owner: np.ndarray, local: np.ndarray) -> np.ndarray:
+def _trilinear(color: np.ndarray, valid: np.ndarray, owner: np.ndarray, local: np.ndarray) -> np.ndarray:
     """RGB at each vertex from the valid voxels around it (its block's padded array), as uint8."""
     base = np.clip(np.floor(local).astype(np.int64), 0, E - 1)
     frac = local - base
@@ -270,7 +270,7 @@ def _trilinear(colour: np.ndarray, valid: np.ndarray, owner: np.ndarray, local: 
         idx = base + o
         w = np.prod(np.where(o, frac, 1.0 - frac), axis=1)
         w = w * valid[owner, idx[:, 0], idx[:, 1], idx[:, 2]]
-        acc += w[:, None] * colour[owner, idx[:, 0], idx[:, 1], idx[:, 2]]
+        acc += w[:, None] * color[owner, idx[:, 0], idx[:, 1], idx[:, 2]]
         wsum += w
     return np.clip(np.rint(acc / np.maximum(wsum, 1e-12)[:, None]), 0, 255).astype(np.uint8)
 
@@ -311,7 +311,7 @@ def _orient(mesh: Mesh, grid: SparseGrid, voxels: dict, voxel: float, min_weight
     d = (front - back)[ok_f & ok_b]
     if len(d) and np.median(d) < 0:
         faces = mesh.faces[:, ::-1].copy()
-        return Mesh(mesh.vertices, faces, -mesh.normals, mesh.colours)
+        return Mesh(mesh.vertices, faces, -mesh.normals, mesh.colors)
     return mesh
 
 
@@ -386,7 +386,7 @@ class DepthFusion:
             setattr(self, name, new)
         self.capacity = cap
 
-    def integrate(self, depth: np.ndarray, colour: np.ndarray | None, intrinsics, pose: np.ndarray) -> None:
+    def integrate(self, depth: np.ndarray, color: np.ndarray | None, intrinsics, pose: np.ndarray) -> None:
         """Add one frame (depth in metres, 0 = invalid; colour H×W×3 uint8 or None) at ``pose`` (camera to world)."""
         from ti_fusion.backend import current_backend
         from ti_fusion.kernels import mesh as kmesh
@@ -439,15 +439,15 @@ class DepthFusion:
             self.keys, self.slots = keys[order], slots[order]
         table[...] = -1
         table.reshape(-1)[touched] = slot.astype(np.int32)
-        has_colour = colour is not None
-        if has_colour:
-            c = np.asarray(colour)
+        has_color = color is not None
+        if has_color:
+            c = np.asarray(color)
             if c.shape[:2] != (h, w):  # nearest pixel of a colour image of another size
                 c = c[(np.arange(h) * c.shape[0] // h)[:, None], (np.arange(w) * c.shape[1] // w)[None, :]]
             c = np.ascontiguousarray(c[..., :3], np.float32)
         else:
             c = np.zeros((1, 1, 3), np.float32)
-        kmesh.integrate_depth(depth, c, int(has_colour), *args, table, self.sdf, self.wsum, self.rgb)
+        kmesh.integrate_depth(depth, c, int(has_color), *args, table, self.sdf, self.wsum, self.rgb)
         self.frames += 1
 
     def grid(self) -> tuple[SparseGrid, dict]:
@@ -463,7 +463,7 @@ class DepthFusion:
             inv = np.where(wsum > 0, 1.0 / wsum, 0.0).astype(np.float32)
         shape = (len(grid), E, E, E)
         return grid, {"sdf": (self.sdf[idx] * inv).reshape(shape), "weight": wsum.reshape(shape),
-                      "colour": (self.rgb[idx] * inv[:, None]).reshape(shape + (3,))}
+                      "color": (self.rgb[idx] * inv[:, None]).reshape(shape + (3,))}
 
     def mesh(self, stats: dict | None = None) -> Mesh:
         """Marching cubes over the voxels with more than ``mesh.depth_min_weight`` samples."""
@@ -572,7 +572,7 @@ def decimate(mesh: Mesh, max_triangles: int) -> Mesh:
     col = np.zeros((m, 3))
     nrm = np.zeros((m, 3))
     np.add.at(pos, cluster, v)
-    np.add.at(col, cluster, mesh.colours.astype(np.float64))
+    np.add.at(col, cluster, mesh.colors.astype(np.float64))
     np.add.at(nrm, cluster, mesh.normals.astype(np.float64))
     pos /= counts
     col /= counts
@@ -602,7 +602,7 @@ def surfels_from_ply(path: str | Path) -> dict:
     out = {"position": np.stack([data["x"], data["y"], data["z"]], axis=1).astype(np.float32),
            "normal": np.stack([data["nx"], data["ny"], data["nz"]], axis=1).astype(np.float32)}
     if {"red", "green", "blue"} <= set(names):
-        out["colour"] = np.stack([data["red"], data["green"], data["blue"]], axis=1).astype(np.float32)
+        out["color"] = np.stack([data["red"], data["green"], data["blue"]], axis=1).astype(np.float32)
     if "confidence" in names:
         out["weight"] = data["confidence"].astype(np.float32)
     elif len(data):

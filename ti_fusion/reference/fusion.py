@@ -77,7 +77,7 @@ class NumpyFusion:
             full[self.n:] = 0
             self.a[name] = full
 
-    def integrate(self, vertex, normal, depth, colour, pose, K, frame) -> dict:
+    def integrate(self, vertex, normal, depth, color, pose, K, frame) -> dict:
         cfg, a, n = self.cfg, self.a, self.n
         H, W = depth.shape
         ms = {}
@@ -132,7 +132,7 @@ class NumpyFusion:
         qw, nw = np.take(q_world, px, axis=0), np.take(n_world, px, axis=0)
         ms["project"] = watch.lap()
         # merge
-        rgb = colour.reshape(-1, 3)  # uint8: only the rows used are converted
+        rgb = color.reshape(-1, 3)  # uint8: only the rows used are converted
         alpha = self._alpha(px, q[:, 2][px], K, (H, W))[:, None]
         w = a["weight"][i][:, None]
         wa = w + alpha
@@ -142,7 +142,7 @@ class NumpyFusion:
         r_new = np.minimum(a["radius"][i], self._radius(q[:, 2][px], nq[:, 2][px], K))
         _put_rows(a["position"], i, p_new)
         _put_rows(a["normal"], i, n_new)
-        _put_rows(a["colour"], i, (w * np.take(a["colour"], i, axis=0) +
+        _put_rows(a["color"], i, (w * np.take(a["color"], i, axis=0) +
                                    alpha * np.take(rgb, px, axis=0).astype(np.float32)) / wa)
         a["weight"][i] = wa[:, 0]
         a["radius"][i] = r_new
@@ -160,7 +160,7 @@ class NumpyFusion:
         sl = slice(n, n + k)
         a["position"][sl] = qw
         a["normal"][sl] = nw
-        a["colour"][sl] = np.take(rgb, new, axis=0)
+        a["color"][sl] = np.take(rgb, new, axis=0)
         a["weight"][sl] = self._alpha(new, q[:, 2][new], K, (H, W))
         a["radius"][sl] = self._radius(q[:, 2][new], nq[:, 2][new], K)
         a["t_created"][sl] = frame
@@ -255,9 +255,9 @@ def build_map(width: int, height: int, target: int, cfg):
     maps = FrameMaps(MapsConfig(depth_smooth_radius=0), height, width, levels=1)
     frame = 0
     while mapper.count < target:  # build the map along the camera path
-        depth, colour = seq.frame(frame)
+        depth, color = seq.frame(frame)
         maps.compute(depth, K)
-        mapper.integrate(maps, colour, seq.poses[frame], frame)
+        mapper.integrate(maps, color, seq.poses[frame], frame)
         frame += 1
     return mapper, maps, seq, frame
 

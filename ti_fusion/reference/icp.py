@@ -148,10 +148,10 @@ def joint_pass(src_v, src_n, tgt_v, tgt_n, src_i, tgt_ig, T, K, dist_threshold: 
     sums = np.zeros(N_SUMS_JOINT)
     sums[:N_SUMS] = reduce_sums(A, r, robust_weights(r, robust, robust_scale, c["q"][:, 2]), c["sources"])
     Ac, rc = photometric_rows(c["p"], np.flatnonzero(status.reshape(-1) == STATUS_OK), src_i, tgt_ig, K)
-    colour = reduce_sums(Ac, rc, robust_weights(rc, "huber", color_scale), 0)
-    sums[SUM_C_ATA:SUM_C_ATB + 6] = colour[:27]
-    sums[SUM_C_R2] = colour[SUM_R2]
-    sums[SUM_C_COUNT] = colour[SUM_INLIERS]
+    color = reduce_sums(Ac, rc, robust_weights(rc, "huber", color_scale), 0)
+    sums[SUM_C_ATA:SUM_C_ATB + 6] = color[:27]
+    sums[SUM_C_R2] = color[SUM_R2]
+    sums[SUM_C_COUNT] = color[SUM_INLIERS]
     return sums
 
 

@@ -178,10 +178,10 @@ class DenseSLAM:
         self._lost_streak = 0  # frames lost since the last tracked one
         self._residuals: deque[float] = deque(maxlen=RECENT_FRAMES)  # ICP residuals of the last tracked frames
         self._frames_fused = 0
-        self._colour_warned = False  # the warning that the photometric term is off for unregistered colour
+        self._color_warned = False  # the warning that the photometric term is off for unregistered colour
         self._degeneracy_warned = False  # the warning that depth (and colour) leave directions unconstrained
 
-    def _uses_colour(self, frame: Frame) -> bool:
+    def _uses_color(self, frame: Frame) -> bool:
         """Whether this frame is tracked with the photometric term (warns once when the term is asked for
         but the frame's colour is missing or not registered to its depth)."""
         weight = self.config.icp.color_weight
@@ -189,8 +189,8 @@ class DenseSLAM:
             return False
         if frame.color is not None and frame.color_registered:
             return True
-        if not self._colour_warned:
-            self._colour_warned = True
+        if not self._color_warned:
+            self._color_warned = True
             why = "has no colour" if frame.color is None else "has colour that is not registered to depth"
             # the default weight asks for colour only where it can be used: elsewhere its absence is no news
             say = log.info if weight == ICPConfig.color_weight else log.warning
@@ -202,10 +202,10 @@ class DenseSLAM:
     def register_frame(self, frame: Frame) -> FrameResult:
         check_frame(self, frame)  # one InputError for a frame this map cannot take (ti_fusion/slam/checks.py)
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
-        colour = self._uses_colour(frame)
+        color = self._uses_color(frame)
         with timer.stage("maps"):
             self.frame_maps.compute(frame.depth, frame.intrinsics)
-            if colour:
+            if color:
                 grey = grey_image(frame.color)
                 if frame.meta.get("color_valid") is not None:  # registered colour: none where the camera saw none
                     grey[~frame.meta["color_valid"]] = -1.0
@@ -224,7 +224,7 @@ class DenseSLAM:
                 log.warning(f"{which} skipped ({reason}): the map starts at frame {frame.index}")
         else:
             with timer.stage("track"):
-                result = self._track(frame, colour)
+                result = self._track(frame, color)
         before = self._held_pose() if self.poses else None  # the motion model's pose before this frame
         if result.tracked:
             with timer.stage("fuse"):
@@ -266,8 +266,8 @@ class DenseSLAM:
         dt = timestamp - self._last_stamp if self._last_stamp is not None else 0.0
         return dt if np.isfinite(dt) and dt > 0 else 1.0
 
-    def _reference(self, colour: bool = False) -> tuple[FrameMaps, np.ndarray]:
-        """The ICP source and the camera-to-world pose of its camera frame (with ``colour``, its intensity
+    def _reference(self, color: bool = False) -> tuple[FrameMaps, np.ndarray]:
+        """The ICP source and the camera-to-world pose of its camera frame (with ``color``, its intensity
         too: the model's colour at each pixel of the prediction)."""
         last = self.last_good[1] if self.last_good is not None else self.poses[-1]
         fusion = self.config.fusion
@@ -280,22 +280,22 @@ class DenseSLAM:
         self.mapper.render_maps(self.model_maps, last, self.model_intrinsics,
                                 min_weight=fusion.render_min_weight if warm else 0.0,
                                 min_time=self._frames_fused - window if window > 0 else -2**31)
-        if colour:
+        if color:
             K = self.model_intrinsics
             view = self.mapper.map.prediction_images(K.height, K.width).view_index  # the render's, just made
-            self.model_maps.intensity_from_surfels(view, self.mapper.map.arrays.colour)
+            self.model_maps.intensity_from_surfels(view, self.mapper.map.arrays.color)
         return self.model_maps, last
 
-    def _track(self, frame: Frame, colour: bool = False) -> FrameResult:
+    def _track(self, frame: Frame, color: bool = False) -> FrameResult:
         cfg = self.config.slam
         predicted = self._predicted_pose(frame.timestamp)
-        source, last = self._reference(colour)
-        colour = colour and source.intensity is not None
+        source, last = self._reference(color)
+        color = color and source.intensity is not None
         tried: list[Hypothesis] = []
 
         def attempt(name: str, guess: np.ndarray, icp: ICP | None = None) -> Hypothesis:
             # ICP maps source points (camera frame of `last`) into the new camera: T = inv(T_wc_new) · T_wc_last.
-            result = (icp or self.icp).align(source, self.frame_maps, init=invert(guess) @ last, photometric=colour)
+            result = (icp or self.icp).align(source, self.frame_maps, init=invert(guess) @ last, photometric=color)
             pose = renormalize(last @ invert(result.pose))
             tried.append(Hypothesis(name, result, pose, self._health(result, pose, guess)))
             return tried[-1]
@@ -312,13 +312,13 @@ class DenseSLAM:
             if (not settled() or self._lost_streak) and (apart[0] > 0.1 or apart[1] > 1e-3):
                 attempt("last", held)
         if not settled() and cfg.relocalise == "features" and (cfg.hypotheses != "motion" or not first.ok):
-            self._relocalise(frame, source, last, colour, tried)
+            self._relocalise(frame, source, last, color, tried)
         if not settled() and cfg.hypotheses != "motion":
             attempt("wide", last, self.wide_icp)  # dense re-localisation: the last good pose, a wider basin
         passed = [h for h in tried if h.ok]
         if len(passed) > 1:
             for h in passed:
-                h.score = self.alignment_score(source, h, colour)
+                h.score = self.alignment_score(source, h, color)
         best = max(passed, key=lambda h: h.score + (SCORE_MARGIN if h is first else 0.0)) if passed else \
             max(tried, key=lambda h: h.icp.inlier_ratio)
         tracking = Tracking.LOST if not best.ok else \
@@ -327,11 +327,11 @@ class DenseSLAM:
         return FrameResult(frame.index, frame.timestamp, pose, tracking, best.failure, icp=best.icp,
                            hypothesis=best.name, tried=[f"{h.name}: {h.status}" for h in tried])
 
-    def alignment_score(self, source: FrameMaps, h: Hypothesis, colour: bool) -> float:
+    def alignment_score(self, source: FrameMaps, h: Hypothesis, color: bool) -> float:
         """How well a start's alignment of this frame's prediction fits the frame, comparable between starts
         (the same prediction and frame): the fraction of the prediction's pixels within slam.score_gate of
         the frame at its pose, times 1 − their RMS residual / slam.score_gate."""
-        fit = self.score_icp.align(source, self.frame_maps, init=h.icp.pose, photometric=colour)
+        fit = self.score_icp.align(source, self.frame_maps, init=h.icp.pose, photometric=color)
         residual = fit.residual_rms if np.isfinite(fit.residual_rms) else self.config.slam.score_gate
         return float(fit.inlier_ratio * max(0.0, 1.0 - residual / self.config.slam.score_gate))
 
@@ -366,19 +366,19 @@ class DenseSLAM:
         d = icp.degeneracy
         if not d or not d["weak"]:
             return
-        twists = "; ".join(f"{'(colour)' if w['colour'] else ''}{w['twist']} at {w['ratio']:.1e}"
+        twists = "; ".join(f"{'(colour)' if w['color'] else ''}{w['twist']} at {w['ratio']:.1e}"
                            for w in d["directions"])
         log.debug(f"frame {frame.index}: {d['weak']} weak direction(s) of the geometry (twist (ω, v), λ/λmax), "
-                  f"{d['constrained_by_colour']} constrained by colour: {twists}")
-        if d["constrained_by_colour"] < d["weak"] and not self._degeneracy_warned:
+                  f"{d['constrained_by_color']} constrained by colour: {twists}")
+        if d["constrained_by_color"] < d["weak"] and not self._degeneracy_warned:
             self._degeneracy_warned = True
             hint = "" if self.config.icp.color_weight > 0 else \
                 " (icp.color_weight > 0 adds the photometric term where colour is registered to depth)"
             log.warning(f"frame {frame.index}: the depth constrains only {6 - d['weak']} of the 6 directions of "
-                        f"the camera's motion, and colour {d['constrained_by_colour']} of the other {d['weak']}: "
+                        f"the camera's motion, and colour {d['constrained_by_color']} of the other {d['weak']}: "
                         f"tracking may slide{hint}")
 
-    def _relocalise(self, frame: Frame, source: FrameMaps, last: np.ndarray, colour: bool,
+    def _relocalise(self, frame: Frame, source: FrameMaps, last: np.ndarray, color: bool,
                     tried: list[Hypothesis]) -> None:
         """ICP again, initialised by ORB + PnP against the last well-tracked frame (a "features" hypothesis,
         checked against the PnP estimate)."""
@@ -393,7 +393,7 @@ class DenseSLAM:
         # The estimate maps the reference frame's camera into the new one; ICP's source (the prediction) sits
         # at `last`, the reference frame's pose.
         init = estimate.pose @ invert(reference_pose) @ last
-        icp = self.icp.align(source, self.frame_maps, init=init, photometric=colour)
+        icp = self.icp.align(source, self.frame_maps, init=init, photometric=color)
         pose = renormalize(last @ invert(icp.pose))
         rough = renormalize(reference_pose @ invert(estimate.pose))
         tried.append(Hypothesis("features", icp, pose, self._health(icp, pose, rough)))

@@ -27,7 +27,7 @@ from ti_fusion.io.mcap_log import RunLogger, software_versions
 from ti_fusion.io.outputs import RunDir, progress
 from ti_fusion.io.prefetch import Prefetcher
 from ti_fusion.io.datasets.realsense_live import StreamEnded
-from ti_fusion.io.registration import ColourRegistrar
+from ti_fusion.io.registration import ColorRegistrar
 from ti_fusion.io.trajectory import write_tum
 from ti_fusion.slam.checks import check_first_frames
 from ti_fusion.timing import StageTimer, process_age_s
@@ -156,7 +156,7 @@ class Pipeline:
         n = len(self.dataset)
         threaded = not getattr(self.dataset, "renders_on_taichi", False)
         # colour of a separate camera, reprojected here (Taichi's thread)
-        register_colour = ColourRegistrar(getattr(self.dataset, "color_camera", None))
+        register_color = ColorRegistrar(getattr(self.dataset, "color_camera", None))
         with Prefetcher(self.dataset, READ_AHEAD, threaded) as frames:
             for i in progress(range(n), n, self.step.name, self.show_progress):
                 with self.timer.stage("load"):  # the wait for the frame: what reading it did not overlap
@@ -164,7 +164,7 @@ class Pipeline:
                         _, frame, read_ms = next(frames)
                     except StreamEnded:  # a camera's played-back recording ended: the run ends here
                         break
-                    frame = register_colour(frame)
+                    frame = register_color(frame)
                 self.timer.add("read", read_ms)
                 result = self.step.register_frame(frame)
                 with Stopwatch(result.ms, "log"):

@@ -66,11 +66,11 @@ STATS_SCHEMA = json_object({
                                           "infinite)"),
         "update_norm": json_field("number", "norm of the last se(3) update (radians and metres together), the "
                                             "convergence test's value (left out: no update computed)"),
-        "colour_residuals": json_field("integer", "photometric residuals of the last iteration (0: the term is "
+        "color_residuals": json_field("integer", "photometric residuals of the last iteration (0: the term is "
                                                   "off, icp.color_weight = 0 or colour not registered)", minimum=0),
         "weak_directions": json_field("integer", "eigen-directions of the geometric AᵀA below icp.weak_ratio of "
                                                  "its largest: what depth alone leaves unconstrained", minimum=0),
-        "weak_constrained_by_colour": json_field("integer", "of those, the ones the photometric term lifted above "
+        "weak_constrained_by_color": json_field("integer", "of those, the ones the photometric term lifted above "
                                                             "icp.weak_ratio", minimum=0),
     }, required=("iterations", "inliers", "inlier_ratio"),
         description="the frame's ICP against the model, of its last iteration; every frame but the first"),
@@ -117,11 +117,11 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
             "inlier_ratio": icp.inlier_ratio,
             "condition": icp.condition,
             "update_norm": icp.update_norm,
-            "colour_residuals": icp.colour_inliers,
+            "color_residuals": icp.color_inliers,
         }
         if icp.degeneracy is not None:
             stats["icp"]["weak_directions"] = icp.degeneracy["weak"]
-            stats["icp"]["weak_constrained_by_colour"] = icp.degeneracy["constrained_by_colour"]
+            stats["icp"]["weak_constrained_by_color"] = icp.degeneracy["constrained_by_color"]
     if result.fusion is not None:
         stats.update({"merged": result.fusion.merged, "added": result.fusion.added,
                       "covered": result.fusion.covered, "removed": result.fusion.removed})

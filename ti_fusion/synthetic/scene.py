@@ -120,7 +120,7 @@ class SyntheticSequence:
         self.last_labels = labels
         return depth, color
 
-    def render_offset_colour(self, pose: np.ndarray, T_color_depth: np.ndarray, intrinsics: Intrinsics,
+    def render_offset_color(self, pose: np.ndarray, T_color_depth: np.ndarray, intrinsics: Intrinsics,
                              noise: bool | None = None, seed: int | None = None) -> np.ndarray:
         """The colour image (uint8 H×W×3 RGB) of a second camera beside the depth camera, as on a RealSense
         or a Kinect: ``T_color_depth`` maps depth-camera points into it, ``intrinsics`` is its own camera;

@@ -28,9 +28,9 @@ import numpy as np
 from ti_fusion.backend import current_backend
 from ti_fusion.config import ICPConfig
 from ti_fusion.geometry import rigidity_error, se3_exp, unflatten_pose
-from ti_fusion.kernels.icp import (FAILED, N_SUMS, N_SUMS_JOINT, R_COLOUR, R_ITERATION, R_LEVEL, R_OUTCOME, R_POSE,
+from ti_fusion.kernels.icp import (FAILED, N_SUMS, N_SUMS_JOINT, R_COLOR, R_ITERATION, R_LEVEL, R_OUTCOME, R_POSE,
                                    R_SUMS, R_UPDATE, ROBUST_CODES, UPDATED, Photometric, PointToPlane,
-                                   combined_system, unpack_colour_sums, unpack_sums)
+                                   combined_system, unpack_color_sums, unpack_sums)
 from ti_fusion.tracking.solve import check_system, solve_normal_equations, weak_directions
 
 
@@ -67,8 +67,8 @@ class ICPResult:
     residual_rms: float = float("nan")
     condition: float = float("nan")
     update_norm: float = float("nan")
-    colour_inliers: int = 0  # photometric residuals of the last iteration (0: the term was off)
-    colour_rms: float = float("nan")  # RMS intensity residual of those, in [0, 1] units
+    color_inliers: int = 0  # photometric residuals of the last iteration (0: the term was off)
+    color_rms: float = float("nan")  # RMS intensity residual of those, in [0, 1] units
     degeneracy: dict | None = None  # weak geometric directions (``ti_fusion.tracking.solve.weak_directions``)
     sums: np.ndarray | None = field(default=None, repr=False)  # the last iteration's sums (30, or 59 joint)
 
@@ -134,12 +134,12 @@ class ICP:
         if resume is not None:
             self._align_in_python(kernels, source, target, schedule, result, resume)
         if result.sums is not None:
-            s, c = unpack_sums(result.sums), unpack_colour_sums(result.sums)
+            s, c = unpack_sums(result.sums), unpack_color_sums(result.sums)
             result.degeneracy = weak_directions(s["AtA"], None if c is None else c["AtA"], cfg.color_weight,
                                                 cfg.weak_ratio)
         return result
 
-    def _colour(self, source, target, level: int) -> Photometric | None:
+    def _color(self, source, target, level: int) -> Photometric | None:
         """The colour term of a pass at ``level`` (None: depth only)."""
         if not self._photometric:
             return None
@@ -161,7 +161,7 @@ class ICP:
                 kernels.begin_level(source.vertex[level], source.normal[level], target.vertex[level],
                                     target.normal[level], target.intrinsics[level].as_tuple(),
                                     self.dist_threshold(level), cfg.normal_threshold_deg, robust, cfg.robust_scale,
-                                    level, cfg.min_inliers, cfg.stop_update, self._colour(source, target, level))
+                                    level, cfg.min_inliers, cfg.stop_update, self._color(source, target, level))
         for level, n_iter in schedule:
             done = 0
             for it in range(n_iter):
@@ -176,7 +176,7 @@ class ICP:
             result.pose = unflatten_pose(record[R_POSE:R_POSE + 12])
             sums = record[R_SUMS:R_SUMS + N_SUMS]
             if self._photometric:
-                sums = np.concatenate([sums, record[R_COLOUR:R_COLOUR + N_SUMS_JOINT - N_SUMS]])
+                sums = np.concatenate([sums, record[R_COLOR:R_COLOR + N_SUMS_JOINT - N_SUMS]])
             if self._record(result, level, it, sums) is None:
                 return None  # a failure, reported as the NumPy path reports it
             if record[R_OUTCOME] != UPDATED:
@@ -217,10 +217,10 @@ class ICP:
         result.inlier_ratio = n / s["sources"] if s["sources"] else 0.0
         result.residual_rms = float(np.sqrt(loss)) if n else float("nan")
         result.sums = np.asarray(sums, dtype=np.float64)
-        c = unpack_colour_sums(sums)
+        c = unpack_color_sums(sums)
         if c is not None:
-            result.colour_inliers = c["count"]
-            result.colour_rms = float(np.sqrt(c["r2"] / c["count"])) if c["count"] else float("nan")
+            result.color_inliers = c["count"]
+            result.color_rms = float(np.sqrt(c["r2"] / c["count"])) if c["count"] else float("nan")
         s["AtA"], s["Atb"] = combined_system(sums, cfg.color_weight)
         failure, result.condition = check_system(s["AtA"], n, cfg.min_inliers, cfg.max_condition)
         if failure is not None:
@@ -236,7 +236,7 @@ class ICP:
         args = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level],
                 result.pose, target.intrinsics[level].as_tuple(), self.dist_threshold(level),
                 cfg.normal_threshold_deg, self.robust, cfg.robust_scale)
-        sums = kernels.reduce(*args, photometric=self._colour(source, target, level))
+        sums = kernels.reduce(*args, photometric=self._color(source, target, level))
         s = self._record(result, level, it, sums)
         if s is None:
             return None

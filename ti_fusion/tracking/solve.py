@@ -41,17 +41,17 @@ def solve_normal_equations(AtA: np.ndarray, Atb: np.ndarray) -> np.ndarray:
     return np.linalg.solve(L.T, np.linalg.solve(L, rhs))  # two triangular solves
 
 
-def weak_directions(AtA: np.ndarray, colour_AtA: np.ndarray | None, color_weight: float,
+def weak_directions(AtA: np.ndarray, color_AtA: np.ndarray | None, color_weight: float,
                     weak_ratio: float) -> dict:
     """The eigen-directions of the geometric AᵀA whose eigenvalue is below ``weak_ratio`` × the largest
     (what depth alone leaves unconstrained: two translations and a rotation facing a plane), and whether
-    the colour term (``color_weight`` × ``colour_AtA``) lifts each above that line.
+    the colour term (``color_weight`` × ``color_AtA``) lifts each above that line.
 
-    Returns {"weak": count, "constrained_by_colour": count, "directions": [{"twist": unit 6-vector (ω, v),
+    Returns {"weak": count, "constrained_by_color": count, "directions": [{"twist": unit 6-vector (ω, v),
     largest component positive, "ratio": λ / λmax of the geometry, "joint_ratio": eᵀ(AᵀA + λ_c A_cᵀA_c)e /
-    λmax, "colour": bool}, ...]} (weakest first)."""
+    λmax, "color": bool}, ...]} (weakest first)."""
     AtA = np.asarray(AtA, dtype=np.float64)
-    out = {"weak": 0, "constrained_by_colour": 0, "directions": []}
+    out = {"weak": 0, "constrained_by_color": 0, "directions": []}
     if not np.all(np.isfinite(AtA)):
         return out
     lam, vec = np.linalg.eigh(AtA)
@@ -62,10 +62,10 @@ def weak_directions(AtA: np.ndarray, colour_AtA: np.ndarray | None, color_weight
         if lam[i] >= weak_ratio * top:
             break
         e = vec[:, i] * np.sign(vec[np.argmax(np.abs(vec[:, i])), i])
-        joint = float(lam[i]) if colour_AtA is None else float(e @ (AtA + color_weight * colour_AtA) @ e)
-        lifted = colour_AtA is not None and joint >= weak_ratio * top
+        joint = float(lam[i]) if color_AtA is None else float(e @ (AtA + color_weight * color_AtA) @ e)
+        lifted = color_AtA is not None and joint >= weak_ratio * top
         out["directions"].append({"twist": [round(float(x), 3) for x in e], "ratio": float(max(lam[i], 0.0) / top),
-                                  "joint_ratio": float(max(joint, 0.0) / top), "colour": bool(lifted)})
+                                  "joint_ratio": float(max(joint, 0.0) / top), "color": bool(lifted)})
         out["weak"] += 1
-        out["constrained_by_colour"] += int(lifted)
+        out["constrained_by_color"] += int(lifted)
     return out

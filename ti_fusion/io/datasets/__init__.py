@@ -143,13 +143,13 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
         if cfg.depth_scale:
             dataset.depth_scale = float(cfg.depth_scale)  # read by ImageFileDataset for every frame
     if (cfg.color_extrinsics or cfg.color_intrinsics) and fmt != "rosbag":
-        _colour_camera(dataset, cfg)
+        _color_camera(dataset, cfg)
     dataset.check_selection()
     log.info(dataset.describe_format())
     return dataset
 
 
-def _colour_camera(dataset: Dataset, cfg: DatasetConfig) -> None:
+def _color_camera(dataset: Dataset, cfg: DatasetConfig) -> None:
     """A folder's or a benchmark's colour camera (``--color-intrinsics``, ``--color-extrinsics`` FILE), so
     that its colour is registered to depth in the run loop (``ti_fusion/io/registration.py``)."""
     from ti_fusion.io.datasets.extrinsics import read_extrinsics_file

@@ -71,7 +71,7 @@ class Dataset(ABC):
         return False
 
     @property
-    def colour_for_tracking(self) -> bool:
+    def color_for_tracking(self) -> bool:
         """Whether the photometric tracking term may use this set's colour: only colour registered to depth.
         A format whose registration is the user's word (a folder, a log) overrides this with
         ``dataset.color_registered``."""
@@ -96,7 +96,7 @@ class Dataset(ABC):
 
     def __getitem__(self, i: int) -> Frame:
         frame = self._load_raw(self.indices[i])
-        frame.color_registered = frame.color is not None and self.colour_for_tracking
+        frame.color_registered = frame.color is not None and self.color_for_tracking
         if not frame.intrinsics.pinhole:  # at full resolution, before downsampling
             from ti_fusion.io.datasets.undistort import undistort
 
@@ -181,7 +181,7 @@ class Dataset(ABC):
                                                       "distortion_model": raw.distortion_model,
                                                       "undistorted": True})},
             "ground_truth": self.has_ground_truth,
-            "colour_for_tracking": self.colour_for_tracking,
+            "color_for_tracking": self.color_for_tracking,
             "dropped_frames": self.dropped_frames,
             "notes": list(self.notes),
         }
@@ -256,7 +256,7 @@ class ImageFileDataset(RecordedSequence):
     def describe(self) -> dict:
         info = super().describe()
         info["ground_truth_frames"] = self.ground_truth_frames()
-        info["colour"] = any(c is not None for c in self._color_files)
+        info["color"] = any(c is not None for c in self._color_files)
         return info
 
     def ground_truth(self) -> tuple[np.ndarray, np.ndarray]:

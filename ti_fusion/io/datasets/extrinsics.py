@@ -1,4 +1,4 @@
-"""The colour camera's extrinsics, T_color_depth (p_colour = T p_depth, metres): from a file or a bag's
+"""The colour camera's extrinsics, T_color_depth (p_color = T p_depth, metres): from a file or a bag's
 transform message (``dataset.color_extrinsics``, ``--color-extrinsics``).
 
 A file holds a 4×4 or 3×4 matrix row by row, or seven numbers ``tx ty tz qx qy qz qw`` (TUM's order,

@@ -90,7 +90,7 @@ class FolderDataset(ImageFileDataset):
             raise InputError(depth_dir, "empty sequence: no numbered 16-bit PNGs (e.g. 000000.png)")
         self._numbers = sorted(depth)
         self._depth_files = [depth[n] for n in self._numbers]
-        self._color_files = self._find_colour()
+        self._color_files = self._find_color()
         self._stamps = self._read_timestamps()
 
         missing = self._missing_options()
@@ -102,7 +102,7 @@ class FolderDataset(ImageFileDataset):
         self._gt_poses = self._read_ground_truth()
         height, width = read_depth_png(self._depth_files[0]).shape
         self._intrinsics = self._find_intrinsics(width, height)
-        self.color_registered = self._check_colour_size(width, height)
+        self.color_registered = self._check_color_size(width, height)
 
     # -- what the user states -------------------------------------------------------------------
     def _intrinsics_file(self) -> Path | None:
@@ -136,7 +136,7 @@ class FolderDataset(ImageFileDataset):
         return read_intrinsics_file(path, width, height)
 
     # -- the folder's own files -----------------------------------------------------------------
-    def _find_colour(self) -> list[Path | None]:
+    def _find_color(self) -> list[Path | None]:
         folders = [self.root / n for n in COLOR_FOLDERS if (self.root / n).is_dir()]
         if len(folders) > 1:
             raise InputError(self.root, f"holds {' and '.join(f.name + '/' for f in folders)}: keep one colour folder")
@@ -231,7 +231,7 @@ class FolderDataset(ImageFileDataset):
     def _has_timestamps_file(self) -> bool:
         return self.timestamps_from == "timestamps.txt"
 
-    def _check_colour_size(self, width: int, height: int) -> bool | None:
+    def _check_color_size(self, width: int, height: int) -> bool | None:
         """True when the colour images are the depth images' size (taken as registered), False when not
         (then a note), None without colour."""
         first = next((c for c in self._color_files if c is not None), None)
@@ -245,7 +245,7 @@ class FolderDataset(ImageFileDataset):
         return False
 
     @property
-    def colour_for_tracking(self) -> bool:
+    def color_for_tracking(self) -> bool:
         # a colour image of the depth's size may still be unregistered (a raw Kinect's): the user's word
         return bool(self.color_registered) and self.config.color_registered
 
@@ -273,7 +273,7 @@ class FolderDataset(ImageFileDataset):
     def describe(self) -> dict:
         info = super().describe()
         info.update(depth_scale_from=self.depth_scale_source, timestamps_from=self.timestamps_from,
-                    ground_truth_from=self.ground_truth_source, colour_registered=self.color_registered)
+                    ground_truth_from=self.ground_truth_source, color_registered=self.color_registered)
         return info
 
     @staticmethod

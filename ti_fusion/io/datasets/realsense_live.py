@@ -112,11 +112,11 @@ class RealSenseCamera(Dataset):
         self._intrinsics = self._camera(depth_profile.get_intrinsics())
         self.intrinsics_source = where
         self.color_intrinsics, self.color_extrinsics = None, None
-        colour = [s for s in profile.get_streams() if s.stream_type() == rs.stream.color]
-        if colour:
-            colour_profile = colour[0].as_video_stream_profile()
-            self.color_intrinsics = self._camera(colour_profile.get_intrinsics())
-            e = depth_profile.get_extrinsics_to(colour_profile)  # rotation column-major, p_colour = R p_depth + t
+        color = [s for s in profile.get_streams() if s.stream_type() == rs.stream.color]
+        if color:
+            color_profile = color[0].as_video_stream_profile()
+            self.color_intrinsics = self._camera(color_profile.get_intrinsics())
+            e = depth_profile.get_extrinsics_to(color_profile)  # rotation column-major, p_color = R p_depth + t
             T = np.eye(4)
             T[:3, :3] = np.asarray(e.rotation, dtype=np.float64).reshape(3, 3).T
             T[:3, 3] = e.translation
@@ -155,11 +155,11 @@ class RealSenseCamera(Dataset):
             depth = frames.get_depth_frame()
             if not depth:
                 continue
-            colour = frames.get_color_frame()
+            color = frames.get_color_frame()
             image = None
-            if colour and colour.get_profile().format() in (rs.format.rgb8, rs.format.bgr8):
-                image = np.asanyarray(colour.get_data()).copy()
-                if colour.get_profile().format() == rs.format.bgr8:
+            if color and color.get_profile().format() in (rs.format.rgb8, rs.format.bgr8):
+                image = np.asanyarray(color.get_data()).copy()
+                if color.get_profile().format() == rs.format.bgr8:
                     image = np.ascontiguousarray(image[..., ::-1])
             return depth.get_timestamp() / 1000.0, np.asanyarray(depth.get_data()).copy(), image
 
@@ -171,12 +171,12 @@ class RealSenseCamera(Dataset):
         if raw_index not in self._frames:
             raise InputError(None, f"--camera realsense: frame {raw_index} was read and let go (frames are read once, "
                                    "in order)")
-        t, raw, colour = self._frames[raw_index]
+        t, raw, color = self._frames[raw_index]
         depth = depth_to_metres(raw, self.depth_scale, self.dataset_config.depth_max)
         meta = {"camera": self.name}
-        if colour is not None and self.color_extrinsics is not None:
+        if color is not None and self.color_extrinsics is not None:
             meta["color_camera"] = (self.color_intrinsics, self.color_extrinsics)
-        return Frame(index=raw_index, timestamp=t, depth=depth, intrinsics=self._intrinsics, color=colour, meta=meta)
+        return Frame(index=raw_index, timestamp=t, depth=depth, intrinsics=self._intrinsics, color=color, meta=meta)
 
     def describe_format(self) -> str:
         line = super().describe_format() + f"; depth scale from {self.depth_scale_source}"
@@ -191,7 +191,7 @@ class RealSenseCamera(Dataset):
         if self._selection[1] is None:
             info["frames"] = None  # a stream: as many as come before Ctrl-C (or a recording's end)
         info.update(camera=self.device_name, recording=str(self.recording) if self.recording else None,
-                    depth_scale_from=self.depth_scale_source, colour=self.color_extrinsics is not None)
+                    depth_scale_from=self.depth_scale_source, color=self.color_extrinsics is not None)
         return info
 
     def close(self) -> None:

@@ -352,7 +352,7 @@ class RosbagDataset(RecordedSequence):
     format = "rosbag"
 
     @property
-    def colour_for_tracking(self) -> bool:  # one frame_id for both, or the user's word (dataset.color_registered)
+    def color_for_tracking(self) -> bool:  # one frame_id for both, or the user's word (dataset.color_registered)
         return bool(self.color_registered) or self.config.color_registered
 
     def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
@@ -377,7 +377,7 @@ class RosbagDataset(RecordedSequence):
         if self.realsense is not None:
             self._realsense_calibration()
         if self.config.color_extrinsics:
-            self._stated_colour_camera(self.config.color_extrinsics)
+            self._stated_color_camera(self.config.color_extrinsics)
         elif self.config.color_intrinsics:
             raise InputError(None, "--color-intrinsics registers colour to depth together with --color-extrinsics "
                                    "FILE|TOPIC (the colour camera's pose from the depth camera)")
@@ -523,9 +523,9 @@ class RosbagDataset(RecordedSequence):
         self.color_registered = None
         self._color_size = None
         if color:
-            self._pair_colour([(s, k) for s, k, _ in color])
+            self._pair_color([(s, k) for s, k, _ in color])
 
-    def _pair_colour(self, color: list) -> None:
+    def _pair_color(self, color: list) -> None:
         from ti_fusion.io.trajectory import associate
 
         tolerance = self.config.max_time_difference
@@ -626,7 +626,7 @@ class RosbagDataset(RecordedSequence):
         self.color_extrinsics = depth_to_color(depth_tf, transform_matrix(self._first(rs.color_tf)))
         self.color_calibration_source = f"{rs.color_info} and {rs.color_tf} (RealSense recording)"
 
-    def _stated_colour_camera(self, spec: str) -> None:
+    def _stated_color_camera(self, spec: str) -> None:
         """The colour camera from ``--color-extrinsics`` (a file, or a transform topic of the bag) and the
         colour topic's camera_info; it replaces a RealSense recording's recorded extrinsics."""
         topic, option = self.topics["color"], f"--color-extrinsics {spec}"
@@ -750,9 +750,9 @@ class RosbagDataset(RecordedSequence):
     def describe(self) -> dict:
         info = super().describe()
         info.update(topics=dict(self.topics), depth_encoding=self.encoding, depth_scale_from=self.depth_scale_source,
-                    colour=self.topics["color"] is not None, colour_registered=self.color_registered,
+                    color=self.topics["color"] is not None, color_registered=self.color_registered,
                     times_from=self.stamps_from, realsense=self.realsense is not None,
-                    colour_camera=None if self.color_extrinsics is None else {
+                    color_camera=None if self.color_extrinsics is None else {
                         "fx": self.color_intrinsics.fx, "fy": self.color_intrinsics.fy, "cx": self.color_intrinsics.cx,
                         "cy": self.color_intrinsics.cy, "width": self.color_intrinsics.width,
                         "height": self.color_intrinsics.height, "T_color_depth": self.color_extrinsics.tolist(),

@@ -150,7 +150,7 @@ class RunLogDataset(RecordedSequence):
     depth_scale = 1000.0  # /camera/depth is 16UC1 millimetres
 
     @property
-    def colour_for_tracking(self) -> bool:  # the log does not say: the user's word (dataset.color_registered)
+    def color_for_tracking(self) -> bool:  # the log does not say: the user's word (dataset.color_registered)
         return self.config.color_registered
 
     def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
@@ -286,7 +286,7 @@ class RunLogDataset(RecordedSequence):
 
     def describe(self) -> dict:
         info = super().describe()
-        info.update(colour=any(self._has_color), ground_truth_frames=self.ground_truth_frames())
+        info.update(color=any(self._has_color), ground_truth_frames=self.ground_truth_frames())
         return info
 
     @staticmethod

@@ -13,12 +13,12 @@ from ti_fusion.config import DatasetConfig, SynthConfig
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import make_pose, so3_exp
 from ti_fusion.io.datasets import open_dataset
-from ti_fusion.io.registration import ColourRegistrar, resized
+from ti_fusion.io.registration import ColorRegistrar, resized
 
 T = make_pose(so3_exp(np.array([0.01, -0.02, 0.01])), [0.025, 0.003, -0.002])
 # the renderer filters its textures over a pixel's footprint, so the colour seen at the depth camera is the
 # target only for a colour camera of about the depth's pixels per degree (at 400x300, fx 375: median 4 levels)
-K_COLOUR = Intrinsics(fx=300.0, fy=301.0, cx=165.0, cy=118.0, width=320, height=240)
+K_COLOR = Intrinsics(fx=300.0, fy=301.0, cx=165.0, cy=118.0, width=320, height=240)
 K_LARGE = Intrinsics(fx=600.0, fy=602.0, cx=330.0, cy=236.0, width=640, height=480)
 
 
@@ -38,10 +38,10 @@ def offset_folder(tmp_path_factory):
     for i in range(3):
         pose = seq.poses[i * 20]
         depth, at_depth = seq.render(pose, noise=False)
-        for folder, K in (("", K_COLOUR), ("large/", K_LARGE)):
+        for folder, K in (("", K_COLOR), ("large/", K_LARGE)):
             cv2.imwrite(str(root / f"{folder}depth" / f"{i:06d}.png"), np.round(depth * 1000).astype(np.uint16))
-            colour = seq.render_offset_colour(pose, T, K, noise=False)
-            cv2.imwrite(str(root / f"{folder}rgb" / f"{i:06d}.png"), colour[..., ::-1])
+            color = seq.render_offset_color(pose, T, K, noise=False)
+            cv2.imwrite(str(root / f"{folder}rgb" / f"{i:06d}.png"), color[..., ::-1])
         targets.append(at_depth)
     (root / "T_color_depth.txt").write_text("\n".join(" ".join(f"{x:.12g}" for x in r) for r in T) + "\n")
     return root, targets
@@ -51,14 +51,14 @@ def cfg(root, **kw) -> DatasetConfig:
     return DatasetConfig(path=str(root), format="folder", depth_scale=1000, intrinsics="262.5,262.5,159.5,119.5", **kw)
 
 
-def test_a_folder_with_a_second_colour_camera_is_registered(offset_folder):
+def test_a_folder_with_a_second_color_camera_is_registered(offset_folder):
     """The colour camera 2.5 cm aside, its own intrinsics: the registrar reprojects its colour into the depth
     camera, within 2 grey levels (median) of the colour seen at the depth camera."""
     root, targets = offset_folder
     ds = open_dataset(cfg(root, color_extrinsics=str(root / "T_color_depth.txt"),
-                          color_intrinsics=",".join(map(str, K_COLOUR.as_tuple()))))
-    assert ds.color_camera[0] == K_COLOUR and ds.notes == []
-    register = ColourRegistrar(ds.color_camera)
+                          color_intrinsics=",".join(map(str, K_COLOR.as_tuple()))))
+    assert ds.color_camera[0] == K_COLOR and ds.notes == []
+    register = ColorRegistrar(ds.color_camera)
     for i in range(3):
         frame = register(ds[i])
         assert frame.color_registered and frame.color.shape == (240, 320, 3)
@@ -70,15 +70,15 @@ def test_a_folder_with_a_second_colour_camera_is_registered(offset_folder):
                           color_intrinsics=",".join(map(str, K_LARGE.as_tuple()))))
     frame = ds[0]
     assert frame.color.shape == (480, 640, 3) and not frame.color_registered
-    frame = ColourRegistrar(ds.color_camera)(frame)
+    frame = ColorRegistrar(ds.color_camera)(frame)
     assert frame.color.shape == (240, 320, 3) and frame.meta["color_valid"].mean() > 0.7
     ds = open_dataset(cfg(root / "large", color_extrinsics=str(root / "T_color_depth.txt"),
                           color_intrinsics=",".join(map(str, K_LARGE.as_tuple())), downsample=2))
-    frame = ColourRegistrar(ds.color_camera)(ds[0])  # both halved: the colour camera follows
+    frame = ColorRegistrar(ds.color_camera)(ds[0])  # both halved: the colour camera follows
     assert frame.color.shape == (120, 160, 3) and frame.meta["color_valid"].mean() > 0.7
 
 
-def test_the_colour_camera_follows_the_image_it_is_given():
+def test_the_color_camera_follows_the_image_it_is_given():
     assert resized(K_LARGE, 320, 240, 0) == K_LARGE.downsampled(2)  # img[::2, ::2]
     K = resized(K_LARGE, 400, 300, 0)  # cv2.resize: pixel edges scale
     assert K.fx == pytest.approx(375.0) and K.cx == pytest.approx((330.0 + 0.5) * 0.625 - 0.5)

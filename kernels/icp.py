@@ -63,7 +63,7 @@ photometric term (``joint``, a compile-time switch: the depth-only kernels are t
 Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
 (vulkan, cuda), chosen when ``PointToPlane`` is built. Fields stay float32.
 
-Images: the source and target maps are levels of stacked fields (``ti_fusion.kernels.maps.Level``: the
+Images: the source and target maps are levels of stacked fields (``ti_fusion.kernels.pyramid.Level``: the
 H × W image at a first row of its field), passed as the field and, at run time, the first row and size
 (``Hs``, ``Ws`` for the source, ``Ht``, ``Wt`` for the target), so that one instance of each kernel serves
 every pyramid level; a plain H × W field is the level at its row 0. The source's vertex, normal and
@@ -81,7 +81,7 @@ import taichi as ti
 from ti_fusion.backend import SERIAL_BELOW
 from ti_fusion.geometry import flatten_pose, unflatten_pose
 from ti_fusion.kernels.common import depth_noise_scale
-from ti_fusion.kernels.maps import as_level
+from ti_fusion.kernels.pyramid import as_level
 
 STATUS_OK = 0
 # ``_target_pixel``: a target pixel index, or one of these (the first three tests' failures)

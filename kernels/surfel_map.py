@@ -4,7 +4,7 @@ the prediction (``prediction``) as methods.
 This is the Python edge of the kernels: each method converts poses and thresholds into kernel arguments,
 runs a stage's kernels in order, and keeps what must survive between stages (the surfel count, which
 surfels the per-surfel projection scratch is current for). Stage methods take the frame's fields at the
-map's level (``FrameMaps.vertex[l]`` etc.) and 4×4 camera-to-world poses (float64 NumPy).
+map's level (``FramePyramid.vertex[l]`` etc.) and 4×4 camera-to-world poses (float64 NumPy).
 """
 
 import math
@@ -219,7 +219,7 @@ class SurfelMap(SurfelStore):
                min_time: int = -2**31) -> PredictionImages:
         """Predicted vertex / normal / depth maps in the camera frame of ``pose`` (zero = no surfel).
 
-        Outputs are Taichi fields of shape (intrinsics.height, intrinsics.width), e.g. a FrameMaps' level
+        Outputs are Taichi fields of shape (intrinsics.height, intrinsics.width), e.g. a FramePyramid' level
         0; left out, they are the returned images' ``vertex``, ``normal``, ``depth`` fields (valid until
         the next render at this resolution). Surfels with weight ≥ ``min_weight`` that face the camera
         are splatted as discs reaching at most ``max_half`` pixels from their centre pixel; the vertex lies

@@ -21,7 +21,7 @@ import time
 
 import numpy as np
 
-STAGES = ("maps", "icp_iteration", "fusion_step", "render")
+STAGES = ("pyramid", "icp_iteration", "fusion_step", "render")
 
 
 def _time(fn, repeats: int) -> float:
@@ -40,13 +40,13 @@ def _time(fn, repeats: int) -> float:
 
 def worker(args) -> dict:
     from ti_fusion.backend import init_backend
-    from ti_fusion.config import Config, MapsConfig
+    from ti_fusion.config import Config, PyramidConfig
     from ti_fusion.io.datasets import open_dataset
     from ti_fusion.errors import BackendUnavailable
     from ti_fusion.mapping.mapper import SurfelMapper
     from ti_fusion.geometry import invert
     from ti_fusion.tracking.icp import ICP
-    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.kernels.pyramid import FramePyramid
 
     try:
         info = init_backend(args.worker)
@@ -60,12 +60,12 @@ def worker(args) -> dict:
     dataset = open_dataset(cfg.dataset, cfg.synth)
     K = dataset.intrinsics
     frames = [dataset[i] for i in range(len(dataset))]
-    raw = MapsConfig(depth_smooth_radius=0)
-    source, target = FrameMaps(raw, K.height, K.width, 3), FrameMaps(raw, K.height, K.width, 3)
+    raw = PyramidConfig(depth_smooth_radius=0)
+    source, target = FramePyramid(raw, K.height, K.width, 3), FramePyramid(raw, K.height, K.width, 3)
     source.compute(frames[0].depth, K)
     target.compute(frames[1].depth, K)
 
-    ms = {"maps": _time(lambda: target.compute(frames[1].depth, K), args.repeats)}
+    ms = {"pyramid": _time(lambda: target.compute(frames[1].depth, K), args.repeats)}
 
     cfg.icp.iterations = [0, 0, 10]
     cfg.icp.stop_update = 0.0
@@ -75,21 +75,21 @@ def worker(args) -> dict:
 
     cfg.fusion.level = 0  # the kernels at this resolution, whatever level the SLAM default fuses at
     mapper = SurfelMapper(cfg.fusion)
-    maps = FrameMaps(raw, K.height, K.width, 1)
+    pyramid = FramePyramid(raw, K.height, K.width, 1)
     for i, frame in enumerate(frames[:-1]):
-        maps.compute(frame.depth, K)
-        mapper.integrate(maps, frame.color, frame.gt_pose, i)
+        pyramid.compute(frame.depth, K)
+        mapper.integrate(pyramid, frame.color, frame.gt_pose, i)
     last = frames[-1]
-    maps.compute(last.depth, K)
+    pyramid.compute(last.depth, K)
     step = [len(frames)]
 
     def fuse():
-        mapper.integrate(maps, last.color, last.gt_pose, step[0])
+        mapper.integrate(pyramid, last.color, last.gt_pose, step[0])
         step[0] += 1
 
     ms["fusion_step"] = _time(fuse, args.repeats)
-    prediction = FrameMaps(raw, K.height, K.width, 3)
-    ms["render"] = _time(lambda: mapper.render_maps(prediction, last.gt_pose, K), args.repeats)
+    prediction = FramePyramid(raw, K.height, K.width, 3)
+    ms["render"] = _time(lambda: mapper.render_pyramid(prediction, last.gt_pose, K), args.repeats)
     return {"arch": info.arch, "ms": ms, "surfels": mapper.count, "size": f"{K.width}x{K.height}"}
 
 

@@ -57,8 +57,8 @@ def cell(s: dict | None) -> str:
     text = f"{ate * 100:.2f} cm ({s.get('ate_percent_of_path', float('nan')):.2f} %), {lost} lost"
     if lost:
         text += f" (tracked alone {s['ate_tracked_only_rmse_m'] * 100:.2f} cm)"
-    if s.get("loop_closures"):
-        text += f", {s['loop_closures']} loops"
+    if s.get("loops_applied"):
+        text += f", {s['loops_applied']} loops"
     return text + f", 2nd start on {s.get('frames_with_second_start', 0)}"
 
 

@@ -33,7 +33,7 @@ def bench_size(width: int, height: int, target: int, steps: int) -> dict:
     from ti_fusion.timing import StageTimer
 
     cfg = FusionConfig(level=0)  # the step at this resolution (the SLAM default fuses 640×480 input at 320×240)
-    mapper, maps, seq, frame = build_map(width, height, target, cfg)
+    mapper, pyramid, seq, frame = build_map(width, height, target, cfg)
     print(f"  {width}×{height}: map of {mapper.count:,} surfels after {frame} frames", flush=True)
     K = seq.intrinsics
     ref = NumpyFusion(mapper.to_numpy(), cfg, capacity=mapper.map.capacity)
@@ -43,9 +43,9 @@ def bench_size(width: int, height: int, target: int, steps: int) -> dict:
     for k in range(steps + 1):
         i = frame + k
         depth, color = seq.frame(i)
-        maps.compute(depth, K)
-        stats = mapper.integrate(maps, color, seq.poses[i], frame + k, timer)
-        ms = ref.integrate(maps.vertex[0].to_numpy(), maps.normal[0].to_numpy(), depth, color, seq.poses[i], K,
+        pyramid.compute(depth, K)
+        stats = mapper.integrate(pyramid, color, seq.poses[i], frame + k, timer)
+        ms = ref.integrate(pyramid.vertex[0].to_numpy(), pyramid.normal[0].to_numpy(), depth, color, seq.poses[i], K,
                            frame + k)
         time.sleep(BLAS_SETTLE_S)  # OpenBLAS's threads asleep before the next Taichi step
         if k > 0:  # the first Taichi step compiles the kernels

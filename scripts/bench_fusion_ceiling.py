@@ -49,7 +49,7 @@ def check_config(cfg) -> None:
         raise SystemExit("bench_fusion_ceiling: the C step implements the default fusion settings only")
 
 
-def write_inputs(workdir: Path, data: dict, maps, rgb, pose, K, frame: int, cfg, radial) -> None:
+def write_inputs(workdir: Path, data: dict, pyramid, rgb, pose, K, frame: int, cfg, radial) -> None:
     """The C program's inputs (see scripts/fusion_step.c)."""
     from ti_fusion.kernels.common import camera_to_world, world_to_camera
     from ti_fusion.kernels.surfels import ATTRIBUTES
@@ -61,8 +61,8 @@ def write_inputs(workdir: Path, data: dict, maps, rgb, pose, K, frame: int, cfg,
                               cfg.unstable_weight]]).astype(np.float32)
     ints.tofile(workdir / "ints.bin")
     params.tofile(workdir / "params.bin")
-    maps.vertex[0].to_numpy().astype(np.float32).tofile(workdir / "vertex.bin")
-    maps.normal[0].to_numpy().astype(np.float32).tofile(workdir / "normal_map.bin")
+    pyramid.vertex[0].to_numpy().astype(np.float32).tofile(workdir / "vertex.bin")
+    pyramid.normal[0].to_numpy().astype(np.float32).tofile(workdir / "normal_map.bin")
     radial.astype(np.float32).tofile(workdir / "radial.bin")
     np.ascontiguousarray(rgb, dtype=np.uint8).tofile(workdir / "rgb.bin")
     for name in ATTRIBUTES:
@@ -97,11 +97,11 @@ def bench_size(width: int, height: int, target: int, repeats: int, executables: 
 
     cfg = FusionConfig(level=0)
     check_config(cfg)
-    mapper, maps, seq, frame = build_map(width, height, target, cfg)
+    mapper, pyramid, seq, frame = build_map(width, height, target, cfg)
     print(f"  {width}×{height}: map of {mapper.count:,} surfels after {frame} frames", flush=True)
     K = seq.intrinsics
     depth, rgb = seq.frame(frame)
-    maps.compute(depth, K)
+    pyramid.compute(depth, K)
     pose = seq.poses[frame]
     data = mapper.to_numpy()
 
@@ -109,7 +109,7 @@ def bench_size(width: int, height: int, target: int, repeats: int, executables: 
         mapper.map.from_numpy(data)  # untimed: a fresh copy of the map
         ti.sync()
         t0 = time.perf_counter()
-        stats = mapper.integrate(maps, rgb, pose, frame)
+        stats = mapper.integrate(pyramid, rgb, pose, frame)
         ti.sync()
         return time.perf_counter() - t0, stats
 
@@ -118,7 +118,7 @@ def bench_size(width: int, height: int, target: int, repeats: int, executables: 
     result = mapper.to_numpy()
     radial = mapper.map.fusion_images(height, width).radial.to_numpy()
 
-    vertex, normal = maps.vertex[0].to_numpy(), maps.normal[0].to_numpy()
+    vertex, normal = pyramid.vertex[0].to_numpy(), pyramid.normal[0].to_numpy()
     numpy_times = []
     for _ in range(repeats):
         ref = NumpyFusion(data, cfg, capacity=len(data["position"]) + width * height)  # untimed copy
@@ -130,7 +130,7 @@ def bench_size(width: int, height: int, target: int, repeats: int, executables: 
     s = stats[-1]
     counts = (s.merged, s.added, s.covered, s.removed, s.surfels)
     if executables:
-        write_inputs(workdir, data, maps, rgb, pose, K, frame, cfg, radial)
+        write_inputs(workdir, data, pyramid, rgb, pose, K, frame, cfg, radial)
     for march, exe in executables.items():
         ms, c_counts = run_c(exe, workdir, repeats)
         # a handful of surfels may pass or fail a threshold test by a rounding (float32 in both, operations

@@ -236,9 +236,9 @@ def timed(fn, repeats: int = 1) -> tuple[float, float]:
 
 
 def compute_maps(src, tgt, depth_s, depth_t, K, icp_cfg) -> None:
-    """The source and target ``FrameMaps`` of a pair, as the pipeline computes them for ICP."""
-    for maps, depth in ((src, depth_s), (tgt, depth_t)):
-        maps.compute(depth, K)
+    """The source and target ``FramePyramid`` of a pair, as the pipeline computes them for ICP."""
+    for pyramid, depth in ((src, depth_s), (tgt, depth_t)):
+        pyramid.compute(depth, K)
 
 
 class FinestIteration:
@@ -308,11 +308,11 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
 
     from ti_fusion.geometry import pose_error
     from ti_fusion.tracking.icp import ICP
-    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.kernels.pyramid import FramePyramid
 
     c = cfg.icp
     levels = len(c.iterations)
-    src, tgt = FrameMaps(cfg.maps, K.height, K.width, levels), FrameMaps(cfg.maps, K.height, K.width, levels)
+    src, tgt = FramePyramid(cfg.pyramid, K.height, K.width, levels), FramePyramid(cfg.pyramid, K.height, K.width, levels)
     icp = ICP(c)
 
     def frame_pair():
@@ -395,7 +395,7 @@ def accuracy_over_pairs(cfg, args) -> dict | None:
     from ti_fusion.io.datasets import open_dataset
     from ti_fusion.geometry import invert, pose_error
     from ti_fusion.tracking.icp import ICP
-    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.kernels.pyramid import FramePyramid
 
     data = Path(args.data) if args.data else DEFAULT_DATA
     if args.accuracy_pairs <= 0 or not data.is_dir():
@@ -405,14 +405,14 @@ def accuracy_over_pairs(cfg, args) -> dict | None:
     starts = np.linspace(0, len(dataset) - 1 - gap, args.accuracy_pairs).round().astype(int)
     c = cfg.icp
     K = dataset[0].intrinsics
-    src, tgt = (FrameMaps(cfg.maps, K.height, K.width, len(c.iterations)) for _ in range(2))
+    src, tgt = (FramePyramid(cfg.pyramid, K.height, K.width, len(c.iterations)) for _ in range(2))
     icp = ICP(c)
     ours, theirs, cv_errors = [], [], []
     for s in starts:
         a, b = dataset[int(s)], dataset[int(s) + gap]
         reference = invert(b.gt_pose) @ a.gt_pose
-        for maps, depth in ((src, a.depth), (tgt, b.depth)):
-            maps.compute(depth, K)
+        for pyramid, depth in ((src, a.depth), (tgt, b.depth)):
+            pyramid.compute(depth, K)
         ours.append(pose_error(icp.align(src, tgt).pose, reference))
         o3d = open3d_runner(a.depth, b.depth, K, list(c.iterations), cfg.dataset.depth_max, args.open3d_python)
         if o3d is not None:
@@ -455,7 +455,7 @@ def photometric_cost(cfg, args) -> dict:
 
     from ti_fusion.config import SynthConfig
     from ti_fusion.geometry import invert, make_pose, so3_exp
-    from ti_fusion.kernels.maps import FrameMaps, grey_image
+    from ti_fusion.kernels.pyramid import FramePyramid, grey_image
     from ti_fusion.synthetic.scene import SyntheticSequence
     from ti_fusion.tracking.icp import ICP
 
@@ -463,7 +463,7 @@ def photometric_cost(cfg, args) -> dict:
     pose, G = seq.poses[40], make_pose(so3_exp(np.radians([1.0, -0.5, 0.5])), [0.01, -0.01, 0.01])
     (ds, cs), (dt, ct) = seq.render(pose, seed=1), seq.render(pose @ invert(G), seed=2)
     K, levels = seq.intrinsics, len(cfg.icp.iterations)
-    src, tgt = (FrameMaps(cfg.maps, K.height, K.width, levels, input_level=1) for _ in range(2))
+    src, tgt = (FramePyramid(cfg.pyramid, K.height, K.width, levels, input_level=1) for _ in range(2))
     src.compute(ds, K)
     tgt.compute(dt, K)
     depth_only = ICP(dataclasses.replace(cfg.icp, color_weight=0.0))
@@ -517,7 +517,7 @@ def main(argv=None) -> int:
     backend = init_backend("cpu")
     depth_s, depth_t, K, reference, what = load_pair(args, cfg)
     print(f"ICP benchmark: {what}; backend {backend.arch}, {os.cpu_count()} CPUs; iterations {cfg.icp.iterations} "
-          f"(coarse → fine), depth smoothing r = {cfg.maps.smooth_radius(K.width)} at {K.width} px (half at half); medians of {args.repeats}+ runs; "
+          f"(coarse → fine), depth smoothing r = {cfg.pyramid.smooth_radius(K.width)} at {K.width} px (half at half); medians of {args.repeats}+ runs; "
           f"{numpy_conditions(kept)}")
     rows = []
     for f in (1, 2):
@@ -530,7 +530,7 @@ def main(argv=None) -> int:
     for title, it_key, fr_key in (("wall-clock", "iteration_ms", "frame_ms"),
                                   ("CPU time of each process (all its threads)", "iteration_cpu_ms", "frame_cpu_ms")):
         print(f"\n{title}")
-        print(f"{'':>9} | {'one ICP iteration, finest level (ms)':^36} | {'one frame pair: maps + ICP (ms)':^57} | "
+        print(f"{'':>9} | {'one ICP iteration, finest level (ms)':^36} | {'one frame pair: pyramid + ICP (ms)':^57} | "
               f"{'error vs reference':^44}")
         print(f"{'':>9} | {'Taichi':>10} {'NumPy':>10} {'NumPy/Ti':>12} | {'Taichi':>10} {'Open3D':>10} "
               f"{'O3D/Ti':>11} {'OpenCV':>10} {'CV/Ti':>11} | {'Taichi':>14} {'Open3D':>14} {'OpenCV':>14}")

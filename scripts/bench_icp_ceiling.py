@@ -140,10 +140,10 @@ def bench_size(depth_s, depth_t, K, cfg, executables, repeats: int, workdir: Pat
 
     from ti_fusion.geometry import flatten_pose
     from ti_fusion.tracking.icp import ICP
-    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.kernels.pyramid import FramePyramid
 
     c = cfg.icp
-    src, tgt = (FrameMaps(cfg.maps, K.height, K.width, len(c.iterations)) for _ in range(2))
+    src, tgt = (FramePyramid(cfg.pyramid, K.height, K.width, len(c.iterations)) for _ in range(2))
     compute_maps(src, tgt, depth_s, depth_t, K, c)
     icp = ICP(c)
     pose = icp.align(src, tgt).pose

@@ -103,7 +103,7 @@ def workload():
 
 def slam_stats(i: int) -> dict:
     return {"frame": i, "status": "ok", "tracking": "ok", "surfels": 80000 + 100 * i,
-            "ms": {"maps": 0.9, "track": 10.9, "fuse": 1.9, "log": 0.2, "load": 3.8},
+            "ms": {"pyramid": 0.9, "track": 10.9, "fuse": 1.9, "log": 0.2, "load": 3.8},
             "icp": {"iterations": [2, 3, 2], "residual_rms_m": 0.0038, "inliers": 15705, "inlier_ratio": 0.944,
                     "condition": 82.8, "update_norm": 1.5e-05},
             "merged": 15401, "added": 193, "covered": 952, "removed": 0}

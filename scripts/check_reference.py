@@ -63,7 +63,7 @@ def main() -> int:
     from ti_fusion.geometry import invert
     from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.icp import PointToPlane, unpack_sums
-    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.kernels.pyramids import FramePyramid
 
     dataset = open_dataset(cfg.dataset, cfg.synth)
     n = len(dataset)
@@ -79,10 +79,10 @@ def main() -> int:
 
     K, icp_cfg = dataset.intrinsics, cfg.icp
     level = cfg.frame_input_level(K.width)
-    maps = [FrameMaps(cfg.maps, K.height, K.width, len(icp_cfg.iterations), input_level=level) for _ in range(2)]
+    pyramids = [FramePyramid(cfg.pyramids, K.height, K.width, len(icp_cfg.iterations), input_level=level) for _ in range(2)]
     icp = ICP(icp_cfg)
     backend = current_backend()
-    kernels = PointToPlane(maps[0].shapes[0][0] * maps[0].shapes[0][1], backend.has_f64, backend.arch)
+    kernels = PointToPlane(pyramids[0].shapes[0][0] * pyramids[0].shapes[0][1], backend.has_f64, backend.arch)
 
     def compute(m, i):
         frame = dataset[i]
@@ -93,24 +93,24 @@ def main() -> int:
                                        b.intrinsics[0].as_tuple(), 0.05, icp_cfg.normal_threshold_deg))
         return float(np.sqrt(s["r2"] / s["inliers"]) * 1e3) if s["inliers"] else float("nan")
 
-    print(f"{dataset.describe()['name']}: {n} frames, pairs aligned at {maps[0].width}x{maps[0].height}")
+    print(f"{dataset.describe()['name']}: {n} frames, pairs aligned at {pyramids[0].width}x{pyramids[0].height}")
     print(f"{'gap':>4} {'pairs':>6}  reference vs ICP (mm, deg RMS)" + ("   estimate vs ICP" if estimate else ""))
     jumps = []
     for gap in (int(g) for g in args.gaps.split(",")):
         ref_err, est_err = [], []
         for i in range(0, n - gap, 1 if gap == 1 else args.stride):
             j = i + gap
-            compute(maps[0], i)
-            compute(maps[1], j)
+            compute(pyramids[0], i)
+            compute(pyramids[1], j)
             T_ref = invert(reference[j]) @ reference[i]
-            result = icp.align(maps[0], maps[1], init=T_ref)
+            result = icp.align(pyramids[0], pyramids[1], init=T_ref)
             if result.failure or result.inlier_ratio < args.min_inlier_ratio:
                 continue
             ref_err.append(relative_error(T_ref, result.pose))
             if estimate is not None and estimate[i] is not None and estimate[j] is not None:
                 est_err.append(relative_error(invert(estimate[j]) @ estimate[i], result.pose))
             if gap == 1:
-                at_ref, at_icp = residual_mm(T_ref, *maps), residual_mm(result.pose, *maps)
+                at_ref, at_icp = residual_mm(T_ref, *pyramids), residual_mm(result.pose, *pyramids)
                 if at_ref - at_icp > args.jump_mm:
                     jumps.append((i, j, at_ref, at_icp, ref_err[-1][0]))
         line = f"{gap:>4} {len(ref_err):>6}  {_rms(ref_err)}"

@@ -20,7 +20,7 @@ import tokenize
 from pathlib import Path
 
 from ti_fusion import config as config_module
-from ti_fusion.config import ADVANCED, REMOVED, Config, rules
+from ti_fusion.config import ADVANCED, REMOVED, RENAMED_SECTIONS, Config, rules
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "CONFIG.md"
 
@@ -28,7 +28,7 @@ DOC = Path(__file__).resolve().parent.parent / "docs" / "CONFIG.md"
 SECTIONS = {
     "dataset": "The input: which frames, their depth units, intrinsics, topics and colour camera",
     "synth": "The embedded synthetic sequence (used when `dataset.path` is empty): scene, size, sensor noise",
-    "maps": "The per-frame maps that tracking aligns and fusion merges (depth smoothing, pyramid, normals)",
+    "pyramid": "The frame's pyramid that tracking aligns and fusion merges (depth smoothing, depth, vertex and normal maps per level)",
     "icp": "Dense tracking: projective point-to-plane ICP, with the optional photometric term",
     "fusion": "The surfel map: its size, the level it is built at, merging and removal",
     "slam": "The tracking loop around ICP: motion model, failure checks, re-localisation, loop closure on/off",
@@ -146,6 +146,7 @@ def render() -> str:
             "ones measured is in [BENCHMARKS.md](BENCHMARKS.md#settled-and-removed-settings).", "",
             "| key | why |", "| --- | --- |"]
     out += [f"| `{s}.{k}` | {_cell(why)} |" for (s, k), why in sorted(REMOVED.items())]
+    out += [f"| `[{s}]` | renamed: {_cell(why)} |" for s, why in sorted(RENAMED_SECTIONS.items())]
     return "\n".join(out) + "\n"
 
 

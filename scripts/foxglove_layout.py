@@ -103,7 +103,7 @@ def layout() -> dict:
                                                  "enabledMarkerTopics": [], "mode": "fit", "synchronize": False,
                                                  "minValue": 0, "maxValue": 5000})
     stages = ui.plot("ms", "ms per frame", ("/slam/stats.ms.track", "track"), ("/slam/stats.ms.fuse", "fuse"),
-                     ("/slam/stats.ms.maps", "maps"), ("/slam/stats.ms.log", "log"))
+                     ("/slam/stats.ms.pyramid", "pyramid"), ("/slam/stats.ms.log", "log"))
     inliers = ui.plot("inliers", "ICP inlier ratio", ("/slam/stats.icp.inlier_ratio", "inlier ratio"))
     surfels = ui.plot("surfels", "surfels", ("/slam/stats.surfels", "surfels"))
     estimate = ui.plot("trajectory-estimate", "estimate, y against x (m)",

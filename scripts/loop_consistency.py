@@ -78,7 +78,7 @@ def measure(overrides: list[str], first: int, last: int, out: Path) -> dict:
             "error_last_cm": errors_cm[-1],
             "tracking_failures": summary["tracking_failures"],
             "fps_processing": summary["fps_processing"], "keyframes": summary["keyframes"],
-            "loop_candidates": summary["loop_candidates"], "loop_closures": summary["loop_closures"],
+            "loop_candidates": summary["loop_candidates"], "loops_applied": summary["loops_applied"],
             "loop_ms": summary.get("loop_ms"), "loops": summary.get("loops"),
             "loops_refused": summary.get("loops_refused"),
             "last_vs_first_pass": {"points": int(len(dist)), **({} if len(dist) == 0 else {

@@ -6,15 +6,27 @@ from ti_fusion.config import REMOVED, Config, load_config
 from ti_fusion.errors import InputError
 
 
-def test_maps_section_and_removed_keys(tmp_path):
-    cfg = load_config(None, ["maps.depth_smooth_radius=3", "maps.normal_max_depth_jump=0.07"])
-    assert cfg.maps.depth_smooth_radius == 3 and cfg.maps.normal_max_depth_jump == 0.07
-    assert "maps" in Config().to_dict()
+def test_pyramid_section_and_removed_keys(tmp_path):
+    cfg = load_config(None, ["pyramid.depth_smooth_radius=3", "pyramid.normal_max_depth_jump=0.07"])
+    assert cfg.pyramid.depth_smooth_radius == 3 and cfg.pyramid.normal_max_depth_jump == 0.07
+    assert "pyramid" in Config().to_dict()
     # the frame-map settings used to be in [icp]: the old name is one line saying where it went
     path = tmp_path / "old.toml"
     path.write_text("[icp]\ndepth_smooth_radius = 2\ndist_threshold = 0.05\n")
-    with pytest.raises(InputError, match=r"icp.depth_smooth_radius was removed: moved to maps.depth_smooth_radius$"):
+    with pytest.raises(InputError, match=r"icp.depth_smooth_radius was removed: moved to pyramid.depth_smooth_radius$"):
         load_config(path)
+
+
+@pytest.mark.parametrize("given", [["maps.depth_smooth_radius=3"], "[maps]\ndepth_smooth_radius = 3\n"])
+def test_the_renamed_maps_section_is_one_line_naming_the_new_one(tmp_path, given):
+    """[maps] became [pyramid] ('map' is the surfel map): an old file or --set says so in one line."""
+    path = None
+    if isinstance(given, str):
+        path = tmp_path / "old.toml"
+        path.write_text(given)
+    with pytest.raises(InputError, match=r"section 'maps' was renamed: it is \[pyramid\]") as info:
+        load_config(path, [] if path else given)
+    assert "\n" not in str(info.value)
 
 
 @pytest.mark.parametrize("key", sorted(f"{s}.{k}" for s, k in REMOVED))
@@ -28,15 +40,15 @@ def test_a_removed_setting_is_one_line_naming_it(key):
 
 def test_unknown_setting_is_one_clear_line():
     with pytest.raises(InputError, match="unknown setting 'depth_smooth'"):
-        load_config(None, ["maps.depth_smooth=2"])
+        load_config(None, ["pyramid.depth_smooth=2"])
 
 
 def test_non_positive_range_check_is_refused(cpu):
-    from ti_fusion.config import MapsConfig
-    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.config import PyramidConfig
+    from ti_fusion.kernels.pyramid import FramePyramid
 
-    with pytest.raises(InputError, match="maps.pyramid_depth_sigma"):
-        FrameMaps(MapsConfig(pyramid_depth_sigma=0.0), 8, 8, levels=1)
+    with pytest.raises(InputError, match="pyramid.depth_sigma"):
+        FramePyramid(PyramidConfig(depth_sigma=0.0), 8, 8, levels=1)
 
 
 # --------------------------------------------------------------------------------------------------

@@ -333,14 +333,14 @@ class ICPConfig:
 
 
 @dataclass
-class MapsConfig:
-    """The per-frame maps (``kernels/maps.py`` FrameMaps) that ICP aligns and fusion merges: depth
-    smoothing, pyramid, vertex and normal maps. How far the input is averaged down first is
+class PyramidConfig:
+    """The frame's pyramid (``kernels/pyramid.py`` FramePyramid) that ICP aligns and fusion merges: depth
+    smoothing, the depth pyramid and each level's vertex and normal maps. How far the input is averaged down first is
     ``Config.frame_input_level`` (the map's level, ``fusion.level``)."""
 
     normal_max_depth_jump: Positive = 0.05  # metres: neighbours further apart in depth give no normal
                                             # (× 2**l at pyramid level l)
-    pyramid_depth_sigma: Positive = 0.03    # metres: the pyramid's and the smoothing's depth means count only
+    depth_sigma: Positive = 0.03            # metres: the pyramid's and the smoothing's depth means count only
                                             # neighbours within 3σ of the centre depth (no mixing across edges)
     depth_smooth_radius: Annotated[int, Range(ge=-1)] = -1
                                      # edge-preserving (2r+1)² depth mean before the maps; 0 = raw; -1 = auto,
@@ -508,7 +508,7 @@ class LogConfig:
 class Config:
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     synth: SynthConfig = field(default_factory=SynthConfig)
-    maps: MapsConfig = field(default_factory=MapsConfig)
+    pyramid: PyramidConfig = field(default_factory=PyramidConfig)
     icp: ICPConfig = field(default_factory=ICPConfig)
     fusion: FusionConfig = field(default_factory=FusionConfig)
     slam: SLAMConfig = field(default_factory=SLAMConfig)
@@ -620,8 +620,8 @@ def _set_field(config: Config, section: str, key: str, value: Any, where: str) -
 # Settings that are gone, with what replaced them, so an old config file is told why in its one error line
 # (what each removed ablation measured is in docs/BENCHMARKS.md, "Settled and removed settings").
 REMOVED = {
-    **{("icp", name): f"moved to maps.{name}" for name in ("normal_max_depth_jump", "pyramid_depth_sigma",
-                                                             "depth_smooth_radius")},
+    **{("icp", name): f"moved to pyramid.{name}" for name in ("normal_max_depth_jump", "depth_smooth_radius")},
+    ("icp", "pyramid_depth_sigma"): "moved to pyramid.depth_sigma",
     ("icp", "solver"): "the 6×6 step is always solved by Cholesky (LU and QR agreed with it; docs/BENCHMARKS.md)",
     ("icp", "converged_update"): "the result is converged when the last update is below icp.stop_update",
     ("loop", "odometry_info_ratio"): "fixed at 1 (the inverse information; docs/BENCHMARKS.md)",
@@ -635,13 +635,17 @@ REMOVED = {
     ("slam", "anchor_to_ground_truth"): "renamed slam.start_at_ground_truth ('anchor' is a surfel's keyframe)",
 }
 
+# Sections that were renamed, with the new names of their keys.
+RENAMED_SECTIONS = {"maps": "it is [pyramid] (pyramid.depth_smooth_radius, pyramid.normal_max_depth_jump, "
+                            "pyramid.depth_sigma; 'map' is the surfel map)"}
+
 # The tuning knobs: docs/CONFIG.md lists them apart from the main settings, because their defaults are what the
 # benchmarks settled on and most runs leave them alone. They stay in their stage's section, so that a key keeps
 # one name in files, --set and the code.
 ADVANCED = {
     "synth": ("fx", "min_range", "max_range", "grazing_deg", "baseline", "subpixel", "sensor_width", "color_noise",
               "depth_noise_scale"),
-    "maps": ("normal_max_depth_jump", "pyramid_depth_sigma", "depth_smooth_radius"),
+    "pyramid": ("normal_max_depth_jump", "depth_sigma", "depth_smooth_radius"),
     "icp": ("normal_threshold_deg", "robust_scale", "depth_weighting", "min_inliers", "max_condition",
             "stop_update", "level_dist_scale", "color_robust_scale", "weak_ratio"),
     "fusion": ("dist_threshold", "normal_threshold_deg", "confidence_weighting", "remove_unstable", "unstable_weight",
@@ -668,6 +672,8 @@ def apply_dict(config: Config, data: dict, where: str = "config", base: Path | N
         raise InputError(None, f"{where}: config is {_type_name(data)}: expected a table of sections")
     sections = [f.name for f in dataclasses.fields(config)]
     for section, values in data.items():
+        if section in RENAMED_SECTIONS:
+            raise InputError(None, f"{where}: section {section!r} was renamed: {RENAMED_SECTIONS[section]}")
         if section not in sections:
             raise InputError(None, f"{where}: unknown section {section!r} (known: {', '.join(sections)})")
         if not isinstance(values, dict):

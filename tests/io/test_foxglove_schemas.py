@@ -100,7 +100,7 @@ def test_every_stats_schema_passes_foxglove_parser(topic):
         assert ("inlier_ratio", "float64", False) in datatypes["root.icp"]
         assert ("residual_rms_m", "float64", False) in datatypes["root.icp"]
         assert ("candidates", "root.loop.candidates", True) in datatypes["root.loop"]
-        assert ("closed", "float64", True) in datatypes["root.loop"]
+        assert ("applied", "float64", True) in datatypes["root.loop"]
         assert {"detect", "verify", "correct"} <= {n for n, _, _ in datatypes["root.loop.ms"]}
 
 
@@ -193,16 +193,31 @@ def test_a_loop_keyframes_stats_validate_against_the_declared_schema():
 
     validator = jsonschema.Draft202012Validator(_stats_schemas()["/slam/stats"])
     rejected = LoopCandidate(4, 1, 0.31, reason="few_consistent", consistent=12)
-    verified = LoopCandidate(4, 0, 0.52, accepted=True, reason="verified", consistent=80, pnp_inliers=60,
+    verified = LoopCandidate(4, 0, 0.52, verified=True, reason="verified", consistent=80, pnp_inliers=60,
                              icp_inlier_ratio=0.91, icp_residual_m=0.004, ms=12.5)
-    for closed in (None, (0, 4)):
-        report = LoopReport(4, "moved", [rejected, verified], closed, "applied" if closed else "",
+    for applied in (None, (0, 4)):
+        report = LoopReport(4, "moved", [rejected, verified], applied, "applied" if applied else "",
                             {"keyframe": 0.4, "detect": 1.0, "verify": 20.0, "optimise": 3.0, "correct": 5.0})
         result = FrameResult(index=40, timestamp=2.0, pose=np.eye(4), tracking="ok",
-                             ms={"maps": 1.0, "track": 9.0, "loop": 29.4}, loop=report)
+                             ms={"pyramid": 1.0, "track": 9.0, "loop": 29.4}, loop=report)
         message = without_nulls(jsonable(frame_stats(result, 1000)))
         errors = [f"{'.'.join(map(str, e.absolute_path))}: {e.message}" for e in validator.iter_errors(message)]
         assert not errors, errors
-        assert message["loop"]["closed"] == ([] if closed is None else [0, 4])
+        assert message["loop"]["applied"] == ([] if applied is None else [0, 4])
         assert "icp_residual_mm" not in message["loop"]["candidates"][0]
         assert message["loop"]["candidates"][1]["icp_residual_mm"] == 4.0
+
+
+def test_icp_iterations_in_the_stats_are_coarse_to_fine_as_the_setting():
+    """/slam/stats' icp.iterations counts each level's iterations in the order of the setting icp.iterations
+    (coarse → fine), not by level number (0 = finest)."""
+    import numpy as np
+
+    from ti_fusion.slam.dense import FrameResult
+    from ti_fusion.slam.slam_step import frame_stats
+    from ti_fusion.tracking.icp import ICPResult, IterationRecord
+
+    icp = ICPResult(pose=np.eye(4), iterations=[IterationRecord(2, i, 1.0, 100) for i in range(4)]
+                    + [IterationRecord(1, i, 1.0, 100) for i in range(2)] + [IterationRecord(0, 0, 1.0, 100)])
+    result = FrameResult(index=1, timestamp=0.1, pose=np.eye(4), tracking="ok", ms={"pyramid": 1.0}, icp=icp)
+    assert frame_stats(result, 10)["icp"]["iterations"] == [4, 2, 1]

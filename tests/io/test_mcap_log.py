@@ -36,7 +36,7 @@ def _stats(i: int) -> dict:
     return {
         "frame": i,
         "status": "ok" if i != 3 else "low_inliers",
-        "ms": {"load": 1.0 + i, "maps": 2.0, "track": 10.0 + 2 * i, "fuse": 5.0, "log": np.float32(0.5)},
+        "ms": {"load": 1.0 + i, "pyramid": 2.0, "track": 10.0 + 2 * i, "fuse": 5.0, "log": np.float32(0.5)},
         "icp": {"iterations": [10, 5, 3], "residual": 0.01 * (i + 1), "inliers": 1000 + i,
                 "inlier_ratio": 0.9, "cond": float("nan")},
         "surfels": np.int64(5000 * (i + 1)),

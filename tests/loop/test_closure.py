@@ -73,10 +73,10 @@ def test_edges_are_green_only_for_loops_applied():
     applied, like one verification rejected: green in trajectory.png and /loop_closures means the map moved."""
     loop = LoopClosure(Config(), SimpleNamespace())
     loop.keyframes = [SimpleNamespace(centre=np.array([k, 0.0, 0.0])) for k in range(4)]
-    loop.candidates = [SimpleNamespace(match=0, query=3, accepted=True),
-                       SimpleNamespace(match=1, query=3, accepted=True),
-                       SimpleNamespace(match=2, query=3, accepted=False)]
-    loop.closures = [(0, 3)]
+    loop.candidates = [SimpleNamespace(match=0, query=3, verified=True),
+                       SimpleNamespace(match=1, query=3, verified=True),
+                       SimpleNamespace(match=2, query=3, verified=False)]
+    loop.applied = [(0, 3)]
     loop.refused = [(1, 3, "an outlier of the robust kernel")]
     edges = loop.edges()
     assert [e[2] for e in edges] == [True, False, False]
@@ -110,13 +110,13 @@ def run(tmp_path_factory):
 def test_the_return_is_closed_onto_the_start(run):
     s = run.summary
     assert s["keyframes"] >= 4
-    assert s["loop_candidates"] >= 1 and s["loop_closures"] >= 1
+    assert s["loop_candidates"] >= 1 and s["loops_applied"] >= 1
     assert s["loops"][0]["frames"][1] >= 15  # on the way back
     assert s["tracking_failures"] == 0
     assert s["ate_rmse_m"] < 0.01  # the correction did not disturb a well-tracked path
     for name in ("detect", "verify", "optimise", "correct"):
         assert s["loop_ms"][name]["calls"] >= 1, name
-    assert all({"query", "match", "accepted", "reason"} <= set(c) for c in s["loop_candidates_log"])
+    assert all({"query", "match", "verified", "reason"} <= set(c) for c in s["loop_candidates_log"])
     odometry = [e for e in run.pipeline.step.loop.graph.edges if not e.loop]
     assert odometry and all(e.covariance is not None and np.all(np.linalg.eigvalsh(e.covariance) > 0)
                             for e in odometry)
@@ -153,7 +153,7 @@ def test_loop_stats_and_edges_in_the_log(run):
     log = read_log(run.out / "log.mcap")
     loops = [m["loop"] for m in log.stats if "loop" in m]
     assert len(loops) == run.summary["keyframes"]
-    assert any(entry["closed"] for entry in loops)
+    assert any(entry["applied"] for entry in loops)
     assert all("loop" in m["ms"] for m in log.stats)
     assert log.channels["/loop_closures"].count >= 1
 
@@ -162,7 +162,7 @@ def test_summary_counts_without_loop_closure(run):
     step = run.pipeline.step
     loop, step.loop = step.loop, None
     try:
-        assert step.loop_summary() == {"keyframes": 0, "loop_candidates": 0, "loop_closures": 0}
+        assert step.loop_summary() == {"keyframes": 0, "loop_candidates": 0, "loops_applied": 0}
     finally:
         step.loop = loop
 

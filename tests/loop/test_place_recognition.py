@@ -78,18 +78,18 @@ def test_k_majority_words_are_members_majorities(rng):
 @pytest.fixture(scope="module")
 def verifier():
     _use("cpu")
-    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.kernels.pyramid import FramePyramid
 
     cfg = Config()
     cfg.icp.iterations = [10]  # one level: one ICP kernel to compile for these maps, not three (the test's cost)
-    return LoopVerifier(cfg), FrameMaps(cfg.maps, HEIGHT, WIDTH, 1), FrameMaps(cfg.maps, HEIGHT, WIDTH, 1)
+    return LoopVerifier(cfg), FramePyramid(cfg.pyramid, HEIGHT, WIDTH, 1), FramePyramid(cfg.pyramid, HEIGHT, WIDTH, 1)
 
 
 def test_verification_accepts_the_same_place_with_its_relative_pose(views, verifier):
     ver, source, target = verifier
     (pose_a, first), (pose_b, again) = views["first"], views["again"]
     c = ver.verify(again, first, 0.5, source, target)
-    assert c.accepted, c.reason
+    assert c.verified, c.reason
     truth = invert(pose_b) @ pose_a  # p_again = T p_first
     rot_deg, trans_m = pose_error(c.T, truth)
     assert rot_deg < 1.0 and trans_m < 0.02
@@ -99,7 +99,7 @@ def test_verification_accepts_the_same_place_with_its_relative_pose(views, verif
 def test_verification_rejects_another_place(views, verifier):
     ver, source, target = verifier
     c = ver.verify(views["again"][1], views["far"][1], 0.5, source, target)
-    assert not c.accepted and c.reason.startswith("pre-check")
+    assert not c.verified and c.reason.startswith("pre-check")
 
 
 def test_verification_rejects_a_look_alike_with_the_wrong_geometry(views, verifier):
@@ -109,4 +109,4 @@ def test_verification_rejects_a_look_alike_with_the_wrong_geometry(views, verifi
     wrong = dataclasses.replace(first, depth=first.depth * 1.25,
                                 features=dataclasses.replace(first.features, points=first.features.points * 1.25))
     c = ver.verify(views["again"][1], wrong, 0.5, source, target)
-    assert not c.accepted and c.reason
+    assert not c.verified and c.reason

@@ -111,15 +111,15 @@ def test_bad_corrections_are_refused(cpu):
 def test_fusion_writes_the_anchor_and_corrections_move_the_map(arch):
     """Two frames of a plane with different anchors: the second frame's merged and new surfels take its
     anchor, the rest keep the first's; correcting the second anchor moves exactly its surfels."""
-    maps, _ = plane_frame()
+    pyramid, _ = plane_frame()
     mapper = SurfelMapper(FusionConfig(capacity=20_000, confidence_weighting=False))
     mapper.anchor = 3
-    mapper.integrate(maps, None, np.eye(4), 0)
+    mapper.integrate(pyramid, None, np.eye(4), 0)
     assert np.all(mapper.anchors() == 3)
     shifted = np.eye(4)
     shifted[0, 3] = 0.3  # 15 pixels to the side: part of the plane is seen again, part is new
     mapper.anchor = 7
-    stats = mapper.integrate(maps, None, shifted, 1)
+    stats = mapper.integrate(pyramid, None, shifted, 1)
     got = mapper.to_numpy()
     anchors = mapper.anchors()
     assert stats.merged > 1000 and stats.added > 200
@@ -138,16 +138,16 @@ def test_fusion_writes_the_anchor_and_corrections_move_the_map(arch):
 
 def test_anchors_follow_their_surfels_through_growth_and_compaction(arch, rng):
     # growth: the map doubles while the second frame is added; the first frame's anchors are copied over
-    maps, _ = plane_frame()
+    pyramid, _ = plane_frame()
     mapper = SurfelMapper(FusionConfig(capacity=100, grow=True, remove_unstable=False))
     mapper.anchor = 1
-    mapper.integrate(maps, None, np.eye(4), 0)
+    mapper.integrate(pyramid, None, np.eye(4), 0)
     n_first = mapper.count
     capacity = mapper.map.capacity
     away = np.eye(4)
     away[:3, 3] = [0.0, 0.0, 1.0]  # the same plane 1 m further: all new surfels
     mapper.anchor = 2
-    mapper.integrate(maps, None, away, 1)
+    mapper.integrate(pyramid, None, away, 1)
     assert mapper.map.capacity > capacity
     np.testing.assert_array_equal(mapper.anchors(), np.repeat([1, 2], [n_first, mapper.count - n_first]))
     # compaction: survivors from above the new count move into the holes, their anchors with them

@@ -5,7 +5,7 @@ fusion step adds no surfel at a pixel whose point lies on the disc of a surfel m
 pixel (``fusion.skip_covered``), so a render that shows each surfel at its own pixel only has holes in a
 lattice up to two pixels wide. A coarse pyramid pixel exists only where its centre fine pixel has depth,
 so the coarse levels aliased against that lattice and emptied: on the synthetic corridor loop tracking
-was lost at the coarsest level. ``SurfelMapper.render_maps`` therefore builds the pyramid from a render
+was lost at the coarsest level. ``SurfelMapper.render_pyramid`` therefore builds the pyramid from a render
 whose holes take a neighbour's disc (``mapper.FILL_HALF``), and level 0 keeps the surfels' own
 pixels (filling it too doubled the synthetic room's ATE).
 """
@@ -13,13 +13,13 @@ pixels (filling it too doubled the synthetic room's ATE).
 import numpy as np
 
 from ti_fusion.camera import Intrinsics
-from ti_fusion.config import FusionConfig, MapsConfig
-from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.config import FusionConfig, PyramidConfig
+from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.mapping import mapper
 from ti_fusion.mapping.mapper import SurfelMapper
 
 K = Intrinsics(fx=64.0, fy=64.0, cx=39.5, cy=29.5, width=80, height=60)
-RAW = MapsConfig(depth_smooth_radius=0)
+RAW = PyramidConfig(depth_smooth_radius=0)
 STEPS = 11  # 5 cm each: from 2.6 m to 2.1 m in front of the wall
 
 
@@ -33,19 +33,19 @@ def walk() -> tuple[np.ndarray, list[np.ndarray]]:
     """Fuse the wall at known poses while walking towards it. Before each frame, the prediction at its pose:
     per step the fraction of pixels with depth at levels 0, 1, 2, and level 0's depth."""
     mapper = SurfelMapper(FusionConfig(capacity=100_000))
-    maps = FrameMaps(RAW, K.height, K.width, levels=1)
-    predicted = FrameMaps(RAW, K.height, K.width, levels=3)
+    pyramid = FramePyramid(RAW, K.height, K.width, levels=1)
+    predicted = FramePyramid(RAW, K.height, K.width, levels=3)
     covered, level0 = [], []
     for k in range(STEPS):
         pose = np.eye(4)
         pose[2, 3] = 0.4 + 0.05 * k
         if k > 0:
-            mapper.render_maps(predicted, pose, K)
+            mapper.render_pyramid(predicted, pose, K)
             depth = [predicted.depth[level].to_numpy() for level in range(3)]
             covered.append([float((d > 0).mean()) for d in depth])
             level0.append(depth[0])
-        maps.compute(wall_depth(pose[2, 3]), K)
-        mapper.integrate(maps, None, pose, k)
+        pyramid.compute(wall_depth(pose[2, 3]), K)
+        mapper.integrate(pyramid, None, pose, k)
     return np.array(covered), level0
 
 

@@ -15,14 +15,14 @@ import pytest
 import taichi as ti
 
 from ti_fusion.camera import Intrinsics
-from ti_fusion.config import FusionConfig, MapsConfig
+from ti_fusion.config import FusionConfig, PyramidConfig
 from ti_fusion.errors import MapCapacityError
 from ti_fusion.mapping.mapper import SurfelMapper, pack_color
 from ti_fusion.geometry import se3_exp
 from ti_fusion.kernels import fusion as F
 from ti_fusion.kernels import index_map
 from ti_fusion.kernels.common import BLOCK, INT_MAX, camera_to_world
-from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.kernels.surfel_map import SurfelMap
 from ti_fusion.kernels.surfels import ATTRIBUTES
 from ti_fusion.io.ply import read_ply, write_ply
@@ -33,7 +33,7 @@ from ti_fusion.sensor import SIGMA_1M, depth_sigma
 # row segments (72 × 8) split into more than one task of 512 iterations, so they run on two threads
 K = Intrinsics(fx=100.0, fy=104.0, cx=34.5, cy=35.5, width=70, height=72)
 H, W = K.height, K.width
-RAW = MapsConfig(depth_smooth_radius=0)  # frame maps without depth smoothing
+RAW = PyramidConfig(depth_smooth_radius=0)  # frame maps without depth smoothing
 DIST = 0.03
 ANGLE = 20.0
 SIGMA = 0.6
@@ -654,20 +654,20 @@ def plane_frame(tilt=0.002):
     _, u = np.mgrid[0:H, 0:W]
     depth = (2.0 + tilt * u).astype(np.float32)
     depth[:5, :7] = 0.0  # a hole
-    maps = FrameMaps(RAW, H, W, levels=1)
-    maps.compute(depth, K)
-    return maps, depth
+    pyramid = FramePyramid(RAW, H, W, levels=1)
+    pyramid.compute(depth, K)
+    return pyramid, depth
 
 
 @pytest.mark.parametrize("confidence", [False, True])
 def test_same_frame_twice_adds_nothing(cpu, rng, confidence):
-    maps, _ = plane_frame()
+    pyramid, _ = plane_frame()
     color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
     pose = random_pose(rng)
     mapper = SurfelMapper(FusionConfig(capacity=10_000, confidence_weighting=confidence))
-    first = mapper.integrate(maps, color, pose, 0)
+    first = mapper.integrate(pyramid, color, pose, 0)
     before = mapper.to_numpy()
-    second = mapper.integrate(maps, color, pose, 1)
+    second = mapper.integrate(pyramid, color, pose, 1)
     after = mapper.to_numpy()
     assert first.added > 0.8 * H * W and first.merged == 0
     assert second.added == 0 and second.merged == first.added and second.surfels == first.surfels
@@ -683,7 +683,7 @@ def test_same_frame_twice_adds_nothing(cpu, rng, confidence):
 def test_auto_map_level_and_smoothing_follow_the_width():
     assert [FusionConfig().map_level(w) for w in (160, 320, 321, 640, 1280)] == [0, 0, 1, 1, 2]
     assert FusionConfig(level=0).map_level(640) == 0
-    assert [MapsConfig().smooth_radius(w) for w in (32, 320, 640)] == [1, 6, 12]
+    assert [PyramidConfig().smooth_radius(w) for w in (32, 320, 640)] == [1, 6, 12]
     assert RAW.smooth_radius(640) == 0
 
 
@@ -691,13 +691,13 @@ def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
     """fusion.level = 1: the surfels are level 1's vertices (colour subsampled alike), not level 0's."""
     _, u = np.mgrid[0:H, 0:W]
     depth = (2.0 + 0.002 * u).astype(np.float32)
-    maps = FrameMaps(RAW, H, W, levels=2)
-    maps.compute(depth, K)
+    pyramid = FramePyramid(RAW, H, W, levels=2)
+    pyramid.compute(depth, K)
     color = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
     pose = random_pose(rng)
     mapper = SurfelMapper(FusionConfig(capacity=10_000, level=1))
-    stats = mapper.integrate(maps, color, pose, 0)
-    vertex, normal = maps.vertex[1].to_numpy(), maps.normal[1].to_numpy()
+    stats = mapper.integrate(pyramid, color, pose, 0)
+    vertex, normal = pyramid.vertex[1].to_numpy(), pyramid.normal[1].to_numpy()
     valid = (vertex[..., 2] > 0) & (np.abs(normal).sum(-1) > 0)
     assert stats.added == valid.sum() == stats.surfels and stats.merged == 0
     fused = mapper.to_numpy()
@@ -705,9 +705,9 @@ def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
     assert_close(fused["position"], expected, 1e-5)
     assert_close(fused["color"], color[::2, ::2][valid].astype(np.float64), 1e-4)
     with pytest.raises(ValueError, match="fusion.level 1"):
-        mapper.integrate(FrameMaps(RAW, H, W, levels=1), None, pose, 1)
+        mapper.integrate(FramePyramid(RAW, H, W, levels=1), None, pose, 1)
     # Maps averaged down to level 1 on input (as the SLAM builds them) give the same surfels
-    decimated = FrameMaps(RAW, H, W, levels=1, input_level=1)
+    decimated = FramePyramid(RAW, H, W, levels=1, input_level=1)
     decimated.compute(depth, K)
     again = SurfelMapper(FusionConfig(capacity=10_000, level=1))
     again.integrate(decimated, color, pose, 0)
@@ -716,30 +716,30 @@ def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
 
 def test_render_maps_reproduces_the_fused_frame(cpu, rng):
     """Rendering the map of one frame at that frame's pose gives back its depth, vertices and normals."""
-    maps, depth = plane_frame()
+    pyramid, depth = plane_frame()
     pose = random_pose(rng)
     mapper = SurfelMapper(FusionConfig(capacity=10_000))
-    mapper.integrate(maps, None, pose, 0)
-    predicted = FrameMaps(RAW, H, W, levels=2)
-    mapper.render_maps(predicted, pose, K)
+    mapper.integrate(pyramid, None, pose, 0)
+    predicted = FramePyramid(RAW, H, W, levels=2)
+    mapper.render_pyramid(predicted, pose, K)
     got = predicted.depth[0].to_numpy()
-    fused = np.abs(maps.normal[0].to_numpy()).sum(-1) > 0  # the pixels that became surfels
+    fused = np.abs(pyramid.normal[0].to_numpy()).sum(-1) > 0  # the pixels that became surfels
     assert np.all(got[fused] > 0) and (got > 0).sum() >= fused.sum()
     assert_close(got[fused], depth[fused], 1e-5)
-    assert_close(predicted.vertex[0].to_numpy()[fused], maps.vertex[0].to_numpy()[fused], 1e-5)
-    assert_close(predicted.normal[0].to_numpy()[fused], maps.normal[0].to_numpy()[fused], 1e-5)
+    assert_close(predicted.vertex[0].to_numpy()[fused], pyramid.vertex[0].to_numpy()[fused], 1e-5)
+    assert_close(predicted.normal[0].to_numpy()[fused], pyramid.normal[0].to_numpy()[fused], 1e-5)
     assert (predicted.depth[1].to_numpy() > 0).mean() > 0.9  # the pyramid was built from the rendering
 
 
 def test_capacity_grows(cpu, rng):
-    maps, _ = plane_frame()
+    pyramid, _ = plane_frame()
     mapper = SurfelMapper(FusionConfig(capacity=100, grow=True, remove_unstable=False))
-    mapper.integrate(maps, None, np.eye(4), 0)
+    mapper.integrate(pyramid, None, np.eye(4), 0)
     first = mapper.to_numpy()
     assert mapper.map.capacity >= first["position"].shape[0] > 100
     moved = np.eye(4)
     moved[:3, 3] = [0.0, 0.0, 1.0]  # the same plane 1 m further: all new surfels
-    stats = mapper.integrate(maps, None, moved, 1)
+    stats = mapper.integrate(pyramid, None, moved, 1)
     assert stats.added == len(first["position"]) and mapper.map.capacity >= mapper.count
     got = mapper.to_numpy()
     np.testing.assert_array_equal(got["position"][: len(first["position"])], first["position"])  # copied over
@@ -747,10 +747,10 @@ def test_capacity_grows(cpu, rng):
 
 
 def test_export_copies_the_live_surfels_or_every_kth(cpu, rng):
-    maps, _ = plane_frame()
+    pyramid, _ = plane_frame()
     mapper = SurfelMapper(FusionConfig(capacity=50_000, remove_unstable=False))
-    color = rng.integers(0, 256, size=maps.input_shape + (3,), dtype=np.uint8)
-    mapper.integrate(maps, color, np.eye(4), 0)
+    color = rng.integers(0, 256, size=pyramid.input_shape + (3,), dtype=np.uint8)
+    mapper.integrate(pyramid, color, np.eye(4), 0)
     full = {name: field.to_numpy()[: mapper.count] for name, field in
             zip(ATTRIBUTES, mapper.map.arrays.attributes)}  # the whole capacity, cut: the slow way
     got = mapper.to_numpy()
@@ -764,25 +764,25 @@ def test_export_copies_the_live_surfels_or_every_kth(cpu, rng):
 
 
 def test_capacity_error_names_the_setting(cpu):
-    maps, _ = plane_frame()
+    pyramid, _ = plane_frame()
     mapper = SurfelMapper(FusionConfig(capacity=1000, grow=False))
     with pytest.raises(MapCapacityError, match=r"fusion\.capacity") as info:
-        mapper.integrate(maps, None, np.eye(4), 0)
+        mapper.integrate(pyramid, None, np.eye(4), 0)
     assert "\n" not in str(info.value)
     assert mapper.count == 0 and mapper.map.capacity == 1000  # nothing half-written
 
 
 def test_remove_unstable_in_pipeline(cpu):
-    maps, _ = plane_frame()
+    pyramid, _ = plane_frame()
     cfg = FusionConfig(capacity=20_000, confidence_weighting=False, unstable_weight=1.5, unstable_age=3)
     mapper = SurfelMapper(cfg)
-    mapper.integrate(maps, None, np.eye(4), 0)
+    mapper.integrate(pyramid, None, np.eye(4), 0)
     away = np.eye(4)
     away[:3, 3] = [0.0, 0.0, 50.0]  # the camera looks elsewhere: no merges, new surfels far away
     n_first = mapper.count
     for frame in (1, 2):
-        assert mapper.integrate(maps, None, away, frame).removed == 0
-    stats = mapper.integrate(maps, None, away, 3)  # the first frame's surfels are now 3 frames old
+        assert mapper.integrate(pyramid, None, away, frame).removed == 0
+    stats = mapper.integrate(pyramid, None, away, 3)  # the first frame's surfels are now 3 frames old
     assert stats.removed == n_first
     assert np.all(mapper.to_numpy()["t_created"] >= 1)
 
@@ -817,15 +817,15 @@ def fuse_synthetic(noise, frames, stride=3):
     seq = synthetic.SyntheticSequence(SynthConfig(frames=frames * stride, width=160, height=120, fx=131.25,
                                                   noise=noise, seed=3))
     Ks = seq.intrinsics
-    maps = FrameMaps(RAW, Ks.height, Ks.width, levels=1)
+    pyramid = FramePyramid(RAW, Ks.height, Ks.width, levels=1)
     mapper = SurfelMapper(FusionConfig(capacity=200_000))
     first = None
     for k, i in enumerate(range(0, frames * stride, stride)):
         depth, color = seq.frame(i)
-        maps.compute(depth, Ks)
-        mapper.integrate(maps, color, seq.poses[i], k)
+        pyramid.compute(depth, Ks)
+        mapper.integrate(pyramid, color, seq.poses[i], k)
         if first is None:
-            v = maps.vertex[0].to_numpy().astype(np.float64)
+            v = pyramid.vertex[0].to_numpy().astype(np.float64)
             world = v @ seq.poses[i][:3, :3].T + seq.poses[i][:3, 3]
             world[v[..., 2] <= 0] = np.nan
             first = world
@@ -904,25 +904,25 @@ def _benchmark_step(rng):
     step on the next frame. Returns (cfg, the map before the step as arrays, the frame maps, the frame's
     depth and colour, the sequence, the frame's index, the step's stats, the mapper after the step)."""
     cfg = FusionConfig(level=0)
-    mapper, maps, seq, frame = fusion_numpy.build_map(160, 120, 40_000, cfg)
+    mapper, pyramid, seq, frame = fusion_numpy.build_map(160, 120, 40_000, cfg)
     before = mapper.to_numpy()
     stale = rng.random(len(before["weight"])) < 0.05
     before["weight"][stale] = 1.0
     before["t_updated"][stale] = frame - cfg.unstable_age - 3
     mapper.map.from_numpy(before)
     depth, rgb = seq.frame(frame)
-    maps.compute(depth, seq.intrinsics)
-    stats = mapper.integrate(maps, rgb, seq.poses[frame], frame)
+    pyramid.compute(depth, seq.intrinsics)
+    stats = mapper.integrate(pyramid, rgb, seq.poses[frame], frame)
     assert stats.merged > 1000 and stats.added > 100 and stats.covered > 100 and stats.removed > 1000
-    return cfg, before, maps, depth, rgb, seq, frame, stats, mapper
+    return cfg, before, pyramid, depth, rgb, seq, frame, stats, mapper
 
 
 def test_numpy_step_of_fusion_benchmark_matches_kernels(cpu, rng):
     """NumpyFusion, the baseline of bench_fusion's 20× ratio, does the kernels' step: the same surfels
     merged, appended and removed, in the same places of the map."""
-    cfg, before, maps, depth, rgb, seq, frame, stats, mapper = _benchmark_step(rng)
+    cfg, before, pyramid, depth, rgb, seq, frame, stats, mapper = _benchmark_step(rng)
     ref = fusion_numpy.NumpyFusion(before, cfg, capacity=len(before["position"]) + depth.size)
-    ref.integrate(maps.vertex[0].to_numpy(), maps.normal[0].to_numpy(), depth, rgb, seq.poses[frame],
+    ref.integrate(pyramid.vertex[0].to_numpy(), pyramid.normal[0].to_numpy(), depth, rgb, seq.poses[frame],
                   seq.intrinsics, frame)
     assert ref.n == stats.surfels
     got = {name: arr[: ref.n] for name, arr in ref.a.items()}
@@ -937,9 +937,9 @@ def test_c_step_of_ceiling_benchmark_matches_kernels(cpu, rng, tmp_path, march, 
     import subprocess
 
     ceiling = script("bench_fusion_ceiling")
-    cfg, before, maps, depth, rgb, seq, frame, stats, mapper = _benchmark_step(rng)
+    cfg, before, pyramid, depth, rgb, seq, frame, stats, mapper = _benchmark_step(rng)
     radial = mapper.map.fusion_images(*depth.shape).radial.to_numpy()
-    ceiling.write_inputs(tmp_path, before, maps, rgb, seq.poses[frame], seq.intrinsics, frame, cfg, radial)
+    ceiling.write_inputs(tmp_path, before, pyramid, rgb, seq.poses[frame], seq.intrinsics, frame, cfg, radial)
     exe = tmp_path / "fusion_step"
     subprocess.run(script("bench_icp_ceiling").build_command("cc", march, ceiling.C_SOURCE, exe), check=True)
     _, counts = ceiling.run_c(exe, tmp_path, 1)

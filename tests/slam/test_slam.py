@@ -49,7 +49,7 @@ def test_slam_command_on_synthetic_default(cpu, tmp_path):
         assert log.channels[topic].count > 0, topic
     assert len(log.stats) == FRAMES
     assert {"frame", "status", "surfels", "ms"} <= set(log.stats[-1])
-    assert {"maps", "track", "fuse", "log", "load"} <= set(log.stats[-1]["ms"])
+    assert {"pyramid", "track", "fuse", "log", "load"} <= set(log.stats[-1]["ms"])
     assert log.metadata_value("backend", "arch") == "cpu"
     # the map snapshot carries the surfels' colours (the textured room), not white
     from mcap.reader import make_reader
@@ -181,7 +181,7 @@ def test_fuse_runs_in_the_same_pipeline(cpu, tmp_path):
     np.testing.assert_allclose(poses[3], dataset[3].gt_pose, atol=1e-6)
     log = read_log(run.file("log.mcap"))
     assert log.complete and log.stats_topic == "/fuse/stats" and len(log.stats) == 4
-    assert log.stats[-1]["surfels"] > 0 and {"maps", "fuse", "log", "load"} <= set(log.stats[-1]["ms"])
+    assert log.stats[-1]["surfels"] > 0 and {"pyramid", "fuse", "log", "load"} <= set(log.stats[-1]["ms"])
 
 
 def _run_small(tmp_path, arch_name: str) -> dict:

@@ -328,9 +328,9 @@ def test_vo_command_keeps_the_trajectory_and_log_when_interrupted(synth, tmp_pat
 # --------------------------------------------------------------------------------------------------
 def test_feature_initialised_icp_recovers_a_large_motion(synth):
     """≈ 20° and 30 cm between two noise-free frames: ICP from the identity fails, from ORB + PnP it converges."""
-    from ti_fusion.config import ICPConfig, MapsConfig
+    from ti_fusion.config import ICPConfig, PyramidConfig
     from ti_fusion.tracking.icp import ICP
-    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.kernels.pyramid import FramePyramid
 
     seq, _, _ = synth
     pose_a = seq.poses[10]
@@ -346,19 +346,19 @@ def test_feature_initialised_icp_recovers_a_large_motion(synth):
     assert moved_deg > 19.0 and moved_m > 0.29
 
     cfg = ICPConfig()
-    maps = []
+    pyramid = []
     for f in frames:
-        m = FrameMaps(MapsConfig(depth_smooth_radius=0), H, W, levels=len(cfg.iterations))
+        m = FramePyramid(PyramidConfig(depth_smooth_radius=0), H, W, levels=len(cfg.iterations))
         m.compute(f.depth, f.intrinsics)
-        maps.append(m)
+        pyramid.append(m)
     icp = ICP(cfg)
-    from_identity = icp.align(maps[0], maps[1], None)
+    from_identity = icp.align(pyramid[0], pyramid[1], None)
     rot_deg, trans_m = pose_error(from_identity.pose, T_gt)
     assert from_identity.failure is not None or rot_deg > 1.0 or trans_m > 0.05
 
     est = estimate_relative_pose(frames[0], frames[1])
     assert est.ok, est.reason
-    result = icp.align(maps[0], maps[1], est.T)
+    result = icp.align(pyramid[0], pyramid[1], est.T)
     rot_deg, trans_m = pose_error(result.pose, T_gt)
     assert result.failure is None
     assert rot_deg < 0.1 and trans_m < 0.001, (rot_deg, trans_m)

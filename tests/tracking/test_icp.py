@@ -20,11 +20,11 @@ import taichi as ti
 from ti_fusion.reference import icp as icp_numpy
 from ti_fusion.backend import current_backend
 from ti_fusion.camera import Intrinsics
-from ti_fusion.config import DatasetConfig, ICPConfig, MapsConfig, SynthConfig
+from ti_fusion.config import DatasetConfig, ICPConfig, PyramidConfig, SynthConfig
 from ti_fusion.geometry import flatten_pose, invert, make_pose, pose_error, se3_exp, so3_exp
 from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels import icp as kicp
-from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.synthetic.scene import SyntheticSequence
 from ti_fusion.tracking.solve import check_system, solve_normal_equations
 
@@ -321,16 +321,16 @@ _MAPS: dict = {}
 
 
 def maps_of(depth: np.ndarray, K: Intrinsics, cfg: ICPConfig = ICPConfig(), slot: str = "source",
-            smooth: int = -1) -> FrameMaps:
+            smooth: int = -1) -> FramePyramid:
     """The maps of one depth image as the ICP command builds them (``cfg``'s levels, smoothing radius ``smooth``).
-    One FrameMaps per (backend, size, slot) is reused: Taichi compiles its kernels once per set of fields."""
+    One FramePyramid per (backend, size, slot) is reused: Taichi compiles its kernels once per set of fields."""
     key = (depth.shape, len(cfg.iterations), slot, smooth)
-    backend, maps = _MAPS.get(key, (None, None))
+    backend, pyramid = _MAPS.get(key, (None, None))
     if backend is not current_backend():  # fields do not survive a change of backend
-        maps = FrameMaps(MapsConfig(depth_smooth_radius=smooth), K.height, K.width, len(cfg.iterations))
-        _MAPS[key] = (current_backend(), maps)
-    maps.compute(depth, K)
-    return maps
+        pyramid = FramePyramid(PyramidConfig(depth_smooth_radius=smooth), K.height, K.width, len(cfg.iterations))
+        _MAPS[key] = (current_backend(), pyramid)
+    pyramid.compute(depth, K)
+    return pyramid
 
 
 def test_synthetic_motion_recovered_without_noise(arch, rng, sequence):
@@ -565,17 +565,17 @@ def test_a_non_rigid_initial_pose_is_refused():
 
 
 def test_align_compiles_one_iterate_instance_for_every_level(cpu, sequence):
-    """The pyramid levels are rows of one field per quantity (``kernels/maps.py``), so aligning a new pair
+    """The pyramid levels are rows of one field per quantity (``kernels/pyramid.py``), so aligning a new pair
     of maps over three levels adds one instance of the ``iterate`` kernel, not one per level (here a frame
     aligned to itself: one iteration per level)."""
     cfg = ICPConfig()
     K = sequence.intrinsics
-    maps = FrameMaps(MapsConfig(depth_smooth_radius=0), K.height, K.width, len(cfg.iterations))  # new fields
-    maps.compute(sequence.render(sequence.poses[0], noise=False)[0], K)
+    pyramid = FramePyramid(PyramidConfig(depth_smooth_radius=0), K.height, K.width, len(cfg.iterations))  # new fields
+    pyramid.compute(sequence.render(sequence.poses[0], noise=False)[0], K)
     icp = ICP(cfg)
     iterate = icp._kernels(K.width * K.height).k["iterate"]._primal
     before = len(iterate.compiled_kernels)
-    result = icp.align(maps, maps)
+    result = icp.align(pyramid, pyramid)
     assert result.failure is None and {r.level for r in result.iterations} == {0, 1, 2}
     assert len(iterate.compiled_kernels) - before == 1
 

@@ -13,10 +13,10 @@ import taichi as ti
 
 from ti_fusion.backend import current_backend
 from ti_fusion.camera import Intrinsics
-from ti_fusion.config import ICPConfig, MapsConfig
+from ti_fusion.config import ICPConfig, PyramidConfig
 from ti_fusion.geometry import make_pose, pose_error, so3_exp
 from ti_fusion.kernels import icp as kicp
-from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.reference import icp as icp_numpy
 from ti_fusion.tracking.icp import ICP
 from ti_fusion.tracking.solve import weak_directions
@@ -127,10 +127,10 @@ def plane_view(pose: np.ndarray, K: Intrinsics = K_PLANE, distance: float = 1.5)
 
 def plane_maps(pose, slot):
     depth, grey = plane_view(pose)
-    maps = FrameMaps(MapsConfig(depth_smooth_radius=0), K_PLANE.height, K_PLANE.width, 2)
-    maps.compute(depth, K_PLANE)
-    maps.compute_intensity(grey)
-    return maps
+    pyramid = FramePyramid(PyramidConfig(depth_smooth_radius=0), K_PLANE.height, K_PLANE.width, 2)
+    pyramid.compute(depth, K_PLANE)
+    pyramid.compute_intensity(grey)
+    return pyramid
 
 
 @pytest.fixture

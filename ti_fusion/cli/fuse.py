@@ -34,5 +34,5 @@ def _print_summary(s: dict) -> None:
     print(f"  (every pixel, as the classic report counts: {s['all_pixels']:,} → "
           f"{100 * s['compression_ratio_all_pixels']:.2f}%)", flush=True)
     ms = s["ms_per_stage"]
-    print("  ms per frame (median): " + ", ".join(f"{k} {ms[k]['median']:.2f}" for k in ("maps", *STAGES, "fuse")
+    print("  ms per frame (median): " + ", ".join(f"{k} {ms[k]['median']:.2f}" for k in ("pyramid", *STAGES, "fuse")
                                                  if k in ms), flush=True)

@@ -19,7 +19,7 @@ from ti_fusion.errors import InputError
 from ti_fusion.geometry import invert, pose_error
 from ti_fusion.io.outputs import atomic_path
 from ti_fusion.tracking.icp import ICP, ICPResult
-from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.slam.dense import coarse_level_warning
 from ti_fusion.timing import Stopwatch
 
@@ -71,11 +71,11 @@ def _frame(dataset, option: str, index: int) -> Frame:
         raise InputError(dataset.root, f"{option} {index}: no such frame (the sequence has {frames})") from None
 
 
-def _maps(frame: Frame, cfg) -> FrameMaps:
+def _maps(frame: Frame, cfg) -> FramePyramid:
     K = frame.intrinsics
-    maps = FrameMaps(cfg.maps, K.height, K.width, len(cfg.icp.iterations))
-    maps.compute(frame.depth, K)
-    return maps
+    pyramid = FramePyramid(cfg.pyramid, K.height, K.width, len(cfg.icp.iterations))
+    pyramid.compute(frame.depth, K)
+    return pyramid
 
 
 def _print_result(result: ICPResult) -> None:
@@ -170,7 +170,7 @@ def run(ctx) -> dict:
 
     summary = {
         "frames": 2,
-        "ms_per_stage": {"maps": round(maps_ms, 3), "icp": round(icp_ms, 3)},
+        "ms_per_stage": {"pyramid": round(maps_ms, 3), "icp": round(icp_ms, 3)},
         "dataset": dataset.describe(),
         "source": args.source,
         "target": args.target,
@@ -201,6 +201,6 @@ def run(ctx) -> dict:
     png = ctx.out.file("icp.png")
     save_figure(png, source, target, init, result.pose, title)
     summary["figure"] = png.name
-    print(f"maps {summary['ms_per_stage']['maps']:.1f} ms, ICP {summary['ms_per_stage']['icp']:.1f} ms "
+    print(f"maps {summary['ms_per_stage']['pyramid']:.1f} ms, ICP {summary['ms_per_stage']['icp']:.1f} ms "
           "(the first run includes compiling the kernels)")
     return summary

@@ -8,15 +8,15 @@
 For a tracked frame that the selector makes a keyframe (``keyframes.py``): its ORB features and depth
 summary are kept, the pose graph gets the keyframe and an odometry edge, the surfel map's anchor becomes
 its id (the surfels fused from then on move with it), and place recognition (``place_recognition.py``)
-proposes earlier keyframes, verified best first (``verification.py``) until one is accepted. An accepted
-loop goes into the pose graph (``pose_graph.py``); if the optimisation keeps it (not an outlier of the
+proposes earlier keyframes, the candidates, checked best first (``verification.py``) until one is verified.
+A verified loop goes into the pose graph (``pose_graph.py``); if the optimisation keeps it (not an outlier of the
 robust kernel, and within ``loop.max_loop_error`` of the optimised poses), every keyframe k gets its
 world-frame correction C_k = T_k,new · T_k,old⁻¹, and with it every frame pose and every surfel anchored
 to k. Tracking then goes on from the corrected last pose against the corrected map; the motion model is a
 relative motion and needs nothing.
 
 Loop closure sees SLAM through a narrow door (``DenseSLAM``'s "loop closure's door"): ``keyframe_depth()``,
-``current_frame_maps()`` (read only: the target of verification), ``start_keyframe(k)`` and
+``current_frame_pyramid()`` (read only: the target of verification), ``start_keyframe(k)`` and
 ``apply_corrections(C)``, which moves the trajectory (``slam/poses.py``) and the map. Verification renders
 the earlier keyframe into maps of its own.
 """
@@ -32,7 +32,7 @@ import numpy as np
 
 from ti_fusion.config import Config
 from ti_fusion.geometry import invert, renormalize
-from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.loop.keyframes import Keyframe, KeyframeSelector, grid_points
 from ti_fusion.loop.place_recognition import PlaceDatabase
 from ti_fusion.loop.pose_graph import PoseGraph, edge_covariance, frame_covariance
@@ -50,15 +50,15 @@ class LoopReport:
     keyframe: int  # the new keyframe's id
     why: str  # "first", "moved", "turned", "overlap"
     candidates: list[LoopCandidate] = field(default_factory=list)
-    closed: tuple[int, int] | None = None  # (earlier keyframe, this keyframe) of a loop applied
-    outcome: str = ""  # for an accepted candidate: "applied", or why the pose graph refused it
+    applied: tuple[int, int] | None = None  # (earlier keyframe, this keyframe) of a loop applied
+    outcome: str = ""  # for a verified candidate: "applied", or why the pose graph refused it
     ms: dict[str, float] = field(default_factory=dict)  # keyframe, detect, verify, optimise, correct
 
     def stats(self) -> dict:
         """The frame's ``loop`` entry in /slam/stats."""
         return {"keyframe": self.keyframe, "why": self.why,
                 "candidates": [c.record() for c in self.candidates],
-                "closed": None if self.closed is None else list(self.closed), "outcome": self.outcome,
+                "applied": None if self.applied is None else list(self.applied), "outcome": self.outcome,
                 "ms": {k: round(v, 3) for k, v in self.ms.items()}}
 
 
@@ -77,11 +77,11 @@ class LoopClosure:
         self._vo = dataclasses.replace(config.vo, n_features=config.loop.n_features)
         self._since: list[tuple[np.ndarray, np.ndarray]] = []  # loop.odometry_from_icp: (pose, covariance) of the
         # frames since the last keyframe, for the next odometry edge
-        self.candidates: list[LoopCandidate] = []  # every candidate verified, in order
-        self.closures: list[tuple[int, int]] = []  # loops applied
+        self.candidates: list[LoopCandidate] = []  # every candidate checked, in order
+        self.applied: list[tuple[int, int]] = []  # loops applied
         self.refused: list[tuple[int, int, str]] = []  # verified loops the pose graph refused, and why
         self.ms: dict[str, list[float]] = {"detect": [], "verify": [], "optimise": [], "correct": []}
-        self._source: FrameMaps | None = None  # an earlier keyframe's maps for verification (first keyframe on)
+        self._source: FramePyramid | None = None  # an earlier keyframe's maps for verification (first keyframe on)
 
     # -- the verb -------------------------------------------------------------------------------
     def after_frame(self, frame, result) -> LoopReport | None:
@@ -107,24 +107,24 @@ class LoopClosure:
             # first candidate (the prediction is rendered into these maps again before the next frame is
             # tracked); not counted as detection.
             with Stopwatch(report.ms, "warmup"):
-                fill(self._source_maps(kf), kf)
-        accepted = None
+                fill(self._source_pyramid(kf), kf)
+        verified = None
         for place in places:
-            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self._source_maps(kf),
-                                     self.slam.current_frame_maps(), target_ready=True)
+            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self._source_pyramid(kf),
+                                     self.slam.current_frame_pyramid(), target_ready=True)
             report.candidates.append(c)
             self.candidates.append(c)
             log.info(f"loop candidate: keyframe {c.query} (frame {kf.frame}) with keyframe {c.match} (frame "
                      f"{self.keyframes[c.match].frame}), score {c.score:.3f}: "
-                     f"{'accepted' if c.accepted else 'rejected'} ({c.reason})")
-            if c.accepted:
-                accepted = c
+                     f"{'verified' if c.verified else 'rejected'} ({c.reason})")
+            if c.verified:
+                verified = c
                 break
         if report.candidates:
             report.ms["verify"] = sum(c.ms for c in report.candidates)
             self.ms["verify"].append(report.ms["verify"])
-        if accepted is not None:
-            self._close(accepted, report)
+        if verified is not None:
+            self._close(verified, report)
         return report
 
     # -- keyframes ------------------------------------------------------------------------------
@@ -141,11 +141,11 @@ class LoopClosure:
             return combined_system(icp.sums, self.config.icp.color_weight)[0]
         return unpack_sums(icp.sums)["AtA"]
 
-    def _source_maps(self, kf: Keyframe) -> FrameMaps:
+    def _source_pyramid(self, kf: Keyframe) -> FramePyramid:
         """Verification's own maps for an earlier keyframe's stored depth (a keyframe's size: the map's)."""
         if self._source is None:
             h, w = kf.depth.shape
-            self._source = FrameMaps(self.config.maps, h, w, len(self.config.icp.iterations))
+            self._source = FramePyramid(self.config.pyramid, h, w, len(self.config.icp.iterations))
         return self._source
 
     def _make_keyframe(self, frame, pose: np.ndarray) -> Keyframe:
@@ -193,25 +193,25 @@ class LoopClosure:
         with Stopwatch(report.ms, "correct"):
             corrections = np.stack([renormalize(new @ invert(kf.pose)) for new, kf in zip(opt.poses, self.keyframes)])
             self.slam.apply_corrections(corrections)  # a keyframe's pose is its frame's: moved with the trajectory
-            self.graph.accept(opt.poses)
+            self.graph.set_poses(opt.poses)
         self.ms["correct"].append(report.ms["correct"])
-        report.closed, report.outcome = (i, j), "applied"
-        self.closures.append((i, j))
+        report.applied, report.outcome = (i, j), "applied"
+        self.applied.append((i, j))
         moved = float(np.linalg.norm(corrections[-1][:3, 3]))
-        log.info(f"loop {i}-{j} closed: {opt.iterations} iterations, error {opt.error_before:.1f} → "
+        log.info(f"loop {i}-{j} applied: {opt.iterations} iterations, error {opt.error_before:.1f} → "
                  f"{opt.error_after:.2f}, the current keyframe moved {moved * 100:.1f} cm")
 
     # -- results --------------------------------------------------------------------------------
     def loop_segments(self, candidates: list[LoopCandidate]) -> list[tuple[np.ndarray, np.ndarray, bool]]:
         """(camera centre of the earlier keyframe, of the current one, applied) of each candidate: applied =
-        the loop moved the poses and the map; a candidate verification accepted but the pose graph refused
+        the loop moved the poses and the map; a verified candidate the pose graph refused
         (a look-alike place) is drawn as not applied, as one verification rejected."""
-        applied = set(self.closures)
+        applied = set(self.applied)
         return [(self.keyframes[c.match].centre, self.keyframes[c.query].centre, (c.match, c.query) in applied)
                 for c in candidates]
 
     def edges(self) -> list[tuple[np.ndarray, np.ndarray, bool]]:
-        """Every verified candidate as a segment between the two keyframes' current centres."""
+        """Every candidate checked, as a segment between the two keyframes' current centres."""
         return self.loop_segments(self.candidates)
 
     def summary(self) -> dict:
@@ -219,9 +219,9 @@ class LoopClosure:
         cost = {name: {"calls": len(v), "mean": round(float(np.mean(v)), 2), "max": round(float(np.max(v)), 2)}
                 for name, v in self.ms.items() if v}
         return {"keyframes": len(self.keyframes), "loop_candidates": len(self.candidates),
-                "loop_closures": len(self.closures),
+                "loops_applied": len(self.applied),
                 "loops": [{"from": i, "to": j, "frames": [self.keyframes[i].frame, self.keyframes[j].frame]}
-                          for i, j in self.closures][:50],
+                          for i, j in self.applied][:50],
                 "loops_refused": [{"from": i, "to": j, "why": why} for i, j, why in self.refused][:50],
                 "loop_candidates_log": [c.record() for c in self.candidates][:200],
                 "loop_ms": cost}

@@ -224,6 +224,6 @@ class PoseGraph:
             graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), loop_noise))
         return graph
 
-    def accept(self, poses: np.ndarray) -> None:
+    def set_poses(self, poses: np.ndarray) -> None:
         """Take optimised poses as the current estimates."""
         self.poses = [p.copy() for p in poses]

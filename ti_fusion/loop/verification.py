@@ -35,8 +35,8 @@ class LoopCandidate:
     query: int  # the current keyframe's id
     match: int  # the earlier keyframe's id
     score: float  # place recognition's score
-    accepted: bool = False
-    reason: str = ""  # why rejected, or "verified" (the pose graph may still reject it: see closure.py)
+    verified: bool = False  # passed the three gates: a loop for the pose graph, which may still refuse it
+    reason: str = ""  # why rejected, or "verified"
     consistent: int = 0  # matches passing the pre-check
     pnp_inliers: int = 0
     icp_inlier_ratio: float | None = None
@@ -47,7 +47,7 @@ class LoopCandidate:
     def record(self) -> dict:
         """The candidate for the log and summary.json."""
         return {"query": self.query, "match": self.match, "score": round(self.score, 4),
-                "accepted": self.accepted, "reason": self.reason, "consistent": self.consistent,
+                "verified": self.verified, "reason": self.reason, "consistent": self.consistent,
                 "pnp_inliers": self.pnp_inliers,
                 "icp_inlier_ratio": None if self.icp_inlier_ratio is None else round(self.icp_inlier_ratio, 4),
                 "icp_residual_mm": None if self.icp_residual_m is None else round(self.icp_residual_m * 1e3, 3),
@@ -57,7 +57,7 @@ class LoopCandidate:
 class LoopVerifier:
     """Verifies candidates with the run's ICP settings and ``loop`` thresholds.
 
-    ``source`` and ``target`` are ``FrameMaps`` to fill: the earlier keyframe's maps are built in
+    ``source`` and ``target`` are ``FramePyramid`` to fill: the earlier keyframe's maps are built in
     ``source`` from its stored depth, and the current keyframe's in ``target`` unless the caller says
     they are already there (the SLAM loop passes the maps it just tracked the frame with).
     """
@@ -110,13 +110,13 @@ class LoopVerifier:
                         f"{cfg.max_icp_change_deg:g} deg / {cfg.max_icp_change_m * 100:g} cm)")
             return
         c.T = icp.pose
-        c.accepted, c.reason = True, "verified"
+        c.verified, c.reason = True, "verified"
 
 
-def fill(maps, keyframe: Keyframe) -> None:
-    """Build ``maps`` (a ``FrameMaps`` whose level 0 has the shape of ``keyframe.depth``) from the
+def fill(pyramid, keyframe: Keyframe) -> None:
+    """Build ``pyramid`` (a ``FramePyramid`` whose level 0 has the shape of ``keyframe.depth``) from the
     keyframe's stored depth, without smoothing it again."""
-    if tuple(maps.shapes[0]) != keyframe.depth.shape:
-        raise ValueError(f"maps of level-0 shape {maps.shapes[0]} for a keyframe depth of {keyframe.depth.shape}")
-    maps.depth[0].from_numpy(keyframe.depth)
-    maps.compute_from_field(keyframe.depth_intrinsics)
+    if tuple(pyramid.shapes[0]) != keyframe.depth.shape:
+        raise ValueError(f"maps of level-0 shape {pyramid.shapes[0]} for a keyframe depth of {keyframe.depth.shape}")
+    pyramid.depth[0].from_numpy(keyframe.depth)
+    pyramid.compute_from_field(keyframe.depth_intrinsics)

@@ -1,8 +1,8 @@
 """Point-based fusion: a surfel map that frames with known poses are integrated into.
 
     mapper = SurfelMapper(config.fusion)
-    stats = mapper.integrate(frame_maps, frame.color, pose, frame_index)   # merged, added, removed, surfels
-    mapper.render_maps(frame_maps, pose, intrinsics)   # the prediction that ICP tracks against
+    stats = mapper.integrate(frame_pyramid, frame.color, pose, frame_index)   # merged, added, removed, surfels
+    mapper.render_pyramid(frame_pyramid, pose, intrinsics)   # the prediction that ICP tracks against
     mapper.export_ply("map.ply")
 
     mapper.anchor = keyframe_id       # written into every surfel the next integrate calls create or update
@@ -67,25 +67,25 @@ class SurfelMapper:
     def count(self) -> int:
         return self.map.count
 
-    def integrate(self, frame_maps, color: np.ndarray | None, pose: np.ndarray, frame_index: int,
+    def integrate(self, frame_pyramid, color: np.ndarray | None, pose: np.ndarray, frame_index: int,
                   timer: StageTimer | None = None) -> FusionStats:
         """Fuse one frame: project, filter (pass 1 and 2), merge, add, remove.
 
-        frame_maps: a computed ``FrameMaps`` (level 0 is used); color: uint8 H×W×3 RGB or None;
+        frame_pyramid: a computed ``FramePyramid`` (level 0 is used); color: uint8 H×W×3 RGB or None;
         pose: 4×4 camera-to-world; frame_index: the time stamp stored in the surfels (frames since start).
         With a ``timer``, every stage is synchronised and timed (ms in the stats and in the timer).
         """
         cfg = self.config
-        input_width = frame_maps.input_shape[1]
+        input_width = frame_pyramid.input_shape[1]
         map_level = cfg.map_level(input_width)  # counted from the input resolution
-        level = map_level - frame_maps.input_level  # the same level, counted in these maps
-        if not 0 <= level < frame_maps.levels:
+        level = map_level - frame_pyramid.input_level  # the same level, counted in these maps
+        if not 0 <= level < frame_pyramid.levels:
             raise ValueError(f"fusion.level {map_level} (for {input_width} px wide frames) needs frame maps "
-                             f"with level {map_level} of the input; these have levels {frame_maps.input_level}"
-                             f"..{frame_maps.input_level + frame_maps.levels - 1}")
-        vertex, normal, depth = frame_maps.vertex[level], frame_maps.normal[level], frame_maps.depth[level]
-        K: Intrinsics = frame_maps.intrinsics[level]
-        H, W = frame_maps.shapes[level]
+                             f"with level {map_level} of the input; these have levels {frame_pyramid.input_level}"
+                             f"..{frame_pyramid.input_level + frame_pyramid.levels - 1}")
+        vertex, normal, depth = frame_pyramid.vertex[level], frame_pyramid.normal[level], frame_pyramid.depth[level]
+        K: Intrinsics = frame_pyramid.intrinsics[level]
+        H, W = frame_pyramid.shapes[level]
         if color is not None and map_level > 0:
             color = color[:: 2**map_level, :: 2**map_level]
         pose = np.asarray(pose, dtype=np.float64)
@@ -134,9 +134,9 @@ class SurfelMapper:
         return self.map.to_numpy(("anchor",))["anchor"]
 
     # -- rendering -----------------------------------------------------------------------------------------
-    def render_maps(self, frame_maps, pose: np.ndarray, intrinsics: Intrinsics,
+    def render_pyramid(self, frame_pyramid, pose: np.ndarray, intrinsics: Intrinsics,
                     min_weight: float | None = None, min_time: int = -2**31) -> None:
-        """Fill a ``FrameMaps`` with the prediction: every pyramid level from the rendered depth (with the
+        """Fill a ``FramePyramid`` with the prediction: every pyramid level from the rendered depth (with the
         maps' own settings), and level 0's vertex and normal maps straight from the
         surfels (averaged normals, smoother than normals from depth differences). Surfels below
         ``min_weight`` (default ``fusion.render_min_weight``) or last updated before frame ``min_time``
@@ -150,9 +150,9 @@ class SurfelMapper:
         room's ATE doubled (docs/KERNELS.md)."""
         if min_weight is None:
             min_weight = self.config.render_min_weight
-        level0 = frame_maps.vertex[0], frame_maps.normal[0], frame_maps.depth[0]
+        level0 = frame_pyramid.vertex[0], frame_pyramid.normal[0], frame_pyramid.depth[0]
         self.map.render(pose, intrinsics, *level0, min_weight, 0, FILL_HALF, min_time)
-        frame_maps.compute_from_field(intrinsics, level0_maps=False)
+        frame_pyramid.compute_from_field(intrinsics, level0_maps=False)
         if FILL_HALF > 0:
             self.map.clear_holes(intrinsics, *level0)
 

@@ -243,23 +243,23 @@ class NumpyFusion:
 def build_map(width: int, height: int, target: int, cfg):
     """Fuse frames of the synthetic sequence (noise on) at width×height until the map holds ``target``
     surfels: (mapper, frame maps, sequence, index of the next frame)."""
-    from ti_fusion.config import MapsConfig, SynthConfig
+    from ti_fusion.config import PyramidConfig, SynthConfig
     from ti_fusion.mapping.mapper import SurfelMapper
-    from ti_fusion.kernels.maps import FrameMaps
+    from ti_fusion.kernels.pyramid import FramePyramid
     from ti_fusion.synthetic.scene import SyntheticSequence
 
     fx = 525.0 * width / 640.0
     seq = SyntheticSequence(SynthConfig(frames=600, width=width, height=height, fx=fx, noise=True))
     K = seq.intrinsics
     mapper = SurfelMapper(cfg)
-    maps = FrameMaps(MapsConfig(depth_smooth_radius=0), height, width, levels=1)
+    pyramid = FramePyramid(PyramidConfig(depth_smooth_radius=0), height, width, levels=1)
     frame = 0
     while mapper.count < target:  # build the map along the camera path
         depth, color = seq.frame(frame)
-        maps.compute(depth, K)
-        mapper.integrate(maps, color, seq.poses[frame], frame)
+        pyramid.compute(depth, K)
+        mapper.integrate(pyramid, color, seq.poses[frame], frame)
         frame += 1
-    return mapper, maps, seq, frame
+    return mapper, pyramid, seq, frame
 
 
 def matching_rows(a: dict, b: dict, tol: float = 1e-4) -> float:

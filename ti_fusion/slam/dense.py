@@ -60,7 +60,7 @@ from ti_fusion.frame import Frame
 from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
 from ti_fusion.geometry import invert, pose_error, renormalize, se3_exp, se3_log
 from ti_fusion.tracking.icp import ICP, ICPResult
-from ti_fusion.kernels.maps import FrameMaps, grey_image
+from ti_fusion.kernels.pyramid import FramePyramid, grey_image
 from ti_fusion.slam.checks import check_frame
 from ti_fusion.slam.poses import PoseStore
 from ti_fusion.status import Tracking, status_text
@@ -150,12 +150,12 @@ class DenseSLAM:
         self.map_level = map_level = config.fusion.map_level(W)
         # The incoming frame: ICP target (averaged down to the map's level first).
         frame_level = config.frame_input_level(W)
-        self.frame_maps = FrameMaps(config.maps, H, W, max(levels, map_level - frame_level + 1),
+        self.frame_pyramid = FramePyramid(config.pyramid, H, W, max(levels, map_level - frame_level + 1),
                                     input_level=frame_level)
         # The map rendered at the last pose: ICP source, at the map's resolution: level l of the model is
         # aligned to level l of the frame maps, at the same resolution.
         self.model_intrinsics = intrinsics.downsampled(2**map_level)
-        self.model_maps = FrameMaps(config.maps, self.model_intrinsics.height, self.model_intrinsics.width, levels)
+        self.model_pyramid = FramePyramid(config.pyramid, self.model_intrinsics.height, self.model_intrinsics.width, levels)
         self.icp = ICP(config.icp)
         # Dense re-localisation: the same levels with more iterations and wider gates at the coarse ones.
         wide = config.slam.relocalise_iterations
@@ -166,8 +166,8 @@ class DenseSLAM:
         self.score_icp = ICP(replace(config.icp, iterations=[0] * (levels - 1) + [1],
                                      dist_threshold=config.slam.score_gate))
         self.mapper = SurfelMapper(config.fusion)
-        warning = coarse_level_warning(config.icp, self.model_maps.shapes[-1], (self.frame_maps.height,
-                                                                               self.frame_maps.width))
+        warning = coarse_level_warning(config.icp, self.model_pyramid.shapes[-1], (self.frame_pyramid.height,
+                                                                               self.frame_pyramid.width))
         if warning:
             log.warning(warning)
         self.poses = PoseStore()  # the trajectory, each pose with its keyframe (loop closure corrects it)
@@ -203,13 +203,13 @@ class DenseSLAM:
         check_frame(self, frame)  # one InputError for a frame this map cannot take (ti_fusion/slam/checks.py)
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
         color = self._uses_color(frame)
-        with timer.stage("maps"):
-            self.frame_maps.compute(frame.depth, frame.intrinsics)
+        with timer.stage("pyramid"):
+            self.frame_pyramid.compute(frame.depth, frame.intrinsics)
             if color:
                 grey = grey_image(frame.color)
                 if frame.meta.get("color_valid") is not None:  # registered colour: none where the camera saw none
                     grey[~frame.meta["color_valid"]] = -1.0
-                self.frame_maps.compute_intensity(grey)
+                self.frame_pyramid.compute_intensity(grey)
         if not self.poses and (problem := self.unusable(frame)):
             self.skipped.append((frame.index, problem))
             return FrameResult(frame.index, frame.timestamp, None, Tracking.SKIPPED, problem, ms=dict(timer.last))
@@ -228,7 +228,7 @@ class DenseSLAM:
         before = self._held_pose() if self.poses else None  # the motion model's pose before this frame
         if result.tracked:
             with timer.stage("fuse"):
-                result.fusion = self.mapper.integrate(self.frame_maps, frame.color, result.pose,
+                result.fusion = self.mapper.integrate(self.frame_pyramid, frame.color, result.pose,
                                                       self._frames_fused)
             self._frames_fused += 1
             self.last_good = (frame, result.pose)
@@ -266,7 +266,7 @@ class DenseSLAM:
         dt = timestamp - self._last_stamp if self._last_stamp is not None else 0.0
         return dt if np.isfinite(dt) and dt > 0 else 1.0
 
-    def _reference(self, color: bool = False) -> tuple[FrameMaps, np.ndarray]:
+    def _reference(self, color: bool = False) -> tuple[FramePyramid, np.ndarray]:
         """The ICP source and the camera-to-world pose of its camera frame (with ``color``, its intensity
         too: the model's colour at each pixel of the prediction)."""
         last = self.last_good[1] if self.last_good is not None else self.poses[-1]
@@ -277,14 +277,14 @@ class DenseSLAM:
         warm = self._frames_fused >= fusion.unstable_age
         # slam.active_window: only the active model (surfels updated lately) is tracked against (ElasticFusion)
         window = self.config.slam.active_window
-        self.mapper.render_maps(self.model_maps, last, self.model_intrinsics,
+        self.mapper.render_pyramid(self.model_pyramid, last, self.model_intrinsics,
                                 min_weight=fusion.render_min_weight if warm else 0.0,
                                 min_time=self._frames_fused - window if window > 0 else -2**31)
         if color:
             K = self.model_intrinsics
             view = self.mapper.map.prediction_images(K.height, K.width).view_index  # the render's, just made
-            self.model_maps.intensity_from_surfels(view, self.mapper.map.arrays.color)
-        return self.model_maps, last
+            self.model_pyramid.intensity_from_surfels(view, self.mapper.map.arrays.color)
+        return self.model_pyramid, last
 
     def _track(self, frame: Frame, color: bool = False) -> FrameResult:
         cfg = self.config.slam
@@ -295,7 +295,7 @@ class DenseSLAM:
 
         def attempt(name: str, guess: np.ndarray, icp: ICP | None = None) -> Hypothesis:
             # ICP maps source points (camera frame of `last`) into the new camera: T = inv(T_wc_new) · T_wc_last.
-            result = (icp or self.icp).align(source, self.frame_maps, init=invert(guess) @ last, photometric=color)
+            result = (icp or self.icp).align(source, self.frame_pyramid, init=invert(guess) @ last, photometric=color)
             pose = renormalize(last @ invert(result.pose))
             tried.append(Hypothesis(name, result, pose, self._health(result, pose, guess)))
             return tried[-1]
@@ -327,11 +327,11 @@ class DenseSLAM:
         return FrameResult(frame.index, frame.timestamp, pose, tracking, best.failure, icp=best.icp,
                            hypothesis=best.name, tried=[f"{h.name}: {h.status}" for h in tried])
 
-    def alignment_score(self, source: FrameMaps, h: Hypothesis, color: bool) -> float:
+    def alignment_score(self, source: FramePyramid, h: Hypothesis, color: bool) -> float:
         """How well a start's alignment of this frame's prediction fits the frame, comparable between starts
         (the same prediction and frame): the fraction of the prediction's pixels within slam.score_gate of
         the frame at its pose, times 1 − their RMS residual / slam.score_gate."""
-        fit = self.score_icp.align(source, self.frame_maps, init=h.icp.pose, photometric=color)
+        fit = self.score_icp.align(source, self.frame_pyramid, init=h.icp.pose, photometric=color)
         residual = fit.residual_rms if np.isfinite(fit.residual_rms) else self.config.slam.score_gate
         return float(fit.inlier_ratio * max(0.0, 1.0 - residual / self.config.slam.score_gate))
 
@@ -378,7 +378,7 @@ class DenseSLAM:
                         f"the camera's motion, and colour {d['constrained_by_color']} of the other {d['weak']}: "
                         f"tracking may slide{hint}")
 
-    def _relocalise(self, frame: Frame, source: FrameMaps, last: np.ndarray, color: bool,
+    def _relocalise(self, frame: Frame, source: FramePyramid, last: np.ndarray, color: bool,
                     tried: list[Hypothesis]) -> None:
         """ICP again, initialised by ORB + PnP against the last well-tracked frame (a "features" hypothesis,
         checked against the PnP estimate)."""
@@ -393,7 +393,7 @@ class DenseSLAM:
         # The estimate maps the reference frame's camera into the new one; ICP's source (the prediction) sits
         # at `last`, the reference frame's pose.
         init = estimate.pose @ invert(reference_pose) @ last
-        icp = self.icp.align(source, self.frame_maps, init=init, photometric=color)
+        icp = self.icp.align(source, self.frame_pyramid, init=init, photometric=color)
         pose = renormalize(last @ invert(icp.pose))
         rough = renormalize(reference_pose @ invert(estimate.pose))
         tried.append(Hypothesis("features", icp, pose, self._health(icp, pose, rough)))
@@ -421,12 +421,12 @@ class DenseSLAM:
     # -- loop closure's door: ti_fusion/loop/closure.py uses these and nothing else of this class --------
     def keyframe_depth(self) -> tuple[np.ndarray, Intrinsics]:
         """The depth of the frame just registered at the map's resolution, and the camera of that image."""
-        level = self.map_level - self.frame_maps.input_level
-        return self.frame_maps.depth[level].to_numpy(), self.frame_maps.intrinsics[level]
+        level = self.map_level - self.frame_pyramid.input_level
+        return self.frame_pyramid.depth[level].to_numpy(), self.frame_pyramid.intrinsics[level]
 
-    def current_frame_maps(self) -> FrameMaps:
+    def current_frame_pyramid(self) -> FramePyramid:
         """The maps of the frame just registered, for reading: the target of loop verification."""
-        return self.frame_maps
+        return self.frame_pyramid
 
     def start_keyframe(self, keyframe: int) -> None:
         """The frame just registered became keyframe ``keyframe``: its pose, the poses after it and the
@@ -449,7 +449,7 @@ class DenseSLAM:
     def resolution(self) -> dict:
         """What the auto settings resolved to: the map's pyramid level and size, the size the frame is
         tracked at, and the depth smoothing radius (pixels at that size)."""
-        model, frame = self.model_intrinsics, self.frame_maps
+        model, frame = self.model_intrinsics, self.frame_pyramid
         return {"map_level": self.map_level,
                 "map_size": [model.width, model.height], "tracked_at": [frame.width, frame.height],
                 "depth_smooth_radius": frame.smooth_radius}

@@ -16,7 +16,7 @@ from ti_fusion.config import Config
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import json_field, json_object
-from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
 from ti_fusion.mapping.views import save_views, view_pose
 from ti_fusion.timing import StageTimer
@@ -36,13 +36,13 @@ STATS_SCHEMA = json_object({
     "removed": json_field("integer", "surfels removed (unstable, or in front of the measured surface)",
                           minimum=0),
     "ms": json_object({
-        "maps": json_field("number", "the frame's depth, vertex and normal pyramids, milliseconds"),
+        "pyramid": json_field("number", "the frame's depth, vertex and normal pyramids, milliseconds"),
         "project": json_field("number", "projecting the map into the frame and associating, " + _MS),
         "merge": json_field("number", "averaging associated pixels into their surfels, " + _MS),
         "add": json_field("number", "adding unassociated pixels as new surfels, " + _MS),
         "remove": json_field("number", "removing unstable and free-space surfels, " + _MS),
         "fuse": json_field("number", "fusing the frame into the map (project to remove), milliseconds"),
-    }, required=("maps", "project", "merge", "add", "remove", "fuse"),
+    }, required=("pyramid", "project", "merge", "add", "remove", "fuse"),
         description="time per stage, milliseconds"),
 }, required=("frame", "status", "surfels", "merged", "added", "covered", "removed", "ms"))
 
@@ -64,7 +64,7 @@ class FuseStep:
     name = "fuse"
     stats_channel = "/fuse/stats"
     stats_schema = STATS_SCHEMA
-    stages = ("maps", "fuse")  # "fuse" is the sum of the mapper's stages (project ... remove)
+    stages = ("pyramid", "fuse")  # "fuse" is the sum of the mapper's stages (project ... remove)
     warmup_frames = 1  # the first frame compiles the kernels
     estimates_poses = False
 
@@ -79,7 +79,7 @@ class FuseStep:
         # The frame maps that the SLAM loop fuses: averaged down to the map's level on input (by default),
         # the same smoothed depth and normals.
         input_level = config.frame_input_level(K.width)
-        self.maps = FrameMaps(config.maps, K.height, K.width, config.fusion.map_level(K.width) - input_level + 1,
+        self.pyramid = FramePyramid(config.pyramid, K.height, K.width, config.fusion.map_level(K.width) - input_level + 1,
                               input_level)
         self.mapper = SurfelMapper(config.fusion)
         self.fused = 0  # frames fused so far: the time stamp the surfels store
@@ -89,9 +89,9 @@ class FuseStep:
         if frame.gt_pose is None:
             raise InputError(self.root, f"frame {frame.index} has no ground-truth pose")
         timer = StageTimer()  # this frame's stages, each synchronised with the backend
-        with timer.stage("maps"):
-            self.maps.compute(frame.depth, frame.intrinsics)
-        stats = self.mapper.integrate(self.maps, frame.color, frame.gt_pose, self.fused, timer)
+        with timer.stage("pyramid"):
+            self.pyramid.compute(frame.depth, frame.intrinsics)
+        stats = self.mapper.integrate(self.pyramid, frame.color, frame.gt_pose, self.fused, timer)
         self.fused += 1
         self.naive += int((frame.depth > 0).sum())
         return FuseFrame(frame.index, frame.timestamp, frame.gt_pose, stats,

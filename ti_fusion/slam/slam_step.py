@@ -22,7 +22,7 @@ LOOP_CANDIDATE_SCHEMA = json_object({
     "query": json_field("integer", "the current keyframe's id", minimum=0),
     "match": json_field("integer", "the earlier keyframe's id", minimum=0),
     "score": json_field("number", "place recognition's score"),
-    "accepted": json_field("boolean", "verified: a loop for the pose graph"),
+    "verified": json_field("boolean", "passed verification: a loop for the pose graph"),
     "reason": json_field("string", 'why rejected, or "verified"'),
     "consistent": json_field("integer", "matches passing the 3D-distance pre-check", minimum=0),
     "pnp_inliers": json_field("integer", "PnP RANSAC inliers", minimum=0),
@@ -30,7 +30,7 @@ LOOP_CANDIDATE_SCHEMA = json_object({
     "icp_residual_mm": json_field("number", "the keyframes' ICP RMS residual, millimetres (left out: ICP did "
                                             "not run)"),
     "ms": json_field("number", "verifying this candidate, milliseconds"),
-}, required=("query", "match", "score", "accepted", "reason", "consistent", "pnp_inliers", "ms"))
+}, required=("query", "match", "score", "verified", "reason", "consistent", "pnp_inliers", "ms"))
 
 # The /slam/stats message, every field (docs/LOGS.md shows one; the pipeline adds ms.load and ms.log).
 STATS_SCHEMA = json_object({
@@ -46,17 +46,17 @@ STATS_SCHEMA = json_object({
     "hypotheses_tried": json_field("array", "every start tried for the frame, in order, each with its outcome "
                                             '("motion: ok", "last: lost: <reason>", ...)', items={"type": "string"}),
     "ms": json_object({
-        "maps": json_field("number", "the frame's depth, vertex and normal pyramids, milliseconds"),
+        "pyramid": json_field("number", "the frame's depth, vertex and normal pyramids, milliseconds"),
         "track": json_field("number", "rendering the model and ICP (with feature relocalisation when it runs), "
                                       "milliseconds; every frame but the first"),
         "fuse": json_field("number", "fusing the frame into the map, milliseconds; fused frames only"),
         "loop": json_field("number", "loop closure: keyframe, place recognition, verification, and on an "
-                                     "accepted loop the pose graph and the correction, milliseconds; with "
+                                     "verified loop the pose graph and the correction, milliseconds; with "
                                      "slam.loop_closure only"),
-    }, required=("maps",), description="time per stage, milliseconds"),
+    }, required=("pyramid",), description="time per stage, milliseconds"),
     "icp": json_object({
-        "iterations": json_field("array", "iterations run at each pyramid level, index = level (0 = finest)",
-                                 items={"type": "integer", "minimum": 0}),
+        "iterations": json_field("array", "iterations run at each pyramid level, coarse → fine (the order of "
+                                          "the setting icp.iterations)", items={"type": "integer", "minimum": 0}),
         "residual_rms_m": json_field("number", "RMS point-to-plane residual of the inliers, metres (left out: "
                                                "no inliers)"),
         "inliers": json_field("integer", "correspondences of the last iteration", minimum=0),
@@ -85,15 +85,15 @@ STATS_SCHEMA = json_object({
         "why": json_field("string", '"first", "moved", "turned" or "overlap" (too little of the last keyframe seen)'),
         "candidates": json_field("array", "earlier keyframes place recognition proposed, each with its decision",
                                  items=LOOP_CANDIDATE_SCHEMA),
-        "closed": json_field("array", "[earlier keyframe, this keyframe] of a loop applied, else []",
+        "applied": json_field("array", "[earlier keyframe, this keyframe] of a loop applied, else []",
                              items={"type": "integer"}),
-        "outcome": json_field("string", 'for an accepted candidate: "applied" or why the pose graph refused it'),
+        "outcome": json_field("string", 'for a verified candidate: "applied" or why the pose graph refused it'),
         "ms": json_object({name: json_field("number", what + ", milliseconds") for name, what in (
             ("keyframe", "choosing the keyframe and its features"), ("detect", "place recognition"),
             ("warmup", "compiling the verification's kernels, at the first keyframe"),
-            ("verify", "verifying the candidates"), ("optimise", "the pose graph, on an accepted candidate"),
+            ("verify", "verifying the candidates"), ("optimise", "the pose graph, on a verified candidate"),
             ("correct", "moving the poses and the map, on an applied loop"))}, description="loop closure's stages"),
-    }, required=("keyframe", "why", "candidates", "closed", "outcome", "ms"),
+    }, required=("keyframe", "why", "candidates", "applied", "outcome", "ms"),
         description="loop closure, on frames that became keyframes (slam.loop_closure)"),
 }, required=("frame", "status", "tracking", "surfels", "ms"))
 
@@ -111,7 +111,7 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
         for it in icp.iterations:
             per_level[it.level] += 1
         stats["icp"] = {
-            "iterations": per_level,
+            "iterations": per_level[::-1],  # coarse → fine, as the setting icp.iterations lists them
             "residual_rms_m": icp.residual_rms,
             "inliers": icp.inliers,
             "inlier_ratio": icp.inlier_ratio,
@@ -127,7 +127,7 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
                       "covered": result.fusion.covered, "removed": result.fusion.removed})
     if result.loop is not None:
         stats["loop"] = result.loop.stats()
-        stats["loop"]["closed"] = stats["loop"]["closed"] or []  # no loop applied: [], one type for Foxglove
+        stats["loop"]["applied"] = stats["loop"]["applied"] or []  # no loop applied: [], one type for Foxglove
     return stats
 
 
@@ -137,7 +137,7 @@ class SLAMStep:
     name = "slam"
     stats_channel = "/slam/stats"
     stats_schema = STATS_SCHEMA
-    stages = ("maps", "track", "fuse", "loop")
+    stages = ("pyramid", "track", "fuse", "loop")
     estimates_poses = True
 
     def __init__(self, config: Config, dataset: Dataset):
@@ -182,7 +182,7 @@ class SLAMStep:
             self.mesh.make(self.slam.mapper, log, t)
 
     def loop_edges(self) -> list | None:
-        """Every verified loop candidate as (from, to, accepted) world points, for trajectory.png."""
+        """Every loop candidate checked, as (from, to, applied) world points, for trajectory.png."""
         return self.loop.edges() if self.loop is not None else None
 
     def stats(self, result: FrameResult) -> dict:
@@ -223,5 +223,5 @@ class SLAMStep:
         """summary.json's loop closure fields: the counts (0 with slam.loop_closure off), the loops, the
         candidates with their decisions, and the milliseconds per call of each part."""
         if self.loop is None:
-            return {"keyframes": 0, "loop_candidates": 0, "loop_closures": 0}
+            return {"keyframes": 0, "loop_candidates": 0, "loops_applied": 0}
         return self.loop.summary()

@@ -1,6 +1,6 @@
 """Projective point-to-plane ICP, coarse to fine: ``ICP(config).align(source, target, init)``.
 
-``source`` and ``target`` are ``FrameMaps`` (or anything with per-level ``vertex``, ``normal`` images, as
+``source`` and ``target`` are ``FramePyramid`` (or anything with per-level ``vertex``, ``normal`` images, as
 ``Level`` views or plain fields, and ``intrinsics``) of two depth frames; the result's ``pose`` maps source-camera points into the target
 camera, p_target = T p_source. Each iteration is one Taichi pass (association + linearisation +
 reduction, ``ti_fusion.kernels.icp``), the 6×6 system is checked and solved and the pose updated on the

@@ -8,11 +8,11 @@ pixel u' stays exactly at fine pixel 2u' (intrinsics of level l are ``Intrinsics
 On the image border the window is the symmetric part that fits (a one-sided window would bend slanted
 surfaces there, and that bend, fixed to the image, would hold ICP back from sliding along a plane).
 
-Smoothing (``maps.depth_smooth_radius`` > 0, the role of KinectFusion's bilateral filter): the level-0 depth is
+Smoothing (``pyramid.depth_smooth_radius`` > 0, the role of KinectFusion's bilateral filter): the level-0 depth is
 replaced by the mean of the (2r+1)×(2r+1) neighbours within the same range of the centre depth, computed
 separably (a row pass, then a column pass, each range-checked against its own centre). Normals from
 central differences of raw Kinect-like depth are noisy enough at full resolution that most of them fail
-ICP's normal-angle test; r = 2 cuts the normal noise several-fold (its cost: docs/KERNELS.md, maps.py).
+ICP's normal-angle test; r = 2 cuts the normal noise several-fold (its cost: docs/KERNELS.md, pyramid.py).
 
 Speed: Taichi's CPU backend does not vectorise a loop over pixels (the field's root pointer is reloaded
 in every iteration, which stops LLVM's loop vectoriser; checked in the generated IR), but LLVM's SLP
@@ -35,11 +35,11 @@ argument is keyed by the field itself), so each pyramid's levels are stacked top
 per quantity (depth, vertex, normal, intensity: level l at rows ``row0[l]`` .. ``row0[l] + H_l``, columns
 0 .. W_l) and the kernels take the level's first row and size as runtime arguments: one instance of
 ``pyramid_down``, ``vertex_normal_maps`` and ICP's passes serves every level of a pyramid, where per-level
-fields needed one per level. ``FrameMaps.depth[l]`` (likewise ``vertex``, ``normal``, ``intensity``,
+fields needed one per level. ``FramePyramid.depth[l]`` (likewise ``vertex``, ``normal``, ``intensity``,
 ``intensity_grad``) is a ``Level``, a view that reads and writes like an H_l × W_l field inside other
 kernels and has ``to_numpy`` / ``from_numpy``. Runtime offsets were chosen over ``ti.types.ndarray``
 arguments (one instance per dtype for every pyramid) because an ndarray argument costs more per launch than
-a field, and ICP passes four images per launch (docs/KERNELS.md). Allocate FrameMaps
+a field, and ICP passes four images per launch (docs/KERNELS.md). Allocate FramePyramid
 once and reuse them: a new one compiles (or loads) its own instances.
 """
 
@@ -52,7 +52,7 @@ from taichi.lang.util import in_taichi_scope
 from ti_fusion.backend import serial_for
 from ti_fusion.kernels.common import INT_MAX
 from ti_fusion.camera import Intrinsics
-from ti_fusion.config import MapsConfig
+from ti_fusion.config import PyramidConfig
 from ti_fusion.errors import InputError
 
 
@@ -444,7 +444,7 @@ def input_maps(fine: ti.template(), raw: ti.template(), rows: ti.template(), dep
     """A frame's maps in one launch, for an input averaged down once and smoothed (the default at
     640×480): ``pyramid_loop`` from the input ``fine`` into the packed ``raw``, the smoothing's row and
     column passes (``smooth_rows_loop``, ``smooth_columns_loop``) into level 0 of ``depth``, then
-    ``pyramid_maps_loops``: the loops of ``FrameMaps.compute``'s five launches, one after the other."""
+    ``pyramid_maps_loops``: the loops of ``FramePyramid.compute``'s five launches, one after the other."""
     H, W = fine.shape
     pyramid_loop(fine, 0, H, W, raw, 0, max_diff, True, serial_input)
     smooth_rows_loop(raw, rows, ti.cast(geometry[0, G_W], ti.i32), radius, max_diff)
@@ -542,17 +542,17 @@ def grey_image(color: np.ndarray) -> np.ndarray:
 
 
 @ti.data_oriented
-class FrameMaps:
+class FramePyramid:
     """Depth, vertex and normal maps of one frame at every pyramid level (camera frame, metres).
 
-        maps = FrameMaps(config.maps, height, width, levels, input_level)
-        maps.compute(depth, intrinsics)
+        pyramid = FramePyramid(config.pyramid, height, width, levels, input_level)
+        pyramid.compute(depth, intrinsics)
 
     ``depth[l]``, ``vertex[l]``, ``normal[l]`` (and ``intensity[l]``, ``intensity_grad[l]``) are ``Level``
     views of level l of one stacked field per quantity (module docstring).
     """
 
-    def __init__(self, settings: MapsConfig, height: int, width: int, levels: int = 3, input_level: int = 0):
+    def __init__(self, settings: PyramidConfig, height: int, width: int, levels: int = 3, input_level: int = 0):
         """Maps of ``levels`` levels for depth images of ``height`` × ``width``, built with ``settings``
         (resolved here, once: the smoothing radius for this size, the range check of the depth means).
         With ``input_level`` L > 0 the input is first averaged down L times (``pyramid_down``) and level 0
@@ -566,9 +566,9 @@ class FrameMaps:
             height, width = (height + 1) // 2, (width + 1) // 2
         self.height, self.width, self.levels = height, width, levels
         self.max_depth_jump = float(settings.normal_max_depth_jump)
-        self.max_depth_diff = 3.0 * float(settings.pyramid_depth_sigma)  # the range check of the depth means
+        self.max_depth_diff = 3.0 * float(settings.depth_sigma)  # the range check of the depth means
         if not self.max_depth_diff > 0:  # every range check would reject even the centre pixel
-            raise InputError(None, f"maps.pyramid_depth_sigma must be positive, not {settings.pyramid_depth_sigma}")
+            raise InputError(None, f"pyramid.depth_sigma must be positive, not {settings.depth_sigma}")
         self.smooth_radius = int(settings.smooth_radius(width))
         self.shapes = []
         h, w = height, width
@@ -608,7 +608,7 @@ class FrameMaps:
         With a smoothing radius r > 0 the depth is first replaced by its range-checked (2r+1)² mean (see the
         module docstring); ``depth[0]`` then holds the smoothed depth."""
         if depth.shape != self.input_shape:
-            raise ValueError(f"depth of shape {depth.shape} given to FrameMaps of shape {self.input_shape}")
+            raise ValueError(f"depth of shape {depth.shape} given to FramePyramid of shape {self.input_shape}")
         depth = np.ascontiguousarray(depth, dtype=np.float32)
         if self._one_launch(depth, intrinsics):
             return
@@ -659,7 +659,7 @@ class FrameMaps:
         """The live frame's intensity pyramid and gradients from a float32 grey image of the input's size
         (``grey_image``; values in [0, 1], negative = none), averaged down like the depth."""
         if grey.shape != self.input_shape:
-            raise ValueError(f"grey image of shape {grey.shape} given to FrameMaps of shape {self.input_shape}")
+            raise ValueError(f"grey image of shape {grey.shape} given to FramePyramid of shape {self.input_shape}")
         self._intensity_fields(True)
         grey = np.ascontiguousarray(grey, dtype=np.float32)
         if self.input_level == 0:

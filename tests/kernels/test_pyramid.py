@@ -1,4 +1,4 @@
-"""FrameMaps kernels (pyramid, back-projection, normals) against NumPy float64 references, on every backend.
+"""FramePyramid kernels (pyramid, back-projection, normals) against NumPy float64 references, on every backend.
 
 Random depths are multiples of 1/1024 m: exactly representable in float32 with exact differences, so
 the depth-jump and range tests of the kernels and of the references never disagree by a rounding.
@@ -9,17 +9,17 @@ import pytest
 
 from ti_fusion import backend
 from ti_fusion.camera import Intrinsics
-from ti_fusion.config import MapsConfig
-from ti_fusion.kernels.maps import FrameMaps
+from ti_fusion.config import PyramidConfig
+from ti_fusion.kernels.pyramid import FramePyramid
 
 K = Intrinsics(fx=150.0, fy=140.0, cx=39.5, cy=30.25, width=80, height=60)
 JUMP = 0.05 + 1 / 4096  # never equal to a difference of two depths on the 1/1024 grid
 PYR = 0.09 + 1 / 4096
 
 
-def settings(jump=JUMP, max_diff=PYR, radius=0) -> MapsConfig:
-    """FrameMaps settings: normals up to depth jumps of ``jump``, depth means over ``max_diff`` (3σ)."""
-    return MapsConfig(normal_max_depth_jump=jump, pyramid_depth_sigma=max_diff / 3, depth_smooth_radius=radius)
+def settings(jump=JUMP, max_diff=PYR, radius=0) -> PyramidConfig:
+    """FramePyramid settings: normals up to depth jumps of ``jump``, depth means over ``max_diff`` (3σ)."""
+    return PyramidConfig(normal_max_depth_jump=jump, depth_sigma=max_diff / 3, depth_smooth_radius=radius)
 
 
 def random_depth(rng, shape=(60, 80), invalid=0.15):
@@ -80,9 +80,9 @@ def pyramid_ref(fine, max_diff):
 
 def test_backprojection_matches_reference(arch, rng):
     depth = random_depth(rng)
-    maps = FrameMaps(settings(), *depth.shape, levels=1)
-    maps.compute(depth, K)
-    V = maps.vertex[0].to_numpy()
+    pyramid = FramePyramid(settings(), *depth.shape, levels=1)
+    pyramid.compute(depth, K)
+    V = pyramid.vertex[0].to_numpy()
     np.testing.assert_allclose(V, backproject_ref(depth, K), rtol=2e-6, atol=1e-7)
     assert np.all(V[depth == 0] == 0)
 
@@ -100,11 +100,11 @@ def loops(request, monkeypatch):
 def test_normals_match_reference(arch, rng, loops, shape):
     depth = random_depth(rng, shape)
     Ks = Intrinsics(150.0, 140.0, shape[1] / 2, shape[0] / 2, shape[1], shape[0])
-    maps = FrameMaps(settings(), *depth.shape, levels=1)
-    maps.compute(depth, Ks)
-    N = maps.normal[0].to_numpy()
+    pyramid = FramePyramid(settings(), *depth.shape, levels=1)
+    pyramid.compute(depth, Ks)
+    N = pyramid.normal[0].to_numpy()
     # The reference starts from the kernel's float32 vertices, so only the normal arithmetic is compared.
-    ref = normals_ref(maps.vertex[0].to_numpy().astype(np.float64), np.float32(JUMP))
+    ref = normals_ref(pyramid.vertex[0].to_numpy().astype(np.float64), np.float32(JUMP))
     valid_ref = np.any(ref != 0, axis=-1)
     valid = np.any(N != 0, axis=-1)
     np.testing.assert_array_equal(valid, valid_ref)
@@ -120,9 +120,9 @@ def test_normals_invalid_neighbours_depth_jumps_and_border(arch):
     depth[5, 5] = 0.0                       # a hole: its 4 neighbours lose their normal
     depth[2, 10] = 1.0 + 0.05               # a jump just below max_depth_jump: still a normal
     depth[8, 10] = 1.0 + 0.0625             # a jump just above: no normal around it
-    maps = FrameMaps(settings(jump=0.0546875, max_diff=0.09), H, W, levels=1)
-    maps.compute(depth, Intrinsics(100.0, 100.0, 7.5, 5.5, W, H))
-    N = maps.normal[0].to_numpy()
+    pyramid = FramePyramid(settings(jump=0.0546875, max_diff=0.09), H, W, levels=1)
+    pyramid.compute(depth, Intrinsics(100.0, 100.0, 7.5, 5.5, W, H))
+    N = pyramid.normal[0].to_numpy()
     has = np.any(N != 0, axis=-1)
     assert not has[0].any() and not has[-1].any() and not has[:, 0].any() and not has[:, -1].any()
     for v, u in [(5, 5), (4, 5), (6, 5), (5, 4), (5, 6)]:
@@ -144,9 +144,9 @@ def test_normal_faces_the_camera_on_a_slanted_plane(arch):
     n /= np.linalg.norm(n)
     rays = np.stack([(u - Kp.cx) / Kp.fx, (v - Kp.cy) / Kp.fy, np.ones_like(u, dtype=float)], -1)
     z = -1.5 / (rays @ n)
-    maps = FrameMaps(settings(jump=1.0, max_diff=0.09), H, W, levels=1)
-    maps.compute(z.astype(np.float32), Kp)
-    N = maps.normal[0].to_numpy()[1:-1, 1:-1].reshape(-1, 3)
+    pyramid = FramePyramid(settings(jump=1.0, max_diff=0.09), H, W, levels=1)
+    pyramid.compute(z.astype(np.float32), Kp)
+    N = pyramid.normal[0].to_numpy()[1:-1, 1:-1].reshape(-1, 3)
     np.testing.assert_allclose(N, np.broadcast_to(n, N.shape), atol=2e-4)
 
 
@@ -175,11 +175,11 @@ def smooth_ref(depth, radius, max_diff):
 def test_smoothing_and_pyramid_keep_a_ramp_up_to_the_border(arch):
     u = np.arange(40, dtype=np.float64)
     depth = np.broadcast_to(1.0 + 0.004 * u + 0.002 * u[:, None][:30], (30, 40)).astype(np.float32)
-    maps = FrameMaps(settings(jump=0.05, max_diff=0.09, radius=2), 30, 40, levels=3)
-    maps.compute(depth, Intrinsics(50.0, 50.0, 19.5, 14.5, 40, 30))
-    np.testing.assert_allclose(maps.depth[0].to_numpy(), depth, rtol=1e-6)
-    np.testing.assert_allclose(maps.depth[1].to_numpy(), depth[::2, ::2], rtol=1e-6)
-    np.testing.assert_allclose(maps.depth[2].to_numpy(), depth[::4, ::4], rtol=1e-6)
+    pyramid = FramePyramid(settings(jump=0.05, max_diff=0.09, radius=2), 30, 40, levels=3)
+    pyramid.compute(depth, Intrinsics(50.0, 50.0, 19.5, 14.5, 40, 30))
+    np.testing.assert_allclose(pyramid.depth[0].to_numpy(), depth, rtol=1e-6)
+    np.testing.assert_allclose(pyramid.depth[1].to_numpy(), depth[::2, ::2], rtol=1e-6)
+    np.testing.assert_allclose(pyramid.depth[2].to_numpy(), depth[::4, ::4], rtol=1e-6)
 
 
 @pytest.mark.parametrize("radius, shape", [(1, (60, 80)), (2, (60, 80)), (6, (61, 83)), (12, (37, 85))])
@@ -187,74 +187,74 @@ def test_smoothing_matches_reference(arch, rng, loops, radius, shape):
     """Also widths that are no multiple of the 8-pixel packs, and radii whose window spans several packs."""
     depth = random_depth(rng, shape)
     K = Intrinsics(150.0, 140.0, shape[1] / 2, shape[0] / 2, shape[1], shape[0])
-    maps = FrameMaps(settings(radius=radius), *depth.shape, levels=2)
-    maps.compute(depth, K)
-    got = maps.depth[0].to_numpy()
+    pyramid = FramePyramid(settings(radius=radius), *depth.shape, levels=2)
+    pyramid.compute(depth, K)
+    got = pyramid.depth[0].to_numpy()
     expected = smooth_ref(depth, radius, np.float32(PYR))
     np.testing.assert_array_equal(got > 0, depth > 0)
     np.testing.assert_allclose(got, expected, rtol=1e-6)
     assert np.abs(got - depth).max() > 1e-3  # it did smooth
-    np.testing.assert_allclose(maps.vertex[0].to_numpy(), backproject_ref(got, K), rtol=2e-6, atol=1e-7)
+    np.testing.assert_allclose(pyramid.vertex[0].to_numpy(), backproject_ref(got, K), rtol=2e-6, atol=1e-7)
 
 
 def test_pyramid_matches_reference(arch, rng, loops):
     depth = random_depth(rng, shape=(61, 81))  # odd sizes: the last coarse pixel sees a clipped window
-    maps = FrameMaps(settings(), *depth.shape, levels=3)
-    maps.compute(depth, Intrinsics(150.0, 140.0, 40.0, 30.0, 81, 61))
-    assert maps.shapes == [(61, 81), (31, 41), (16, 21)]
+    pyramid = FramePyramid(settings(), *depth.shape, levels=3)
+    pyramid.compute(depth, Intrinsics(150.0, 140.0, 40.0, 30.0, 81, 61))
+    assert pyramid.shapes == [(61, 81), (31, 41), (16, 21)]
     expected = depth
     for level in range(1, 3):
         expected = pyramid_ref(expected, np.float32(PYR))
-        got = maps.depth[level].to_numpy()
+        got = pyramid.depth[level].to_numpy()
         np.testing.assert_array_equal(got > 0, expected > 0)
         np.testing.assert_allclose(got, expected, rtol=1e-6)
         expected = got  # the next level is built from this level's float32 values
-        K_l = maps.intrinsics[level]
-        assert (K_l.width, K_l.height) == maps.shapes[level][::-1]
-        np.testing.assert_allclose(maps.vertex[level].to_numpy(), backproject_ref(got, K_l), rtol=2e-6, atol=1e-7)
+        K_l = pyramid.intrinsics[level]
+        assert (K_l.width, K_l.height) == pyramid.shapes[level][::-1]
+        np.testing.assert_allclose(pyramid.vertex[level].to_numpy(), backproject_ref(got, K_l), rtol=2e-6, atol=1e-7)
         # odd widths (41, 21): the last pack of the vertex/normal kernel is partial
-        ref_n = normals_ref(maps.vertex[level].to_numpy().astype(np.float64), np.float32(JUMP * 2**level))
-        np.testing.assert_allclose(maps.normal[level].to_numpy(), ref_n, atol=2e-5)
+        ref_n = normals_ref(pyramid.vertex[level].to_numpy().astype(np.float64), np.float32(JUMP * 2**level))
+        np.testing.assert_allclose(pyramid.normal[level].to_numpy(), ref_n, atol=2e-5)
 
 
 @pytest.mark.parametrize("input_level, radius", [(1, 0), (1, 2), (2, 1)])
 def test_input_level_averages_down_first(arch, rng, loops, input_level, radius):
-    """FrameMaps(input_level=L): level 0 is the input averaged down L times (then smoothed), the same
+    """FramePyramid(input_level=L): level 0 is the input averaged down L times (then smoothed), the same
     maps as level L of full-resolution maps built without smoothing."""
     depth = random_depth(rng, shape=(61, 81))
     K_in = Intrinsics(150.0, 140.0, 40.0, 30.0, 81, 61)
-    maps = FrameMaps(settings(radius=radius), *depth.shape, levels=2, input_level=input_level)
-    maps.compute(depth, K_in)
+    pyramid = FramePyramid(settings(radius=radius), *depth.shape, levels=2, input_level=input_level)
+    pyramid.compute(depth, K_in)
     expected = depth
     for _ in range(input_level):
         expected = pyramid_ref(expected, np.float32(PYR)).astype(np.float32)
-    assert maps.shapes[0] == expected.shape and maps.input_shape == depth.shape
+    assert pyramid.shapes[0] == expected.shape and pyramid.input_shape == depth.shape
     if radius:
         expected = smooth_ref(expected, radius, np.float32(PYR))
-    got = maps.depth[0].to_numpy()
+    got = pyramid.depth[0].to_numpy()
     np.testing.assert_array_equal(got > 0, expected > 0)
     np.testing.assert_allclose(got, expected, rtol=1e-6)
-    K_0 = maps.intrinsics[0]
-    assert K_0 == K_in.downsampled(2**input_level) and (K_0.height, K_0.width) == maps.shapes[0]
-    np.testing.assert_allclose(maps.vertex[0].to_numpy(), backproject_ref(got, K_0), rtol=2e-6, atol=1e-7)
+    K_0 = pyramid.intrinsics[0]
+    assert K_0 == K_in.downsampled(2**input_level) and (K_0.height, K_0.width) == pyramid.shapes[0]
+    np.testing.assert_allclose(pyramid.vertex[0].to_numpy(), backproject_ref(got, K_0), rtol=2e-6, atol=1e-7)
     with pytest.raises(ValueError, match="shape"):
-        maps.compute(expected.astype(np.float32), K_0)  # the input resolution is expected
+        pyramid.compute(expected.astype(np.float32), K_0)  # the input resolution is expected
 
 
 def test_pyramid_does_not_average_across_an_edge(arch):
     depth = np.full((8, 8), 1.0, dtype=np.float32)
     depth[:, 3:] = 2.0  # the coarse pixel at u = 1 (fine u = 2) has fine neighbours on both sides
-    maps = FrameMaps(settings(jump=0.05, max_diff=0.09), 8, 8, levels=2)
-    maps.compute(depth, Intrinsics(10.0, 10.0, 3.5, 3.5, 8, 8))
-    coarse = maps.depth[1].to_numpy()
+    pyramid = FramePyramid(settings(jump=0.05, max_diff=0.09), 8, 8, levels=2)
+    pyramid.compute(depth, Intrinsics(10.0, 10.0, 3.5, 3.5, 8, 8))
+    coarse = pyramid.depth[1].to_numpy()
     np.testing.assert_array_equal(coarse[:, :2], 1.0)
     np.testing.assert_array_equal(coarse[:, 2:], 2.0)
 
 
 def test_wrong_depth_shape_is_refused(cpu):
-    maps = FrameMaps(settings(), 10, 12, levels=1)
+    pyramid = FramePyramid(settings(), 10, 12, levels=1)
     with pytest.raises(ValueError, match="shape"):
-        maps.compute(np.zeros((12, 10), np.float32), Intrinsics(10.0, 10.0, 5.0, 5.0, 12, 10))
+        pyramid.compute(np.zeros((12, 10), np.float32), Intrinsics(10.0, 10.0, 5.0, 5.0, 12, 10))
 
 
 # -- intensity (the photometric tracking term) -----------------------------------------------------------
@@ -303,29 +303,29 @@ def test_intensity_pyramid_and_gradients_match_reference(arch, rng, loops, input
     grey[10:17, 20:29] = -1.0  # a hole that survives averaging down
     depth = random_depth(rng, shape=grey.shape)
     K_in = Intrinsics(150.0, 140.0, 25.0, 18.0, 51, 37)
-    maps = FrameMaps(settings(), *grey.shape, levels=3, input_level=input_level)
-    maps.compute(depth, K_in)
-    maps.compute_intensity(grey)
+    pyramid = FramePyramid(settings(), *grey.shape, levels=3, input_level=input_level)
+    pyramid.compute(depth, K_in)
+    pyramid.compute_intensity(grey)
     expected = grey.astype(np.float64)
     for _ in range(input_level):
         expected = intensity_down_ref(expected.astype(np.float32))
     for level in range(3):
         if level:
-            expected = intensity_down_ref(maps.intensity[level - 1].to_numpy())
-        got = maps.intensity[level].to_numpy()
-        assert got.shape == maps.shapes[level]
+            expected = intensity_down_ref(pyramid.intensity[level - 1].to_numpy())
+        got = pyramid.intensity[level].to_numpy()
+        assert got.shape == pyramid.shapes[level]
         np.testing.assert_allclose(got, expected, rtol=1e-5, atol=1e-6)
-        np.testing.assert_allclose(maps.intensity_grad[level].to_numpy(), gradient_ref(got), atol=1e-6)
-    assert np.any(maps.intensity_grad[0].to_numpy()[1:-1, 1:-1, 0] < 0)  # invalid windows inside exercised
+        np.testing.assert_allclose(pyramid.intensity_grad[level].to_numpy(), gradient_ref(got), atol=1e-6)
+    assert np.any(pyramid.intensity_grad[0].to_numpy()[1:-1, 1:-1, 0] < 0)  # invalid windows inside exercised
     with pytest.raises(ValueError, match="shape"):
-        maps.compute_intensity(grey[:-1])
+        pyramid.compute_intensity(grey[:-1])
 
 
 def test_surfel_intensity_matches_reference(arch, rng):
     import taichi as ti
 
     from ti_fusion.kernels.common import INT_MAX
-    from ti_fusion.kernels.maps import GREY, grey_image
+    from ti_fusion.kernels.pyramid import GREY, grey_image
 
     n = 50
     color = rng.uniform(0, 255, (n, 3)).astype(np.float32)
@@ -334,11 +334,11 @@ def test_surfel_intensity_matches_reference(arch, rng):
     view, col = ti.field(ti.i32, shape=index.shape), ti.Vector.field(3, ti.f32, shape=n)
     view.from_numpy(index)
     col.from_numpy(color)
-    maps = FrameMaps(settings(), 13, 17, levels=2)
-    maps.intensity_from_surfels(view, col)
+    pyramid = FramePyramid(settings(), 13, 17, levels=2)
+    pyramid.intensity_from_surfels(view, col)
     expected = np.where(index == INT_MAX, -1.0, (color[np.minimum(index, n - 1)] @ np.array(GREY)) / 255.0)
-    np.testing.assert_allclose(maps.intensity[0].to_numpy(), expected, atol=1e-6)
-    np.testing.assert_allclose(maps.intensity[1].to_numpy(), intensity_down_ref(maps.intensity[0].to_numpy()),
+    np.testing.assert_allclose(pyramid.intensity[0].to_numpy(), expected, atol=1e-6)
+    np.testing.assert_allclose(pyramid.intensity[1].to_numpy(), intensity_down_ref(pyramid.intensity[0].to_numpy()),
                                rtol=1e-5, atol=1e-6)
     rgb = rng.integers(0, 256, (4, 5, 3)).astype(np.uint8)
     np.testing.assert_allclose(grey_image(rgb), (rgb @ np.array(GREY)) / 255.0, atol=0.51 / 255)  # rounded to 1/255
@@ -351,19 +351,19 @@ def _instances(kernel) -> int:
 
 
 def test_every_level_shares_one_kernel_instance(cpu, rng):
-    """The levels of a pyramid are rows of one field per quantity, so a new FrameMaps adds one instance
+    """The levels of a pyramid are rows of one field per quantity, so a new FramePyramid adds one instance
     of the kernel that builds the pyramid and the vertex/normal maps of all of its levels (in one launch),
     not one per level, and no instance of the one-level kernels."""
-    from ti_fusion.kernels import maps as kmaps
+    from ti_fusion.kernels import pyramid as kmaps
 
     depth = random_depth(rng, shape=(40, 48))
     kernels = (kmaps.pyramid_maps, kmaps.pyramid_down, kmaps.vertex_normal_maps)
     counts = [_instances(k) for k in kernels]
-    maps = FrameMaps(settings(), *depth.shape, levels=4)
-    maps.compute(depth, Intrinsics(60.0, 60.0, 24.0, 20.0, 48, 40))
-    maps.compute(depth, Intrinsics(60.0, 60.0, 24.0, 20.0, 48, 40))
+    pyramid = FramePyramid(settings(), *depth.shape, levels=4)
+    pyramid.compute(depth, Intrinsics(60.0, 60.0, 24.0, 20.0, 48, 40))
+    pyramid.compute(depth, Intrinsics(60.0, 60.0, 24.0, 20.0, 48, 40))
     assert [_instances(k) - n for k, n in zip(kernels, counts)] == [1, 0, 0]
-    assert maps.depth[3].shape == (5, 6) and maps.depth[3].row0 == 40 + 20 + 10
+    assert pyramid.depth[3].shape == (5, 6) and pyramid.depth[3].row0 == 40 + 20 + 10
 
 
 def test_level_views_read_and_write_their_own_pixels(arch, rng):
@@ -371,7 +371,7 @@ def test_level_views_read_and_write_their_own_pixels(arch, rng):
     leaves the other levels of its stacked field alone."""
     import taichi as ti
 
-    from ti_fusion.kernels.maps import Level, as_level
+    from ti_fusion.kernels.pyramid import Level, as_level
 
     stack = ti.field(ti.f32, shape=(9, 7))
     stack.from_numpy(np.full((9, 7), -1.0, np.float32))

@@ -23,27 +23,32 @@ from tests.loop.scenes import sequence, view
 
 
 def test_corrections_move_each_pose_with_its_keyframe():
-    """Frames anchored to keyframe k (it and the frames after it) move by C_k, each pose once, in place."""
+    """Frames anchored to keyframe k (it and the frames after it) move by C_k; the store moves its own
+    copies, never an array it was given, and gives the current poses by frame."""
     store = PoseStore()
     poses = [np.eye(4) for _ in range(5)]
     for i, k in enumerate((None, None, 1, None, 2)):  # keyframe 1 at frame 2, keyframe 2 at frame 4
-        store.append(poses[i])
-        if i == 3:
-            store.append(poses[3])  # an array appended twice moves once
+        store.append(poses[i], frame=10 + i)
         if k is not None:
             store.start_keyframe(k)
-    assert store.anchors == [0, 0, 1, 1, 1, 2]
+    store.append(None, frame=15)  # a frame without a pose stays without one
+    assert store.anchors == [0, 0, 1, 1, 2, 2]
     C = np.stack([np.eye(4), make_pose(np.eye(3), [0.1, 0, 0]),
                   make_pose(se3_exp(np.r_[0, 0.1, 0, 0, 0, 0])[:3, :3], [0, 0.2, 0])])
     assert store.correct(C) == 5
-    assert all(any(p is q for q in store) for p in poses)  # in place: the run's results hold these arrays
-    for p, k in zip(poses, (0, 0, 1, 1, 2)):
-        assert np.allclose(p, C[k])
+    assert all(np.array_equal(p, np.eye(4)) for p in poses)  # the caller's arrays are untouched
+    current = store.by_frame()
+    assert sorted(current) == [10, 11, 12, 13, 14]
+    for i, k in enumerate((0, 0, 1, 1, 2)):
+        assert np.allclose(current[10 + i], C[k]) and np.allclose(store.pose_of(10 + i), C[k])
+    current[10][0, 3] = 5.0  # a copy: the store is not changed through it
+    assert store.pose_of(10)[0, 3] == 0.0 and store.pose_of(15) is None
 
 
 def test_a_correction_reaches_the_poses_results_and_map(cpu):
     """DenseSLAM's door: start_keyframe anchors the poses and the surfels fused after it; apply_corrections
-    moves the trajectory, the results' poses, the pose re-localisation starts from and the surfels."""
+    moves the trajectory (DenseSLAM.poses), the pose re-localisation starts from and the surfels; the
+    results keep the poses as registered."""
     seq = sequence()
     cfg = Config()
     slam = DenseSLAM(cfg, seq.intrinsics)
@@ -57,9 +62,11 @@ def test_a_correction_reaches_the_poses_results_and_map(cpu):
     C = np.stack([np.eye(4), make_pose(np.eye(3), [0.0, 0.0, 0.05])])  # keyframe 1 moves 5 cm
     kept = [r.pose.copy() for r in results]
     slam.apply_corrections(C)
-    assert np.allclose(results[0].pose, kept[0])
-    assert all(np.allclose(r.pose, C[1] @ k, atol=1e-9) for r, k in zip(results[1:], kept[1:]))
-    assert slam.poses[2] is results[2].pose and slam.last_good[1] is results[2].pose
+    current = slam.poses.by_frame()
+    assert np.allclose(current[0], kept[0])
+    assert all(np.allclose(current[r.index], C[1] @ k, atol=1e-9) for r, k in zip(results[1:], kept[1:]))
+    assert all(np.array_equal(r.pose, k) for r, k in zip(results, kept))  # as registered
+    assert np.allclose(slam.last_good[1], current[2])
     after = slam.mapper.map.to_numpy(("position", "anchor"))
     moved = before["anchor"] == 1
     assert moved.any() and not moved.all()
@@ -141,6 +148,11 @@ def test_the_corrected_trajectory_is_written(run):
     assert len(ends) == 1 and len(ends[0].poses) == len(written)
     centres = np.array([[p.position.x, p.position.y, p.position.z] for p in ends[0].poses])
     np.testing.assert_allclose(centres, written[:, :3, 3], atol=1e-9)
+    # the results and the keyframes took the corrections too
+    results = [r.pose for r in run.pipeline.results if r.pose is not None]
+    np.testing.assert_allclose(np.stack(results), written, atol=1e-6)
+    for kf in run.pipeline.step.loop.keyframes:
+        np.testing.assert_allclose(kf.pose, store.pose_of(kf.frame), atol=1e-9)
 
 
 def test_surfels_carry_keyframe_anchors(run):

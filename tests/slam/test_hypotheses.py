@@ -87,7 +87,7 @@ def test_the_guess_scales_with_the_time_between_frames(cpu):
 @pytest.mark.parametrize("missed", [False, True])
 def test_the_velocity_is_damped_after_a_step_the_guess_missed(cpu, missed):
     slam, dataset = _slam(motion_damping=0.5)
-    slam.poses = [np.eye(4)]
+    slam.poses.append(np.eye(4), 4)
     slam._last_stamp = 1.0
     slam._velocity = np.array([0, 0, 0, 0.3, 0, 0])  # 0.3 m/s along x
     step = np.array([0, 0, 0, 0.03 if not missed else 0.09, 0, 0])  # 0.1 s later: as guessed, or 3× as far

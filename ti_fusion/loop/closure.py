@@ -151,7 +151,7 @@ class LoopClosure:
     def _make_keyframe(self, frame, pose: np.ndarray) -> Keyframe:
         depth, K = self.slam.keyframe_depth()  # at the map's resolution
         features = extract_features(frame, self._vo, self._orb)
-        kf = Keyframe(len(self.keyframes), frame.index, frame.timestamp, pose, features, frame.intrinsics,
+        kf = Keyframe(len(self.keyframes), frame.index, frame.timestamp, pose.copy(), features, frame.intrinsics,
                       depth, K, grid_points(depth, K))
         self.keyframes.append(kf)
         covariance = None
@@ -192,7 +192,9 @@ class LoopClosure:
             return
         with Stopwatch(report.ms, "correct"):
             corrections = np.stack([renormalize(new @ invert(kf.pose)) for new, kf in zip(opt.poses, self.keyframes)])
-            self.slam.apply_corrections(corrections)  # a keyframe's pose is its frame's: moved with the trajectory
+            self.slam.apply_corrections(corrections)
+            for kf, C in zip(self.keyframes, corrections):  # a keyframe's pose is its frame's: moved the same way
+                kf.pose = renormalize(C @ kf.pose)
             self.graph.set_poses(opt.poses)
         self.ms["correct"].append(report.ms["correct"])
         report.applied, report.outcome = (i, j), "applied"

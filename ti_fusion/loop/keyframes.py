@@ -1,6 +1,6 @@
 """Keyframes: when the loop closer keeps one (by motion and by overlap with the last one), and what it keeps.
 
-A keyframe holds its pose (the current estimate, corrected in place when a loop is closed), its ORB
+A keyframe holds its pose (the current estimate, corrected when a loop is applied), its ORB
 features (``ti_fusion.tracking.features``: descriptors for place recognition, 3D points for PnP), its depth
 at the map's resolution (the compact summary that dense verification rebuilds vertex and normal maps from)
 and a coarse grid of its 3D points (the overlap test).
@@ -23,7 +23,7 @@ SAMPLE_STEP = 8
 
 @dataclass
 class Keyframe:
-    """One keyframe. ``pose``: camera-to-world 4×4 float64, corrected in place by loop closure."""
+    """One keyframe. ``pose``: camera-to-world 4×4 float64, the current estimate (``LoopClosure`` corrects it)."""
 
     id: int  # 0, 1, 2, ... in creation order: the anchor written into the surfels fused after it
     frame: int  # the frame's index in the run

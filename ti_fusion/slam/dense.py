@@ -107,7 +107,8 @@ class FrameResult:
 
     index: int
     timestamp: float
-    pose: np.ndarray | None  # camera-to-world estimate; None for a frame skipped before the map starts
+    pose: np.ndarray | None  # camera-to-world estimate when registered (the current one after a loop
+    # closure: DenseSLAM.poses); None for a frame skipped before the map starts
     tracking: Tracking
     reason: str = ""  # why the frame was lost or skipped
     icp: ICPResult | None = None
@@ -416,7 +417,7 @@ class DenseSLAM:
             self._last_stamp = timestamp
             if result.icp is not None and np.isfinite(result.icp.residual_rms):
                 self._residuals.append(float(result.icp.residual_rms))
-        self.poses.append(result.pose)
+        self.poses.append(result.pose, result.index)
 
     # -- loop closure's door: ti_fusion/loop/closure.py uses these and nothing else of this class --------
     def keyframe_depth(self) -> tuple[np.ndarray, Intrinsics]:
@@ -438,6 +439,9 @@ class DenseSLAM:
         """A loop closed: every pose and surfel moves by its keyframe's correction C_k (K×4×4, world
         frame); with ``slam.active_window`` the corrected confirmed surfels are active again."""
         self.poses.correct(corrections)
+        if self.last_good is not None:
+            frame = self.last_good[0]
+            self.last_good = (frame, self.poses.pose_of(frame.index))
         window = self.config.slam.active_window
         self.mapper.apply_corrections(corrections, reactivate_at=self._frames_fused if window > 0 else None)
 

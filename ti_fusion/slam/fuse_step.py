@@ -105,6 +105,9 @@ class FuseStep:
     def map_points(self, max_points: int):
         return self.mapper.sample_points(max_points) if self.mapper.count else None
 
+    def current_poses(self) -> dict:
+        return {}  # the poses are the dataset's
+
     def plot_title(self, run) -> str:
         return f"ti-fusion fuse: {run.dataset.name}"
 

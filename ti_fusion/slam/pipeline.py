@@ -60,6 +60,10 @@ class Step(Protocol):
     def map_points(self, max_points: int) -> tuple[np.ndarray, np.ndarray] | None:
         """(positions, uint8 RGB) of the map so far for /map/points (``max_points`` is a hint), or None."""
 
+    def current_poses(self) -> dict[int, np.ndarray]:
+        """Frame index → the current pose of each frame whose pose moved or may have moved since its result
+        (loop closure); the pipeline takes them into the results once, before it writes any output."""
+
     def plot_title(self, run: Pipeline) -> str:
         """The title of trajectory.png."""
 
@@ -103,6 +107,7 @@ class Pipeline:
             except Exception as exc:  # bad input in frame 300: the frames done so far still give their outputs
                 error = exc
             finally:  # whatever ended the loop: keep the trajectory so far, and the map in the log
+                self._take_current_poses()
                 poses = self._write_trajectory()
                 if self.results:
                     self._log_map(log, self.results[-1].timestamp)
@@ -124,6 +129,14 @@ class Pipeline:
         summary["ms_per_stage"] = self.timer.summary(skip_first=self.step.warmup_frames)
         summary["process_s"] = process_age_s()  # from the process's start: interpreter, imports, compiling
         return summary
+
+    def _take_current_poses(self) -> None:
+        """Each result holds its frame's pose as registered; where the step has moved it since (a loop
+        applied), the current one replaces it here, the one place every output after the loop reads."""
+        current = self.step.current_poses()
+        for r in self.results:
+            if r.index in current:
+                r.pose = current[r.index]
 
     def _outputs_after_error(self, error: Exception) -> None:
         """After an error in the loop: the evaluation, the plot and the step's files (the map, its views) of

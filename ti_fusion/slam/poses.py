@@ -11,21 +11,25 @@ from ti_fusion.geometry import renormalize
 
 
 class PoseStore:
-    """Poses in frame order (a list's ``append``, ``[i]``, ``len`` and iteration) with an anchor each.
+    """Poses in frame order (a list's ``append``, ``[i]``, ``len`` and iteration), each with its frame's
+    index and an anchor.
 
+    The store keeps its own copy of every pose: ``correct`` moves those, and nothing else, so a reader
+    takes the current trajectory from here (``by_frame``), never from an array it was handed earlier.
     A frame is anchored to the latest keyframe when it is appended (keyframe 0 before the first);
     ``start_keyframe(k)`` anchors the frame just appended, and the frames after it, to keyframe k.
-    ``correct`` moves the stored arrays in place: the pose a ``FrameResult`` holds is the stored array, so
-    the run's results and the trajectory written from them see the correction.
     """
 
     def __init__(self):
         self._poses: list[np.ndarray | None] = []
+        self._frames: list[int] = []
         self._anchors: list[int] = []
         self.keyframe = 0  # the anchor of the next frame appended
 
-    def append(self, pose: np.ndarray | None) -> None:
-        self._poses.append(pose)
+    def append(self, pose: np.ndarray | None, frame: int | None = None) -> None:
+        """``pose`` of frame ``frame`` (default: its position in the store), copied."""
+        self._poses.append(None if pose is None else np.array(pose, dtype=np.float64))
+        self._frames.append(len(self._frames) if frame is None else int(frame))
         self._anchors.append(self.keyframe)
 
     def start_keyframe(self, keyframe: int) -> None:
@@ -38,12 +42,23 @@ class PoseStore:
         """Every pose by its keyframe's world-frame correction C_k = T_k,new · T_k,old⁻¹ (``corrections``
         K×4×4; frames anchored to k ≥ K stay); returns how many poses moved."""
         corrections = np.asarray(corrections, dtype=np.float64)
-        seen: set[int] = set()  # an array appended twice (a test's list, a caller's alias) moves once
-        for pose, k in zip(self._poses, self._anchors):
-            if pose is not None and k < len(corrections) and id(pose) not in seen:
-                seen.add(id(pose))
-                pose[:] = renormalize(corrections[k] @ pose)
-        return len(seen)
+        moved = 0
+        for i, (pose, k) in enumerate(zip(self._poses, self._anchors)):
+            if pose is not None and k < len(corrections):
+                self._poses[i] = renormalize(corrections[k] @ pose)
+                moved += 1
+        return moved
+
+    def by_frame(self) -> dict[int, np.ndarray]:
+        """Frame index → a copy of its current pose (frames without a pose left out)."""
+        return {f: p.copy() for f, p in zip(self._frames, self._poses) if p is not None}
+
+    def pose_of(self, frame: int) -> np.ndarray | None:
+        """The current pose of frame ``frame`` (the last one appended with that index), or None."""
+        for f, p in zip(reversed(self._frames), reversed(self._poses)):
+            if f == frame:
+                return p
+        return None
 
     @property
     def anchors(self) -> list[int]:

@@ -6,6 +6,8 @@ from __future__ import annotations
 
 import logging
 
+import numpy as np
+
 from ti_fusion.config import Config
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import json_field, json_object
@@ -190,6 +192,9 @@ class SLAMStep:
 
     def map_points(self, max_points: int):
         return self.slam.mapper.sample_points(max_points) if self.slam.surfels else None
+
+    def current_poses(self) -> dict[int, np.ndarray]:
+        return self.slam.poses.by_frame()  # loop closure moves them after their frames
 
     def plot_title(self, run) -> str:
         return f"ti-fusion slam: {self.dataset_name}"

@@ -103,6 +103,9 @@ class VOStep:
     def map_points(self, max_points: int):
         return self.cloud.points() if len(self.cloud) else None
 
+    def current_poses(self) -> dict:
+        return {}  # a pose does not change after its frame
+
     def plot_title(self, run) -> str:
         accepted = sum(r.pose is not None for r in run.results)
         return f"Feature odometry (ORB + PnP RANSAC): {accepted}/{len(run.results)} frames accepted"

@@ -1,7 +1,8 @@
 """Tracking that survives a bad guess (``DenseSLAM._track``): the motion model scaled by the time between
 frames and damped after a step it missed; a lost frame never feeds it (the guess is always from the last
 tracked frame, and the next frame is tried from rest too); a wrong guess tracked again from the last good
-pose, the start that won in the stats. Synthetic room at 320×240, a few frames."""
+pose (depth first, then with colour: the photometric basin is narrower), the start that won in the stats.
+Synthetic room at 320×240, a few frames."""
 
 import numpy as np
 import pytest
@@ -34,11 +35,20 @@ def test_a_wrong_guess_is_tracked_again_from_the_last_pose(cpu):
             slam.register_frame(dataset[i])
         slam._velocity = np.array([0.0, 0.3, 0.0, 0.25, 0.0, 0.0]) / (1 / 30)  # per second, one frame's worth
         frame = dataset[4]
+        photometric, align = [], slam.icp.align
+
+        def recording(*args, **kwargs):
+            photometric.append(kwargs["photometric"])
+            return align(*args, **kwargs)
+
+        slam.icp.align = recording
         result = slam.register_frame(frame)
         outcomes[mode] = result
         if mode == "doubt":
             assert result.tracked and result.hypothesis != "motion", (result.status, result.tried)
             assert result.tried[0].startswith("motion: ") and result.tried[1].startswith("last: ")
+            # the guess with colour; the start from the last pose aligns depth first, then with colour
+            assert photometric[:3] == [True, False, True]
             rot, trans = pose_error(result.pose, frame.gt_pose)
             assert rot < 0.3 and trans < 0.005
             stats = frame_stats(result, slam.surfels)

@@ -294,9 +294,13 @@ class DenseSLAM:
         color = color and source.intensity is not None
         tried: list[Hypothesis] = []
 
-        def attempt(name: str, guess: np.ndarray, icp: ICP | None = None) -> Hypothesis:
+        def attempt(name: str, guess: np.ndarray, icp: ICP | None = None, depth_first: bool = False) -> Hypothesis:
             # ICP maps source points (camera frame of `last`) into the new camera: T = inv(T_wc_new) · T_wc_last.
-            result = (icp or self.icp).align(source, self.frame_pyramid, init=invert(guess) @ last, photometric=color)
+            init = invert(guess) @ last
+            if depth_first and color:  # a start far from the frame: the photometric basin is narrower than depth's
+                geometry = (icp or self.icp).align(source, self.frame_pyramid, init=init, photometric=False)
+                init = init if geometry.failure else geometry.pose
+            result = (icp or self.icp).align(source, self.frame_pyramid, init=init, photometric=color)
             pose = renormalize(last @ invert(result.pose))
             tried.append(Hypothesis(name, result, pose, self._health(result, pose, guess)))
             return tried[-1]
@@ -311,11 +315,11 @@ class DenseSLAM:
             apart = pose_error(predicted, held)
             # after a failure the start from rest is tried as well as the guess that coasts on
             if (not settled() or self._lost_streak) and (apart[0] > 0.1 or apart[1] > 1e-3):
-                attempt("last", held)
+                attempt("last", held, depth_first=True)
         if not settled() and cfg.relocalise == "features" and (cfg.hypotheses != "motion" or not first.ok):
             self._relocalise(frame, source, last, color, tried)
         if not settled() and cfg.hypotheses != "motion":
-            attempt("wide", last, self.wide_icp)  # dense re-localisation: the last good pose, a wider basin
+            attempt("wide", last, self.wide_icp, depth_first=True)  # dense re-localisation: a wider basin
         passed = [h for h in tried if h.ok]
         if len(passed) > 1:
             for h in passed:

@@ -46,6 +46,17 @@ def test_color_grey_is_made_rgb_and_the_pose_is_kept():
     np.testing.assert_array_equal(frame.gt_pose, np.eye(4))
 
 
+def test_color_is_registered_unless_said_and_a_frame_list_keeps_it():
+    """rgbd_frame's colour is taken as registered to depth (tracking uses it, as the command line does for a
+    registered camera) unless color_registered=False; a FrameList of such frames says the same."""
+    rgb = np.zeros((30, 40, 3), np.uint8)
+    registered = [rgbd_frame(np.ones((30, 40)), K, color=rgb, index=i) for i in range(2)]
+    assert all(f.color_registered for f in registered) and not rgbd_frame(np.ones((30, 40)), K).color_registered
+    assert FrameList(registered)[1].color_registered and FrameList(registered).describe()["color_for_tracking"]
+    resized = [rgbd_frame(np.ones((30, 40)), K, color=rgb, index=i, color_registered=False) for i in range(2)]
+    assert not resized[0].color_registered and not FrameList(resized)[0].color_registered
+
+
 @pytest.mark.parametrize("kwargs, message", [
     (dict(depth=np.ones((30, 40), dtype=np.uint16)), "needs depth_scale"),
     (dict(depth=np.ones((40, 30))), "depth is 30x40, the intrinsics are for 40x30"),
@@ -95,7 +106,7 @@ def test_frame_by_frame_and_as_a_frame_list_give_the_command_lines_trajectory(cp
     from ti_fusion.slam.pipeline import SLAMPipeline
 
     cfg = _config()
-    cfg.icp.color_weight = 0.0  # depth only: rgbd_frame and FrameList have no way yet to say colour is registered
+    cfg.icp.color_weight = 0.0  # depth only: the test's cost (colour's use: test_color_is_registered_unless_said...)
     synthetic = open_dataset(cfg.dataset, cfg.synth)
     reference = SLAMPipeline(synthetic, cfg, RunDir("slam", tmp_path / "synthetic"), current_backend(),
                              show_progress=False).run()

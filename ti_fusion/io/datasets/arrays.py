@@ -41,7 +41,8 @@ DEPTH_MAX = DatasetConfig().depth_max  # the command line's default range cut, s
 
 def rgbd_frame(depth: np.ndarray, intrinsics: Intrinsics, depth_scale: float | None = None,
                color: np.ndarray | None = None, timestamp: float | None = None, index: int = 0,
-               gt_pose: np.ndarray | None = None, depth_max: float | None = DEPTH_MAX) -> Frame:
+               gt_pose: np.ndarray | None = None, depth_max: float | None = DEPTH_MAX,
+               color_registered: bool = True) -> Frame:
     """A ``Frame`` from arrays, checked and converted to what ``DenseSLAM.register_frame`` takes.
 
     depth: H×W, in metres (float), or in raw units with ``depth_scale`` units per metre (1000 for
@@ -49,7 +50,10 @@ def rgbd_frame(depth: np.ndarray, intrinsics: Intrinsics, depth_scale: float | N
         ``depth_scale`` (its units cannot be guessed).
     intrinsics: the depth image's intrinsics; its size must be the depth image's. With skew or lens
         distortion (``Intrinsics.distortion``) the frame is undistorted to ``intrinsics.undistorted()``.
-    color: None, or uint8 H×W×3 RGB (H×W grey is made RGB) registered to depth.
+    color: None, or uint8 H×W×3 RGB (H×W grey is made RGB), the depth image's size.
+    color_registered: pixel (u, v) of ``color`` sees what depth's (u, v) sees (a camera's aligned colour
+        stream): tracking then uses colour too (``icp.color_weight``). False for colour that is only
+        resized to depth's size: it then only colours the map.
     timestamp: seconds (trajectory.tum and the log use it); None = ``index``.
     gt_pose: 4×4 camera-to-world ground truth, or None.
     depth_max: metres: farther depth counts as no measurement (the command line's ``dataset.depth_max``);
@@ -80,7 +84,8 @@ def rgbd_frame(depth: np.ndarray, intrinsics: Intrinsics, depth_scale: float | N
 
         metres, rgb, intrinsics = undistort(metres, rgb, intrinsics)
     return Frame(index=int(index), timestamp=float(index if timestamp is None else timestamp), depth=metres,
-                 intrinsics=intrinsics, color=rgb, gt_pose=None if gt_pose is None else _pose(gt_pose))
+                 intrinsics=intrinsics, color=rgb, gt_pose=None if gt_pose is None else _pose(gt_pose),
+                 color_registered=rgb is not None and bool(color_registered))
 
 
 def _rgb(color, shape: tuple[int, int]) -> np.ndarray | None:
@@ -124,6 +129,7 @@ class FrameList(Dataset):
         self.format_from = "frames given in Python"
         self.intrinsics_source = "the frames' own"
         self._intrinsics = frames[0].intrinsics
+        self.color_registered = bool(frames[0].color_registered)  # rgbd_frame's color_registered
 
     @property
     def raw_intrinsics(self) -> Intrinsics:

@@ -135,12 +135,14 @@ class SurfelMapper:
 
     # -- rendering -----------------------------------------------------------------------------------------
     def render_pyramid(self, frame_pyramid, pose: np.ndarray, intrinsics: Intrinsics,
-                    min_weight: float | None = None, min_time: int = -2**31) -> None:
+                       min_weight: float | None = None, min_time: int = -2**31, intensity: bool = False) -> None:
         """Fill a ``FramePyramid`` with the prediction: every pyramid level from the rendered depth (with the
         maps' own settings), and level 0's vertex and normal maps straight from the
         surfels (averaged normals, smoother than normals from depth differences). Surfels below
         ``min_weight`` (default ``fusion.render_min_weight``) or last updated before frame ``min_time``
-        (inactive: ElasticFusion's time window, ``slam.active_window``) are left out.
+        (inactive: ElasticFusion's time window, ``slam.active_window``) are left out. With ``intensity``,
+        the pyramid's intensity too: at each pixel the grey level of the surfel seen there (the model's side of
+        the photometric term).
 
         The pyramid is built from a render whose holes (pixels no surfel projects to) take a neighbour's
         disc (``FILL_HALF``); level 0 then goes back to the surfels' own pixels. Why: surfels fused from afar
@@ -155,6 +157,9 @@ class SurfelMapper:
         frame_pyramid.compute_from_field(intrinsics, level0_maps=False)
         if FILL_HALF > 0:
             self.map.clear_holes(intrinsics, *level0)
+        if intensity:
+            view = self.map.prediction_images(intrinsics.height, intrinsics.width).view_index  # the render's
+            frame_pyramid.intensity_from_surfels(view, self.map.arrays.color)
 
     def render_image(self, pose: np.ndarray, intrinsics: Intrinsics, by_normal: bool = False) -> np.ndarray:
         """uint8 RGB view of the map from ``pose`` (surfel colour, or world normal as (n + 1) / 2)."""

@@ -279,12 +279,8 @@ class DenseSLAM:
         # slam.active_window: only the active model (surfels updated lately) is tracked against (ElasticFusion)
         window = self.config.slam.active_window
         self.mapper.render_pyramid(self.model_pyramid, last, self.model_intrinsics,
-                                min_weight=fusion.render_min_weight if warm else 0.0,
-                                min_time=self._frames_fused - window if window > 0 else -2**31)
-        if color:
-            K = self.model_intrinsics
-            view = self.mapper.map.prediction_images(K.height, K.width).view_index  # the render's, just made
-            self.model_pyramid.intensity_from_surfels(view, self.mapper.map.arrays.color)
+                                   min_weight=fusion.render_min_weight if warm else 0.0,
+                                   min_time=self._frames_fused - window if window > 0 else -2**31, intensity=color)
         return self.model_pyramid, last
 
     def _track(self, frame: Frame, color: bool = False) -> FrameResult:

@@ -69,8 +69,8 @@ def splat_depth(depth: ti.template(), h: ti.i32, w: ti.i32, kd: Vec4, kc: Vec4, 
 
 @ti.kernel
 def sample_color(depth: ti.template(), h: ti.i32, w: ti.i32, kd: Vec4, kc: Vec4, T: Rigid, zbuf: ti.template(),
-                  color: ti.template(), hc: ti.i32, wc: ti.i32, margin: ti.f32, out: ti.template(),
-                  valid: ti.template()):
+                 color: ti.template(), hc: ti.i32, wc: ti.i32, margin: ti.f32, out: ti.template(),
+                 valid: ti.template()):
     """out[v, u] = the colour at depth pixel (v, u)'s point in the colour image (bilinear), valid 1; else
     (0, 0, 0) and valid 0."""
     for v, u in ti.ndrange(h, w):

@@ -312,7 +312,7 @@ def bench_resolution(depth_s, depth_t, K, reference, cfg, args) -> dict:
 
     c = cfg.icp
     levels = len(c.iterations)
-    src, tgt = FramePyramid(cfg.pyramid, K.height, K.width, levels), FramePyramid(cfg.pyramid, K.height, K.width, levels)
+    src, tgt = (FramePyramid(cfg.pyramid, K.height, K.width, levels) for _ in range(2))
     icp = ICP(c)
 
     def frame_pair():

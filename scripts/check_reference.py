@@ -63,7 +63,7 @@ def main() -> int:
     from ti_fusion.geometry import invert
     from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.icp import PointToPlane, unpack_sums
-    from ti_fusion.kernels.pyramids import FramePyramid
+    from ti_fusion.kernels.pyramid import FramePyramid
 
     dataset = open_dataset(cfg.dataset, cfg.synth)
     n = len(dataset)
@@ -79,7 +79,8 @@ def main() -> int:
 
     K, icp_cfg = dataset.intrinsics, cfg.icp
     level = cfg.frame_input_level(K.width)
-    pyramids = [FramePyramid(cfg.pyramids, K.height, K.width, len(icp_cfg.iterations), input_level=level) for _ in range(2)]
+    pyramids = [FramePyramid(cfg.pyramid, K.height, K.width, len(icp_cfg.iterations), input_level=level)
+                for _ in range(2)]
     icp = ICP(icp_cfg)
     backend = current_backend()
     kernels = PointToPlane(pyramids[0].shapes[0][0] * pyramids[0].shapes[0][1], backend.has_f64, backend.arch)

@@ -28,7 +28,8 @@ DOC = Path(__file__).resolve().parent.parent / "docs" / "CONFIG.md"
 SECTIONS = {
     "dataset": "The input: which frames, their depth units, intrinsics, topics and colour camera",
     "synth": "The embedded synthetic sequence (used when `dataset.path` is empty): scene, size, sensor noise",
-    "pyramid": "The frame's pyramid that tracking aligns and fusion merges (depth smoothing, depth, vertex and normal maps per level)",
+    "pyramid": "The frame's pyramid that tracking aligns and fusion merges (depth smoothing, depth, vertex and "
+               "normal maps per level)",
     "icp": "Dense tracking: projective point-to-plane ICP, with the optional photometric term",
     "fusion": "The surfel map: its size, the level it is built at, merging and removal",
     "slam": "The tracking loop around ICP: motion model, failure checks, re-localisation, loop closure on/off",

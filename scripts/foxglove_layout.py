@@ -98,7 +98,7 @@ def layout() -> dict:
         TITLE: "map and poses", "followTf": "world", "followMode": "follow-none", "cameraState": CAMERA,
         "scene": {}, "transforms": {}, "topics": SCENE_TOPICS, "layers": {}})
     color = ui.panel("ImageViewPanel", "color", {TITLE: "color", "cameraTopic": "/camera/color",
-                                                   "enabledMarkerTopics": [], "mode": "fit", "synchronize": False})
+                                                 "enabledMarkerTopics": [], "mode": "fit", "synchronize": False})
     depth = ui.panel("ImageViewPanel", "depth", {TITLE: "depth (mm, 0 to 5000)", "cameraTopic": "/camera/depth",
                                                  "enabledMarkerTopics": [], "mode": "fit", "synchronize": False,
                                                  "minValue": 0, "maxValue": 5000})

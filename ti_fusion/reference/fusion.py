@@ -143,7 +143,7 @@ class NumpyFusion:
         _put_rows(a["position"], i, p_new)
         _put_rows(a["normal"], i, n_new)
         _put_rows(a["color"], i, (w * np.take(a["color"], i, axis=0) +
-                                   alpha * np.take(rgb, px, axis=0).astype(np.float32)) / wa)
+                                  alpha * np.take(rgb, px, axis=0).astype(np.float32)) / wa)
         a["weight"][i] = wa[:, 0]
         a["radius"][i] = r_new
         a["t_updated"][i] = frame

@@ -152,11 +152,12 @@ class DenseSLAM:
         # The incoming frame: ICP target (averaged down to the map's level first).
         frame_level = config.frame_input_level(W)
         self.frame_pyramid = FramePyramid(config.pyramid, H, W, max(levels, map_level - frame_level + 1),
-                                    input_level=frame_level)
+                                          input_level=frame_level)
         # The map rendered at the last pose: ICP source, at the map's resolution: level l of the model is
         # aligned to level l of the frame maps, at the same resolution.
         self.model_intrinsics = intrinsics.downsampled(2**map_level)
-        self.model_pyramid = FramePyramid(config.pyramid, self.model_intrinsics.height, self.model_intrinsics.width, levels)
+        self.model_pyramid = FramePyramid(config.pyramid, self.model_intrinsics.height, self.model_intrinsics.width,
+                                          levels)
         self.icp = ICP(config.icp)
         # Dense re-localisation: the same levels with more iterations and wider gates at the coarse ones.
         wide = config.slam.relocalise_iterations
@@ -167,8 +168,8 @@ class DenseSLAM:
         self.score_icp = ICP(replace(config.icp, iterations=[0] * (levels - 1) + [1],
                                      dist_threshold=config.slam.score_gate))
         self.mapper = SurfelMapper(config.fusion)
-        warning = coarse_level_warning(config.icp, self.model_pyramid.shapes[-1], (self.frame_pyramid.height,
-                                                                               self.frame_pyramid.width))
+        warning = coarse_level_warning(config.icp, self.model_pyramid.shapes[-1],
+                                       (self.frame_pyramid.height, self.frame_pyramid.width))
         if warning:
             log.warning(warning)
         self.poses = PoseStore()  # the trajectory, each pose with its keyframe (loop closure corrects it)
@@ -270,7 +271,7 @@ class DenseSLAM:
     def _reference(self, color: bool = False) -> tuple[FramePyramid, np.ndarray]:
         """The ICP source and the camera-to-world pose of its camera frame (with ``color``, its intensity
         too: the model's colour at each pixel of the prediction)."""
-        last = self.last_good[1] if self.last_good is not None else self.poses[-1]
+        last = self._held_pose()
         fusion = self.config.fusion
         # Only confirmed surfels predict the surface (Keller's stable points, fusion.render_min_weight),
         # once the map has had time to confirm any: at first every surfel is new, and a prediction

@@ -30,8 +30,7 @@ from ti_fusion.io.datasets.realsense_live import StreamEnded
 from ti_fusion.io.registration import ColorRegistrar
 from ti_fusion.io.trajectory import write_tum
 from ti_fusion.slam.checks import check_first_frames
-from ti_fusion.timing import StageTimer, process_age_s
-from ti_fusion.timing import Stopwatch
+from ti_fusion.timing import StageTimer, Stopwatch, process_age_s
 
 # The log's record of a run without a Taichi backend (feature odometry runs in OpenCV).
 NO_BACKEND = {"arch": "none (OpenCV on the CPU)"}

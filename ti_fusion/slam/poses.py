@@ -26,10 +26,10 @@ class PoseStore:
         self._anchors: list[int] = []
         self.keyframe = 0  # the anchor of the next frame appended
 
-    def append(self, pose: np.ndarray | None, frame: int | None = None) -> None:
-        """``pose`` of frame ``frame`` (default: its position in the store), copied."""
+    def append(self, pose: np.ndarray | None, frame: int) -> None:
+        """``pose`` of frame ``frame`` (its index in the run), copied."""
         self._poses.append(None if pose is None else np.array(pose, dtype=np.float64))
-        self._frames.append(len(self._frames) if frame is None else int(frame))
+        self._frames.append(int(frame))
         self._anchors.append(self.keyframe)
 
     def start_keyframe(self, keyframe: int) -> None:

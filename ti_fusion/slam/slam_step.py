@@ -52,7 +52,7 @@ STATS_SCHEMA = json_object({
         "track": json_field("number", "rendering the model and ICP (with feature relocalisation when it runs), "
                                       "milliseconds; every frame but the first"),
         "fuse": json_field("number", "fusing the frame into the map, milliseconds; fused frames only"),
-        "loop": json_field("number", "loop closure: keyframe, place recognition, verification, and on an "
+        "loop": json_field("number", "loop closure: keyframe, place recognition, verification, and on a "
                                      "verified loop the pose graph and the correction, milliseconds; with "
                                      "slam.loop_closure only"),
     }, required=("pyramid",), description="time per stage, milliseconds"),
@@ -69,11 +69,11 @@ STATS_SCHEMA = json_object({
         "update_norm": json_field("number", "norm of the last se(3) update (radians and metres together), the "
                                             "convergence test's value (left out: no update computed)"),
         "color_residuals": json_field("integer", "photometric residuals of the last iteration (0: the term is "
-                                                  "off, icp.color_weight = 0 or colour not registered)", minimum=0),
+                                                 "off, icp.color_weight = 0 or colour not registered)", minimum=0),
         "weak_directions": json_field("integer", "eigen-directions of the geometric AᵀA below icp.weak_ratio of "
                                                  "its largest: what depth alone leaves unconstrained", minimum=0),
         "weak_constrained_by_color": json_field("integer", "of those, the ones the photometric term lifted above "
-                                                            "icp.weak_ratio", minimum=0),
+                                                           "icp.weak_ratio", minimum=0),
     }, required=("iterations", "inliers", "inlier_ratio"),
         description="the frame's ICP against the model, of its last iteration; every frame but the first"),
     "merged": json_field("integer", "pixels averaged into an existing surfel; fused frames only", minimum=0),
@@ -88,7 +88,7 @@ STATS_SCHEMA = json_object({
         "candidates": json_field("array", "earlier keyframes place recognition proposed, each with its decision",
                                  items=LOOP_CANDIDATE_SCHEMA),
         "applied": json_field("array", "[earlier keyframe, this keyframe] of a loop applied, else []",
-                             items={"type": "integer"}),
+                              items={"type": "integer"}),
         "outcome": json_field("string", 'for a verified candidate: "applied" or why the pose graph refused it'),
         "ms": json_object({name: json_field("number", what + ", milliseconds") for name, what in (
             ("keyframe", "choosing the keyframe and its features"), ("detect", "place recognition"),

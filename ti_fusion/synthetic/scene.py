@@ -121,7 +121,7 @@ class SyntheticSequence:
         return depth, color
 
     def render_offset_color(self, pose: np.ndarray, T_color_depth: np.ndarray, intrinsics: Intrinsics,
-                             noise: bool | None = None, seed: int | None = None) -> np.ndarray:
+                            noise: bool | None = None, seed: int | None = None) -> np.ndarray:
         """The colour image (uint8 H×W×3 RGB) of a second camera beside the depth camera, as on a RealSense
         or a Kinect: ``T_color_depth`` maps depth-camera points into it, ``intrinsics`` is its own camera;
         ``pose`` is the depth camera's camera-to-world. The target of colour registration."""

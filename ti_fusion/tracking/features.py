@@ -309,8 +309,9 @@ class FeatureOdometry:
     """Frame-to-keyframe ORB + PnP odometry with the tutorial's three rejection rules.
 
     Each frame is matched against the keyframe, the last ACCEPTED frame; a rejected frame is skipped
-    (no pose) and the next one is matched against the same keyframe. The first accepted frame's pose is ``initial_pose`` if given, else its ground-truth pose when the dataset has one
-    (so the trajectory is directly comparable with ground truth), else the identity.
+    (no pose) and the next one is matched against the same keyframe. The first accepted frame's pose is
+    ``initial_pose`` if given, else its ground-truth pose when the dataset has one (so the trajectory is
+    directly comparable with ground truth), else the identity.
     """
 
     def __init__(self, config: VOConfig | None = None, initial_pose: np.ndarray | None = None):

@@ -23,8 +23,8 @@ To add a panel: make it with ``panel(TYPE, NAME, CONFIG)`` and put the returned 
 
 from __future__ import annotations
 
+import argparse
 import json
-import sys
 from pathlib import Path
 
 OUT = Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json"
@@ -119,11 +119,17 @@ def layout() -> dict:
             "layout": tree}
 
 
-def main() -> None:
-    out = Path(sys.argv[1]) if len(sys.argv) > 1 else OUT
-    out.write_text(json.dumps(layout(), indent=1) + "\n")
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description="Write the Foxglove/Lichtblick layout for ti-fusion's logs.")
+    parser.add_argument("out", nargs="?", type=Path, default=OUT, help=f"the layout file (default: {OUT})")
+    out = parser.parse_args(argv).out
+    try:
+        out.write_text(json.dumps(layout(), indent=1) + "\n")
+    except OSError as exc:
+        parser.exit(2, f"foxglove_layout.py: cannot write {out}: {exc.strerror}\n")
     print(f"wrote {out}")
+    return 0
 
 
 if __name__ == "__main__":
-    main()
+    raise SystemExit(main())

@@ -319,8 +319,8 @@ class ICPConfig:
     min_inliers: Annotated[int, Range(ge=6)] = 100  # fewer correspondences → degenerate, reported as a failure
                                      # (the 6×6 system needs six at the very least)
     max_condition: Annotated[float, Range(ge=1)] = 1e7  # cond(AᵀA) above this → degenerate (cond is >= 1)
-    stop_update: NonNegative = 1e-4  # stop a level when ‖δξ‖ (rad, m) falls below this: 0.1 mm, below the
-                                     # noise; also what ICPResult.converged tests
+    stop_update: NonNegative = 1e-4  # stop the finest level when ‖δξ‖ (rad, m) falls below this: 0.1 mm, below
+                                     # the noise; doubled per coarser level; also what ICPResult.converged tests
     level_dist_scale: Positive = 2.0  # d_thr at pyramid level l is dist_threshold · level_dist_scale**l (coarse
                                       # levels gate wider)
     color_weight: NonNegative = 0.01  # weight of the photometric term's normal equations beside ICP's (intensity

@@ -106,6 +106,11 @@ class ICP:
         correspondences further apart (``level_dist_scale`` ** level)."""
         return self.config.dist_threshold * self.config.level_dist_scale ** level
 
+    def stop_update(self, level: int) -> float:
+        """The update ‖δξ‖ below which a level stops: ``icp.stop_update`` at the finest, doubled per coarser
+        level, whose pixels are twice as large (a coarse level need not converge finer than it can see)."""
+        return self.config.stop_update * 2 ** level
+
     @property
     def robust(self) -> str:
         """The kernels' robust mode: ``icp.robust``, with "+depth" when ``icp.depth_weighting`` is on."""
@@ -161,7 +166,7 @@ class ICP:
                 kernels.begin_level(source.vertex[level], source.normal[level], target.vertex[level],
                                     target.normal[level], target.intrinsics[level].as_tuple(),
                                     self.dist_threshold(level), cfg.normal_threshold_deg, robust, cfg.robust_scale,
-                                    level, cfg.min_inliers, cfg.stop_update, self._color(source, target, level))
+                                    level, cfg.min_inliers, self.stop_update(level), self._color(source, target, level))
         for level, n_iter in schedule:
             done = 0
             for it in range(n_iter):
@@ -201,7 +206,7 @@ class ICP:
                     return
                 result.pose = se3_exp(delta) @ result.pose
                 result.iterations[-1].update_norm = result.update_norm = float(np.linalg.norm(delta))
-                if result.update_norm < cfg.stop_update:
+                if result.update_norm < self.stop_update(level):
                     break
         result.converged = result.update_norm < cfg.stop_update
 

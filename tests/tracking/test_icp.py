@@ -443,6 +443,23 @@ def test_solve_in_kernel_matches_solve_in_numpy(cpu, rng, sequence, stop_update,
     assert_same_run(in_kernel, _align_in_python(cfg, src, tgt))
 
 
+def test_each_level_stops_at_its_own_update(cpu, rng, sequence):
+    """A level stops once ‖δξ‖ falls below icp.stop_update · 2^level (its pixels are 2^level times larger),
+    and not before; ``converged`` is the last level's test."""
+    cfg = ICPConfig(stop_update=1e-4)
+    src, tgt, _ = synthetic_pair(sequence, rng, noise=True, cfg=cfg, smooth=2)
+    icp = ICP(cfg)
+    result = icp.align(src, tgt)
+    assert result.failure is None and result.converged
+    levels = sorted({r.level for r in result.iterations}, reverse=True)
+    assert levels == [2, 1, 0]
+    for level, budget in zip(levels, cfg.iterations):
+        norms = [r.update_norm for r in result.iterations if r.level == level]
+        assert icp.stop_update(level) == pytest.approx(1e-4 * 2 ** level)
+        assert all(n >= icp.stop_update(level) for n in norms[:-1]), (level, norms)
+        assert len(norms) == budget or norms[-1] < icp.stop_update(level), (level, norms)
+
+
 @pytest.mark.parametrize("refused, resume", [(6, (0, 6)), (10, (1, 0)), (17, (2, 2))])
 def test_solve_in_kernel_hands_over_to_numpy(cpu, rng, sequence, monkeypatch, refused, resume):
     """Where the kernel's Cholesky refuses a system that NumPy's checks accept, the run goes on in NumPy

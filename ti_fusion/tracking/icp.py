@@ -52,7 +52,7 @@ class ICPResult:
 
     pose: 4×4 float64, source camera → target camera (p_target = T p_source). On a failure, the last
     good estimate (the pose before the degenerate iteration).
-    converged: no failure and the last update ‖δξ‖ is below ``config.stop_update`` (the level's stop test).
+    converged: no failure and the last update ‖δξ‖ passed its level's stop test (``ICP.stop_update``).
     failure: None, or a short reason ("too few inliers (12 < 100)", "ill-conditioned AᵀA (cond ...)").
     inliers, inlier_ratio (inliers / valid source pixels), residual_rms (metres), condition (cond AᵀA),
     update_norm: of the last iteration that ran.
@@ -110,6 +110,11 @@ class ICP:
         """The update ‖δξ‖ below which a level stops: ``icp.stop_update`` at the finest, doubled per coarser
         level, whose pixels are twice as large (a coarse level need not converge finer than it can see)."""
         return self.config.stop_update * 2 ** level
+
+    def _converged(self, result: ICPResult) -> bool:
+        """Whether the last iteration's update passed its level's stop test."""
+        level = result.iterations[-1].level if result.iterations else 0
+        return bool(result.update_norm < self.stop_update(level))
 
     @property
     def robust(self) -> str:
@@ -189,14 +194,13 @@ class ICP:
                 return n_levels - 1 - level, it
             result.iterations[-1].update_norm = result.update_norm = float(record[R_UPDATE])
         result.pose = kernels.pose()
-        result.converged = result.update_norm < cfg.stop_update
+        result.converged = self._converged(result)
         return None
 
     def _align_in_python(self, kernels: PointToPlane, source, target, schedule, result: ICPResult,
                          start: tuple[int, int] = (0, 0)) -> None:
         """The sums of each iteration to NumPy, checked, solved (Cholesky) and applied there; from
         ``start`` = (stage of ``schedule``, iteration) at ``result.pose``."""
-        cfg = self.config
         for stage, (level, n_iter) in enumerate(schedule):
             if stage < start[0]:
                 continue
@@ -208,7 +212,7 @@ class ICP:
                 result.iterations[-1].update_norm = result.update_norm = float(np.linalg.norm(delta))
                 if result.update_norm < self.stop_update(level):
                     break
-        result.converged = result.update_norm < cfg.stop_update
+        result.converged = self._converged(result)
 
     def _record(self, result: ICPResult, level: int, it: int, sums: np.ndarray) -> dict | None:
         """Record an iteration's sums in ``result`` and check its system: the unpacked sums, or None (with

@@ -119,14 +119,15 @@ def layout() -> dict:
             "layout": tree}
 
 
-def main(argv=None) -> int:
+def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description="Write the Foxglove/Lichtblick layout for ti-fusion's logs.")
-    parser.add_argument("out", nargs="?", type=Path, default=OUT, help=f"the layout file (default: {OUT})")
+    parser.add_argument("out", nargs="?", type=Path, default=OUT,
+                        help="the layout file (default: docs/foxglove-layout.json)")
     out = parser.parse_args(argv).out
     try:
         out.write_text(json.dumps(layout(), indent=1) + "\n")
     except OSError as exc:
-        parser.exit(2, f"foxglove_layout.py: cannot write {out}: {exc.strerror}\n")
+        parser.exit(2, f"foxglove_layout.py: cannot write {out}: {exc.strerror or exc}\n")
     print(f"wrote {out}")
     return 0
 

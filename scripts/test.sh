@@ -5,8 +5,9 @@
 # is Taichi compiling kernels on one thread, so a second process uses the core the first leaves idle.
 set -euo pipefail
 source "$(dirname "$0")/setup_env.sh"
-# Kernels compile with LLVM's fastest code generation (-O0; Taichi ships -O1): compiling, not running, is
-# most of the suite's time (docs/CONTRIBUTING.md "The suite's time"). TI_OPT_LEVEL=1 tests what ships.
+# Kernels compile with LLVM's fastest code generation (-O0; ti-fusion ships Taichi's default, 1): compiling,
+# not running, is most of the suite's time (docs/CONTRIBUTING.md "The suite's time"). TI_OPT_LEVEL=1 tests
+# what ships.
 export TI_OPT_LEVEL="${TI_OPT_LEVEL:-0}"
 WORKERS="${TI_FUSION_TEST_WORKERS:-$(python -c 'import os; print(min(4, len(os.sched_getaffinity(0))))')}"
 exec python -m pytest -n "$WORKERS" --dist loadfile "$@"

@@ -623,7 +623,8 @@ REMOVED = {
     **{("icp", name): f"moved to pyramid.{name}" for name in ("normal_max_depth_jump", "depth_smooth_radius")},
     ("icp", "pyramid_depth_sigma"): "moved to pyramid.depth_sigma",
     ("icp", "solver"): "the 6×6 step is always solved by Cholesky (LU and QR agreed with it; docs/BENCHMARKS.md)",
-    ("icp", "converged_update"): "the result is converged when the last update is below icp.stop_update",
+    ("icp", "converged_update"): "the result is converged when the last update passed its level's stop test "
+                                 "(icp.stop_update at the finest)",
     ("loop", "odometry_info_ratio"): "fixed at 1 (the inverse information; docs/BENCHMARKS.md)",
     ("loop", "odometry_max_scale"): "fixed at 1e6 (docs/BENCHMARKS.md)",
     ("fusion", "association"): "always Keller's: the nearest surfel that passes the filters (docs/BENCHMARKS.md)",

@@ -545,6 +545,22 @@ def _layout_module():
     return module
 
 
+def test_the_layout_script_takes_options_and_names_an_unwritable_file(tmp_path, monkeypatch, capsys):
+    """--help prints the usage (it once wrote the layout into a file named '--help'); a path that cannot be
+    written is one line naming it."""
+    module = _layout_module()
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(SystemExit) as done:
+        module.main(["--help"])
+    assert done.value.code == 0 and "usage:" in capsys.readouterr().out and not list(tmp_path.iterdir())
+    with pytest.raises(SystemExit) as done:
+        module.main([str(tmp_path / "missing" / "layout.json")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert done.value.code == 2 and len(err) == 1 and "missing/layout.json" in err[0], err
+    assert module.main([str(tmp_path / "layout.json")]) == 0
+    assert (tmp_path / "layout.json").read_text() == (DOCS.parents[1] / "docs" / "foxglove-layout.json").read_text()
+
+
 def test_the_foxglove_layout_shows_what_the_logs_have():
     """docs/foxglove-layout.json is what scripts/foxglove_layout.py writes, and every topic and message path
     in it is one the logs have."""

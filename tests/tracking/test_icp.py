@@ -22,7 +22,7 @@ from ti_fusion.backend import current_backend
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import DatasetConfig, ICPConfig, PyramidConfig, SynthConfig
 from ti_fusion.geometry import flatten_pose, invert, make_pose, pose_error, se3_exp, so3_exp
-from ti_fusion.tracking.icp import ICP, ICPResult
+from ti_fusion.tracking.icp import ICP, ICPResult, IterationRecord
 from ti_fusion.kernels import icp as kicp
 from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.synthetic.scene import SyntheticSequence
@@ -445,19 +445,34 @@ def test_solve_in_kernel_matches_solve_in_numpy(cpu, rng, sequence, stop_update,
 
 def test_each_level_stops_at_its_own_update(cpu, rng, sequence):
     """A level stops once ‖δξ‖ falls below icp.stop_update · 2^level (its pixels are 2^level times larger),
-    and not before; ``converged`` is the last level's test."""
+    and not before."""
     cfg = ICPConfig(stop_update=1e-4)
     src, tgt, _ = synthetic_pair(sequence, rng, noise=True, cfg=cfg, smooth=2)
     icp = ICP(cfg)
+    assert [icp.stop_update(level) for level in (0, 1, 2)] == [1e-4, 2e-4, 4e-4]
     result = icp.align(src, tgt)
     assert result.failure is None and result.converged
-    levels = sorted({r.level for r in result.iterations}, reverse=True)
-    assert levels == [2, 1, 0]
-    for level, budget in zip(levels, cfg.iterations):
+    for level, budget in zip((2, 1, 0), cfg.iterations):
         norms = [r.update_norm for r in result.iterations if r.level == level]
-        assert icp.stop_update(level) == pytest.approx(1e-4 * 2 ** level)
         assert all(n >= icp.stop_update(level) for n in norms[:-1]), (level, norms)
         assert len(norms) == budget or norms[-1] < icp.stop_update(level), (level, norms)
+
+    # A threshold the coarsest level's second update lies between (×1 and ×4): that level stops there.
+    every = ICP(ICPConfig(stop_update=0.0)).align(src, tgt)
+    coarsest = [r.update_norm for r in every.iterations if r.level == 2]
+    stop = coarsest[1] / 1.5
+    assert coarsest[0] >= 4 * stop, coarsest  # the pair's first update is well above both
+    stopped = ICP(ICPConfig(stop_update=stop)).align(src, tgt)
+    assert [r.level for r in stopped.iterations].count(2) == 2
+
+
+def test_converged_is_the_last_levels_stop_test():
+    """With no iteration at the finest level, ``converged`` asks the last level that ran."""
+    icp = ICP(ICPConfig(stop_update=1e-4))
+    result = ICPResult(pose=np.eye(4), iterations=[IterationRecord(1, 0, 0.0, 500, 1.5e-4)], update_norm=1.5e-4)
+    assert icp._converged(result)
+    result.iterations[-1].level = 0
+    assert not icp._converged(result)
 
 
 @pytest.mark.parametrize("refused, resume", [(6, (0, 6)), (10, (1, 0)), (17, (2, 2))])

@@ -108,7 +108,8 @@ class ICP:
 
     def stop_update(self, level: int) -> float:
         """The update ‖δξ‖ below which a level stops: ``icp.stop_update`` at the finest, doubled per coarser
-        level, whose pixels are twice as large (a coarse level need not converge finer than it can see)."""
+        level, whose pixels are twice as large as the next finer's (the pyramid halves the image per level; a
+        coarse level need not converge finer than it can see)."""
         return self.config.stop_update * 2 ** level
 
     def _converged(self, result: ICPResult) -> bool:

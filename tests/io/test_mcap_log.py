@@ -558,7 +558,7 @@ def test_the_layout_script_takes_options_and_names_an_unwritable_file(tmp_path, 
     err = capsys.readouterr().err.strip().splitlines()
     assert done.value.code == 2 and len(err) == 1 and "missing/layout.json" in err[0], err
     assert module.main([str(tmp_path / "layout.json")]) == 0
-    assert (tmp_path / "layout.json").read_text() == (DOCS.parents[1] / "docs" / "foxglove-layout.json").read_text()
+    assert (tmp_path / "layout.json").read_text() == (DOCS.parent / "foxglove-layout.json").read_text()
 
 
 def test_the_foxglove_layout_shows_what_the_logs_have():

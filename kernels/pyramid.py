@@ -27,7 +27,7 @@ intensity image in [0, 1] (−1 = none) and, for the live frame, (I, ∂I/∂x, 
 I = −1 on the border and next to a missing intensity). The live frame's grey image (ITU-R 601 weights) is
 averaged down like the depth: coarse pixel (u, v) is the [1 2 1] ⊗ [1 2 1] weighted mean of the valid fine
 intensities of the 3×3 window centred on (2u, 2v), so it stays aligned with the depth pyramid; the model's
-level 0 is the colour of the surfel seen at each pixel (``surfel_intensity``, from the prediction's
+level 0 is the colour of the surfel seen at each pixel (``surfel_intensity_loop``, from the prediction's
 ``view_index``).
 
 Storage and compilation: Taichi compiles a kernel once per set of fields it is given (a ``ti.template()``
@@ -476,6 +476,12 @@ GREY = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights of R, G, B
 @ti.kernel
 def intensity_down(fine: ti.template(), f0: ti.i32, H: ti.i32, W: ti.i32, coarse: ti.template(), c0: ti.i32,
                    serial: ti.template()):
+    """One level of ``intensity_down_loop`` in one launch."""
+    intensity_down_loop(fine, f0, H, W, coarse, c0, serial)
+
+
+@ti.func
+def intensity_down_loop(fine: ti.template(), f0, H, W, coarse: ti.template(), c0, serial: ti.template()):
     """coarse = fine averaged down one level: the [1 2 1] ⊗ [1 2 1] weighted mean of the valid (≥ 0) fine
     intensities in the 3×3 window centred on (2v, 2u) that lie inside the image; −1 where none is valid.
     The H × W image at row ``f0`` of ``fine`` into the ⌈H/2⌉ × ⌈W/2⌉ one at row ``c0`` of ``coarse``."""
@@ -496,9 +502,8 @@ def intensity_down(fine: ti.template(), f0: ti.i32, H: ti.i32, W: ti.i32, coarse
         coarse[c0 + v, u] = ti.select(weight > 0, total / ti.max(weight, 1.0), -1.0)
 
 
-@ti.kernel
-def intensity_gradient(image: ti.template(), out: ti.template(), r0: ti.i32, H: ti.i32, W: ti.i32,
-                       serial: ti.template()):
+@ti.func
+def intensity_gradient_loop(image: ti.template(), out: ti.template(), r0, H, W, serial: ti.template()):
     """out[v, u] = (I, ∂I/∂x, ∂I/∂y), the derivatives by Sobel / 8 (intensity per pixel); (−1, 0, 0) on the
     image border and where any of the 3×3 window has no intensity. Both the H × W level at row ``r0``."""
     if ti.static(serial):
@@ -517,7 +522,23 @@ def intensity_gradient(image: ti.template(), out: ti.template(), r0: ti.i32, H: 
 
 
 @ti.kernel
-def surfel_intensity(view_index: ti.template(), color: ti.template(), out: ti.template(), serial: ti.template()):
+def intensity_maps(fine: ti.template(), stack: ti.template(), grad: ti.template(), rows: ti.template(),
+                   from_fine: ti.template(), serial_input: ti.template(), serial: ti.template()):
+    """A live frame's intensity pyramid and gradients in one launch: with ``from_fine``, the grey image
+    ``fine`` averaged down into level 0 of ``stack`` first; then each level from the one above, then every
+    level's gradients into ``grad`` (consecutive loops of one kernel, run in order). ``rows``: the levels'
+    (first row, height, width), compile-time constants of the pyramid."""
+    if ti.static(from_fine):
+        H, W = fine.shape
+        intensity_down_loop(fine, 0, H, W, stack, 0, serial_input)
+    for l in ti.static(range(1, len(rows))):
+        intensity_down_loop(stack, rows[l - 1][0], rows[l - 1][1], rows[l - 1][2], stack, rows[l][0], serial)
+    for l in ti.static(range(len(rows))):
+        intensity_gradient_loop(stack, grad, rows[l][0], rows[l][1], rows[l][2], serial)
+
+
+@ti.func
+def surfel_intensity_loop(view_index: ti.template(), color: ti.template(), out: ti.template(), serial: ti.template()):
     """out[v, u] = the grey level in [0, 1] of the surfel seen at the pixel (``color`` RGB in [0, 255]), −1
     where none is (``view_index`` INT_MAX); ``out`` level 0 of a stack (row 0), of ``view_index``'s size."""
     if ti.static(serial):
@@ -530,6 +551,16 @@ def surfel_intensity(view_index: ti.template(), color: ti.template(), out: ti.te
             c = color[i]
             g = (GREY[0] * c[0] + GREY[1] * c[1] + GREY[2] * c[2]) / 255.0
         out[v, u] = g
+
+
+@ti.kernel
+def surfel_intensity_maps(view_index: ti.template(), color: ti.template(), stack: ti.template(),
+                          rows: ti.template(), serial: ti.template()):
+    """The model's intensity pyramid in one launch: ``surfel_intensity_loop`` into level 0 of ``stack``,
+    then each level averaged down from the one above (``rows`` as in ``intensity_maps``)."""
+    surfel_intensity_loop(view_index, color, stack, serial)
+    for l in ti.static(range(1, len(rows))):
+        intensity_down_loop(stack, rows[l - 1][0], rows[l - 1][1], rows[l - 1][2], stack, rows[l][0], serial)
 
 
 def grey_image(color: np.ndarray) -> np.ndarray:
@@ -576,6 +607,7 @@ class FramePyramid:
             self.shapes.append((h, w))
             h, w = (h + 1) // 2, (w + 1) // 2
         self.row0, rows, _ = stacked_rows(self.shapes)
+        self._rows = tuple((r, h, w) for r, (h, w) in zip(self.row0, self.shapes))  # template argument
         self._stack_shape = (rows, width)
         self.depth = self._levels(ti.field(ti.f32, shape=self._stack_shape))
         self.vertex = self._levels(ti.Vector.field(3, ti.f32, shape=self._stack_shape))
@@ -662,20 +694,20 @@ class FramePyramid:
             raise ValueError(f"grey image of shape {grey.shape} given to FramePyramid of shape {self.input_shape}")
         self._intensity_fields(True)
         grey = np.ascontiguousarray(grey, dtype=np.float32)
-        if self.input_level == 0:
-            self._upload_level0(self.intensity[0].field, grey)
-        else:
-            if not self._grey_inputs:
-                self._grey_inputs = [ti.field(ti.f32, shape=f.shape) for f in self._inputs]
-            self._grey_inputs[0].from_numpy(grey)
-            targets = self._grey_inputs[1:] + [self.intensity[0].field]
-            for fine, coarse in zip(self._grey_inputs, targets):
-                h, w = fine.shape
-                intensity_down(fine, 0, h, w, coarse, 0, serial_for(((h + 1) // 2) * ((w + 1) // 2)))
-        self._intensity_levels()
         stack, grad = self.intensity[0].field, self.intensity_grad[0].field
-        for r0, (h, w) in zip(self.row0, self.shapes):
-            intensity_gradient(stack, grad, r0, h, w, self._serial)
+        if self.input_level == 0:
+            self._upload_level0(stack, grey)
+            intensity_maps(stack, stack, grad, self._rows, False, self._serial, self._serial)
+            return
+        if not self._grey_inputs:
+            self._grey_inputs = [ti.field(ti.f32, shape=f.shape) for f in self._inputs]
+        self._grey_inputs[0].from_numpy(grey)
+        for fine, coarse in zip(self._grey_inputs, self._grey_inputs[1:]):  # input_level > 1
+            h, w = fine.shape
+            intensity_down(fine, 0, h, w, coarse, 0, serial_for(((h + 1) // 2) * ((w + 1) // 2)))
+        h, w = self._grey_inputs[-1].shape
+        intensity_maps(self._grey_inputs[-1], stack, grad, self._rows, True,
+                       serial_for(((h + 1) // 2) * ((w + 1) // 2)), self._serial)
 
     def intensity_from_surfels(self, view_index, color) -> None:
         """The model's intensity pyramid: level 0 the grey level of the surfel seen at each pixel
@@ -684,14 +716,7 @@ class FramePyramid:
         if tuple(view_index.shape) != self.shapes[0]:
             raise ValueError(f"view_index of shape {view_index.shape} for maps of shape {self.shapes[0]}")
         self._intensity_fields(False)
-        surfel_intensity(view_index, color, self.intensity[0].field, self._serial)
-        self._intensity_levels()
-
-    def _intensity_levels(self) -> None:
-        stack = self.intensity[0].field
-        for l in range(1, self.levels):
-            h, w = self.shapes[l - 1]
-            intensity_down(stack, self.row0[l - 1], h, w, stack, self.row0[l], self._serial)
+        surfel_intensity_maps(view_index, color, self.intensity[0].field, self._rows, self._serial)
 
     def _packed_fields(self):
         """The packed level-0 images of the smoothing (allocated when smoothing is first asked for)."""

@@ -298,9 +298,19 @@ def random_grey(rng, shape, invalid=0.05):
     return g.astype(np.float32)
 
 
-def test_intensity_pyramid_and_gradients_match_reference(arch, rng, loops, input_level=1):
+def test_intensity_pyramid_and_gradients_match_reference(arch, rng, loops):
+    check_intensity_pyramid(rng, input_level=1)
+
+
+@pytest.mark.parametrize("input_level", [0, 2])
+def test_intensity_pyramid_of_other_input_levels(arch, rng, input_level):
+    """The grey image uploaded as level 0 (input_level 0), or averaged down twice before ``intensity_maps``."""
+    check_intensity_pyramid(rng, input_level)
+
+
+def check_intensity_pyramid(rng, input_level):
     grey = random_grey(rng, (37, 51))
-    grey[10:17, 20:29] = -1.0  # a hole that survives averaging down
+    grey[8:24, 16:36] = -1.0  # a hole that survives averaging down twice
     depth = random_depth(rng, shape=grey.shape)
     K_in = Intrinsics(150.0, 140.0, 25.0, 18.0, 51, 37)
     pyramid = FramePyramid(settings(), *grey.shape, levels=3, input_level=input_level)

@@ -24,6 +24,18 @@ INT_MAX = 2147483647  # "no surfel" in index maps and "no depth" in depth keys
 BLOCK = 128
 
 
+def data_oriented(cls):
+    """``ti.data_oriented`` for a class whose objects kernels take as ``ti.template()`` arguments, without the
+    ``__getattribute__`` hook Taichi installs to bind ``@ti.kernel`` methods: none of these classes has one,
+    and the hook runs a Python function on every attribute read (hundreds per frame, ``isinstance`` checks
+    of each launch's arguments included; docs/PERFORMANCE.md)."""
+    cls = ti.data_oriented(cls)
+    if any(getattr(v, "_is_wrapped_kernel", False) for v in vars(cls).values()):
+        raise TypeError(f"{cls.__name__} has @ti.kernel methods: decorate it with ti.data_oriented")
+    del cls.__getattribute__
+    return cls
+
+
 @ti.func
 def rigid(pose: ti.template()):
     """(R, t) of a ``Rigid`` argument."""

@@ -32,7 +32,7 @@ import math
 
 import taichi as ti
 
-from ti_fusion.kernels.common import (BLOCK, INT_MAX, Mat3, Rigid, Vec3, bits_depth, depth_bits,
+from ti_fusion.kernels.common import (BLOCK, INT_MAX, Mat3, Rigid, Vec3, bits_depth, data_oriented, depth_bits,
                                       depth_noise_scale, is_valid, rigid)
 from ti_fusion.kernels.index_map import IndexMap, list_if, project_to_pixel
 from ti_fusion.kernels.surfels import copy_surfel
@@ -62,7 +62,7 @@ def weight_bits(radial: bool, depth: bool) -> int:
     return (RADIAL if radial else 0) | (DEPTH if depth else 0)
 
 
-@ti.data_oriented
+@data_oriented
 class FusionImages:
     """The per-pixel work images of the fusion step at one resolution."""
 

@@ -80,7 +80,7 @@ import taichi as ti
 
 from ti_fusion.backend import SERIAL_BELOW
 from ti_fusion.geometry import flatten_pose, unflatten_pose
-from ti_fusion.kernels.common import depth_noise_scale
+from ti_fusion.kernels.common import data_oriented, depth_noise_scale
 from ti_fusion.kernels.pyramid import as_level
 
 STATUS_OK = 0
@@ -678,7 +678,7 @@ class Photometric(NamedTuple):
     scale: float
 
 
-@ti.data_oriented
+@data_oriented
 class PointToPlane:
     """Association + linearisation + reduction for one backend, with the fields the passes write.
 

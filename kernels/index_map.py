@@ -17,10 +17,10 @@ backend.
 
 import taichi as ti
 
-from ti_fusion.kernels.common import BLOCK, INT_MAX, Rigid, depth_bits, rigid
+from ti_fusion.kernels.common import BLOCK, INT_MAX, Rigid, data_oriented, depth_bits, rigid
 
 
-@ti.data_oriented
+@data_oriented
 class IndexMap:
     """The index map of one resolution."""
 

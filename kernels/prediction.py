@@ -11,11 +11,11 @@ front surfel of each pixel's point projection can spill into neighbours.
 
 import taichi as ti
 
-from ti_fusion.kernels.common import INT_MAX, Rigid, Vec3, depth_sigma, rigid
+from ti_fusion.kernels.common import INT_MAX, Rigid, Vec3, data_oriented, depth_sigma, rigid
 from ti_fusion.kernels.index_map import IndexMap
 
 
-@ti.data_oriented
+@data_oriented
 class PredictionImages:
     """The renderer's per-pixel images at one resolution."""
 

@@ -50,7 +50,7 @@ from taichi.lang import impl as ti_impl
 from taichi.lang.util import in_taichi_scope
 
 from ti_fusion.backend import serial_for
-from ti_fusion.kernels.common import INT_MAX
+from ti_fusion.kernels.common import INT_MAX, data_oriented
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import PyramidConfig
 from ti_fusion.errors import InputError
@@ -64,7 +64,7 @@ LANES = 8
 Pack = ti.types.vector(LANES, ti.f32)
 
 
-@ti.data_oriented
+@data_oriented
 class Level:
     """One level of a pyramid stacked in one field: rows ``row0`` .. ``row0`` + H and columns 0 .. W of
     ``field`` (see the module docstring). Inside a kernel it reads and writes like an H × W field
@@ -572,7 +572,7 @@ def grey_image(color: np.ndarray) -> np.ndarray:
         * np.float32(1.0 / 255.0)
 
 
-@ti.data_oriented
+@data_oriented
 class FramePyramid:
     """Depth, vertex and normal maps of one frame at every pyramid level (camera frame, metres).
 

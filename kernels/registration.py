@@ -19,7 +19,8 @@ import numpy as np
 import taichi as ti
 
 from ti_fusion.camera import Intrinsics
-from ti_fusion.kernels.common import INT_MAX, Rigid, Vec3, bits_depth, depth_bits, rigid, rigid_arg
+from ti_fusion.kernels.common import (INT_MAX, Rigid, Vec3, bits_depth, data_oriented, depth_bits, rigid,
+                                      rigid_arg)
 
 Vec4 = ti.types.vector(4, ti.f32)
 MAX_SPLAT = 7  # colour pixels per side of a point's footprint in the z-buffer at most
@@ -100,7 +101,7 @@ def _vec(K: Intrinsics) -> np.ndarray:
     return np.array([K.fx, K.fy, K.cx, K.cy], dtype=np.float32)
 
 
-@ti.data_oriented
+@data_oriented
 class ColorRegistration:
     """The fields of one depth size (h, w) and colour size (hc, wc), and the three kernels' launches."""
 

@@ -18,7 +18,7 @@ import taichi as ti
 from taichi.lang import impl
 
 from ti_fusion.errors import MapCapacityError
-from ti_fusion.kernels.common import BLOCK
+from ti_fusion.kernels.common import BLOCK, data_oriented
 
 # Fields of one surfel, in the order of ``SurfelArrays.attributes``.
 ATTRIBUTES = ("position", "normal", "color", "weight", "radius", "t_created", "t_updated")
@@ -27,7 +27,7 @@ ATTRIBUTES = ("position", "normal", "color", "weight", "radius", "t_created", "t
 STORED = ATTRIBUTES + ("anchor",)
 
 
-@ti.data_oriented
+@data_oriented
 class SurfelArrays:
     """The surfel attributes (structure of arrays) and the per-surfel scratch, for one capacity.
 

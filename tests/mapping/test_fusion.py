@@ -945,3 +945,11 @@ def test_c_step_of_ceiling_benchmark_matches_kernels(cpu, rng, tmp_path, march, 
     _, counts = ceiling.run_c(exe, tmp_path, 1)
     assert counts == (stats.merged, stats.added, stats.covered, stats.removed, stats.surfels)
     assert fusion_numpy.matching_rows(ceiling.read_outputs(tmp_path, counts[-1]), mapper.to_numpy()) > 0.999
+
+
+def test_pack_color_is_r_g_b_in_one_word(rng):
+    color = rng.integers(0, 256, (9, 14, 3), dtype=np.uint8)[::2, 1::3]  # strided, as a map level's colour
+    c = color.astype(np.int64)
+    packed = pack_color(color)
+    assert packed.dtype == np.int32 and packed.shape == color.shape[:2]
+    np.testing.assert_array_equal(packed, c[..., 0] | (c[..., 1] << 8) | (c[..., 2] << 16))

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# One command for a machine with a GPU: the kernel tests on cuda and vulkan, bench_host.py and
+# One command for a machine with a GPU: the kernel tests on cuda and vulkan, bench_launch.py, bench_host.py and
 # bench_slam.py on cuda, cpu and vulkan, and one table of it all (docs/PERFORMANCE.md, issue 29).
 #
 #   scripts/device_check.sh pack [--frames N]     # here, with network: wheels and data into .device/
@@ -128,6 +128,7 @@ run() {
         done
     fi
     for arch in $ARCHS; do
+        say "$PY" scripts/bench_launch.py --arch "$arch" --launches 3000 2>&1 | tee "$OUT/launch_$arch.txt" || true
         say "$PY" scripts/bench_host.py "${data[@]}" synthetic --frames "$FRAMES" --arch "$arch" \
             --json "$OUT/host_$arch.json" 2>&1 | tee "$OUT/host_$arch.txt" || true
         for d in "${data[@]}" ""; do
@@ -159,6 +160,10 @@ for host in sorted(out.glob("host_*.json")):
               f"{cell(None if k is None or q is None else q - k, '.2f')} | {p:.2f} | {1e3 / p:.1f} | "
               f"{cell(None if k is None or not q else 100 * k / q, '.0f')} | {cell(s.get('fps'), '.1f')} | "
               f"{cell(s.get('fps_wall'), '.1f')} | {cell(s.get('ate_rmse_m'), '.4f')} |")
+for t in sorted(out.glob("launch_*.txt")):
+    rows = [line for line in t.read_text().splitlines() if line.startswith("| ") and "µs" not in line]
+    print(f"\nhost µs per launch on {t.stem[7:]} (bench_launch.py): " + "; ".join(
+        " ".join(cell.strip() for cell in row.strip("|").split("|")) for row in rows))
 for t in sorted(out.glob("tests_*.txt")):
     lines = t.read_text().strip().splitlines()
     print(f"\nkernel tests on {t.stem[6:]}: {lines[-1] if lines else 'no output'}")

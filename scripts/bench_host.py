@@ -3,13 +3,14 @@
 reads, kernel time and host overhead, on any backend.
 
     python scripts/bench_host.py [DATA ...] [--frames N] [--downsample F] [--arch cpu|cuda|vulkan]
-                                 [--json OUT] [--top K]
+                                 [--json OUT] [--top K] [--set SECTION.KEY=VALUE ...]
 
 DATA: dataset folders, and ``synthetic`` for the synthetic sequence (default: redkitchen at
 ../shared/data/redkitchen-7scenes when present, and the synthetic sequence). The frames are read into memory
 first; then ``DenseSLAM.register_frame`` runs on each (maps, tracking, fusion: what ``fps processing``
 counts), with ``ti.sync()`` after it so that a GPU's queued work is inside the frame's time. The first two
-frames (kernel compilation) are left out of every column.
+frames (kernel compilation) are left out of every column. ``--set`` overrides the default config as
+ti-fusion's ``--set`` does (e.g. ``icp.color_weight=0`` for the synthetic sequence without colour).
 
 Each data set runs twice, each in a child process of its own:
 - counting (no profiler): ``launches`` = calls of Taichi's ``Kernel.launch_kernel`` (this project's kernels
@@ -118,13 +119,13 @@ class Counter:
         self.reads.clear()
 
 
-def _frames(data: str, frames: int, downsample: int):
+def _frames(data: str, frames: int, downsample: int, overrides: list[str] | None = None):
     """(config, dataset, frames in memory): the synthetic sequence's are made by Taichi kernels, so they are
-    made here, before anything is counted."""
-    from ti_fusion.config import Config
+    made here, before anything is counted. ``overrides``: ``--set`` texts (``SECTION.KEY=VALUE``)."""
+    from ti_fusion.config import load_config
     from ti_fusion.io.datasets import open_dataset
 
-    cfg = Config()
+    cfg = load_config(None, overrides)
     cfg.dataset.path = None if data == "synthetic" else data
     cfg.dataset.downsample = downsample
     cfg.dataset.stop = frames
@@ -143,7 +144,7 @@ def child(args) -> dict:
     backend = init_backend(args.arch, **kwargs)
     counter = Counter(backend.arch)
     counter.install()
-    cfg, dataset, frames = _frames(args.data[0], args.frames, args.downsample)
+    cfg, dataset, frames = _frames(args.data[0], args.frames, args.downsample, args.set)
     from ti_fusion.slam.dense import DenseSLAM
 
     slam = DenseSLAM(cfg, dataset.intrinsics)
@@ -176,7 +177,8 @@ def child(args) -> dict:
 
 def _run_child(args, data: str, profile: bool) -> dict:
     cmd = [sys.executable, __file__, data, "--child", "--frames", str(args.frames), "--downsample",
-           str(args.downsample), "--arch", args.arch] + (["--profile"] if profile else [])
+           str(args.downsample), "--arch", args.arch] + (["--profile"] if profile else []) + \
+        [f"--set={text}" for text in args.set]
     out = subprocess.run(cmd, capture_output=True, text=True)
     if out.returncode != 0:
         tail = (out.stderr.strip().splitlines() or ["no output"])[-1]
@@ -196,6 +198,8 @@ def main(argv=None) -> int:
     parser.add_argument("--arch", default="cpu", choices=("cpu", "cuda", "vulkan"))
     parser.add_argument("--json", help="write the rows (with per-kernel launches and poses) to this file")
     parser.add_argument("--top", type=int, default=0, help="also print the K kernels launched most per frame")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="a config override, as ti-fusion's --set (repeatable), e.g. icp.color_weight=0")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--profile", action="store_true", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -204,15 +208,24 @@ def main(argv=None) -> int:
         return 0
     if not args.data:
         args.data = ([str(DEFAULT_DATA)] if (DEFAULT_DATA / "frame-000000.depth.png").is_file() else []) + ["synthetic"]
+    from ti_fusion.config import load_config
+    from ti_fusion.errors import InputError
+
+    try:
+        load_config(None, args.set)
+    except InputError as exc:
+        print(f"bench_host.py: {exc}", file=sys.stderr)
+        return 2
     for data in args.data:
         if data != "synthetic" and not Path(data).is_dir():
             print(f"bench_host.py: {data}: not a folder (give a dataset folder or 'synthetic')", file=sys.stderr)
             return 2
     rows = []
-    print(f"bench_host.py --arch {args.arch} --frames {args.frames} --downsample {args.downsample} "
+    sets = "".join(f" --set {text}" for text in args.set)
+    print(f"bench_host.py --arch {args.arch} --frames {args.frames} --downsample {args.downsample}{sets} "
           f"({os.cpu_count()} CPUs; first {WARMUP} frames left out)")
-    print(f"| data | arch | frames | launches/frame | reads/frame | kernel ms | host ms | profiled ms | busy | "
-          f"processing ms | fps processing |")
+    print("| data | arch | frames | launches/frame | reads/frame | kernel ms | host ms | profiled ms | busy | "
+          "processing ms | fps processing |")
     print("|---|---|---|---|---|---|---|---|---|---|---|")
     for data in args.data:
         count = _run_child(args, data, profile=False)

@@ -1,0 +1,30 @@
+"""The benchmark scripts' command lines: a bad option is one line naming it (exit 2), a short run prints
+its table. Speeds themselves are the scripts' output, never asserted here."""
+
+import subprocess
+import sys
+from pathlib import Path
+
+SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
+
+
+def run(name: str, *args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, str(SCRIPTS / name), *args], capture_output=True, text=True,
+                          timeout=300)
+
+
+def test_bench_host_names_a_bad_override():
+    out = run("bench_host.py", "synthetic", "--set", "icp.colour_weight=0")
+    assert out.returncode == 2
+    assert out.stderr.strip().splitlines() == [out.stderr.strip()]  # one line
+    assert "bench_host.py: --set" in out.stderr and "colour_weight" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_bench_launch_prints_a_row_per_argument_kind():
+    out = run("bench_launch.py", "--arch", "cpu", "--launches", "3")
+    assert out.returncode == 0, out.stderr
+    rows = [line for line in out.stdout.splitlines() if line.startswith("| ") and "µs" not in line]
+    assert len(rows) == 7 and any("common.data_oriented" in row for row in rows)
+    bad = run("bench_launch.py", "--launches", "0")
+    assert bad.returncode == 2 and "--launches must be at least 1" in bad.stderr

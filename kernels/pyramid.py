@@ -503,6 +503,14 @@ def intensity_down_loop(fine: ti.template(), f0, H, W, coarse: ti.template(), c0
 
 
 @ti.func
+def intensity_levels_loops(stack: ti.template(), rows: ti.template(), serial: ti.template()):
+    """Each level of ``stack`` after the first averaged down from the one above (``intensity_down_loop``),
+    one loop per level in order; ``rows``: the levels' (first row, height, width)."""
+    for l in ti.static(range(1, len(rows))):
+        intensity_down_loop(stack, rows[l - 1][0], rows[l - 1][1], rows[l - 1][2], stack, rows[l][0], serial)
+
+
+@ti.func
 def intensity_gradient_loop(image: ti.template(), out: ti.template(), r0, H, W, serial: ti.template()):
     """out[v, u] = (I, ∂I/∂x, ∂I/∂y), the derivatives by Sobel / 8 (intensity per pixel); (−1, 0, 0) on the
     image border and where any of the 3×3 window has no intensity. Both the H × W level at row ``r0``."""
@@ -531,8 +539,7 @@ def intensity_maps(fine: ti.template(), stack: ti.template(), grad: ti.template(
     if ti.static(from_fine):
         H, W = fine.shape
         intensity_down_loop(fine, 0, H, W, stack, 0, serial_input)
-    for l in ti.static(range(1, len(rows))):
-        intensity_down_loop(stack, rows[l - 1][0], rows[l - 1][1], rows[l - 1][2], stack, rows[l][0], serial)
+    intensity_levels_loops(stack, rows, serial)
     for l in ti.static(range(len(rows))):
         intensity_gradient_loop(stack, grad, rows[l][0], rows[l][1], rows[l][2], serial)
 
@@ -557,10 +564,9 @@ def surfel_intensity_loop(view_index: ti.template(), color: ti.template(), out: 
 def surfel_intensity_maps(view_index: ti.template(), color: ti.template(), stack: ti.template(),
                           rows: ti.template(), serial: ti.template()):
     """The model's intensity pyramid in one launch: ``surfel_intensity_loop`` into level 0 of ``stack``,
-    then each level averaged down from the one above (``rows`` as in ``intensity_maps``)."""
+    then ``intensity_levels_loops`` (``rows`` as in ``intensity_maps``)."""
     surfel_intensity_loop(view_index, color, stack, serial)
-    for l in ti.static(range(1, len(rows))):
-        intensity_down_loop(stack, rows[l - 1][0], rows[l - 1][1], rows[l - 1][2], stack, rows[l][0], serial)
+    intensity_levels_loops(stack, rows, serial)
 
 
 def grey_image(color: np.ndarray) -> np.ndarray:

@@ -57,8 +57,10 @@ def cell(s: dict | None) -> str:
     text = f"{ate * 100:.2f} cm ({s.get('ate_percent_of_path', float('nan')):.2f} %), {lost} lost"
     if lost:
         text += f" (tracked alone {s['ate_tracked_only_rmse_m'] * 100:.2f} cm)"
-    if s.get("loops_applied"):
-        text += f", {s['loops_applied']} loops"
+    if s.get("keyframes"):  # loop closure ran: its loops, none included
+        text += f", {s.get('loops_applied', 0)} loops"
+        if s.get("loops_refused"):
+            text += f" ({len(s['loops_refused'])} refused)"
     return text + f", 2nd start on {s.get('frames_with_second_start', 0)}"
 
 
@@ -88,7 +90,7 @@ def main() -> None:
             if a.frames:
                 source += ["--frames", str(a.frames)]
             label = f"{scene}{' ' + ' '.join(extra) if extra else ''}, seed {seed}"
-            tag = f"{scene}{''.join(extra).replace('-', '_')}-s{seed}"
+            tag = f"{scene}{''.join(extra).replace('-', '_').replace('/', '_')}-s{seed}"
             cells = [run_one(a.out / f"{tag}-{name}", source, [*a.set, f"synth.seed={seed}", *sets], extra)
                      for name, sets in variants]
             rows.append((label, cells))

@@ -17,8 +17,14 @@ Redkitchen (7-Scenes, KinectFusion reference), 500 frames, with a ti-fusion run'
 direct ICP 3.5 / 12.6 / 25.3 mm RMS at gaps 1 / 10 / 30, ti-fusion 0.9 / 4.9 / 9.1 mm; the reference
 jumps 36 mm at frame 122 (residual 15.4 mm at its pose, 2.2 mm after ICP) and 10–30 mm around 447–451.
 
-usage: scripts/check_reference.py [DATA] [--trajectory RUN/trajectory.tum] [--gaps 1,10,30] [--stride 5]
-                                  [--frames N] [--set section.key=value ...]
+With ``--pair I:J`` (repeatable) it looks at one pair of frames instead, e.g. a loop's two frames: the
+relative pose of the reference and of each ``--trajectory`` (repeatable), each as a start of ICP, the pose
+each start converges to, and each relative pose's offset from the best-aligned ICP result and its residual
+(``--set fusion.level=0`` aligns at the full 640x480). Redkitchen's one loop (frames 262 and 499, found
+with ``slam.loop_closure=true slam.active_window=200``): docs/LOOP_CLOSURE.md "Redkitchen's loop".
+
+usage: scripts/check_reference.py [DATA] [--trajectory RUN/trajectory.tum ...] [--gaps 1,10,30] [--stride 5]
+                                  [--frames N] [--pair I:J ...] [--set section.key=value ...]
 """
 
 from __future__ import annotations
@@ -43,7 +49,10 @@ def relative_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("data", nargs="?", default=str(DEFAULT_DATA) if DEFAULT_DATA.is_dir() else "")
-    parser.add_argument("--trajectory", help="a TUM trajectory of the same frames (e.g. a run's trajectory.tum)")
+    parser.add_argument("--trajectory", action="append", default=[],
+                        help="a TUM trajectory of the same frames (e.g. a run's trajectory.tum); repeatable")
+    parser.add_argument("--pair", action="append", default=[], metavar="I:J",
+                        help="only this pair of frames: every relative pose as an ICP start (repeatable)")
     parser.add_argument("--gaps", default="1,10,30", help="frame gaps of the pairs (comma separated)")
     parser.add_argument("--stride", type=int, default=5, help="first frames of the pairs every N frames (gap 1: all)")
     parser.add_argument("--frames", type=int, default=None, help="first N frames (default: all)")
@@ -71,11 +80,12 @@ def main() -> int:
     if any(T is None for T in reference):
         print("the dataset has no reference poses", file=sys.stderr)
         return 1
-    estimate = None
-    if args.trajectory:
-        stamps, poses = read_tum(args.trajectory)
+    estimates = []
+    for path in args.trajectory:
+        stamps, poses = read_tum(path)
         by_stamp = {round(float(t), 6): T for t, T in zip(stamps, poses)}
-        estimate = [by_stamp.get(round(float(dataset[i].timestamp), 6)) for i in range(n)]
+        estimates.append([by_stamp.get(round(float(dataset[i].timestamp), 6)) for i in range(n)])
+    estimate = estimates[0] if estimates else None
 
     K, icp_cfg = dataset.intrinsics, cfg.icp
     level = cfg.frame_input_level(K.width)
@@ -89,12 +99,28 @@ def main() -> int:
         frame = dataset[i]
         m.compute(frame.depth, frame.intrinsics)
 
+    def system(T, a, b) -> dict:
+        """The point-to-plane sums of a at pose T against b: correspondences within 5 cm, no robust weight."""
+        return unpack_sums(kernels.reduce(a.vertex[0], a.normal[0], b.vertex[0], b.normal[0], T,
+                                          b.intrinsics[0].as_tuple(), 0.05, icp_cfg.normal_threshold_deg))
+
     def residual_mm(T, a, b) -> float:
-        s = unpack_sums(kernels.reduce(a.vertex[0], a.normal[0], b.vertex[0], b.normal[0], T,
-                                       b.intrinsics[0].as_tuple(), 0.05, icp_cfg.normal_threshold_deg))
+        s = system(T, a, b)
         return float(np.sqrt(s["r2"] / s["inliers"]) * 1e3) if s["inliers"] else float("nan")
 
     print(f"{dataset.describe()['name']}: {n} frames, pairs aligned at {pyramids[0].width}x{pyramids[0].height}")
+    if args.pair:
+        for pair in args.pair:
+            i, j = (int(x) for x in pair.split(":"))
+            compute(pyramids[0], i)
+            compute(pyramids[1], j)
+            starts = {"reference": invert(reference[j]) @ reference[i]}
+            for path, est in zip(args.trajectory, estimates):
+                if est[i] is not None and est[j] is not None:
+                    starts[path] = invert(est[j]) @ est[i]
+            _pair_report(i, j, starts, icp, pyramids, lambda T: residual_mm(T, *pyramids),
+                         lambda T: system(T, *pyramids))
+        return 0
     print(f"{'gap':>4} {'pairs':>6}  reference vs ICP (mm, deg RMS)" + ("   estimate vs ICP" if estimate else ""))
     jumps = []
     for gap in (int(g) for g in args.gaps.split(",")):
@@ -121,6 +147,41 @@ def main() -> int:
         for i, j, at_ref, at_icp, offset in jumps:
             print(f"  {i:>5} -> {j:<5} {at_ref:6.2f} vs {at_icp:5.2f} mm residual, {offset:6.1f} mm off")
     return 0
+
+
+def _pair_report(i: int, j: int, starts: dict, icp, pyramids, residual_mm, system) -> None:
+    """Frames i and j: each relative pose (frame i's camera into frame j's) as an ICP start; every pose
+    against the converged alignment with the lowest residual, the independent estimate: the offset, and how
+    far it moves the surfaces along their normals (RMS over the alignment's inliers, δᵀAᵀAδ / n with AᵀA of
+    the alignment: what depth sees of the offset), and that in the direction depth sees least."""
+    from ti_fusion.geometry import invert, se3_log
+
+    print(f"pair {i} -> {j}")
+    results = {name: icp.align(pyramids[0], pyramids[1], init=T) for name, T in starts.items()}
+    for name, r in results.items():
+        print(f"  ICP from {name}: {r.failure or 'ok'}, inlier ratio {r.inlier_ratio:.3f}, "
+              f"residual {residual_mm(r.pose):.2f} mm (5 cm gate, unweighted)")
+    good = {k: r for k, r in results.items() if not r.failure}
+    if not good:
+        print("  no start converged")
+        return
+    best_name = min(good, key=lambda k: residual_mm(good[k].pose))
+    best = good[best_name].pose
+    for name, r in good.items():
+        print(f"  ICP from {name} vs ICP from {best_name}: %.1f mm, %.3f deg" % relative_error(r.pose, best))
+    at_best = system(best)
+    AtA, n = at_best["AtA"], max(at_best["inliers"], 1)
+    values, vectors = np.linalg.eigh(AtA)
+    print(f"  AᵀA's weakest direction (ω, v): {np.round(vectors[:, 0], 3)}, "
+          f"{np.sqrt(values[0] / n):.3f} mm RMS along the normals per mm or mrad, the strongest "
+          f"{np.sqrt(values[-1] / n):.3f}")
+    for name, T in starts.items():
+        mm, deg = relative_error(T, best)
+        d = se3_log(T @ invert(best))  # ICP's update is on the left: T = exp(d) · best
+        seen = float(np.sqrt(d @ AtA @ d / n) * 1e3)
+        weak = float(abs(vectors[:, 0] @ d) * 1e3)
+        print(f"  {name}: {mm:.1f} mm, {deg:.3f} deg from ICP; moves the surfaces {seen:.2f} mm RMS along their "
+              f"normals; {weak:.1f} mm/mrad of it in the weakest direction; residual at its pose {residual_mm(T):.2f} mm")
 
 
 def _rms(errors: list[tuple[float, float]]) -> str:

@@ -30,6 +30,7 @@ BLOCK surfels (see docs/KERNELS.md for why and what that is worth).
 
 import math
 
+import numpy as np
 import taichi as ti
 
 from ti_fusion.kernels.common import (BLOCK, INT_MAX, Mat3, Rigid, Vec3, bits_depth, data_oriented, depth_bits,
@@ -92,6 +93,15 @@ class FusionImages:
     def index(self):
         """The index map's surfel per pixel (INT_MAX = none)."""
         return self.index_map.index
+
+    def set_color(self, rgb: np.ndarray, step: int = 1) -> None:
+        """``color`` from a uint8 H×W×3 RGB image taken at every ``step``-th row and column (``set_color``)."""
+        rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
+        shape = tuple(-(-n // step) for n in rgb.shape[:2])
+        if rgb.ndim != 3 or rgb.shape[2] != 3 or shape != (self.height, self.width):
+            raise ValueError(f"colour of shape {rgb.shape} at every {step}th pixel for images of shape "
+                             f"{(self.height, self.width)}")
+        set_color(self, rgb, int(step))
 
     def radial_confidence(self, cx: float, cy: float, sigma: float) -> None:
         """Fill ``radial`` for these intrinsics and σ, unless it already holds them."""
@@ -194,6 +204,16 @@ def project_compatible(s: ti.template(), n: ti.i32, img: ti.template(), pose: Ri
                 & (s.normal[i].dot(nw) >= cos_threshold)
             found = list_if(s, b, found, i, ok)
         s.block_listed[b] = found
+
+
+@ti.kernel
+def set_color(img: ti.template(), rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), step: ti.i32):
+    """img.color = the frame's uint8 RGB image at every ``step``-th row and column (the map's level),
+    packed r | g << 8 | b << 16: the input image crosses as it is, with no copy on the host."""
+    for v, u in img.color:
+        y, x = v * step, u * step
+        img.color[v, u] = (ti.cast(rgb[y, x, 0], ti.i32) | (ti.cast(rgb[y, x, 1], ti.i32) << 8)
+                           | (ti.cast(rgb[y, x, 2], ti.i32) << 16))
 
 
 @ti.kernel

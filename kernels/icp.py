@@ -151,11 +151,21 @@ def unpack_color_sums(sums: np.ndarray) -> dict | None:
 def combined_system(sums: np.ndarray, color_weight: float) -> tuple[np.ndarray, np.ndarray]:
     """(AᵀA, Aᵀb) of the system solved: the geometric one, plus ``color_weight`` × the colour one when the
     sums are a joint pass's."""
-    s = unpack_sums(sums)
-    c = unpack_color_sums(sums)
-    if c is None:
-        return s["AtA"], s["Atb"]
-    return s["AtA"] + color_weight * c["AtA"], s["Atb"] + color_weight * c["Atb"]
+    AtA, Atb = combined_systems(np.asarray(sums, dtype=np.float64)[None], color_weight)
+    return AtA[0], Atb[0]
+
+
+def combined_systems(sums: np.ndarray, color_weight: float) -> tuple[np.ndarray, np.ndarray]:
+    """``combined_system`` of each row of ``sums`` (n × 30, or n × 59 for joint passes): n × 6 × 6, n × 6."""
+    sums = np.asarray(sums, dtype=np.float64)
+    upper, atb = sums[:, :21], sums[:, SUM_ATB:SUM_ATB + 6]
+    if sums.shape[1] >= N_SUMS_JOINT:
+        upper = upper + color_weight * sums[:, SUM_C_ATA:SUM_C_ATA + 21]
+        atb = atb + color_weight * sums[:, SUM_C_ATB:SUM_C_ATB + 6]
+    AtA = np.zeros((sums.shape[0], 6, 6))
+    AtA[(slice(None),) + _UPPER_IDX] = upper
+    AtA.transpose(0, 2, 1)[(slice(None),) + _UPPER_IDX] = upper
+    return AtA, atb.copy()
 
 
 def _code(robust: str) -> int:

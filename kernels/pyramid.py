@@ -438,11 +438,13 @@ def pyramid_maps(depth: ti.template(), vertex: ti.template(), normal: ti.templat
 
 
 @ti.kernel
-def input_maps(fine: ti.template(), raw: ti.template(), rows: ti.template(), depth: ti.template(),
-               vertex: ti.template(), normal: ti.template(), geometry: ti.template(), levels: ti.template(),
-               radius: ti.template(), max_diff: ti.f32, serial_input: ti.template(), serial: ti.template()):
+def input_maps(fine: ti.types.ndarray(dtype=ti.f32, ndim=2), raw: ti.template(), rows: ti.template(),
+               depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
+               levels: ti.template(), radius: ti.template(), max_diff: ti.f32, serial_input: ti.template(),
+               serial: ti.template()):
     """A frame's maps in one launch, for an input averaged down once and smoothed (the default at
-    640×480): ``pyramid_loop`` from the input ``fine`` into the packed ``raw``, the smoothing's row and
+    640×480): ``pyramid_loop`` from the input image ``fine`` (the caller's array, not copied first) into
+    the packed ``raw``, the smoothing's row and
     column passes (``smooth_rows_loop``, ``smooth_columns_loop``) into level 0 of ``depth``, then
     ``pyramid_maps_loops``: the loops of ``FramePyramid.compute``'s five launches, one after the other."""
     H, W = fine.shape
@@ -532,10 +534,23 @@ def intensity_gradient_loop(image: ti.template(), out: ti.template(), r0, H, W, 
 @ti.kernel
 def intensity_maps(fine: ti.template(), stack: ti.template(), grad: ti.template(), rows: ti.template(),
                    from_fine: ti.template(), serial_input: ti.template(), serial: ti.template()):
-    """A live frame's intensity pyramid and gradients in one launch: with ``from_fine``, the grey image
-    ``fine`` averaged down into level 0 of ``stack`` first; then each level from the one above, then every
-    level's gradients into ``grad`` (consecutive loops of one kernel, run in order). ``rows``: the levels'
-    (first row, height, width), compile-time constants of the pyramid."""
+    """A live frame's intensity pyramid and gradients in one launch (``intensity_maps_loops``)."""
+    intensity_maps_loops(fine, stack, grad, rows, from_fine, serial_input, serial)
+
+
+@ti.kernel
+def intensity_input_maps(fine: ti.types.ndarray(dtype=ti.f32, ndim=2), stack: ti.template(), grad: ti.template(),
+                         rows: ti.template(), serial_input: ti.template(), serial: ti.template()):
+    """``intensity_maps`` from the caller's grey image averaged down once (no copy into a field first)."""
+    intensity_maps_loops(fine, stack, grad, rows, True, serial_input, serial)
+
+
+@ti.func
+def intensity_maps_loops(fine: ti.template(), stack: ti.template(), grad: ti.template(), rows: ti.template(),
+                         from_fine: ti.template(), serial_input: ti.template(), serial: ti.template()):
+    """With ``from_fine``, the grey image ``fine`` averaged down into level 0 of ``stack`` first; then each
+    level from the one above, then every level's gradients into ``grad`` (consecutive loops of one kernel,
+    run in order). ``rows``: the levels' (first row, height, width), compile-time constants of the pyramid."""
     if ti.static(from_fine):
         H, W = fine.shape
         intensity_down_loop(fine, 0, H, W, stack, 0, serial_input)
@@ -678,11 +693,10 @@ class FramePyramid:
         and one launch (``input_maps``); False for any other layout."""
         if self.input_level != 1 or self.smooth_radius <= 0:
             return False
-        self._inputs[0].from_numpy(depth)
         self._set_geometry(intrinsics.downsampled(2))
         raw, rows = self._packed_fields()
         h, w = self.input_shape
-        input_maps(self._inputs[0], raw, rows, self.depth[0].field, self.vertex[0].field, self.normal[0].field,
+        input_maps(depth, raw, rows, self.depth[0].field, self.vertex[0].field, self.normal[0].field,
                    self._geometry, self.levels, self.smooth_radius, self.max_depth_diff,
                    serial_for(((h + 1) // 2) * ((w + 1) // 2)), self._serial)
         return True
@@ -704,6 +718,11 @@ class FramePyramid:
         if self.input_level == 0:
             self._upload_level0(stack, grey)
             intensity_maps(stack, stack, grad, self._rows, False, self._serial, self._serial)
+            return
+        if self.input_level == 1:  # the default at 640×480: one launch, no copy first
+            h, w = self.input_shape
+            intensity_input_maps(grey, stack, grad, self._rows, serial_for(((h + 1) // 2) * ((w + 1) // 2)),
+                                 self._serial)
             return
         if not self._grey_inputs:
             self._grey_inputs = [ti.field(ti.f32, shape=f.shape) for f in self._inputs]

@@ -17,7 +17,7 @@ import taichi as ti
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import FusionConfig, PyramidConfig
 from ti_fusion.errors import MapCapacityError
-from ti_fusion.mapping.mapper import SurfelMapper, pack_color
+from ti_fusion.mapping.mapper import SurfelMapper
 from ti_fusion.geometry import se3_exp
 from ti_fusion.kernels import fusion as F
 from ti_fusion.kernels import index_map
@@ -341,7 +341,7 @@ def test_merge_and_add(arch, rng, confidence):
     pose, vertex, normal, depth, color, data, smap = setup(rng)
     fv, fn, _ = frame_fields(vertex, normal, depth)
     img = smap.associate_compatible(pose, K, fv, fn, DIST, ANGLE)
-    img.color.from_numpy(pack_color(color))
+    img.set_color(color)
     frame = 12
     depth_weighted = confidence == "radial+depth"
     smap.merge(img, fv, fn, pose, K, frame, bool(confidence), SIGMA, True, depth_weighted)
@@ -947,9 +947,16 @@ def test_c_step_of_ceiling_benchmark_matches_kernels(cpu, rng, tmp_path, march, 
     assert fusion_numpy.matching_rows(ceiling.read_outputs(tmp_path, counts[-1]), mapper.to_numpy()) > 0.999
 
 
-def test_pack_color_is_r_g_b_in_one_word(rng):
-    color = rng.integers(0, 256, (9, 14, 3), dtype=np.uint8)[::2, 1::3]  # strided, as a map level's colour
-    c = color.astype(np.int64)
-    packed = pack_color(color)
-    assert packed.dtype == np.int32 and packed.shape == color.shape[:2]
-    np.testing.assert_array_equal(packed, c[..., 0] | (c[..., 1] << 8) | (c[..., 2] << 16))
+def test_set_color_packs_every_steps_pixel(arch, rng):
+    """The device packs the input's RGB at the map level's pixels: r | g << 8 | b << 16, as the NumPy reference."""
+    from ti_fusion.kernels.fusion import FusionImages
+
+    for (h, w), step in [((9, 14), 1), ((9, 14), 2), ((10, 15), 4)]:
+        color = rng.integers(0, 256, (h, w, 3), dtype=np.uint8)
+        color[0, 0] = 255  # the top byte stays clear: a packed word is never negative
+        img = FusionImages(-(-h // step), -(-w // step))
+        img.set_color(color, step)
+        c = color[::step, ::step].astype(np.int64)
+        np.testing.assert_array_equal(img.color.to_numpy(), c[..., 0] | (c[..., 1] << 8) | (c[..., 2] << 16))
+    with pytest.raises(ValueError, match="colour of shape"):
+        img.set_color(color[:, :-4], step)

@@ -26,7 +26,7 @@ from ti_fusion.tracking.icp import ICP, ICPResult, IterationRecord
 from ti_fusion.kernels import icp as kicp
 from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.synthetic.scene import SyntheticSequence
-from ti_fusion.tracking.solve import check_system, solve_normal_equations
+from ti_fusion.tracking.solve import check_system, condition_number, condition_numbers, solve_normal_equations
 
 ROOT = Path(__file__).resolve().parents[2]
 THR = 0.1
@@ -291,6 +291,22 @@ def test_degenerate_systems_are_reported():
     failure, cond = check_system(ill, 1000, 100, 1e7)
     assert failure.startswith("ill-conditioned AᵀA (cond 1.0e+09") and cond == pytest.approx(1e9)
     assert check_system(np.diag([1.0, 2, 3, 4, 5, 6]), 1000, 100, 1e7) == (None, pytest.approx(6.0))
+
+
+def test_condition_numbers_of_a_stack_are_each_matrixs(rng):
+    """The batched condition numbers (ICP's replay) against NumPy's float64 cond, per matrix: positive
+    definite, singular, negative, non-finite."""
+    A = rng.normal(size=(5, 40, 6))
+    stack = np.einsum("kij,kil->kjl", A, A)  # AᵀA of each
+    stack[1] = np.diag([1.0, 1.0, 1.0, 1.0, 1.0, 0.0])
+    stack[2] = -np.eye(6)
+    stack[3, 0, 0] = np.nan
+    got = condition_numbers(stack)
+    for k in (0, 4):
+        assert got[k] == pytest.approx(np.linalg.cond(stack[k]), rel=1e-9)
+        assert got[k] == condition_number(stack[k])
+    assert np.all(np.isinf(got[1:4]))
+    assert condition_numbers(np.zeros((0, 6, 6))).shape == (0,)
 
 
 # -- the loop on synthetic pairs ---------------------------------------------------------------------

@@ -97,6 +97,13 @@ def test_combined_system_and_weak_directions():
     np.testing.assert_allclose(AtA, s["AtA"] + 0.5 * c["AtA"])
     np.testing.assert_allclose(Atb, s["Atb"] + 0.5 * c["Atb"])
     assert kicp.unpack_color_sums(sums[:kicp.N_SUMS]) is None
+    # the batched form (ICP's replay of the kernel's records): row by row the same, joint and depth-only
+    for batch in (rng.normal(size=(4, kicp.N_SUMS_JOINT)), rng.normal(size=(3, kicp.N_SUMS))):
+        AtAs, Atbs = kicp.combined_systems(batch, 0.5)
+        for row, A, b in zip(batch, AtAs, Atbs):
+            want = kicp.combined_system(row, 0.5)
+            np.testing.assert_array_equal(A, want[0])
+            np.testing.assert_array_equal(b, want[1])
     geo = np.diag([1.0, 1.0, 1e-6, 1.0, 1e-7, 1.0])  # weak: ω_z and v_y
     color = np.zeros((6, 6))
     color[2, 2] = 1.0  # colour constrains ω_z only

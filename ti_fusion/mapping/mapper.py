@@ -47,15 +47,6 @@ class FusionStats:
     ms: dict[str, float] = field(default_factory=dict)  # per stage (only with a timer)
 
 
-def pack_color(color: np.ndarray) -> np.ndarray:
-    """uint8 H×W×3 RGB → int32 H×W as r | g << 8 | b << 16 (one 32-bit word per pixel on every backend):
-    the bytes r, g, b, 0 read as one little-endian word (one copy: three quarters of the time of shifts)."""
-    c = np.asarray(color, dtype=np.uint8)
-    rgb0 = np.zeros(c.shape[:2] + (4,), np.uint8)
-    rgb0[..., :3] = c
-    return rgb0.view("<i4")[..., 0].astype(np.int32, copy=False)
-
-
 class SurfelMapper:
     """Integrates RGB-D frames with known camera-to-world poses into a surfel map (Keller et al. 2013)."""
 
@@ -89,8 +80,6 @@ class SurfelMapper:
         vertex, normal, depth = frame_pyramid.vertex[level], frame_pyramid.normal[level], frame_pyramid.depth[level]
         K: Intrinsics = frame_pyramid.intrinsics[level]
         H, W = frame_pyramid.shapes[level]
-        if color is not None and map_level > 0:
-            color = color[:: 2**map_level, :: 2**map_level]
         pose = np.asarray(pose, dtype=np.float64)
         ms: dict[str, float] = {}
         stage = partial(timed_stage, timer, sync=ti.sync, into=ms)
@@ -98,10 +87,8 @@ class SurfelMapper:
         with stage("project"):  # Keller's order: each pixel's nearest surfel among those that pass the filters
             img = self.map.associate_compatible(pose, K, vertex, normal, cfg.dist_threshold, cfg.normal_threshold_deg)
             has_color = color is not None
-            if has_color:
-                if color.shape[:2] != (H, W):
-                    raise ValueError(f"colour of shape {color.shape[:2]} for a depth map of shape {(H, W)}")
-                img.color.from_numpy(pack_color(color))
+            if has_color:  # the map level's pixels of the input's colour, packed on the device
+                img.set_color(color, 2**map_level)
         with stage("merge"):
             self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
                            cfg.confidence_sigma, has_color, cfg.depth_weighting, self.anchor)

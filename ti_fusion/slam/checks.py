@@ -82,8 +82,9 @@ class FrameChecks:
         if not np.issubdtype(depth.dtype, np.floating):
             raise InputError(None, f"{name}: depth of type {depth.dtype}: a Frame's depth is float metres "
                                    "(rgbd_frame(depth, K, depth_scale=1000) converts millimetres)")
-        bad = int(np.count_nonzero(~(np.isfinite(depth) & (depth >= 0))))
-        if bad:
+        # two reductions without temporaries: NaN fails "min >= 0", +inf fails "max < inf"
+        if depth.size and not (depth.min() >= 0 and depth.max() < np.inf):
+            bad = int(np.count_nonzero(~(np.isfinite(depth) & (depth >= 0))))
             raise InputError(None, f"{name}: depth has {bad} NaN, infinite or negative values: 0 marks a pixel "
                                    "without measurement (rgbd_frame turns them into 0)")
         color = frame.color

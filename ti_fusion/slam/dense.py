@@ -49,6 +49,7 @@ when none passes is the frame lost: it is not fused, and it reports the motion m
 from __future__ import annotations
 
 import logging
+import statistics
 from collections import deque
 from dataclasses import dataclass, field, replace
 
@@ -343,7 +344,7 @@ class DenseSLAM:
             return True
         if len(self._residuals) < RECENT_FRAMES // 2:
             return False
-        return h.icp.residual_rms > self.config.slam.doubt_residual_ratio * float(np.median(self._residuals))
+        return h.icp.residual_rms > self.config.slam.doubt_residual_ratio * statistics.median(self._residuals)
 
     def _health(self, icp: ICPResult, pose: np.ndarray, predicted: np.ndarray) -> str:
         """Why the alignment fails the checks, or "" where it passes them."""

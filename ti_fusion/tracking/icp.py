@@ -21,6 +21,7 @@ geometric AᵀA of the last iteration and whether the colour term constrained th
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -29,9 +30,10 @@ from ti_fusion.backend import current_backend
 from ti_fusion.config import ICPConfig
 from ti_fusion.geometry import rigidity_error, se3_exp, unflatten_pose
 from ti_fusion.kernels.icp import (FAILED, N_SUMS, N_SUMS_JOINT, R_COLOR, R_ITERATION, R_LEVEL, R_OUTCOME, R_POSE,
-                                   R_SUMS, R_UPDATE, ROBUST_CODES, UPDATED, Photometric, PointToPlane,
-                                   combined_system, unpack_color_sums, unpack_sums)
-from ti_fusion.tracking.solve import check_system, solve_normal_equations, weak_directions
+                                   R_SUMS, R_UPDATE, ROBUST_CODES, SUM_C_COUNT, SUM_C_R2, SUM_INLIERS, SUM_R2,
+                                   SUM_SOURCE, UPDATED, Photometric, PointToPlane, combined_system, combined_systems,
+                                   unpack_color_sums, unpack_sums)
+from ti_fusion.tracking.solve import check_system, condition_numbers, solve_normal_equations, weak_directions
 
 
 @dataclass
@@ -182,15 +184,20 @@ class ICP:
             if done == FAILED:
                 break
         n_levels = len(schedule)
-        for record in kernels.iteration_records():
+        records = kernels.iteration_records()
+        sums = records[:, R_SUMS:R_SUMS + N_SUMS]
+        if self._photometric:
+            sums = np.concatenate([sums, records[:, R_COLOR:R_COLOR + N_SUMS_JOINT - N_SUMS]], axis=1)
+        # every record's system and condition number at once: one eigenvalue call rather than one per record
+        systems = combined_systems(sums, cfg.color_weight)
+        conds = condition_numbers(systems[0])
+        for k, record in enumerate(records):
             level, it = int(record[R_LEVEL]), int(record[R_ITERATION])
-            result.pose = unflatten_pose(record[R_POSE:R_POSE + 12])
-            sums = record[R_SUMS:R_SUMS + N_SUMS]
-            if self._photometric:
-                sums = np.concatenate([sums, record[R_COLOR:R_COLOR + N_SUMS_JOINT - N_SUMS]])
-            if self._record(result, level, it, sums) is None:
+            if self._record(result, level, it, sums[k], (systems[0][k], systems[1][k]), conds[k]) is None:
+                result.pose = unflatten_pose(record[R_POSE:R_POSE + 12])
                 return None  # a failure, reported as the NumPy path reports it
             if record[R_OUTCOME] != UPDATED:
+                result.pose = unflatten_pose(record[R_POSE:R_POSE + 12])
                 result.iterations.pop()  # recorded again by the NumPy path
                 return n_levels - 1 - level, it
             result.iterations[-1].update_norm = result.update_norm = float(record[R_UPDATE])
@@ -215,28 +222,31 @@ class ICP:
                     break
         result.converged = self._converged(result)
 
-    def _record(self, result: ICPResult, level: int, it: int, sums: np.ndarray) -> dict | None:
-        """Record an iteration's sums in ``result`` and check its system: the unpacked sums, or None (with
-        ``result.failure`` set) when it is degenerate."""
+    def _record(self, result: ICPResult, level: int, it: int, sums: np.ndarray,
+                system: tuple[np.ndarray, np.ndarray] | None = None, cond: float | None = None
+                ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Record an iteration's sums in ``result`` and check its system (AᵀA, Aᵀb; ``system`` and its
+        ``cond`` where the caller has them): the system, or None (with ``result.failure`` set) when it is
+        degenerate."""
         cfg = self.config
-        s = unpack_sums(sums)
-        n = s["inliers"]
-        loss = s["r2"] / n if n else float("nan")
+        sums = np.asarray(sums, dtype=np.float64)
+        n, sources = int(round(sums[SUM_INLIERS])), int(round(sums[SUM_SOURCE]))
+        loss = float(sums[SUM_R2]) / n if n else float("nan")
         result.iterations.append(IterationRecord(level, it, loss, n))
         result.inliers = n
-        result.inlier_ratio = n / s["sources"] if s["sources"] else 0.0
-        result.residual_rms = float(np.sqrt(loss)) if n else float("nan")
-        result.sums = np.asarray(sums, dtype=np.float64)
-        c = unpack_color_sums(sums)
-        if c is not None:
-            result.color_inliers = c["count"]
-            result.color_rms = float(np.sqrt(c["r2"] / c["count"])) if c["count"] else float("nan")
-        s["AtA"], s["Atb"] = combined_system(sums, cfg.color_weight)
-        failure, result.condition = check_system(s["AtA"], n, cfg.min_inliers, cfg.max_condition)
+        result.inlier_ratio = n / sources if sources else 0.0
+        result.residual_rms = math.sqrt(loss) if n else float("nan")
+        result.sums = sums
+        if sums.shape[0] >= N_SUMS_JOINT:
+            count = int(round(sums[SUM_C_COUNT]))
+            result.color_inliers = count
+            result.color_rms = math.sqrt(sums[SUM_C_R2] / count) if count else float("nan")
+        AtA, Atb = combined_system(sums, cfg.color_weight) if system is None else system
+        failure, result.condition = check_system(AtA, n, cfg.min_inliers, cfg.max_condition, cond)
         if failure is not None:
             result.failure = f"level {level} iteration {it}: {failure}"
             return None
-        return s
+        return AtA, Atb
 
     def _iteration(self, kernels: PointToPlane, source, target, level: int, it: int,
                    result: ICPResult) -> np.ndarray | None:
@@ -247,12 +257,12 @@ class ICP:
                 result.pose, target.intrinsics[level].as_tuple(), self.dist_threshold(level),
                 cfg.normal_threshold_deg, self.robust, cfg.robust_scale)
         sums = kernels.reduce(*args, photometric=self._color(source, target, level))
-        s = self._record(result, level, it, sums)
-        if s is None:
+        system = self._record(result, level, it, sums)
+        if system is None:
             return None
         failure = delta = None
         try:
-            delta = solve_normal_equations(s["AtA"], s["Atb"])
+            delta = solve_normal_equations(*system)
             if not np.all(np.isfinite(delta)):
                 failure, delta = "non-finite update", None
         except np.linalg.LinAlgError as exc:

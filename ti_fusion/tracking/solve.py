@@ -12,19 +12,27 @@ import numpy as np
 
 def condition_number(AtA: np.ndarray) -> float:
     """cond(AᵀA) = λmax / λmin of the symmetric matrix; inf when it is singular or not positive."""
-    if not np.all(np.isfinite(AtA)):
-        return float("inf")
-    lam = np.linalg.eigvalsh(AtA)
-    if lam[-1] <= 0 or lam[0] <= lam[-1] * 1e-15:
-        return float("inf")
-    return float(lam[-1] / lam[0])
+    return float(condition_numbers(np.asarray(AtA, dtype=np.float64)[None])[0])
 
 
-def check_system(AtA: np.ndarray, inliers: int, min_inliers: int, max_condition: float) -> tuple[str | None, float]:
-    """(failure reason or None, cond(AᵀA)): too few correspondences, rank deficiency, ill-conditioning."""
+def condition_numbers(AtA: np.ndarray) -> np.ndarray:
+    """``condition_number`` of each of a stack of matrices (n × 6 × 6), in one eigenvalue call."""
+    cond = np.full(AtA.shape[0], np.inf)
+    finite = np.all(np.isfinite(AtA), axis=(1, 2))
+    if finite.any():
+        lam = np.linalg.eigvalsh(AtA[finite])
+        ok = (lam[:, -1] > 0) & (lam[:, 0] > lam[:, -1] * 1e-15)
+        cond[np.flatnonzero(finite)[ok]] = lam[ok, -1] / lam[ok, 0]
+    return cond
+
+
+def check_system(AtA: np.ndarray, inliers: int, min_inliers: int, max_condition: float,
+                 cond: float | None = None) -> tuple[str | None, float]:
+    """(failure reason or None, cond(AᵀA)): too few correspondences, rank deficiency, ill-conditioning.
+    ``cond``: cond(AᵀA) where the caller has it already (``condition_numbers``)."""
     if inliers < min_inliers:
         return f"too few inliers ({inliers} < {min_inliers})", float("inf")
-    cond = condition_number(AtA)
+    cond = condition_number(AtA) if cond is None else float(cond)
     if not np.isfinite(cond):
         rank = int(np.linalg.matrix_rank(AtA)) if np.all(np.isfinite(AtA)) else 0
         return f"rank-deficient AᵀA (rank {rank} < 6)", cond

@@ -32,6 +32,12 @@ class IndexMap:
 
 @ti.kernel
 def clear(imap: ti.template()):
+    """An empty index map (``build`` clears it itself: this is for a projection of no surfels)."""
+    clear_loop(imap)
+
+
+@ti.func
+def clear_loop(imap: ti.template()):
     for v, u in imap.index:
         imap.depth_key[v, u] = INT_MAX
         imap.index[v, u] = INT_MAX
@@ -126,15 +132,17 @@ def claim_listed(s: ti.template(), imap: ti.template()):
 
 @ti.kernel
 def build_listed(s: ti.template(), n: ti.i32, imap: ti.template(), with_index: ti.template()):
-    """``gather_listed``, then with ``with_index`` ``nearest_listed`` and ``claim_listed``: their loops one
-    after the other in one launch (each reads what the one before wrote, ``n_listed`` included)."""
+    """``gather_listed``, then with ``with_index`` ``clear_loop``, ``nearest_listed`` and ``claim_listed``:
+    their loops one after the other in one launch (each reads what the one before wrote, ``n_listed``
+    included)."""
     gather_listed(s, n)
     if ti.static(with_index):
+        clear_loop(imap)
         nearest_listed(s, imap)
         claim_listed(s, imap)
 
 
 def build(s, n: int, imap: IndexMap, with_index: bool = True) -> None:
     """After a projection of the first ``n`` surfels of arrays ``s``: list the surfels it kept in index
-    order and, with ``with_index``, fill ``imap`` from them (``clear`` it before the projection)."""
+    order and, with ``with_index``, clear ``imap`` and fill it from them, in one launch."""
     build_listed(s, n, imap, bool(with_index))

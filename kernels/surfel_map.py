@@ -71,13 +71,14 @@ class SurfelMap(SurfelStore):
         H, W = vertex.shape
         img = self.fusion_images(H, W)
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
-        index_map.clear(img.index_map)
         if self.count > 0:
             to_world, to_camera = self._pose(pose)
             fusion.world_measurements(img, vertex, normal, to_world)
             fusion.project_compatible(self.arrays, self.count, img, to_camera, *intrinsics.as_tuple(),
                                       dist_threshold, cos_threshold)
-            index_map.build(self.arrays, self.count, img.index_map)
+            index_map.build(self.arrays, self.count, img.index_map)  # clears the index map first
+        else:
+            index_map.clear(img.index_map)
         self._projected = self.count
         fusion.assoc_from_index(img)
         return img
@@ -230,11 +231,12 @@ class SurfelMap(SurfelStore):
         img = self.prediction_images(intrinsics.height, intrinsics.width)
         to_camera = self._pose(pose)[1]
         fx, fy, cx, cy = intrinsics.as_tuple()
-        index_map.clear(img.index_map)
         if self.count > 0:
             index_map.project_surfels(self.arrays, self.count, img.index_map, to_camera, fx, fy, cx, cy, True,
                                       float(min_weight), int(min_time))
-            index_map.build(self.arrays, self.count, img.index_map)
+            index_map.build(self.arrays, self.count, img.index_map)  # clears the index map first
+        else:
+            index_map.clear(img.index_map)
         self._projected = 0  # the projection scratch now holds the render's projection, not the fusion step's
         prediction.gather_front(self.arrays, img, to_camera)
         prediction.splat_gather(img, fx, fy, cx, cy, int(max_half), int(fill_half),

@@ -8,7 +8,7 @@ runs the kernels, ``ti_fusion.mapping.mapper.SurfelMapper`` strings the stages t
               from the same projection);
 3. filter 2   in Keller's order, in the same projection: every surfel of pass 1 is tested against its
               pixel's measurement (the frame's vertex within a distance and its normal within an angle of
-              the surfel's) and the index map keeps the nearest that passed (``project_compatible``; the
+              the surfel's) and the index map keeps the nearest that passed (``project_compatible_loop``; the
               ``assoc`` image), so a compatible surfel behind an incompatible one still merges. A pixel
               merges into at most one surfel and a surfel takes at most one pixel;
 4. merge      associated surfels average in the measurement (weight 1, or Keller's radial confidence,
@@ -35,7 +35,7 @@ import taichi as ti
 
 from ti_fusion.kernels.common import (BLOCK, INT_MAX, Mat3, Rigid, Vec3, bits_depth, data_oriented, depth_bits,
                                       depth_noise_scale, is_valid, rigid)
-from ti_fusion.kernels.index_map import IndexMap, list_if, project_to_pixel
+from ti_fusion.kernels.index_map import IndexMap, build_loops, list_if, project_to_pixel
 from ti_fusion.kernels.surfels import copy_surfel
 
 # Each image row is counted and appended in this many segments, so that the loops over segments have
@@ -47,7 +47,7 @@ MIN_COS_VIEW = 0.2  # radius = √2 z / (f |n_z|): |n_z| is clamped here so graz
 # inverse variance of the depth noise relative to 1 m (as the ICP's ``depth_weighting``), capped.
 RADIAL, DEPTH = 1, 2
 DEPTH_WEIGHT_MAX = 4.0
-FAR = 1e10  # world vertex of an invalid pixel (its world normal is zero, which is what project_compatible tests)
+FAR = 1e10  # world vertex of an invalid pixel (its world normal is zero, which is what project_compatible_loop tests)
 COVERED = -2  # ``assoc`` of a pixel that a neighbour's merged surfel already covers: neither merged nor added
 
 # What a step did, one int32 each in a ``counts`` field of N_COUNTS (read back in one copy): pixels that
@@ -73,7 +73,7 @@ class FusionImages:
         self.index_map = IndexMap(height, width)
         self.assoc = ti.field(ti.i32, shape=shape)  # the pixel's associated surfel; -1 none; COVERED
         self.color = ti.field(ti.i32, shape=shape)  # the frame's colour packed r | g << 8 | b << 16
-        # the frame's measurements in the world frame (``world_measurements``, for ``project_compatible``)
+        # the frame's measurements in the world frame (``world_measurements_loop``, for ``project_compatible_loop``)
         self.world_vertex = ti.Vector.field(3, ti.f32, shape=shape)  # FAR where the pixel is invalid
         self.world_normal = ti.Vector.field(3, ti.f32, shape=shape)  # zero where the pixel is invalid
         # the surfel merged at each associated pixel, as ``merge`` left it (world frame), for the coverage
@@ -152,7 +152,21 @@ def unpack_color(c):
 
 
 @ti.kernel
-def world_measurements(img: ti.template(), vertex: ti.template(), normal: ti.template(), pose: Rigid):
+def associate(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
+              to_world: Rigid, to_camera: Rigid, fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32,
+              dist_threshold: ti.f32, cos_threshold: ti.f32):
+    """Steps 1-3 in one launch, their loops one after the other: ``world_measurements_loop``,
+    ``project_compatible_loop`` over the first ``n`` surfels, the index map of the compatible ones
+    (``index_map.build_loops``: cleared, then filled) and ``assoc_from_index_loop``. With n = 0 every pixel
+    is unassociated."""
+    world_measurements_loop(img, vertex, normal, to_world)
+    project_compatible_loop(s, n, img, to_camera, fx, fy, cx, cy, dist_threshold, cos_threshold)
+    build_loops(s, n, img.index_map, True)
+    assoc_from_index_loop(img)
+
+
+@ti.func
+def world_measurements_loop(img: ti.template(), vertex: ti.template(), normal: ti.template(), pose: ti.template()):
     """img.world_vertex, world_normal = the frame's vertex and normal maps in the world frame ((R, t) maps
     camera to world); where the pixel has no vertex or no normal, FAR and zero."""
     for v, u in img.world_vertex:  # (the frame's maps may be levels of a stacked field: no struct-for)
@@ -164,12 +178,12 @@ def world_measurements(img: ti.template(), vertex: ti.template(), normal: ti.tem
         img.world_normal[v, u] = ti.select(valid, R @ nq, Vec3(0.0, 0.0, 0.0))
 
 
-@ti.kernel
-def project_compatible(s: ti.template(), n: ti.i32, img: ti.template(), pose: Rigid, fx: ti.f32, fy: ti.f32,
-                       cx: ti.f32, cy: ti.f32, dist_threshold: ti.f32, cos_threshold: ti.f32):
+@ti.func
+def project_compatible_loop(s: ti.template(), n, img: ti.template(), pose: ti.template(), fx, fy, cx, cy,
+                            dist_threshold, cos_threshold):
     """Keller's association order in one pass over the surfels: filter pass 1 (``proj_pixel``, as in
     ``index_map.project_surfels``), then filter pass 2 against the measurement at that pixel
-    (``world_measurements``, so the test is ‖p − q_w‖ and n·n_w in the world frame, as the NumPy
+    (``world_measurements_loop``, so the test is ‖p − q_w‖ and n·n_w in the world frame, as the NumPy
     reference); the surfels that pass (the compatible ones, a few percent of the map) are listed per
     block, and the index map's passes then take the nearest per pixel among them. (R, t) maps world to
     camera. A pixel still merges into at most one surfel: the nearest compatible one rather than the
@@ -216,8 +230,8 @@ def set_color(img: ti.template(), rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), st
                            | (ti.cast(rgb[y, x, 2], ti.i32) << 16))
 
 
-@ti.kernel
-def assoc_from_index(img: ti.template()):
+@ti.func
+def assoc_from_index_loop(img: ti.template()):
     """assoc = the index map (built from compatible surfels only), with -1 for none."""
     for v, u in img.assoc:
         i = img.index_map.index[v, u]
@@ -460,7 +474,7 @@ def mark_removal_loops(s: ti.template(), counts: ti.template(), n_projected, fra
     n = counts[C_TOTAL]
     for b in range((n + BLOCK - 1) // BLOCK):
         removed = 0
-        for j in range(ti.min(BLOCK, n - b * BLOCK)):  # a trip count, as in project_compatible
+        for j in range(ti.min(BLOCK, n - b * BLOCK)):  # a trip count, as in project_compatible_loop
             i = b * BLOCK + j
             # branch-free: whether a surfel is weak and stale follows no pattern the branch predictor
             # can learn

@@ -69,7 +69,7 @@ def project_surfels(s: ti.template(), n: ti.i32, imap: ti.template(), pose: Rigi
     """``proj_pixel`` ≥ 0 (and a listing per block) for the surfels inside the image of ``imap`` with
     z > 0: filter pass 1 of the fusion step. With ``render``, surfels below ``min_weight``, facing away or
     last updated before frame ``min_time`` (inactive, ElasticFusion's time window) are left out too.
-    ``pose`` (R, t) maps world to camera. Branch-free, as ``fusion.project_compatible``.
+    ``pose`` (R, t) maps world to camera. Branch-free, as ``fusion.project_compatible_loop``.
     """
     H, W = imap.index.shape
     for b in range((n + BLOCK - 1) // BLOCK):  # parallel over blocks, serial inside one
@@ -90,7 +90,7 @@ def project_surfels(s: ti.template(), n: ti.i32, imap: ti.template(), pose: Rigi
 
 @ti.func
 def gather_listed(s: ti.template(), n):
-    """The per-block lists of the last projection (``project_surfels`` or ``fusion.project_compatible``)
+    """The per-block lists of the last projection (``project_surfels`` or ``fusion.project_compatible_loop``)
     into one list in index order, ``listed[:n_listed]``: a serial scan over the blocks, then one parallel
     copy per block."""
     total = 0
@@ -132,9 +132,14 @@ def claim_listed(s: ti.template(), imap: ti.template()):
 
 @ti.kernel
 def build_listed(s: ti.template(), n: ti.i32, imap: ti.template(), with_index: ti.template()):
+    """``build_loops`` in one launch."""
+    build_loops(s, n, imap, with_index)
+
+
+@ti.func
+def build_loops(s: ti.template(), n, imap: ti.template(), with_index: ti.template()):
     """``gather_listed``, then with ``with_index`` ``clear_loop``, ``nearest_listed`` and ``claim_listed``:
-    their loops one after the other in one launch (each reads what the one before wrote, ``n_listed``
-    included)."""
+    their loops one after the other (each reads what the one before wrote, ``n_listed`` included)."""
     gather_listed(s, n)
     if ti.static(with_index):
         clear_loop(imap)

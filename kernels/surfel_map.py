@@ -71,16 +71,10 @@ class SurfelMap(SurfelStore):
         H, W = vertex.shape
         img = self.fusion_images(H, W)
         cos_threshold = math.cos(math.radians(normal_threshold_deg))
-        if self.count > 0:
-            to_world, to_camera = self._pose(pose)
-            fusion.world_measurements(img, vertex, normal, to_world)
-            fusion.project_compatible(self.arrays, self.count, img, to_camera, *intrinsics.as_tuple(),
-                                      dist_threshold, cos_threshold)
-            index_map.build(self.arrays, self.count, img.index_map)  # clears the index map first
-        else:
-            index_map.clear(img.index_map)
+        to_world, to_camera = self._pose(pose)
+        fusion.associate(self.arrays, self.count, img, vertex, normal, to_world, to_camera, *intrinsics.as_tuple(),
+                         dist_threshold, cos_threshold)
         self._projected = self.count
-        fusion.assoc_from_index(img)
         return img
 
     # -- 4-5: merge and add --------------------------------------------------------------------------------

@@ -102,10 +102,10 @@ class LoopClosure:
         self.database.add(kf)
         report.ms["detect"] = watch.lap()
         self.ms["detect"].append(report.ms["keyframe"] + report.ms["detect"])
-        if kf.id == 0:
-            # Compile the source maps' kernels for stored depth now, in the run's warm-up frames, not at the
-            # first candidate (the prediction is rendered into these maps again before the next frame is
-            # tracked); not counted as detection.
+        if self._source is None and kf.frame - self.keyframes[0].frame >= self.config.loop.min_frame_gap // 2:
+            # Compile the source maps' kernels for stored depth now, half the candidates' frame gap in (no
+            # keyframe can have a candidate before the gap), not at the first candidate, and not in a run too
+            # short to have candidates at all (a short run, a test, pays none of it); not counted as detection.
             with Stopwatch(report.ms, "warmup"):
                 fill(self._source_pyramid(kf), kf)
         verified = None
@@ -177,7 +177,7 @@ class LoopClosure:
         i, j = c.match, c.query
         # T: p_j = T p_i, so keyframe j's pose in keyframe i's frame is T⁻¹
         self.graph.poses = [kf.pose.copy() for kf in self.keyframes]
-        self.graph.add_loop(i, j, invert(c.T))
+        self.graph.add_loop(i, j, invert(c.T), free=c.free)  # c.T's left twist = a right twist of its inverse
         opt = self.graph.optimise()
         report.ms["optimise"] = opt.ms
         self.ms["optimise"].append(opt.ms)

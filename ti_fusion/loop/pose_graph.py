@@ -37,6 +37,7 @@ PRIOR_SIGMA = 1e-6  # radians and metres: the first keyframe does not move
 # information, scaled so that the strongest keeps the constant sigma (the ratio 0.01 tried first did worse).
 ODOMETRY_INFO_RATIO = 1.0
 ODOMETRY_MAX_SCALE = 1e6  # that variance factor at most (the sigma × 1000); an untracked frame's in every direction
+FREE_SIGMA = 1.0  # a loop edge's sigma along a direction its measurement does not fix (units of the unit twist: m, rad)
 GNC_MIN_WEIGHT = 0.1  # a loop edge that GNC leaves with a weight below this is an outlier (GNC drives them to ~0)
 
 
@@ -155,9 +156,19 @@ class PoseGraph:
         self.edges.append(Edge(i, j, np.asarray(T_ij, dtype=np.float64), loop=False,
                                covariance=np.diag(self._loop_sigmas ** 2), robust=True))
 
-    def add_loop(self, i: int, j: int, T_ij: np.ndarray) -> None:
-        """A loop edge: T_ij = T_wi⁻¹ T_wj measured (keyframe j's camera in keyframe i's)."""
-        self.edges.append(Edge(i, j, np.asarray(T_ij, dtype=np.float64), loop=True))
+    def add_loop(self, i: int, j: int, T_ij: np.ndarray, free=()) -> None:
+        """A loop edge: T_ij = T_wi⁻¹ T_wj measured (keyframe j's camera in keyframe i's). ``free``: unit twists
+        ((ω, v), keyframe j's frame) along which the measurement says nothing (the weak directions of
+        verification's depth-only ICP, e.g. a slide along a plain wall): the edge's sigma there is
+        ``FREE_SIGMA``, so the graph keeps that component from odometry instead of from the loop."""
+        covariance = None
+        if len(free):
+            covariance = np.diag(self._loop_sigmas ** 2)
+            for e in free:
+                e = np.asarray(e, dtype=np.float64)
+                e = e / np.linalg.norm(e)
+                covariance += FREE_SIGMA ** 2 * np.outer(e, e)
+        self.edges.append(Edge(i, j, np.asarray(T_ij, dtype=np.float64), loop=True, covariance=covariance))
 
     def remove_loop(self, i: int, j: int) -> None:
         self.edges = [e for e in self.edges if not (e.loop and (e.i, e.j) == (i, j))]
@@ -166,6 +177,8 @@ class PoseGraph:
         """The loop edge's error at ``poses``, in its standard deviations (Mahalanobis norm)."""
         E = invert(edge.T) @ invert(poses[edge.i]) @ poses[edge.j]
         xi = se3_log(E)  # (ω, v): the same order as the sigmas
+        if edge.covariance is not None:
+            return float(np.sqrt(xi @ np.linalg.solve(edge.covariance, xi)))
         return float(np.linalg.norm(xi / self._loop_sigmas))
 
     def optimise(self) -> Optimised:
@@ -221,7 +234,14 @@ class PoseGraph:
                     noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(1.345), noise)
                 graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), noise))
         for e in loops:
-            graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), loop_noise))
+            noise = loop_noise
+            if e.covariance is not None:
+                noise = gtsam.noiseModel.Gaussian.Covariance(e.covariance)
+                if loop_noise is not self._loop_gaussian:  # cauchy / huber: the same kernel over this covariance
+                    kernels = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "huber": gtsam.noiseModel.mEstimator.Huber}
+                    noise = gtsam.noiseModel.Robust.Create(
+                        kernels[self.config.robust].Create(self.config.robust_scale), noise)
+            graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), noise))
         return graph
 
     def set_poses(self, poses: np.ndarray) -> None:

@@ -42,6 +42,8 @@ class LoopCandidate:
     icp_inlier_ratio: float | None = None
     icp_residual_m: float | None = None
     T: np.ndarray | None = None
+    free: list = dataclasses.field(default_factory=list)  # unit twists (ω, v) ICP's depth could not fix (the
+    # weak directions of its AᵀA not lifted by colour): the loop edge leaves them to odometry
     ms: float = 0.0
 
     def record(self) -> dict:
@@ -110,6 +112,10 @@ class LoopVerifier:
                         f"{cfg.max_icp_change_deg:g} deg / {cfg.max_icp_change_m * 100:g} cm)")
             return
         c.T = icp.pose
+        # ICP slides freely along a weak direction (a plain wall: along it), so its pose there is whatever the
+        # iterations left, often worse than PnP's start: the loop must not pull the graph that way.
+        c.free = [np.asarray(d["twist"], dtype=np.float64) for d in (icp.degeneracy or {}).get("directions", [])
+                  if not d["color"]]
         c.verified, c.reason = True, "verified"
 
 

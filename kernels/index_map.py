@@ -66,6 +66,13 @@ def list_if(s: ti.template(), b, found, i, keep):
 @ti.kernel
 def project_surfels(s: ti.template(), n: ti.i32, imap: ti.template(), pose: Rigid, fx: ti.f32, fy: ti.f32,
                     cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32, min_time: ti.i32):
+    """``project_surfels_loop`` in one launch."""
+    project_surfels_loop(s, n, imap, pose, fx, fy, cx, cy, render, min_weight, min_time)
+
+
+@ti.func
+def project_surfels_loop(s: ti.template(), n, imap: ti.template(), pose: ti.template(), fx, fy, cx, cy,
+                         render: ti.template(), min_weight, min_time):
     """``proj_pixel`` ≥ 0 (and a listing per block) for the surfels inside the image of ``imap`` with
     z > 0: filter pass 1 of the fusion step. With ``render``, surfels below ``min_weight``, facing away or
     last updated before frame ``min_time`` (inactive, ElasticFusion's time window) are left out too.

@@ -4,7 +4,7 @@ tracks against), and RGB views of it. Screen-space surfel splatting with a z-tes
 Splatting every surfel's disc over its pixel footprint costs an atomic per covered pixel per surfel, far
 too slow for maps of millions of surfels. Instead the renderer (1) projects the surfels as points into a
 z-buffer (``index_map``, leaving out back faces and unstable surfels), then (2) lets every pixel gather the
-front surfels of its (2h+1)² neighbourhood and keep the nearest disc its ray meets (``splat_gather``). A
+front surfels of its (2h+1)² neighbourhood and keep the nearest disc its ray meets (``splat_gather_loop``). A
 disc thus covers up to h pixels around its centre, as a splat would; the one difference is that only the
 front surfel of each pixel's point projection can spill into neighbours.
 """
@@ -12,7 +12,7 @@ front surfel of each pixel's point projection can spill into neighbours.
 import taichi as ti
 
 from ti_fusion.kernels.common import INT_MAX, Rigid, Vec3, data_oriented, depth_sigma, rigid
-from ti_fusion.kernels.index_map import IndexMap
+from ti_fusion.kernels.index_map import IndexMap, build_loops, project_surfels_loop
 
 
 @data_oriented
@@ -23,7 +23,7 @@ class PredictionImages:
         self.height, self.width = height, width
         shape = (height, width)
         self.index_map = IndexMap(height, width)
-        # the front surfel of each pixel's point projection, camera frame (``gather_front``)
+        # the front surfel of each pixel's point projection, camera frame (``gather_front_loop``)
         self.front_position = ti.Vector.field(3, ti.f32, shape=shape)
         self.front_normal = ti.Vector.field(3, ti.f32, shape=shape)
         self.front_radius = ti.field(ti.f32, shape=shape)  # -1 = no surfel
@@ -36,7 +36,21 @@ class PredictionImages:
 
 
 @ti.kernel
-def gather_front(s: ti.template(), img: ti.template(), pose: Rigid):
+def render(s: ti.template(), n: ti.i32, img: ti.template(), pose: Rigid, fx: ti.f32, fy: ti.f32, cx: ti.f32,
+           cy: ti.f32, min_weight: ti.f32, min_time: ti.i32, half: ti.i32, fill_half: ti.i32,
+           out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
+    """A prediction of the first ``n`` surfels in one launch, as consecutive loops: the projection with the
+    render's filters (``index_map.project_surfels_loop``), the index map (``index_map.build_loops``: cleared,
+    then the nearest surfel per pixel), ``gather_front_loop`` and ``splat_gather_loop``. ``pose`` maps world
+    to camera; with n = 0 every pixel is empty."""
+    project_surfels_loop(s, n, img.index_map, pose, fx, fy, cx, cy, True, min_weight, min_time)
+    build_loops(s, n, img.index_map, True)
+    gather_front_loop(s, img, pose)
+    splat_gather_loop(img, fx, fy, cx, cy, half, fill_half, out_vertex, out_normal, out_depth)
+
+
+@ti.func
+def gather_front_loop(s: ti.template(), img: ti.template(), pose: ti.template()):
     """Camera-frame position, normal and radius of each pixel's front surfel (radius -1: none)."""
     for v, u in img.front_radius:
         R, t = rigid(pose)
@@ -67,9 +81,9 @@ def occlusion_margin(z):
     return ti.max(0.01, 3.0 * depth_sigma(z, ti.f32))
 
 
-@ti.kernel
-def splat_gather(img: ti.template(), fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, half: ti.i32,
-                 fill_half: ti.i32, out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
+@ti.func
+def splat_gather_loop(img: ti.template(), fx, fy, cx, cy, half, fill_half, out_vertex: ti.template(),
+                      out_normal: ti.template(), out_depth: ti.template()):
     """Per pixel: the pixel's own front surfel, unless a neighbour's disc that the ray meets lies clearly
     in front of it (an occluding edge), or the pixel has none (a hole, filled by the nearest neighbour disc).
 
@@ -151,7 +165,7 @@ def shade(s: ti.template(), img: ti.template(), by_normal: ti.i32, background: V
 @ti.kernel
 def clear_holes(img: ti.template(), out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
     """Zero the outputs at the pixels no surfel projects to (``img.index_map``): after a render with
-    ``splat_gather``'s ``fill_half`` and the pyramid built from it, level 0 goes back to the surfels' own
+    ``splat_gather_loop``'s ``fill_half`` and the pyramid built from it, level 0 goes back to the surfels' own
     pixels (and ``img.view_index`` to none)."""
     for v, u in img.index_map.index:  # (the outputs may be levels of a stacked field: no struct-for)
         if img.index_map.index[v, u] == INT_MAX:

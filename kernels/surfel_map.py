@@ -14,7 +14,7 @@ import numpy as np
 import taichi as ti
 
 from ti_fusion.errors import MapCapacityError
-from ti_fusion.kernels import fusion, index_map, prediction
+from ti_fusion.kernels import fusion, prediction
 from ti_fusion.kernels.common import PoseArgs
 from ti_fusion.kernels.fusion import FusionImages
 from ti_fusion.kernels.prediction import PredictionImages
@@ -225,18 +225,11 @@ class SurfelMap(SurfelStore):
         img = self.prediction_images(intrinsics.height, intrinsics.width)
         to_camera = self._pose(pose)[1]
         fx, fy, cx, cy = intrinsics.as_tuple()
-        if self.count > 0:
-            index_map.project_surfels(self.arrays, self.count, img.index_map, to_camera, fx, fy, cx, cy, True,
-                                      float(min_weight), int(min_time))
-            index_map.build(self.arrays, self.count, img.index_map)  # clears the index map first
-        else:
-            index_map.clear(img.index_map)
+        prediction.render(self.arrays, self.count, img, to_camera, fx, fy, cx, cy, float(min_weight), int(min_time),
+                          int(max_half), int(fill_half), img.vertex if out_vertex is None else out_vertex,
+                          img.normal if out_normal is None else out_normal,
+                          img.depth if out_depth is None else out_depth)
         self._projected = 0  # the projection scratch now holds the render's projection, not the fusion step's
-        prediction.gather_front(self.arrays, img, to_camera)
-        prediction.splat_gather(img, fx, fy, cx, cy, int(max_half), int(fill_half),
-                                img.vertex if out_vertex is None else out_vertex,
-                                img.normal if out_normal is None else out_normal,
-                                img.depth if out_depth is None else out_depth)
         return img
 
     def clear_holes(self, intrinsics, out_vertex, out_normal, out_depth) -> None:

@@ -634,6 +634,19 @@ def test_render_matches_reference(arch, rng):
     assert (want_i >= 0).sum() > (ref_render(data, pose, 0, 1.0)[0] >= 0).sum()
 
 
+def test_an_empty_map_renders_and_associates_nothing(arch, rng):
+    """The one-launch render and association clear what an earlier step at the same resolution left."""
+    pose, vertex, normal, depth, color, data, smap = setup(rng)
+    fv, fn, _ = frame_fields(vertex, normal, depth)
+    assert (smap.associate_compatible(pose, K, fv, fn, DIST, ANGLE).assoc.to_numpy() >= 0).any()
+    assert (smap.render(pose, K).depth.to_numpy() > 0).any()
+    empty = SurfelMap(4096)
+    img = empty.associate_compatible(pose, K, fv, fn, DIST, ANGLE)
+    assert np.all(img.assoc.to_numpy() == -1) and np.all(img.index.to_numpy() == INT_MAX)
+    view = empty.render(pose, K, max_half=1, fill_half=1)
+    assert np.all(view.depth.to_numpy() == 0) and np.all(view.view_index.to_numpy() == INT_MAX)
+
+
 def test_render_image_colors(arch, rng):
     pose, vertex, normal, depth, color, data, smap = setup(rng)
     rgb = smap.render_image(pose, K, by_normal=False, max_half=1)

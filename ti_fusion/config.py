@@ -475,6 +475,9 @@ class LoopConfig:
     max_loop_error: Positive = 5.0   # after optimisation a loop edge further than this (its standard deviations,
                                      # Mahalanobis over 6 components) from the optimised poses was rejected by the
                                      # kernel: the poses and the map are left as they were
+    min_loop_error: NonNegative = 0.5  # a verified loop whose edge is within this (its standard deviations) of the
+                                     # current poses is kept in the graph but moves nothing until a larger loop: the
+                                     # trajectory already agrees with it within the loop's own accuracy
 
 
 @dataclass
@@ -661,7 +664,7 @@ ADVANCED = {
              "max_hamming", "min_score", "candidates", "min_frame_gap", "min_consistent", "consistent_m",
              "min_pnp_inliers", "min_inlier_ratio", "max_residual", "max_icp_change_deg", "max_icp_change_m",
              "odometry_sigma_m", "odometry_sigma_deg", "odometry_from_icp", "keyframe_pnp", "loop_sigma_m",
-             "loop_sigma_deg", "robust", "robust_scale", "max_loop_error"),
+             "loop_sigma_deg", "robust", "robust_scale", "max_loop_error", "min_loop_error"),
     "mesh": ("truncation", "depth_min_weight", "min_weight", "band", "max_reach", "max_voxels"),
 }
 

@@ -90,6 +90,28 @@ def test_edges_are_green_only_for_loops_applied():
     assert np.array_equal(edges[0][0], [0.0, 0.0, 0.0]) and np.array_equal(edges[0][1], [3.0, 0.0, 0.0])
 
 
+def test_a_loop_the_poses_already_agree_with_moves_nothing():
+    """A verified loop within loop.min_loop_error of the current poses stays in the graph and moves nothing
+    (solving would only add the loop's own measurement error); one further off is applied."""
+    moved = []
+    loop = LoopClosure(Config(), SimpleNamespace(apply_corrections=moved.append))
+    poses = [make_pose(np.eye(3), [0.1 * k, 0.0, 0.0]) for k in range(6)]
+    loop.keyframes = [SimpleNamespace(pose=T.copy()) for T in poses]
+    for T in poses:
+        loop.graph.add_keyframe(T)
+    # c.T: keyframe 0's camera coordinates into keyframe 5's, 3 mm off (a few tenths of the loop's sigma)
+    agrees = SimpleNamespace(match=0, query=5, T=np.linalg.inv(poses[5]) @ poses[0] @ se3_exp(np.r_[0, 0, 0, 0.003, 0, 0]),
+                             free=[])
+    report = SimpleNamespace(ms={}, outcome="", applied=None)
+    loop._close(agrees, report)
+    assert report.outcome.startswith("kept in the graph") and loop.kept == [(0, 5)] and not moved
+    assert loop.summary()["loops_kept"] == 1 and loop.summary()["loops_applied"] == 0
+    far = SimpleNamespace(match=1, query=5, T=np.linalg.inv(poses[5]) @ poses[1] @ se3_exp(np.r_[0, 0, 0, 0.05, 0, 0]),
+                          free=[])
+    loop._close(far, report)
+    assert report.outcome == "applied" and loop.applied == [(1, 5)] and len(moved) == 1
+
+
 def _out_and_back():
     """Frames along the room's path and back again (other noise on the way back): 30 frames."""
     seq = sequence()
@@ -107,6 +129,7 @@ def run(tmp_path_factory):
     cfg.loop.keyframe_translation = 0.1
     cfg.loop.min_frame_gap = 15
     cfg.loop.odometry_from_icp = True  # the odometry edges' covariances from ICP's AᵀA (the constant ones: test_pose_graph)
+    cfg.loop.min_loop_error = 0.0  # apply the loop however well tracking already agrees with it: the correction is tested
     out = tmp_path_factory.mktemp("loop") / "run"
     frames = FrameList(_out_and_back(), name="out-and-back")
     pipeline = SLAMPipeline(frames, cfg, RunDir("slam", out), None, show_progress=False)

@@ -80,6 +80,8 @@ class LoopClosure:
         self.candidates: list[LoopCandidate] = []  # every candidate checked, in order
         self.applied: list[tuple[int, int]] = []  # loops applied
         self.refused: list[tuple[int, int, str]] = []  # verified loops the pose graph refused, and why
+        self.kept: list[tuple[int, int]] = []  # verified loops within loop.min_loop_error of the poses: in the graph,
+        # nothing moved
         self.ms: dict[str, list[float]] = {"detect": [], "verify": [], "optimise": [], "correct": []}
         self._source: FramePyramid | None = None  # an earlier keyframe's maps for verification (first keyframe on)
 
@@ -178,6 +180,14 @@ class LoopClosure:
         # T: p_j = T p_i, so keyframe j's pose in keyframe i's frame is T⁻¹
         self.graph.poses = [kf.pose.copy() for kf in self.keyframes]
         self.graph.add_loop(i, j, invert(c.T), free=c.free)  # c.T's left twist = a right twist of its inverse
+        before = self.graph.loop_error(self.graph.edges[-1], self.graph.poses)
+        if before < self.config.loop.min_loop_error:
+            # Where tracking is already better than the loop's own measurement (a short loop after accurate
+            # tracking), solving would only add that measurement's error; the edge stays for a later loop's solve.
+            report.outcome = f"kept in the graph: {before:.2f} sigma from the poses < {self.config.loop.min_loop_error:g}"
+            self.kept.append((i, j))
+            log.info(f"loop {i}-{j} {report.outcome}")
+            return
         opt = self.graph.optimise()
         report.ms["optimise"] = opt.ms
         self.ms["optimise"].append(opt.ms)
@@ -225,5 +235,6 @@ class LoopClosure:
                 "loops": [{"from": i, "to": j, "frames": [self.keyframes[i].frame, self.keyframes[j].frame]}
                           for i, j in self.applied][:50],
                 "loops_refused": [{"from": i, "to": j, "why": why} for i, j, why in self.refused][:50],
+                "loops_kept": len(self.kept),
                 "loop_candidates_log": [c.record() for c in self.candidates][:200],
                 "loop_ms": cost}

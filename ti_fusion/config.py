@@ -411,9 +411,9 @@ class SLAMConfig:
     relocalise: Annotated[str, OneOf("features", "none")] = "features"
                                      # after a failure, re-initialise with ORB+PnP (features) or not (none)
     start_at_ground_truth: bool = True  # start at the first frame's GT pose (same frame as GT in viewers)
-    loop_closure: bool = False       # keyframes, place recognition, loop verification and pose-graph correction
+    loop_closure: bool = True        # keyframes, place recognition, loop verification and pose-graph correction
                                      # of the poses and the map ([loop]; docs/LOOP_CLOSURE.md)
-    active_window: NonNegativeInt = 0  # frames: tracking renders only surfels updated within this many fused frames
+    active_window: NonNegativeInt = 200  # frames: tracking renders only surfels updated within this many fused frames
                                      # (ElasticFusion's active model; older ones stay in the map for loop closure);
                                      # 0 = the whole map
 

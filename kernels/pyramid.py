@@ -441,17 +441,22 @@ def pyramid_maps(depth: ti.template(), vertex: ti.template(), normal: ti.templat
 def input_maps(fine: ti.types.ndarray(dtype=ti.f32, ndim=2), raw: ti.template(), rows: ti.template(),
                depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
                levels: ti.template(), radius: ti.template(), max_diff: ti.f32, serial_input: ti.template(),
-               serial: ti.template()):
+               serial: ti.template(), grey: ti.types.ndarray(dtype=ti.f32, ndim=2), intensity: ti.template(),
+               intensity_grad: ti.template(), intensity_rows: ti.template(), with_grey: ti.template()):
     """A frame's maps in one launch, for an input averaged down once and smoothed (the default at
     640×480): ``pyramid_loop`` from the input image ``fine`` (the caller's array, not copied first) into
-    the packed ``raw``, the smoothing's row and
-    column passes (``smooth_rows_loop``, ``smooth_columns_loop``) into level 0 of ``depth``, then
-    ``pyramid_maps_loops``: the loops of ``FramePyramid.compute``'s five launches, one after the other."""
+    the packed ``raw``, the smoothing's row and column passes (``smooth_rows_loop``,
+    ``smooth_columns_loop``) into level 0 of ``depth``, then ``pyramid_maps_loops``: the loops of
+    ``FramePyramid.compute``'s five launches, one after the other. With ``with_grey``, the intensity
+    pyramid of the grey image ``grey`` as well (``intensity_maps_loops``): off the CPU each array argument
+    is copied back after the launch, a wait, so depth and grey cross together."""
     H, W = fine.shape
     pyramid_loop(fine, 0, H, W, raw, 0, max_diff, True, serial_input)
     smooth_rows_loop(raw, rows, ti.cast(geometry[0, G_W], ti.i32), radius, max_diff)
     smooth_columns_loop(rows, depth, radius, max_diff)
     pyramid_maps_loops(depth, vertex, normal, geometry, levels, 0, max_diff, serial)
+    if ti.static(with_grey):
+        intensity_maps_loops(grey, intensity, intensity_grad, intensity_rows, True, serial_input, serial)
 
 
 @ti.func
@@ -473,6 +478,7 @@ def pyramid_maps_loops(depth: ti.template(), vertex: ti.template(), normal: ti.t
 
 
 GREY = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights of R, G, B
+_NO_GREY = np.zeros((1, 1), np.float32)  # input_maps' grey argument when it has none
 
 
 @ti.kernel
@@ -655,16 +661,25 @@ class FramePyramid:
         whole[:self.height] = image
         stack.from_numpy(whole)
 
-    def compute(self, depth: np.ndarray, intrinsics: Intrinsics) -> None:
-        """Upload a float32 depth image (metres, 0 = invalid) and build every level's maps.
+    def compute(self, depth: np.ndarray, intrinsics: Intrinsics, grey: np.ndarray | None = None) -> None:
+        """Upload a float32 depth image (metres, 0 = invalid) and build every level's maps; with ``grey``,
+        the intensity pyramid too (``compute_intensity``), in the same launch where the layout allows.
 
         With a smoothing radius r > 0 the depth is first replaced by its range-checked (2r+1)² mean (see the
         module docstring); ``depth[0]`` then holds the smoothed depth."""
         if depth.shape != self.input_shape:
             raise ValueError(f"depth of shape {depth.shape} given to FramePyramid of shape {self.input_shape}")
         depth = np.ascontiguousarray(depth, dtype=np.float32)
-        if self._one_launch(depth, intrinsics):
+        if grey is not None:
+            grey = self._checked_grey(grey)
+        if self._one_launch(depth, intrinsics, grey):
             return
+        self._compute_depth(depth, intrinsics)
+        if grey is not None:
+            self.compute_intensity(grey)
+
+    def _compute_depth(self, depth: np.ndarray, intrinsics: Intrinsics) -> None:
+        """``compute`` of the depth for a layout ``_one_launch`` does not take, in several launches."""
         smooth = self.smooth_radius > 0
         stack = self.depth[0].field
         if self.input_level == 0:
@@ -688,18 +703,27 @@ class FramePyramid:
             smooth_columns(rows, stack, self.smooth_radius, self.max_depth_diff)
         self.compute_from_field(intrinsics)
 
-    def _one_launch(self, depth: np.ndarray, intrinsics: Intrinsics) -> bool:
-        """``compute`` of an input averaged down once and smoothed (the default at 640×480) as one upload
-        and one launch (``input_maps``); False for any other layout."""
+    def _one_launch(self, depth: np.ndarray, intrinsics: Intrinsics, grey: np.ndarray | None) -> bool:
+        """``compute`` of an input averaged down once and smoothed (the default at 640×480) as one launch
+        (``input_maps``), with the intensity pyramid of ``grey`` if given; False for any other layout."""
         if self.input_level != 1 or self.smooth_radius <= 0:
             return False
         self._set_geometry(intrinsics.downsampled(2))
         raw, rows = self._packed_fields()
         h, w = self.input_shape
+        images = (grey, self.intensity[0].field, self.intensity_grad[0].field) if grey is not None else \
+            (_NO_GREY, 0, 0)  # not read: with_grey is off
         input_maps(depth, raw, rows, self.depth[0].field, self.vertex[0].field, self.normal[0].field,
                    self._geometry, self.levels, self.smooth_radius, self.max_depth_diff,
-                   serial_for(((h + 1) // 2) * ((w + 1) // 2)), self._serial)
+                   serial_for(((h + 1) // 2) * ((w + 1) // 2)), self._serial, *images, self._rows, grey is not None)
         return True
+
+    def _checked_grey(self, grey: np.ndarray) -> np.ndarray:
+        """``grey`` as float32 C-contiguous, with the intensity fields allocated; ValueError for another size."""
+        if grey.shape != self.input_shape:
+            raise ValueError(f"grey image of shape {grey.shape} given to FramePyramid of shape {self.input_shape}")
+        self._intensity_fields(True)
+        return np.ascontiguousarray(grey, dtype=np.float32)
 
     def _intensity_fields(self, gradients: bool) -> None:
         if self.intensity is None:
@@ -710,10 +734,7 @@ class FramePyramid:
     def compute_intensity(self, grey: np.ndarray) -> None:
         """The live frame's intensity pyramid and gradients from a float32 grey image of the input's size
         (``grey_image``; values in [0, 1], negative = none), averaged down like the depth."""
-        if grey.shape != self.input_shape:
-            raise ValueError(f"grey image of shape {grey.shape} given to FramePyramid of shape {self.input_shape}")
-        self._intensity_fields(True)
-        grey = np.ascontiguousarray(grey, dtype=np.float32)
+        grey = self._checked_grey(grey)
         stack, grad = self.intensity[0].field, self.intensity_grad[0].field
         if self.input_level == 0:
             self._upload_level0(stack, grey)

@@ -4,6 +4,8 @@ Random depths are multiples of 1/1024 m: exactly representable in float32 with e
 the depth-jump and range tests of the kernels and of the references never disagree by a rounding.
 """
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
@@ -308,14 +310,37 @@ def test_intensity_pyramid_of_other_input_levels(arch, rng, input_level):
     check_intensity_pyramid(rng, input_level)
 
 
-def check_intensity_pyramid(rng, input_level):
+@pytest.mark.parametrize("input_level, radius", [(1, 2), (0, 0), (2, 1)])
+def test_depth_and_grey_together(arch, rng, input_level, radius):
+    """``compute(depth, K, grey)``: at input level 1 with smoothing one launch (``input_maps`` with the
+    intensity loops), elsewhere one call after the other; the maps and the intensity pyramid as from
+    ``compute`` and ``compute_intensity`` apart, and as the reference."""
+    used = check_intensity_pyramid(rng, input_level, radius, together=True)
+    depth, K_in = used.depth, used.intrinsics
+    apart = FramePyramid(settings(radius=radius), *depth.shape, levels=3, input_level=input_level)
+    apart.compute(depth, K_in)
+    apart.compute_intensity(used.image)
+    for level in range(3):
+        for name in ("depth", "vertex", "normal", "intensity", "intensity_grad"):
+            np.testing.assert_allclose(getattr(used.pyramid, name)[level].to_numpy(),
+                                       getattr(apart, name)[level].to_numpy(), rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="grey image of shape"):
+        used.pyramid.compute(depth, K_in, used.image[:-1])
+
+
+def check_intensity_pyramid(rng, input_level, radius=0, together=False):
+    """The intensity pyramid against the reference (``together``: computed by ``compute`` with the depth);
+    returns what it used (the pyramid, the grey image, the depth and the camera)."""
     grey = random_grey(rng, (37, 51))
     grey[8:24, 16:36] = -1.0  # a hole that survives averaging down twice
     depth = random_depth(rng, shape=grey.shape)
     K_in = Intrinsics(150.0, 140.0, 25.0, 18.0, 51, 37)
-    pyramid = FramePyramid(settings(), *grey.shape, levels=3, input_level=input_level)
-    pyramid.compute(depth, K_in)
-    pyramid.compute_intensity(grey)
+    pyramid = FramePyramid(settings(radius=radius), *grey.shape, levels=3, input_level=input_level)
+    if together:
+        pyramid.compute(depth, K_in, grey)
+    else:
+        pyramid.compute(depth, K_in)
+        pyramid.compute_intensity(grey)
     expected = grey.astype(np.float64)
     for _ in range(input_level):
         expected = intensity_down_ref(expected.astype(np.float32))
@@ -329,6 +354,7 @@ def check_intensity_pyramid(rng, input_level):
     assert np.any(pyramid.intensity_grad[0].to_numpy()[1:-1, 1:-1, 0] < 0)  # invalid windows inside exercised
     with pytest.raises(ValueError, match="shape"):
         pyramid.compute_intensity(grey[:-1])
+    return SimpleNamespace(pyramid=pyramid, image=grey, depth=depth, intrinsics=K_in)
 
 
 def test_surfel_intensity_matches_reference(arch, rng):

@@ -207,12 +207,12 @@ class DenseSLAM:
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
         color = self._uses_color(frame)
         with timer.stage("pyramid"):
-            self.frame_pyramid.compute(frame.depth, frame.intrinsics)
+            grey = None
             if color:
                 grey = grey_image(frame.color)
                 if frame.meta.get("color_valid") is not None:  # registered colour: none where the camera saw none
                     grey[~frame.meta["color_valid"]] = -1.0
-                self.frame_pyramid.compute_intensity(grey)
+            self.frame_pyramid.compute(frame.depth, frame.intrinsics, grey)  # depth and grey in one launch
         if not self.poses and (problem := self.unusable(frame)):
             self.skipped.append((frame.index, problem))
             return FrameResult(frame.index, frame.timestamp, None, Tracking.SKIPPED, problem, ms=dict(timer.last))

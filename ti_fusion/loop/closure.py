@@ -116,9 +116,11 @@ class LoopClosure:
                                      self.slam.current_frame_pyramid(), target_ready=True)
             report.candidates.append(c)
             self.candidates.append(c)
-            log.info(f"loop candidate: keyframe {c.query} (frame {kf.frame}) with keyframe {c.match} (frame "
-                     f"{self.keyframes[c.match].frame}), score {c.score:.3f}: "
-                     f"{'verified' if c.verified else 'rejected'} ({c.reason})")
+            # on by default: a rejected candidate is routine (debug; every candidate is in summary.json)
+            say = log.info if c.verified else log.debug
+            say(f"loop candidate: keyframe {c.query} (frame {kf.frame}) with keyframe {c.match} (frame "
+                f"{self.keyframes[c.match].frame}), score {c.score:.3f}: "
+                f"{'verified' if c.verified else 'rejected'} ({c.reason})")
             if c.verified:
                 verified = c
                 break

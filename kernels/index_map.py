@@ -30,12 +30,6 @@ class IndexMap:
         self.index = ti.field(ti.i32, shape=shape)  # the nearest surfel, INT_MAX = none
 
 
-@ti.kernel
-def clear(imap: ti.template()):
-    """An empty index map (``build`` clears it itself: this is for a projection of no surfels)."""
-    clear_loop(imap)
-
-
 @ti.func
 def clear_loop(imap: ti.template()):
     for v, u in imap.index:

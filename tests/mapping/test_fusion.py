@@ -290,12 +290,9 @@ def project(smap: SurfelMap, pose, intrinsics, height: int, width: int):
     """Filter pass 1 and the index map on their own (per pixel the surfel nearest in depth, ties to the
     smaller index), over every surfel: ``associate_compatible`` runs them over the compatible ones."""
     img = smap.fusion_images(height, width)
-    if smap.count > 0:
-        index_map.project_surfels(smap.arrays, smap.count, img.index_map, smap._pose(pose)[1],
-                                  *intrinsics.as_tuple(), False, 0.0, 0)
-        index_map.build(smap.arrays, smap.count, img.index_map, True)
-    else:
-        index_map.clear(img.index_map)
+    index_map.project_surfels(smap.arrays, smap.count, img.index_map, smap._pose(pose)[1],
+                              *intrinsics.as_tuple(), False, 0.0, 0)
+    index_map.build(smap.arrays, smap.count, img.index_map, True)  # clears the index map first
     smap._projected = smap.count
     return img
 

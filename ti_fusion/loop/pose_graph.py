@@ -129,10 +129,16 @@ class PoseGraph:
         self._odometry_noise = gtsam.noiseModel.Diagonal.Sigmas(_sigmas(config.odometry_sigma_deg,
                                                                          config.odometry_sigma_m))
         self._loop_sigmas = _sigmas(config.loop_sigma_deg, config.loop_sigma_m)
-        self._loop_gaussian = gaussian = gtsam.noiseModel.Diagonal.Sigmas(self._loop_sigmas)
+        self._loop_gaussian = gtsam.noiseModel.Diagonal.Sigmas(self._loop_sigmas)
+        self._loop_noise = self._loop_kernel(self._loop_gaussian)
+
+    def _loop_kernel(self, gaussian):
+        """A loop edge's noise model: ``gaussian`` under the robust kernel of ``loop.robust`` (cauchy, huber),
+        or as it is (none; gnc, which weighs the loops itself)."""
+        if self.config.robust in ("none", "gnc"):
+            return gaussian
         kernels = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "huber": gtsam.noiseModel.mEstimator.Huber}
-        self._loop_noise = gaussian if config.robust in ("none", "gnc") else \
-            gtsam.noiseModel.Robust.Create(kernels[config.robust].Create(config.robust_scale), gaussian)
+        return gtsam.noiseModel.Robust.Create(kernels[self.config.robust].Create(self.config.robust_scale), gaussian)
 
     def __len__(self) -> int:
         return len(self.poses)
@@ -237,10 +243,8 @@ class PoseGraph:
             noise = loop_noise
             if e.covariance is not None:
                 noise = gtsam.noiseModel.Gaussian.Covariance(e.covariance)
-                if loop_noise is not self._loop_gaussian:  # cauchy / huber: the same kernel over this covariance
-                    kernels = {"cauchy": gtsam.noiseModel.mEstimator.Cauchy, "huber": gtsam.noiseModel.mEstimator.Huber}
-                    noise = gtsam.noiseModel.Robust.Create(
-                        kernels[self.config.robust].Create(self.config.robust_scale), noise)
+                if loop_noise is not self._loop_gaussian:  # the robust kernel over this covariance too
+                    noise = self._loop_kernel(noise)
             graph.add(gtsam.BetweenFactorPose3(e.i, e.j, gtsam.Pose3(e.T), noise))
         return graph
 

@@ -449,8 +449,8 @@ class LoopConfig:
     min_score: Fraction = 0.15       # bag-of-words similarity (DBoW2's L1 score, 0 to 1; or the fraction of voting
                                      # descriptors before the vocabulary exists) below this → not a candidate
     candidates: Count = 3            # best-scoring earlier keyframes verified per keyframe at most
-    min_frame_gap: Count = 60        # frames between a candidate keyframe and the current one at least (nearer ones
-                                     # are odometry's business)
+    min_frame_gap: Count = 60        # frames between a candidate keyframe and the current one at least, and at least
+                                     # slam.active_window (nearer ones are odometry's business: tracking aligns to them)
     min_consistent: Count = 12       # pre-check: matches whose 3D distances to the others agree (within
                                      # consistent_m) at least, else rejected before PnP
     consistent_m: Positive = 0.05    # metres: pre-check tolerance on the distance between two matched 3D points

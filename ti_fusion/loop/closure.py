@@ -43,6 +43,13 @@ from ti_fusion.timing import Stopwatch
 log = logging.getLogger(__name__)
 
 
+def candidate_gap(config: Config) -> int:
+    """Frames a loop candidate is older than the current keyframe at least: ``loop.min_frame_gap``, and with
+    ``slam.active_window`` the window too, whose surfels tracking aligns to already (a loop to them repeats
+    odometry with the loop's own error added)."""
+    return max(config.loop.min_frame_gap, config.slam.active_window)
+
+
 @dataclass
 class LoopReport:
     """What loop closure did after one frame (only frames that became keyframes have one)."""
@@ -69,7 +76,8 @@ class LoopClosure:
         self.config = config
         self.slam = slam  # a DenseSLAM, used through its loop-closure door only (see the module's docstring)
         self.selector = KeyframeSelector(config.loop)
-        self.database = PlaceDatabase(config.loop)
+        self.gap = candidate_gap(config)
+        self.database = PlaceDatabase(dataclasses.replace(config.loop, min_frame_gap=self.gap))
         self.graph = PoseGraph(config.loop)
         self.verifier = LoopVerifier(config)
         self.keyframes: list[Keyframe] = []
@@ -104,7 +112,7 @@ class LoopClosure:
         self.database.add(kf)
         report.ms["detect"] = watch.lap()
         self.ms["detect"].append(report.ms["keyframe"] + report.ms["detect"])
-        if self._source is None and kf.frame - self.keyframes[0].frame >= self.config.loop.min_frame_gap // 2:
+        if self._source is None and kf.frame - self.keyframes[0].frame >= self.gap // 2:
             # Compile the source maps' kernels for stored depth now, half the candidates' frame gap in (no
             # keyframe can have a candidate before the gap), not at the first candidate, and not in a run too
             # short to have candidates at all (a short run, a test, pays none of it); not counted as detection.

@@ -2,7 +2,6 @@
 end to end on a short out-and-back path through the synthetic room (320×240) whose return is closed onto
 its start."""
 
-import json
 from types import SimpleNamespace
 
 import numpy as np
@@ -100,8 +99,8 @@ def test_a_loop_the_poses_already_agree_with_moves_nothing():
     for T in poses:
         loop.graph.add_keyframe(T)
     # c.T: keyframe 0's camera coordinates into keyframe 5's, 3 mm off (a few tenths of the loop's sigma)
-    agrees = SimpleNamespace(match=0, query=5, T=np.linalg.inv(poses[5]) @ poses[0] @ se3_exp(np.r_[0, 0, 0, 0.003, 0, 0]),
-                             free=[])
+    agrees = SimpleNamespace(match=0, query=5, free=[],
+                             T=np.linalg.inv(poses[5]) @ poses[0] @ se3_exp(np.r_[0, 0, 0, 0.003, 0, 0]))
     report = SimpleNamespace(ms={}, outcome="", applied=None)
     loop._close(agrees, report)
     assert report.outcome.startswith("kept in the graph") and loop.kept == [(0, 5)] and not moved
@@ -143,8 +142,8 @@ def run(tmp_path_factory):
     cfg.loop.keyframe_translation = 0.1
     cfg.loop.min_frame_gap = 15
     cfg.slam.active_window = 15  # shorter than the run: the return finds the start outside the window
-    cfg.loop.odometry_from_icp = True  # the odometry edges' covariances from ICP's AᵀA (the constant ones: test_pose_graph)
-    cfg.loop.min_loop_error = 0.0  # apply the loop however well tracking already agrees with it: the correction is tested
+    cfg.loop.odometry_from_icp = True  # the odometry edges' covariances from ICP's AᵀA (constant: test_pose_graph)
+    cfg.loop.min_loop_error = 0.0  # apply the loop however well tracking agrees with it: the correction is tested
     out = tmp_path_factory.mktemp("loop") / "run"
     frames = FrameList(_out_and_back(), name="out-and-back")
     pipeline = SLAMPipeline(frames, cfg, RunDir("slam", out), None, show_progress=False)

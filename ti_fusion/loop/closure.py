@@ -194,7 +194,8 @@ class LoopClosure:
         if before < self.config.loop.min_loop_error:
             # Where tracking is already better than the loop's own measurement (a short loop after accurate
             # tracking), solving would only add that measurement's error; the edge stays for a later loop's solve.
-            report.outcome = f"kept in the graph: {before:.2f} sigma from the poses < {self.config.loop.min_loop_error:g}"
+            report.outcome = (f"kept in the graph: {before:.2f} sigma from the poses < "
+                              f"{self.config.loop.min_loop_error:g}")
             self.kept.append((i, j))
             log.info(f"loop {i}-{j} {report.outcome}")
             return

@@ -56,11 +56,19 @@ def _has_cuda() -> bool:
 
 
 # cuda is a parameter only where a CUDA device is found, so machines without one list no skipped cuda tests
-@pytest.fixture(params=["cpu", "vulkan"] + (["cuda"] if _has_cuda() else []))
-def arch(request):
-    if request.param == "vulkan" and not _has_vulkan():
+ARCHES = ["cpu", "vulkan"] + (["cuda"] if _has_cuda() else [])
+
+
+def use_arch(arch: str) -> str:
+    """Start ``arch`` for a kernel test, or skip the test where it has no device."""
+    if arch == "vulkan" and not _has_vulkan():
         pytest.skip("no Vulkan device (apt-get install mesa-vulkan-drivers for lavapipe)")
-    return _use(request.param)
+    return _use(arch)
+
+
+@pytest.fixture(params=ARCHES)
+def arch(request):
+    return use_arch(request.param)
 
 
 @pytest.fixture

@@ -13,6 +13,7 @@ from ti_fusion import backend
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import PyramidConfig
 from ti_fusion.kernels.pyramid import FramePyramid
+from tests.conftest import ARCHES, use_arch
 
 K = Intrinsics(fx=150.0, fy=140.0, cx=39.5, cy=30.25, width=80, height=60)
 JUMP = 0.05 + 1 / 4096  # never equal to a difference of two depths on the 1/1024 grid
@@ -89,17 +90,21 @@ def test_backprojection_matches_reference(arch, rng):
     assert np.all(V[depth == 0] == 0)
 
 
-@pytest.fixture(params=["serial", "parallel"])
-def loops(request, monkeypatch):
-    """Small images run their loops on the calling thread (``SERIAL_BELOW``); "parallel" lowers the
-    threshold so that these small test images take the parallel build of every kernel as well."""
-    if request.param == "parallel":
+@pytest.fixture(params=[(a, how) for a in ARCHES for how in (("serial", "parallel") if a == "cpu" else ("parallel",))],
+                ids=lambda p: f"{p[0]}-{p[1]}")
+def arch_loops(request, monkeypatch):
+    """The backend, and where the loops run. On the CPU small images run their loops on the calling thread
+    (``SERIAL_BELOW``); "parallel" lowers the threshold so that these small test images take the parallel
+    build of every kernel as well. Off the CPU every loop is parallel (``serial_for``): one case."""
+    arch, how = request.param
+    use_arch(arch)
+    if how == "parallel":
         monkeypatch.setattr(backend, "SERIAL_BELOW", 0)
     return request.param
 
 
 @pytest.mark.parametrize("shape", [(60, 80), (61, 83), (9, 7)])  # 83, 7: a partial last pack of 8 pixels
-def test_normals_match_reference(arch, rng, loops, shape):
+def test_normals_match_reference(arch_loops, rng, shape):
     depth = random_depth(rng, shape)
     Ks = Intrinsics(150.0, 140.0, shape[1] / 2, shape[0] / 2, shape[1], shape[0])
     pyramid = FramePyramid(settings(), *depth.shape, levels=1)
@@ -185,7 +190,7 @@ def test_smoothing_and_pyramid_keep_a_ramp_up_to_the_border(arch):
 
 
 @pytest.mark.parametrize("radius, shape", [(1, (60, 80)), (2, (60, 80)), (6, (61, 83)), (12, (37, 85))])
-def test_smoothing_matches_reference(arch, rng, loops, radius, shape):
+def test_smoothing_matches_reference(arch_loops, rng, radius, shape):
     """Also widths that are no multiple of the 8-pixel packs, and radii whose window spans several packs."""
     depth = random_depth(rng, shape)
     K = Intrinsics(150.0, 140.0, shape[1] / 2, shape[0] / 2, shape[1], shape[0])
@@ -199,7 +204,7 @@ def test_smoothing_matches_reference(arch, rng, loops, radius, shape):
     np.testing.assert_allclose(pyramid.vertex[0].to_numpy(), backproject_ref(got, K), rtol=2e-6, atol=1e-7)
 
 
-def test_pyramid_matches_reference(arch, rng, loops):
+def test_pyramid_matches_reference(arch_loops, rng):
     depth = random_depth(rng, shape=(61, 81))  # odd sizes: the last coarse pixel sees a clipped window
     pyramid = FramePyramid(settings(), *depth.shape, levels=3)
     pyramid.compute(depth, Intrinsics(150.0, 140.0, 40.0, 30.0, 81, 61))
@@ -220,7 +225,7 @@ def test_pyramid_matches_reference(arch, rng, loops):
 
 
 @pytest.mark.parametrize("input_level, radius", [(1, 0), (1, 2), (2, 1)])
-def test_input_level_averages_down_first(arch, rng, loops, input_level, radius):
+def test_input_level_averages_down_first(arch_loops, rng, input_level, radius):
     """FramePyramid(input_level=L): level 0 is the input averaged down L times (then smoothed), the same
     maps as level L of full-resolution maps built without smoothing."""
     depth = random_depth(rng, shape=(61, 81))
@@ -300,7 +305,7 @@ def random_grey(rng, shape, invalid=0.05):
     return g.astype(np.float32)
 
 
-def test_intensity_pyramid_and_gradients_match_reference(arch, rng, loops):
+def test_intensity_pyramid_and_gradients_match_reference(arch_loops, rng):
     check_intensity_pyramid(rng, input_level=1)
 
 

@@ -36,7 +36,8 @@ tracked motion per second times the time since the last tracked frame (``Frame.t
 frame's pose, halved after a step whose speed changed (``slam.motion_damping``); a lost frame never feeds
 it. When that alignment fails the health checks (few inliers,
 large residual, ill-conditioned system, implausible jump) or is in doubt (residual above
-``slam.doubt_residual_ratio`` × the median residual of the last tracked frames), ICP runs
+``slam.doubt_residual_ratio`` × the median residual of the last tracked frames, or another start won the last
+tracked frame), ICP runs
 again from the last good pose, then from ORB + PnP against the last well-tracked frame
 (``slam.relocalise = "features"``), then, as a dense re-localisation, from the last good pose with a wider
 basin (``slam.relocalise_iterations``, ``slam.relocalise_level_dist_scale``). Every start aligns the same
@@ -78,8 +79,9 @@ IRREGULAR_FLOOR = 0.01
 # Between starts that converged to about the same pose the scores differ by noise: another start replaces the
 # motion model's alignment only when it fits better by more than this.
 SCORE_MARGIN = 0.02
-# The residual a start is judged against: the median of the last this many tracked frames (doubt is off until
-# half of them are there).
+# The residual a start is judged against: the median of the last this many tracked frames (doubt is on from the
+# first of them: on the room at --stride 20 a wrong minimum at the third frame, 11.3 mm against 3.2-3.3 mm,
+# passed while doubt waited for five, and the map it corrupted lost every frame after it).
 RECENT_FRAMES = 10
 
 
@@ -179,6 +181,9 @@ class DenseSLAM:
         self._velocity = np.zeros(6)  # last motion per second, twist (ω, v) of the camera-to-camera step
         self._last_stamp: float | None = None  # timestamp of the last tracked frame
         self._lost_streak = 0  # frames lost since the last tracked one
+        # Another start than the motion model's won the last tracked frame: the next guess is in doubt too, and
+        # every start is tried (a wrong minimum can pass every check with a residual as low as the recent ones).
+        self._guess_beaten = False
         self._residuals: deque[float] = deque(maxlen=RECENT_FRAMES)  # ICP residuals of the last tracked frames
         self._frames_fused = 0
         self._color_warned = False  # the warning that the photometric term is off for unregistered colour
@@ -303,8 +308,9 @@ class DenseSLAM:
             tried.append(Hypothesis(name, result, pose, self._health(result, pose, guess)))
             return tried[-1]
 
-        def settled() -> bool:  # the best so far passes the checks without doubt
-            return cfg.hypotheses != "always" and any(h.ok and not self._doubtful(h) for h in tried)
+        def settled() -> bool:  # the best so far passes the checks without doubt, and the guess is trusted
+            return cfg.hypotheses != "always" and not self._guess_beaten and \
+                any(h.ok and not self._doubtful(h) for h in tried)
 
         first = attempt("motion", predicted)
         self._report_degeneracy(frame, first.icp)
@@ -342,7 +348,7 @@ class DenseSLAM:
         """The alignment failed the checks, or passed them with a residual well above the recent frames'."""
         if not h.ok:
             return True
-        if len(self._residuals) < RECENT_FRAMES // 2:
+        if not self._residuals:
             return False
         return h.icp.residual_rms > self.config.slam.doubt_residual_ratio * statistics.median(self._residuals)
 
@@ -415,6 +421,7 @@ class DenseSLAM:
             irregular = bool(np.any(self._velocity)) and (  # from rest, a miss says nothing of the speed
                 result.hypothesis != "motion" or missed > max(0.5 * np.linalg.norm(step), IRREGULAR_FLOOR))
             self._velocity = step / dt * (cfg.motion_damping if irregular else 1.0)
+            self._guess_beaten = result.hypothesis != "motion"
         if result.tracked:
             self._last_stamp = timestamp
             if result.icp is not None and np.isfinite(result.icp.residual_rms):

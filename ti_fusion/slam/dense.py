@@ -83,6 +83,12 @@ SCORE_MARGIN = 0.02
 # first of them: on the room at --stride 20 a wrong minimum at the third frame, 11.3 mm against 3.2-3.3 mm,
 # passed while doubt waited for five, and the map it corrupted lost every frame after it).
 RECENT_FRAMES = 10
+# The last resort before a frame is lost: the turn went on faster than the guess. ICP's basin is about 15 deg
+# (room at --stride 20, frame 280: depth from 15.5 deg off, the wide start from 7.7 deg), so the starts add this
+# much rotation to the guess about its own axis (about the camera's vertical both ways when it did not turn).
+TURN_DEG = (15.0, 30.0, 45.0)
+# Below this rotation per frame (radians) the guess has no axis to turn on.
+TURN_FLOOR = np.radians(1.0)
 
 
 @dataclass
@@ -324,6 +330,9 @@ class DenseSLAM:
             self._relocalise(frame, source, last, color, tried)
         if not settled() and cfg.hypotheses != "motion":
             attempt("wide", last, self.wide_icp, depth_first=True)  # dense re-localisation: a wider basin
+        if not any(h.ok for h in tried) and cfg.hypotheses != "motion":
+            for start in self._turned(predicted, frame.timestamp):  # a turn faster than the guess's
+                attempt("turn", start, depth_first=True)
         passed = [h for h in tried if h.ok]
         if len(passed) > 1:
             for h in passed:
@@ -335,6 +344,16 @@ class DenseSLAM:
         pose = best.pose if best.ok else predicted  # a lost frame reports the guess; it is not fused
         return FrameResult(frame.index, frame.timestamp, pose, tracking, best.failure, icp=best.icp,
                            hypothesis=best.name, tried=[f"{h.name}: {h.status}" for h in tried])
+
+    def _turned(self, predicted: np.ndarray, timestamp: float) -> list[np.ndarray]:
+        """Starts that turn TURN_DEG further than the guess ``predicted``: about the axis of its rotation, or
+        about the camera's vertical both ways where it hardly turned."""
+        twist = self._velocity * self._elapsed(timestamp)
+        angle = np.linalg.norm(twist[:3])
+        axes = [twist[:3] / angle] if angle > TURN_FLOOR else [np.array([0.0, 1.0, 0.0]), np.array([0.0, -1.0, 0.0])]
+        held = self._held_pose()
+        return [renormalize(held @ se3_exp(np.concatenate([twist[:3] + axis * np.radians(deg), twist[3:]])))
+                for axis in axes for deg in TURN_DEG]
 
     def alignment_score(self, source: FramePyramid, h: Hypothesis, color: bool) -> float:
         """How well a start's alignment of this frame's prediction fits the frame, comparable between starts

@@ -87,7 +87,7 @@ RECENT_FRAMES = 10
 # (room at --stride 20, frame 280: depth from 15.5 deg off, the wide start from 7.7 deg), so the starts add this
 # much rotation to the guess about its own axis (about the camera's vertical both ways when it did not turn).
 TURN_DEG = (15.0, 30.0, 45.0)
-# Below this rotation per frame (radians) the guess has no axis to turn on.
+# Below this rotation (radians) the guess's step has no axis to turn on.
 TURN_FLOOR = np.radians(1.0)
 
 
@@ -331,7 +331,7 @@ class DenseSLAM:
         if not settled() and cfg.hypotheses != "motion":
             attempt("wide", last, self.wide_icp, depth_first=True)  # dense re-localisation: a wider basin
         if not any(h.ok for h in tried) and cfg.hypotheses != "motion":
-            for start in self._turned(predicted, frame.timestamp):  # a turn faster than the guess's
+            for start in self._turned(predicted):  # a turn faster than the guess's
                 attempt("turn", start, depth_first=True)
         passed = [h for h in tried if h.ok]
         if len(passed) > 1:
@@ -345,13 +345,13 @@ class DenseSLAM:
         return FrameResult(frame.index, frame.timestamp, pose, tracking, best.failure, icp=best.icp,
                            hypothesis=best.name, tried=[f"{h.name}: {h.status}" for h in tried])
 
-    def _turned(self, predicted: np.ndarray, timestamp: float) -> list[np.ndarray]:
+    def _turned(self, predicted: np.ndarray) -> list[np.ndarray]:
         """Starts that turn TURN_DEG further than the guess ``predicted``: about the axis of its rotation, or
         about the camera's vertical both ways where it hardly turned."""
-        twist = self._velocity * self._elapsed(timestamp)
+        held = self._held_pose()
+        twist = se3_log(renormalize(invert(held) @ predicted))  # the guess's step (none without the motion model)
         angle = np.linalg.norm(twist[:3])
         axes = [twist[:3] / angle] if angle > TURN_FLOOR else [np.array([0.0, 1.0, 0.0]), np.array([0.0, -1.0, 0.0])]
-        held = self._held_pose()
         return [renormalize(held @ se3_exp(np.concatenate([twist[:3] + axis * np.radians(deg), twist[3:]])))
                 for axis in axes for deg in TURN_DEG]
 

@@ -394,8 +394,9 @@ class SLAMConfig:
                                      # than half (the speed changed)
     hypotheses: Annotated[str, OneOf("doubt", "always", "motion")] = "doubt"
                                      # doubt: ICP again from the last good pose when the motion model's alignment
-                                     # fails or is in doubt, then ORB+PnP and a wide-basin re-localisation before a
-                                     # failure | always: the last pose every frame | motion: the guess alone
+                                     # fails or is in doubt, then ORB+PnP, a wide-basin re-localisation and the guess
+                                     # turned further before a failure | always: every start every frame | motion:
+                                     # the guess alone
     doubt_residual_ratio: Positive = 1.5  # an alignment is in doubt when its residual is above this × the median
                                      # residual of the last tracked frames (their own level, not a fixed one)
     relocalise_iterations: Annotated[list[int], Range(ge=0), Length(ge=1)] = field(

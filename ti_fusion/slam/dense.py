@@ -95,7 +95,7 @@ TURN_FLOOR = np.radians(1.0)
 class Hypothesis:
     """One start of ICP for a frame and what came of it."""
 
-    name: str  # "motion" (the motion model), "last" (the last good pose), "features" (ORB + PnP), "wide"
+    name: str  # "motion" (the motion model), "last" (the last good pose), "features" (ORB + PnP), "wide", "turn"
     icp: ICPResult
     pose: np.ndarray  # camera-to-world
     failure: str  # "" where the alignment passed the checks (``DenseSLAM._health`` against the start)
@@ -124,7 +124,7 @@ class FrameResult:
     fusion: FusionStats | None = None
     ms: dict[str, float] = field(default_factory=dict)
     loop: object | None = None  # the loop closure's report on a keyframe (``ti_fusion.loop.closure.LoopReport``)
-    hypothesis: str | None = None  # the start whose alignment won: "motion", "last", "features" or "wide"
+    hypothesis: str | None = None  # the start whose alignment won: "motion", "last", "features", "wide" or "turn"
     tried: list[str] = field(default_factory=list)  # every start tried, in order, with its outcome
 
     def __post_init__(self):

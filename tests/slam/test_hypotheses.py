@@ -158,3 +158,21 @@ def test_a_wrong_minimum_early_in_the_run_is_not_taken(cpu):
     rot, trans = pose_error(last.pose, dataset[3].gt_pose)
     assert rot < 0.5 and trans < 0.01, (rot, trans, last.tried)
     assert slam._guess_beaten
+
+
+def test_a_long_step_from_the_last_pose_is_judged_against_the_guess_too(cpu):
+    """A start other than the motion model's passes the jump check near its own start or near the motion
+    model's guess: after a 1.33 s gap the jerky walk stepped 35.8 cm, the last-pose start found it, and the
+    30 cm limit from its start alone lost the frame (jerky --stride 2: 27 of 40 frames lost)."""
+    from ti_fusion.geometry import make_pose
+    from ti_fusion.tracking.icp import ICPResult
+
+    slam, _ = _slam(frames=1)
+    fit = ICPResult(np.eye(4), converged=True, inlier_ratio=0.6, residual_rms=0.004)
+    last = np.eye(4)
+    pose = make_pose(np.eye(3), [0.358, 0.0, 0.0])
+    guess = make_pose(np.eye(3), [0.33, 0.0, 0.0])  # the motion model: velocity × the gap
+    assert slam._health(fit, pose, last, guess) == ""
+    assert slam._health(fit, pose, last).startswith("jump of")  # from its start alone
+    far = make_pose(np.eye(3), [0.0, 0.4, 0.0])  # 40 cm from the start and 52 cm from the guess
+    assert slam._health(fit, far, last, guess).startswith("jump of")

@@ -311,7 +311,7 @@ class DenseSLAM:
                 init = init if geometry.failure else geometry.pose
             result = (icp or self.icp).align(source, self.frame_pyramid, init=init, photometric=color)
             pose = renormalize(last @ invert(result.pose))
-            tried.append(Hypothesis(name, result, pose, self._health(result, pose, guess)))
+            tried.append(Hypothesis(name, result, pose, self._health(result, pose, guess, predicted)))
             return tried[-1]
 
         def settled() -> bool:  # the best so far passes the checks without doubt, and the guess is trusted
@@ -327,7 +327,7 @@ class DenseSLAM:
             if (not settled() or self._lost_streak) and (apart[0] > 0.1 or apart[1] > 1e-3):
                 attempt("last", held, depth_first=True)
         if not settled() and cfg.relocalise == "features" and (cfg.hypotheses != "motion" or not first.ok):
-            self._relocalise(frame, source, last, color, tried)
+            self._relocalise(frame, source, last, color, tried, predicted)
         if not settled() and cfg.hypotheses != "motion":
             attempt("wide", last, self.wide_icp, depth_first=True)  # dense re-localisation: a wider basin
         if not any(h.ok for h in tried) and cfg.hypotheses != "motion":
@@ -371,8 +371,10 @@ class DenseSLAM:
             return False
         return h.icp.residual_rms > self.config.slam.doubt_residual_ratio * statistics.median(self._residuals)
 
-    def _health(self, icp: ICPResult, pose: np.ndarray, predicted: np.ndarray) -> str:
-        """Why the alignment fails the checks, or "" where it passes them."""
+    def _health(self, icp: ICPResult, pose: np.ndarray, start: np.ndarray, guess: np.ndarray | None = None) -> str:
+        """Why the alignment fails the checks, or "" where it passes them. The jump is measured from the
+        alignment's ``start`` and, for a start other than the motion model's, from its ``guess`` too: a pose
+        near either is plausible (from the last pose, a long gap between frames is a long step)."""
         cfg = self.config.slam
         if icp.failure:
             return icp.failure
@@ -381,8 +383,13 @@ class DenseSLAM:
         if icp.residual_rms > cfg.max_residual:
             return (f"residual {_beside(icp.residual_rms * 1e3, cfg.max_residual * 1e3, 1)} mm > "
                     f"{cfg.max_residual * 1e3:g} mm")
-        rot_deg, trans_m = pose_error(pose, predicted)
-        if rot_deg > cfg.max_update_deg or trans_m > cfg.max_update_m:
+
+        def jumped(reference):
+            rot_deg, trans_m = pose_error(pose, reference)
+            return rot_deg > cfg.max_update_deg or trans_m > cfg.max_update_m
+
+        if jumped(start) and (guess is None or jumped(guess)):
+            rot_deg, trans_m = pose_error(pose, start)
             return (f"jump of {_beside(rot_deg, cfg.max_update_deg, 1)} deg / "
                     f"{_beside(trans_m * 100, cfg.max_update_m * 100, 1)} cm from its start (at most "
                     f"{cfg.max_update_deg:g} deg / {cfg.max_update_m * 100:g} cm)")
@@ -407,7 +414,7 @@ class DenseSLAM:
                         f"tracking may slide{hint}")
 
     def _relocalise(self, frame: Frame, source: FramePyramid, last: np.ndarray, color: bool,
-                    tried: list[Hypothesis]) -> None:
+                    tried: list[Hypothesis], predicted: np.ndarray) -> None:
         """ICP again, initialised by ORB + PnP against the last well-tracked frame (a "features" hypothesis,
         checked against the PnP estimate)."""
         if self.last_good is None or frame.color is None or self.last_good[0].color is None:
@@ -424,7 +431,7 @@ class DenseSLAM:
         icp = self.icp.align(source, self.frame_pyramid, init=init, photometric=color)
         pose = renormalize(last @ invert(icp.pose))
         rough = renormalize(reference_pose @ invert(estimate.pose))
-        tried.append(Hypothesis("features", icp, pose, self._health(icp, pose, rough)))
+        tried.append(Hypothesis("features", icp, pose, self._health(icp, pose, rough, predicted)))
 
     def _update_motion(self, result: FrameResult, timestamp: float, before: np.ndarray | None) -> None:
         """The motion per second of the step just tracked (from the last tracked frame, over the lost ones

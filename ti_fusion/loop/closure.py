@@ -112,10 +112,11 @@ class LoopClosure:
         self.database.add(kf)
         report.ms["detect"] = watch.lap()
         self.ms["detect"].append(report.ms["keyframe"] + report.ms["detect"])
-        if self._source is None and kf.frame - self.keyframes[0].frame >= self.gap // 2:
-            # Compile the source maps' kernels for stored depth now, half the candidates' frame gap in (no
-            # keyframe can have a candidate before the gap), not at the first candidate, and not in a run too
-            # short to have candidates at all (a short run, a test, pays none of it); not counted as detection.
+        if self._source is None and kf.frame - self.keyframes[0].frame >= self.gap - self.gap // 4:
+            # Compile the source maps' kernels for stored depth now, three quarters of the candidates' frame
+            # gap in (no keyframe can have a candidate before the gap), not at the first candidate, and not in
+            # a run too short to have candidates at all (a short run, a test, the default 120-frame run pays
+            # none of it: 8.5 s with an empty kernel cache); not counted as detection.
             with Stopwatch(report.ms, "warmup"):
                 fill(self._source_pyramid(kf), kf)
         verified = None

@@ -116,7 +116,7 @@ class LoopClosure:
             # Compile the source maps' kernels for stored depth now, three quarters of the candidates' frame
             # gap in (no keyframe can have a candidate before the gap), not at the first candidate, and not in
             # a run too short to have candidates at all (a short run, a test, the default 120-frame run pays
-            # none of it: 8.5 s with an empty kernel cache); not counted as detection.
+            # none of it); not counted as detection.
             with Stopwatch(report.ms, "warmup"):
                 fill(self._source_pyramid(kf), kf)
         verified = None

@@ -80,12 +80,12 @@ IRREGULAR_FLOOR = 0.01
 # motion model's alignment only when it fits better by more than this.
 SCORE_MARGIN = 0.02
 # The residual a start is judged against: the median of the last this many tracked frames (doubt is on from the
-# first of them: on the room at --stride 20 a wrong minimum at the third frame, 11.3 mm against 3.2-3.3 mm,
-# passed while doubt waited for five, and the map it corrupted lost every frame after it).
+# first of them: a wrong minimum that passes every check early in a run corrupts the map for the rest of it;
+# docs/TRACKING.md).
 RECENT_FRAMES = 10
 # The last resort before a frame is lost: the turn went on faster than the guess. ICP's basin is about 15 deg
-# (room at --stride 20, frame 280: depth from 15.5 deg off, the wide start from 7.7 deg), so the starts add this
-# much rotation to the guess about its own axis (about the camera's vertical both ways when it did not turn).
+# (measured in docs/BENCHMARKS.md), so the starts add this much rotation to the guess about its own axis (about
+# the camera's vertical both ways when it did not turn).
 TURN_DEG = (15.0, 30.0, 45.0)
 # Below this rotation (radians) the guess's step has no axis to turn on.
 TURN_FLOOR = np.radians(1.0)
@@ -373,8 +373,8 @@ class DenseSLAM:
 
     def _health(self, icp: ICPResult, pose: np.ndarray, start: np.ndarray, guess: np.ndarray | None = None) -> str:
         """Why the alignment fails the checks, or "" where it passes them. The jump is measured from the
-        alignment's ``start`` and, for a start other than the motion model's, from its ``guess`` too: a pose
-        near either is plausible (from the last pose, a long gap between frames is a long step)."""
+        alignment's ``start`` and from the motion model's ``guess`` (the same pose for the motion start): a
+        pose near either is plausible (from the last pose, a long gap between frames is a long step)."""
         cfg = self.config.slam
         if icp.failure:
             return icp.failure
@@ -384,12 +384,12 @@ class DenseSLAM:
             return (f"residual {_beside(icp.residual_rms * 1e3, cfg.max_residual * 1e3, 1)} mm > "
                     f"{cfg.max_residual * 1e3:g} mm")
 
-        def jumped(reference):
+        def jump(reference) -> tuple[float, float] | None:  # (degrees, metres) beyond the limits, else None
             rot_deg, trans_m = pose_error(pose, reference)
-            return rot_deg > cfg.max_update_deg or trans_m > cfg.max_update_m
+            return (rot_deg, trans_m) if rot_deg > cfg.max_update_deg or trans_m > cfg.max_update_m else None
 
-        if jumped(start) and (guess is None or jumped(guess)):
-            rot_deg, trans_m = pose_error(pose, start)
+        if (far := jump(start)) and (guess is None or jump(guess)):
+            rot_deg, trans_m = far
             return (f"jump of {_beside(rot_deg, cfg.max_update_deg, 1)} deg / "
                     f"{_beside(trans_m * 100, cfg.max_update_m * 100, 1)} cm from its start (at most "
                     f"{cfg.max_update_deg:g} deg / {cfg.max_update_m * 100:g} cm)")

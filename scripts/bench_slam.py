@@ -3,7 +3,7 @@
 
     python scripts/bench_slam.py [DATA] [--frames N] [--downsample F] [--arch cpu] [--cold]
                                  [--systems ti-fusion,open3d,opencv] [--open3d-python PY] [--opencv-path DIR]
-                                 [--opencv-odometry depth|depth-fast|rgbd|rgb]
+                                 [--opencv-odometry depth|depth-fast|rgbd|rgb] [--set SECTION.KEY=VALUE ...]
 
 DATA defaults to ../shared/data/redkitchen-7scenes when present, else the synthetic sequence. Each
 system runs in its own child process, one after the other, so each has its own process start, its own
@@ -18,7 +18,8 @@ peak memory and the cores to itself (apart from other users of the machine). Col
 - ``1st tracked s``: the child's age (from the kernel's record of its start) when its second frame (the
   first one tracked) was done: the cold start with the kernel cache as it is;
 - ``peak MB``: the child's maximum resident set size (``wait4``'s rusage, all of the process's life).
-ti-fusion is the ``ti-fusion slam`` command itself (every output written), run in the child. ``--cold``
+ti-fusion is the ``ti-fusion slam`` command itself (every output written), run in the child, with ``--set``
+passed on to it (e.g. ``--set slam.loop_closure=false`` where GTSAM is not installed). ``--cold``
 adds a run of it with an empty Taichi kernel cache (a fresh TI_OFFLINE_CACHE_FILE_PATH), and the next
 ti-fusion run reads that cache (warm, and independent of the user's cache, which holds other versions of
 the kernels and has an LRU size limit).
@@ -89,6 +90,7 @@ def run_ti_fusion(args, cold: bool = False) -> dict:
                 args.arch, "--quiet", "--out", str(Path(tmp) / "run")]
         if args.frames:
             argv += ["--frames", str(args.frames)]
+        argv += [f"--set={text}" for text in args.set]
         code = cli(argv)
         if code != 0:
             return {"system": "ti-fusion", "error": f"ti-fusion slam exited with {code}"}
@@ -242,6 +244,8 @@ def main() -> int:
                              "put before this interpreter's packages for the OpenCV run")
     parser.add_argument("--opencv-odometry", default="depth", choices=OpenCVOdometry.KINDS)
     parser.add_argument("--json", metavar="FILE", help="also write the rows as JSON")
+    parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
+                        help="a config override for ti-fusion, as ti-fusion slam's --set (repeatable)")
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.worker:
@@ -261,7 +265,7 @@ def main() -> int:
         python = args.open3d_python if system == "open3d" and args.open3d_python else sys.executable
         cmd = [python, __file__, args.data, "--worker", system, "--downsample", str(args.downsample),
                "--arch", args.arch, "--opencv-odometry", args.opencv_odometry] + \
-            (["--frames", str(args.frames)] if args.frames else [])
+            (["--frames", str(args.frames)] if args.frames else []) + [f"--set={text}" for text in args.set]
         env = dict(os.environ)
         if cache and "ti-fusion" in system:
             env["TI_OFFLINE_CACHE_FILE_PATH"] = cache.name

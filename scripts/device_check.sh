@@ -4,6 +4,7 @@
 #
 #   scripts/device_check.sh pack [--frames N]     # here, with network: wheels and data into .device/
 #   scripts/device_check.sh run  [--frames N] [--archs "cuda cpu vulkan"] [--out DIR] [--no-tests] [--jobs J]
+#                                [--set SECTION.KEY=VALUE ...]
 #   scripts/device_check.sh run --dry-run          # print the commands only
 #
 # The lent GPU machine has no network; its Python (3.12) has numpy, OpenCV, matplotlib, pytest and
@@ -18,7 +19,10 @@
 # puts that and the repository on PYTHONPATH, makes the ti_fusion.kernels mapping of an uninstalled copy
 # (the link ti_fusion/kernels -> ../kernels, which setup.py's package-dir mapping stands for in an install;
 # removed again at exit if it made it), then writes $OUT/device_check.md (default .device/out). --jobs J runs
-# the kernel tests on J pytest-xdist workers (default 0: in one process).
+# the kernel tests on J pytest-xdist workers (default 0: in one process). --set overrides the config of the
+# bench_host and bench_slam runs (repeatable); where GTSAM is not importable (its wheel, 35 MB, does not fit
+# beside the rest), the runs get --set slam.loop_closure=false and say so: with 120 frames no loop can be
+# closed (candidates are 200 frames apart), but keyframes are not kept either.
 set -euo pipefail
 
 ROOT="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
@@ -32,6 +36,7 @@ OUT="$DEVICE/out"
 TESTS=1
 JOBS=0
 DRY=0
+SETS=()
 while [ $# -gt 0 ]; do
     case "$1" in
         --frames) FRAMES="$2"; shift 2 ;;
@@ -40,6 +45,7 @@ while [ $# -gt 0 ]; do
         --no-tests) TESTS=0; shift ;;
         --jobs) JOBS="$2"; shift 2 ;;
         --dry-run) DRY=1; shift ;;
+        --set) SETS+=("--set=$2"); shift 2 ;;
         *) echo "device_check.sh: unknown option $1 (see the head of scripts/device_check.sh)" >&2; exit 2 ;;
     esac
 done
@@ -116,6 +122,10 @@ run() {
         MADE_LINK=1
     fi
     trap 'if [ "$MADE_LINK" = 1 ]; then rm -f "$ROOT/ti_fusion/kernels"; fi' EXIT
+    if ! "$PY" -c "import gtsam" 2>/dev/null; then
+        echo "device_check.sh: GTSAM is not importable here: the runs go with --set slam.loop_closure=false" >&2
+        SETS+=("--set=slam.loop_closure=false")
+    fi
     local data=()
     [ -d "$DEVICE/data/redkitchen-$FRAMES" ] && data=("$DEVICE/data/redkitchen-$FRAMES")
     [ ${#data[@]} = 0 ] && [ -d "$ROOT/../shared/data/redkitchen-7scenes" ] && data=("$ROOT/../shared/data/redkitchen-7scenes")
@@ -129,11 +139,11 @@ run() {
     fi
     for arch in $ARCHS; do
         say "$PY" scripts/bench_launch.py --arch "$arch" --launches 3000 2>&1 | tee "$OUT/launch_$arch.txt" || true
-        say "$PY" scripts/bench_host.py "${data[@]}" synthetic --frames "$FRAMES" --arch "$arch" \
+        say "$PY" scripts/bench_host.py "${data[@]}" synthetic --frames "$FRAMES" --arch "$arch" ${SETS[@]+"${SETS[@]}"} \
             --json "$OUT/host_$arch.json" 2>&1 | tee "$OUT/host_$arch.txt" || true
         for d in "${data[@]}" ""; do
             local tag; tag="$(basename "${d:-synthetic}")"
-            say "$PY" scripts/bench_slam.py "$d" --frames "$FRAMES" --arch "$arch" --systems ti-fusion \
+            say "$PY" scripts/bench_slam.py "$d" --frames "$FRAMES" --arch "$arch" --systems ti-fusion ${SETS[@]+"${SETS[@]}"} \
                 --json "$OUT/slam_${arch}_$tag.json" 2>&1 | tee "$OUT/slam_${arch}_$tag.txt" || true
         done
     done

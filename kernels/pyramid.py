@@ -44,6 +44,8 @@ once and reuse them: a new one compiles (or loads) its own instances.
 """
 
 
+from dataclasses import astuple
+
 import numpy as np
 import taichi as ti
 from taichi.lang import impl as ti_impl
@@ -51,6 +53,7 @@ from taichi.lang.util import in_taichi_scope
 
 from ti_fusion.backend import serial_for
 from ti_fusion.kernels.common import INT_MAX, data_oriented
+from ti_fusion.kernels.surfels import Pool
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import PyramidConfig
 from ti_fusion.errors import InputError
@@ -650,6 +653,16 @@ class FramePyramid:
         self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
         self._geometry = None  # ``pyramid_maps``'s per-level rows, sizes and intrinsics (G_* columns)
         self._geometry_for = None  # the intrinsics it holds
+
+    @classmethod
+    def lent_to(cls, owner, settings: PyramidConfig, height: int, width: int, levels: int = 3,
+                input_level: int = 0) -> "FramePyramid":
+        """``FramePyramid(settings, height, width, levels, input_level)`` for ``owner``'s lifetime, the
+        same object a collected owner had for the same arguments where there is one (``Pool.lend``): its
+        kernels are compiled already. Every map is rebuilt by ``compute``, so nothing of the last owner's
+        frames is read."""
+        key = (cls, astuple(settings), height, width, levels, input_level)
+        return Pool.lend(owner, key, lambda: cls(settings, height, width, levels, input_level))
 
     def _levels(self, stack) -> list[Level]:
         return [Level(stack, r, s) for r, s in zip(self.row0, self.shapes)]

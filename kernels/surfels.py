@@ -8,7 +8,9 @@ attribute) of a fixed capacity, beside the per-surfel scratch of the kernels tha
 
 Taichi allows a limited number of SNode trees per program, and freeing one makes it recompile every
 kernel, so arrays and work images are pooled (``Pool``): a garbage-collected map's arrays wait there for
-the next map of the same capacity, and every map shares one set of work images per resolution.
+the next map of the same capacity, and every map shares one set of work images per resolution. Other
+per-owner objects whose fields kernels take (a SLAM object's frame pyramids) are lent the same way
+(``Pool.lend``).
 """
 
 import weakref
@@ -100,21 +102,39 @@ class Pool:
 
     The arrays of a garbage-collected map go back here for the next map of the same capacity instead of
     being freed; work images (one object per kind and resolution, e.g. ``fusion.FusionImages``) and small
-    fields are made once and shared. Everything is dropped when Taichi starts a new program.
+    fields are made once and shared; objects lent to an owner (``lend``) come back when it is collected.
+    Everything is dropped when Taichi starts a new program.
     """
 
     _runtime = None  # weak reference to the Taichi runtime the fields belong to
     arrays: dict[int, list[SurfelArrays]] = {}
     images: dict[tuple[type, int, int], object] = {}
     small: dict[str, object] = {}
+    spares: dict[tuple, list] = {}  # lent objects whose owners are gone, by the key they were made for
 
     @classmethod
     def current(cls) -> type["Pool"]:
         runtime = impl.get_runtime()
         if cls._runtime is None or cls._runtime() is not runtime:  # a new program (ti.reset / init)
             cls._runtime = weakref.ref(runtime)
-            cls.arrays, cls.images, cls.small = {}, {}, {}
+            cls.arrays, cls.images, cls.small, cls.spares = {}, {}, {}, {}
         return cls
+
+    @classmethod
+    def lend(cls, owner, key: tuple, make):
+        """An object for ``owner`` to use until ``owner`` is garbage-collected: one that an earlier owner
+        had for the same ``key`` (what ``make`` depends on), else ``make()``. Taichi compiles a kernel once
+        per set of fields it is given, so a second SLAM object with new fields compiles (or loads) every
+        kernel again, seconds on a CPU; with the first one's fields it compiles nothing."""
+        spare = cls.current().spares.get(key)
+        obj = spare.pop() if spare else make()
+        weakref.finalize(owner, cls._take_back, cls._runtime, key, obj)
+        return obj
+
+    @classmethod
+    def _take_back(cls, runtime_ref, key: tuple, obj) -> None:
+        if cls._runtime is not None and cls._runtime is runtime_ref and runtime_ref() is not None:
+            cls.spares.setdefault(key, []).append(obj)
 
     @classmethod
     def take_arrays(cls, capacity: int) -> SurfelArrays:

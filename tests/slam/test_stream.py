@@ -156,3 +156,28 @@ def test_the_documented_snippet_runs_as_written(cpu, tmp_path, monkeypatch, caps
     assert (tmp_path / "map.ply").is_file()
     lines = capsys.readouterr().out.strip().splitlines()
     assert len(lines) >= 10 and all(" ok " in line or " init " in line for line in lines)
+
+
+def test_a_second_slam_object_reuses_the_frame_maps_of_one_that_is_gone(cpu):
+    """Taichi compiles a kernel per set of fields it is given: a DenseSLAM made after another is collected
+    takes over its frame pyramids (kernels.surfels.Pool.lend), so it compiles nothing, and tracks the same;
+    one made while another lives gets its own."""
+    import gc
+    import weakref
+
+    from ti_fusion.slam.dense import DenseSLAM
+
+    cfg = _config()
+    cfg.icp.color_weight = 0.0
+    synthetic = open_dataset(cfg.dataset, cfg.synth)
+    frames = [synthetic[i] for i in range(3)]
+    slam = DenseSLAM(cfg, synthetic.intrinsics)
+    first = [slam.register_frame(f).pose for f in frames]
+    pyramids = weakref.ref(slam.frame_pyramid), weakref.ref(slam.model_pyramid)
+    del slam
+    gc.collect()
+    slam = DenseSLAM(cfg, synthetic.intrinsics)
+    assert slam.frame_pyramid is pyramids[0]() and slam.model_pyramid is pyramids[1]()
+    other = DenseSLAM(cfg, synthetic.intrinsics)
+    assert other.frame_pyramid is not slam.frame_pyramid and other.model_pyramid is not slam.model_pyramid
+    np.testing.assert_array_equal(np.stack([slam.register_frame(f).pose for f in frames]), np.stack(first))

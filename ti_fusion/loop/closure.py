@@ -158,7 +158,7 @@ class LoopClosure:
         """Verification's own maps for an earlier keyframe's stored depth (a keyframe's size: the map's)."""
         if self._source is None:
             h, w = kf.depth.shape
-            self._source = FramePyramid(self.config.pyramid, h, w, len(self.config.icp.iterations))
+            self._source = FramePyramid.lent_to(self, self.config.pyramid, h, w, len(self.config.icp.iterations))
         return self._source
 
     def _make_keyframe(self, frame, pose: np.ndarray) -> Keyframe:

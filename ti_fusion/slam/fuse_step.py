@@ -79,8 +79,8 @@ class FuseStep:
         # The frame maps that the SLAM loop fuses: averaged down to the map's level on input (by default),
         # the same smoothed depth and normals.
         input_level = config.frame_input_level(K.width)
-        self.pyramid = FramePyramid(config.pyramid, K.height, K.width,
-                                    config.fusion.map_level(K.width) - input_level + 1, input_level)
+        self.pyramid = FramePyramid.lent_to(self, config.pyramid, K.height, K.width,
+                                            config.fusion.map_level(K.width) - input_level + 1, input_level)
         self.mapper = SurfelMapper(config.fusion)
         self.fused = 0  # frames fused so far: the time stamp the surfels store
         self.naive = 0  # valid depth pixels of every frame: the points a map without fusion would hold

@@ -25,7 +25,9 @@ Each data set runs twice, each in a child process of its own:
   the processing time of that run (the profiler synchronises after every kernel, which adds to it),
   ``host ms`` = profiled ms − kernel ms: Python, launches, waiting for reads; ``busy`` = kernel / profiled ms. Both from one process, so that
   a load on the machine that changes between the two runs does not enter the difference.
-``--top K`` also prints the K kernels launched most per frame.
+``--top K`` also prints the K kernels launched most per frame and, from the profiling run, the K that took
+the most kernel time per frame (the profiler's records summed by kernel, every instance and parallel loop
+of a kernel together).
 """
 
 from __future__ import annotations
@@ -33,6 +35,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import re
 import subprocess
 import sys
 import time
@@ -40,6 +43,8 @@ from pathlib import Path
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen-7scenes"
 WARMUP = 2  # frames left out: kernel compilation
+# A profiler record's name is the kernel's, then its instance and task: iterate_c94_0_kernel_2_range_for
+KERNEL_INSTANCE = re.compile(r"_c\d+_\d+.*$")
 
 
 class Counter:
@@ -137,6 +142,7 @@ def _frames(data: str, frames: int, downsample: int, overrides: list[str] | None
 def child(args) -> dict:
     """One run on one data set (counting, or with the kernel profiler): a JSON object on stdout."""
     import taichi as ti
+    from taichi.lang import impl
 
     from ti_fusion.backend import init_backend
 
@@ -148,7 +154,7 @@ def child(args) -> dict:
     from ti_fusion.slam.dense import DenseSLAM
 
     slam = DenseSLAM(cfg, dataset.intrinsics)
-    wall, kernel_ms, tracked, poses = [], [], 0, []
+    wall, kernel_ms, tracked, poses, kernel_ms_by = [], [], 0, [], {}
     for i, frame in enumerate(frames):
         steady = i >= WARMUP
         if steady:
@@ -164,6 +170,9 @@ def child(args) -> dict:
             wall.append((t1 - t0) * 1e3)
             if args.profile:
                 kernel_ms.append(ti.profiler.get_kernel_profiler_total_time() * 1e3)
+                for record in impl.get_runtime().prog.get_kernel_profiler_records():
+                    name = KERNEL_INSTANCE.sub("", record.name)
+                    kernel_ms_by[name] = kernel_ms_by.get(name, 0.0) + record.kernel_time
         tracked += int(result.tracked)
         poses.append(None if result.pose is None else [float(x) for x in result.pose.ravel()])
     n = max(1, len(wall))
@@ -172,7 +181,9 @@ def child(args) -> dict:
             "launches": sum(counter.launches.values()) / n, "reads": sum(counter.reads.values()) / n,
             "by_kernel": {k: v / n for k, v in sorted(counter.launches.items(), key=lambda kv: -kv[1])},
             "by_read": {k: v / n for k, v in sorted(counter.reads.items(), key=lambda kv: -kv[1])},
-            "kernel_ms": sum(kernel_ms) / n if kernel_ms else None, "poses": poses}
+            "kernel_ms": sum(kernel_ms) / n if kernel_ms else None,
+            "kernel_ms_by_kernel": {k: v / n for k, v in sorted(kernel_ms_by.items(), key=lambda kv: -kv[1])},
+            "poses": poses}
 
 
 def _run_child(args, data: str, profile: bool) -> dict:
@@ -238,6 +249,7 @@ def main(argv=None) -> int:
             rows.append(row)
             continue
         row["kernel_ms"] = prof.get("kernel_ms")
+        row["kernel_ms_by_kernel"] = prof.get("kernel_ms_by_kernel", {})
         row["profiled_processing_ms"] = prof.get("processing_ms")
         k, p, q = row["kernel_ms"], row["processing_ms"], row["profiled_processing_ms"]
         host = f"{q - k:.2f}" if k is not None and q is not None else "n/a"
@@ -257,6 +269,10 @@ def main(argv=None) -> int:
                 print(f"  {n:7.2f}  {name}")
             for name, n in row["by_read"].items():
                 print(f"  {n:7.2f}  read: {name}")
+            if row.get("kernel_ms_by_kernel"):
+                print(f"{_name(row['data'])}: kernel ms per frame by kernel (the profiler's, top {args.top})")
+                for name, ms in list(row["kernel_ms_by_kernel"].items())[:args.top]:
+                    print(f"  {ms:7.3f}  {name}")
     if args.json:
         Path(args.json).write_text(json.dumps(rows, indent=1))
     return 0

@@ -33,8 +33,11 @@ reduction
     partial sums to ``partials[chunk, :]``; a second loop of the same kernel (Taichi runs top-level loops
     one after the other) adds the partials into a NumPy array passed as an ndarray argument: one launch
     per iteration, no copy on the CPU. No atomics. In float64 (cpu) the partials are added in one serial
-    pass with 30 independent running sums; in float32 one thread per sum adds them Kahan-compensated,
-    which keeps the float32 path within the stated tolerance of float64.
+    pass with 30 independent running sums; in float32 (GPU backends) in two more parallel loops, each
+    Kahan-compensated: GROUPS threads per sum add a contiguous run of the chunks each, then one thread per
+    sum adds the GROUPS group totals. That keeps the float32 path within the stated tolerance of float64,
+    and no thread adds more than a few hundred numbers in a row (one thread per sum over all 16384 chunks
+    made ICP's iterations 1.8 of the 3.2 ms of kernel time per frame on an H200: docs/PERFORMANCE.md).
     Every product and sum is in the arithmetic type, AᵀA's included: its off-diagonal entries are sums of
     signed terms that can cancel as well as Aᵀb's, so float32 products for them would miss float64 by
     more than the float32 path's tolerance (docs/KERNELS.md).
@@ -178,6 +181,11 @@ def _code(robust: str) -> int:
 # partial sums of a chunk cost less than its pixels. (A parallel loop keeps its many chunks: Taichi's CPU
 # backend hands out a range-for in tasks of 512 iterations, so fewer chunks would run on one thread.)
 MIN_CHUNK_PIXELS = 256
+
+
+# float32 second pass: the partials are added in this many groups per sum in parallel (a group's total
+# in rows [n_chunks, n_chunks + GROUPS) of the partials field), then the groups by one thread per sum.
+GROUPS = 128
 
 
 def default_chunks(arch: str) -> int:
@@ -453,16 +461,34 @@ def _build_kernels(real):
         return total
 
     @ti.func
-    def _kahan_total(partials: ti.template(), n_chunks, k):
-        """Sum ``k`` of the partials of ``n_chunks`` chunks, Kahan-compensated (float32 stays near float64)."""
+    def _kahan_range(partials: ti.template(), c0, c1, k):
+        """Sum ``k`` of the partials of chunks [c0, c1), Kahan-compensated (float32 stays near float64)."""
         s = ti.cast(0.0, real)
         comp = ti.cast(0.0, real)
-        for c in range(n_chunks):
+        for c in range(c0, c1):
             y = partials[c, k] - comp
             s_new = s + y
             comp = (s_new - s) - y
             s = s_new
         return s
+
+    @ti.func
+    def _kahan_groups(partials: ti.template(), n_chunks, n_sums: ti.template(), groups):
+        """The float32 second pass's first loop (call it at a kernel's top level: its loop is then one of the
+        kernel's parallel loops): for each of ``n_sums`` sums, ``groups`` (GROUPS, or 0 to do nothing)
+        threads add a contiguous run of the ``n_chunks`` chunks' partials each, into the group rows after the
+        chunks' (``_group_total`` adds those)."""
+        g0 = ti.static(partials.shape[0] - GROUPS)
+        per = (n_chunks + GROUPS - 1) // GROUPS
+        for g, k in ti.ndrange(groups, n_sums):
+            partials[g0 + g, k] = _kahan_range(partials, ti.min(g * per, n_chunks), ti.min(g * per + per, n_chunks),
+                                               k)
+
+    @ti.func
+    def _group_total(partials: ti.template(), k):
+        """Sum ``k`` of the GROUPS group totals ``_kahan_groups`` wrote."""
+        g0 = ti.static(partials.shape[0] - GROUPS)
+        return _kahan_range(partials, g0, g0 + GROUPS, k)
 
     @ti.kernel
     def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
@@ -486,9 +512,10 @@ def _build_kernels(real):
                 for block in ti.static(_blocks(n_sums)):
                     for k in ti.static(block):
                         out[k] = total[k]
-        else:  # float32 (GPU backends): one thread per sum, Kahan-compensated to stay near float64
+        else:  # float32 (GPU backends): groups of chunks in parallel, then their totals; Kahan-compensated
+            _kahan_groups(partials, n_chunks, n_sums, GROUPS)
             for k in range(n_sums):
-                out[k] = _kahan_total(partials, n_chunks, k)
+                out[k] = _group_total(partials, k)
 
     @ti.func
     def _solve_cholesky(system):
@@ -590,10 +617,11 @@ def _build_kernels(real):
         Wt = ti.cast(params[row, P_WT], ti.i32)
         _partial_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, n_chunks, robust, params,
                       row, serial, target, joint, src_i, tgt_ig)
-        if ti.static(real == ti.f32):  # one thread per sum, into the record
+        if ti.static(real == ti.f32):  # groups of chunks in parallel, then one thread per sum, into the record
+            _kahan_groups(partials, n_chunks, n_sums, ti.select(runs, GROUPS, 0))
             for e in range(ti.select(runs, n_sums, 0)):
                 k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
-                params[k, ti.select(e < N_SUMS, R_SUMS + e, R_COLOR + e - N_SUMS)] = _kahan_total(partials, n_chunks, e)
+                params[k, ti.select(e < N_SUMS, R_SUMS + e, R_COLOR + e - N_SUMS)] = _group_total(partials, e)
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
         for _ in range(ti.select(runs, 1, 0)):
             k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
@@ -709,8 +737,9 @@ class PointToPlane:
         # one choice for every level (each choice is an instance of the kernels): small maximum, serial
         self.serial = self.max_pixels < self.serial_below
         self.k = kernels_for(self.real)
-        self.partials = ti.field(self.real, shape=(self.n_chunks, N_SUMS))
-        self.partials_joint = None  # (n_chunks, N_SUMS_JOINT), allocated by the first joint pass
+        # per chunk, then (float32) the GROUPS group totals of the second pass
+        self.partials = ti.field(self.real, shape=(self.n_chunks + GROUPS, N_SUMS))
+        self.partials_joint = None  # (n_chunks + GROUPS, N_SUMS_JOINT), allocated by the first joint pass
         self.target = ti.field(ti.i32, shape=self.max_pixels)  # per-pixel scratch (``_project_chunk``)
         self.on_host = arch == "cpu"  # kernels read and write NumPy arrays in place: nothing to copy
         self.state = None  # ``iterate``'s params: state, settings, records (``begin_iterations``)
@@ -757,7 +786,7 @@ class PointToPlane:
         if photometric is None:
             return False, self.partials, images[0], images[0]
         if self.partials_joint is None:
-            self.partials_joint = ti.field(self.real, shape=(self.n_chunks, N_SUMS_JOINT))
+            self.partials_joint = ti.field(self.real, shape=(self.n_chunks + GROUPS, N_SUMS_JOINT))
         src_i, tgt_ig = as_level(photometric.source), as_level(photometric.target)
         if (src_i.row0, src_i.shape) != (images[4], images[5:7]) or (tgt_ig.row0, tgt_ig.shape) != (images[7], images[8:10]):
             raise ValueError("intensity images must be levels of the same layout as the vertex images")

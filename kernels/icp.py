@@ -604,8 +604,8 @@ def _build_kernels(real):
         replays the records (``ti_fusion.tracking.icp``), with the condition-number check of
         ``ti_fusion.tracking.solve`` too, which is why it is not repeated here. With ``joint``, the system
         solved is the geometric one plus λ × the colour one (module docstring), and the record holds the
-        colour's sums at R_COLOR. Float64 backends add the partials serially, float32 ones one thread
-        per sum (Kahan-compensated, as ``reduce``) into the record, which the solve then reads."""
+        colour's sums at R_COLOR. Float64 backends add the partials serially, float32 ones in groups and
+        then the group totals (Kahan-compensated, as ``reduce``) into the record, which the solve then reads."""
         n_sums = ti.static(N_SUMS_JOINT if joint else N_SUMS)
         runs = _runs(params, it)
         n_chunks = ti.select(runs, ti.cast(params[row, P_CHUNKS], ti.i32), 0)

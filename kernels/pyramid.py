@@ -660,7 +660,7 @@ class FramePyramid:
         """``FramePyramid(settings, height, width, levels, input_level)`` for ``owner``'s lifetime, the
         same object a collected owner had for the same arguments where there is one (``Pool.lend``): its
         kernels are compiled already. Every map is rebuilt by ``compute``, so nothing of the last owner's
-        frames is read."""
+        frames is read; a reference to it kept after its owner is gone sees the next owner's frames."""
         key = (cls, astuple(settings), height, width, levels, input_level)
         return Pool.lend(owner, key, lambda: cls(settings, height, width, levels, input_level))
 

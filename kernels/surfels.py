@@ -126,8 +126,10 @@ class Pool:
         had for the same ``key`` (what ``make`` depends on), else ``make()``. Taichi compiles a kernel once
         per set of fields it is given, so a second SLAM object with new fields compiles (or loads) every
         kernel again, seconds on a CPU; with the first one's fields it compiles nothing."""
-        spare = cls.current().spares.get(key)
-        obj = spare.pop() if spare else make()
+        try:  # one pop and no test before it: two threads may make owners at once
+            obj = cls.current().spares.get(key, []).pop()
+        except IndexError:
+            obj = make()
         weakref.finalize(owner, cls._take_back, cls._runtime, key, obj)
         return obj
 

@@ -232,11 +232,15 @@ STOPPED, FAILED = 1, 2  # ``params[P_DONE]``: the update fell below P_STOP; the 
 PARAMS_WIDTH = max(N_PARAMS, RECORD_LEN_JOINT)
 
 
-def _build_kernels(real):
-    """The kernels for one arithmetic type (ti.f64 on cpu, ti.f32 on GPU backends)."""
+def _build_kernels(real, state_in_field: bool):
+    """The kernels for one arithmetic type (ti.f64 on cpu, ti.f32 on GPU backends); ``iterate``'s and
+    ``start``'s state array a field (``state_in_field``: off the CPU) or the host's NumPy array."""
     vec3 = ti.types.vector(3, real)
     params_t = ti.types.ndarray(dtype=real, ndim=2)
     out_t = ti.types.ndarray(dtype=real, ndim=1)
+    # a field costs a launch about half of what an ndarray argument does (bench_launch.py: 35 against 66 µs
+    # on an H200's host), and off the CPU ``iterate`` is launched for every iteration of the schedule
+    state_t = ti.template() if state_in_field else params_t
 
     @ti.func
     def _pose(params: ti.template(), row):
@@ -590,7 +594,7 @@ def _build_kernels(real):
 
     @ti.kernel
     def iterate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                partials: ti.template(), robust: ti.template(), params: params_t, serial: ti.template(),
+                partials: ti.template(), robust: ti.template(), params: state_t, serial: ti.template(),
                 target: ti.template(), joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template(),
                 row: ti.i32, it: ti.i32):
         """One whole ICP iteration in one launch, at the level of settings row ``row`` (its images' first
@@ -671,7 +675,7 @@ def _build_kernels(real):
                                               ti.select(update < params[row, P_STOP], STOPPED, 0.0))
 
     @ti.kernel
-    def start(params: params_t, pose: ti.types.vector(12, real)):
+    def start(params: state_t, pose: ti.types.vector(12, real)):
         """Off the CPU, the start of an ``align``: the pose into the state row, no records, not done. A
         launch with the pose as an argument, where copying the state array from NumPy would wait for the
         device (Taichi copies a NumPy argument back after the kernel)."""
@@ -699,10 +703,11 @@ def _build_kernels(real):
     return {"reduce": reduce, "iterate": iterate, "start": start, "status_map": status_map}
 
 
-def kernels_for(real):
-    if real not in _KERNELS:
-        _KERNELS[real] = _build_kernels(real)
-    return _KERNELS[real]
+def kernels_for(real, state_in_field: bool = False):
+    key = (real, state_in_field)
+    if key not in _KERNELS:
+        _KERNELS[key] = _build_kernels(real, state_in_field)
+    return _KERNELS[key]
 
 
 class Photometric(NamedTuple):
@@ -736,14 +741,14 @@ class PointToPlane:
         self.serial_below = SERIAL_BELOW if arch == "cpu" else 0  # smaller sources run on the calling thread
         # one choice for every level (each choice is an instance of the kernels): small maximum, serial
         self.serial = self.max_pixels < self.serial_below
-        self.k = kernels_for(self.real)
+        self.on_host = arch == "cpu"  # kernels read and write NumPy arrays in place: nothing to copy
+        self.k = kernels_for(self.real, state_in_field=not self.on_host)
         # per chunk, then (float32) the GROUPS group totals of the second pass
         self.partials = ti.field(self.real, shape=(self.n_chunks + GROUPS, N_SUMS))
         self.partials_joint = None  # (n_chunks + GROUPS, N_SUMS_JOINT), allocated by the first joint pass
         self.target = ti.field(ti.i32, shape=self.max_pixels)  # per-pixel scratch (``_project_chunk``)
-        self.on_host = arch == "cpu"  # kernels read and write NumPy arrays in place: nothing to copy
         self.state = None  # ``iterate``'s params: state, settings, records (``begin_iterations``)
-        self.state_device = None  # off the CPU, its copy on the device (a Taichi ndarray)
+        self.state_device = None  # off the CPU, its copy on the device (a Taichi field)
         self._device_newer = False  # the device copy has records the host copy lacks
         self._settings_on_device = None  # the settings rows last copied to the device
         self.params = np.zeros((1, N_PARAMS), dtype=self.np_real)
@@ -836,7 +841,7 @@ class PointToPlane:
         if self.state is None or self.state.shape[0] < rows:
             self.state = np.zeros((rows, PARAMS_WIDTH), dtype=self.np_real)
             if not self.on_host:
-                self.state_device = ti.ndarray(self.real, shape=self.state.shape)
+                self.state_device = ti.field(self.real, shape=self.state.shape)
                 self._settings_on_device = None
         self.state[STATE, P_R:P_T + 3] = flatten_pose(T)
         self.state[STATE, P_RECORDS] = 0

@@ -443,15 +443,33 @@ def _build_kernels(real, state_in_field: bool):
                       params: ti.template(), row, serial: ti.template(), target: ti.template(),
                       joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template()):
         """``partials[c, :]`` = the sums of chunk c, for every chunk. Call it at a kernel's top level: its
-        loop is then the kernel's parallel loop over chunks (on the calling thread with ``serial``)."""
-        if ti.static(serial):
-            ti.loop_config(serialize=True)
-        for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
-            acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, c, n_chunks, robust, params,
-                              row, target, joint, src_i, tgt_ig)
-            for block in ti.static(_blocks(N_SUMS_JOINT if joint else N_SUMS)):
-                for e in ti.static(block):
-                    partials[c, e] = acc[e]
+        loop is then the kernel's parallel loop over chunks (on the calling thread with ``serial``). Off the
+        CPU the loop's bound is the partials' chunk rows, a compile-time constant, and chunks past
+        ``n_chunks`` do nothing: a loop with a bound known only on the device is launched as a whole
+        device's grid (lavapipe runs that on the CPU, 11–13 ms even for a launch after a stop)."""
+        if ti.static(real == ti.f32):
+            for c in range(ti.static(partials.shape[0] - GROUPS)):
+                if c < n_chunks:
+                    _chunk_into(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, c, n_chunks, robust,
+                                params, row, target, joint, src_i, tgt_ig)
+        else:
+            if ti.static(serial):
+                ti.loop_config(serialize=True)
+            for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
+                _chunk_into(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, c, n_chunks, robust,
+                            params, row, target, joint, src_i, tgt_ig)
+
+    @ti.func
+    def _chunk_into(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                    s0, Hs, Ws, t0, Ht, Wt, partials: ti.template(), c, n_chunks, robust: ti.template(),
+                    params: ti.template(), row, target: ti.template(), joint: ti.template(), src_i: ti.template(),
+                    tgt_ig: ti.template()):
+        """The sums of chunk c (in registers) into ``partials[c, :]``."""
+        acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, c, n_chunks, robust, params,
+                          row, target, joint, src_i, tgt_ig)
+        for block in ti.static(_blocks(N_SUMS_JOINT if joint else N_SUMS)):
+            for e in ti.static(block):
+                partials[c, e] = acc[e]
 
     @ti.func
     def _total(partials: ti.template(), n_chunks, n_sums: ti.template()):
@@ -477,14 +495,15 @@ def _build_kernels(real, state_in_field: bool):
         return s
 
     @ti.func
-    def _kahan_groups(partials: ti.template(), n_chunks, n_sums: ti.template(), groups):
+    def _kahan_groups(partials: ti.template(), n_chunks, n_sums: ti.template()):
         """The float32 second pass's first loop (call it at a kernel's top level: its loop is then one of the
-        kernel's parallel loops): for each of ``n_sums`` sums, ``groups`` (GROUPS, or 0 to do nothing)
-        threads add a contiguous run of the ``n_chunks`` chunks' partials each, into the group rows after the
-        chunks' (``_group_total`` adds those)."""
+        kernel's parallel loops): for each of ``n_sums`` sums, GROUPS threads add a contiguous run of the
+        ``n_chunks`` chunks' partials each, into the group rows after the chunks' (``_group_total`` adds
+        those). Static bounds, so the launch is one small grid (with none, a dynamic loop is a whole
+        device's; lavapipe runs that on the CPU); no chunks leave zeros."""
         g0 = ti.static(partials.shape[0] - GROUPS)
         per = (n_chunks + GROUPS - 1) // GROUPS
-        for g, k in ti.ndrange(groups, n_sums):
+        for g, k in ti.ndrange(GROUPS, n_sums):
             partials[g0 + g, k] = _kahan_range(partials, ti.min(g * per, n_chunks), ti.min(g * per + per, n_chunks),
                                                k)
 
@@ -517,7 +536,7 @@ def _build_kernels(real, state_in_field: bool):
                     for k in ti.static(block):
                         out[k] = total[k]
         else:  # float32 (GPU backends): groups of chunks in parallel, then their totals; Kahan-compensated
-            _kahan_groups(partials, n_chunks, n_sums, GROUPS)
+            _kahan_groups(partials, n_chunks, n_sums)
             for k in range(n_sums):
                 out[k] = _group_total(partials, k)
 
@@ -622,10 +641,11 @@ def _build_kernels(real, state_in_field: bool):
         _partial_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, n_chunks, robust, params,
                       row, serial, target, joint, src_i, tgt_ig)
         if ti.static(real == ti.f32):  # groups of chunks in parallel, then one thread per sum, into the record
-            _kahan_groups(partials, n_chunks, n_sums, ti.select(runs, GROUPS, 0))
-            for e in range(ti.select(runs, n_sums, 0)):
-                k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
-                params[k, ti.select(e < N_SUMS, R_SUMS + e, R_COLOR + e - N_SUMS)] = _group_total(partials, e)
+            _kahan_groups(partials, n_chunks, n_sums)  # n_chunks is 0 when the launch does nothing
+            for e in range(n_sums):  # a static bound too: the test inside
+                if runs:
+                    k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
+                    params[k, ti.select(e < N_SUMS, R_SUMS + e, R_COLOR + e - N_SUMS)] = _group_total(partials, e)
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
         for _ in range(ti.select(runs, 1, 0)):
             k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)

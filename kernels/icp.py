@@ -443,10 +443,10 @@ def _build_kernels(real, state_in_field: bool):
                       params: ti.template(), row, serial: ti.template(), target: ti.template(),
                       joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template()):
         """``partials[c, :]`` = the sums of chunk c, for every chunk. Call it at a kernel's top level: its
-        loop is then the kernel's parallel loop over chunks (on the calling thread with ``serial``). Off the
-        CPU the loop's bound is the partials' chunk rows, a compile-time constant, and chunks past
-        ``n_chunks`` do nothing: a loop with a bound known only on the device is launched as a whole
-        device's grid (lavapipe runs that on the CPU, 11–13 ms even for a launch after a stop)."""
+        loop is then the kernel's parallel loop over chunks (float64: on the calling thread with ``serial``).
+        In float32 (off the CPU) the loop's bound is the partials' chunk rows, a compile-time constant, and
+        chunks past ``n_chunks`` do nothing: a loop with a bound known only on the device is launched as a
+        whole device's grid (lavapipe runs that on the CPU, 11–13 ms even for a launch after a stop)."""
         if ti.static(real == ti.f32):
             for c in range(ti.static(partials.shape[0] - GROUPS)):
                 if c < n_chunks:

@@ -140,7 +140,7 @@ run() {
     for arch in $ARCHS; do
         say "$PY" scripts/bench_launch.py --arch "$arch" --launches 3000 2>&1 | tee "$OUT/launch_$arch.txt" || true
         say "$PY" scripts/bench_host.py "${data[@]}" synthetic --frames "$FRAMES" --arch "$arch" ${SETS[@]+"${SETS[@]}"} \
-            --json "$OUT/host_$arch.json" 2>&1 | tee "$OUT/host_$arch.txt" || true
+            --top 16 --json "$OUT/host_$arch.json" 2>&1 | tee "$OUT/host_$arch.txt" || true
         for d in "${data[@]}" ""; do
             local tag; tag="$(basename "${d:-synthetic}")"
             say "$PY" scripts/bench_slam.py "$d" --frames "$FRAMES" --arch "$arch" --systems ti-fusion ${SETS[@]+"${SETS[@]}"} \

@@ -337,8 +337,9 @@ class RunLogger:
         if shared:
             del kept["live"]
         for sink, idx in kept.items():
-            colors = None if rgb is None else _as_rgba8(np.asarray(rgb)[idx], len(idx))
-            cloud = _point_cloud(ns, xyz[idx].astype(np.float32), colors)
+            rows = slice(None) if len(idx) == len(xyz) else idx  # every point: views, not copies by index
+            colors = None if rgb is None else _as_rgba8(np.asarray(rgb)[rows], len(idx))
+            cloud = _point_cloud(ns, np.asarray(xyz[rows], dtype=np.float32), colors)
             self._write_proto(topic, cloud, ns, file=sink == "file", live=sink == "live" or shared)
         if file:
             self._file.flush()

@@ -107,17 +107,17 @@ class Pool:
     """
 
     _runtime = None  # weak reference to the Taichi runtime the fields belong to
-    arrays: dict[int, list[SurfelArrays]] = {}
     images: dict[tuple[type, int, int], object] = {}
     small: dict[str, object] = {}
-    spares: dict[tuple, list] = {}  # lent objects whose owners are gone, by the key they were made for
+    # objects whose owners are gone (surfel arrays by (SurfelArrays, capacity), lent objects by their key)
+    spares: dict[tuple, list] = {}
 
     @classmethod
     def current(cls) -> type["Pool"]:
         runtime = impl.get_runtime()
         if cls._runtime is None or cls._runtime() is not runtime:  # a new program (ti.reset / init)
             cls._runtime = weakref.ref(runtime)
-            cls.arrays, cls.images, cls.small, cls.spares = {}, {}, {}, {}
+            cls.images, cls.small, cls.spares = {}, {}, {}
         return cls
 
     @classmethod
@@ -126,27 +126,30 @@ class Pool:
         had for the same ``key`` (what ``make`` depends on), else ``make()``. Taichi compiles a kernel once
         per set of fields it is given, so a second SLAM object with new fields compiles (or loads) every
         kernel again, seconds on a CPU; with the first one's fields it compiles nothing."""
-        try:  # one pop and no test before it: two threads may make owners at once
-            obj = cls.current().spares.get(key, []).pop()
-        except IndexError:
+        obj = cls._spare(key)
+        if obj is None:
             obj = make()
-        weakref.finalize(owner, cls._take_back, cls._runtime, key, obj)
+        weakref.finalize(owner, cls.give_back, cls._runtime, key, obj)
         return obj
 
     @classmethod
-    def _take_back(cls, runtime_ref, key: tuple, obj) -> None:
+    def _spare(cls, key: tuple):
+        """An object given back for ``key``, or None."""
+        try:  # one pop and no test before it: two threads may ask at once
+            return cls.current().spares.get(key, []).pop()
+        except IndexError:
+            return None
+
+    @classmethod
+    def give_back(cls, runtime_ref, key: tuple, obj) -> None:
+        """``obj`` (made for ``key``) waits for the next taker, unless its program has ended."""
         if cls._runtime is not None and cls._runtime is runtime_ref and runtime_ref() is not None:
             cls.spares.setdefault(key, []).append(obj)
 
     @classmethod
     def take_arrays(cls, capacity: int) -> SurfelArrays:
-        spare = cls.current().arrays.get(capacity)
-        return spare.pop() if spare else SurfelArrays(capacity)
-
-    @classmethod
-    def give_back(cls, runtime_ref, arrays: SurfelArrays) -> None:
-        if cls._runtime is not None and cls._runtime is runtime_ref and runtime_ref() is not None:
-            cls.arrays.setdefault(arrays.capacity, []).append(arrays)
+        spare = cls._spare((SurfelArrays, capacity))
+        return SurfelArrays(capacity) if spare is None else spare
 
     @classmethod
     def image_set(cls, kind: type, height: int, width: int):
@@ -182,7 +185,8 @@ class SurfelStore:
         if getattr(self, "_finalizer", None) is not None:
             self._finalizer.detach()
         self.arrays = arrays
-        self._finalizer = weakref.finalize(self, Pool.give_back, Pool._runtime, arrays)
+        self._finalizer = weakref.finalize(self, Pool.give_back, Pool._runtime, (SurfelArrays, arrays.capacity),
+                                           arrays)
 
     @property
     def capacity(self) -> int:

@@ -224,10 +224,17 @@ def project_compatible_loop(s: ti.template(), n, img: ti.template(), pose: ti.te
 def set_color(img: ti.template(), rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), step: ti.i32):
     """img.color = the frame's uint8 RGB image at every ``step``-th row and column (the map's level),
     packed r | g << 8 | b << 16: the input image crosses as it is, with no copy on the host."""
-    for v, u in img.color:
+    pack_color_loop(img.color, rgb, step)
+
+
+@ti.func
+def pack_color_loop(color: ti.template(), rgb: ti.template(), step):
+    """color[v, u] = the uint8 RGB image ``rgb`` at row v·``step``, column u·``step``, packed
+    r | g << 8 | b << 16 (``unpack_color`` reads it)."""
+    for v, u in color:
         y, x = v * step, u * step
-        img.color[v, u] = (ti.cast(rgb[y, x, 0], ti.i32) | (ti.cast(rgb[y, x, 1], ti.i32) << 8)
-                           | (ti.cast(rgb[y, x, 2], ti.i32) << 16))
+        color[v, u] = (ti.cast(rgb[y, x, 0], ti.i32) | (ti.cast(rgb[y, x, 1], ti.i32) << 8)
+                       | (ti.cast(rgb[y, x, 2], ti.i32) << 16))
 
 
 @ti.func
@@ -243,9 +250,9 @@ def assoc_from_index_loop(img: ti.template()):
 
 @ti.func
 def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), normal: ti.template(), v, u,
-              R, t, f, confidence: ti.template(), has_color, frame_index, anchor):
-    """p ← (w p + α (R q + t)) / (w + α), n likewise then normalised, colour likewise, w ← w + α; the
-    surfel takes the frame's anchor."""
+              R, t, f, confidence: ti.template(), color: ti.template(), has_color, frame_index, anchor):
+    """p ← (w p + α (R q + t)) / (w + α), n likewise then normalised, colour likewise (from the packed
+    ``color`` image), w ← w + α; the surfel takes the frame's anchor."""
     q = vertex[v, u]
     nq = normal[v, u]
     a = measurement_weight(img, v, u, q.z, confidence)
@@ -256,7 +263,7 @@ def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), no
     if length > 0:
         s.normal[i] = n_sum / length
     if has_color:
-        s.color[i] = (w * s.color[i] + a * unpack_color(img.color[v, u])) / (w + a)
+        s.color[i] = (w * s.color[i] + a * unpack_color(color[v, u])) / (w + a)
     s.weight[i] = w + a
     s.radius[i] = ti.min(s.radius[i], measurement_radius(q.z, nq.z, f))
     s.t_updated[i] = frame_index
@@ -268,9 +275,11 @@ def merge_one(s: ti.template(), i, img: ti.template(), vertex: ti.template(), no
 
 @ti.kernel
 def merge_listed(s: ti.template(), img: ti.template(), vertex: ti.template(), normal: ti.template(),
-                 pose: Rigid, f: ti.f32, confidence: ti.template(), has_color: ti.i32, frame_index: ti.i32,
-                 anchor: ti.i32):
-    """Every surfel that a pixel's association chose averages in that pixel's measurement.
+                 pose: Rigid, f: ti.f32, confidence: ti.template(), color: ti.template(), has_color: ti.i32,
+                 frame_index: ti.i32, anchor: ti.i32):
+    """Every surfel that a pixel's association chose averages in that pixel's measurement (and, with
+    ``has_color``, the colour of the packed image ``color`` there: ``FusionImages.color`` or the frame's
+    own, ``FramePyramid.packed_color``).
 
     Only the surfels the projection listed (in the image; with Keller's order, compatible too) can have
     been chosen, so only they are visited, in index order: each reads its pixel from ``proj_pixel`` and
@@ -284,7 +293,7 @@ def merge_listed(s: ti.template(), img: ti.template(), vertex: ti.template(), no
         pix = s.proj_pixel[i]
         v, u = pix // W, pix % W
         if img.assoc[v, u] == i:
-            merge_one(s, i, img, vertex, normal, v, u, R, t, f, confidence, has_color, frame_index, anchor)
+            merge_one(s, i, img, vertex, normal, v, u, R, t, f, confidence, color, has_color, frame_index, anchor)
 
 
 # -- 5. add (stream compaction in row-major pixel order) -------------------------------------------------
@@ -409,8 +418,8 @@ def scan_segments(img: ti.template(), counts: ti.template(), n: ti.i32):
 
 @ti.func
 def append_new_loops(s: ti.template(), n, img: ti.template(), vertex: ti.template(), normal: ti.template(),
-                     pose: ti.template(), f, confidence: ti.template(), has_color, frame_index, anchor,
-                     counts: ti.template()):
+                     pose: ti.template(), f, confidence: ti.template(), color: ti.template(), has_color,
+                     frame_index, anchor, counts: ti.template()):
     """Write the new surfels at n + seg_offset[v, g] + (rank within the segment), so in row-major pixel
     order; count any that do not fit (``counts[C_LOST]``).
 
@@ -432,7 +441,7 @@ def append_new_loops(s: ti.template(), n, img: ti.template(), vertex: ti.templat
                     s.normal[k] = R @ nq
                     c = Vec3(128.0, 128.0, 128.0)
                     if has_color:
-                        c = unpack_color(img.color[v, u])
+                        c = unpack_color(color[v, u])
                     s.color[k] = c
                     s.weight[k] = measurement_weight(img, v, u, q.z, confidence)
                     s.radius[k] = measurement_radius(q.z, nq.z, f)
@@ -448,10 +457,10 @@ def append_new_loops(s: ti.template(), n, img: ti.template(), vertex: ti.templat
 
 @ti.kernel
 def append_new(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
-               pose: Rigid, f: ti.f32, confidence: ti.template(), has_color: ti.i32, frame_index: ti.i32,
-               anchor: ti.i32, counts: ti.template()):
+               pose: Rigid, f: ti.f32, confidence: ti.template(), color: ti.template(), has_color: ti.i32,
+               frame_index: ti.i32, anchor: ti.i32, counts: ti.template()):
     """``append_new_loops`` in one launch."""
-    append_new_loops(s, n, img, vertex, normal, pose, f, confidence, has_color, frame_index, anchor, counts)
+    append_new_loops(s, n, img, vertex, normal, pose, f, confidence, color, has_color, frame_index, anchor, counts)
 
 
 
@@ -591,13 +600,13 @@ def fill_holes(s: ti.template(), counts: ti.template()):
 @ti.kernel
 def add_step(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.template(), normal: ti.template(),
              pose: Rigid, dist_threshold: ti.f32, cos_threshold: ti.f32, cover: ti.template(), f: ti.f32,
-             confidence: ti.template(), has_color: ti.i32, frame_index: ti.i32, anchor: ti.i32,
-             counts: ti.template()):
+             confidence: ti.template(), color: ti.template(), has_color: ti.i32, frame_index: ti.i32,
+             anchor: ti.i32, counts: ti.template()):
     """The add of a step in one launch, when the map has room for every pixel: ``count_segments``,
     ``scan_segments`` and ``append_new``, one after the other (each reads what the one before wrote)."""
     count_segments_loops(img, vertex, normal, pose, dist_threshold, cos_threshold, cover)
     scan_segments_loops(img, counts, n)
-    append_new_loops(s, n, img, vertex, normal, pose, f, confidence, has_color, frame_index, anchor, counts)
+    append_new_loops(s, n, img, vertex, normal, pose, f, confidence, color, has_color, frame_index, anchor, counts)
 
 
 @ti.kernel

@@ -53,6 +53,7 @@ from taichi.lang.util import in_taichi_scope
 
 from ti_fusion.backend import serial_for
 from ti_fusion.kernels.common import INT_MAX, data_oriented
+from ti_fusion.kernels.fusion import pack_color_loop
 from ti_fusion.kernels.surfels import Pool
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import PyramidConfig
@@ -445,14 +446,17 @@ def input_maps(fine: ti.types.ndarray(dtype=ti.f32, ndim=2), raw: ti.template(),
                depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
                levels: ti.template(), radius: ti.template(), max_diff: ti.f32, serial_input: ti.template(),
                serial: ti.template(), grey: ti.types.ndarray(dtype=ti.f32, ndim=2), intensity: ti.template(),
-               intensity_grad: ti.template(), intensity_rows: ti.template(), with_grey: ti.template()):
+               intensity_grad: ti.template(), intensity_rows: ti.template(), with_grey: ti.template(),
+               rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), color: ti.template(), color_step: ti.i32,
+               with_color: ti.template()):
     """A frame's maps in one launch, for an input averaged down once and smoothed (the default at
     640×480): ``pyramid_loop`` from the input image ``fine`` (the caller's array, not copied first) into
     the packed ``raw``, the smoothing's row and column passes (``smooth_rows_loop``,
     ``smooth_columns_loop``) into level 0 of ``depth``, then ``pyramid_maps_loops``: the loops of
     ``FramePyramid.compute``'s five launches, one after the other. With ``with_grey``, the intensity
-    pyramid of the grey image ``grey`` as well (``intensity_maps_loops``): off the CPU each array argument
-    is copied back after the launch, a wait, so depth and grey cross together."""
+    pyramid of the grey image ``grey`` as well (``intensity_maps_loops``); with ``with_color``, the uint8
+    RGB image ``rgb`` packed into ``color`` (``pack_color_loop``): off the CPU each array argument is
+    copied back after the launch, a wait, so depth, grey and colour cross together."""
     H, W = fine.shape
     pyramid_loop(fine, 0, H, W, raw, 0, max_diff, True, serial_input)
     smooth_rows_loop(raw, rows, ti.cast(geometry[0, G_W], ti.i32), radius, max_diff)
@@ -460,6 +464,14 @@ def input_maps(fine: ti.types.ndarray(dtype=ti.f32, ndim=2), raw: ti.template(),
     pyramid_maps_loops(depth, vertex, normal, geometry, levels, 0, max_diff, serial)
     if ti.static(with_grey):
         intensity_maps_loops(grey, intensity, intensity_grad, intensity_rows, True, serial_input, serial)
+    if ti.static(with_color):
+        pack_color_loop(color, rgb, color_step)
+
+
+@ti.kernel
+def pack_color(color: ti.template(), rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), step: ti.i32):
+    """``pack_color_loop`` in one launch."""
+    pack_color_loop(color, rgb, step)
 
 
 @ti.func
@@ -482,6 +494,7 @@ def pyramid_maps_loops(depth: ti.template(), vertex: ti.template(), normal: ti.t
 
 GREY = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights of R, G, B
 _NO_GREY = np.zeros((1, 1), np.float32)  # input_maps' grey argument when it has none
+_NO_RGB = np.zeros((1, 1, 3), np.uint8)  # and its colour argument
 
 
 @ti.kernel
@@ -653,6 +666,9 @@ class FramePyramid:
         self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
         self._geometry = None  # ``pyramid_maps``'s per-level rows, sizes and intrinsics (G_* columns)
         self._geometry_for = None  # the intrinsics it holds
+        # the frame's colour packed for the fusion step (``compute(..., color=...)``): per level, on first use
+        self._color: dict[int, object] = {}
+        self._color_source = None  # (image, level) that the last ``compute`` packed, else None
 
     @classmethod
     def lent_to(cls, owner, settings: PyramidConfig, height: int, width: int, levels: int = 3,
@@ -674,9 +690,12 @@ class FramePyramid:
         whole[:self.height] = image
         stack.from_numpy(whole)
 
-    def compute(self, depth: np.ndarray, intrinsics: Intrinsics, grey: np.ndarray | None = None) -> None:
+    def compute(self, depth: np.ndarray, intrinsics: Intrinsics, grey: np.ndarray | None = None,
+                color: np.ndarray | None = None, color_level: int = 0) -> None:
         """Upload a float32 depth image (metres, 0 = invalid) and build every level's maps; with ``grey``,
-        the intensity pyramid too (``compute_intensity``), in the same launch where the layout allows.
+        the intensity pyramid too (``compute_intensity``); with ``color`` (uint8 RGB of the input's size),
+        that image packed at level ``color_level`` for the fusion step (``packed_color``). All in one launch
+        where the layout allows: off the CPU every image given to a launch is a wait for the device.
 
         With a smoothing radius r > 0 the depth is first replaced by its range-checked (2r+1)² mean (see the
         module docstring); ``depth[0]`` then holds the smoothed depth."""
@@ -685,11 +704,36 @@ class FramePyramid:
         depth = np.ascontiguousarray(depth, dtype=np.float32)
         if grey is not None:
             grey = self._checked_grey(grey)
-        if self._one_launch(depth, intrinsics, grey):
-            return
-        self._compute_depth(depth, intrinsics)
-        if grey is not None:
-            self.compute_intensity(grey)
+        self._color_source = None
+        packed = self._checked_color(color, color_level) if color is not None else None
+        if not self._one_launch(depth, intrinsics, grey, packed):
+            self._compute_depth(depth, intrinsics)
+            if grey is not None:
+                self.compute_intensity(grey)
+            if packed is not None:
+                pack_color(packed[1], packed[0], packed[2])
+        if packed is not None:
+            self._color_source = (color, int(color_level))
+
+    def packed_color(self, level: int, color: np.ndarray):
+        """The frame's colour packed r | g << 8 | b << 16 at ``level`` (a Taichi field of ``shapes[level]``)
+        if the last ``compute`` packed this very image (``color``, the same object) at that level, else
+        None."""
+        source = self._color_source
+        if source is None or source[0] is not color or source[1] != level:
+            return None
+        return self._color[level]
+
+    def _checked_color(self, color: np.ndarray, level: int):
+        """(rgb as uint8 C-contiguous, the level's packed field, the step from the input) for ``compute``;
+        ValueError for another size or a level this pyramid does not have."""
+        if not 0 <= level < self.levels:
+            raise ValueError(f"color_level {level} of a pyramid of {self.levels} levels")
+        if color.shape != (*self.input_shape, 3):
+            raise ValueError(f"colour of shape {color.shape} given to FramePyramid of shape {self.input_shape}")
+        if level not in self._color:
+            self._color[level] = ti.field(ti.i32, shape=self.shapes[level])
+        return np.ascontiguousarray(color, dtype=np.uint8), self._color[level], 2**(self.input_level + level)
 
     def _compute_depth(self, depth: np.ndarray, intrinsics: Intrinsics) -> None:
         """``compute`` of the depth for a layout ``_one_launch`` does not take, in several launches."""
@@ -716,9 +760,10 @@ class FramePyramid:
             smooth_columns(rows, stack, self.smooth_radius, self.max_depth_diff)
         self.compute_from_field(intrinsics)
 
-    def _one_launch(self, depth: np.ndarray, intrinsics: Intrinsics, grey: np.ndarray | None) -> bool:
+    def _one_launch(self, depth: np.ndarray, intrinsics: Intrinsics, grey: np.ndarray | None, packed) -> bool:
         """``compute`` of an input averaged down once and smoothed (the default at 640×480) as one launch
-        (``input_maps``), with the intensity pyramid of ``grey`` if given; False for any other layout."""
+        (``input_maps``), with the intensity pyramid of ``grey`` and the colour ``packed`` (from
+        ``_checked_color``) if given; False for any other layout."""
         if self.input_level != 1 or self.smooth_radius <= 0:
             return False
         self._set_geometry(intrinsics.downsampled(2))
@@ -726,9 +771,11 @@ class FramePyramid:
         h, w = self.input_shape
         images = (grey, self.intensity[0].field, self.intensity_grad[0].field) if grey is not None else \
             (_NO_GREY, 0, 0)  # not read: with_grey is off
+        colour = packed if packed is not None else (_NO_RGB, 0, 0)  # likewise
         input_maps(depth, raw, rows, self.depth[0].field, self.vertex[0].field, self.normal[0].field,
                    self._geometry, self.levels, self.smooth_radius, self.max_depth_diff,
-                   serial_for(((h + 1) // 2) * ((w + 1) // 2)), self._serial, *images, self._rows, grey is not None)
+                   serial_for(((h + 1) // 2) * ((w + 1) // 2)), self._serial, *images, self._rows, grey is not None,
+                   *colour, packed is not None)
         return True
 
     def _checked_grey(self, grey: np.ndarray) -> np.ndarray:

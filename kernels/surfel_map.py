@@ -80,19 +80,23 @@ class SurfelMap(SurfelStore):
     # -- 4-5: merge and add --------------------------------------------------------------------------------
     def merge(self, img: FusionImages, vertex, normal, pose, intrinsics, frame_index: int,
               confidence: bool, sigma: float, has_color: bool, depth_weighted: bool = False,
-              anchor: int = 0) -> None:
-        """Average the frame into the surfels ``img.assoc`` chose; they take ``anchor``."""
+              anchor: int = 0, color=None) -> None:
+        """Average the frame into the surfels ``img.assoc`` chose; they take ``anchor``. With ``has_color``
+        the colour is read from ``color``, the frame's colour packed at this resolution (a Taichi field,
+        e.g. ``FramePyramid.packed_color``), or from ``img.color`` (``FusionImages.set_color``) when None."""
         if self._projected > 0:
             if confidence:
                 img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
             fusion.merge_listed(self.arrays, img, vertex, normal, self._pose(pose)[0], intrinsics.fx,
-                                fusion.weight_bits(confidence, depth_weighted), int(has_color), frame_index,
-                                int(anchor))
+                                fusion.weight_bits(confidence, depth_weighted),
+                                img.color if color is None else color, int(has_color), frame_index, int(anchor))
 
     def add(self, img: FusionImages, vertex, normal, pose, intrinsics, frame_index: int, confidence: bool,
             sigma: float, has_color: bool, depth_weighted: bool = False,
-            cover: tuple[float, float] | None = None, anchor: int = 0, defer: bool = False) -> AddCounts | None:
-        """Append the valid unassociated pixels as surfels (with ``anchor``). With ``cover`` = (dist_threshold,
+            cover: tuple[float, float] | None = None, anchor: int = 0, defer: bool = False,
+            color=None) -> AddCounts | None:
+        """Append the valid unassociated pixels as surfels (with ``anchor``; their colour as ``merge``
+        reads it, from ``color`` or ``img.color``). With ``cover`` = (dist_threshold,
         normal_threshold_deg), unassociated pixels on the disc of a neighbour's merged surfel are marked
         (``img.assoc`` = COVERED) in the same pass, and not added.
 
@@ -103,12 +107,13 @@ class SurfelMap(SurfelStore):
         to_world = self._pose(pose)[0]
         H, W = img.assoc.shape
         weights = fusion.weight_bits(confidence, depth_weighted)
+        color = img.color if color is None else color
         if confidence:
             img.radial_confidence(intrinsics.cx, intrinsics.cy, sigma)
         if defer and self.count + H * W <= self.capacity:  # room for every pixel: one launch, nothing read
             fusion.add_step(self.arrays, self.count, img, vertex, normal, to_world, dist, math.cos(math.radians(angle)),
-                            cover is not None, intrinsics.fx, weights, int(has_color), frame_index, int(anchor),
-                            self.counts)
+                            cover is not None, intrinsics.fx, weights, color, int(has_color), frame_index,
+                            int(anchor), self.counts)
             self._count_on_device = True
             return None
         fusion.count_segments(img, vertex, normal, to_world, dist, math.cos(math.radians(angle)), cover is not None)
@@ -118,7 +123,7 @@ class SurfelMap(SurfelStore):
         self.ensure_capacity(self.count + counts.new)  # before any write: grow or raise
         if counts.new == 0:
             return None if defer else counts
-        fusion.append_new(self.arrays, self.count, img, vertex, normal, to_world, intrinsics.fx, weights,
+        fusion.append_new(self.arrays, self.count, img, vertex, normal, to_world, intrinsics.fx, weights, color,
                           int(has_color), frame_index, int(anchor), self.counts)
         if defer:
             self._count_on_device = True

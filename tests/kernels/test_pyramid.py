@@ -333,6 +333,35 @@ def test_depth_and_grey_together(arch, rng, input_level, radius):
         used.pyramid.compute(depth, K_in, used.image[:-1])
 
 
+@pytest.mark.parametrize("input_level, radius, level", [(1, 2, 1), (2, 1, 0)])
+def test_colour_packed_with_the_depth(arch, rng, input_level, radius, level):
+    """``compute(depth, K, grey, color, color_level)``: the uint8 RGB input packed r | g << 8 | b << 16 at
+    every 2**(input level + level)-th pixel (the fusion step's colour), in ``input_maps``' launch at input
+    level 1 with smoothing, by a launch of its own elsewhere (that the maps are as without it, the fusion
+    test of the packed colour shows). ``packed_color`` names only the image and level the last ``compute``
+    packed."""
+    grey = random_grey(rng, (37, 51))
+    depth = random_depth(rng, shape=grey.shape)
+    K_in = Intrinsics(150.0, 140.0, 25.0, 18.0, 51, 37)
+    color = rng.integers(0, 256, (*grey.shape, 3), dtype=np.uint8)
+    color[-1, -1] = 255  # the top byte stays clear: a packed word is never negative
+    pyramid = FramePyramid(settings(radius=radius), *grey.shape, levels=3, input_level=input_level)
+    pyramid.compute(depth, K_in, grey, color, level)
+    step = 2**(input_level + level)
+    c = color[::step, ::step].astype(np.int64)
+    packed = pyramid.packed_color(level, color)
+    assert packed.shape == pyramid.shapes[level]
+    np.testing.assert_array_equal(packed.to_numpy(), c[..., 0] | (c[..., 1] << 8) | (c[..., 2] << 16))
+    assert pyramid.packed_color(level, color.copy()) is None  # another image
+    assert pyramid.packed_color((level + 1) % 3, color) is None  # another level
+    pyramid.compute(depth, K_in)
+    assert pyramid.packed_color(level, color) is None  # the next frame came without colour
+    with pytest.raises(ValueError, match="colour of shape"):
+        pyramid.compute(depth, K_in, None, color[:, :-1])
+    with pytest.raises(ValueError, match="color_level 3"):
+        pyramid.compute(depth, K_in, None, color, 3)
+
+
 def check_intensity_pyramid(rng, input_level, radius=0, together=False):
     """The intensity pyramid against the reference (``together``: computed by ``compute`` with the depth);
     returns what it used (the pyramid, the grey image, the depth and the camera)."""

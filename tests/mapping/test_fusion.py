@@ -725,6 +725,29 @@ def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
     assert_close(again.to_numpy()["position"], fused["position"], 1e-6)
 
 
+@pytest.mark.parametrize("input_level, radius", [(1, 2), (0, 0)])
+def test_colour_packed_by_the_frame_fuses_as_colour_packed_by_the_mapper(cpu, rng, input_level, radius):
+    """The SLAM packs a frame's colour with its depth (``FramePyramid.compute(..., color)``, one wait for
+    the device fewer per frame off the CPU): two frames fused that way, the second merging into the
+    first's surfels, give the map that the mapper's own packing gives, bit for bit."""
+    _, u = np.mgrid[0:H, 0:W]
+    depth = (2.0 + 0.002 * u).astype(np.float32)
+    settings = PyramidConfig(depth_smooth_radius=radius)
+    maps = []
+    for own in (False, True):
+        mapper = SurfelMapper(FusionConfig(capacity=10_000, level=input_level))
+        pyramid = FramePyramid(settings, H, W, levels=1, input_level=input_level)
+        for frame, pose in enumerate((np.eye(4), se3_exp(np.array([0.002, 0, 0, 0.004, 0, 0])))):
+            color = np.random.default_rng(frame).integers(0, 256, (H, W, 3), dtype=np.uint8)
+            pyramid.compute(depth, K, None, color if own else None)
+            assert (pyramid.packed_color(0, color) is not None) == own
+            stats = mapper.integrate(pyramid, color, pose, frame)
+        assert stats.merged > 0
+        maps.append(mapper.to_numpy())
+    for name in ATTRIBUTES:
+        np.testing.assert_array_equal(maps[1][name], maps[0][name])
+
+
 def test_render_maps_reproduces_the_fused_frame(cpu, rng):
     """Rendering the map of one frame at that frame's pose gives back its depth, vertices and normals."""
     pyramid, depth = plane_frame()

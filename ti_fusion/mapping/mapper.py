@@ -65,7 +65,9 @@ class SurfelMapper:
                   timer: StageTimer | None = None) -> FusionStats:
         """Fuse one frame: project, filter (pass 1 and 2), merge, add, remove.
 
-        frame_pyramid: a computed ``FramePyramid`` (level 0 is used); color: uint8 H×W×3 RGB or None;
+        frame_pyramid: a computed ``FramePyramid`` (the map's level is used); color: uint8 H×W×3 RGB or None
+        (packed here, unless the pyramid's ``compute`` packed this image at the map's level already:
+        ``FramePyramid.packed_color``, which saves a wait for the device per frame off the CPU);
         pose: 4×4 camera-to-world; frame_index: the time stamp stored in the surfels (frames since start).
         With a ``timer``, every stage is synchronised and timed (ms in the stats and in the timer).
         """
@@ -87,16 +89,17 @@ class SurfelMapper:
         with stage("project"):  # Keller's order: each pixel's nearest surfel among those that pass the filters
             img = self.map.associate_compatible(pose, K, vertex, normal, cfg.dist_threshold, cfg.normal_threshold_deg)
             has_color = color is not None
-            if has_color:  # the map level's pixels of the input's colour, packed on the device
+            packed = frame_pyramid.packed_color(level, color) if has_color else None
+            if has_color and packed is None:  # the map level's pixels of the input's colour, packed on the device
                 img.set_color(color, 2**map_level)
         with stage("merge"):
             self.map.merge(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting,
-                           cfg.confidence_sigma, has_color, cfg.depth_weighting, self.anchor)
+                           cfg.confidence_sigma, has_color, cfg.depth_weighting, self.anchor, packed)
         # add and remove pass their counts on the device (defer): the step's counts cross once, at its end
         with stage("add"):  # with skip_covered, covered pixels are marked in the same pass and not added
             cover = (cfg.dist_threshold, cfg.normal_threshold_deg) if cfg.skip_covered else None
             self.map.add(img, vertex, normal, pose, K, frame_index, cfg.confidence_weighting, cfg.confidence_sigma,
-                         has_color, cfg.depth_weighting, cover, self.anchor, defer=True)
+                         has_color, cfg.depth_weighting, cover, self.anchor, defer=True, color=packed)
         with stage("remove"):
             self.map.remove(frame_index, cfg.remove_unstable, cfg.unstable_weight, cfg.unstable_age,
                             cfg.remove_free_space, cfg.free_space_margin, depth, defer=True)

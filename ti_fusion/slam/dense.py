@@ -223,7 +223,9 @@ class DenseSLAM:
                 grey = grey_image(frame.color)
                 if frame.meta.get("color_valid") is not None:  # registered colour: none where the camera saw none
                     grey[~frame.meta["color_valid"]] = -1.0
-            self.frame_pyramid.compute(frame.depth, frame.intrinsics, grey)  # depth and grey in one launch
+            # depth, grey and the colour that fusion reads, in one launch
+            self.frame_pyramid.compute(frame.depth, frame.intrinsics, grey, frame.color,
+                                       self.map_level - self.frame_pyramid.input_level)
         if not self.poses and (problem := self.unusable(frame)):
             self.skipped.append((frame.index, problem))
             return FrameResult(frame.index, frame.timestamp, None, Tracking.SKIPPED, problem, ms=dict(timer.last))

@@ -436,7 +436,7 @@ G_ROW0, G_H, G_W, G_FX, G_FY, G_CX, G_CY, G_JUMP, N_GEOMETRY = range(9)
 
 @ti.kernel
 def pyramid_maps(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
-                 levels: ti.template(), first_maps: ti.template(), max_diff: ti.f32, serial: ti.template()):
+                 levels: ti.template(), first_maps: ti.i32, max_diff: ti.f32, serial: ti.template()):
     """``pyramid_maps_loops`` in one launch."""
     pyramid_maps_loops(depth, vertex, normal, geometry, levels, first_maps, max_diff, serial)
 
@@ -476,19 +476,22 @@ def pack_color(color: ti.template(), rgb: ti.types.ndarray(dtype=ti.u8, ndim=3),
 
 @ti.func
 def pyramid_maps_loops(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
-                       levels: ti.template(), first_maps: ti.template(), max_diff, serial: ti.template()):
+                       levels: ti.template(), first_maps, max_diff, serial: ti.template()):
     """Every level of a stack in one launch: the depth pyramid from level 0 (``pyramid_loop`` per level,
     each after the one it reads), then the vertex and normal maps of levels ``first_maps`` .. levels − 1
     (``vertex_normal_loop``), as consecutive loops of one kernel (Taichi runs a kernel's top-level loops in
     order). The levels' rows, sizes and intrinsics are read from ``geometry`` (G_* columns), written when
-    they change, so a frame passes one scalar."""
+    they change, so a frame passes one scalar. ``first_maps`` is a runtime value (the loops of the levels
+    before it run over no rows), so that one instance serves a rendered model, whose level 0 maps come
+    from the renderer, and depth uploaded into the same maps (loop verification's keyframes)."""
     for l in ti.static(range(1, levels)):
         pyramid_loop(depth, ti.cast(geometry[l - 1, G_ROW0], ti.i32), ti.cast(geometry[l - 1, G_H], ti.i32),
                      ti.cast(geometry[l - 1, G_W], ti.i32), depth, ti.cast(geometry[l, G_ROW0], ti.i32), max_diff,
                      False, serial)
-    for l in ti.static(range(first_maps, levels)):
+    for l in ti.static(range(levels)):
         vertex_normal_loop(depth, vertex, normal, ti.cast(geometry[l, G_ROW0], ti.i32),
-                           ti.cast(geometry[l, G_H], ti.i32), ti.cast(geometry[l, G_W], ti.i32), geometry[l, G_FX],
+                           ti.select(l >= first_maps, ti.cast(geometry[l, G_H], ti.i32), 0),
+                           ti.cast(geometry[l, G_W], ti.i32), geometry[l, G_FX],
                            geometry[l, G_FY], geometry[l, G_CX], geometry[l, G_CY], geometry[l, G_JUMP], serial)
 
 

@@ -181,3 +181,32 @@ def test_a_second_slam_object_reuses_the_frame_maps_of_one_that_is_gone(cpu):
     other = DenseSLAM(cfg, synthetic.intrinsics)
     assert other.frame_pyramid is not slam.frame_pyramid and other.model_pyramid is not slam.model_pyramid
     np.testing.assert_array_equal(np.stack([slam.register_frame(f).pose for f in frames]), np.stack(first))
+
+
+def test_maps_filled_in_the_scratch_pyramid_between_frames_change_no_pose(cpu):
+    """Loop verification builds an earlier keyframe's maps in ``DenseSLAM.scratch_pyramid`` between frames,
+    so that its ICP runs the kernels tracking compiled: whatever it leaves there, the next frames track as
+    if it had not been there (each frame renders its model anew)."""
+    import gc
+    from types import SimpleNamespace
+
+    from ti_fusion.loop.verification import fill
+    from ti_fusion.slam.dense import DenseSLAM
+
+    cfg = _config()
+    cfg.icp.color_weight = 0.0
+    synthetic = open_dataset(cfg.dataset, cfg.synth)
+    frames = [synthetic[i] for i in range(4)]
+    slam = DenseSLAM(cfg, synthetic.intrinsics)
+    plain = [slam.register_frame(f).pose for f in frames]
+    del slam
+    gc.collect()
+    slam = DenseSLAM(cfg, synthetic.intrinsics)  # the same maps (test above): nothing to compile
+    poses = []
+    for f in frames:
+        poses.append(slam.register_frame(f).pose)
+        depth, K = slam.keyframe_depth()
+        other = np.roll(depth, 17, axis=1) * np.float32(1.2)  # another view: shifted and further away
+        fill(slam.scratch_pyramid(), SimpleNamespace(depth=other, depth_intrinsics=K))
+        assert np.allclose(slam.scratch_pyramid().depth[0].to_numpy(), other)
+    np.testing.assert_array_equal(np.stack(poses), np.stack(plain))

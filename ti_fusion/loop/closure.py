@@ -118,10 +118,10 @@ class LoopClosure:
             # a run too short to have candidates at all (a short run, a test, the default 120-frame run pays
             # none of it); not counted as detection.
             with Stopwatch(report.ms, "warmup"):
-                fill(self._source_pyramid(kf), kf)
+                fill(self._source_pyramid(), kf)
         verified = None
         for place in places:
-            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self._source_pyramid(kf),
+            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self._source_pyramid(),
                                      self.slam.current_frame_pyramid(), target_ready=True)
             report.candidates.append(c)
             self.candidates.append(c)
@@ -154,11 +154,11 @@ class LoopClosure:
             return combined_system(icp.sums, self.config.icp.color_weight)[0]
         return unpack_sums(icp.sums)["AtA"]
 
-    def _source_pyramid(self, kf: Keyframe) -> FramePyramid:
-        """Verification's own maps for an earlier keyframe's stored depth (a keyframe's size: the map's)."""
+    def _source_pyramid(self) -> FramePyramid:
+        """The maps that verification builds an earlier keyframe's stored depth in (a keyframe's size: the
+        map's): the SLAM's scratch maps between frames (``DenseSLAM.scratch_pyramid``)."""
         if self._source is None:
-            h, w = kf.depth.shape
-            self._source = FramePyramid.lent_to(self, self.config.pyramid, h, w, len(self.config.icp.iterations))
+            self._source = self.slam.scratch_pyramid()
         return self._source
 
     def _make_keyframe(self, frame, pose: np.ndarray) -> Keyframe:

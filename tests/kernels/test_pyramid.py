@@ -334,7 +334,7 @@ def test_depth_and_grey_together(arch, rng, input_level, radius):
 
 
 @pytest.mark.parametrize("input_level, radius, level", [(1, 2, 1), (2, 1, 0)])
-def test_colour_packed_with_the_depth(arch, rng, input_level, radius, level):
+def test_colour_packed_with_the_depth(arch, rng, monkeypatch, input_level, radius, level):
     """``compute(depth, K, grey, color, color_level)``: the uint8 RGB input packed r | g << 8 | b << 16 at
     every 2**(input level + level)-th pixel (the fusion step's colour), in ``input_maps``' launch at input
     level 1 with smoothing, by a launch of its own elsewhere (that the maps are as without it, the fusion
@@ -344,8 +344,12 @@ def test_colour_packed_with_the_depth(arch, rng, input_level, radius, level):
     depth = random_depth(rng, shape=grey.shape)
     K_in = Intrinsics(150.0, 140.0, 25.0, 18.0, 51, 37)
     color = rng.integers(0, 256, (*grey.shape, 3), dtype=np.uint8)
-    color[-1, -1] = 255  # the top byte stays clear: a packed word is never negative
+    color[-1, -1] = 255  # the largest value of every channel: the packed word stays below 2**24
     pyramid = FramePyramid(settings(radius=radius), *grey.shape, levels=3, input_level=input_level)
+    if input_level == 1:  # the one-launch layout: packed inside input_maps, not by a launch of its own
+        from ti_fusion.kernels import pyramid as kmaps
+
+        monkeypatch.setattr(kmaps, "pack_color", lambda *args: pytest.fail("packed by a launch of its own"))
     pyramid.compute(depth, K_in, grey, color, level)
     step = 2**(input_level + level)
     c = color[::step, ::step].astype(np.int64)

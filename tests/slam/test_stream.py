@@ -185,11 +185,13 @@ def test_a_second_slam_object_reuses_the_frame_maps_of_one_that_is_gone(cpu):
 
 def test_maps_filled_in_the_scratch_pyramid_between_frames_change_no_pose(cpu):
     """Loop verification builds an earlier keyframe's maps in ``DenseSLAM.scratch_pyramid`` between frames,
-    so that its ICP runs the kernels tracking compiled: whatever it leaves there, the next frames track as
-    if it had not been there (each frame renders its model anew)."""
+    so that its ICP runs the kernels tracking compiled (no new instance of ICP's or the maps' kernels):
+    whatever it leaves there, the next frames track as if it had not been there (each frame renders its
+    model anew)."""
     import gc
     from types import SimpleNamespace
 
+    from ti_fusion.kernels import pyramid as kmaps
     from ti_fusion.loop.verification import fill
     from ti_fusion.slam.dense import DenseSLAM
 
@@ -209,4 +211,9 @@ def test_maps_filled_in_the_scratch_pyramid_between_frames_change_no_pose(cpu):
         other = np.roll(depth, 17, axis=1) * np.float32(1.2)  # another view: shifted and further away
         fill(slam.scratch_pyramid(), SimpleNamespace(depth=other, depth_intrinsics=K))
         assert np.allclose(slam.scratch_pyramid().depth[0].to_numpy(), other)
+        if len(poses) == 2:  # tracking has compiled its kernels: verification's ICP adds no instance
+            kernels = (slam.icp._kernels(0).k["iterate"], kmaps.pyramid_maps)  # the shared pass
+            before = [len(k._primal.compiled_kernels) for k in kernels]
+            slam.icp.align(slam.scratch_pyramid(), slam.current_frame_pyramid(), init=np.eye(4))
+            assert [len(k._primal.compiled_kernels) for k in kernels] == before
     np.testing.assert_array_equal(np.stack(poses), np.stack(plain))

@@ -16,9 +16,9 @@ to k. Tracking then goes on from the corrected last pose against the corrected m
 relative motion and needs nothing.
 
 Loop closure sees SLAM through a narrow door (``DenseSLAM``'s "loop closure's door"): ``keyframe_depth()``,
-``current_frame_pyramid()`` (read only: the target of verification), ``start_keyframe(k)`` and
-``apply_corrections(C)``, which moves the trajectory (``slam/poses.py``) and the map. Verification renders
-the earlier keyframe into maps of its own.
+``current_frame_pyramid()`` (read only: the target of verification), ``scratch_pyramid()`` (maps it may
+fill between frames: verification builds the earlier keyframe's maps there), ``start_keyframe(k)`` and
+``apply_corrections(C)``, which moves the trajectory (``slam/poses.py``) and the map.
 """
 
 from __future__ import annotations
@@ -113,10 +113,11 @@ class LoopClosure:
         report.ms["detect"] = watch.lap()
         self.ms["detect"].append(report.ms["keyframe"] + report.ms["detect"])
         if self._source is None and kf.frame - self.keyframes[0].frame >= self.gap - self.gap // 4:
-            # Compile the source maps' kernels for stored depth now, three quarters of the candidates' frame
-            # gap in (no keyframe can have a candidate before the gap), not at the first candidate, and not in
-            # a run too short to have candidates at all (a short run, a test, the default 120-frame run pays
-            # none of it); not counted as detection.
+            # Load what building maps from a stored depth needs beyond tracking's kernels (the depth's upload
+            # into the scratch maps) now, three quarters of the candidates' frame gap in (no keyframe can have
+            # a candidate before the gap), not at the first candidate, and not in a run too short to have
+            # candidates at all (a short run, a test, the default 120-frame run pays none of it); not counted
+            # as detection.
             with Stopwatch(report.ms, "warmup"):
                 fill(self._source_pyramid(), kf)
         verified = None

@@ -469,9 +469,9 @@ class DenseSLAM:
     def scratch_pyramid(self) -> FramePyramid:
         """Maps at the map's resolution that may be filled between frames, until the next
         ``register_frame``: the model prediction's, which the next frame's tracking renders anew. Loop
-        verification builds an earlier keyframe's maps here, so its ICP runs the kernels that tracking
-        compiled for this pair of maps instead of compiling (or loading) its own, a second or more
-        in the middle of a run."""
+        verification builds an earlier keyframe's maps here, so its (depth-only) ICP runs the kernels that
+        depth-only tracking compiled for this pair of maps instead of compiling (or loading) its own, a
+        second or more in the middle of a run."""
         return self.model_pyramid
 
     def start_keyframe(self, keyframe: int) -> None:

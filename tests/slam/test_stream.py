@@ -99,6 +99,15 @@ def _config() -> Config:
     return cfg
 
 
+def _depth_only_frames(n: int):
+    """(config, the synthetic sequence, its first ``n`` frames), tracked with depth only (colour's cost is
+    not what the tests that use this measure)."""
+    cfg = _config()
+    cfg.icp.color_weight = 0.0
+    synthetic = open_dataset(cfg.dataset, cfg.synth)
+    return cfg, synthetic, [synthetic[i] for i in range(n)]
+
+
 def test_frame_by_frame_and_as_a_frame_list_give_the_command_lines_trajectory(cpu, tmp_path):
     from ti_fusion.backend import current_backend
     from ti_fusion.io.outputs import RunDir
@@ -167,10 +176,7 @@ def test_a_second_slam_object_reuses_the_frame_maps_of_one_that_is_gone(cpu):
 
     from ti_fusion.slam.dense import DenseSLAM
 
-    cfg = _config()
-    cfg.icp.color_weight = 0.0
-    synthetic = open_dataset(cfg.dataset, cfg.synth)
-    frames = [synthetic[i] for i in range(3)]
+    cfg, synthetic, frames = _depth_only_frames(3)
     slam = DenseSLAM(cfg, synthetic.intrinsics)
     first = [slam.register_frame(f).pose for f in frames]
     pyramids = weakref.ref(slam.frame_pyramid), weakref.ref(slam.model_pyramid)
@@ -195,10 +201,7 @@ def test_maps_filled_in_the_scratch_pyramid_between_frames_change_no_pose(cpu):
     from ti_fusion.loop.verification import fill
     from ti_fusion.slam.dense import DenseSLAM
 
-    cfg = _config()
-    cfg.icp.color_weight = 0.0
-    synthetic = open_dataset(cfg.dataset, cfg.synth)
-    frames = [synthetic[i] for i in range(4)]
+    cfg, synthetic, frames = _depth_only_frames(4)
     slam = DenseSLAM(cfg, synthetic.intrinsics)
     plain = [slam.register_frame(f).pose for f in frames]
     del slam

@@ -231,6 +231,35 @@ def test_joining_clouds_equals_downsampling_all_at_once(rng):
         cloud.add(parts[0])  # colours on every cloud or on none
 
 
+def test_a_stop_during_a_merge_leaves_the_cloud_whole(rng, monkeypatch):
+    """A stop (SIGTERM, Ctrl-C) that lands while pending clouds merge is raised once the sums are whole: the
+    run's last map snapshot, on its way out, reads the cloud (it read sums of two sizes, a traceback, when
+    SIGTERM landed between them in ``ti-fusion vo``)."""
+    from ti_fusion.interrupts import interrupt
+    from ti_fusion.mapping import pointcloud
+
+    parts = [rng.uniform(-1, 1, (n, 3)) for n in (800, 600)]
+    colors = [rng.integers(0, 256, (len(p), 3), dtype=np.uint8) for p in parts]
+    cloud = VoxelCloud(0.05)
+    cloud.add(parts[0], colors[0])
+    assert len(cloud) > 0
+    cloud.add(parts[1], colors[1])
+    sum_by = pointcloud._sum_by
+
+    def stopped_during(inverse, values, n):  # the signal handler's call, between the sums
+        interrupt(KeyboardInterrupt())
+        return sum_by(inverse, values, n)
+
+    monkeypatch.setattr(pointcloud, "_sum_by", stopped_during)
+    with pytest.raises(KeyboardInterrupt):
+        cloud.points()
+    monkeypatch.setattr(pointcloud, "_sum_by", sum_by)
+    xyz, rgb = cloud.points()
+    ref_xyz, ref_rgb = voxel_downsample(np.concatenate(parts), np.concatenate(colors), 0.05)
+    np.testing.assert_allclose(xyz, ref_xyz, atol=1e-12)
+    np.testing.assert_array_equal(rgb, ref_rgb)
+
+
 def test_backproject():
     K = Intrinsics(100.0, 110.0, 4.5, 3.0, 10, 8)
     depth = np.zeros((8, 10), np.float32)

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ti_fusion.interrupts import critical
+
 _KEY_BITS = 21                      # bits per axis in a packed voxel key (3 × 21 = 63 bits)
 _KEY_HALF = 1 << (_KEY_BITS - 1)
 
@@ -127,8 +129,14 @@ class VoxelCloud:
             self._flush()
 
     def _flush(self) -> None:
+        """Merge the pending clouds into the sums. A stop (Ctrl-C, SIGTERM) waits until the sums are whole
+        again (``critical``): the run's last map snapshot reads them on its way out."""
         if not self._pending:
             return
+        with critical():
+            self._merge_pending()
+
+    def _merge_pending(self) -> None:
         parts = self._pending if self._keys is None else [(self._keys, self._xyz_sum, self._rgb_sum, self._count)] + self._pending
         self._pending, self._pending_voxels = [], 0
         if len(parts) == 1:

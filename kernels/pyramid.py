@@ -44,6 +44,7 @@ once and reuse them: a new one compiles (or loads) its own instances.
 """
 
 
+import weakref
 from dataclasses import astuple
 
 import numpy as np
@@ -671,7 +672,7 @@ class FramePyramid:
         self._geometry_for = None  # the intrinsics it holds
         # the frame's colour packed for the fusion step (``compute(..., color=...)``): per level, on first use
         self._color: dict[int, object] = {}
-        self._color_source = None  # (image, level) that the last ``compute`` packed, else None
+        self._color_source = None  # (weak reference to the image, level) the last ``compute`` packed, else None
 
     @classmethod
     def lent_to(cls, owner, settings: PyramidConfig, height: int, width: int, levels: int = 3,
@@ -715,15 +716,15 @@ class FramePyramid:
                 self.compute_intensity(grey)
             if packed is not None:
                 pack_color(packed[1], packed[0], packed[2])
-        if packed is not None:
-            self._color_source = (color, int(color_level))
+        if packed is not None:  # weakly: the pyramid does not keep the frame's image alive
+            self._color_source = (weakref.ref(color), int(color_level))
 
     def packed_color(self, level: int, color: np.ndarray):
         """The frame's colour packed r | g << 8 | b << 16 at ``level`` (a Taichi field of ``shapes[level]``)
         if the last ``compute`` packed this very image (``color``, the same object) at that level, else
         None."""
         source = self._color_source
-        if source is None or source[0] is not color or source[1] != level:
+        if source is None or source[0]() is not color or source[1] != level:
             return None
         return self._color[level]
 

@@ -4,6 +4,7 @@ Random depths are multiples of 1/1024 m: exactly representable in float32 with e
 the depth-jump and range tests of the kernels and of the references never disagree by a rounding.
 """
 
+import weakref
 from types import SimpleNamespace
 
 import numpy as np
@@ -358,6 +359,12 @@ def test_colour_packed_with_the_depth(arch, rng, monkeypatch, input_level, radiu
     np.testing.assert_array_equal(packed.to_numpy(), c[..., 0] | (c[..., 1] << 8) | (c[..., 2] << 16))
     assert pyramid.packed_color(level, color.copy()) is None  # another image
     assert pyramid.packed_color((level + 1) % 3, color) is None  # another level
+    again = color.copy()
+    pyramid.compute(depth, K_in, grey, again, level)
+    assert pyramid.packed_color(level, again) is not None and pyramid.packed_color(level, color) is None
+    gone = weakref.ref(again)
+    del again
+    assert gone() is None  # the pyramid keeps no frame's image alive
     pyramid.compute(depth, K_in)
     assert pyramid.packed_color(level, color) is None  # the next frame came without colour
     with pytest.raises(ValueError, match="colour of shape"):

@@ -95,13 +95,13 @@ class FusionImages:
         return self.index_map.index
 
     def set_color(self, rgb: np.ndarray, step: int = 1) -> None:
-        """``color`` from a uint8 H×W×3 RGB image taken at every ``step``-th row and column (``set_color``)."""
+        """``color`` from a uint8 H×W×3 RGB image taken at every ``step``-th row and column (``pack_color``)."""
         rgb = np.ascontiguousarray(rgb, dtype=np.uint8)
         shape = tuple(-(-n // step) for n in rgb.shape[:2])
         if rgb.ndim != 3 or rgb.shape[2] != 3 or shape != (self.height, self.width):
             raise ValueError(f"colour of shape {rgb.shape} at every {step}th pixel for images of shape "
                              f"{(self.height, self.width)}")
-        set_color(self, rgb, int(step))
+        pack_color(self.color, rgb, int(step))
 
     def radial_confidence(self, cx: float, cy: float, sigma: float) -> None:
         """Fill ``radial`` for these intrinsics and σ, unless it already holds them."""
@@ -221,10 +221,9 @@ def project_compatible_loop(s: ti.template(), n, img: ti.template(), pose: ti.te
 
 
 @ti.kernel
-def set_color(img: ti.template(), rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), step: ti.i32):
-    """img.color = the frame's uint8 RGB image at every ``step``-th row and column (the map's level),
-    packed r | g << 8 | b << 16: the input image crosses as it is, with no copy on the host."""
-    pack_color_loop(img.color, rgb, step)
+def pack_color(color: ti.template(), rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), step: ti.i32):
+    """``pack_color_loop`` in one launch: the input image crosses as it is, with no copy on the host."""
+    pack_color_loop(color, rgb, step)
 
 
 @ti.func

@@ -54,7 +54,7 @@ from taichi.lang.util import in_taichi_scope
 
 from ti_fusion.backend import serial_for
 from ti_fusion.kernels.common import INT_MAX, data_oriented
-from ti_fusion.kernels.fusion import pack_color_loop
+from ti_fusion.kernels.fusion import pack_color, pack_color_loop
 from ti_fusion.kernels.surfels import Pool
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import PyramidConfig
@@ -467,12 +467,6 @@ def input_maps(fine: ti.types.ndarray(dtype=ti.f32, ndim=2), raw: ti.template(),
         intensity_maps_loops(grey, intensity, intensity_grad, intensity_rows, True, serial_input, serial)
     if ti.static(with_color):
         pack_color_loop(color, rgb, color_step)
-
-
-@ti.kernel
-def pack_color(color: ti.template(), rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), step: ti.i32):
-    """``pack_color_loop`` in one launch."""
-    pack_color_loop(color, rgb, step)
 
 
 @ti.func

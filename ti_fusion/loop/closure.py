@@ -32,7 +32,6 @@ import numpy as np
 
 from ti_fusion.config import Config
 from ti_fusion.geometry import invert, renormalize
-from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.loop.keyframes import Keyframe, KeyframeSelector, grid_points
 from ti_fusion.loop.place_recognition import PlaceDatabase
 from ti_fusion.loop.pose_graph import PoseGraph, edge_covariance, frame_covariance
@@ -91,7 +90,7 @@ class LoopClosure:
         self.kept: list[tuple[int, int]] = []  # verified loops within loop.min_loop_error of the poses: in the graph,
         # nothing moved
         self.ms: dict[str, list[float]] = {"detect": [], "verify": [], "optimise": [], "correct": []}
-        self._source: FramePyramid | None = None  # an earlier keyframe's maps for verification (first keyframe on)
+        self._warmed_up = False  # the kernels that build maps from a stored depth are loaded (``after_frame``)
 
     # -- the verb -------------------------------------------------------------------------------
     def after_frame(self, frame, result) -> LoopReport | None:
@@ -112,17 +111,18 @@ class LoopClosure:
         self.database.add(kf)
         report.ms["detect"] = watch.lap()
         self.ms["detect"].append(report.ms["keyframe"] + report.ms["detect"])
-        if self._source is None and kf.frame - self.keyframes[0].frame >= self.gap - self.gap // 4:
+        if not self._warmed_up and kf.frame - self.keyframes[0].frame >= self.gap - self.gap // 4:
             # Load what building maps from a stored depth needs beyond tracking's kernels (the depth's upload
             # into the scratch maps) now, three quarters of the candidates' frame gap in (no keyframe can have
             # a candidate before the gap), not at the first candidate, and not in a run too short to have
             # candidates at all (a short run, a test, the default 120-frame run pays none of it); not counted
             # as detection.
             with Stopwatch(report.ms, "warmup"):
-                fill(self._source_pyramid(), kf)
+                fill(self.slam.scratch_pyramid(), kf)
+            self._warmed_up = True
         verified = None
         for place in places:
-            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self._source_pyramid(),
+            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self.slam.scratch_pyramid(),
                                      self.slam.current_frame_pyramid(), target_ready=True)
             report.candidates.append(c)
             self.candidates.append(c)
@@ -154,13 +154,6 @@ class LoopClosure:
         if icp.color_inliers > 0:
             return combined_system(icp.sums, self.config.icp.color_weight)[0]
         return unpack_sums(icp.sums)["AtA"]
-
-    def _source_pyramid(self) -> FramePyramid:
-        """The maps that verification builds an earlier keyframe's stored depth in (a keyframe's size: the
-        map's): the SLAM's scratch maps between frames (``DenseSLAM.scratch_pyramid``)."""
-        if self._source is None:
-            self._source = self.slam.scratch_pyramid()
-        return self._source
 
     def _make_keyframe(self, frame, pose: np.ndarray) -> Keyframe:
         depth, K = self.slam.keyframe_depth()  # at the map's resolution

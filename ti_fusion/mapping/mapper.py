@@ -61,6 +61,19 @@ class SurfelMapper:
     def count(self) -> int:
         return self.map.count
 
+    def frame_level(self, frame_pyramid) -> int:
+        """The map's level (``fusion.level``, counted from the input) counted in ``frame_pyramid``'s levels:
+        the maps ``integrate`` fuses, and where a frame's colour is packed for it; ValueError if the pyramid
+        does not have it."""
+        input_width = frame_pyramid.input_shape[1]
+        map_level = self.config.map_level(input_width)
+        level = map_level - frame_pyramid.input_level
+        if not 0 <= level < frame_pyramid.levels:
+            raise ValueError(f"fusion.level {map_level} (for {input_width} px wide frames) needs frame maps "
+                             f"with level {map_level} of the input; these have levels {frame_pyramid.input_level}"
+                             f"..{frame_pyramid.input_level + frame_pyramid.levels - 1}")
+        return level
+
     def integrate(self, frame_pyramid, color: np.ndarray | None, pose: np.ndarray, frame_index: int,
                   timer: StageTimer | None = None) -> FusionStats:
         """Fuse one frame: project, filter (pass 1 and 2), merge, add, remove.
@@ -72,13 +85,8 @@ class SurfelMapper:
         With a ``timer``, every stage is synchronised and timed (ms in the stats and in the timer).
         """
         cfg = self.config
-        input_width = frame_pyramid.input_shape[1]
-        map_level = cfg.map_level(input_width)  # counted from the input resolution
-        level = map_level - frame_pyramid.input_level  # the same level, counted in these maps
-        if not 0 <= level < frame_pyramid.levels:
-            raise ValueError(f"fusion.level {map_level} (for {input_width} px wide frames) needs frame maps "
-                             f"with level {map_level} of the input; these have levels {frame_pyramid.input_level}"
-                             f"..{frame_pyramid.input_level + frame_pyramid.levels - 1}")
+        level = self.frame_level(frame_pyramid)
+        map_level = level + frame_pyramid.input_level  # counted from the input resolution
         vertex, normal, depth = frame_pyramid.vertex[level], frame_pyramid.normal[level], frame_pyramid.depth[level]
         K: Intrinsics = frame_pyramid.intrinsics[level]
         H, W = frame_pyramid.shapes[level]

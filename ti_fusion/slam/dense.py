@@ -225,7 +225,7 @@ class DenseSLAM:
                     grey[~frame.meta["color_valid"]] = -1.0
             # depth, grey and the colour that fusion reads, in one launch
             self.frame_pyramid.compute(frame.depth, frame.intrinsics, grey, frame.color,
-                                       self.map_level - self.frame_pyramid.input_level)
+                                       self.mapper.frame_level(self.frame_pyramid))
         if not self.poses and (problem := self.unusable(frame)):
             self.skipped.append((frame.index, problem))
             return FrameResult(frame.index, frame.timestamp, None, Tracking.SKIPPED, problem, ms=dict(timer.last))
@@ -459,7 +459,7 @@ class DenseSLAM:
     # -- loop closure's door: ti_fusion/loop/closure.py uses these and nothing else of this class --------
     def keyframe_depth(self) -> tuple[np.ndarray, Intrinsics]:
         """The depth of the frame just registered at the map's resolution, and the camera of that image."""
-        level = self.map_level - self.frame_pyramid.input_level
+        level = self.mapper.frame_level(self.frame_pyramid)
         return self.frame_pyramid.depth[level].to_numpy(), self.frame_pyramid.intrinsics[level]
 
     def current_frame_pyramid(self) -> FramePyramid:

@@ -79,8 +79,8 @@ class FuseStep:
         # The frame maps that the SLAM loop fuses: averaged down to the map's level on input (by default),
         # the same smoothed depth and normals.
         input_level = config.frame_input_level(K.width)
-        self.map_level = config.fusion.map_level(K.width) - input_level  # in the frame maps
-        self.pyramid = FramePyramid.lent_to(self, config.pyramid, K.height, K.width, self.map_level + 1, input_level)
+        self.pyramid = FramePyramid.lent_to(self, config.pyramid, K.height, K.width,
+                                            config.fusion.map_level(K.width) - input_level + 1, input_level)
         self.mapper = SurfelMapper(config.fusion)
         self.fused = 0  # frames fused so far: the time stamp the surfels store
         self.naive = 0  # valid depth pixels of every frame: the points a map without fusion would hold
@@ -91,7 +91,8 @@ class FuseStep:
         timer = StageTimer()  # this frame's stages, each synchronised with the backend
         with timer.stage("pyramid"):
             # the colour that fusion reads crosses with the depth (FramePyramid.packed_color)
-            self.pyramid.compute(frame.depth, frame.intrinsics, None, frame.color, self.map_level)
+            self.pyramid.compute(frame.depth, frame.intrinsics, None, frame.color,
+                                 self.mapper.frame_level(self.pyramid))
         stats = self.mapper.integrate(self.pyramid, frame.color, frame.gt_pose, self.fused, timer)
         self.fused += 1
         self.naive += int((frame.depth > 0).sum())

@@ -769,6 +769,7 @@ class PointToPlane:
         self.target = ti.field(ti.i32, shape=self.max_pixels)  # per-pixel scratch (``_project_chunk``)
         self.state = None  # ``iterate``'s params: state, settings, records (``begin_iterations``)
         self.state_device = None  # off the CPU, its copy on the device (a Taichi field)
+        self._state_tree = None  # the SNode tree that holds ``state_device``
         self._device_newer = False  # the device copy has records the host copy lacks
         self._settings_on_device = None  # the settings rows last copied to the device
         self.params = np.zeros((1, N_PARAMS), dtype=self.np_real)
@@ -859,10 +860,11 @@ class PointToPlane:
         device once, with the first launch."""
         rows = RECORDS + max(64, max_records)
         if self.state is None or self.state.shape[0] < rows:
+            if self.state is not None:  # at least double: each new device field is a new instance of ``iterate``
+                rows = max(rows, RECORDS + 2 * (self.state.shape[0] - RECORDS))
             self.state = np.zeros((rows, PARAMS_WIDTH), dtype=self.np_real)
             if not self.on_host:
-                self.state_device = ti.field(self.real, shape=self.state.shape)
-                self._settings_on_device = None
+                self._allocate_state_device(self.state.shape)
         self.state[STATE, P_R:P_T + 3] = flatten_pose(T)
         self.state[STATE, P_RECORDS] = 0
         self.state[STATE, P_DONE] = 0
@@ -870,6 +872,16 @@ class PointToPlane:
         self._launched = 0
         self._uploaded = False
         self._device_newer = False
+
+    def _allocate_state_device(self, shape: tuple[int, int]) -> None:
+        """The device copy of the state array, in a tree of its own: the one it replaces is freed."""
+        if self._state_tree is not None:
+            self._state_tree.destroy()
+        fb = ti.FieldsBuilder()
+        self.state_device = ti.field(self.real)
+        fb.dense(ti.ij, shape).place(self.state_device)
+        self._state_tree = fb.finalize()
+        self._settings_on_device = None
 
     def begin_level(self, src_v, src_n, tgt_v, tgt_n, K, dist_threshold: float, normal_threshold_deg: float,
                     robust: str, robust_scale: float, level: int, min_inliers: int, stop_update: float,

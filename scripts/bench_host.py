@@ -3,7 +3,7 @@
 reads, kernel time and host overhead, on any backend.
 
     python scripts/bench_host.py [DATA ...] [--frames N] [--downsample F] [--arch cpu|cuda|vulkan]
-                                 [--json OUT] [--top K] [--set SECTION.KEY=VALUE ...]
+                                 [--repeat N] [--json OUT] [--top K] [--set SECTION.KEY=VALUE ...]
 
 DATA: dataset folders, and ``synthetic`` for the synthetic sequence (default: redkitchen at
 ../shared/data/redkitchen-7scenes when present, and the synthetic sequence). The frames are read into memory
@@ -12,7 +12,8 @@ counts), with ``ti.sync()`` after it so that a GPU's queued work is inside the f
 frames (kernel compilation) are left out of every column. ``--set`` overrides the default config as
 ti-fusion's ``--set`` does (e.g. ``icp.color_weight=0`` for the synthetic sequence without colour).
 
-Each data set runs twice, each in a child process of its own:
+Each data set runs twice (``--repeat N``: 2N times, alternating, reported by the median run of each kind),
+each in a child process of its own:
 - counting (no profiler): ``launches`` = calls of Taichi's ``Kernel.launch_kernel`` (this project's kernels
   and Taichi's own, e.g. the copy kernels behind ``to_numpy``/``from_numpy``/``fill``); ``reads`` =
   device→host reads, counted by wrappers around Taichi's Python API, not by hand: ``to_numpy`` of a field
@@ -22,9 +23,17 @@ Each data set runs twice, each in a child process of its own:
   time of ``register_frame`` + sync;
 - profiling (``kernel_profiler=True``): ``kernel ms`` = Taichi's kernel profiler's total per frame (cpu
   and cuda; Taichi has no kernel profiler on vulkan: n/a, and that run is skipped there), ``profiled ms``
-  the processing time of that run (the profiler synchronises after every kernel, which adds to it),
-  ``host ms`` = profiled ms − kernel ms: Python, launches, waiting for reads; ``busy`` = kernel / profiled ms. Both from one process, so that
-  a load on the machine that changes between the two runs does not enter the difference.
+  the processing time of that run (the profiler synchronises after every kernel, which adds to it).
+``host ms`` = processing ms (the counting run) − kernel ms (the profiling run), issue 29's definition: what
+the frame spends outside Taichi's kernels in an ordinary run (Python, launch paths, waiting for reads; on
+the CPU, where the profiler times each parallel loop from its dispatch to its barrier, the thread pool's
+dispatch counts as kernel time). ``host ms (profiled)`` = profiled ms − kernel ms, both from the profiling
+run: it also holds the profiler's own cost (on a GPU its synchronisation after every kernel, which
+serialises the host's launches with the device's work), but no load that changes between the two runs
+does. Between two processes on a shared machine ``host ms`` drifts by milliseconds (it can even come out
+below zero): ``--repeat 3`` or more on a quiet machine. ``busy`` = kernel ms / processing ms, the
+device's share of an ordinary frame (issue 29's "GPU busy"), and ``busy (profiled)`` the same of the
+profiling run.
 ``--top K`` also prints the K kernels launched most per frame and, from the profiling run, the K that took
 the most kernel time per frame (the profiler's records summed by kernel, every instance and parallel loop
 of a kernel together).
@@ -197,6 +206,27 @@ def _run_child(args, data: str, profile: bool) -> dict:
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
+def _median_run(runs: list[dict], key: str) -> dict:
+    """Of repeated runs, the one with the median ``key`` (the first failed one, if any failed)."""
+    failed = [r for r in runs if "error" in r]
+    if failed:
+        return failed[0]
+    timed = sorted((r for r in runs if r.get(key) is not None), key=lambda r: r[key])
+    return timed[(len(timed) - 1) // 2] if timed else runs[0]
+
+
+def _cell(x: float | None, spec: str = ".2f") -> str:
+    return "n/a" if x is None else format(x, spec)
+
+
+def _cells(xs: list) -> str:
+    return " / ".join(_cell(x) for x in xs)
+
+
+def _percent(part: float | None, whole: float | None) -> str:
+    return "n/a" if part is None or not whole else f"{100 * part / whole:.0f} %"
+
+
 def _name(data: str) -> str:
     return "synthetic" if data == "synthetic" else Path(data).name
 
@@ -209,6 +239,9 @@ def main(argv=None) -> int:
     parser.add_argument("--arch", default="cpu", choices=("cpu", "cuda", "vulkan"))
     parser.add_argument("--json", help="write the rows (with per-kernel launches and poses) to this file")
     parser.add_argument("--top", type=int, default=0, help="also print the K kernels launched most per frame")
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="run each data set N times, counting and profiling runs alternating, and report "
+                             "the median run of each (host ms between two processes needs a steady machine)")
     parser.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
                         help="a config override, as ti-fusion's --set (repeatable), e.g. icp.color_weight=0")
     parser.add_argument("--child", action="store_true", help=argparse.SUPPRESS)
@@ -233,17 +266,26 @@ def main(argv=None) -> int:
             return 2
     rows = []
     sets = "".join(f" --set {text}" for text in args.set)
+    if args.repeat < 1:
+        print(f"bench_host.py: --repeat {args.repeat}: give at least 1", file=sys.stderr)
+        return 2
     print(f"bench_host.py --arch {args.arch} --frames {args.frames} --downsample {args.downsample}{sets} "
-          f"({os.cpu_count()} CPUs; first {WARMUP} frames left out)")
-    print("| data | arch | frames | launches/frame | reads/frame | kernel ms | host ms | profiled ms | busy | "
-          "processing ms | fps processing |")
-    print("|---|---|---|---|---|---|---|---|---|---|---|")
+          f"--repeat {args.repeat} ({os.cpu_count()} CPUs; first {WARMUP} frames left out; median runs)")
+    print("| data | arch | frames | launches/frame | reads/frame | kernel ms | host ms | processing ms | "
+          "fps processing | busy | profiled ms | host ms (profiled) | busy (profiled) |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for data in args.data:
-        count = _run_child(args, data, profile=False)
-        # Taichi has no kernel profiler on vulkan, and asking for it there took > 3 min for 40 frames on an
-        # H200 with NVIDIA's driver (docs/PERFORMANCE.md): the profiling run is left out on vulkan.
-        prof = _run_child(args, data, profile=True) if args.arch != "vulkan" else {}
+        counts, profs = [], []
+        for _ in range(args.repeat):  # alternating, so that a drifting load reaches both kinds of run alike
+            counts.append(_run_child(args, data, profile=False))
+            # Taichi has no kernel profiler on vulkan, and asking for it there took > 3 min for 40 frames on
+            # an H200 with NVIDIA's driver (docs/PERFORMANCE.md): the profiling run is left out on vulkan.
+            profs.append(_run_child(args, data, profile=True) if args.arch != "vulkan" else {})
+        count, prof = _median_run(counts, "processing_ms"), _median_run(profs, "kernel_ms")
         row = dict(count)
+        row["runs"] = {"processing_ms": [c.get("processing_ms") for c in counts],
+                       "kernel_ms": [q.get("kernel_ms") for q in profs],
+                       "profiled_processing_ms": [q.get("processing_ms") for q in profs]}
         if "error" in count:
             print(f"| {_name(data)} | {args.arch} | {count['error']} |")
             rows.append(row)
@@ -252,14 +294,18 @@ def main(argv=None) -> int:
         row["kernel_ms_by_kernel"] = prof.get("kernel_ms_by_kernel", {})
         row["profiled_processing_ms"] = prof.get("processing_ms")
         k, p, q = row["kernel_ms"], row["processing_ms"], row["profiled_processing_ms"]
-        host = f"{q - k:.2f}" if k is not None and q is not None else "n/a"
-        busy = f"{100 * k / q:.0f} %" if k is not None and q else "n/a"
-        kernel = f"{k:.2f}" if k is not None else "n/a"
-        profiled = f"{q:.2f}" if q is not None else "n/a"
+        row["host_ms"] = None if k is None else p - k
+        row["profiled_host_ms"] = None if k is None or q is None else q - k
         print(f"| {_name(data)} | {count['arch']} | {count['frames']} ({count['tracked']} tracked) | "
-              f"{count['launches']:.1f} | {count['reads']:.2f} | {kernel} | {host} | {profiled} | {busy} | {p:.2f} | "
-              f"{1e3 / p:.1f} |")
+              f"{count['launches']:.1f} | {count['reads']:.2f} | {_cell(k)} | {_cell(row['host_ms'])} | {p:.2f} | "
+              f"{1e3 / p:.1f} | {_percent(k, p)} | {_cell(q)} | {_cell(row['profiled_host_ms'])} | {_percent(k, q)} |")
         rows.append(row)
+    if args.repeat > 1:
+        for row in rows:
+            if "runs" in row:
+                runs = row["runs"]
+                print(f"{_name(row['data'])}, every run in order: processing ms {_cells(runs['processing_ms'])}; "
+                      f"kernel ms {_cells(runs['kernel_ms'])}; profiled ms {_cells(runs['profiled_processing_ms'])}")
     if args.top:
         for row in rows:
             if "error" in row:

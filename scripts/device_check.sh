@@ -152,9 +152,9 @@ run() {
 import json, sys
 from pathlib import Path
 out = Path(sys.argv[1])
-print("| arch | data | launches/frame | reads/frame | kernel ms | host ms (profiled) | processing ms | fps processing | busy "
-      "| slam fps proc | slam fps loop | ATE m |")
-print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+print("| arch | data | launches/frame | reads/frame | kernel ms | host ms | host ms (profiled) | processing ms "
+      "| fps processing | busy | slam fps proc | slam fps loop | ATE m |")
+print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 for host in sorted(out.glob("host_*.json")):
     arch = host.stem[5:]
     for r in json.loads(host.read_text()):
@@ -167,8 +167,9 @@ for host in sorted(out.glob("host_*.json")):
         k, p, q = r.get("kernel_ms"), r["processing_ms"], r.get("profiled_processing_ms")
         cell = lambda x, f: "n/a" if x is None else format(x, f)
         print(f"| {arch} | {name} | {r['launches']:.1f} | {r['reads']:.2f} | {cell(k, '.2f')} | "
+              f"{cell(None if k is None else p - k, '.2f')} | "
               f"{cell(None if k is None or q is None else q - k, '.2f')} | {p:.2f} | {1e3 / p:.1f} | "
-              f"{cell(None if k is None or not q else 100 * k / q, '.0f')} | {cell(s.get('fps'), '.1f')} | "
+              f"{cell(None if k is None else 100 * k / p, '.0f')} % | {cell(s.get('fps'), '.1f')} | "
               f"{cell(s.get('fps_wall'), '.1f')} | {cell(s.get('ate_rmse_m'), '.4f')} |")
 for t in sorted(out.glob("launch_*.txt")):
     rows = [line for line in t.read_text().splitlines() if line.startswith("| ") and "µs" not in line]

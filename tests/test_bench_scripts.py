@@ -21,6 +21,11 @@ def test_bench_host_names_a_bad_override():
     assert "Traceback" not in out.stderr
 
 
+def test_bench_host_names_a_bad_repeat():
+    out = run("bench_host.py", "synthetic", "--repeat", "0")
+    assert out.returncode == 2 and out.stderr.strip() == "bench_host.py: --repeat 0: give at least 1"
+
+
 def test_bench_launch_prints_a_row_per_argument_kind():
     out = run("bench_launch.py", "--arch", "cpu", "--launches", "3")
     assert out.returncode == 0, out.stderr

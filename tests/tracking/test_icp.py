@@ -526,6 +526,28 @@ def test_iterate_refuses_more_iterations_than_records(cpu, rng, sequence):
         kernels.iterate(capacity)
 
 
+def test_a_longer_schedule_grows_the_state_and_frees_the_old(arch, rng, sequence):
+    """An align whose schedule outgrows the state array's records gets a larger one, at least twice the
+    records (each new device field is a new instance of ``iterate``), and off the CPU the old device
+    field's tree is freed; the longer schedule then runs as on a fresh instance."""
+    short = ICPConfig(iterations=(4, 2, 2))
+    src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=short, smooth=2)
+    icp = ICP(short)
+    kernels = icp._kernels(src.width * src.height)
+    kernels.state = None  # a fresh state (the instance is shared with the other tests)
+    assert icp.align(src, tgt).failure is None
+    first = kernels.records.shape[0]
+    old_tree = kernels._state_tree
+    long = ICPConfig(iterations=(40, 30, 30), stop_update=0.0)
+    grown = ICP(long).align(src, tgt)
+    assert kernels.records.shape[0] >= max(100, 2 * first)
+    if arch != "cpu":
+        assert kernels._state_tree is not old_tree
+    assert grown.failure is None
+    assert [(r.level, r.iteration) for r in grown.iterations] == \
+        [(r.level, r.iteration) for r in _align_in_python(long, src, tgt).iterations]
+
+
 def test_single_plane_is_degenerate(cpu):
     K = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
     v, u = np.mgrid[0:K.height, 0:K.width]

@@ -275,6 +275,9 @@ class DatasetConfig:
     color_registered: bool = False  # folder, bag and log: the colour images are registered to depth (pixel for
                                     # pixel), so photometric tracking may use them; TUM, ICL-NUIM and synthetic
                                     # are, 7-Scenes is not (its own word); a bag with one frame_id for both is
+    read_threads: NonNegativeInt = 0  # threads that read frames ahead of the loop where frames are image files
+                                      # (folder, TUM, 7-Scenes, ICL-NUIM; other inputs: one); 0 = a quarter of
+                                      # the CPUs, 1 to 4 (docs/PERFORMANCE.md, reading ahead)
 
 
 @dataclass
@@ -648,6 +651,7 @@ RENAMED_SECTIONS = {"maps": "it is [pyramid] (pyramid.depth_smooth_radius, pyram
 # benchmarks settled on and most runs leave them alone. They stay in their stage's section, so that a key keeps
 # one name in files, --set and the code.
 ADVANCED = {
+    "dataset": ("read_threads",),
     "synth": ("fx", "min_range", "max_range", "grazing_deg", "baseline", "subpixel", "sensor_width", "color_noise",
               "depth_noise_scale"),
     "pyramid": ("normal_max_depth_jump", "depth_sigma", "depth_smooth_radius"),

@@ -114,6 +114,43 @@ def test_the_tum_pngs_as_a_plain_folder_give_the_same_trajectory(cpu, tum_sequen
     assert run["ate_rmse_m"] == pytest.approx(tum_run["ate_rmse_m"], abs=1e-6)
 
 
+def test_three_reader_threads_give_the_same_run(cpu, tum_sequence, tum_run, tmp_path):
+    """Image files read by three threads at once (``dataset.read_threads``): the frames come in order, so
+    the trajectory is the one-reader run's, bit for bit."""
+    three = slam(DatasetConfig(path=str(tum_sequence), read_threads=3), tmp_path / "three")
+    assert three["read_threads"] == 3 and three["frames"] == FRAMES
+    np.testing.assert_array_equal(three["trajectory"][1], tum_run["trajectory"][1])
+
+
+def test_opencv_log_level_comes_back_after_overlapping_readers():
+    """Readers on several threads silence OpenCV's log, a process-wide level, around each decode: the
+    level before the first one is the level after the last one, however their spans overlap."""
+    import threading
+
+    from ti_fusion.io.datasets.imageio import _opencv_silenced
+
+    logging = getattr(getattr(cv2, "utils", None), "logging", None)
+    if logging is None:
+        pytest.skip("this OpenCV build has no cv2.utils.logging")
+    before = logging.getLogLevel()
+    inside, leave = threading.Barrier(2), threading.Event()
+
+    def reader(wait: bool):
+        with _opencv_silenced():
+            inside.wait(timeout=60)
+            assert logging.getLogLevel() == logging.LOG_LEVEL_SILENT
+            if wait:
+                leave.wait(timeout=60)  # the other leaves first: the level must stay silent for this one
+
+    a = threading.Thread(target=reader, args=(True,))
+    a.start()
+    reader(False)  # leaves first
+    assert logging.getLogLevel() == logging.LOG_LEVEL_SILENT
+    leave.set()
+    a.join()
+    assert logging.getLogLevel() == before
+
+
 def test_millimetre_folder_from_the_command_line_tracks_as_well(cpu, tum_sequence, tum_run, tmp_path):
     """RealSense-like: millimetres, plain numbers, color/, camera.yaml, ground truth by frame number."""
     root = tum_to_folder(tum_sequence, tmp_path / "realsense", millimetres=True)

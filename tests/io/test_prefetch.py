@@ -1,5 +1,6 @@
-"""Reading frames ahead on a background thread (``ti_fusion.io.prefetch``): order, a reading error raised
-at its own frame, the thread stopped however the loop ends, and the pipeline's results unchanged."""
+"""Reading frames ahead on background threads (``ti_fusion.io.prefetch``): order, a reading error raised
+at its own frame, the threads stopped however the loop ends, several readers at once, and the pipeline's
+results unchanged."""
 
 from __future__ import annotations
 
@@ -17,7 +18,7 @@ from ti_fusion.errors import InputError
 from ti_fusion.io.datasets import open_dataset
 from ti_fusion.io.mcap_log import read_log
 from ti_fusion.io.outputs import RunDir
-from ti_fusion.io.prefetch import Prefetcher
+from ti_fusion.io.prefetch import Prefetcher, reader_threads
 from ti_fusion.io.trajectory import read_tum
 from ti_fusion.slam.pipeline import SLAMPipeline
 
@@ -34,12 +35,16 @@ class Items:
     def __init__(self, n: int, bad: int = -1, error: BaseException | None = None, slow_every: int = 0):
         self.n, self.bad, self.error, self.slow_every = n, bad, error, slow_every
         self.reads = 0
+        self.read = []  # the indices read, in the order their reads began
+        self._lock = threading.Lock()
 
     def __len__(self) -> int:
         return self.n
 
     def __getitem__(self, i: int) -> int:
-        self.reads += 1
+        with self._lock:  # several readers may count at once
+            self.reads += 1
+            self.read.append(i)
         if i == self.bad:
             raise self.error
         if self.slow_every and i % self.slow_every == 0:
@@ -106,6 +111,71 @@ def test_an_interrupt_raised_while_reading_reaches_the_loop():
     assert not _readers()
 
 
+@pytest.mark.parametrize("workers", [2, 4])
+def test_several_readers_hand_out_every_frame_in_order(workers):
+    data = Items(300, slow_every=3)
+    interval = sys.getswitchinterval()
+    with Prefetcher(data, ahead=3, workers=workers) as frames:
+        assert len(_readers()) == workers
+        got = [(i, item) for i, item, read_ms in frames]
+    assert got == [(i, i) for i in range(300)]
+    assert sorted(data.read) == list(range(300))  # each frame read once
+    assert not _readers()
+    assert sys.getswitchinterval() == interval
+
+
+def test_several_readers_stay_within_ahead_of_the_caller():
+    """No reader starts frame j before the caller has taken frame j − ahead: at most ``ahead`` frames (at
+    least one per reader) are read or being read beyond what was handed out."""
+    data = Items(100)
+    with Prefetcher(data, ahead=2, workers=4) as frames:  # ahead raised to one per reader: 4
+        deadline = time.monotonic() + DEADLINE_S
+        while data.reads < 4 and time.monotonic() < deadline:
+            time.sleep(0.001)
+        time.sleep(0.05)
+        assert sorted(data.read) == [0, 1, 2, 3]
+        for k in range(10):
+            next(frames)
+            time.sleep(0.01)
+            assert max(data.read) <= k + 4
+    assert not _readers()
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_with_several_readers_an_error_comes_at_its_frame_and_nothing_after_it(workers):
+    error = InputError("frame-000007.depth.png", "cannot read the image")
+    done = []
+    with pytest.raises(InputError) as caught:
+        with Prefetcher(Items(50, bad=7, error=error, slow_every=2), ahead=3, workers=workers) as frames:
+            for i, item, _ in frames:
+                done.append(item)
+    assert caught.value is error and done == list(range(7))
+    assert not _readers()
+
+
+def test_an_interrupted_loop_stops_every_reader():
+    data = Items(10_000)
+    with pytest.raises(KeyboardInterrupt):
+        with Prefetcher(data, ahead=3, workers=3) as frames:
+            for i, _, _ in frames:
+                if i == 5:
+                    raise KeyboardInterrupt
+    assert not _readers()
+    assert data.reads <= 6 + 3
+
+
+def test_reader_threads_by_setting_and_dataset():
+    class Files:
+        concurrent_reads = True
+
+    class Bag:
+        concurrent_reads = False
+
+    assert reader_threads(3, Files()) == 3 and reader_threads(3, Bag()) == 1 and reader_threads(0, Bag()) == 1
+    assert reader_threads(0, object()) == 1  # a dataset that does not say: one reader
+    assert 1 <= reader_threads(0, Files()) <= 4
+
+
 # --------------------------------------------------------------------------------------------------
 # In the pipeline: frames read on the thread give the results of frames read on the loop's own thread
 # --------------------------------------------------------------------------------------------------
@@ -140,16 +210,25 @@ def _config() -> Config:
 
 
 def test_pipeline_reads_ahead_with_the_same_results(cpu, tmp_path):
+    """Frames read on the loop's thread, on one reader and on three readers at once (a dataset of files,
+    ``concurrent_reads``): the same trajectory and map; the summary says how many threads read."""
     cfg = _config()
     dataset = open_dataset(cfg.dataset, cfg.synth)
     inline = SLAMPipeline(dataset, cfg, RunDir("slam", tmp_path / "inline"), current_backend(),
                           show_progress=False).run()
     threaded = SLAMPipeline(InMemory(dataset), cfg, RunDir("slam", tmp_path / "threaded"), current_backend(),
                             show_progress=False).run()
-    (_, a), (_, b) = (read_tum(tmp_path / name / "trajectory.tum") for name in ("inline", "threaded"))
+    cfg3 = _config()
+    cfg3.dataset.read_threads = 3
+    files = InMemory(dataset)
+    files.concurrent_reads = True
+    three = SLAMPipeline(files, cfg3, RunDir("slam", tmp_path / "three"), current_backend(), show_progress=False).run()
+    (_, a), (_, b), (_, c) = (read_tum(tmp_path / name / "trajectory.tum") for name in ("inline", "threaded", "three"))
     np.testing.assert_array_equal(a, b)
-    assert inline["surfels"] == threaded["surfels"]
-    for s in (inline, threaded):
+    np.testing.assert_array_equal(a, c)
+    assert inline["surfels"] == threaded["surfels"] == three["surfels"]
+    assert (inline["read_threads"], threaded["read_threads"], three["read_threads"]) == (0, 1, 3)
+    for s in (inline, threaded, three):
         assert s["fps_wall"] > 0 and s["frames"] == 8 and "read" in s["ms_per_stage"]
         assert s["first_frame_s"] <= s["second_frame_s"] <= s["process_s"]
     assert not _readers()

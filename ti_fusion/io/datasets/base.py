@@ -38,6 +38,8 @@ class Dataset(ABC):
     depth_scale: float | None = None  # raw depth units per metre; None where depth is not read from images
     # the colour images are registered to depth, pixel for pixel (the photometric tracking term needs it)
     color_registered: bool = False
+    # ``dataset[i]`` may run on several threads at once, in any order (``ti_fusion.io.prefetch``)
+    concurrent_reads: bool = False
 
     def __init__(self, root: str | Path, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
@@ -229,6 +231,7 @@ class ImageFileDataset(RecordedSequence):
 
     depth_scale: float = 1000.0
     invalid_depth: tuple[int, ...] = (0,)
+    concurrent_reads = True  # every frame is files of its own
 
     def __init__(self, root, config=None, downsample: int = 1, start: int = 0, stop: int | None = None,
                  stride: int = 1):

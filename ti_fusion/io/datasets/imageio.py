@@ -36,20 +36,33 @@ def _imread(path: Path, flags: int) -> np.ndarray:
     return image
 
 
+_SILENCED = {"depth": 0, "level": None}  # readers inside ``_opencv_silenced``, and the level to give back
+_SILENCED_LOCK = threading.Lock()
+
+
 @contextmanager
 def _opencv_silenced():
     """OpenCV's own log silenced for the duration, where this build exposes its log level (some OpenCV 4
-    wheels have no ``cv2.utils.logging``; their messages then reach stderr, which is silenced too)."""
+    wheels have no ``cv2.utils.logging``; their messages then reach stderr, which is silenced too).
+
+    The level is the process's: with several reader threads (``ti_fusion.io.prefetch``) the first one in
+    silences it and the last one out restores it, so that no thread restores another's "silent"."""
     logging = getattr(getattr(cv2, "utils", None), "logging", None)
     if logging is None:
         yield
         return
-    level = logging.getLogLevel()
-    logging.setLogLevel(logging.LOG_LEVEL_SILENT)
+    with _SILENCED_LOCK:
+        if _SILENCED["depth"] == 0:
+            _SILENCED["level"] = logging.getLogLevel()
+            logging.setLogLevel(logging.LOG_LEVEL_SILENT)
+        _SILENCED["depth"] += 1
     try:
         yield
     finally:
-        logging.setLogLevel(level)
+        with _SILENCED_LOCK:
+            _SILENCED["depth"] -= 1
+            if _SILENCED["depth"] == 0:
+                logging.setLogLevel(_SILENCED["level"])
 
 
 @contextmanager

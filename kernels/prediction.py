@@ -164,10 +164,20 @@ def shade(s: ti.template(), img: ti.template(), by_normal: ti.i32, background: V
 
 @ti.kernel
 def clear_holes(img: ti.template(), out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template()):
+    """``clear_holes_loop`` over every pixel, in one launch."""
+    clear_holes_loop(img, out_vertex, out_normal, out_depth, 1)
+
+
+@ti.func
+def clear_holes_loop(img: ti.template(), out_vertex: ti.template(), out_normal: ti.template(),
+                     out_depth: ti.template(), clear):
     """Zero the outputs at the pixels no surfel projects to (``img.index_map``): after a render with
     ``splat_gather_loop``'s ``fill_half`` and the pyramid built from it, level 0 goes back to the surfels' own
-    pixels (and ``img.view_index`` to none)."""
-    for v, u in img.index_map.index:  # (the outputs may be levels of a stacked field: no struct-for)
+    pixels (and ``img.view_index`` to none). The outputs are indexed as the image (row 0 of a stacked field
+    is level 0). With ``clear`` = 0 the loop runs over no rows (a run-time choice: one compiled instance
+    serves both)."""
+    H, W = img.index_map.index.shape
+    for v, u in ti.ndrange(H * clear, W):  # (the outputs may be levels of a stacked field: no struct-for)
         if img.index_map.index[v, u] == INT_MAX:
             img.view_index[v, u] = INT_MAX
             out_vertex[v, u] = Vec3(0.0, 0.0, 0.0)

@@ -55,6 +55,7 @@ from taichi.lang.util import in_taichi_scope
 from ti_fusion.backend import serial_for
 from ti_fusion.kernels.common import INT_MAX, data_oriented
 from ti_fusion.kernels.fusion import pack_color, pack_color_loop
+from ti_fusion.kernels.prediction import clear_holes_loop
 from ti_fusion.kernels.surfels import Pool
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import PyramidConfig
@@ -437,9 +438,14 @@ G_ROW0, G_H, G_W, G_FX, G_FY, G_CX, G_CY, G_JUMP, N_GEOMETRY = range(9)
 
 @ti.kernel
 def pyramid_maps(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
-                 levels: ti.template(), first_maps: ti.i32, max_diff: ti.f32, serial: ti.template()):
-    """``pyramid_maps_loops`` in one launch."""
+                 levels: ti.template(), first_maps: ti.i32, max_diff: ti.f32, serial: ti.template(),
+                 holes: ti.template(), with_holes: ti.template(), clear: ti.i32):
+    """``pyramid_maps_loops`` in one launch; with ``with_holes`` and ``clear`` = 1, then level 0 taken back
+    to the pixels a surfel projects to in the render ``holes`` (``prediction.clear_holes_loop``: the model's
+    maps are built from a render whose holes were filled)."""
     pyramid_maps_loops(depth, vertex, normal, geometry, levels, first_maps, max_diff, serial)
+    if ti.static(with_holes):
+        clear_holes_loop(holes, vertex, normal, depth, clear)
 
 
 @ti.kernel
@@ -664,6 +670,7 @@ class FramePyramid:
         self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
         self._geometry = None  # ``pyramid_maps``'s per-level rows, sizes and intrinsics (G_* columns)
         self._geometry_for = None  # the intrinsics it holds
+        self._holes = None  # the renderer's images whose holes ``compute_from_field`` clears (model pyramids)
         # the frame's colour packed for the fusion step (``compute(..., color=...)``): per level, on first use
         self._color: dict[int, object] = {}
         self._color_source = None  # (weak reference to the image, level) the last ``compute`` packed, else None
@@ -837,12 +844,21 @@ class FramePyramid:
             depth = np.pad(depth, ((0, 0), (0, packs * LANES - W)))
         return depth.reshape(H, packs, LANES)
 
-    def compute_from_field(self, intrinsics: Intrinsics, level0_maps: bool = True) -> None:
+    def compute_from_field(self, intrinsics: Intrinsics, level0_maps: bool = True, clear_holes_of=None) -> None:
         """Build every level from ``self.depth[0]`` already on the Taichi side (without level 0's vertex
-        and normal maps when ``level0_maps`` is False: a renderer that writes them itself). No smoothing."""
+        and normal maps when ``level0_maps`` is False: a renderer that writes them itself). No smoothing.
+        With ``clear_holes_of`` (the renderer's ``PredictionImages`` of level 0's size), then level 0 back to
+        the pixels a surfel projects to, in the same launch (``SurfelMapper.render_pyramid``). Pyramids built so
+        once pass those images to every later build too, with nothing cleared, so that the model's maps
+        and a depth uploaded into them (loop verification) share one compiled instance."""
         self._set_geometry(intrinsics)
+        if clear_holes_of is not None:
+            self._holes = clear_holes_of
+        holes = self._holes
         pyramid_maps(self.depth[0].field, self.vertex[0].field, self.normal[0].field, self._geometry, self.levels,
-                     0 if level0_maps else 1, self.max_depth_diff, self._serial)
+                     0 if level0_maps else 1, self.max_depth_diff, self._serial,
+                     self.depth[0].field if holes is None else holes, holes is not None,
+                     int(clear_holes_of is not None))
 
     def _set_geometry(self, intrinsics: Intrinsics) -> None:
         """``intrinsics`` (of level 0) and the levels' rows and sizes into ``_geometry``, where they changed."""

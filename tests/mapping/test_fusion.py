@@ -765,6 +765,38 @@ def test_render_maps_reproduces_the_fused_frame(cpu, rng):
     assert (predicted.depth[1].to_numpy() > 0).mean() > 0.9  # the pyramid was built from the rendering
 
 
+def test_model_maps_clear_the_holes_in_their_own_launch(arch, rng):
+    """``render_pyramid`` builds the model's levels from the filled render and takes level 0 back to the
+    surfels' own pixels in one launch (``pyramid_maps`` with the render's images): the same maps, bit for
+    bit, as the render, the pyramid and ``clear_holes`` launched one after the other. A depth uploaded into
+    those maps later (loop verification's keyframes) is built by the same compiled instance and keeps
+    every pixel."""
+    from ti_fusion.kernels import pyramid as pyramid_kernels
+    from ti_fusion.mapping.mapper import FILL_HALF
+
+    pose, vertex, normal, depth, color, data, smap = setup(rng)
+    data["radius"] = rng.uniform(0.0, 0.05, len(data["radius"])).astype(np.float32)  # small discs: holes
+    mapper = SurfelMapper(FusionConfig(capacity=4096))
+    mapper.map.from_numpy(data)
+    one = FramePyramid(RAW, H, W, levels=2)
+    mapper.render_pyramid(one, pose, K)
+    two = FramePyramid(RAW, H, W, levels=2)
+    level0 = two.vertex[0], two.normal[0], two.depth[0]
+    mapper.map.render(pose, K, *level0, mapper.config.render_min_weight, 0, FILL_HALF)
+    two.compute_from_field(K, level0_maps=False)
+    mapper.map.clear_holes(K, *level0)
+    for name in ("depth", "vertex", "normal"):
+        for level in range(2):
+            np.testing.assert_array_equal(getattr(one, name)[level].to_numpy(), getattr(two, name)[level].to_numpy())
+    holes = one.depth[0].to_numpy() == 0
+    assert holes.any() and (one.depth[1].to_numpy() > 0).any()
+    instances = len(pyramid_kernels.pyramid_maps._primal.compiled_kernels)
+    one.depth[0].from_numpy(np.full((H, W), 1.5, np.float32))
+    one.compute_from_field(K)  # as loop verification's ``fill``
+    assert len(pyramid_kernels.pyramid_maps._primal.compiled_kernels) == instances
+    assert np.all(one.depth[0].to_numpy() == 1.5) and np.all(one.normal[0].to_numpy()[1:-1, 1:-1, 2] != 0)
+
+
 def test_capacity_grows(cpu, rng):
     pyramid, _ = plane_frame()
     mapper = SurfelMapper(FusionConfig(capacity=100, grow=True, remove_unstable=False))

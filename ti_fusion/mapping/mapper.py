@@ -154,13 +154,10 @@ class SurfelMapper:
         if min_weight is None:
             min_weight = self.config.render_min_weight
         level0 = frame_pyramid.vertex[0], frame_pyramid.normal[0], frame_pyramid.depth[0]
-        self.map.render(pose, intrinsics, *level0, min_weight, 0, FILL_HALF, min_time)
-        frame_pyramid.compute_from_field(intrinsics, level0_maps=False)
-        if FILL_HALF > 0:
-            self.map.clear_holes(intrinsics, *level0)
+        img = self.map.render(pose, intrinsics, *level0, min_weight, 0, FILL_HALF, min_time)
+        frame_pyramid.compute_from_field(intrinsics, level0_maps=False, clear_holes_of=img if FILL_HALF > 0 else None)
         if intensity:
-            view = self.map.prediction_images(intrinsics.height, intrinsics.width).view_index  # the render's
-            frame_pyramid.intensity_from_surfels(view, self.map.arrays.color)
+            frame_pyramid.intensity_from_surfels(img.view_index, self.map.arrays.color)  # the render's view
 
     def render_image(self, pose: np.ndarray, intrinsics: Intrinsics, by_normal: bool = False) -> np.ndarray:
         """uint8 RGB view of the map from ``pose`` (surfel colour, or world normal as (n + 1) / 2)."""

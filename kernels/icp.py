@@ -769,7 +769,6 @@ class PointToPlane:
         self.target = ti.field(ti.i32, shape=self.max_pixels)  # per-pixel scratch (``_project_chunk``)
         self.state = None  # ``iterate``'s params: state, settings, records (``begin_iterations``)
         self.state_device = None  # off the CPU, its copy on the device (a Taichi field)
-        self._state_tree = None  # the SNode tree that holds ``state_device``
         self._device_newer = False  # the device copy has records the host copy lacks
         self._settings_on_device = None  # the settings rows last copied to the device
         self.params = np.zeros((1, N_PARAMS), dtype=self.np_real)
@@ -864,7 +863,10 @@ class PointToPlane:
                 rows = max(rows, RECORDS + 2 * (self.state.shape[0] - RECORDS))
             self.state = np.zeros((rows, PARAMS_WIDTH), dtype=self.np_real)
             if not self.on_host:
-                self._allocate_state_device(self.state.shape)
+                # The field it replaces stays allocated (a few kB; the doubling bounds how many): freeing it,
+                # by a tree of its own destroyed, would make Taichi 1.7 drop every compiled kernel of the program.
+                self.state_device = ti.field(self.real, shape=self.state.shape)
+                self._settings_on_device = None
         self.state[STATE, P_R:P_T + 3] = flatten_pose(T)
         self.state[STATE, P_RECORDS] = 0
         self.state[STATE, P_DONE] = 0
@@ -872,16 +874,6 @@ class PointToPlane:
         self._launched = 0
         self._uploaded = False
         self._device_newer = False
-
-    def _allocate_state_device(self, shape: tuple[int, int]) -> None:
-        """The device copy of the state array, in a tree of its own: the one it replaces is freed."""
-        if self._state_tree is not None:
-            self._state_tree.destroy()
-        fb = ti.FieldsBuilder()
-        self.state_device = ti.field(self.real)
-        fb.dense(ti.ij, shape).place(self.state_device)
-        self._state_tree = fb.finalize()
-        self._settings_on_device = None
 
     def begin_level(self, src_v, src_n, tgt_v, tgt_n, K, dist_threshold: float, normal_threshold_deg: float,
                     robust: str, robust_scale: float, level: int, min_inliers: int, stop_update: float,

@@ -207,12 +207,12 @@ def _run_child(args, data: str, profile: bool) -> dict:
 
 
 def _median_run(runs: list[dict], key: str) -> dict:
-    """Of repeated runs, the one with the median ``key`` (the first failed one, if any failed)."""
-    failed = [r for r in runs if "error" in r]
-    if failed:
-        return failed[0]
-    timed = sorted((r for r in runs if r.get(key) is not None), key=lambda r: r[key])
-    return timed[(len(timed) - 1) // 2] if timed else runs[0]
+    """Of repeated runs, the one with the median ``key`` among those that ran (the first failed one when
+    none did; for an even count, the faster of the middle two)."""
+    timed = sorted((r for r in runs if "error" not in r and r.get(key) is not None), key=lambda r: r[key])
+    if timed:
+        return timed[(len(timed) - 1) // 2]
+    return next((r for r in runs if "error" in r), runs[0])
 
 
 def _cell(x: float | None, spec: str = ".2f") -> str:
@@ -282,6 +282,9 @@ def main(argv=None) -> int:
             # an H200 with NVIDIA's driver (docs/PERFORMANCE.md): the profiling run is left out on vulkan.
             profs.append(_run_child(args, data, profile=True) if args.arch != "vulkan" else {})
         count, prof = _median_run(counts, "processing_ms"), _median_run(profs, "kernel_ms")
+        for run in counts + profs:  # a failed run is said, not only left out
+            if "error" in run and run is not count:
+                print(f"bench_host.py: {_name(data)}: a run failed: {run['error']}", file=sys.stderr)
         row = dict(count)
         row["runs"] = {"processing_ms": [c.get("processing_ms") for c in counts],
                        "kernel_ms": [q.get("kernel_ms") for q in profs],

@@ -526,23 +526,19 @@ def test_iterate_refuses_more_iterations_than_records(cpu, rng, sequence):
         kernels.iterate(capacity)
 
 
-def test_a_longer_schedule_grows_the_state_and_frees_the_old(arch, rng, sequence):
+def test_a_longer_schedule_grows_the_state_to_at_least_twice(arch, rng, sequence):
     """An align whose schedule outgrows the state array's records gets a larger one, at least twice the
-    records (each new device field is a new instance of ``iterate``), and off the CPU the old device
-    field's tree is freed; the longer schedule then runs as on a fresh instance."""
+    records (off the CPU each new device field is a new instance of ``iterate``: the doubling bounds how
+    many), and the longer schedule runs as on a fresh one."""
     short = ICPConfig(iterations=(4, 2, 2))
     src, tgt, G = synthetic_pair(sequence, rng, noise=True, cfg=short, smooth=2)
     icp = ICP(short)
-    kernels = icp._kernels(src.width * src.height)
-    kernels.state = None  # a fresh state (the instance is shared with the other tests)
     assert icp.align(src, tgt).failure is None
+    kernels = icp._kernels(src.width * src.height)
     first = kernels.records.shape[0]
-    old_tree = kernels._state_tree
-    long = ICPConfig(iterations=(40, 30, 30), stop_update=0.0)
+    long = ICPConfig(iterations=(first - 1, 1, 1), stop_update=0.0)  # one record more than there is room for
     grown = ICP(long).align(src, tgt)
-    assert kernels.records.shape[0] >= max(100, 2 * first)
-    if arch != "cpu":
-        assert kernels._state_tree is not old_tree
+    assert kernels.records.shape[0] >= 2 * first
     assert grown.failure is None
     assert [(r.level, r.iteration) for r in grown.iterations] == \
         [(r.level, r.iteration) for r in _align_in_python(long, src, tgt).iterations]

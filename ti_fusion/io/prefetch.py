@@ -43,7 +43,11 @@ def reader_threads(setting: int, dataset) -> int:
         return 1
     if setting > 0:
         return int(setting)
-    return max(1, min(4, (os.cpu_count() or 1) // 4))
+    try:
+        cpus = len(os.sched_getaffinity(0))  # the CPUs this process may run on (a container's, a taskset's)
+    except AttributeError:  # (not on every platform)
+        cpus = os.cpu_count() or 1
+    return max(1, min(4, cpus // 4))
 
 
 class Prefetcher:
@@ -74,10 +78,14 @@ class Prefetcher:
             return self._inline()
         self._switch_interval = sys.getswitchinterval()
         sys.setswitchinterval(min(self._switch_interval, _SWITCH_INTERVAL_S))
-        self._threads = [threading.Thread(target=self._read_all, name="ti-fusion-reader", daemon=True)
-                         for _ in range(self.workers)]
-        for thread in self._threads:
-            thread.start()
+        try:
+            for _ in range(self.workers):
+                thread = threading.Thread(target=self._read_all, name="ti-fusion-reader", daemon=True)
+                thread.start()
+                self._threads.append(thread)
+        except BaseException:  # (e.g. no thread could be started): stop those that did, give the interval back
+            self.close()
+            raise
         return self._from_readers()
 
     def __exit__(self, *exc) -> None:
@@ -86,15 +94,18 @@ class Prefetcher:
     def close(self) -> None:
         """Stop the reader threads (each finishes the frame it is reading) and drop what they have read."""
         self._stop.set()
-        if not self._threads:
+        if self._switch_interval is None:
             return
-        with self._lock:
-            self._lock.notify_all()
-        for thread in self._threads:
-            thread.join()
-        self._threads = []
-        self._ready.clear()
-        sys.setswitchinterval(self._switch_interval)
+        try:
+            with self._lock:
+                self._lock.notify_all()
+            for thread in self._threads:
+                thread.join()
+        finally:  # a second Ctrl-C during a join still gives the interval back
+            self._threads = []
+            self._ready.clear()
+            sys.setswitchinterval(self._switch_interval)
+            self._switch_interval = None
 
     # -- the caller's side ----------------------------------------------------------------------
     def _inline(self) -> Iterator[tuple[int, object, float]]:

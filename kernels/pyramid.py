@@ -853,6 +853,9 @@ class FramePyramid:
         and a depth uploaded into them (loop verification) share one compiled instance."""
         self._set_geometry(intrinsics)
         if clear_holes_of is not None:
+            if (clear_holes_of.height, clear_holes_of.width) != tuple(self.shapes[0]):
+                raise ValueError(f"a render of {clear_holes_of.height}x{clear_holes_of.width} pixels for maps "
+                                 f"whose level 0 is {self.shapes[0][0]}x{self.shapes[0][1]}")
             self._holes = clear_holes_of
         holes = self._holes
         pyramid_maps(self.depth[0].field, self.vertex[0].field, self.normal[0].field, self._geometry, self.levels,

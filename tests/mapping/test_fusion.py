@@ -795,6 +795,9 @@ def test_model_maps_clear_the_holes_in_their_own_launch(arch, rng):
     one.compute_from_field(K)  # as loop verification's ``fill``
     assert len(pyramid_kernels.pyramid_maps._primal.compiled_kernels) == instances
     assert np.all(one.depth[0].to_numpy() == 1.5) and np.all(one.normal[0].to_numpy()[1:-1, 1:-1, 2] != 0)
+    small = FramePyramid(RAW, H // 2, W // 2, levels=1)
+    with pytest.raises(ValueError, match="a render of 72x70 pixels for maps whose level 0 is 36x35"):
+        small.compute_from_field(K.downsampled(2), level0_maps=False, clear_holes_of=mapper.map.prediction_images(H, W))
 
 
 def test_capacity_grows(cpu, rng):

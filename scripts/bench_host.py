@@ -299,9 +299,11 @@ def main(argv=None) -> int:
         k, p, q = row["kernel_ms"], row["processing_ms"], row["profiled_processing_ms"]
         row["host_ms"] = None if k is None else p - k
         row["profiled_host_ms"] = None if k is None or q is None else q - k
+        row["busy"] = None if k is None else k / p  # device_check.sh's table reads these three
         print(f"| {_name(data)} | {count['arch']} | {count['frames']} ({count['tracked']} tracked) | "
               f"{count['launches']:.1f} | {count['reads']:.2f} | {_cell(k)} | {_cell(row['host_ms'])} | {p:.2f} | "
-              f"{1e3 / p:.1f} | {_percent(k, p)} | {_cell(q)} | {_cell(row['profiled_host_ms'])} | {_percent(k, q)} |")
+              f"{1e3 / p:.1f} | {_percent(row['busy'], 1)} | {_cell(q)} | {_cell(row['profiled_host_ms'])} | "
+              f"{_percent(k, q)} |")
         rows.append(row)
     if args.repeat > 1:
         for row in rows:

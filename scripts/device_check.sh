@@ -164,12 +164,11 @@ for host in sorted(out.glob("host_*.json")):
         if "error" in r:
             print(f"| {arch} | {name} | {r['error']} |")
             continue
-        k, p, q = r.get("kernel_ms"), r["processing_ms"], r.get("profiled_processing_ms")
+        p, busy = r["processing_ms"], r.get("busy")  # host ms and busy as bench_host.py defines them
         cell = lambda x, f: "n/a" if x is None else format(x, f)
-        print(f"| {arch} | {name} | {r['launches']:.1f} | {r['reads']:.2f} | {cell(k, '.2f')} | "
-              f"{cell(None if k is None else p - k, '.2f')} | "
-              f"{cell(None if k is None or q is None else q - k, '.2f')} | {p:.2f} | {1e3 / p:.1f} | "
-              f"{'n/a' if k is None else format(100 * k / p, '.0f') + ' %'} | {cell(s.get('fps'), '.1f')} | "
+        print(f"| {arch} | {name} | {r['launches']:.1f} | {r['reads']:.2f} | {cell(r.get('kernel_ms'), '.2f')} | "
+              f"{cell(r.get('host_ms'), '.2f')} | {cell(r.get('profiled_host_ms'), '.2f')} | {p:.2f} | {1e3 / p:.1f} | "
+              f"{'n/a' if busy is None else format(100 * busy, '.0f') + ' %'} | {cell(s.get('fps'), '.1f')} | "
               f"{cell(s.get('fps_wall'), '.1f')} | {cell(s.get('ate_rmse_m'), '.4f')} |")
 for t in sorted(out.glob("launch_*.txt")):
     rows = [line for line in t.read_text().splitlines() if line.startswith("| ") and "µs" not in line]

@@ -14,3 +14,27 @@ metres with 0 for invalid.
 """
 
 __version__ = "0.1.0"
+
+
+def _ensure_home() -> None:
+    """Set $HOME from the password database when it is unset (a service, ``env -i``): Taichi aborts the
+    process at import without it, before any message could say why."""
+    import os
+
+    if os.environ.get("HOME"):
+        return
+    home = ""
+    try:
+        import pwd
+
+        home = pwd.getpwuid(os.getuid()).pw_dir
+    except (ImportError, KeyError, OSError):
+        pass
+    if not home or not os.path.isdir(home):
+        import tempfile
+
+        home = tempfile.gettempdir()  # Taichi then keeps its kernel cache under the temporary folder
+    os.environ["HOME"] = home
+
+
+_ensure_home()

@@ -15,9 +15,10 @@ from __future__ import annotations
 import contextlib
 import io
 import os
-from dataclasses import dataclass
+import threading
+from dataclasses import dataclass, field
 
-from ti_fusion.errors import BackendUnavailable
+from ti_fusion.errors import BackendUnavailable, TiFusionError
 
 ARCH_CHOICES = ("cpu", "cuda", "vulkan", "auto")
 
@@ -36,6 +37,11 @@ class BackendInfo:
     arch: str  # "cpu", "cuda" or "vulkan"
     requested: str
     reason: str
+    # Which start of Taichi this is (every init_backend resets Taichi and frees what was made before), and the
+    # thread that started it: Taichi 1.7 allocates fields only on that thread.
+    generation: int = field(default=0, compare=False)
+    thread: int = field(default_factory=threading.get_ident, compare=False)
+    thread_name: str = field(default_factory=lambda: threading.current_thread().name, compare=False)
 
     @property
     def has_f64(self) -> bool:
@@ -44,6 +50,40 @@ class BackendInfo:
 
 
 _current: BackendInfo | None = None
+_generation = 0  # starts of Taichi so far in this process
+
+
+class BackendMisuse(TiFusionError):
+    """Taichi objects used where they cannot work: after Taichi was started again, or from another thread."""
+
+
+# Environment variables Taichi reads in ti.init that abort the process (no exception) when their value is
+# not a backend's name.
+_TAICHI_ARCH_VARS = ("TI_ARCH",)
+_TAICHI_ARCH_NAMES = ("cpu", "x64", "arm64", "cuda", "vulkan", "metal", "opengl", "gles", "dx11", "dx12", "amdgpu")
+
+
+def check_environment() -> None:
+    """BackendUnavailable for an environment that would make Taichi abort the process without a word: an
+    unknown backend name in $TI_ARCH (an unset $HOME is filled in when ti_fusion is imported)."""
+    for name in _TAICHI_ARCH_VARS:
+        value = os.environ.get(name)
+        if value is not None and value.strip().lower() not in _TAICHI_ARCH_NAMES:
+            raise BackendUnavailable(f"environment variable {name}={value!r} is not a Taichi backend (Taichi reads it "
+                                     f"instead of --arch): unset it, or set one of cpu, cuda, vulkan")
+
+
+def check_usable(generation: int, what: str) -> None:
+    """BackendMisuse when an object made on start ``generation`` of Taichi (``current_backend().generation``)
+    is used after another start, or on another thread than the one that started Taichi."""
+    if _current is None or _current.generation != generation:
+        raise BackendMisuse(f"{what}: made before Taichi was started again (init_backend resets Taichi and frees "
+                            "every field made before): make a new one after the last init_backend")
+    if threading.get_ident() != _current.thread:
+        raise BackendMisuse(f"{what} called on thread {threading.current_thread().name!r}, but Taichi allocates its "
+                            f"fields only on the thread that started it ({_current.thread_name!r}, in init_backend): "
+                            "call init_backend, make the DenseSLAM and call register_frame all on one thread, e.g. "
+                            "one worker thread that takes frames from a queue.Queue (docs/DATA.md, 'Threads')")
 
 
 def _started_arch() -> str:
@@ -62,7 +102,8 @@ def _try_start(arch: str, **kwargs) -> bool:
     from ti_fusion.frontend import memoize_source_positions
 
     memoize_source_positions()
-    global _threads_before_init
+    global _threads_before_init, _generation
+    _generation += 1
     ti.reset()
     _threads_before_init = _thread_ids()
     try:
@@ -81,6 +122,7 @@ def init_backend(requested: str = "cpu", **kwargs) -> BackendInfo:
     requested = requested.lower()
     if requested not in ARCH_CHOICES:
         raise BackendUnavailable(f"unknown backend {requested!r}: choose one of {', '.join(ARCH_CHOICES)}")
+    check_environment()
     kwargs.setdefault("default_fp", None)
     kwargs = {k: v for k, v in kwargs.items() if v is not None}
     if requested == "auto":
@@ -88,15 +130,16 @@ def init_backend(requested: str = "cpu", **kwargs) -> BackendInfo:
         for arch in ("cuda", "vulkan"):
             if _try_start(arch, **kwargs):
                 reason = f"auto: picked {arch}" + (f" ({'; '.join(missing)})" if missing else "")
-                _current = BackendInfo(arch, requested, reason)
+                _current = BackendInfo(arch, requested, reason, _generation)
                 return _current
             missing.append(f"no {arch}")
         _try_start("cpu", **kwargs)
-        _current = BackendInfo("cpu", requested, f"auto: picked cpu ({'; '.join(missing)})" + pin_cpu_workers())
+        _current = BackendInfo("cpu", requested, f"auto: picked cpu ({'; '.join(missing)})" + pin_cpu_workers(),
+                               _generation)
         return _current
     if requested == "cpu":
         _try_start("cpu", **kwargs)
-        _current = BackendInfo("cpu", requested, "requested cpu" + pin_cpu_workers())
+        _current = BackendInfo("cpu", requested, "requested cpu" + pin_cpu_workers(), _generation)
         return _current
     if not _try_start(requested, **kwargs):
         import taichi as ti
@@ -104,7 +147,7 @@ def init_backend(requested: str = "cpu", **kwargs) -> BackendInfo:
         ti.reset()
         _current = None
         raise BackendUnavailable(f"backend {requested} unavailable: {_HOW_TO_GET[requested]}")
-    _current = BackendInfo(requested, requested, f"requested {requested}")
+    _current = BackendInfo(requested, requested, f"requested {requested}", _generation)
     return _current
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numbers
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -33,6 +34,24 @@ class Intrinsics:
     skew: float = 0.0                       # K[0,1] (pixels), 0 for almost every camera
     distortion: tuple[float, ...] = ()      # lens distortion coefficients in OpenCV's order; () = none
     distortion_model: str = ""              # DISTORTION_MODELS: how to read ``distortion``
+
+    def __post_init__(self):
+        # Values of the wrong type (a calibration read as text) would fail far from here as a TypeError.
+        from ti_fusion.errors import InputError
+
+        for name in ("fx", "fy", "cx", "cy", "skew"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, numbers.Real):
+                raise InputError(None, f"Intrinsics {name}={value!r}: expected a number of pixels, got "
+                                       f"{type(value).__name__}")
+        for name in ("width", "height"):
+            value = getattr(self, name)
+            whole = isinstance(value, numbers.Integral) or (isinstance(value, numbers.Real) and float(value).is_integer())
+            if isinstance(value, bool) or not whole:
+                raise InputError(None, f"Intrinsics {name}={value!r}: expected a whole number of pixels, got "
+                                       f"{type(value).__name__}")
+            if not isinstance(value, int):
+                object.__setattr__(self, name, int(value))
 
     @property
     def K(self) -> np.ndarray:

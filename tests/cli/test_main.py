@@ -230,6 +230,23 @@ def test_sigterm_from_outside_the_process(tmp_path):
     assert log.complete and len(stamps) >= 3 and len(log.stats) >= len(stamps)
 
 
+def test_an_environment_taichi_cannot_start_in_is_one_line(tmp_path):
+    """No $HOME (a service, env -i) and an unknown $TI_ARCH made Taichi abort the process (exit 134) without a
+    word: the first now works, the second is one line, and no output folder is left behind."""
+    env = {k: v for k, v in os.environ.items() if k != "HOME"}
+    proc = subprocess.run([sys.executable, "-m", "ti_fusion", "--help"], env=env, capture_output=True, text=True,
+                          timeout=300)
+    assert proc.returncode == 0 and "usage: ti-fusion" in proc.stdout, proc.stderr[-2000:]
+    out = tmp_path / "run"
+    proc = subprocess.run([sys.executable, "-m", "ti_fusion", "slam", "--frames", "2", "--out", str(out)],
+                          env={**os.environ, "TI_ARCH": "nonsense"}, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 2
+    assert proc.stderr.strip() == ("ti-fusion slam: error: environment variable TI_ARCH='nonsense' is not a Taichi "
+                                   "backend (Taichi reads it instead of --arch): unset it, or set one of cpu, cuda, "
+                                   "vulkan")
+    assert not out.exists()
+
+
 # --------------------------------------------------------------------------------------------------
 # Output errors: one line naming the file
 # --------------------------------------------------------------------------------------------------

@@ -175,3 +175,113 @@ def test_rgbd_frame_undistorts_a_camera_with_distortion_and_skew(cpu, frames):
     # nearest neighbour: every depth is one of the input's, none an average across an edge
     assert np.isin(frame.depth[frame.depth > 0], frames[0].depth).all()
     assert _slam().register_frame(frame).status == "init"
+
+
+# --------------------------------------------------------------------------------------------------
+# The process around the API: threads, Taichi started again, the types a user passes
+# --------------------------------------------------------------------------------------------------
+_THREADS_SCRIPT = r'''
+import json, queue, sys, threading
+import numpy as np
+from ti_fusion.backend import init_backend
+from ti_fusion.camera import Intrinsics
+from ti_fusion.config import Config, SynthConfig
+from ti_fusion.io.datasets import rgbd_frame
+from ti_fusion.slam.dense import DenseSLAM
+from ti_fusion.synthetic.scene import SyntheticSequence
+
+K = Intrinsics(fx=131.25, fy=131.25, cx=79.5, cy=59.5, width=160, height=120)
+init_backend("cpu")
+seq = SyntheticSequence(SynthConfig(frames=3, width=160, height=120, fx=K.fx))
+frames = [rgbd_frame(seq.frame(i)[0], K, color=seq.frame(i)[1], timestamp=seq.timestamps[i], index=i, depth_max=None)
+          for i in range(3)]
+out = {}
+
+# 1. made on the main thread, fed from a callback's thread
+slam = DenseSLAM(Config(), K)
+def callback():
+    try:
+        slam.register_frame(frames[0])
+        out["other_thread"] = "ran"
+    except Exception as exc:
+        out["other_thread"] = f"{type(exc).__name__}: {exc}"
+t = threading.Thread(target=callback, name="ros-callback"); t.start(); t.join()
+
+# 2. the documented way: one worker thread starts Taichi, makes the DenseSLAM and registers every frame
+#    that other threads put into a queue
+inbox, statuses = queue.Queue(), []
+def worker():
+    init_backend("cpu")
+    mine = DenseSLAM(Config(), K)
+    while (frame := inbox.get()) is not None:
+        statuses.append(mine.register_frame(frame).status)
+w = threading.Thread(target=worker); w.start()
+for f in frames:  # each put from its own thread, as a driver's callbacks would, in order
+    p = threading.Thread(target=inbox.put, args=(f,)); p.start(); p.join()
+inbox.put(None); w.join()
+out["worker"] = statuses
+
+# 3. Taichi started again (on the main thread), then an older DenseSLAM used
+init_backend("cpu")
+try:
+    slam.register_frame(frames[1])
+    out["stale"] = "ran"
+except Exception as exc:
+    out["stale"] = f"{type(exc).__name__}: {exc}"
+print(json.dumps(out))
+'''
+
+
+def test_threads_and_a_second_init_backend(tmp_path):
+    """register_frame from another thread than Taichi's says in one line how to do it (Taichi 1.7 allocates
+    fields only on the thread that ran ti.init), and that way (one worker thread fed by a queue) works; a
+    DenseSLAM made before init_backend was called again is refused, not a segmentation fault."""
+    import json
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", _THREADS_SCRIPT], capture_output=True, text=True, timeout=600,
+                          cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out["other_thread"].startswith("BackendMisuse: DenseSLAM.register_frame called on thread 'ros-callback'")
+    assert "all on one thread" in out["other_thread"] and "\n" not in out["other_thread"]
+    assert len(out["worker"]) == 3 and out["worker"][0] == "init" and out["worker"][1:] == ["ok", "ok"]
+    assert out["stale"].startswith("BackendMisuse: DenseSLAM.register_frame: made before Taichi was started again")
+
+
+def test_colour_is_copied_from_a_reused_buffer():
+    """A camera driver reuses one colour buffer: each frame keeps the colour it was made with."""
+    buffer = np.zeros((30, 40, 3), np.uint8)
+    frames = []
+    for i in range(3):
+        buffer[:] = 10 * (i + 1)
+        frames.append(rgbd_frame(np.ones((30, 40)), Intrinsics(30.0, 30.0, 19.5, 14.5, 40, 30), color=buffer, index=i))
+    assert [int(f.color[0, 0, 0]) for f in frames] == [10, 20, 30]
+
+
+def test_frames_without_index_or_timestamp_say_what_to_pass(frames):
+    """rgbd_frame's defaults give every frame index 0 at 0 s: the second frame names what to pass."""
+    slam = _slam()
+    plain = [dataclasses.replace(f, index=0, timestamp=0.0) for f in frames[:2]]
+    slam.register_frame(plain[0])
+    with pytest.raises(InputError, match=r"^frame 0: the same index as the frame before it .* rgbd_frame\(\.\.\., "
+                                         r"index=i, timestamp=seconds\)"):
+        slam.register_frame(plain[1])
+    with pytest.raises(InputError, match="the same index as the frame before it"):
+        from ti_fusion.slam.checks import _check_frame_list
+
+        _check_frame_list(FrameList(plain))
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("fx", "525", r"Intrinsics fx='525': expected a number of pixels, got str"),
+    ("width", "640", r"Intrinsics width='640': expected a whole number of pixels, got str"),
+    ("height", 479.5, r"Intrinsics height=479.5: expected a whole number"),
+])
+def test_intrinsics_of_the_wrong_type_are_one_line(field, value, message):
+    values = dict(fx=525.0, fy=525.0, cx=319.5, cy=239.5, width=640, height=480)
+    values[field] = value
+    with pytest.raises(InputError, match=message):
+        Intrinsics(**values)
+    assert Intrinsics(fx=np.float64(525), fy=525, cx=319.5, cy=239.5, width=np.int64(640), height=480.0).height == 480

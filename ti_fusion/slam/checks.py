@@ -107,6 +107,10 @@ class FrameChecks:
         t = frame.timestamp
         if isinstance(t, bool) or not isinstance(t, (int, float, np.integer, np.floating)) or not math.isfinite(t):
             raise InputError(None, f"{name}: timestamp {t!r} is not a finite number of seconds")
+        if self.last is not None and frame.index == self.last[0]:  # rgbd_frame's default index on every frame
+            raise InputError(None, f"{name}: the same index as the frame before it (the trajectory and loop closure "
+                                   "know frames by index): give each frame its own, e.g. rgbd_frame(..., index=i, "
+                                   "timestamp=seconds) (without them every frame is index 0 at 0 s)")
         if self.last is not None and not t > self.last[1]:
             index, previous = self.last
             raise InputError(None, f"{name}: timestamp {float(t):.6f} is not after frame {index}'s {previous:.6f}: "

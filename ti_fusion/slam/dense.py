@@ -56,6 +56,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from ti_fusion.backend import check_usable, current_backend
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import Config, ICPConfig
 from ti_fusion.frame import Frame
@@ -153,6 +154,9 @@ class DenseSLAM:
     """Frame-to-model tracking and mapping. One verb: ``register_frame``."""
 
     def __init__(self, config: Config, intrinsics: Intrinsics):
+        # Its fields belong to this start of Taichi, on this thread (ti_fusion.backend.check_usable).
+        self._generation = current_backend().generation
+        check_usable(self._generation, "DenseSLAM")
         self.config = config
         self.intrinsics = intrinsics
         levels = len(config.icp.iterations)
@@ -214,6 +218,7 @@ class DenseSLAM:
 
     # -- the verb -------------------------------------------------------------------------------
     def register_frame(self, frame: Frame) -> FrameResult:
+        check_usable(self._generation, "DenseSLAM.register_frame")
         check_frame(self, frame)  # one InputError for a frame this map cannot take (ti_fusion/slam/checks.py)
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
         color = self._uses_color(frame)

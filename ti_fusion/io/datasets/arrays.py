@@ -50,11 +50,13 @@ def rgbd_frame(depth: np.ndarray, intrinsics: Intrinsics, depth_scale: float | N
         ``depth_scale`` (its units cannot be guessed).
     intrinsics: the depth image's intrinsics; its size must be the depth image's. With skew or lens
         distortion (``Intrinsics.distortion``) the frame is undistorted to ``intrinsics.undistorted()``.
-    color: None, or uint8 H×W×3 RGB (H×W grey is made RGB), the depth image's size.
+    color: None, or uint8 H×W×3 RGB (H×W grey is made RGB), the depth image's size. Depth and colour are
+        copied: a camera buffer reused for the next frame does not change this one.
     color_registered: pixel (u, v) of ``color`` sees what depth's (u, v) sees (a camera's aligned colour
         stream): tracking then uses colour too (``icp.color_weight``). False for colour that is only
         resized to depth's size: it then only colours the map.
     timestamp: seconds (trajectory.tum and the log use it); None = ``index``.
+    index: the frame's number; each frame given to one ``DenseSLAM`` needs its own, increasing with time.
     gt_pose: 4×4 camera-to-world ground truth, or None.
     depth_max: metres: farther depth counts as no measurement (the command line's ``dataset.depth_max``);
         None or 0 keeps every range.
@@ -99,7 +101,7 @@ def _rgb(color, shape: tuple[int, int]) -> np.ndarray | None:
     if color.ndim != 3 or color.shape[2] != 3 or color.shape[:2] != shape:
         raise InputError(None, f"colour of shape {color.shape}: expected {shape[0]}×{shape[1]}×3 RGB, the depth "
                                "image's size (registered to it)")
-    return np.ascontiguousarray(color)
+    return np.array(color, order="C", copy=True)  # the caller may reuse its buffer for the next frame
 
 
 def _pose(T) -> np.ndarray:

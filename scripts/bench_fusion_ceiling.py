@@ -15,8 +15,8 @@ For each size it builds a map of about ``--surfels`` surfels along the synthetic
   FMA and little wide vectorisation, see docs/PERFORMANCE.md) and ``-march=native``.
 Each is timed at its best (the fastest of the repeats). "C native ÷ 2" is the time a perfect two-thread
 split of the native step would take, with no thread start-up: a bound on how far NumPy's ratio could go
-with the code this compiler makes of this (scalar, interleaved-array) C source, e.g. against the 20×
-target of issue 4. The script stops if C's step does not merge, add, cover and remove as many surfels
+with the code this compiler makes of this (scalar, interleaved-array) C source, e.g. against a 20×
+target. The script stops if C's step does not merge, add, cover and remove as many surfels
 as the kernels' (it would be timing a different computation) and reports how many of the resulting
 surfels match the kernels' to 1e-4.
 

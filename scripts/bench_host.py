@@ -24,7 +24,7 @@ each in a child process of its own:
 - profiling (``kernel_profiler=True``): ``kernel ms`` = Taichi's kernel profiler's total per frame (cpu
   and cuda; Taichi has no kernel profiler on vulkan: n/a, and that run is skipped there), ``profiled ms``
   the processing time of that run (the profiler synchronises after every kernel, which adds to it).
-``host ms`` = processing ms (the counting run) − kernel ms (the profiling run), issue 29's definition: what
+``host ms`` = processing ms (the counting run) − kernel ms (the profiling run), the host overhead: what
 the frame spends outside Taichi's kernels in an ordinary run (Python, launch paths, waiting for reads; on
 the CPU, where the profiler times each parallel loop from its dispatch to its barrier, the thread pool's
 dispatch counts as kernel time). ``host ms (profiled)`` = profiled ms − kernel ms, both from the profiling
@@ -32,7 +32,7 @@ run: it also holds the profiler's own cost (on a GPU its synchronisation after e
 serialises the host's launches with the device's work), but no load that changes between the two runs
 does. Between two processes on a shared machine ``host ms`` drifts by milliseconds (it can even come out
 below zero): ``--repeat 3`` or more on a quiet machine. ``busy`` = kernel ms / processing ms, the
-device's share of an ordinary frame (issue 29's "GPU busy"), and ``busy (profiled)`` the same of the
+device's share of an ordinary frame ("GPU busy"), and ``busy (profiled)`` the same of the
 profiling run.
 ``--top K`` also prints the K kernels launched most per frame and, from the profiling run, the K that took
 the most kernel time per frame (the profiler's records summed by kernel, every instance and parallel loop

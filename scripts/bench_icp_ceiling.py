@@ -19,7 +19,7 @@ ms within one run) and the minimum is what each code can do; ``bench_icp.py`` re
 so compare ratios within one script. The script stops if C's sums are not NumPy's. "C native ÷ 2" is the
 time a perfect two-thread split of the native pass would take (no thread start-up, no solve): a bound on
 how far NumPy's ratio could go with the code this compiler makes of this (scalar, interleaved-array) C
-source, e.g. against the 20× target of issue 3.
+source, e.g. against a 20× target.
 
 Needs a C compiler (``--cc``, default ``cc``); without one the C columns are skipped.
 """

@@ -1,5 +1,5 @@
 """One synthetic sequence written in every camera format ti-fusion reads, each run with ``ti-fusion slam``:
-the ATE per format (issue 34's table). The formats: the TUM folder (``ti-fusion synth``), ROS 2 bags (raw
+the ATE per format (the table in docs/DATA.md). The formats: the TUM folder (``ti-fusion synth``), ROS 2 bags (raw
 32FC1, compressedDepth 16UC1 and 32FC1 with JPEG colour), ROS 1 bags (raw 16UC1, compressedDepth 16UC1),
 a ROS 1 bag whose colour comes from a second camera beside the depth camera (``--color-extrinsics``),
 and a bag laid out as a RealSense recording (the SDK's topics, its depth units, its tf/0 extrinsics).

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # One command for a machine with a GPU: the kernel tests on cuda and vulkan, bench_launch.py, bench_host.py and
-# bench_slam.py on cuda, cpu and vulkan, and one table of it all (docs/PERFORMANCE.md, issue 29).
+# bench_slam.py on cuda, cpu and vulkan, and one table of it all (docs/PERFORMANCE.md, host overhead).
 #
 #   scripts/device_check.sh pack [--frames N]     # here, with network: wheels and data into .device/
 #   scripts/device_check.sh run  [--frames N] [--archs "cuda cpu vulkan"] [--out DIR] [--no-tests] [--jobs J]

@@ -1,7 +1,7 @@
-"""What a user meets at the command line for the run-trust classes of issue 19 left after the first pass:
-config values against their rules, the first usable frame, a partial ground truth, a stop during a log
-write, and the smaller messages (one-frame runs, threshold comparisons, output files that cannot be
-written, frame numbers of the synthetic sequence, one dataset line)."""
+"""What a user meets at the command line when a run must show whether it can be trusted: config values
+against their rules, the first usable frame, a partial ground truth, a stop during a log write, and the
+smaller messages (one-frame runs, threshold comparisons, output files that cannot be written, frame numbers
+of the synthetic sequence, one dataset line)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""What a user meets at the command line for the input classes of issue 32: calibrations with distortion or
+"""What a user meets at the command line when the input is not what it seems: calibrations with distortion or
 skew used or refused, intrinsics that cannot be the images' camera, a killed run's log replayed, ground
 truth on another clock, depth in the wrong units or beyond the range, frames too small for ICP's pyramid,
 and a negative number given to --intrinsics."""

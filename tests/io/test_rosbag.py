@@ -665,7 +665,8 @@ def test_the_shared_realsense_d435_recording():
 
 
 # --------------------------------------------------------------------------------------------------
-# Issue 32: a calibration that changes, stamps that cannot order the frames, colour of another size
+# Bags that are not what they seem: a calibration that changes, stamps that cannot order the frames, colour of
+# another size
 # --------------------------------------------------------------------------------------------------
 def test_a_camera_info_that_changes_mid_recording_is_refused_unless_the_selection_avoids_it(tmp_path, rng):
     shots = small_shots(rng, n=5)

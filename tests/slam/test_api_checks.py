@@ -1,4 +1,4 @@
-"""The Python API checks what it is given (issue 32): ``DenseSLAM.register_frame`` refuses, with one
+"""The Python API checks what it is given: ``DenseSLAM.register_frame`` refuses, with one
 ``InputError`` naming the frame, what its map cannot take (another camera, another size, depth in the wrong
 units, timestamps that are not finite or do not increase), ``rgbd_frame`` undistorts a calibrated camera's
 images, and ``SLAMPipeline`` runs once, checks a ``FrameList`` before its first frame and keeps the outputs

@@ -299,7 +299,7 @@ def test_the_map_starts_at_the_first_usable_frame(cpu, tmp_path):
 
 
 def test_a_sequence_without_usable_depth_is_an_error_naming_the_depth_settings(cpu, tmp_path):
-    """Nothing mapped is not a result (issue 32): the run ends with one InputError, and a finalised log."""
+    """Nothing mapped is not a result: the run ends with one InputError, and a finalised log."""
     cfg = _config()
     cfg.dataset.stop = 3
     run = RunDir("slam", tmp_path / "run")

@@ -4,23 +4,20 @@
     python scripts/config_doc.py --check  # exit 1 when docs/CONFIG.md is not what config.py gives
 
 Each key's default and what it allows come from its dataclass field and annotation, its meaning from the
-comment beside it in config.py, so the page cannot drift from the code (tests/test_config.py runs the
-check). The main settings come first, then the tuning knobs (``ti_fusion.config.ADVANCED``) apart, then
+comment beside it in config.py (``ti_fusion.config.field_docs``, which the command-line options' help reads
+too), so the page cannot drift from the code (tests/test_config.py runs the check). The main settings come first, then the tuning knobs (``ti_fusion.config.ADVANCED``) apart, then
 the settings that were removed (``ti_fusion.config.REMOVED``).
 """
 
 from __future__ import annotations
 
 import argparse
-import ast
 import dataclasses
-import io
 import sys
-import tokenize
 from pathlib import Path
 
-from ti_fusion import config as config_module
-from ti_fusion.config import ADVANCED, REMOVED, RENAMED_SECTIONS, Config, rules
+from ti_fusion.cli.options import option
+from ti_fusion.config import ADVANCED, REMOVED, RENAMED_SECTIONS, Config, field_docs, rules
 
 DOC = Path(__file__).resolve().parent.parent / "docs" / "CONFIG.md"
 
@@ -60,39 +57,18 @@ dist_threshold = 0.10
 ti-fusion slam DATA --config my.toml --set icp.dist_threshold=0.05
 ```
 
-Defaults, then the file, then `--set`. Every value is checked against what its key allows (the column
-below): a value that breaks it, an unknown key or a removed one stops the run with one line naming the
-key. Relative paths in a config file are relative to the file's folder. Lengths are in metres, angles in
-degrees unless a key says otherwise. From Python: `ti_fusion.config.load_config(path, ["icp.dist_threshold=0.05"])`.
+Keys shown with an option (`dataset.depth_scale` (`--depth-scale`)) are also options of the commands that
+read frames (`slam`, `vo`, `fuse`, `icp`), with the meaning below as their `--help`.
+
+Defaults, then the file, then `--set`, then those options. Every value is checked against what its key
+allows (the column below): a value that breaks it, an unknown key or a removed one stops the run with one
+line naming the key. Relative paths in a config file are relative to the file's folder. Lengths are in
+metres, angles in degrees unless a key says otherwise. From Python: `ti_fusion.config.load_config(path, ["icp.dist_threshold=0.05"])`.
 
 The **main settings** are the ones a run is usually given. The **advanced settings** are tuning knobs:
 their defaults are what the benchmarks settled on ([BENCHMARKS.md](BENCHMARKS.md)), and most runs should
 leave them alone.
 """
-
-
-def field_comments(source: str) -> dict[tuple[str, str], str]:
-    """(class name, field name) → the comment text beside the field in ``source``: the comments on the
-    field's own lines and on the comment-only lines that follow it, joined."""
-    comments: dict[int, str] = {}
-    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
-        if tok.type == tokenize.COMMENT:
-            comments[tok.start[0]] = tok.string.lstrip("#").strip()
-    lines = source.splitlines()
-    out = {}
-    for node in ast.parse(source).body:
-        if not isinstance(node, ast.ClassDef):
-            continue
-        for stmt in node.body:
-            if not isinstance(stmt, ast.AnnAssign) or not isinstance(stmt.target, ast.Name):
-                continue
-            parts = [comments[n] for n in range(stmt.lineno, stmt.end_lineno + 1) if n in comments]
-            n = stmt.end_lineno + 1
-            while n <= len(lines) and lines[n - 1].strip().startswith("#"):
-                parts.append(comments[n])
-                n += 1
-            out[node.name, stmt.target.id] = " ".join(p for p in parts if p)
-    return out
 
 
 def _default(value) -> str:
@@ -120,13 +96,14 @@ def _table(section: str, keys: list[str], comments: dict) -> list[str]:
     rows = ["| key | default | allowed | meaning |", "| --- | --- | --- | --- |"]
     for key in keys:
         meaning = comments.get((section_type.__name__, key), "")
-        rows.append(f"| `{section}.{key}` | {_default(getattr(values, key))} | "
+        flag = f" (`{option(key)}`)" if section_rules[key].flag is not None else ""
+        rows.append(f"| `{section}.{key}`{flag} | {_default(getattr(values, key))} | "
                     f"{_cell(section_rules[key].describe())} | {_cell(meaning)} |")
     return rows
 
 
 def render() -> str:
-    comments = field_comments(Path(config_module.__file__).read_text(encoding="utf-8"))
+    comments = field_docs()
     sections = [f.name for f in dataclasses.fields(Config)]
     keys = {s: [f.name for f in dataclasses.fields(type(getattr(Config(), s)))] for s in sections}
     main = {s: [k for k in keys[s] if k not in ADVANCED.get(s, ())] for s in sections}

@@ -17,7 +17,7 @@ field says what it allows (a type, and a range or a set of choices, in its annot
 file or ``--set`` that breaks its rule is refused with one line naming the key, the value and what is
 allowed; so is a file that is not UTF-8, not parseable, not a table at its top level, or that gives a value
 where a section goes. Relative paths in a config file (``dataset.path``, ``dataset.intrinsics``, ...,
-``PATH_SETTINGS``) are relative to the file's folder; those of ``--set`` to the working directory.
+``Text(path=True)``) are relative to the file's folder; those of ``--set`` to the working directory.
 """
 
 from __future__ import annotations
@@ -25,9 +25,11 @@ from __future__ import annotations
 import ast
 import dataclasses
 import functools
+import io
 import json
 import math
 import numbers
+import tokenize
 import types
 import typing
 from dataclasses import dataclass, field
@@ -35,7 +37,7 @@ from pathlib import Path
 from typing import Annotated, Any, Callable, Iterable
 
 from ti_fusion.errors import InputError
-from ti_fusion.io.formats import FORMATS
+from ti_fusion.io.formats import LOADERS
 
 # --------------------------------------------------------------------------------------------------
 # What a field allows, written beside it: ``name: Annotated[type, rule, ...] = default``. A bool is true
@@ -90,9 +92,11 @@ class OneOf:
 
 @dataclass(frozen=True)
 class Text:
-    """Free text: a path, a topic name (``what`` says which, in the error line)."""
+    """Free text: a path, a topic name (``what`` says which, in the error line). ``path``: a file or folder,
+    which a config file gives relative to its own folder."""
 
     what: str = "text"
+    path: bool = False
 
 
 @dataclass(frozen=True)
@@ -100,6 +104,18 @@ class Length:
     """A list of at least ``ge`` items."""
 
     ge: int = 1
+
+
+@dataclass(frozen=True)
+class Flag:
+    """The field is also an option of the commands that read frames (slam, vo, fuse, icp): ``--name`` (the
+    field's name, hyphens for underscores), its value checked by the field's rule and its help the field's
+    comment (``field_docs``); ``metavar`` names the value in --help, ``range`` narrows what the option takes
+    where the key's rule allows a value that only means "unset" (0 = the format's own). So an option is
+    declared once, here."""
+
+    metavar: str | None = None
+    range: Range | None = None
 
 
 _KINDS = {bool: "true or false", int: "an integer", float: "a number", str: "text"}
@@ -118,6 +134,7 @@ class Rule:
     choices: OneOf | None = None
     text: Text | None = None
     length: Length | None = None
+    flag: Flag | None = None        # also a command-line option (``Flag``)
 
     def describe(self) -> str:
         """What the field allows, as the error line says it: "a number > 0", "one of none, huber, tukey"."""
@@ -212,7 +229,8 @@ def _rule_of(hint: Any) -> Rule | None:
     if hint not in (bool, int, float, str, list) or (item is not None and item not in (int, float)):
         return None
     found = {type(m): m for m in meta}
-    rule = Rule(hint, item, optional, found.get(Range), found.get(OneOf), found.get(Text), found.get(Length))
+    rule = Rule(hint, item, optional, found.get(Range), found.get(OneOf), found.get(Text), found.get(Length),
+                found.get(Flag))
     numeric = hint in (int, float) or item is not None
     if (numeric and rule.range is None) or (hint is str and rule.choices is None and rule.text is None) \
             or (hint is list and rule.length is None):
@@ -221,7 +239,38 @@ def _rule_of(hint: Any) -> Rule | None:
 
 
 def _dataset_formats() -> tuple[str, ...]:
-    return ("auto", *FORMATS)
+    return ("auto", *LOADERS)
+
+
+def field_comments(source: str) -> dict[tuple[str, str], str]:
+    """(class name, field name) → the comment text beside the field in ``source``: the comments on the
+    field's own lines and on the comment-only lines that follow it, joined."""
+    comments: dict[int, str] = {}
+    for tok in tokenize.generate_tokens(io.StringIO(source).readline):
+        if tok.type == tokenize.COMMENT:
+            comments[tok.start[0]] = tok.string.lstrip("#").strip()
+    lines = source.splitlines()
+    out = {}
+    for node in ast.parse(source).body:
+        if not isinstance(node, ast.ClassDef):
+            continue
+        for stmt in node.body:
+            if not isinstance(stmt, ast.AnnAssign) or not isinstance(stmt.target, ast.Name):
+                continue
+            parts = [comments[n] for n in range(stmt.lineno, stmt.end_lineno + 1) if n in comments]
+            n = stmt.end_lineno + 1
+            while n <= len(lines) and lines[n - 1].strip().startswith("#"):
+                parts.append(comments[n])
+                n += 1
+            out[node.name, stmt.target.id] = " ".join(p for p in parts if p)
+    return out
+
+
+@functools.cache
+def field_docs() -> dict[tuple[str, str], str]:
+    """The meaning of every config field, from its comment in this file: docs/CONFIG.md's meaning column
+    (scripts/config_doc.py) and the help of the command-line options (``Flag``)."""
+    return field_comments(Path(__file__).read_text(encoding="utf-8"))
 
 
 
@@ -232,7 +281,7 @@ Fraction = Annotated[float, Range(ge=0, le=1)]
 Degrees = Annotated[float, Range(gt=0, le=180)]
 Count = Annotated[int, Range(ge=1)]
 NonNegativeInt = Annotated[int, Range(ge=0)]
-FilePath = Annotated[str, Text("a file path")]
+FilePath = Annotated[str, Text("a file path", path=True)]
 Topic = Annotated[str, Text("a topic name")]
 
 
@@ -241,36 +290,48 @@ MAP_WIDTH = 320  # fusion.level = -1: the map is built at the finest pyramid lev
 
 @dataclass
 class DatasetConfig:
-    path: Annotated[str, Text("a folder or file path")] = ""
-                                    # the dataset; "" = the embedded synthetic sequence
-    format: Annotated[str, OneOf(source=_dataset_formats)] = "auto"
-                                    # auto | tum | iclnuim | 7scenes | folder | rosbag | log | synthetic
-    downsample: Count = 1           # integer subsampling factor (2 → 320×240 from 640×480)
-    start: NonNegativeInt = 0       # first frame (index into the sequence)
-    stop: Annotated[int | None, Range(ge=1)] = None  # one past the last frame; None = to the end
-    stride: Count = 1               # take every stride-th frame
+    path: Annotated[str, Text("a folder or file path", path=True)] = ""
+                                    # the dataset (DATA on the command line); "" = the embedded synthetic sequence
+    format: Annotated[str, OneOf(source=_dataset_formats), Flag()] = "auto"
+                                    # the dataset's format; auto = detected from the files that identify it
+                                    # (docs/DATA.md)
+    downsample: Annotated[Count, Flag("N")] = 1  # integer subsampling factor (2 → 320×240 from 640×480)
+    start: Annotated[NonNegativeInt, Flag("N")] = 0  # first frame (its index in the sequence, 0 = the first)
+    stop: Annotated[int | None, Range(ge=1), Flag("N")] = None  # one past the last frame; None = to the end
+    stride: Annotated[Count, Flag("N")] = 1  # take every stride-th frame
     depth_max: NonNegative = 4.0    # depth beyond this (metres) is treated as invalid; 0 = keep every range
     intrinsics_file: FilePath = ""  # a file with "fx fy cx cy" (or a 3x3 K) overriding the format's intrinsics
     max_time_difference: NonNegative = 0.02  # seconds: TUM rgb↔depth association and ground-truth lookup tolerance
-    depth_scale: NonNegative = 0.0  # raw depth units per metre (1000 = millimetres): required by --format folder;
-                                    # 0 = the format's own (bags: REP 118, 16UC1 in mm, 32FC1 in metres)
-    intrinsics: Annotated[str, Text("fx,fy,cx,cy or a file path")] = ""
-                                    # "fx,fy,cx,cy" or a calibration file (fx fy cx cy, a 3x3 K, a camera_info or
-                                    # OpenCV YAML): overrides the format's; a folder needs it or camera.yaml/intrinsics.txt
-    ground_truth: FilePath = ""     # a TUM trajectory file of the camera's ground-truth poses (folder, bag)
-    depth_topic: Topic = ""         # bags: the depth image topic; "" = the only one
-    color_topic: Topic = ""         # bags: the colour image topic; "" = the only one, "none" = no colour
-    camera_info_topic: Topic = ""   # bags: CameraInfo of the depth images; "" = the depth topic's camera_info, or the only one
-    gt_topic: Topic = ""            # bags: a PoseStamped or Odometry topic of ground truth; "" = none
-    color_extrinsics: Annotated[str, Text("a file path or a bag topic")] = ""
-                                    # T_color_depth (p_color = T p_depth, metres): a file (4x4 or 3x4 matrix, or
-                                    # tx ty tz qx qy qz qw) or a bag's Transform/TransformStamped/TFMessage topic;
-                                    # colour is then registered to depth (RealSense recordings: the recorded one)
-    color_intrinsics: Annotated[str, Text("fx,fy,cx,cy or a file path")] = ""
-                                    # the colour camera's intrinsics at the colour images' size, for registration with
-                                    # color_extrinsics (folder, 7-Scenes; a bag's colour camera_info otherwise)
-    camera: Annotated[str, Text("realsense[:SERIAL] or realsense:FILE.bag")] = ""
-                                    # a live camera instead of a dataset (pyrealsense2: pip install ti-fusion[realsense]);
+    depth_scale: Annotated[NonNegative, Flag("UNITS_PER_METRE", Range(gt=0))] = 0.0
+                                    # raw depth units per metre: 1000 for millimetres (RealSense, Azure Kinect),
+                                    # 5000 for TUM's; required by --format folder; 0 = the format's own (bags:
+                                    # REP 118, 16UC1 in mm, 32FC1 in metres)
+    intrinsics: Annotated[str, Text("fx,fy,cx,cy or a file path", path=True), Flag("fx,fy,cx,cy|FILE")] = ""
+                                    # camera intrinsics: "fx,fy,cx,cy" or a calibration file (fx fy cx cy, a 3x3 K,
+                                    # a camera_info or OpenCV YAML), in place of the format's; a folder needs it
+                                    # or camera.yaml/intrinsics.txt
+    ground_truth: Annotated[FilePath, Flag("FILE")] = ""
+                                    # a TUM trajectory file of the camera's ground-truth poses (folder, bag)
+    depth_topic: Annotated[Topic, Flag("TOPIC")] = ""
+                                    # bags: the depth image topic; "" = the only one
+    color_topic: Annotated[Topic, Flag("TOPIC")] = ""
+                                    # bags: the colour image topic; "" = the only one, "none" = depth only
+    camera_info_topic: Annotated[Topic, Flag("TOPIC")] = ""
+                                    # bags: the CameraInfo topic of the depth images; "" = the depth topic's
+                                    # camera_info, or the only one
+    gt_topic: Annotated[Topic, Flag("TOPIC")] = ""
+                                    # bags: a PoseStamped or Odometry topic of ground-truth poses; "" = none
+    color_extrinsics: Annotated[str, Text("a file path or a bag topic"), Flag("FILE|TOPIC")] = ""
+                                    # the colour camera's T_color_depth (p_color = T p_depth, metres): a file (4x4
+                                    # or 3x4 matrix, or tx ty tz qx qy qz qw) or a bag's Transform,
+                                    # TransformStamped or TFMessage topic; colour is then registered to depth
+                                    # (RealSense recordings: the recorded one)
+    color_intrinsics: Annotated[str, Text("fx,fy,cx,cy or a file path", path=True), Flag("fx,fy,cx,cy|FILE")] = ""
+                                    # the colour camera's intrinsics at the colour images' size, for registration
+                                    # with color_extrinsics (folder, 7-Scenes; a bag's colour camera_info otherwise)
+    camera: Annotated[str, Text("realsense[:SERIAL] or realsense:FILE.bag"), Flag("realsense[:SERIAL]")] = ""
+                                    # frames from a live camera instead of a dataset (pip install
+                                    # 'ti-fusion[realsense]'); Ctrl-C or --frames N ends the run;
                                     # realsense:FILE.bag plays a recording back through the SDK
     color_registered: bool = False  # folder, bag and log: the colour images are registered to depth (pixel for
                                     # pixel), so photometric tracking may use them; TUM, ICL-NUIM and synthetic
@@ -282,12 +343,13 @@ class DatasetConfig:
 
 @dataclass
 class SynthConfig:
-    scene: Annotated[str, OneOf("room", "loop", "twins", "wall", "corridor")] = "room"
+    scene: Annotated[str, OneOf("room", "loop", "twins", "wall", "corridor"), Flag()] = "room"
                                     # the scene and its own camera path (docs/DATA.md): room (furnished room),
                                     # loop (corridor loop around a block, for loop closure), twins (the loop with
                                     # two identical sections, for false loops), wall (flat wall and floor) and
                                     # corridor (plain walls, posters): geometry-poor, for photometric tracking
-    trajectory: FilePath = ""       # a TUM file of camera-to-world poses to render instead of the scene's path:
+    trajectory: Annotated[FilePath, Flag("FILE.tum")] = ""
+                                    # a TUM file of camera-to-world poses to render instead of the scene's path:
                                     # one frame per pose at the file's timestamps; "" = the scene's own path
     frames: NonNegativeInt = 0      # frames in the embedded synthetic sequence; 0 = the scene's own length
                                     # (room 120, ~4 s at 30 Hz; a trajectory file: all its poses)
@@ -695,13 +757,10 @@ def apply_dict(config: Config, data: dict, where: str = "config", base: Path | N
     return config
 
 
-# Settings that name a file or folder: a relative one in a config file is relative to that file's folder.
-PATH_SETTINGS = {("dataset", "path"), ("dataset", "intrinsics_file"), ("dataset", "intrinsics"),
-                 ("dataset", "color_intrinsics"), ("dataset", "ground_truth"), ("synth", "trajectory")}
-
-
 def _relative_to(base: Path, section: str, key: str, value: Any) -> Any:
-    if (section, key) not in PATH_SETTINGS or not isinstance(value, str) or not value.strip():
+    """A path setting's value (``Text(path=True)``) relative to ``base``; any other value as it is."""
+    rule = rules(type(getattr(Config(), section))).get(key)  # an unknown key is refused when it is set
+    if rule is None or rule.text is None or not rule.text.path or not isinstance(value, str) or not value.strip():
         return value
     if key.endswith("intrinsics") and len(value.replace(",", " ").split()) == 4 and not (base / value).exists():
         return value  # "fx,fy,cx,cy", not a file

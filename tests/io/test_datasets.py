@@ -13,8 +13,9 @@ import cv2
 import numpy as np
 import pytest
 
+from ti_fusion.camera import Intrinsics
 from ti_fusion.config import DatasetConfig
-from ti_fusion.io.datasets import detect, detect_format, open_dataset
+from ti_fusion.io.datasets import Dataset, Frame, detect, detect_format, open_dataset
 from ti_fusion.io.datasets.iclnuim import ICLNUIMDataset
 from ti_fusion.io.datasets.sevenscenes import SevenScenesDataset
 from ti_fusion.io.datasets.tum import TUMDataset, freiburg_camera, interpolate_pose
@@ -604,6 +605,63 @@ def test_detection_evidence(tmp_path, rng):
     (tmp_path / "d" / "rgb.txt").write_text("")
     with pytest.raises(InputError, match="unrecognised dataset layout.*or pass --format"):
         detect(tmp_path / "d")
+
+
+def test_the_unrecognised_layout_line_names_what_identifies_each_format(tmp_path):
+    with pytest.raises(InputError) as info:
+        detect(tmp_path)
+    assert str(info.value) == (f"{tmp_path}: unrecognised dataset layout: expected TUM (depth.txt), ICL-NUIM "
+                               "(*.gt.freiburg), 7-Scenes (frame-XXXXXX.depth.png), a ROS 2 bag (metadata.yaml, "
+                               "*.mcap) or a run log (log.mcap); or pass --format")
+
+
+class OneFileFormat(Dataset):
+    """A reader as a contributor adds one: this class and one line in ti_fusion/io/formats.py."""
+
+    format = "onefile"
+    identified_by = "a one-file sequence (frames.npz)"
+    single_file = True
+
+    def __init__(self, root, config=None, **selection):
+        super().__init__(root, **selection)
+        path = self.root if self.root.is_file() else self.root / "frames.npz"
+        self._depth = np.load(path)["depth"]
+
+    @staticmethod
+    def detect(root: Path) -> str | None:
+        root = Path(root)
+        if root.is_file():
+            return "a .npz file" if root.suffix == ".npz" else None
+        return "frames.npz" if (root / "frames.npz").is_file() else None
+
+    def _num_raw_frames(self) -> int:
+        return len(self._depth)
+
+    def _load_raw(self, raw_index: int) -> Frame:
+        return Frame(index=raw_index, timestamp=float(raw_index), depth=self._depth[raw_index],
+                     intrinsics=self.raw_intrinsics)
+
+    @property
+    def raw_intrinsics(self) -> Intrinsics:
+        return Intrinsics(50.0, 50.0, (W - 1) / 2, (H - 1) / 2, W, H)
+
+
+def test_a_reader_registered_by_one_line_is_detected_opened_and_named(tmp_path, monkeypatch, rng):
+    from ti_fusion.config import load_config
+    from ti_fusion.io import formats
+
+    monkeypatch.setitem(formats.LOADERS, "onefile", f"{__name__}:OneFileFormat")
+    root = tmp_path / "seq"
+    root.mkdir()
+    np.savez(root / "frames.npz", depth=rng.uniform(0.5, 3.0, (4, H, W)).astype(np.float32))
+    assert detect(root) == ("onefile", "frames.npz")
+    assert detect(root / "frames.npz") == ("onefile", "a .npz file")  # single_file: the file alone is an input
+    ds = open_dataset(DatasetConfig(path=str(root), stride=2))
+    assert isinstance(ds, OneFileFormat) and len(ds) == 2 and ds.format_from == "detected from frames.npz"
+    assert load_config(None, ["dataset.format=onefile"]).dataset.format == "onefile"  # the config's choices
+    with pytest.raises(InputError, match=r"expected TUM \(depth.txt\), .*, a run log \(log.mcap\) or a one-file "
+                                         r"sequence \(frames.npz\); or pass --format"):
+        detect(tmp_path)
 
 
 def test_describe_and_the_format_line_say_scale_intrinsics_and_their_source(tmp_path, rng, caplog):

@@ -36,6 +36,7 @@ from types import ModuleType
 
 from ti_fusion import __version__
 from ti_fusion.backend import ARCH_CHOICES, BackendInfo, init_backend
+from ti_fusion.cli.options import add_flags, apply_flags
 from ti_fusion.config import Config, load_config
 from ti_fusion.errors import InputError, OutputError, TiFusionError
 from ti_fusion.interrupts import interrupt
@@ -115,44 +116,8 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
                        help="dataset folder (TUM, ICL-NUIM, 7-Scenes, or a plain folder with --format folder) or "
                             "ROS bag (a ROS 1 .bag, e.g. a RealSense recording; a rosbag2 folder or an .mcap file); "
                             "omitted: the embedded synthetic sequence")
-        from ti_fusion.io.datasets import FORMATS
-
-        d.add_argument("--format", choices=("auto", *FORMATS), default=None,
-                       help="dataset format (default: detected from the files that identify it)")
-        d.add_argument("--depth-scale", type=float, default=None, metavar="UNITS_PER_METRE",
-                       help="raw depth units per metre: 1000 for millimetres (RealSense, Azure Kinect), 5000 for "
-                            "TUM's (needed by --format folder)")
-        d.add_argument("--intrinsics", default=None, metavar="fx,fy,cx,cy|FILE",
-                       help="camera intrinsics: four numbers, or a file (fx fy cx cy, a 3x3 K, a camera_info or "
-                            "OpenCV YAML)")
-        d.add_argument("--ground-truth", default=None, metavar="FILE",
-                       help="ground-truth poses in TUM format (plain folder or bag)")
-        d.add_argument("--depth-topic", default=None, metavar="TOPIC", help="bag: the depth image topic")
-        d.add_argument("--color-topic", default=None, metavar="TOPIC",
-                       help="bag: the colour image topic ('none': depth only)")
-        d.add_argument("--camera-info-topic", default=None, metavar="TOPIC",
-                       help="bag: the CameraInfo topic of the depth images")
-        d.add_argument("--gt-topic", default=None, metavar="TOPIC",
-                       help="bag: a PoseStamped or Odometry topic of ground-truth poses")
-        d.add_argument("--camera", default=None, metavar="realsense[:SERIAL]",
-                       help="frames from a live RealSense camera (pip install 'ti-fusion[realsense]'); Ctrl-C or "
-                            "--frames N ends the run; realsense:FILE.bag plays a recording back through the SDK")
-        d.add_argument("--color-extrinsics", default=None, metavar="FILE|TOPIC",
-                       help="the colour camera's T_color_depth (a 4x4 matrix or tx ty tz qx qy qz qw file, or a "
-                            "bag's transform topic): colour is registered to depth through it")
-        d.add_argument("--color-intrinsics", default=None, metavar="fx,fy,cx,cy|FILE",
-                       help="the colour camera's intrinsics, with --color-extrinsics on a folder or 7-Scenes")
-        d.add_argument("--downsample", type=int, default=None, help="integer subsampling factor (2 → 320×240)")
-        d.add_argument("--start", type=int, default=None, help="first frame (0 = the first)")
-        d.add_argument("--stop", type=int, default=None, help="one past the last frame")
-        d.add_argument("--stride", type=int, default=None, help="take every N-th frame")
-        d.add_argument("--frames", type=int, default=None, help="number of frames (from --start)")
-        from ti_fusion.synthetic.scenes import SCENES
-
-        d.add_argument("--scene", choices=tuple(SCENES), default=None,
-                       help="without DATA: the synthetic scene and its camera path (default: synth.scene, room)")
-        d.add_argument("--trajectory", default=None, metavar="FILE.tum",
-                       help="without DATA: render the synthetic scene from these poses instead of its own path")
+        d.add_argument("--frames", type=int, default=None, metavar="N", help="number of frames (from --start)")
+        add_flags(d)
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
@@ -170,40 +135,20 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
     return parser, modules
 
 
-def _check_dataset_args(args: argparse.Namespace) -> None:
-    """Frame options are counts and positions, never Python's from-the-end indices."""
-    minimum = {"downsample": 1, "start": 0, "stop": 1, "stride": 1, "frames": 1}
-    for name, least in minimum.items():
-        value = getattr(args, name, None)
-        if value is not None and value < least:
-            raise InputError(None, f"--{name} {value}: must be at least {least}")
+def _apply_dataset_args(args: argparse.Namespace, config: Config) -> None:
+    """DATA, the dataset options (``ti_fusion/cli/options.py``) and --frames set on the config. Frame options
+    are counts and positions, never Python's from-the-end indices."""
+    if getattr(args, "data", ""):
+        config.dataset.path = args.data
+    if args.frames is not None and args.frames < 1:
+        raise InputError(None, f"--frames {args.frames}: must be at least 1")
+    apply_flags(args, config)
     if args.start is not None and args.stop is not None and args.stop <= args.start:
         raise InputError(None, f"--stop {args.stop} must be greater than --start {args.start}")
     if args.frames is not None and args.stop is not None:
         raise InputError(None, "give --frames or --stop, not both")
-    depth_scale = getattr(args, "depth_scale", None)
-    if depth_scale is not None and not depth_scale > 0:
-        raise InputError(None, f"--depth-scale {depth_scale:g}: must be a positive number of units per metre")
-
-
-def _apply_dataset_args(args: argparse.Namespace, config: Config) -> None:
-    _check_dataset_args(args)
     ds = config.dataset
-    if getattr(args, "data", ""):
-        ds.path = args.data
-    for name in ("format", "downsample", "start", "stop", "stride", "depth_scale", "intrinsics", "ground_truth",
-                 "depth_topic", "color_topic", "camera_info_topic", "gt_topic", "color_extrinsics", "color_intrinsics",
-                 "camera"):
-        value = getattr(args, name, None)
-        if value is not None:
-            setattr(ds, name, value)
-    for name in ("scene", "trajectory"):
-        value = getattr(args, name, None)
-        if value is not None:
-            if ds.path:
-                raise InputError(None, f"--{name} is for the synthetic sequence (no DATA); {ds.path} is recorded data")
-            setattr(config.synth, name, value)
-    if getattr(args, "frames", None) is not None:
+    if args.frames is not None:
         ds.stop = ds.start + args.frames * ds.stride
         config.synth.frames = max(config.synth.frames, ds.stop) if ds.path == "" else config.synth.frames
 

@@ -21,38 +21,20 @@ from pathlib import Path
 from ti_fusion.config import DatasetConfig, SynthConfig
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets.base import Dataset, Frame
-from ti_fusion.io.formats import FORMATS
+from ti_fusion.io.formats import FORMATS, LOADERS
 
 __all__ = ["Dataset", "Frame", "open_dataset", "detect_format", "loader_class", "FORMATS", "rgbd_frame",
            "FrameList"]
 
 log = logging.getLogger(__name__)
 
-# format → (module, class). Modules are imported on demand, so one format's import problem cannot break
-# the others.
-_LOADERS = {
-    "tum": (".tum", "TUMDataset"),
-    "iclnuim": (".iclnuim", "ICLNUIMDataset"),
-    "7scenes": (".sevenscenes", "SevenScenesDataset"),
-    "folder": (".folder", "FolderDataset"),
-    "rosbag": (".rosbag", "RosbagDataset"),
-    "log": (".runlog", "RunLogDataset"),
-    "synthetic": (".synthetic", "SyntheticDataset"),
-}
 
-# Formats whose input may be a single file rather than a folder (an .mcap or .db3 bag file, a run log).
-FILE_FORMATS = ("rosbag", "log")
-
-# Formats with intrinsics of their own that ``dataset.intrinsics`` replaces after loading.
-_BENCHMARK_FORMATS = ("tum", "iclnuim", "7scenes")
-
-
-def loader_class(fmt: str) -> type:
-    """The Dataset subclass of format ``fmt``."""
-    if fmt not in _LOADERS:
-        raise InputError(None, f"unknown dataset format {fmt!r}: choose one of auto, {', '.join(FORMATS)}")
-    module, name = _LOADERS[fmt]
-    return getattr(importlib.import_module(module, __name__), name)
+def loader_class(fmt: str) -> type[Dataset]:
+    """The Dataset subclass registered for format ``fmt`` (``ti_fusion/io/formats.py``), imported on first use."""
+    if fmt not in LOADERS:
+        raise InputError(None, f"unknown dataset format {fmt!r}: choose one of auto, {', '.join(LOADERS)}")
+    module, name = LOADERS[fmt].split(":")
+    return getattr(importlib.import_module(module), name)
 
 
 def detect(root: Path) -> tuple[str, str]:
@@ -61,10 +43,10 @@ def detect(root: Path) -> tuple[str, str]:
     root = Path(root)
     if not root.exists():
         raise InputError(root, "dataset folder does not exist")
-    candidates = _LOADERS if root.is_dir() else FILE_FORMATS
     found = {}
-    for fmt in candidates:
-        evidence = loader_class(fmt).detect(root)
+    for fmt in LOADERS:
+        loader = loader_class(fmt)
+        evidence = loader.detect(root) if root.is_dir() or loader.single_file else None
         if evidence:
             found[fmt] = evidence
     if len(found) == 1:
@@ -83,9 +65,9 @@ def detect(root: Path) -> tuple[str, str]:
                                "their depth scale and intrinsics are unknown: pass --format folder --depth-scale "
                                "UNITS_PER_METRE --intrinsics fx,fy,cx,cy (or FILE); if it is ICL-NUIM (5000 "
                                "units per metre, its published intrinsics), pass --format iclnuim")
-    raise InputError(root, "unrecognised dataset layout: expected TUM (depth.txt), ICL-NUIM (*.gt.freiburg), "
-                           "7-Scenes (frame-XXXXXX.depth.png), a ROS 2 bag (metadata.yaml, *.mcap) or a run log "
-                           "(log.mcap); or pass --format")
+    known = [what for what in (loader_class(fmt).identified_by for fmt in LOADERS) if what]
+    raise InputError(root, f"unrecognised dataset layout: expected {', '.join(known[:-1])} or {known[-1]}; or pass "
+                           "--format")
 
 
 def detect_format(root: Path) -> str:
@@ -129,20 +111,20 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
         fmt, evidence = detect(root)
         how = f"detected from {evidence}"
     else:
-        loader_class(fmt)  # an unknown name fails here, before the folder is read
+        loader = loader_class(fmt)  # an unknown name fails here, before the folder is read
         if not root.exists():
             raise InputError(root, "dataset folder does not exist")
-        if not root.is_dir() and fmt not in FILE_FORMATS:
+        if not root.is_dir() and not loader.single_file:
             raise InputError(root, "not a folder (give the dataset's folder)")
         how = "given by --format or dataset.format"
     dataset = loader_class(fmt)(root, config=cfg, **common)
     dataset.format_from = how
-    if fmt in _BENCHMARK_FORMATS:
+    if dataset.replaceable_calibration:
         if cfg.intrinsics:
             _replace_intrinsics(dataset, cfg.intrinsics)
         if cfg.depth_scale:
             dataset.depth_scale = float(cfg.depth_scale)  # read by ImageFileDataset for every frame
-    if (cfg.color_extrinsics or cfg.color_intrinsics) and fmt != "rosbag":
+    if (cfg.color_extrinsics or cfg.color_intrinsics) and not dataset.reads_color_camera:
         _color_camera(dataset, cfg)
     dataset.check_selection()
     log.info(dataset.describe_format())

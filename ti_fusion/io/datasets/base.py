@@ -40,6 +40,11 @@ class Dataset(ABC):
     color_registered: bool = False
     # ``dataset[i]`` may run on several threads at once, in any order (``ti_fusion.io.prefetch``)
     concurrent_reads: bool = False
+    # What ``open_dataset`` asks of a format registered in ti_fusion/io/formats.py (besides ``detect``):
+    identified_by: str | None = None  # the files ``detect`` looks for, as the line for an unknown layout names them
+    single_file: bool = False         # an input may be one file (a bag, a run log) rather than a folder
+    replaceable_calibration: bool = False  # dataset.intrinsics and dataset.depth_scale replace the format's own
+    reads_color_camera: bool = False  # reads dataset.color_extrinsics and color_intrinsics itself (a bag's topics)
 
     def __init__(self, root: str | Path, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
@@ -57,6 +62,13 @@ class Dataset(ABC):
         self.dropped_frames = 0              # frames left out of the sequence (``notes`` say which and why)
 
     # -- implemented by each format -------------------------------------------------------------
+    @staticmethod
+    def detect(root: Path) -> str | None:
+        """What identifies ``root`` (a folder; a file where ``single_file``) as this format, as the format line
+        says it (``"depth.txt"``), or None. Only files that no other format has count: a wrong guess gives
+        wrong depths without any error. The default, None, is a format that is never guessed."""
+        return None
+
     @abstractmethod
     def _num_raw_frames(self) -> int: ...
 

@@ -276,10 +276,6 @@ class FolderDataset(ImageFileDataset):
                     ground_truth_from=self.ground_truth_source, color_registered=self.color_registered)
         return info
 
-    @staticmethod
-    def detect(root: Path) -> str | None:
-        return None  # never guessed: see the module docstring
-
 
 def _spec_text(spec) -> str:
     return ",".join(str(v) for v in spec) if isinstance(spec, (list, tuple)) else " ".join(str(spec).split())

@@ -66,6 +66,8 @@ class ICLNUIMDataset(ImageFileDataset):
     """An ICL-NUIM sequence in TUM layout (see the module docstring for conventions)."""
 
     format = "iclnuim"
+    identified_by = "ICL-NUIM (*.gt.freiburg)"
+    replaceable_calibration = True
     color_registered = True  # rendered: colour and depth from the same camera
 
     depth_scale = DEPTH_SCALE

@@ -350,6 +350,9 @@ class RosbagDataset(RecordedSequence):
     """A ROS 1 or ROS 2 bag's depth (and colour) images as frames (see the module docstring)."""
 
     format = "rosbag"
+    identified_by = "a ROS 2 bag (metadata.yaml, *.mcap)"
+    single_file = True
+    reads_color_camera = True
 
     @property
     def color_for_tracking(self) -> bool:  # one frame_id for both, or the user's word (dataset.color_registered)

@@ -147,6 +147,8 @@ class RunLogDataset(RecordedSequence):
     """A ti-fusion run log's depth (and colour) images as frames (see the module docstring)."""
 
     format = "log"
+    identified_by = "a run log (log.mcap)"
+    single_file = True
     depth_scale = 1000.0  # /camera/depth is 16UC1 millimetres
 
     @property

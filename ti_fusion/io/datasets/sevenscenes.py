@@ -41,6 +41,8 @@ class SevenScenesDataset(ImageFileDataset):
     """A 7-Scenes sequence folder (see the module docstring for conventions)."""
 
     format = "7scenes"
+    identified_by = "7-Scenes (frame-XXXXXX.depth.png)"
+    replaceable_calibration = True
     color_registered = False  # the dataset says so: its colour and depth cameras are not calibrated together
 
     depth_scale = DEPTH_SCALE

@@ -35,10 +35,6 @@ class SyntheticDataset(Dataset):
                     stop: int | None = None, stride: int = 1) -> "SyntheticDataset":
         return cls("synthetic", synth=synth_cfg, downsample=downsample, start=start, stop=stop, stride=stride)
 
-    @staticmethod
-    def detect(root: Path) -> str | None:
-        return None  # never a folder
-
     @property
     def sequence(self):
         if self._sequence is None:

@@ -105,6 +105,8 @@ class TUMDataset(ImageFileDataset):
     """A TUM RGB-D sequence folder (see the module docstring for association, ground truth, intrinsics)."""
 
     format = "tum"
+    identified_by = "TUM (depth.txt)"
+    replaceable_calibration = True
     color_registered = True  # the TUM tools register depth to colour
 
     depth_scale = DEPTH_SCALE

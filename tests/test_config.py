@@ -212,3 +212,20 @@ def test_every_key_has_a_meaning_and_the_advanced_list_names_real_keys():
         assert set(keys) <= {f.name for f in dataclasses.fields(sections[name])}, name
     for section, key in REMOVED:
         assert key not in {f.name for f in dataclasses.fields(sections[section])}, (section, key)
+
+
+def test_a_yaml_alias_bomb_is_refused_without_expanding_it(tmp_path):
+    """A few hundred bytes of YAML aliases expand into 9**9 values: refused by counting (which stops at the
+    bound), never walked or printed in full."""
+    lines = ['a: &a ["lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol", "lol"]']
+    for prev, name in zip("abcdefg", "bcdefgh"):
+        lines.append(f"{name}: &{name} [{', '.join([f'*{prev}'] * 9)}]")
+    lines.append(f"icp: {{iterations: [{', '.join(['*h'] * 9)}]}}")
+    path = tmp_path / "bomb.yaml"
+    path.write_text("\n".join(lines) + "\n")
+    assert path.stat().st_size < 500
+    with pytest.raises(InputError, match=r"bomb.yaml: config holds more than 100000 values \(YAML aliases"):
+        load_config(path)
+    from ti_fusion.config import _show
+
+    assert len(_show(list(range(10_000)))) < 210

@@ -607,10 +607,34 @@ def _read_file(path: Path) -> dict:
     except OSError as exc:
         raise InputError(path, f"cannot read config: {exc.strerror or exc}") from None
     data = _parse_text(path, text)
+    if _too_big(data):
+        raise InputError(path, f"config holds more than {MAX_CONFIG_VALUES} values (YAML aliases that expand "
+                               "into each other?): a config is a few tables of settings")
     if not isinstance(data, dict):
         raise InputError(path, f"config's top level is {_type_name(data)}: expected a table of sections "
                                "(e.g. icp: with its settings)")
     return data
+
+
+# A config file holds a few hundred values at most; YAML aliases can make a few hundred bytes expand into
+# billions (an "alias bomb"), which no check may walk or print in full.
+MAX_CONFIG_VALUES = 100_000
+
+
+def _too_big(data: Any) -> bool:
+    """Whether ``data`` expands to more than MAX_CONFIG_VALUES values (stops counting there)."""
+    count, stack = 0, [data]
+    while stack:
+        item = stack.pop()
+        count += 1
+        if count > MAX_CONFIG_VALUES:
+            return True
+        if isinstance(item, dict):
+            stack.extend(item.keys())
+            stack.extend(item.values())
+        elif isinstance(item, (list, tuple)):
+            stack.extend(item)
+    return False
 
 
 def _type_name(value: Any) -> str:
@@ -651,9 +675,12 @@ def _one_line(exc: Exception) -> str:
     return " ".join(str(exc).split())
 
 
-def _show(value: Any) -> str:
-    """A value as the user wrote it, near enough: text quoted, None as None."""
-    return repr(value) if isinstance(value, str) else json.dumps(value) if isinstance(value, list) else str(value)
+def _show(value: Any, limit: int = 200) -> str:
+    """A value as the user wrote it, near enough: text quoted, None as None; cut after ``limit`` characters."""
+    if isinstance(value, (list, dict)) and _too_big(value):
+        return f"a {type(value).__name__} of more than {MAX_CONFIG_VALUES} values"
+    text = repr(value) if isinstance(value, str) else json.dumps(value) if isinstance(value, list) else str(value)
+    return text if len(text) <= limit else text[:limit] + "..."
 
 
 def check_value(section: str, key: str, value: Any, where: str = "config") -> Any:

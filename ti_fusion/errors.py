@@ -5,6 +5,12 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def displayable(text: str) -> str:
+    """``text`` as UTF-8 can hold it: bytes of a path that are not UTF-8 (Python keeps them as lone surrogates,
+    which UTF-8 writers refuse) written as ``\\xff`` escapes."""
+    return text.encode("utf-8", "surrogateescape").decode("utf-8", "backslashreplace")
+
+
 class TiFusionError(Exception):
     """Base class of every error the CLI reports as a one-line message (exit code 2)."""
 

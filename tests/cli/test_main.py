@@ -132,6 +132,29 @@ def test_an_earlier_run_is_refused_then_replaced_with_overwrite(tmp_path, capsys
     assert "holds the input" in _one_line(capsys) and (out / "summary.json").is_file()
 
 
+def test_overwrite_keeps_the_users_own_files(tmp_path, capsys):
+    """--overwrite removes what the earlier run wrote, and nothing of the user's: a folder that holds the
+    user's files too is refused with one line, and nothing in it is touched."""
+    log = _small_log(tmp_path / "log.mcap")
+    out = tmp_path / "run"
+    assert main(["inspect", str(log), "--out", str(out), "--plot"]) == 0
+    (out / "notes.txt").write_text("calibrated at 9:00\n")
+    (out / "photos").mkdir()
+    (out / "photos" / "rig.jpg").write_bytes(b"jpeg")
+    capsys.readouterr()
+    assert main(["inspect", str(log), "--out", str(out), "--overwrite"]) == 2
+    line = _one_line(capsys)
+    assert line.startswith(f"ti-fusion inspect: error: {out}: holds an earlier run (inspect, process ")
+    assert line.endswith("and files it did not write (notes.txt, photos): --overwrite removes only a run's own "
+                         "files; move those, or choose another --out")
+    assert sorted(os.listdir(out)) == sorted([MARKER, "notes.txt", "photos", "stats.png", "summary.json"])
+    (out / "notes.txt").unlink()
+    (out / "photos" / "rig.jpg").unlink()
+    (out / "photos").rmdir()
+    assert main(["inspect", str(log), "--out", str(out), "--overwrite"]) == 0
+    assert sorted(os.listdir(out)) == [MARKER, "summary.json"]
+
+
 def test_a_folder_in_use_by_another_run_stops_the_second(tmp_path, capsys):
     log = _small_log(tmp_path / "log.mcap")
     holder = RunDir("slam", tmp_path / "run")  # a run still writing there (another process would do the same)
@@ -148,11 +171,11 @@ def test_default_folders_are_unique_within_one_second(tmp_path, capsys, monkeypa
     log = _small_log(tmp_path / "log.mcap")
     same = Path("logs") / "inspect-20261125-030405-678"
     monkeypatch.setattr(outputs, "default_out_dir", lambda command: same)  # two runs in one millisecond
-    assert main(["inspect", str(log)]) == 0 and main(["inspect", str(log)]) == 0
+    assert main(["inspect", str(log), "--plot"]) == 0 and main(["inspect", str(log), "--plot"]) == 0
     assert sorted(os.listdir("logs")) == [same.name, same.name + "-2"]
     monkeypatch.undo()
     monkeypatch.chdir(tmp_path)
-    assert main(["inspect", str(log)]) == 0
+    assert main(["inspect", str(log), "--plot"]) == 0
     newest = max(Path("logs").iterdir(), key=lambda p: p.stat().st_mtime)
     assert newest.name.startswith("inspect-") and len(newest.name.split("-")) == 4  # ...-HHMMSS-mmm
 

@@ -263,3 +263,39 @@ def test_frames_lost_for_being_small_get_a_hint():
     assert _small_frames_hint(Config(), summary) is None
     one = {"frames": 1, "tracking_failures": 0, "failed_frames": [], "resolution": {"tracked_at": [64, 48]}}
     assert _small_frames_hint(Config(), one) is None  # nothing lost: nothing to explain
+
+
+@pytest.mark.parametrize("option", [["--ground-truth", "missing.tum"], ["--depth-topic", "/camera/depth"],
+                                    ["--gt-topic", "/vicon"]])
+def test_an_option_that_cannot_apply_to_the_input_says_so(tum, tmp_path, capsys, option):
+    """A TUM folder has its own ground truth and no topics: --ground-truth (even of a missing file) and the
+    bag options were ignored without a word (exit 0)."""
+    out = tmp_path / "run"
+    assert main(["slam", str(tum), *option, "--out", str(out), "--quiet"]) == 2
+    lines = _stderr_lines(capsys)
+    assert len(lines) == 1 and lines[0].startswith(f"ti-fusion slam: error: {option[0]} (dataset.")
+    assert "does not apply to a tum dataset" in lines[0]
+    assert not out.exists()
+
+
+def test_a_ground_truth_file_that_is_missing_is_exit_2(tum, tmp_path, capsys):
+    data = folder(tum, tmp_path / "plain")
+    assert main(["slam", str(data), "--format", "folder", "--depth-scale", "5000", "--intrinsics",
+                 ",".join(map(str, K)), "--ground-truth", str(tmp_path / "gt.tum"), "--out", str(tmp_path / "run"),
+                 "--quiet"]) == 2
+    assert _stderr_lines(capsys) == [f"ti-fusion slam: error: {tmp_path / 'gt.tum'}: trajectory file not found"]
+
+
+def test_a_dataset_path_that_is_not_utf8(cpu, tum, tmp_path, capsys):
+    """A folder name with a byte that is not UTF-8 (Python keeps it as a lone surrogate): the log's metadata
+    and the plot's title write it escaped, instead of a UnicodeEncodeError traceback."""
+    import os
+
+    from ti_fusion.io.mcap_log import read_log
+
+    data = Path(os.fsdecode(bytes(tmp_path) + b"/caf\xe9"))
+    shutil.copytree(tum, data)
+    out = tmp_path / "run"
+    assert main(["slam", str(data), "--frames", "3", "--out", str(out), "--quiet"]) == 0
+    assert (out / "trajectory.png").is_file()
+    assert read_log(out / "log.mcap").metadata_value("dataset", "name") == "caf\\xe9"

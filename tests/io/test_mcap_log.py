@@ -4,6 +4,7 @@ and docs/LOGS.md names their fields); ``ti-fusion inspect`` on it."""
 
 from __future__ import annotations
 
+import os
 import json
 import shutil
 from pathlib import Path
@@ -625,3 +626,67 @@ def test_the_real_client_check_script_parses():
     script = DOCS.parents[1] / "scripts" / "foxglove_client_check.mjs"
     result = subprocess.run([node, "--check", str(script)], capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
+
+
+def _chunk_ends(path: Path) -> list[int]:
+    from mcap.records import Chunk
+    from mcap.stream_reader import StreamReader
+
+    ends = []
+    with open(path, "rb") as f:
+        reader = StreamReader(f, emit_chunks=True)
+        for record in reader.records:
+            if isinstance(record, Chunk):
+                ends.append(reader._stream.count)
+    return ends
+
+
+def test_a_damaged_log_is_refused_not_read_as_valid(tmp_path, capsys):
+    """A byte changed inside a chunk of a finalised log: inspect said nothing was wrong (it read the log up to
+    the damage as if the run had been killed there); now one line says the file is damaged."""
+    path = tmp_path / "log.mcap"
+    with RunLogger(path, chunk_size=1024) as log:
+        for i in range(50):
+            log.log_pose(i, np.eye(4))
+            log.log_stats(i, {"frame": i, "status": "ok", "ms": {"track": 1.0}})
+    data = bytearray(path.read_bytes())
+    data[_chunk_ends(path)[2] - 5] ^= 0x10  # in the third chunk's compressed records
+    path.write_bytes(bytes(data))
+    with pytest.raises(InputError, match=r"log.mcap: damaged near byte \d+: .*the file changed after it was written"):
+        read_log(path)
+    assert main(["inspect", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"ti-fusion inspect: error: {path}: damaged near byte") and "\n" not in err
+
+
+def test_inspect_reads_only(tmp_path, capsys, monkeypatch):
+    """inspect writes nothing unless asked (--out, --plot): no logs/inspect-* folder, so it works in a
+    folder it cannot write; it takes a run's folder for its log.mcap."""
+    run = tmp_path / "run"
+    run.mkdir()
+    with RunLogger(run / "log.mcap") as log:
+        log.log_stats(0, {"frame": 0, "status": "ok", "ms": {"track": 1.0}})
+    cwd = tmp_path / "cwd"
+    cwd.mkdir()
+    monkeypatch.chdir(cwd)
+    assert main(["inspect", str(run)]) == 0
+    assert f"log: {run / 'log.mcap'}\n" in capsys.readouterr().out
+    assert os.listdir(cwd) == [] and sorted(os.listdir(run)) == ["log.mcap"]
+
+
+def test_inspect_tells_a_log_being_written_from_a_killed_runs(tmp_path, capsys):
+    from ti_fusion.io.outputs import RunDir
+
+    with RunDir("slam", tmp_path / "run") as out:
+        log = RunLogger(out.file("log.mcap"), chunk_size=256)
+        for i in range(40):
+            log.log_stats(i, {"frame": i, "status": "ok", "ms": {"track": 1.0}})
+        assert main(["inspect", str(out.path)]) == 0
+        first = capsys.readouterr().out.splitlines()[0]
+        assert f"(still being written by a run: slam, process {os.getpid()}" in first
+        log.close()
+    torn = tmp_path / "torn.mcap"
+    data = (out.path / "log.mcap").read_bytes()
+    torn.write_bytes(data[:len(data) // 2])
+    assert main(["inspect", str(torn)]) == 0
+    assert "NOT finalised: the run was killed" in capsys.readouterr().out.splitlines()[0]

@@ -313,3 +313,31 @@ def test_the_log_names_itself_when_the_disk_fills(tmp_path, monkeypatch):
     monkeypatch.setattr(mcap_log, "open", Full, raising=False)
     with pytest.raises(OutputError, match="log.mcap: cannot be written: No space left on device"):
         RunLogger(tmp_path / "log.mcap")
+
+
+def test_overwrite_removes_only_the_earlier_runs_files(tmp_path):
+    """The marker lists what a run left; a killed run's marker lists nothing, and then only names runs
+    write count as its files. Anything else in the folder is the user's: refused, nothing removed."""
+    folder = tmp_path / "run"
+    with RunDir("slam", folder) as first:
+        first.write_summary({"command": "slam"})
+        (folder / "map.ply").write_bytes(b"old map")
+    assert json.loads((folder / MARKER).read_text())["files"] == ["map.ply", "summary.json"]
+    (folder / "notes.png").write_bytes(b"mine")  # a run's kind of name, but not in this run's list
+    with pytest.raises(OutputError, match=r"files it did not write \(notes.png\)"):
+        RunDir("slam", folder, overwrite=True)
+    assert sorted(os.listdir(folder)) == [MARKER, "map.ply", "notes.png", "summary.json"]
+    (folder / "notes.png").unlink()
+    RunDir("vo", folder, overwrite=True).release()
+    assert os.listdir(folder) == []
+
+    proc = _hold_in_subprocess(folder, "die")  # killed: its marker lists no files
+    assert proc.stdout.readline().strip() == "ready"
+    proc.wait(timeout=60)
+    (folder / "trajectory.tum").write_text("# the killed run's\n")
+    (folder / "notes.txt").write_text("mine\n")
+    with pytest.raises(OutputError, match=r"files it did not write \(notes.txt\)"):
+        RunDir("slam", folder, overwrite=True)
+    (folder / "notes.txt").unlink()
+    RunDir("slam", folder, overwrite=True).release()
+    assert not (folder / "trajectory.tum").exists()

@@ -15,7 +15,7 @@ import numpy as np
 
 from ti_fusion.evaluation.metrics import associate_trajectories, ate_errors
 from ti_fusion.io.mcap_log import LogContents, read_log
-from ti_fusion.io.outputs import atomic_path
+from ti_fusion.io.outputs import atomic_path, describe_run, run_in_progress
 
 HELP = "summarise an MCAP run log (channels, time range, ms per stage, failures, ATE); --plot for a PNG"
 USES_DATASET = False
@@ -23,15 +23,22 @@ USES_TAICHI = False
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("log", metavar="LOG", help="an MCAP log written by slam or vo (log.mcap)")
+    parser.add_argument("log", metavar="LOG", help="an MCAP log written by slam or vo (log.mcap), or a run folder "
+                                                   "holding one")
     parser.add_argument("--plot", metavar="PNG", nargs="?", const="stats.png", default=None,
                         help="plot the stats over the frames to this PNG (default name stats.png; "
                              "a relative path goes into the --out folder)")
 
 
+def writes_files(args) -> bool:
+    """inspect only reads, unless asked for a plot or a summary.json (--out): no folder otherwise."""
+    return bool(args.out or args.plot)
+
+
 def run(ctx) -> dict:
     log = read_log(ctx.args.log)
     summary = summarise(log)
+    summary["writer"] = run_in_progress(log.path.parent) if not log.complete else None
     print(format_report(log, summary), flush=True)
     if ctx.args.plot:
         plot = Path(ctx.args.plot)
@@ -83,8 +90,14 @@ def summarise(log: LogContents) -> dict:
 
 
 def format_report(log: LogContents, summary: dict) -> str:
-    lines = [f"log: {log.path}" + ("" if log.complete else
-             "  (NOT finalised: the run was killed; read up to the last whole chunk)")]
+    writer = summary.get("writer")
+    if log.complete:
+        state = ""
+    elif writer is not None:
+        state = f"  (still being written by a run: {describe_run(writer)}; read up to its last whole chunk)"
+    else:
+        state = "  (NOT finalised: the run was killed; read up to the last whole chunk)"
+    lines = [f"log: {log.path}{state}"]
     width = max([len(t) for t in log.channels] + [5])
     swidth = max([len(c.schema_name) for c in log.channels.values()] + [6])
     lines.append(f"  {'topic':<{width}}  {'schema':<{swidth}}  {'encoding':<9} {'count':>7}")

@@ -49,6 +49,7 @@ from ti_fusion.timing import Stopwatch
 #     USES_DATASET: bool                takes a DATA argument and the dataset options
 #     USES_TAICHI: bool                 needs a Taichi backend (``--arch``)
 #     OUT_FROM_POSITIONAL: str          (optional) the positional that names the output folder, instead of --out
+#     writes_files(args) -> bool        (optional) False: this call writes nothing, and gets no folder (ctx.out None)
 #     add_arguments(parser) -> None     its own options
 #     run(ctx) -> dict                  does the work; returns the command's own summary fields
 COMMAND_NAMES = ("synth", "icp", "fuse", "slam", "vo", "inspect", "mesh")
@@ -74,7 +75,7 @@ class RunContext:
     command: str
     args: argparse.Namespace
     config: Config
-    out: RunDir
+    out: RunDir | None  # None for a command that writes nothing this time (writes_files)
     backend: BackendInfo | None
     quiet: bool
 
@@ -299,7 +300,9 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
             inputs = [config.dataset.path if getattr(module, "USES_DATASET", False) else "", getattr(args, "log", ""),
                       getattr(args, "map", "")]
             _check_out_holds_no_input(out_arg, inputs, positional.upper() if positional else "--out")
-            out = RunDir(command, out_arg, overwrite=args.overwrite)
+            # A command that writes files only when asked (inspect) makes no folder otherwise.
+            writes = getattr(module, "writes_files", lambda a: True)(args)
+            out = RunDir(command, out_arg, overwrite=args.overwrite) if writes else None
             backend = init_backend(args.arch) if getattr(module, "USES_TAICHI", False) else None
             if backend is not None and not args.quiet:
                 print(f"backend: {backend.arch} ({backend.reason})", flush=True)
@@ -312,8 +315,9 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
             if backend is not None:
                 summary["backend"] = backend.arch
             summary.update(result)
-            path = out.write_summary(summary)
-            print(f"outputs written to {out.path}/ (summary: {path})", flush=True)
+            if out is not None:
+                path = out.write_summary(summary)
+                print(f"outputs written to {out.path}/ (summary: {path})", flush=True)
             return 0
         finally:
             if out is not None:

@@ -8,6 +8,7 @@ import numpy as np
 from matplotlib.collections import LineCollection
 from matplotlib.figure import Figure
 
+from ti_fusion.errors import displayable
 from ti_fusion.evaluation.metrics import align_rigid, trajectory_metrics
 from ti_fusion.io.outputs import atomic_path
 
@@ -127,7 +128,7 @@ def plot_trajectory(path_png: str | Path, est_poses, gt_poses=None, timestamps=N
             ax.set_xlabel(t_label)
         else:
             ax.tick_params(labelbottom=False)
-    fig.suptitle(title)
+    fig.suptitle(displayable(title))
     path_png = Path(path_png)
     path_png.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(path_png) as tmp:  # whole or not at all; OutputError naming the file when it cannot be

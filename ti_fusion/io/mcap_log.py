@@ -47,6 +47,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import platform
 import warnings
 import weakref
@@ -68,14 +69,14 @@ from foxglove_schemas_protobuf.PosesInFrame_pb2 import PosesInFrame
 from foxglove_schemas_protobuf.RawImage_pb2 import RawImage
 from foxglove_schemas_protobuf.SceneUpdate_pb2 import SceneUpdate
 from mcap.records import Channel, Footer, Message, Metadata, Schema
-from mcap.stream_reader import StreamReader
+from mcap.stream_reader import CRCValidationError, StreamReader
 from mcap.well_known import MessageEncoding, SchemaEncoding
 from mcap.writer import CompressionType
 from mcap.writer import Writer as McapWriter
 from mcap_protobuf.decoder import DecoderFactory
 from mcap_protobuf.schema import build_file_descriptor_set
 
-from ti_fusion.errors import InputError, OutputError
+from ti_fusion.errors import InputError, OutputError, displayable
 from ti_fusion.geometry import quat_to_rot, rot_to_quat
 from ti_fusion.interrupts import critical
 from ti_fusion.io.outputs import jsonable
@@ -251,7 +252,7 @@ class RunLogger:
     # -- channels ---------------------------------------------------------------------------------
     def log_metadata(self, name: str, record: dict) -> None:
         """A metadata record: str → str, non-string values JSON-encoded."""
-        data = {str(k): v if isinstance(v, str) else json.dumps(jsonable(v)) for k, v in record.items()}
+        data = {displayable(str(k)): displayable(v) if isinstance(v, str) else json.dumps(jsonable(v)) for k, v in record.items()}
         self._writer.add_metadata(name, data)
         self._file.flush()
 
@@ -699,16 +700,20 @@ def read_log(path: str | Path) -> LogContents:
     path = Path(path)
     if not path.exists():
         raise InputError(path, "no such file")
+    if path.is_dir() and (path / "log.mcap").is_file():  # a run's folder
+        path = path / "log.mcap"
     if not path.is_file():
-        raise InputError(path, "not a file (expected an .mcap log)")
+        raise InputError(path, "not a file (expected an .mcap log, or a run folder holding log.mcap)")
     with open(path, "rb") as f:
         if f.read(len(MCAP_MAGIC)) != MCAP_MAGIC:
             raise InputError(path, "not an MCAP file (its first bytes are not the MCAP magic)")
+        f.seek(-len(MCAP_MAGIC), os.SEEK_END)
+        finalised = f.read() == MCAP_MAGIC  # a finalised file ends with the magic: it cannot be torn
         f.seek(0)
-        return _read_records(path, StreamReader(f, skip_magic=False))
+        return _read_records(path, StreamReader(f, skip_magic=False, validate_crcs=True), finalised)
 
 
-def _read_records(path: Path, reader: StreamReader) -> LogContents:
+def _read_records(path: Path, reader: StreamReader, finalised: bool = False) -> LogContents:
     schemas: dict[int, Schema] = {}
     channels: dict[int, Channel] = {}
     infos: dict[str, ChannelInfo] = {}
@@ -725,7 +730,10 @@ def _read_records(path: Path, reader: StreamReader) -> LogContents:
             record = next(records)
         except StopIteration:
             break
-        except Exception:  # noqa: BLE001 - a torn record: the end of an unfinalised file
+        except Exception as exc:  # noqa: BLE001 - a torn record ends an unfinalised file; anything else is damage
+            if isinstance(exc, CRCValidationError) or finalised:
+                raise InputError(path, f"damaged near byte {reader._stream.count}: {damage(exc)}; the file changed "
+                                       "after it was written") from None
             break
         if isinstance(record, Schema):
             schemas[record.id] = record
@@ -766,6 +774,13 @@ def _read_records(path: Path, reader: StreamReader) -> LogContents:
         metadata=metadata, stats_topic=stats_topic,
         stats=[m for _, m in stats_pairs], stats_times=np.array([t for t, _ in stats_pairs]),
         est_times=est_t, est_poses=est_p, gt_times=gt_t, gt_poses=gt_p, json_messages=json_messages)
+
+
+def damage(exc: Exception) -> str:
+    """What a damaged MCAP record's error says, in a few words."""
+    if isinstance(exc, CRCValidationError):
+        return f"a {type(exc.record).__name__.lower()}'s CRC does not match its data"
+    return " ".join(str(exc).split())[:200] or type(exc).__name__
 
 
 def _pick_stats_topic(json_messages: dict) -> str | None:

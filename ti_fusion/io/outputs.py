@@ -3,6 +3,7 @@ the terminal progress bar."""
 
 from __future__ import annotations
 
+import fnmatch
 import json
 import os
 import secrets
@@ -27,8 +28,13 @@ except ImportError:  # Windows has none: there the marker is written but not loc
 
 T = TypeVar("T")
 
-# The file that marks a folder as a run's and that the run holds locked while it writes there.
+# The file that marks a folder as a run's and that the run holds locked while it writes there. When the run
+# ends it lists the names the run left there ("files"), which is what --overwrite may remove.
 MARKER = ".ti-fusion-run"
+# What a run whose marker lists no files (killed before it ended, or from before the list) may have written:
+# every command's outputs, synth's TUM layout and the temporary names of files being written.
+RUN_OUTPUT_PATTERNS = ("summary.json", "*.mcap", "*.tum", "*.ply", "*.glb", "*.png", ".*.tmp*", "rgb", "depth",
+                       "rgb.txt", "depth.txt", "groundtruth.txt", "associations.txt")
 
 
 def default_out_dir(command: str, now: datetime | None = None) -> Path:
@@ -45,7 +51,8 @@ class RunDir:
       ``-2``, ``-3``, ...;
     - a given folder is created if missing; an existing one must be empty, or hold an earlier run and
       ``overwrite`` be set, and then the earlier run's files are removed before anything is written. A
-      non-empty folder that holds no run is never emptied;
+      non-empty folder that holds no run is never emptied, nor one that holds files besides the earlier
+      run's (the user's own notes kept there): both are refused with one line;
     - the marker file ``.ti-fusion-run`` (command, process, start time) is kept locked while the run
       lives (``flock``: the kernel releases it however the process ends, so a killed run leaves no
       stale lock), and a second run given the same folder stops at once with ``OutputError``.
@@ -56,6 +63,7 @@ class RunDir:
         self.command = command
         self._fd: int | None = None
         self._created = False
+        self._record: dict = {}  # what the marker says of this run
         for _ in range(5):  # another run may remove the folder it emptied between our steps: start again
             if out:
                 self.path = Path(out)
@@ -91,11 +99,17 @@ class RunDir:
         if self._fd is None:
             return
         try:
-            if _entries(self.path) == []:
+            entries = _entries(self.path)
+            if entries == []:
                 with suppress(OSError):
                     (self.path / MARKER).unlink()
                     if self._created:
                         self.path.rmdir()
+            else:
+                with suppress(OSError):  # what a later --overwrite may remove: this run's files
+                    data = json.dumps({**self._record, "files": sorted(entries)}).encode()
+                    os.ftruncate(self._fd, 0)
+                    os.pwrite(self._fd, data, 0)
         finally:
             self._finalizer()
             self._fd = None
@@ -120,7 +134,7 @@ class RunDir:
                 try:
                     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 except OSError:
-                    raise OutputError(self.path, f"in use by another run ({_describe_run(_read_marker(fd))}): "
+                    raise OutputError(self.path, f"in use by another run ({describe_run(_read_marker(fd))}): "
                                                  "choose another --out") from None
                 try:
                     if os.stat(marker).st_ino != os.fstat(fd).st_ino:
@@ -136,8 +150,9 @@ class RunDir:
                         marker.unlink()
                 raise
             os.ftruncate(fd, 0)
-            os.pwrite(fd, json.dumps({"command": self.command, "pid": os.getpid(), "host": socket.gethostname(),
-                                      "started": datetime.now().isoformat(timespec="seconds")}).encode(), 0)
+            self._record = {"command": self.command, "pid": os.getpid(), "host": socket.gethostname(),
+                            "started": datetime.now().isoformat(timespec="seconds")}
+            os.pwrite(fd, json.dumps(self._record).encode(), 0)
         except BaseException:
             with suppress(OSError):
                 os.close(fd)
@@ -155,8 +170,14 @@ class RunDir:
             raise OutputError(self.path, f"is not empty ({shown}) and holds no earlier ti-fusion run: "
                                          "choose another --out")
         if not overwrite:
-            raise OutputError(self.path, f"holds an earlier run ({_describe_run(earlier)}): pass --overwrite "
+            raise OutputError(self.path, f"holds an earlier run ({describe_run(earlier)}): pass --overwrite "
                                          "to replace it, or choose another --out")
+        others = [name for name in entries if not _written_by_run(name, earlier)]
+        if others:
+            shown = ", ".join(sorted(others)[:3]) + (", ..." if len(others) > 3 else "")
+            raise OutputError(self.path, f"holds an earlier run ({describe_run(earlier)}) and files it did not write "
+                                         f"({shown}): --overwrite removes only a run's own files; move those, or "
+                                         "choose another --out")
         for name in entries:
             entry = self.path / name
             try:
@@ -197,6 +218,15 @@ def _make_default_folder(command: str) -> Path:
     raise OutputError(base, "no free output folder name: pass --out")
 
 
+def _written_by_run(name: str, record: dict) -> bool:
+    """Whether ``name`` is one of the earlier run's files: listed in its marker, or where the marker lists
+    none, one of the names runs write."""
+    files = record.get("files")
+    if isinstance(files, list):
+        return name in files
+    return any(fnmatch.fnmatchcase(name, pattern) for pattern in RUN_OUTPUT_PATTERNS)
+
+
 def _entries(path: Path) -> list[str]:
     """The names in a run folder other than the marker."""
     return [name for name in os.listdir(path) if name != MARKER]
@@ -210,6 +240,25 @@ def _read_marker(fd: int) -> dict | None:
         return None
 
 
+def run_in_progress(folder: str | Path) -> dict | None:
+    """The marker's record of a run that holds ``folder`` now (its lock is taken), else None."""
+    if fcntl is None:
+        return None
+    try:
+        fd = os.open(Path(folder) / MARKER, os.O_RDONLY)
+    except OSError:
+        return None
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except OSError:
+            return _read_marker(fd) or {}
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return None
+    finally:
+        os.close(fd)
+
+
 def _legacy_run(path: Path) -> dict | None:
     """A run folder written before runs left a marker: its summary.json names a command."""
     try:
@@ -219,7 +268,7 @@ def _legacy_run(path: Path) -> dict | None:
     return {"command": summary["command"]} if isinstance(summary, dict) and "command" in summary else None
 
 
-def _describe_run(record: dict | None) -> str:
+def describe_run(record: dict | None) -> str:
     if not record:
         return "a ti-fusion run"
     words = [str(record.get("command", "ti-fusion"))]

@@ -98,6 +98,7 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
         if cfg.intrinsics or cfg.depth_scale:
             raise InputError(None, "--intrinsics and --depth-scale are for data read from files: the synthetic "
                                    "sequence's camera is set by synth.fx, synth.width and synth.height")
+        check_options_apply("synthetic", cfg)
         dataset = loader_class("synthetic").from_config(synth or SynthConfig(), **common)
         dataset.check_selection()
         return dataset
@@ -117,6 +118,7 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
         if not root.is_dir() and not loader.single_file:
             raise InputError(root, "not a folder (give the dataset's folder)")
         how = "given by --format or dataset.format"
+    check_options_apply(fmt, cfg)
     dataset = loader_class(fmt)(root, config=cfg, **common)
     dataset.format_from = how
     if dataset.replaceable_calibration:
@@ -129,6 +131,29 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
     dataset.check_selection()
     log.info(dataset.describe_format())
     return dataset
+
+
+# Dataset settings that only some formats read, with the option that sets them: given for another format they
+# would be ignored without a word.
+_ONLY_FOR = {
+    "ground_truth": ("--ground-truth", ("folder",), "a benchmark folder's ground truth is its own file, a bag's "
+                                                   "is a topic (--gt-topic)"),
+    **{key: (f"--{key.replace('_', '-')}", ("rosbag",), "topics are a bag's") for key in
+       ("depth_topic", "color_topic", "camera_info_topic", "gt_topic")},
+    "intrinsics": ("--intrinsics", ("tum", "iclnuim", "7scenes", "folder", "rosbag"), "a run's log holds its "
+                                                                                       "calibration"),
+    "depth_scale": ("--depth-scale", ("tum", "iclnuim", "7scenes", "folder", "rosbag"), "a run's log holds metres"),
+}
+
+
+def check_options_apply(fmt: str, cfg: DatasetConfig) -> None:
+    """InputError (one line) for a dataset setting given that format ``fmt`` does not read."""
+    for key, (option, formats, why) in _ONLY_FOR.items():
+        if getattr(cfg, key, None) and fmt not in formats:
+            what = "the synthetic sequence" if fmt == "synthetic" else f"a {fmt} dataset"
+            raise InputError(None, f"{option} (dataset.{key}) does not apply to {what}: it is read only for "
+                                   f"{' and '.join(formats) if len(formats) < 3 else ', '.join(formats)} data "
+                                   f"({why}); leave it out")
 
 
 def _color_camera(dataset: Dataset, cfg: DatasetConfig) -> None:

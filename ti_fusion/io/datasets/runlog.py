@@ -76,7 +76,7 @@ class UnfinalisedLog:
 
     def __init__(self, f, until_topic: str | None = None):
         from mcap.records import Channel, Chunk, Message, Metadata, Schema
-        from mcap.stream_reader import StreamReader, breakup_chunk
+        from mcap.stream_reader import CRCValidationError, StreamReader, breakup_chunk
 
         self.file = f
         self.schemas, self.channels, self.metadata = {}, {}, {}
@@ -84,18 +84,23 @@ class UnfinalisedLog:
         self.torn = False  # the file ends inside a record
         self._chunk = (None, [])  # the last chunk read again: (offset, its messages)
         f.seek(0)
-        reader = StreamReader(f, skip_magic=False, emit_chunks=True)
+        reader = StreamReader(f, skip_magic=False, emit_chunks=True, validate_crcs=True)
         stream, records = reader._stream, reader.records
         while True:
             offset = stream.count
             try:
                 record = next(records)
+                inner = breakup_chunk(record, validate_crc=True) if isinstance(record, Chunk) else [record]
             except StopIteration:
                 break
+            except CRCValidationError as exc:  # damage, not the cut of a killed run
+                from ti_fusion.io.mcap_log import damage
+
+                raise InputError(Path(getattr(f, "name", "log.mcap")), f"damaged at byte {offset}: {damage(exc)}; "
+                                                                        "the file changed after it was written") from None
             except Exception:  # a torn record: the cut of a killed run
                 self.torn = True
                 break
-            inner = breakup_chunk(record) if isinstance(record, Chunk) else [record]
             for item in inner:
                 if isinstance(item, Schema):
                     self.schemas[item.id] = item
@@ -170,7 +175,7 @@ class RunLogDataset(RecordedSequence):
         self._closer = weakref.finalize(self, self._file.close)
         self._unfinalised = None  # an UnfinalisedLog, and where each message is, for a log without summary
         try:
-            self._reader = make_reader(self._file, decoder_factories=[DecoderFactory()])
+            self._reader = make_reader(self._file, validate_crcs=True, decoder_factories=[DecoderFactory()])
             if _summary(self._reader) is None:
                 messages = self._read_unfinalised()
             else:

@@ -32,7 +32,7 @@ LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
     (6, "loop", ("ti_fusion.loop.",)),
     (6, "reference", ("ti_fusion.reference.",)),
     (7, "slam", ("ti_fusion.slam.",)),
-    (8, "cli", ("ti_fusion.cli", "ti_fusion.__main__")),
+    (8, "cli", ("ti_fusion.cli", "ti_fusion.__main__", "ti_fusion.batch")),
 ]
 
 # Imports against the layers that are known and being removed; the test fails on any other, and on an entry

@@ -119,6 +119,19 @@ def test_an_earlier_run_is_replaced_only_with_overwrite(tmp_path):
         assert json.loads((folder / MARKER).read_text())["command"] == "vo"
 
 
+def test_resume_continues_an_earlier_run_of_the_same_command_only(tmp_path):
+    folder = tmp_path / "batch"
+    with RunDir("batch", folder) as first:
+        (folder / "results.csv").write_text("rows")
+        assert not first.resumed
+    with RunDir("batch", folder, resume=True) as again:  # ti-fusion batch resuming: its files stay
+        assert again.resumed and (folder / "results.csv").read_text() == "rows"
+    with pytest.raises(OutputError, match="holds an earlier run"):
+        RunDir("slam", folder, resume=True)  # another command's folder is never taken as its own
+    with RunDir("batch", folder, overwrite=True, resume=True) as fresh:  # --overwrite still starts afresh
+        assert not fresh.resumed and sorted(os.listdir(folder)) == [MARKER]
+
+
 def test_a_run_folder_from_before_the_marker_is_recognised(tmp_path):
     folder = tmp_path / "old"
     folder.mkdir()

@@ -9,6 +9,7 @@ config.
 
 How a run ends, and its exit code:
     0        done; the last line says where the outputs are
+    1        ``batch``: it ran, and one or more of its jobs failed (each failed row of its table says why)
     2        bad input or an output that cannot be written: one line on stderr naming the file or option
     130      Ctrl-C (SIGINT)
     128 + n  stopped by signal n: SIGTERM (143) and SIGHUP (129) are handled as Ctrl-C is, so the run
@@ -50,9 +51,11 @@ from ti_fusion.timing import Stopwatch
 #     USES_TAICHI: bool                 needs a Taichi backend (``--arch``)
 #     OUT_FROM_POSITIONAL: str          (optional) the positional that names the output folder, instead of --out
 #     writes_files(args) -> bool        (optional) False: this call writes nothing, and gets no folder (ctx.out None)
+#     RESUMES_OUT: bool                 (optional) an earlier run of this command in --out is continued, not refused
 #     add_arguments(parser) -> None     its own options
-#     run(ctx) -> dict                  does the work; returns the command's own summary fields
-COMMAND_NAMES = ("synth", "icp", "fuse", "slam", "vo", "inspect", "mesh")
+#     run(ctx) -> dict                  does the work; returns the command's own summary fields (and, optionally,
+#                                       exit_code: the process's, kept out of the summary)
+COMMAND_NAMES = ("synth", "icp", "fuse", "slam", "vo", "inspect", "mesh", "batch")
 
 # Signals that stop a run the way Ctrl-C does: what kill, timeout, systemd and container runtimes send
 # (SIGTERM), and a closed terminal (SIGHUP).
@@ -298,17 +301,19 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
             positional = getattr(module, "OUT_FROM_POSITIONAL", None)  # a command whose positional names its output
             out_arg = getattr(args, positional) if positional else args.out
             inputs = [config.dataset.path if getattr(module, "USES_DATASET", False) else "", getattr(args, "log", ""),
-                      getattr(args, "map", "")]
+                      getattr(args, "map", ""), getattr(args, "manifest", "")]
             _check_out_holds_no_input(out_arg, inputs, positional.upper() if positional else "--out")
             # A command that writes files only when asked (inspect) makes no folder otherwise.
             writes = getattr(module, "writes_files", lambda a: True)(args)
-            out = RunDir(command, out_arg, overwrite=args.overwrite) if writes else None
+            out = RunDir(command, out_arg, overwrite=args.overwrite,
+                         resume=getattr(module, "RESUMES_OUT", False)) if writes else None
             backend = init_backend(args.arch) if getattr(module, "USES_TAICHI", False) else None
             if backend is not None and not args.quiet:
                 print(f"backend: {backend.arch} ({backend.reason})", flush=True)
             ctx = RunContext(command, args, config, out, backend, args.quiet)
             watch = Stopwatch()
             result = module.run(ctx) or {}
+            code = result.pop("exit_code", 0)
             wall = watch.ms / 1e3
             summary = base_summary(command, result.pop("frames", 0), result.pop("wall_s", wall),
                                    result.pop("ms_per_stage", {}))
@@ -318,7 +323,7 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
             if out is not None:
                 path = out.write_summary(summary)
                 print(f"outputs written to {out.path}/ (summary: {path})", flush=True)
-            return 0
+            return code
         finally:
             if out is not None:
                 out.release()

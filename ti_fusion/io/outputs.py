@@ -32,9 +32,11 @@ T = TypeVar("T")
 # ends it lists the names the run left there ("files"), which is what --overwrite may remove.
 MARKER = ".ti-fusion-run"
 # What a run whose marker lists no files (killed before it ended, or from before the list) may have written:
-# every command's outputs, synth's TUM layout and the temporary names of files being written.
+# every command's outputs, synth's TUM layout, batch's folders and tables, and the temporary names of files
+# being written.
 RUN_OUTPUT_PATTERNS = ("summary.json", "*.mcap", "*.tum", "*.ply", "*.glb", "*.png", ".*.tmp*", "rgb", "depth",
-                       "rgb.txt", "depth.txt", "groundtruth.txt", "associations.txt")
+                       "rgb.txt", "depth.txt", "groundtruth.txt", "associations.txt", "runs", "jobs", "results.csv",
+                       "results.md")
 
 
 def default_out_dir(command: str, now: datetime | None = None) -> Path:
@@ -53,14 +55,17 @@ class RunDir:
       ``overwrite`` be set, and then the earlier run's files are removed before anything is written. A
       non-empty folder that holds no run is never emptied, nor one that holds files besides the earlier
       run's (the user's own notes kept there): both are refused with one line;
+    - ``resume``: a folder that holds an earlier run of the same command is taken as it is, its files kept
+      (``ti-fusion batch`` goes on with the jobs it had not finished); ``overwrite`` still replaces it;
     - the marker file ``.ti-fusion-run`` (command, process, start time) is kept locked while the run
       lives (``flock``: the kernel releases it however the process ends, so a killed run leaves no
       stale lock), and a second run given the same folder stops at once with ``OutputError``.
     ``release()`` (or the end of a ``with`` block) unlocks it; a run that wrote nothing leaves no trace.
     """
 
-    def __init__(self, command: str, out: str | Path | None = None, overwrite: bool = False):
+    def __init__(self, command: str, out: str | Path | None = None, overwrite: bool = False, resume: bool = False):
         self.command = command
+        self.resumed = False
         self._fd: int | None = None
         self._created = False
         self._record: dict = {}  # what the marker says of this run
@@ -71,7 +76,7 @@ class RunDir:
             else:
                 self.path = _make_default_folder(command)
                 self._created = True
-            if self._lock(overwrite):
+            if self._lock(overwrite, resume):
                 break
         else:
             raise OutputError(self.path, "the folder keeps disappearing (another process is removing it)")
@@ -115,7 +120,7 @@ class RunDir:
             self._fd = None
 
     # -- internals --------------------------------------------------------------------------------
-    def _lock(self, overwrite: bool) -> bool:
+    def _lock(self, overwrite: bool, resume: bool = False) -> bool:
         """Take the marker's lock and check what the folder holds; False if the folder went away."""
         marker = self.path / MARKER
         new_marker = True
@@ -143,7 +148,7 @@ class RunDir:
                     os.close(fd)
                     return False
             try:
-                self._check_contents(fd, new_marker, overwrite)
+                self._check_contents(fd, new_marker, overwrite, resume)
             except BaseException:
                 if new_marker:  # we hold the lock: nobody else uses the marker we made
                     with suppress(OSError):
@@ -160,7 +165,7 @@ class RunDir:
         self._fd = fd
         return True
 
-    def _check_contents(self, fd: int, new_marker: bool, overwrite: bool) -> None:
+    def _check_contents(self, fd: int, new_marker: bool, overwrite: bool, resume: bool = False) -> None:
         entries = _entries(self.path)
         if not entries:
             return
@@ -169,6 +174,9 @@ class RunDir:
             shown = ", ".join(sorted(entries)[:3]) + (", ..." if len(entries) > 3 else "")
             raise OutputError(self.path, f"is not empty ({shown}) and holds no earlier ti-fusion run: "
                                          "choose another --out")
+        if resume and not overwrite and earlier.get("command") == self.command:
+            self.resumed = True
+            return
         if not overwrite:
             raise OutputError(self.path, f"holds an earlier run ({describe_run(earlier)}): pass --overwrite "
                                          "to replace it, or choose another --out")

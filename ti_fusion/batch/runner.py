@@ -1,0 +1,380 @@
+"""The batch's jobs on Ray: each a ``ti-fusion slam`` process started by a Ray task that asks for the CPUs
+(Taichi's threads) and GPUs the job uses.
+
+- Local by default: a Ray instance of this process's own (``address="local"``, never another's that happens
+  to run here) with as many CPUs as this process may use, so ``cores // threads`` jobs run at once. Each job's
+  Taichi runs ``threads`` CPU threads (``TI_CPU_MAX_NUM_THREADS``, which Taichi reads at ``ti.init``), its
+  BLAS/OpenMP pools as many, and its workers are not pinned (``TI_FUSION_PIN_THREADS=0``: every job would
+  pin its workers to the same first CPUs).
+- ``address``: an existing cluster (``auto``, ``HOST:PORT``, ``ray://HOST:10001``); its nodes need ti-fusion
+  installed and the batch folder and the inputs at the same paths (a shared file system).
+- A job's process that fails or is killed is a failed row; the batch goes on. Ctrl-C (or SIGTERM) cancels
+  the running tasks: each sends its job SIGTERM (the run keeps its trajectory and log, as it does for a
+  user's Ctrl-C), kills it after ``STOP_GRACE_S``, and the batch keeps every finished row. A job's process
+  also gets SIGTERM from the kernel if the Ray worker that started it dies (``PR_SET_PDEATHSIG``, Linux),
+  so no job outlives its batch.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import subprocess
+import sys
+import time
+from datetime import datetime
+from pathlib import Path
+
+from ti_fusion.batch import results
+from ti_fusion.batch.manifest import Job
+from ti_fusion.errors import InputError, TiFusionError
+
+STOP_GRACE_S = 20.0       # how long a stopped job may take to write what it has before it is killed
+MISSING_RAY = "ti-fusion batch runs its jobs on Ray, which is not installed: pip install 'ti-fusion[batch]'"
+
+
+def import_ray():
+    """Ray, or one line naming the extra that installs it."""
+    try:
+        import ray
+    except ImportError:
+        raise TiFusionError(MISSING_RAY) from None
+    return ray
+
+
+def local_cpus() -> int:
+    """The CPUs this process may use (its affinity, which containers and taskset narrow)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+def job_env(threads: int) -> dict[str, str]:
+    """What a job's process gets on top of the worker's environment: the driver's Taichi and ti-fusion
+    settings (a cluster's workers do not inherit the driver's environment), and its thread counts."""
+    env = {k: v for k, v in os.environ.items() if k.startswith(("TI_", "TI_FUSION_"))}
+    env.update({"TI_CPU_MAX_NUM_THREADS": str(threads), "TI_FUSION_PIN_THREADS": "0",
+                "OMP_NUM_THREADS": str(threads), "OPENBLAS_NUM_THREADS": str(threads),
+                "MKL_NUM_THREADS": str(threads)})
+    return env
+
+
+# -- on the worker -------------------------------------------------------------------------------------------
+def _die_with_parent():  # pragma: no cover - runs in the forked child
+    """In the job's process before exec: SIGTERM when the worker that started it dies."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+
+
+def run_job(spec: dict) -> dict:
+    """A Ray task: the job's ``ti-fusion slam`` process, its output into its log file; its exit code, wall
+    time, error line and the figures of its run's summary.json. A cancel (the batch stopping) stops the
+    process the way Ctrl-C stops a run, and is raised on."""
+    argv = [sys.executable, "-m", "ti_fusion", "slam", *spec["args"], "--out", spec["run_dir"], "--overwrite"]
+    log_path = Path(spec["log"])
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    env = dict(os.environ)
+    env.update(spec["env"])
+    started = time.monotonic()
+    with open(log_path, "wb") as log:
+        log.write(("$ " + " ".join(argv) + "\n").encode())
+        log.flush()
+        proc = subprocess.Popen(argv, stdin=subprocess.DEVNULL, stdout=log, stderr=subprocess.STDOUT, env=env,
+                                cwd=spec.get("cwd") if spec.get("cwd") and os.path.isdir(spec["cwd"]) else None,
+                                start_new_session=True,  # a terminal's Ctrl-C reaches the batch, which stops the jobs
+                                preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+        try:
+            while proc.poll() is None:  # polled: Ray's cancel is raised between Python steps, not in a wait
+                time.sleep(0.1)
+        except BaseException:
+            stop_process(proc)
+            raise
+    wall = time.monotonic() - started
+    summary = None
+    summary_path = Path(spec["run_dir"]) / "summary.json"
+    if proc.returncode == 0:
+        try:
+            import json
+
+            full = json.loads(summary_path.read_text())
+            summary = {k: full.get(k) for k in results.SUMMARY_FIELDS}
+        except (OSError, ValueError):
+            pass
+    import socket
+
+    return {"exit_code": proc.returncode, "wall_s": round(wall, 3), "summary": summary, "pid": proc.pid,
+            "host": socket.gethostname(),
+            "error": "" if proc.returncode == 0 and summary is not None else error_line(proc.returncode, log_path)}
+
+
+def stop_process(proc: subprocess.Popen, grace_s: float = STOP_GRACE_S) -> None:
+    """SIGTERM (the run writes what it has), SIGKILL after ``grace_s``."""
+    if proc.poll() is not None:
+        return
+    try:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(timeout=grace_s)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+    except BaseException:  # a second stop while waiting: no grace left
+        proc.kill()
+        proc.wait()
+        raise
+
+
+def error_line(code: int, log_path: Path) -> str:
+    """Why a job failed, in one line: the signal that killed it, or the run's own error line."""
+    if code < 0:
+        return f"killed by {_signal_name(-code)}"
+    lines = []
+    try:
+        with open(log_path, "rb") as f:
+            f.seek(max(0, os.fstat(f.fileno()).st_size - 16384))
+            lines = [ln.strip() for ln in f.read().decode("utf-8", "replace").splitlines() if ln.strip()]
+    except OSError:
+        pass
+    said = [ln for ln in lines if ln.startswith("ti-fusion slam: ") and "warning:" not in ln]
+    if said:
+        return said[-1][len("ti-fusion slam: "):].removeprefix("error: ")
+    if code == 0:
+        return "exited without writing summary.json"
+    if code > 128 and code - 128 in signal.valid_signals():
+        return f"stopped by {_signal_name(code - 128)}"
+    return (lines[-1] if lines else f"exit {code}")[:500]
+
+
+def _signal_name(n: int) -> str:
+    try:
+        return signal.Signals(n).name
+    except ValueError:
+        return f"signal {n}"
+
+
+# -- on the driver ---------------------------------------------------------------------------------------------
+class Batch:
+    """One invocation over one manifest and one batch folder."""
+
+    def __init__(self, manifest, folder: Path, *, address: str | None = None, max_jobs: int | None = None,
+                 rerun_failed: bool = False, progress: bool = True, say=print):
+        self.manifest, self.folder = manifest, Path(folder)
+        self.address, self.max_jobs, self.rerun_failed = address, max_jobs, rerun_failed
+        self.progress, self.say = progress, say
+        self.counts = {"ran": 0, "skipped_done": 0, "kept_failed": 0}
+
+    # what to do with each job
+    def plan(self) -> list[Job]:
+        to_run = []
+        for job in self.manifest.jobs:
+            rec = results.read_record(self.folder, job.name)
+            if rec is not None and tuple(rec.get("args", ())) == job.args:
+                if rec.get("status") == results.DONE:
+                    self.counts["skipped_done"] += 1
+                    continue
+                if rec.get("status") == results.FAILED and not self.rerun_failed:
+                    self.counts["kept_failed"] += 1
+                    continue
+            to_run.append(job)
+        return to_run
+
+    def run(self) -> list[dict]:
+        """Run what the plan says, then write the table and plot from every job's record; the table too when
+        the batch is stopped, with the finished rows."""
+        to_run = self.plan()
+        if self.counts["skipped_done"] or self.counts["kept_failed"]:
+            kept = self.counts["kept_failed"]
+            self.say(f"resuming {self.folder}: {self.counts['skipped_done']} finished jobs skipped" +
+                     (f", {kept} failed kept (--rerun-failed runs them again)" if kept else ""))
+        try:
+            if to_run:
+                self._on_ray(to_run)
+        finally:
+            table = results.rows(self.folder, self.manifest.jobs)
+            results.write_tables(self.folder, table)
+            try:
+                results.plot_ate(self.folder, table, self.manifest.inputs, self.manifest.variants)
+            except Exception as exc:  # the table is the result; a plot that fails says so and is left out
+                self.say(f"ti-fusion batch: warning: no ate.png: {exc}")
+        return table
+
+    def _on_ray(self, jobs: list[Job]) -> None:
+        ray = import_ray()
+        local = self.address is None
+        if local:
+            cpus = local_cpus()
+            too_big = [j for j in jobs if j.threads > cpus]
+            if too_big:
+                raise InputError(self.manifest.path, f"job {too_big[0].name}: threads {too_big[0].threads} is "
+                                                     f"more than the {cpus} CPUs here")
+        previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        try:
+            if local:
+                ray.init(address="local", num_cpus=cpus, include_dashboard=False, log_to_driver=False,
+                         logging_level=logging.ERROR)
+            else:
+                ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
+        except Exception as exc:
+            raise TiFusionError(f"cannot start Ray{'' if local else ' at ' + self.address}: "
+                                f"{' '.join(str(exc).split())[:300]}") from None
+        finally:  # ray.init sets its own SIGTERM handler: the CLI's stops the batch as Ctrl-C does
+            for s, handler in previous.items():
+                if handler is not None:
+                    signal.signal(s, handler)
+        try:
+            self._schedule(ray, jobs)
+        finally:
+            ray.shutdown()
+
+    def _schedule(self, ray, jobs: list[Job]) -> None:
+        total = ray.cluster_resources()
+        cpus, gpus = float(total.get("CPU", 0)), float(total.get("GPU", 0))
+        for j in jobs:
+            if j.threads > cpus or j.gpus > gpus:
+                raise InputError(self.manifest.path,
+                                 f"job {j.name} asks Ray for {j.threads} CPUs and {j.gpus:g} GPUs; the cluster has "
+                                 f"{cpus:g} CPUs and {gpus:g} GPUs")
+        slots = min(len(jobs), self.max_jobs or len(jobs), max(1, int(cpus // min(j.threads for j in jobs))))
+        self.say(f"{len(jobs)} jobs on Ray ({'local, ' if self.address is None else self.address + ', '}"
+                 f"{cpus:g} CPUs{f', {gpus:g} GPUs' if gpus else ''}), at most {slots} at once; "
+                 f"results in {self.folder}/results.md")
+        remote = ray.remote(run_job)
+        pending = list(jobs)
+        running: dict = {}  # ref -> (job, started)
+        progress = _Progress(len(self.manifest.jobs), self.say if self.progress else None)
+        progress.done = self.counts["skipped_done"]
+        progress.failed = self.counts["kept_failed"]
+        walls: list[float] = []
+        try:
+            while pending or running:
+                used_cpu = sum(j.threads for j, _ in running.values())
+                used_gpu = sum(j.gpus for j, _ in running.values())
+                while pending and len(running) < (self.max_jobs or len(jobs)) and (
+                        not running or (used_cpu + pending[0].threads <= cpus and used_gpu + pending[0].gpus <= gpus)):
+                    job = pending.pop(0)
+                    ref = remote.options(num_cpus=job.threads, num_gpus=job.gpus, max_retries=0,
+                                         name=f"ti-fusion-batch:{job.name}").remote(self._spec(job))
+                    running[ref] = (job, time.monotonic())
+                    used_cpu += job.threads
+                    used_gpu += job.gpus
+                progress.show(len(running), pending, running, walls, slots)
+                ready, _ = ray.wait(list(running), num_returns=1, timeout=1.0)
+                for ref in ready:
+                    job, started = running.pop(ref)
+                    rec = self._finish(ray, job, ref, started)
+                    walls.append(rec["wall_s"] or time.monotonic() - started)
+                    self.counts["ran"] += 1
+                    if rec["status"] == results.DONE:
+                        progress.done += 1
+                    else:
+                        progress.failed += 1
+                        progress.note(f"{job.name} failed: {rec['error']}")
+                    results.write_tables(self.folder, results.rows(self.folder, self.manifest.jobs))
+            progress.show(0, [], {}, walls, slots)
+            progress.end()
+        except KeyboardInterrupt:
+            progress.end()
+            self._stop(ray, running)
+            raise
+
+    def _spec(self, job: Job) -> dict:
+        return {"args": list(job.args), "run_dir": str(results.run_dir(self.folder, job.name).resolve()),
+                "log": str(results.log_path(self.folder, job.name).resolve()), "env": job_env(job.threads),
+                "cwd": os.getcwd()}
+
+    def _record(self, job: Job, **fields) -> dict:
+        rec = {"job": job.name, "input": job.input, "variant": job.variant, "args": list(job.args),
+               "threads": job.threads, "gpus": job.gpus, "status": results.FAILED, "exit_code": None,
+               "error": "", "wall_s": None, "summary": None,
+               "finished": datetime.now().isoformat(timespec="seconds")}
+        rec.update(fields)
+        results.write_record(self.folder, rec)
+        return rec
+
+    def _finish(self, ray, job: Job, ref, started: float) -> dict:
+        try:
+            out = ray.get(ref)
+        except ray.exceptions.RayError as exc:  # the worker or its node died, or run_job itself failed
+            text = [ln for ln in str(exc).splitlines() if ln.strip()]
+            return self._record(job, error=(text[-1] if text else type(exc).__name__)[:500],
+                                wall_s=round(time.monotonic() - started, 3))
+        ok = out["exit_code"] == 0 and out["summary"] is not None
+        return self._record(job, status=results.DONE if ok else results.FAILED, exit_code=out["exit_code"],
+                            error=out["error"], wall_s=out["wall_s"], summary=out["summary"], host=out["host"])
+
+    def _stop(self, ray, running: dict) -> None:
+        """Ctrl-C: every running task stops its job (SIGTERM, then SIGKILL after the grace), the jobs are
+        recorded as interrupted (a resume runs them again); a job that finished meanwhile keeps its row."""
+        if not running:
+            return
+        self.say(f"stopping {len(running)} running jobs (each keeps what it has done; Ctrl-C again: at once)")
+        for ref in running:
+            ray.cancel(ref)
+        ray.wait(list(running), num_returns=len(running), timeout=STOP_GRACE_S + 10)
+        for ref, (job, started) in running.items():
+            try:
+                out = ray.get(ref, timeout=0)
+            except Exception:  # cancelled (the usual case), or still stopping
+                out = None
+            if out is not None and out["exit_code"] == 0 and out["summary"] is not None:
+                self._record(job, status=results.DONE, exit_code=0, error="", wall_s=out["wall_s"],
+                             summary=out["summary"], host=out["host"])
+            else:
+                self._record(job, status=results.INTERRUPTED, error="stopped with the batch",
+                             wall_s=round(time.monotonic() - started, 3))
+
+
+class _Progress:
+    """``batch: 3/6 done, 2 running, 1 failed, about 1 min 20 s left``: rewritten in place on a terminal,
+    a line whenever the counts change otherwise."""
+
+    def __init__(self, total: int, say):
+        self.total, self.say = total, say
+        self.done = self.failed = 0
+        self.tty = sys.stdout.isatty()
+        self._last = None
+        self._open = False
+
+    def show(self, n_running: int, pending, running: dict, walls: list[float], slots: int) -> None:
+        if self.say is None:
+            return
+        line = f"batch: {self.done}/{self.total} done, {n_running} running, {self.failed} failed"
+        counts = line
+        if walls and (pending or running):
+            mean = sum(walls) / len(walls)
+            elapsed = sum(time.monotonic() - t for _, t in running.values())
+            left = max(0.0, mean * (len(pending) + len(running)) - elapsed) / max(1, slots)
+            line += f", about {_duration(left)} left"
+        if self.tty:
+            sys.stdout.write("\r" + line.ljust(78))
+            sys.stdout.flush()
+            self._open = True
+        elif counts != self._last:
+            self.say(line)
+        self._last = counts
+
+    def note(self, text: str) -> None:
+        if self.say is None:
+            return
+        self.end()
+        self.say(text)
+
+    def end(self) -> None:
+        if self._open:
+            sys.stdout.write("\n")
+            sys.stdout.flush()
+            self._open = False
+
+
+def _duration(seconds: float) -> str:
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds} s"
+    if seconds < 3600:
+        return f"{seconds // 60} min {seconds % 60:02d} s"
+    return f"{seconds // 3600} h {seconds % 3600 // 60:02d} min"

@@ -336,9 +336,9 @@ class DatasetConfig:
     color_registered: bool = False  # folder, bag and log: the colour images are registered to depth (pixel for
                                     # pixel), so photometric tracking may use them; TUM, ICL-NUIM and synthetic
                                     # are, 7-Scenes is not (its own word); a bag with one frame_id for both is
-    read_threads: NonNegativeInt = 0  # threads that read frames ahead of the loop where frames are image files
-                                      # (folder, TUM, 7-Scenes, ICL-NUIM; other inputs: one); 0 = a quarter of
-                                      # the CPUs, 1 to 4 (docs/PERFORMANCE.md, reading ahead)
+    read_workers: NonNegativeInt = 0  # processes that read frames ahead of the loop where frames are image files
+                                      # (folder, TUM, 7-Scenes, ICL-NUIM; bags and logs: one); 0 = a quarter of
+                                      # the usable CPUs, 1 to 4 (docs/PERFORMANCE.md, reading in processes)
 
 
 @dataclass
@@ -730,6 +730,7 @@ REMOVED = {
     ("slam", "track_at_map_level"): "the frame is always tracked at the map's resolution (docs/BENCHMARKS.md)",
     ("loop", "gnc_min_weight"): "fixed at 0.1 (GNC leaves outliers near 0; docs/BENCHMARKS.md)",
     ("slam", "anchor_to_ground_truth"): "renamed slam.start_at_ground_truth ('anchor' is a surfel's keyframe)",
+    ("dataset", "read_threads"): "renamed dataset.read_workers: frames are read in worker processes, not threads",
 }
 
 # Sections that were renamed, with the new names of their keys.
@@ -740,7 +741,7 @@ RENAMED_SECTIONS = {"maps": "it is [pyramid] (pyramid.depth_smooth_radius, pyram
 # benchmarks settled on and most runs leave them alone. They stay in their stage's section, so that a key keeps
 # one name in files, --set and the code.
 ADVANCED = {
-    "dataset": ("read_threads",),
+    "dataset": ("read_workers",),
     "synth": ("fx", "min_range", "max_range", "grazing_deg", "baseline", "subpixel", "sensor_width", "color_noise",
               "depth_noise_scale"),
     "pyramid": ("normal_max_depth_jump", "depth_sigma", "depth_smooth_radius"),

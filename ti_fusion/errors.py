@@ -23,6 +23,9 @@ class InputError(TiFusionError):
         self.problem = problem
         super().__init__(f"{self.path}: {problem}" if self.path is not None else problem)
 
+    def __reduce__(self):  # pickled by a frame reader process (ti_fusion.io.frame_workers)
+        return type(self), (self.path, self.problem)
+
 
 class OutputError(TiFusionError):
     """An output that cannot be written: the run folder is taken or not writable, the disk is full, ..."""
@@ -31,6 +34,9 @@ class OutputError(TiFusionError):
         self.path = Path(path)
         self.problem = problem
         super().__init__(f"{self.path}: {problem}")
+
+    def __reduce__(self):
+        return type(self), (self.path, self.problem)
 
 
 class BackendUnavailable(TiFusionError):

@@ -114,11 +114,12 @@ def test_the_tum_pngs_as_a_plain_folder_give_the_same_trajectory(cpu, tum_sequen
     assert run["ate_rmse_m"] == pytest.approx(tum_run["ate_rmse_m"], abs=1e-6)
 
 
-def test_three_reader_threads_give_the_same_run(cpu, tum_sequence, tum_run, tmp_path):
-    """Image files read by three threads at once (``dataset.read_threads``): the frames come in order, so
-    the trajectory is the one-reader run's, bit for bit."""
-    three = slam(DatasetConfig(path=str(tum_sequence), read_threads=3), tmp_path / "three")
-    assert three["read_threads"] == 3 and three["frames"] == FRAMES
+def test_three_reader_processes_give_the_same_run(cpu, tum_sequence, tum_run, tmp_path):
+    """Image files read by three processes at once (``dataset.read_workers``): the frames come in order, so
+    the trajectory is the default run's, bit for bit."""
+    three = slam(DatasetConfig(path=str(tum_sequence), read_workers=3), tmp_path / "three")
+    assert (three["read_mode"], three["read_workers"]) == ("processes", 3) and three["frames"] == FRAMES
+    assert tum_run["read_mode"] == "processes"
     np.testing.assert_array_equal(three["trajectory"][1], tum_run["trajectory"][1])
 
 

@@ -1,13 +1,19 @@
-"""Reading frames ahead on background threads (``ti_fusion.io.prefetch``): order, a reading error raised
-at its own frame, the threads stopped however the loop ends, several readers at once, and the pipeline's
-results unchanged."""
+"""Reading frames ahead (``ti_fusion.io.prefetch``) on a thread and in reader processes: order, the
+bound on reading ahead, a reading error raised at its own frame, a reader process that dies, the readers
+stopped however the loop ends (Ctrl-C, SIGTERM and SIGHUP to the process group included) with no process
+and no shared memory left, a caller's script without a ``__main__`` guard, and the pipeline's results
+unchanged."""
 
 from __future__ import annotations
 
 import copy
+import os
+import signal
+import subprocess
 import sys
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,9 +24,11 @@ from ti_fusion.errors import InputError
 from ti_fusion.io.datasets import open_dataset
 from ti_fusion.io.mcap_log import read_log
 from ti_fusion.io.outputs import RunDir
-from ti_fusion.io.prefetch import Prefetcher, reader_threads
+from ti_fusion.io.frame_workers import ReaderDied
+from ti_fusion.io.prefetch import Prefetcher, read_mode, reader_count
 from ti_fusion.io.trajectory import read_tum
-from ti_fusion.slam.pipeline import SLAMPipeline
+from ti_fusion.slam.pipeline import READ_AHEAD, SLAMPipeline
+from tests.io import readers
 
 DEADLINE_S = 60  # a bound for a broken test, not a timing any test depends on
 
@@ -52,23 +60,21 @@ class Items:
         return i
 
 
-@pytest.mark.parametrize("threaded", [True, False], ids=["thread", "inline"])
-def test_frames_come_in_order(threaded):
+@pytest.mark.parametrize("mode", ["thread", "inline"])
+def test_frames_come_in_order(mode):
     data = Items(200, slow_every=7)
-    interval = sys.getswitchinterval()
-    with Prefetcher(data, ahead=3, threaded=threaded) as frames:
+    with Prefetcher(data, ahead=3, mode=mode) as frames:
         got = [(i, item) for i, item, read_ms in frames]
     assert got == [(i, i) for i in range(200)]
     assert not _readers()
-    assert sys.getswitchinterval() == interval  # the reader's shorter GIL switch interval is given back
 
 
-@pytest.mark.parametrize("threaded", [True, False], ids=["thread", "inline"])
-def test_an_error_is_raised_at_its_frame_after_the_frames_before(threaded):
+@pytest.mark.parametrize("mode", ["thread", "inline"])
+def test_an_error_is_raised_at_its_frame_after_the_frames_before(mode):
     error = InputError("frame-000005.depth.png", "cannot read the image")
     done = []
     with pytest.raises(InputError) as caught:
-        with Prefetcher(Items(10, bad=5, error=error), ahead=3, threaded=threaded) as frames:
+        with Prefetcher(Items(10, bad=5, error=error), ahead=3, mode=mode) as frames:
             for i, item, _ in frames:
                 done.append(item)
     assert caught.value is error and str(caught.value) == "frame-000005.depth.png: cannot read the image"
@@ -111,69 +117,226 @@ def test_an_interrupt_raised_while_reading_reaches_the_loop():
     assert not _readers()
 
 
-@pytest.mark.parametrize("workers", [2, 4])
-def test_several_readers_hand_out_every_frame_in_order(workers):
-    data = Items(300, slow_every=3)
-    interval = sys.getswitchinterval()
-    with Prefetcher(data, ahead=3, workers=workers) as frames:
-        assert len(_readers()) == workers
-        got = [(i, item) for i, item, read_ms in frames]
-    assert got == [(i, i) for i in range(300)]
-    assert sorted(data.read) == list(range(300))  # each frame read once
-    assert not _readers()
-    assert sys.getswitchinterval() == interval
-
-
-def test_several_readers_stay_within_ahead_of_the_caller():
-    """No reader starts frame j before the caller has taken frame j − ahead: at most ``ahead`` frames (at
-    least one per reader) are read or being read beyond what was handed out."""
-    data = Items(100)
-    with Prefetcher(data, ahead=2, workers=4) as frames:  # ahead raised to one per reader: 4
-        deadline = time.monotonic() + DEADLINE_S
-        while data.reads < 4 and time.monotonic() < deadline:
-            time.sleep(0.001)
-        time.sleep(0.05)
-        assert sorted(data.read) == [0, 1, 2, 3]
-        for k in range(10):
-            next(frames)
-            time.sleep(0.01)
-            assert max(data.read) <= k + 4
-    assert not _readers()
-
-
-@pytest.mark.parametrize("workers", [1, 3])
-def test_with_several_readers_an_error_comes_at_its_frame_and_nothing_after_it(workers):
-    error = InputError("frame-000007.depth.png", "cannot read the image")
-    done = []
-    with pytest.raises(InputError) as caught:
-        with Prefetcher(Items(50, bad=7, error=error, slow_every=2), ahead=3, workers=workers) as frames:
-            for i, item, _ in frames:
-                done.append(item)
-    assert caught.value is error and done == list(range(7))
-    assert not _readers()
-
-
-def test_an_interrupted_loop_stops_every_reader():
-    data = Items(10_000)
-    with pytest.raises(KeyboardInterrupt):
-        with Prefetcher(data, ahead=3, workers=3) as frames:
-            for i, _, _ in frames:
-                if i == 5:
-                    raise KeyboardInterrupt
-    assert not _readers()
-    assert data.reads <= 6 + 3
-
-
-def test_reader_threads_by_setting_and_dataset():
+def test_how_a_dataset_is_read_and_by_how_many():
     class Files:
         concurrent_reads = True
 
     class Bag:
         concurrent_reads = False
 
-    assert reader_threads(3, Files()) == 3 and reader_threads(3, Bag()) == 1 and reader_threads(0, Bag()) == 1
-    assert reader_threads(0, object()) == 1  # a dataset that does not say: one reader
-    assert 1 <= reader_threads(0, Files()) <= 4
+    assert reader_count(3, Files()) == 3 and reader_count(3, Bag()) == 1 and reader_count(0, Bag()) == 1
+    assert reader_count(0, object()) == 1  # a dataset that does not say: one reader
+    assert 1 <= reader_count(0, Files()) <= 4
+    assert read_mode(readers.Items(3)) == "processes"
+    assert read_mode(Items(3)) == "thread"  # not marked reads_in_process (and holds a lock: does not pickle)
+
+    class Rendered:
+        renders_on_taichi = True
+
+    assert read_mode(Rendered()) == "inline"
+
+
+# --------------------------------------------------------------------------------------------------
+# Reader processes
+# --------------------------------------------------------------------------------------------------
+def _children() -> set[int]:
+    """The pids of this process's live child processes (Linux /proc)."""
+    me, found = os.getpid(), set()
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_text()
+            except OSError:
+                continue
+            fields = stat[stat.rindex(")") + 2:].split()  # after the command name, which may hold spaces
+            if int(fields[1]) == me and fields[0] != "Z":
+                found.add(int(entry))
+    return found
+
+
+def _memfds() -> int:
+    """How many memfd files this process holds open."""
+    count = 0
+    for fd in os.listdir("/proc/self/fd"):
+        try:
+            count += os.readlink(f"/proc/self/fd/{fd}").startswith("/memfd:ti-fusion-frames")
+        except OSError:
+            pass
+    return count
+
+
+@pytest.fixture
+def clean():
+    """Every test of reader processes ends with none of them left, no memfd open and /dev/shm as it was."""
+    before, shm = _children(), set(os.listdir("/dev/shm"))
+    yield
+    assert _children() <= before
+    assert _memfds() == 0
+    assert set(os.listdir("/dev/shm")) <= shm
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_processes_hand_out_every_frame_in_order(clean, tmp_path, workers):
+    log = tmp_path / "reads"
+    data = readers.Items(120, log=log, slow_every=3)
+    with Prefetcher(data, ahead=3, workers=workers, mode="processes") as frames:
+        got = [(i, item) for i, item, read_ms in frames]
+    assert got == [(i, i) for i in range(120)]
+    assert sorted(readers.read_indices(log)) == list(range(120))  # each frame read once
+
+
+def test_frames_cross_through_shared_memory_bit_for_bit(clean):
+    """Depth, colour and the rest of each frame arrive as read; a frame whose colour does not fit its slot
+    (frame 5: four times the pixels) is handed over whole."""
+    data = readers.Frames(12, big=5)
+    with Prefetcher(data, ahead=3, workers=2, mode="processes") as frames:
+        assert _memfds() >= 1 and len(_children()) >= 2  # (mmap holds a duplicate of the descriptor)
+        for i, frame, _ in frames:
+            want = data[i]
+            assert frame.index == i and frame.meta == {"i": i} and not hasattr(frame, "_shm")
+            np.testing.assert_array_equal(frame.depth, want.depth)
+            np.testing.assert_array_equal(frame.color, want.color)
+            np.testing.assert_array_equal(frame.gt_pose, want.gt_pose)
+            assert frame.depth.flags.writeable and frame.color.flags.writeable
+
+
+def test_processes_stay_within_ahead_of_the_caller(clean, tmp_path):
+    """No process starts frame j before the caller has taken frame j − ahead; frame 0 is read by the caller
+    itself, while the processes start."""
+    log = tmp_path / "reads"
+    data = readers.Items(100, log=log)
+    ahead = 3
+    with Prefetcher(data, ahead=ahead, workers=2, mode="processes") as frames:
+        deadline = time.monotonic() + DEADLINE_S
+        while len(readers.read_indices(log)) < ahead and time.monotonic() < deadline:
+            time.sleep(0.01)
+        time.sleep(0.1)
+        assert sorted(readers.read_indices(log)) == [1, 2, 3]  # asked for before the caller took any
+        for k in range(1, 12):
+            next(frames)  # frames 0 .. k - 1 taken
+            time.sleep(0.02)
+            assert max(readers.read_indices(log)) <= k - 1 + ahead
+
+
+@pytest.mark.parametrize("workers", [1, 3])
+def test_in_processes_an_error_comes_at_its_frame_and_nothing_after_it(clean, workers):
+    error = InputError("frame-000007.depth.png", "cannot read the image")
+    done = []
+    with pytest.raises(InputError) as caught:
+        with Prefetcher(readers.Items(50, bad=7, error=error, slow_every=2), ahead=3, workers=workers,
+                        mode="processes") as frames:
+            for i, item, _ in frames:
+                done.append(item)
+    assert str(caught.value) == "frame-000007.depth.png: cannot read the image" and done == list(range(7))
+
+
+def test_an_interrupt_raised_in_a_reader_process_reaches_the_loop(clean):
+    with pytest.raises(KeyboardInterrupt):
+        with Prefetcher(readers.Items(10, bad=4, error=KeyboardInterrupt()), ahead=2, mode="processes") as frames:
+            for _ in frames:
+                pass
+
+
+def test_an_interrupted_loop_stops_every_process(clean, tmp_path):
+    log = tmp_path / "reads"
+    with pytest.raises(KeyboardInterrupt):
+        with Prefetcher(readers.Items(10_000, log=log), ahead=3, workers=3, mode="processes") as frames:
+            for i, _, _ in frames:
+                if i == 5:
+                    raise KeyboardInterrupt
+    assert max(readers.read_indices(log)) <= 5 + 3
+
+
+def test_a_reader_process_that_dies_ends_the_loop_at_its_frame(clean):
+    """A reader killed (SIGKILL, as by the OOM killer) at frame 5: the frames before it come out, then
+    ``ReaderDied`` names the process and the frame, and the other processes are stopped."""
+    done = []
+    with pytest.raises(ReaderDied, match=r"the frame reader process \(pid \d+\) was killed by SIGKILL while "
+                                         r"reading frame 5"):
+        with Prefetcher(readers.Items(40, die_at=5), ahead=3, workers=2, mode="processes") as frames:
+            for i, item, _ in frames:
+                done.append(item)
+    assert done == [0, 1, 2, 3, 4]
+
+
+SCRIPT = """
+import os, sys
+sys.path.insert(0, {root!r})
+from ti_fusion.io.prefetch import Prefetcher
+from tests.io import readers
+
+with Prefetcher(readers.Items(200_000, sleep_s=0.002), ahead=3, workers=2, mode="processes") as frames:
+    for i, item, _ in frames:
+        if i == 20:
+            print("ready", flush=True)
+        if i == {stop_at}:
+            break
+print("done", i, flush=True)
+"""
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().split(") ")[1][0] != "Z"
+    except OSError:
+        return False
+
+
+def _grandchildren(pid: int) -> set[int]:
+    found = set()
+    for entry in os.listdir("/proc"):
+        if entry.isdigit():
+            try:
+                stat = Path(f"/proc/{entry}/stat").read_text()
+            except OSError:
+                continue
+            if int(stat[stat.rindex(")") + 2:].split()[1]) == pid:
+                found.add(int(entry))
+    return found
+
+
+@pytest.mark.parametrize("how", ["script", "-c"])
+def test_reader_processes_from_a_script_without_a_main_guard(tmp_path, how):
+    """The Python API from a script with no ``if __name__ == "__main__"`` guard, and from code with no file
+    (``python -c``, as a notebook's cell): the readers run nothing of the caller's script."""
+    root = str(Path(__file__).resolve().parents[2])
+    code = SCRIPT.format(root=root, stop_at=60)
+    args = [sys.executable, str(tmp_path / "run.py")] if how == "script" else [sys.executable, "-c", code]
+    (tmp_path / "run.py").write_text(code)
+    done = subprocess.run(args, capture_output=True, text=True, timeout=DEADLINE_S * 5, cwd=tmp_path)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.splitlines()[-1] == "done 60" and done.stdout.count("ready") == 1
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["SIGINT", "SIGTERM", "SIGHUP"])
+def test_a_signal_to_the_whole_process_group_leaves_no_reader_behind(tmp_path, signum):
+    """Ctrl-C in a terminal signals every process of the group, readers included: they ignore it, the
+    caller stops them and ends; SIGTERM (the caller's default action: it dies at once) and SIGHUP leave
+    readers that see their socket close and end."""
+    root = str(Path(__file__).resolve().parents[2])
+    (tmp_path / "run.py").write_text(SCRIPT.format(root=root, stop_at=10**9))
+    shm = set(os.listdir("/dev/shm"))
+    proc = subprocess.Popen([sys.executable, str(tmp_path / "run.py")], stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path, start_new_session=True)
+    try:
+        assert proc.stdout.readline().strip() == "ready"
+        workers = _grandchildren(proc.pid)
+        assert len(workers) == 2
+        os.killpg(proc.pid, signum)
+        proc.communicate(timeout=DEADLINE_S)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode in (-signum, 128 + signum, 1), proc.returncode
+    deadline = time.monotonic() + DEADLINE_S
+    while any(_alive(p) for p in workers) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not any(_alive(p) for p in workers)
+    assert set(os.listdir("/dev/shm")) <= shm
 
 
 # --------------------------------------------------------------------------------------------------
@@ -210,8 +373,10 @@ def _config() -> Config:
 
 
 def test_pipeline_reads_ahead_with_the_same_results(cpu, tmp_path):
-    """Frames read on the loop's thread, on one reader and on three readers at once (a dataset of files,
-    ``concurrent_reads``): the same trajectory and map; the summary says how many threads read."""
+    """Frames read on the loop's thread, on the reader thread and by three reader processes (frames of a
+    dataset that pickles, ``reads_in_process``): the same trajectory and map; the summary says how."""
+    from ti_fusion.io.datasets.arrays import FrameList
+
     cfg = _config()
     dataset = open_dataset(cfg.dataset, cfg.synth)
     inline = SLAMPipeline(dataset, cfg, RunDir("slam", tmp_path / "inline"), current_backend(),
@@ -219,19 +384,20 @@ def test_pipeline_reads_ahead_with_the_same_results(cpu, tmp_path):
     threaded = SLAMPipeline(InMemory(dataset), cfg, RunDir("slam", tmp_path / "threaded"), current_backend(),
                             show_progress=False).run()
     cfg3 = _config()
-    cfg3.dataset.read_threads = 3
-    files = InMemory(dataset)
-    files.concurrent_reads = True
+    cfg3.dataset.read_workers = 3
+    files = FrameList([dataset[i] for i in range(len(dataset))], name="synthetic")
+    files.reads_in_process = files.concurrent_reads = True
     three = SLAMPipeline(files, cfg3, RunDir("slam", tmp_path / "three"), current_backend(), show_progress=False).run()
     (_, a), (_, b), (_, c) = (read_tum(tmp_path / name / "trajectory.tum") for name in ("inline", "threaded", "three"))
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(a, c)
     assert inline["surfels"] == threaded["surfels"] == three["surfels"]
-    assert (inline["read_threads"], threaded["read_threads"], three["read_threads"]) == (0, 1, 3)
+    assert [(s["read_mode"], s["read_workers"]) for s in (inline, threaded, three)] == \
+        [("inline", 0), ("thread", 1), ("processes", 3)]
     for s in (inline, threaded, three):
         assert s["fps_wall"] > 0 and s["frames"] == 8 and "read" in s["ms_per_stage"]
         assert s["first_frame_s"] <= s["second_frame_s"] <= s["process_s"]
-    assert not _readers()
+    assert not _readers() and not _children()
 
 
 def test_pipeline_keeps_the_frames_before_a_bad_one(cpu, tmp_path):
@@ -245,3 +411,64 @@ def test_pipeline_keeps_the_frames_before_a_bad_one(cpu, tmp_path):
     log = read_log(run.file("log.mcap"))
     assert log.complete and len(log.stats) == 5
     assert not _readers()
+
+
+# --------------------------------------------------------------------------------------------------
+# The command line: a stop or a dead reader process ends the run as before, leaving no process behind
+# --------------------------------------------------------------------------------------------------
+def _folder(root: Path, n: int = 40) -> list[str]:
+    """A plain folder of ``n`` textured 80×60 frames; the ``ti-fusion vo`` arguments that read it."""
+    import cv2
+
+    (root / "depth").mkdir(parents=True)
+    (root / "rgb").mkdir()
+    rng = np.random.default_rng(0)
+    texture = cv2.resize(rng.integers(0, 256, (30, 40, 3), dtype=np.uint8), (160, 120), interpolation=cv2.INTER_NEAREST)
+    for i in range(n):
+        cv2.imwrite(str(root / "depth" / f"{i:06d}.png"), np.full((60, 80), 1500 + i, np.uint16))
+        cv2.imwrite(str(root / "rgb" / f"{i:06d}.png"), texture[i % 20:i % 20 + 60, i % 40:i % 40 + 80])
+    return ["vo", str(root), "--format", "folder", "--depth-scale", "1000", "--intrinsics", "60,60,40,30", "--quiet"]
+
+
+def _at_frame(monkeypatch, k: int, action) -> None:
+    """``action()`` when the vo step is handed its frame ``k`` (in the loop, while the readers read ahead)."""
+    from ti_fusion.slam.vo_step import VOStep
+
+    original = VOStep.register_frame
+
+    def register_frame(self, frame):
+        if frame.index == k:
+            action()
+        return original(self, frame)
+
+    monkeypatch.setattr(VOStep, "register_frame", register_frame)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_stop_ends_the_run_with_its_readers(clean, tmp_path, capsys, monkeypatch, signum):
+    from ti_fusion.cli.main import main
+
+    args = _folder(tmp_path / "data")
+    _at_frame(monkeypatch, 3, lambda: os.kill(os.getpid(), signum))
+    out = tmp_path / "run"
+    assert main([*args, "--out", str(out)]) == 128 + signum
+    log = read_log(out / "log.mcap")
+    assert log.complete and len(log.stats) == 3
+    assert not (out / "summary.json").exists()
+    if (out / "trajectory.tum").exists():  # (the frames that got a pose)
+        assert len(read_tum(out / "trajectory.tum")[0]) <= 3
+
+
+def test_a_reader_process_killed_ends_the_run_in_one_line(clean, tmp_path, capsys, monkeypatch):
+    from ti_fusion.cli.main import main
+
+    args = _folder(tmp_path / "data")
+    _at_frame(monkeypatch, 3, lambda: [os.kill(pid, signal.SIGKILL) for pid in _children()])
+    out = tmp_path / "run"
+    assert main([*args, "--out", str(out)]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert len(err) == 1 and err[0].startswith("ti-fusion vo: error: the frame reader process (pid "), err
+    k = int(err[0].split("while reading frame ")[1])
+    log = read_log(out / "log.mcap")
+    # the frames it had read before it was killed still come out: those asked for by frame 3
+    assert 4 <= k <= 3 + READ_AHEAD + 1 and log.complete and len(log.stats) == k

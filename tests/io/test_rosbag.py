@@ -483,6 +483,49 @@ def test_a_run_log_with_some_depth_images_says_so(cpu, tmp_path):
     assert "the run had 9 frames and logged the depth of 3" in ds.describe()["notes"][0]
 
 
+def _log_of_three(path: Path, finalised: bool = True) -> Path:
+    from ti_fusion.io.mcap_log import RunLogger
+
+    with RunLogger(path, chunk_size=1) as log:  # a chunk per message
+        log.log_calibration(1.0, Intrinsics(*K_SMALL, width=40, height=30))
+        for i in range(4):
+            log.log_depth(1.0 + i / 10, np.full((30, 40), 1.0 + i, dtype=np.float32))
+            log.log_image(1.0 + i / 10, np.full((30, 40, 3), 40 * i, dtype=np.uint8), fmt="png")
+    if not finalised:  # as a killed run leaves it: the first chunks, no summary
+        data = path.read_bytes()
+        path.write_bytes(data[: len(data) * 6 // 10])
+    return path
+
+
+@pytest.mark.parametrize("kind", ["ros2", "ros1", "sqlite3", "cut mcap", "log", "unfinalised log"])
+def test_bags_and_logs_read_in_a_reader_process_as_in_place(tmp_path, rng, kind):
+    """The bag or log pickled to a reader process (``ti_fusion.io.prefetch``) opens itself again there and
+    hands out the frames read in place, in order, with no process left behind."""
+    from ti_fusion.io.prefetch import Prefetcher, read_mode
+
+    if kind in ("log", "unfinalised log"):
+        path = _log_of_three(tmp_path / "log.mcap", finalised=kind == "log")
+    else:
+        bag = write_bag(tmp_path / ("bag.bag" if kind == "ros1" else "bag"),
+                        small_shots(rng, n=8, size=(320, 240) if kind == "cut mcap" else (40, 30)),
+                        ros1=kind == "ros1", storage="sqlite3" if kind == "sqlite3" else "mcap")
+        path = bag
+        if kind == "cut mcap":
+            data = next(bag.glob("*.mcap")).read_bytes()
+            path = tmp_path / "cut.mcap"
+            path.write_bytes(data[: len(data) // 2])
+    ds = open_dataset(small_cfg(path, intrinsics="262.5,262.5,159.5,119.5" if kind == "cut mcap" else ""))
+    assert read_mode(ds) == "processes" and len(ds) >= 2
+    with Prefetcher.for_dataset(ds) as frames:
+        got = list(frames)
+    assert [i for i, _, _ in got] == list(range(len(ds)))
+    for i, frame, _ in got:
+        want = ds[i]
+        assert frame.timestamp == want.timestamp
+        np.testing.assert_array_equal(frame.depth, want.depth)
+        np.testing.assert_array_equal(frame.color, want.color)
+
+
 def test_selection_and_downsampling_apply(tmp_path, rng):
     bag = write_bag(tmp_path / "bag", small_shots(rng, n=6))
     ds = open_dataset(small_cfg(bag, start=1, stride=2, downsample=2))

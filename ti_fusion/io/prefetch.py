@@ -1,120 +1,175 @@
-"""Reading the next frames while the current one is processed: background threads and a few frames held.
+"""Reading the next frames while the current one is processed: worker processes (or a thread) and a few
+frames held.
 
-    with Prefetcher(dataset, ahead=3, workers=1) as frames:
+    with Prefetcher(dataset, ahead=3, workers=2, mode="processes") as frames:
         for i, frame, read_ms in frames:
             ...
 
-Frames come out in order. Decoding a PNG or JPEG in OpenCV releases the GIL, so on a machine with a
-spare core the loop's wait for the next frame shrinks to the time it takes to hand it over. With
-``workers`` > 1, that many threads read different frames at once (for a dataset whose frames can be read
-in any order and at the same time: ``Dataset.concurrent_reads``), for a machine where one thread decodes
-more slowly than the loop processes (docs/PERFORMANCE.md, reading ahead). An error raised while reading
-frame k (an ``InputError`` for an unreadable file) is raised in the caller's thread when it asks for frame
-k, after frames 0 to k−1 have come out, so what is done before the bad frame is kept, as without
-prefetching; no frame after k is handed out (one reader reads none). Leaving the ``with`` block (normal
-end, error, Ctrl-C) stops the threads.
+Frames come out in order. ``mode``:
 
-A dataset whose frames are made by Taichi kernels (the synthetic sequence) is read in the caller's thread
-(``threaded=False``): Taichi kernel launches hold the GIL, so a second thread would gain nothing, and
-Taichi's launch and compile paths are not meant to run on two threads at once.
+- "processes" (files and bags): ``workers`` reader processes (``ti_fusion.io.frame_workers``) decode
+  frames and hand their depth and colour over through shared memory, so decoding runs beside Taichi's
+  kernel launches, which hold the GIL (docs/PERFORMANCE.md, reading in processes). The caller reads the
+  first frame itself while the processes start. Frame j goes to worker j mod ``workers``.
+- "thread": one background thread (a camera, frames in memory, a dataset that does not pickle).
+- "inline": the caller's thread (the synthetic sequence: its frames come from Taichi kernels, which would
+  hold the GIL anyway, and Taichi is not meant to launch from two threads at once).
+
+No frame j is asked for before the caller has taken frame j − ``ahead`` (``ahead`` is at least one per
+worker). An error raised while reading frame k (an ``InputError`` for an unreadable file) is raised in
+the caller's thread when it asks for frame k, after frames 0 to k−1 have come out, so what is done before
+the bad frame is kept, as without prefetching; a reader process that dies raises ``ReaderDied`` at the
+frame it owed. Leaving the ``with`` block (normal end, error, Ctrl-C, SIGTERM) stops the thread or the
+processes and releases the shared memory.
 """
 
 from __future__ import annotations
 
 import os
-import sys
 import threading
 from typing import Iterator, Sequence
 
+from ti_fusion.io.frame_workers import WorkerPool, can_use_processes
 from ti_fusion.timing import Stopwatch
 
-_STOP_POLL_S = 0.05  # how often a waiting reader or caller checks whether the reading is to stop
-# The GIL's switch interval while the readers run: the loop's thread holds the GIL through every Taichi
-# kernel launch and between them hands it over only when this interval has passed, so a reader, which
-# needs it for a moment between decodes, waits less with a shorter one (CPython's default is 5 ms).
-_SWITCH_INTERVAL_S = 0.0005
+_STOP_POLL_S = 0.05  # how often a waiting reader thread or caller checks whether the reading is to stop
+_SLOT_MARGIN = 1.25  # a frame slot's bytes over the frame's estimated depth and colour (a colour camera's size
+#                      is not always known beforehand; what does not fit is pickled instead)
+MODES = ("processes", "thread", "inline")
 
 
-def reader_threads(setting: int, dataset) -> int:
-    """How many threads read ``dataset`` ahead for ``dataset.read_threads`` = ``setting``: one where its frames
-    cannot be read at once (``concurrent_reads`` False); else the setting, and for 0 a quarter of the CPUs,
-    1 to 4 (one per four cores leaves the others to Taichi's workers)."""
+def usable_cpus() -> int:
+    try:
+        return len(os.sched_getaffinity(0))  # the CPUs this process may run on (a container's, a taskset's)
+    except AttributeError:  # (not on every platform)
+        return os.cpu_count() or 1
+
+
+def reader_count(setting: int, dataset) -> int:
+    """How many workers read ``dataset`` ahead for ``dataset.read_workers`` = ``setting``: one where its frames
+    cannot be read at once (``concurrent_reads`` False); else the setting, and for 0 a quarter of the usable
+    CPUs, 1 to 4 (one per four cores leaves the others to Taichi's workers)."""
     if not getattr(dataset, "concurrent_reads", False):
         return 1
     if setting > 0:
         return int(setting)
-    try:
-        cpus = len(os.sched_getaffinity(0))  # the CPUs this process may run on (a container's, a taskset's)
-    except AttributeError:  # (not on every platform)
-        cpus = os.cpu_count() or 1
-    return max(1, min(4, cpus // 4))
+    return max(1, min(4, usable_cpus() // 4))
+
+
+def read_mode(dataset) -> str:
+    """How the pipeline reads ``dataset``: "inline" (frames made by Taichi kernels, on the loop's thread),
+    "processes" (files and bags: ``Dataset.reads_in_process``, where the dataset pickles) or "thread"
+    (a camera, frames in memory, a dataset class of the caller's own)."""
+    if getattr(dataset, "renders_on_taichi", False):
+        return "inline"
+    if getattr(dataset, "reads_in_process", False) and can_use_processes(dataset):
+        return "processes"
+    return "thread"
 
 
 class Prefetcher:
-    """Yields ``(i, dataset[i], read_ms)`` for i in 0..n−1, reading up to ``ahead`` frames in advance on
-    ``workers`` threads (at least one per worker is allowed ahead).
+    """Yields ``(i, dataset[i], read_ms)`` for i in 0..n−1, reading up to ``ahead`` frames in advance.
 
-    ``read_ms`` is the time the reading itself took (on its reader's thread when ``threaded``).
+    ``read_ms`` is the time the reading itself took (in its reader process or thread).
     """
 
-    def __init__(self, dataset: Sequence, ahead: int = 3, threaded: bool = True, n: int | None = None,
-                 workers: int = 1):
+    def __init__(self, dataset: Sequence, ahead: int = 3, workers: int = 1, mode: str = "thread",
+                 n: int | None = None):
+        if mode not in MODES:
+            raise ValueError(f"mode {mode!r}: one of {MODES}")
         self.dataset = dataset
         self.n = len(dataset) if n is None else n
-        self.workers = max(int(workers), 1)
-        self.ahead = max(int(ahead), self.workers)
-        self.threaded = threaded
+        self.mode = mode
+        self.workers = 0 if mode == "inline" else 1 if mode == "thread" else max(int(workers), 1)
+        self.ahead = max(int(ahead), self.workers, 1)
+        self.pool: WorkerPool | None = None
+        # the thread's side
         self._lock = threading.Condition()
         self._ready: dict[int, tuple] = {}  # read, not yet handed out: index → (kind, frame or error, read_ms)
-        self._next = 0  # the next index a reader takes
+        self._next = 0  # the next index the thread reads
         self._handed = 0  # frames handed to the caller
         self._end = self.n  # no index from here on is read (after an error at k: k + 1)
         self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
-        self._switch_interval: float | None = None
+        self._thread: threading.Thread | None = None
+
+    @classmethod
+    def for_dataset(cls, dataset, setting: int = 0, ahead: int = 3) -> "Prefetcher":
+        """The pipeline's prefetcher: ``read_mode(dataset)``, and ``reader_count(setting, dataset)`` processes
+        (``setting``: ``dataset.read_workers``)."""
+        mode = read_mode(dataset)
+        return cls(dataset, ahead, reader_count(setting, dataset) if mode == "processes" else 1, mode)
 
     def __enter__(self) -> Iterator[tuple[int, object, float]]:
-        if not self.threaded:
+        if self.mode == "inline" or self.n == 0:
             return self._inline()
-        self._switch_interval = sys.getswitchinterval()
-        sys.setswitchinterval(min(self._switch_interval, _SWITCH_INTERVAL_S))
-        try:
-            for _ in range(self.workers):
-                thread = threading.Thread(target=self._read_all, name="ti-fusion-reader", daemon=True)
-                thread.start()
-                self._threads.append(thread)
-        except BaseException:  # (e.g. no thread could be started): stop those that did, give the interval back
-            self.close()
-            raise
-        return self._from_readers()
+        if self.mode == "thread":
+            self._thread = threading.Thread(target=self._read_all, name="ti-fusion-reader", daemon=True)
+            self._thread.start()
+            return self._from_thread()
+        self.pool = WorkerPool(self.dataset, self.workers, self.ahead, self._slot_bytes())
+        # frame 0 is read by the caller while the processes start (an interpreter and its imports); frame j
+        # goes to worker (j − 1) mod workers, into slot j mod ahead, at most ahead of them asked for at once
+        self._asked = 1
+        while self._asked < min(self.n, 1 + self.ahead):
+            self.pool.request(self._asked, (self._asked - 1) % self.workers, self._asked % self.ahead)
+            self._asked += 1
+        return self._from_processes()
 
     def __exit__(self, *exc) -> None:
         self.close()
 
     def close(self) -> None:
-        """Stop the reader threads (each finishes the frame it is reading) and drop what they have read."""
+        """Stop the reader thread or processes (each finishes the frame it is reading), drop what they have
+        read and release the shared memory."""
         self._stop.set()
-        if self._switch_interval is None:
-            return
         try:
-            with self._lock:
-                self._lock.notify_all()
-            for thread in self._threads:
-                thread.join()
-        finally:  # a second Ctrl-C during a join still gives the interval back
-            self._threads = []
+            if self._thread is not None:
+                with self._lock:
+                    self._lock.notify_all()
+                self._thread.join()
+        finally:  # a second Ctrl-C during the join still stops the processes
+            self._thread = None
             self._ready.clear()
-            sys.setswitchinterval(self._switch_interval)
-            self._switch_interval = None
+            if self.pool is not None:
+                pool, self.pool = self.pool, None
+                pool.close()
 
-    # -- the caller's side ----------------------------------------------------------------------
+    def _slot_bytes(self) -> int:
+        """A frame's depth (float32) and colour (RGB) bytes at the dataset's size, with a margin."""
+        K = getattr(self.dataset, "intrinsics", None)
+        if K is None:
+            return 0
+        pixels = int(K.width) * int(K.height)
+        color = getattr(self.dataset, "color_intrinsics", None)
+        color_pixels = int(color.width) * int(color.height) if color is not None else pixels
+        return int(_SLOT_MARGIN * (4 * pixels + 3 * max(pixels, color_pixels))) + 256
+
+    # -- inline ---------------------------------------------------------------------------------
     def _inline(self) -> Iterator[tuple[int, object, float]]:
         for i in range(self.n):
             watch = Stopwatch()
             frame = self.dataset[i]
             yield i, frame, watch.ms
 
-    def _from_readers(self) -> Iterator[tuple[int, object, float]]:
+    # -- processes ------------------------------------------------------------------------------
+    def _from_processes(self) -> Iterator[tuple[int, object, float]]:
+        pool, n, ahead, workers, asked = self.pool, self.n, self.ahead, self.workers, self._asked
+        watch = Stopwatch()
+        frame = self.dataset[0]
+        yield 0, frame, watch.ms
+        for i in range(1, n):
+            if self.pool is None:  # closed while the caller still iterates: nothing more comes
+                return
+            kind, payload, read_ms = pool.receive(i, (i - 1) % workers, i % ahead)
+            if kind == "error":
+                raise payload
+            if asked < n:  # the slot is free again: the next frame into it
+                pool.request(asked, (asked - 1) % workers, asked % ahead)
+                asked += 1
+            yield i, payload, read_ms
+
+    # -- the thread -----------------------------------------------------------------------------
+    def _from_thread(self) -> Iterator[tuple[int, object, float]]:
         for i in range(self.n):
             with self._lock:
                 while i not in self._ready:
@@ -128,7 +183,6 @@ class Prefetcher:
                 raise payload
             yield i, payload, read_ms
 
-    # -- the reader threads ---------------------------------------------------------------------
     def _read_all(self) -> None:
         while True:
             with self._lock:

@@ -25,7 +25,7 @@ from ti_fusion.evaluation.metrics import held_trajectory, tracked_ate, trajector
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import RunLogger, software_versions
 from ti_fusion.io.outputs import RunDir, progress
-from ti_fusion.io.prefetch import Prefetcher, reader_threads
+from ti_fusion.io.prefetch import Prefetcher
 from ti_fusion.io.datasets.realsense_live import StreamEnded
 from ti_fusion.io.registration import ColorRegistrar
 from ti_fusion.io.trajectory import write_tum
@@ -34,8 +34,8 @@ from ti_fusion.timing import StageTimer, Stopwatch, process_age_s
 
 # The log's record of a run without a Taichi backend (feature odometry runs in OpenCV).
 NO_BACKEND = {"arch": "none (OpenCV on the CPU)"}
-# Frames read ahead of the one being processed, on background threads (ti_fusion.io.prefetch); at least one per
-# reader thread.
+# Frames read ahead of the one being processed, in reader processes or a thread (ti_fusion.io.prefetch); at least
+# one per reader.
 READ_AHEAD = 3
 
 
@@ -88,7 +88,8 @@ class Pipeline:
         self.gt: list[np.ndarray | None] = []  # and the frame's ground-truth pose
         self.first_frames_s: list[float] = []  # the process's age when each of the first two frames was done
         self._calibration = None  # the intrinsics last logged on /camera/calibration
-        self.read_threads = 0  # threads that read the frames ahead (0: read on the loop's own thread)
+        self.read_workers = 0  # processes (or the thread) that read the frames ahead (0: the loop's own thread)
+        self.read_mode = "inline"  # how: "processes", "thread" or "inline" (ti_fusion.io.prefetch.read_mode)
         self._ran = False  # one run per pipeline: a second would mix two runs' frames in one folder
 
     def run(self) -> dict:
@@ -168,11 +169,11 @@ class Pipeline:
     # -- the loop -------------------------------------------------------------------------------
     def _loop(self, log: RunLogger) -> None:
         n = len(self.dataset)
-        threaded = not getattr(self.dataset, "renders_on_taichi", False)
         # colour of a separate camera, reprojected here (Taichi's thread)
         register_color = ColorRegistrar(getattr(self.dataset, "color_camera", None))
-        self.read_threads = reader_threads(self.config.dataset.read_threads, self.dataset) if threaded else 0
-        with Prefetcher(self.dataset, READ_AHEAD, threaded, workers=self.read_threads) as frames:
+        prefetcher = Prefetcher.for_dataset(self.dataset, self.config.dataset.read_workers, READ_AHEAD)
+        self.read_workers, self.read_mode = prefetcher.workers, prefetcher.mode
+        with prefetcher as frames:
             for i in progress(range(n), n, self.step.name, self.show_progress):
                 with self.timer.stage("load"):  # the wait for the frame: what reading it did not overlap
                     try:
@@ -265,7 +266,8 @@ class Pipeline:
         first = dict(zip(("first_frame_s", "second_frame_s"), self.first_frames_s))
         return {"frames": len(self.results), "wall_s": wall,
                 "fps_wall": round(len(self.results) / wall, 2) if wall > 0 else None, "fps_processing": fps,
-                "warmup_ms": warmup_ms, **first, "read_threads": self.read_threads,
+                "warmup_ms": warmup_ms, **first, "read_workers": self.read_workers,
+                "read_mode": self.read_mode,
                 "dataset": self.dataset.describe()}
 
     def _evaluate(self) -> dict:

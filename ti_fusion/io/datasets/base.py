@@ -38,13 +38,15 @@ class Dataset(ABC):
     depth_scale: float | None = None  # raw depth units per metre; None where depth is not read from images
     # the colour images are registered to depth, pixel for pixel (the photometric tracking term needs it)
     color_registered: bool = False
-    # ``dataset[i]`` may run on several threads at once, in any order (``ti_fusion.io.prefetch``)
+    # ``dataset[i]`` may run in several readers at once, in any order (``ti_fusion.io.prefetch``)
     concurrent_reads: bool = False
     # What ``open_dataset`` asks of a format registered in ti_fusion/io/formats.py (besides ``detect``):
     identified_by: str | None = None  # the files ``detect`` looks for, as the line for an unknown layout names them
     single_file: bool = False         # an input may be one file (a bag, a run log) rather than a folder
     replaceable_calibration: bool = False  # dataset.intrinsics and dataset.depth_scale replace the format's own
     reads_color_camera: bool = False  # reads dataset.color_extrinsics and color_intrinsics itself (a bag's topics)
+    # ``dataset[i]`` may run in a reader process, on a pickled copy of the dataset (files and bags)
+    reads_in_process: bool = False
 
     def __init__(self, root: str | Path, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):
@@ -244,6 +246,7 @@ class ImageFileDataset(RecordedSequence):
     depth_scale: float = 1000.0
     invalid_depth: tuple[int, ...] = (0,)
     concurrent_reads = True  # every frame is files of its own
+    reads_in_process = True
 
     def __init__(self, root, config=None, downsample: int = 1, start: int = 0, stop: int | None = None,
                  stride: int = 1):

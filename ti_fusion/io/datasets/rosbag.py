@@ -353,6 +353,7 @@ class RosbagDataset(RecordedSequence):
     identified_by = "a ROS 2 bag (metadata.yaml, *.mcap)"
     single_file = True
     reads_color_camera = True
+    reads_in_process = True  # one reader process, in order (concurrent_reads is False: one open bag)
 
     @property
     def color_for_tracking(self) -> bool:  # one frame_id for both, or the user's word (dataset.color_registered)
@@ -767,6 +768,19 @@ class RosbagDataset(RecordedSequence):
     def close(self) -> None:
         """Close the bag's files (also done when the dataset is garbage-collected)."""
         self._closer()
+
+    # A reader process (ti_fusion.io.prefetch) gets the dataset pickled: everything but the open bag, which
+    # it opens again (the index of frames, topics and calibration is the one made here).
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        for name in ("bag", "_closer"):
+            state.pop(name, None)
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        self.bag, _ = open_bag(self.root)
+        self._closer = weakref.finalize(self, self.bag.close)
 
     @staticmethod
     def detect(root: Path) -> str | None:

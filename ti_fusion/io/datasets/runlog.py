@@ -154,6 +154,7 @@ class RunLogDataset(RecordedSequence):
     format = "log"
     identified_by = "a run log (log.mcap)"
     single_file = True
+    reads_in_process = True  # one reader process, in order (concurrent_reads is False: one open file)
     depth_scale = 1000.0  # /camera/depth is 16UC1 millimetres
 
     @property
@@ -295,6 +296,26 @@ class RunLogDataset(RecordedSequence):
         info = super().describe()
         info.update(color=any(self._has_color), ground_truth_frames=self.ground_truth_frames())
         return info
+
+    # A reader process (ti_fusion.io.prefetch) gets the dataset pickled: everything but the open file and its
+    # readers, which it opens again.
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        for name in ("_file", "_closer", "_reader", "_unfinalised"):
+            state.pop(name, None)
+        state["_was_unfinalised"] = self._unfinalised is not None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        from mcap.reader import make_reader
+        from mcap_protobuf.decoder import DecoderFactory
+
+        unfinalised = state.pop("_was_unfinalised")
+        self.__dict__.update(state)
+        self._file = open(self.path, "rb")
+        self._closer = weakref.finalize(self, self._file.close)
+        self._reader = make_reader(self._file, decoder_factories=[DecoderFactory()])
+        self._unfinalised = UnfinalisedLog(self._file) if unfinalised else None
 
     @staticmethod
     def detect(root: Path) -> str | None:

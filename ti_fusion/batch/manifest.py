@@ -115,6 +115,10 @@ def read_manifest(path: str | Path, default_threads: int = 1) -> Manifest:
     for inp in inputs:
         for var in variants or [None]:
             jobs.append(_job(path, parser, options, defaults, inp, var, default_threads))
+    names = [j.name for j in jobs]
+    twice = next((n for n in names if names.count(n) > 1), None)
+    if twice is not None:  # "a--b" x "c" and "a" x "b--c": one run folder for two jobs
+        raise InputError(path, f"two jobs are named {twice!r}: rename an input or a variant")
     return Manifest(path, tuple(jobs), tuple(i["_name"] for i in inputs), tuple(v["_name"] for v in variants))
 
 

@@ -191,6 +191,12 @@ class Batch:
             kept = self.counts["kept_failed"]
             self.say(f"resuming {self.folder}: {self.counts['skipped_done']} finished jobs skipped" +
                      (f", {kept} failed kept (--rerun-failed runs them again)" if kept else ""))
+        if to_run and self.address is None:
+            cpus = local_cpus()
+            too_big = [j for j in to_run if j.threads > cpus]
+            if too_big:
+                raise InputError(self.manifest.path, f"job {too_big[0].name}: threads {too_big[0].threads} is "
+                                                     f"more than the {cpus} CPUs here")
         try:
             if to_run:
                 self._on_ray(to_run)
@@ -206,16 +212,10 @@ class Batch:
     def _on_ray(self, jobs: list[Job]) -> None:
         ray = import_ray()
         local = self.address is None
-        if local:
-            cpus = local_cpus()
-            too_big = [j for j in jobs if j.threads > cpus]
-            if too_big:
-                raise InputError(self.manifest.path, f"job {too_big[0].name}: threads {too_big[0].threads} is "
-                                                     f"more than the {cpus} CPUs here")
         previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
         try:
             if local:
-                ray.init(address="local", num_cpus=cpus, include_dashboard=False, log_to_driver=False,
+                ray.init(address="local", num_cpus=local_cpus(), include_dashboard=False, log_to_driver=False,
                          logging_level=logging.ERROR)
             else:
                 ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)

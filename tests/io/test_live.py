@@ -54,6 +54,7 @@ class Client(threading.Thread):
         self.closed = threading.Event()
         self.error: BaseException | None = None
         self._subscriptions: dict[int, str] = {}  # subscription id → topic
+        self.refusals: list[str] = []  # the server's "Unknown channel ID" statuses
         self._retries = 100
         self._changed = threading.Condition()
 
@@ -91,7 +92,9 @@ class Client(threading.Thread):
             wanted = [c for c in message["channels"] if self.topics is None or c["topic"] in self.topics]
             self._subscribe(ws, wanted)
         elif message["op"] == "status" and message["message"].startswith("Unknown channel ID:"):
-            # the SDK can refuse a subscription sent the instant a channel appears: ask again
+            # the SDK can refuse a subscription sent the instant a channel appears: ask again (unless told,
+            # as Foxglove, not to)
+            self.refusals.append(message["message"])
             channel = self.channels.get(int(message["message"].rsplit(":", 1)[1]))
             if channel is not None and self._retries > 0:
                 self._retries -= 1
@@ -203,15 +206,17 @@ def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
 
     in_file, schemas = _file_messages(run.file("log.mcap"))
     advertised = {c["topic"] for c in client.channels.values()}
-    assert advertised == set(in_file) == {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points",
-                                          "/camera/depth", "/camera/color", "/camera/calibration", "/trajectory"}
-    for topic in advertised:  # the same schema records: name, encoding and bytes
+    assert set(in_file) == {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points", "/camera/depth",
+                            "/camera/color", "/camera/calibration", "/trajectory"}
+    assert advertised == set(in_file) | {"/map/mesh", "/loop_closures"}  # advertised before they are logged
+    assert client.received("/trajectory")  # logged as the run closes
+    for topic in set(in_file):  # the same schema records: name, encoding and bytes
         schema = client.schema(topic)
         assert (schema.name, schema.encoding, schema.data) == (
             schemas[topic].name, schemas[topic].encoding, schemas[topic].data), topic
 
     times = [int(round(t * 1e9)) for t in read_log(run.file("log.mcap")).stats_times]
-    for topic in advertised - {"/map/points"}:  # every message received is the file's, at its time
+    for topic in set(in_file) - {"/map/points"}:  # every message received is the file's, at its time
         for ns, data in client.received(topic):
             assert in_file[topic].get(ns) == data, (topic, ns)
     assert set(range(frames - 1)) <= client.stats_frames()
@@ -374,3 +379,93 @@ def _read_line(proc: subprocess.Popen, prefix: str, timeout: float) -> str:
     if not found:
         raise AssertionError(f"no '{prefix}' line within {timeout} s; stderr: {proc.stderr.read() if proc.poll() is not None else ''}")
     return found[0]
+
+
+# --------------------------------------------------------------------------------------------------
+# Clients that misbehave, channels logged at the end, serving the network
+# --------------------------------------------------------------------------------------------------
+def test_a_client_that_never_reads_does_not_hold_the_end_of_the_run(tmp_path, caplog):
+    """A client subscribes to everything, then stops reading (its socket fills): the run's messages are
+    dropped for it (a bounded queue), and closing the log stops the server without waiting for that client's
+    close handshake, which never comes (the SDK's stop alone waited until the client went away)."""
+    import logging
+
+    from ti_fusion.io.live import CLOSE_TIMEOUT_S
+    from ti_fusion.io.mcap_log import RunLogger
+
+    live = LiveServer("127.0.0.1:0")
+    with websockets.connect(live.url, subprotocols=SUBPROTOCOLS, max_size=None, max_queue=1, open_timeout=WAIT_S,
+                            close_timeout=1) as ws:
+        channels = {}
+        while len(channels) < len(live.topics):  # serverInfo, then the advertisements
+            message = json.loads(ws.recv(timeout=WAIT_S))
+            channels.update({c["id"]: c for c in message.get("channels", [])})
+        ws.send(json.dumps({"op": "subscribe", "subscriptions": [{"id": i, "channelId": i} for i in channels]}))
+        deadline = time.monotonic() + WAIT_S
+        while not all(live.subscribed(t) for t in live.topics) and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert all(live.subscribed(t) for t in live.topics)
+        depth = np.random.default_rng(0).uniform(0.5, 4.0, (240, 320)).astype(np.float32)
+        log = RunLogger(tmp_path / "log.mcap", live=live)
+        for i in range(300):  # 300 depth images of 150 kB: far more than the socket's buffers hold
+            log.log_pose(i, np.eye(4))
+            log.log_depth(i, depth)
+        closing = threading.Thread(target=log.close)
+        with caplog.at_level(logging.WARNING, logger="ti_fusion.io.live"):
+            closing.start()
+            closing.join(WAIT_S)  # a bound for a broken close; it takes CLOSE_TIMEOUT_S and the linger
+        assert not closing.is_alive() and live.closed
+    assert read_log(tmp_path / "log.mcap").complete
+    assert [r.getMessage() for r in caplog.records] == [
+        f"live: a client did not take what was sent to it: stopped serving without waiting for it "
+        f"(after {CLOSE_TIMEOUT_S:g} s)"]
+
+
+def test_channels_logged_at_the_end_reach_a_client_that_subscribed_at_once(tmp_path):
+    """Every channel a run logs is advertised before a client can connect, so a client that subscribes to
+    what it is told at once, and never asks again (as Foxglove does), has no subscription refused, and gets
+    the trajectory and the mesh that are logged as the run ends."""
+    from ti_fusion.io.mcap_log import RunLogger
+    from ti_fusion.mapping.mesh import Mesh
+
+    live = LiveServer("127.0.0.1:0")
+    client = Client(live.url)
+    client._retries = 0
+    client.start()  # connects before the log opens: the moment of the race
+    client.wait_for(lambda: {c["topic"] for c in client.channels.values()} >= {"/tf", "/trajectory", "/map/mesh"},
+                    "advertisements before the log opens")
+    client.wait_for(lambda: all(live.subscribed(t) for t in live.topics), "subscriptions")
+    mesh = Mesh(vertices=np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1]], np.float32), faces=np.array([[0, 1, 2]]),
+                normals=np.tile(np.float32([0, 0, -1]), (3, 1)), colors=np.full((3, 3), 200, np.uint8))
+    with RunLogger(tmp_path / "log.mcap", live=live) as log:
+        for i in range(3):
+            log.log_pose(i, np.eye(4))
+        log.log_trajectory(2, [np.eye(4)] * 3)
+        log.log_mesh(2, mesh)
+    client.join(WAIT_S)
+    assert client.error is None and client.refusals == []
+    in_file, _ = _file_messages(tmp_path / "log.mcap")
+    for topic in ("/tf", "/trajectory", "/map/mesh"):
+        assert client.received(topic) and all(in_file[topic][ns] == data for ns, data in client.received(topic)), topic
+
+
+def test_every_interface_warns_and_gives_urls_a_client_can_use(cpu, tmp_path, capsys):
+    """--live 0.0.0.0:PORT serves the network: the run warns, and prints URLs a client can use (this
+    machine's addresses), not ws://0.0.0.0."""
+    live = LiveServer("0.0.0.0:0")
+    try:
+        urls = live.urls()
+        assert urls[0] == f"ws://127.0.0.1:{live.port}" and all("0.0.0.0" not in u for u in urls)
+        for url in urls:  # each one connects
+            client = Client(url, topics=())
+            client.start()
+            client.wait_for(lambda: client.server_info is not None, f"server info at {url}")
+    finally:
+        live.close()
+    assert main(["slam", "--live", "0.0.0.0:0", "--frames", "2", "--downsample", "8", "--quiet",
+                 "--out", str(tmp_path / "run")]) == 0
+    captured = capsys.readouterr()
+    (warning,) = [line for line in captured.err.splitlines() if "live:" in line]
+    assert warning.startswith("ti-fusion slam: warning: live: serving on every network interface (0.0.0.0): anyone")
+    (line,) = [line for line in captured.out.splitlines() if line.startswith("live: ")]
+    assert line.startswith("live: ws://127.0.0.1:") and "0.0.0.0" not in line and "from another machine: ws://" in line

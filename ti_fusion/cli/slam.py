@@ -61,7 +61,19 @@ def _live_server(ctx):
     from ti_fusion.io.live import LiveServer
 
     live = LiveServer(ctx.args.live)
-    ctx.log(f"live: {live.url} (in Foxglove: Open connection > Foxglove WebSocket)")  # even with --quiet
+    urls = live.urls()
+    if live.every_interface:
+        import logging
+
+        logging.getLogger("ti_fusion").warning(
+            f"live: serving on every network interface ({live.host or '*'}): anyone who can reach this machine on "
+            f"port {live.port} can watch the run (--live 127.0.0.1:{live.port} keeps it to this machine)")
+        where = "; from another machine: " + ", ".join(urls[1:]) if len(urls) > 1 else \
+            "; from another machine: ws://<this machine's address>:" + str(live.port)
+    else:
+        where = ""
+    # even with --quiet: the line says where to connect
+    ctx.log(f"live: {urls[0]} (in Foxglove: Open connection > Foxglove WebSocket){where}")
     return live
 
 

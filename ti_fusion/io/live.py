@@ -43,7 +43,10 @@ MAP_PERIOD_S = 1.0          # at most one live map a second ...
 MAP_MAX_POINTS = 50_000     # ... of at most this many points (0.8 MB)
 BACKLOG = 256               # messages queued per client before the oldest is dropped
 LINGER_S = 0.25             # on closing, time for the clients' queues to drain (stopping drops what is queued)
-LATCHED = ("/camera/calibration", "/map/mesh")  # logged once: sent again to a client that subscribes later
+CLOSE_TIMEOUT_S = 2.0       # the most closing waits for the server to stop (a client that never reads holds it)
+# Logged once: sent again to a client that subscribes later (the trajectory and the mesh as the run closes too).
+LATCHED = ("/camera/calibration", "/map/mesh", "/trajectory")
+ANY_HOST = ("0.0.0.0", "::", "")  # every network interface
 SDK_LOGGER = "foxglove.websocket.server"  # where the SDK's server logs (through Python's logging)
 REFUSED = re.compile(r"Dropping client (.+?):\d+: handshake failed")
 CLIENTS = ("current Foxglove and Lichtblick 1.22.1 or later offer it; Foxglove Studio and older Lichtblick "
@@ -80,6 +83,12 @@ class LiveServer:
         self._lock = threading.Lock()  # the server's threads call the listener
         host, port = parse_address(address)
         self.refused = 0  # clients refused so far (counted by _REFUSED)
+        # Every channel a run logs exists before a client can connect: the SDK refuses ("Unknown channel ID") a
+        # subscription that a client sends while the channel is being added, and a client never asks again.
+        from ti_fusion.io.mcap_log import live_channel_specs
+
+        for spec in live_channel_specs():
+            self.add_channel(*spec)
         _REFUSED.servers.add(self)
         logging.getLogger(SDK_LOGGER).addFilter(_REFUSED)  # once for the process (a filter is added once)
         try:
@@ -101,6 +110,19 @@ class LiveServer:
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
         return f"ws://{host}:{self.port}"
+
+    @property
+    def every_interface(self) -> bool:
+        """Whether the server listens on every network interface (HOST 0.0.0.0 or ::)."""
+        return self.host in ANY_HOST
+
+    def urls(self) -> list[str]:
+        """The URLs a client can use: the host given, or for every interface this machine's own addresses
+        (loopback first), since ws://0.0.0.0 is no address a remote client can reach."""
+        if not self.every_interface:
+            return [self.url]
+        hosts = ["127.0.0.1"] + [a for a in _own_addresses() if not a.startswith("127.")]
+        return [f"ws://{f'[{h}]' if ':' in h else h}:{self.port}" for h in dict.fromkeys(hosts)]
 
     # -- what RunLogger calls ---------------------------------------------------------------------
     def add_channel(self, topic: str, message_encoding: str, schema_name: str, schema_encoding: str,
@@ -147,9 +169,22 @@ class LiveServer:
             try:
                 if any(channel.has_sinks() for channel in self._channels.values()):
                     time.sleep(LINGER_S)  # the SDK has no flush: its sender threads drain the queues meanwhile
+                    if self._resend:  # subscribed to the trajectory or the mesh just as they were logged
+                        self._send_latched()
+                        time.sleep(LINGER_S)
             finally:  # a second Ctrl-C during the wait still stops the server
-                self._server.stop()
                 _REFUSED.servers.discard(self)
+                self._stop_bounded()
+
+    def _stop_bounded(self) -> None:
+        """Stop the server, waiting at most CLOSE_TIMEOUT_S: the SDK's stop waits for every client's close
+        handshake, which a client that stopped reading never completes; the run's end must not wait for it."""
+        stopper = threading.Thread(target=self._server.stop, name="ti-fusion-live-stop", daemon=True)
+        stopper.start()
+        stopper.join(CLOSE_TIMEOUT_S)
+        if stopper.is_alive():
+            log.warning(f"live: a client did not take what was sent to it: stopped serving without waiting for it "
+                        f"(after {CLOSE_TIMEOUT_S:g} s)")
 
     # -- internals --------------------------------------------------------------------------------
     def _subscribed(self, topic: str) -> None:
@@ -164,6 +199,24 @@ class LiveServer:
             if topic in self._latched:
                 data, ns = self._latched[topic]
                 self._channels[topic].log(data, log_time=ns)
+
+
+def _own_addresses() -> list[str]:
+    """This machine's IPv4 addresses as far as the host name and the default route tell (no packet is sent)."""
+    import socket
+
+    found = []
+    try:
+        found += socket.gethostbyname_ex(socket.gethostname())[2]
+    except OSError:
+        pass
+    try:
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+            probe.connect(("192.0.2.1", 9))  # TEST-NET-1: a UDP connect only picks the outgoing interface
+            found.append(probe.getsockname()[0])
+    except OSError:
+        pass
+    return list(dict.fromkeys(found))
 
 
 class _RefusedClients(logging.Filter):

@@ -98,7 +98,15 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 # The channels of the log_* methods, by their default topics.
 LIVE_CHANNELS = {"/tf": FrameTransforms, "/camera/pose": PoseInFrame, "/gt/pose": PoseInFrame,
                  "/camera/calibration": CameraCalibration, "/camera/depth": RawImage,
-                 "/camera/color": CompressedImage, "/map/points": PointCloud}
+                 "/camera/color": CompressedImage, "/map/points": PointCloud, "/trajectory": PosesInFrame,
+                 "/map/mesh": SceneUpdate, "/loop_closures": SceneUpdate}
+
+
+def live_channel_specs() -> list[tuple[str, str, str, str, bytes]]:
+    """(topic, message encoding, schema name, schema encoding, schema bytes) of each of LIVE_CHANNELS."""
+    return [(topic, MessageEncoding.Protobuf, message_type.DESCRIPTOR.full_name, SchemaEncoding.Protobuf,
+             build_file_descriptor_set(message_type).SerializeToString())
+            for topic, message_type in LIVE_CHANNELS.items()]
 
 # Small chunks: a run killed with SIGKILL loses at most one open chunk (about 90 frames of poses and
 # stats; big messages such as depth images and point clouds close a chunk on their own).
@@ -227,9 +235,8 @@ class RunLogger:
         if live is not None:
             # The live channels exist from the start: a client that connects sees them all at once (and the
             # SDK can refuse a subscription sent in the instant after a channel appears).
-            for topic, message_type in LIVE_CHANNELS.items():
-                live.add_channel(topic, MessageEncoding.Protobuf, message_type.DESCRIPTOR.full_name,
-                                 SchemaEncoding.Protobuf, build_file_descriptor_set(message_type).SerializeToString())
+            for spec in live_channel_specs():
+                live.add_channel(*spec)
 
     # -- context manager: finalise on normal exit, on any exception and on KeyboardInterrupt ------
     def __enter__(self) -> "RunLogger":

@@ -182,6 +182,16 @@ def test_files_read_back_by_trimesh(cpu, rng, tmp_path):
     np.testing.assert_allclose(glb.vertex_normals, mesh.normals, atol=1e-3)
     # with a material, trimesh keeps COLOR_0 as a vertex attribute beside it
     np.testing.assert_array_equal(glb.visual.vertex_attributes["color"][:, :3], mesh.colors)
+    # glTF is +Y up; the map's world is its first camera's (y down, z forward): the node turns it upright,
+    # 180° about x, so the world's (0, -1, 0) is glTF's +Y and the camera's forward glTF's -Z
+    upright = scene.to_geometry() if hasattr(scene, "to_geometry") else scene.dump(concatenate=True)
+    np.testing.assert_allclose(upright.vertices, mesh.vertices * np.float32([1, -1, -1]), atol=1e-6)
+    from ti_fusion.io.mesh_files import y_up_rotation
+
+    for up in ([0, 0, 1], [0.3, -0.9, 0.1], [0, 1, 0]):  # another world's up (the ground truth's) goes to +Y too
+        q = np.array(y_up_rotation(up))
+        T = trimesh.transformations.quaternion_matrix(q[[3, 0, 1, 2]])[:3, :3]
+        np.testing.assert_allclose(T @ (np.array(up) / np.linalg.norm(up)), [0, 1, 0], atol=1e-9)
 
 
 def test_map_ply_round_trip(cpu, rng, tmp_path):
@@ -219,6 +229,10 @@ def test_mesh_command(cpu, rng, tmp_path, capsys):
     empty = tmp_path / "empty.ply"
     write_ply(empty, np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)))
     bad.append((["mesh", str(empty)], "empty"))
+    cut = tmp_path / "cut.ply"  # a copy that stopped half way
+    data = (run / "map.ply").read_bytes()
+    cut.write_bytes(data[:len(data) // 2 + 3])
+    bad.append((["mesh", str(cut)], "cut.ply: PLY truncated: it holds"))
     for k, (argv, words) in enumerate(bad):
         assert main(argv + ["--out", str(tmp_path / f"bad{k}"), "--quiet"]) == 2
         err = capsys.readouterr().err.strip()
@@ -278,6 +292,17 @@ def test_slam_mesh(cpu, tmp_path):
     assert summary["method"] == "surfels" and summary["triangles"] > 1000
     assert (out / "mesh.ply").is_file() and (out / "mesh.glb").is_file()
     assert read_log(out / "log.mcap").channels["/map/mesh"].count == 1
+    # upright in a glTF reader: the first camera's up is +Y, and the floor (facing up) lies below the camera
+    trimesh = pytest.importorskip("trimesh")
+    from ti_fusion.io.trajectory import read_tum
+
+    scene = trimesh.load(out / "mesh.glb")
+    T = scene.graph[scene.graph.nodes_geometry[0]][0]
+    first = read_tum(out / "trajectory.tum")[1][0]
+    np.testing.assert_allclose(T[:3, :3] @ -first[:3, 1], [0, 1, 0], atol=1e-6)
+    upright = scene.to_geometry() if hasattr(scene, "to_geometry") else scene.dump(concatenate=True)
+    floor = upright.vertex_normals[:, 1] > 0.9
+    assert floor.sum() > 1000 and np.median(upright.vertices[floor, 1]) < (T @ first[:, 3])[1]
 
 
 @pytest.mark.slow

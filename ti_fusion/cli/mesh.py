@@ -45,6 +45,19 @@ def map_file(given: str) -> Path:
     return path
 
 
+def first_camera_up(folder: Path):
+    """The world's up for mesh.glb: the first camera's -y in the run's trajectory.tum, or None (the first
+    camera's world) when the folder has none."""
+    from ti_fusion.io.mesh_files import camera_up
+    from ti_fusion.io.trajectory import read_tum
+
+    try:
+        _, poses = read_tum(folder / "trajectory.tum")
+    except Exception:  # noqa: BLE001 - no or an unreadable trajectory: the map.ply's own world
+        return None
+    return camera_up(poses[0]) if len(poses) else None
+
+
 def apply_options(args, mesh_config) -> None:
     """--voxel, --min-weight and --max-triangles into the [mesh] section, checked as --set checks it."""
     from ti_fusion.errors import InputError
@@ -79,7 +92,7 @@ def run(ctx) -> dict:
     mesh = mesh_surfels(surfels, cfg, source=path, stats=stats)
     from ti_fusion.io.mesh_files import write_run_mesh
 
-    files = write_run_mesh(ctx.out, mesh)
+    files = write_run_mesh(ctx.out, mesh, first_camera_up(path.parent))
     ctx.log(f"{len(mesh)} triangles, {len(mesh.vertices)} vertices, {mesh.area():.2f} m² from "
             f"{stats['surfels_meshed']} of {stats['surfels_in_map']} surfels at {cfg.voxel_size * 100:g} cm voxels "
             f"({stats['ms']['splat'] / 1e3:.2f} s splat, {stats['ms']['extract'] / 1e3:.2f} s marching cubes)")

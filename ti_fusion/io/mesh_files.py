@@ -43,10 +43,30 @@ def write_mesh_ply(path: str | Path, mesh) -> Path:
     return path
 
 
-def glb_bytes(mesh, generator: str = "ti-fusion") -> bytes:
+# The map's world is its first camera's (or the ground truth's first pose): y points down the image, so the
+# world's up is the first camera's -y, unless a caller knows better.
+CAMERA_UP = (0.0, -1.0, 0.0)
+
+
+def y_up_rotation(up) -> list[float]:
+    """The quaternion (x, y, z, w) that turns the world vector ``up`` to glTF's +Y: 180° about x for the
+    camera convention's -y (so the camera's forward +z becomes glTF's -z), else the shortest rotation."""
+    u = np.asarray(up, np.float64)
+    u = u / np.linalg.norm(u)
+    y = np.array([0.0, 1.0, 0.0])
+    cos = float(u @ y)
+    if cos < -1 + 1e-9:
+        return [1.0, 0.0, 0.0, 0.0]
+    axis = np.cross(u, y)
+    q = np.array([*axis, 1.0 + cos])
+    return (q / np.linalg.norm(q)).tolist()
+
+
+def glb_bytes(mesh, generator: str = "ti-fusion", up=CAMERA_UP) -> bytes:
     """``mesh`` as one glTF 2.0 binary: one node, one primitive (POSITION, NORMAL, COLOR_0 as normalised
-    unsigned bytes, uint32 indices), a matte material whose base colour is the vertex colour. Coordinates are
-    the map's own (metres, its world frame), not turned to glTF's +Y up."""
+    unsigned bytes, uint32 indices), a matte material whose base colour is the vertex colour. The vertices
+    are the map's own (metres, its world frame); the node's rotation turns the world's ``up`` to glTF's +Y,
+    so viewers show the scene upright."""
     pos = np.ascontiguousarray(mesh.vertices, np.float32)
     nrm = np.ascontiguousarray(mesh.normals, np.float32)
     rgba = np.empty((len(pos), 4), np.uint8)
@@ -64,7 +84,8 @@ def glb_bytes(mesh, generator: str = "ti-fusion") -> bytes:
     hi = pos.max(axis=0).tolist() if len(pos) else [0.0, 0.0, 0.0]
     gltf = {
         "asset": {"version": "2.0", "generator": generator},
-        "scene": 0, "scenes": [{"nodes": [0]}], "nodes": [{"mesh": 0, "name": "surface"}],
+        "scene": 0, "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "name": "surface", "rotation": y_up_rotation(up)}],
         "meshes": [{"name": "surface", "primitives": [{
             "attributes": {"POSITION": 0, "NORMAL": 1, "COLOR_0": 2}, "indices": 3, "mode": 4, "material": 0}]}],
         "materials": [{"name": "vertex colour", "pbrMetallicRoughness": {
@@ -86,19 +107,25 @@ def glb_bytes(mesh, generator: str = "ti-fusion") -> bytes:
                      struct.pack("<II", len(binary), 0x004E4942), binary])
 
 
-def write_glb(path: str | Path, mesh) -> Path:
+def write_glb(path: str | Path, mesh, up=CAMERA_UP) -> Path:
     """``mesh`` as a glTF binary file (``glb_bytes``): Blender, three.js, Unity (glTFast) and browsers open it."""
     path = Path(path)
-    data = glb_bytes(mesh)
+    data = glb_bytes(mesh, up=up)
     with atomic_write(path, "wb") as out:
         out.write(data)
     return path
 
 
-def write_run_mesh(out, mesh) -> dict:
-    """mesh.ply and mesh.glb in the run folder ``out`` (``RunDir``); their paths, for summary.json."""
+def write_run_mesh(out, mesh, up=None) -> dict:
+    """mesh.ply and mesh.glb in the run folder ``out`` (``RunDir``); their paths, for summary.json. ``up``: the
+    world's up (the first camera's -y); None: the first camera's world."""
     return {"mesh_ply": str(write_mesh_ply(out.file("mesh.ply"), mesh)),
-            "mesh_glb": str(write_glb(out.file("mesh.glb"), mesh))}
+            "mesh_glb": str(write_glb(out.file("mesh.glb"), mesh, CAMERA_UP if up is None else up))}
+
+
+def camera_up(pose) -> tuple[float, float, float]:
+    """The world's up as a camera-to-world ``pose`` held level sees it: the camera's -y."""
+    return tuple(float(v) for v in -np.asarray(pose, np.float64)[:3, 1])
 
 
 def write_mesh(path: str | Path, mesh) -> Path:

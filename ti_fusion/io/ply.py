@@ -77,6 +77,9 @@ def read_ply(path: str | Path) -> np.ndarray:
             elif words[0] == "element":
                 in_vertex = words[1] == "vertex"
                 if in_vertex:
+                    if len(words) < 3 or not words[2].isdigit():
+                        raise InputError(path, f"PLY header line {line.decode('ascii', 'replace').strip()!r}: "
+                                               "expected 'element vertex COUNT'")
                     count = int(words[2])
                 elif count is not None:
                     break  # vertex data comes first: later elements are not needed
@@ -89,7 +92,9 @@ def read_ply(path: str | Path) -> np.ndarray:
         while line and line.strip() != b"end_header":
             line = f.readline()
         dtype = np.dtype(fields)
-        data = np.frombuffer(f.read(dtype.itemsize * count), dtype=dtype)
-    if len(data) != count:
-        raise InputError(path, f"PLY truncated: {len(data)} of {count} vertices")
-    return data
+        raw = f.read(dtype.itemsize * count)
+    whole = len(raw) // dtype.itemsize if dtype.itemsize else 0
+    if whole != count:  # a file cut short (a copy or a disk that stopped): refuse rather than read part of it
+        raise InputError(path, f"PLY truncated: it holds {whole} of the {count} vertices its header declares "
+                               f"({len(raw)} of {dtype.itemsize * count} bytes)")
+    return np.frombuffer(raw, dtype=dtype)

@@ -496,9 +496,12 @@ class RunMesh:
         self.depth = DepthFusion(config) if config.method == "depth" else None
         self.depth_error: InputError | None = None
         self.integrate_s = 0.0
+        self.first_pose: np.ndarray | None = None  # its camera's up is mesh.glb's up
 
     def integrate(self, frame, pose: np.ndarray | None) -> None:
         """A tracked frame's depth and colour at its pose (mesh.method = "depth"; otherwise nothing)."""
+        if self.first_pose is None and pose is not None:
+            self.first_pose = np.array(pose, np.float64)
         if self.depth is None or pose is None or self.depth_error is not None:
             return
         watch = Stopwatch()
@@ -538,10 +541,11 @@ class RunMesh:
 
     def outputs(self, out) -> dict:
         """mesh.ply and mesh.glb in ``out``; the ``mesh`` field of summary.json."""
-        from ti_fusion.io.mesh_files import write_run_mesh
+        from ti_fusion.io.mesh_files import camera_up, write_run_mesh
 
         if self.mesh is not None:
-            self.summary.update(write_run_mesh(out, self.mesh))
+            up = None if self.first_pose is None else camera_up(self.first_pose)
+            self.summary.update(write_run_mesh(out, self.mesh, up))
         return {"mesh": self.summary} if self.summary else {}
 
 

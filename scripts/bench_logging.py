@@ -6,12 +6,15 @@
 Part "log": one run's messages, made from the synthetic sequence's frames at 640×480 (per frame /tf,
 /camera/pose, /gt/pose and a /slam/stats message; every 10th frame depth and JPEG colour; every 30th a
 200 000-point map), logged by each of
-    file               RunLogger: the mcap package's writer, protobuf from foxglove-schemas-protobuf (today)
+    file               RunLogger: the mcap package's writer, protobuf from foxglove-schemas-protobuf, written
+                       by the log's writer thread (today)
+    file, caller's thread  the same, written in the caller's thread (``RunLogger(threaded=False)``: before)
     file + live idle   RunLogger with a LiveServer and no client
     file + live client RunLogger with a LiveServer and a client in another process subscribed to everything
     sdk writer         foxglove-sdk's MCAP writer fed RunLogger's messages (same bytes, same schemas)
     sdk messages       foxglove-sdk's own message classes and MCAP writer: the whole SDK route
-It prints the file size and milliseconds per frame (all messages; and per call of each kind). The images
+It prints the file size and milliseconds per frame that the caller spends in the calls (all messages; and per
+call of each kind), and what ``close`` took (writing what was still queued, then the footer). The images
 and the map are the same for every sink (JPEG encoding, subsampling and packing included in every time).
 
 Part "live": ``slam`` on the synthetic sequence (320×240, frames rendered once beforehand) in this
@@ -181,13 +184,13 @@ def sdk_logger(path: Path):
     """A RunLogger whose writer is the SDK's (the file it opened is left empty and removed)."""
     from ti_fusion.io.mcap_log import RunLogger
 
-    log = RunLogger(path.with_suffix(".unused"))
+    log = RunLogger(path.with_suffix(".unused"), threaded=False)
     log._finalizer.detach()
-    log._file.close()
+    log._sink.file.close()
     path.with_suffix(".unused").unlink()
-    log._writer = SdkWriter(path)
-    log._file = type("NoFile", (), {"flush": lambda self: None})()  # the SDK writes and flushes its file
-    log._finalizer = log._writer.finish
+    log._sink.writer = SdkWriter(path)
+    log._sink.file = type("NoFile", (), {"flush": lambda self: None})()  # the SDK writes and flushes its file
+    log._finalizer = log._sink.writer.finish
     return log
 
 
@@ -285,7 +288,7 @@ def part_log(tmp: Path) -> None:
 
     frames, xyz, rgb = workload()
     runs: dict[str, list] = {}
-    sinks = ("file", "file + live idle", "file + live client", "sdk writer", "sdk messages")
+    sinks = ("file", "file, caller's thread", "file + live idle", "file + live client", "sdk writer", "sdk messages")
     for name in sinks * REPEATS:  # round robin: a busy moment of the machine spreads over every sink
         path = tmp / f"{name.replace(' ', '_').replace('+', '')}.mcap"
         timer, client = Timer(), None
@@ -293,7 +296,8 @@ def part_log(tmp: Path) -> None:
             sdk_messages(path, frames, xyz, rgb, timer)
         else:
             live = LiveServer("127.0.0.1:0") if "live" in name else None
-            log = sdk_logger(path) if name == "sdk writer" else RunLogger(path, live=live)
+            log = sdk_logger(path) if name == "sdk writer" else \
+                RunLogger(path, live=live, threaded=name != "file, caller's thread")
 
             def ready():
                 nonlocal client
@@ -304,24 +308,25 @@ def part_log(tmp: Path) -> None:
                         time.sleep(0.01)
 
             run_logger(log, frames, xyz, rgb, timer, ready)
-            log.close()
+            timer("close", log.close)  # what the writer thread has yet to write, then the footer
         received = client_counts(client) if client is not None else None
         readable = read_log(path)  # today's reader reads every file
         runs.setdefault(name, []).append((path.stat().st_size / 1e6, timer.ms, readable.complete,
                                           len(readable.stats), received))
     print(f"logging {FRAMES} frames at 640x480 (depth + colour every {DEPTH_EVERY}, a {MAP_POINTS}-point map "
           f"every {MAP_EVERY}), median of {REPEATS} runs:")
-    print(f"  {'sink':<20} {'file MB':>8} {'ms/frame':>9}   ms per call: pose  stats  depth colour    map   "
+    print(f"  {'sink':<22} {'file MB':>8} {'ms/frame':>9}   ms per call: pose  stats  depth colour    map  close   "
           "read_log")
     for name in sinks:
         mb, _, complete, n_stats, received = runs[name][-1]
-        ms = statistics.median(sum(sum(v) for v in timings.values()) / FRAMES for _, timings, *_ in runs[name])
+        ms = statistics.median(sum(sum(v) for k, v in timings.items() if k != "close") / FRAMES
+                               for _, timings, *_ in runs[name])
         per_call = {k: statistics.median(statistics.mean(t[k]) for _, t, *_ in runs[name]) for k in runs[name][0][1]}
-        calls = "  ".join(f"{per_call.get(k, 0):5.2f}" for k in ("pose", "stats", "depth", "color", "map"))
+        calls = "  ".join(f"{per_call.get(k, 0):5.2f}" for k in ("pose", "stats", "depth", "color", "map", "close"))
         note = f"complete, {n_stats} stats" if complete else "NOT complete"
         if received:
             note += f"; client got {sum(received['messages'].values())} messages, {received['bytes'] / 1e6:.0f} MB"
-        print(f"  {name:<20} {mb:8.2f} {ms:9.3f}   {' ' * 13}{calls}   {note}")
+        print(f"  {name:<22} {mb:8.2f} {ms:9.3f}   {' ' * 13}{calls}   {note}")
 
 
 # --------------------------------------------------------------------------------------------------

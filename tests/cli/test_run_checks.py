@@ -95,8 +95,10 @@ def test_a_stop_in_the_middle_of_a_log_write_keeps_every_message(tmp_path, signa
                     log.log_stats(0.1 * i, {"frame": i, "padding": "x" * 64})
                     written += 1
     log = read_log(path)
-    # the message whose write the stop arrived in was written whole, and the stop came after it
-    assert log.complete and [s["frame"] for s in log.stats] == list(range(written + 1))
+    # the chunk the stop arrived in (on the log's writer thread) was written whole; the stop reached the loop
+    # after a call returned or at the end of one, once its message was queued: every message is in the log
+    frames = [s["frame"] for s in log.stats]
+    assert log.complete and frames == list(range(len(frames))) and written <= len(frames) <= written + 1
 
 
 def test_sigterm_during_a_run_keeps_the_log_whole(cpu, tmp_path, capsys, signal_in_chunk_write):
@@ -109,7 +111,9 @@ def test_sigterm_during_a_run_keeps_the_log_whole(cpu, tmp_path, capsys, signal_
     assert _stderr_lines(capsys) == [f"ti-fusion vo: stopped by SIGTERM; what was written is in {out}/"]
     stamps, _ = read_tum(out / "trajectory.tum")
     log = read_log(out / "log.mcap")
-    assert log.complete and len(stamps) >= 1 and len(log.stats) == len(stamps)
+    # (the stop reaches the loop's thread between any two of its lines: after a frame's stats were logged and
+    # before its result was kept, the log has one frame more than the trajectory)
+    assert log.complete and len(stamps) >= 1 and len(stamps) <= len(log.stats) <= len(stamps) + 1
     assert log.channels["/camera/pose"].count >= len(stamps)
 
 

@@ -260,6 +260,93 @@ def test_hard_kill_recovers_whole_chunks(tmp_path):
     assert 20 < len(frames) < 200 and frames == list(range(len(frames)))
 
 
+# --------------------------------------------------------------------------------------------------
+# The writer thread: order kept, the caller's arrays its own again at once, errors raised in the caller
+# --------------------------------------------------------------------------------------------------
+def _log_threads() -> list:
+    import threading
+
+    return [t for t in threading.enumerate() if t.name == "ti-fusion-log"]
+
+
+@pytest.mark.parametrize("threaded", [True, False], ids=["thread", "caller"])
+def test_messages_keep_their_order_and_the_callers_arrays_are_copied(tmp_path, threaded):
+    """Messages of every kind written by the writer thread in call order (as the caller's own thread writes
+    them); an array the caller changes right after the call is logged as it was at the call."""
+    path = tmp_path / "log.mcap"
+    depth = np.ones((6, 8), np.float32)
+    xyz = np.zeros((20, 3))
+    with RunLogger(path, threaded=threaded) as log:
+        assert len(_log_threads()) == (1 if threaded else 0)
+        for i in range(60):
+            depth[:] = 1.0 + i / 100
+            xyz[:] = i
+            log.log_pose(i, se3_exp(np.full(6, 0.01 * i)))
+            log.log_stats(i, {"frame": i})
+            log.log_depth(i, depth)
+            log.log_points(i, xyz)
+            depth[:] = 0.0  # changed at once: the message has the values of the call
+            xyz[:] = -1.0
+        log.flush()
+        assert path.stat().st_size > 0
+    assert not _log_threads()
+    with open(path, "rb") as f:
+        records = [(c.topic, m.log_time, m.data) for _, c, m in make_reader(f).iter_messages(log_time_order=False)]
+    topics = [t for t, _, _ in records]
+    assert topics == ["/tf", "/camera/pose", "/slam/stats", "/camera/depth", "/map/points"] * 60
+    times = [ns for _, ns, _ in records]
+    assert times == sorted(times)
+    msgs = _decode_all(path)
+    for i, (_, _, msg) in enumerate(msgs["/camera/depth"]):
+        np.testing.assert_allclose(depth_from_msg(msg), round(1.0 + i / 100, 3), atol=5e-4)
+    for i, (_, _, msg) in enumerate(msgs["/map/points"]):
+        assert np.all(points_from_msg(msg)[0] == i)
+
+
+def test_a_write_error_on_the_writer_thread_reaches_the_caller(tmp_path, monkeypatch):
+    """A full disk while the writer thread writes: the next call (or close) raises the ``OutputError`` that
+    names the log, once; nothing more is written, and the thread ends."""
+    import errno
+    import os
+
+    from ti_fusion.errors import OutputError
+    from ti_fusion.io import mcap_log
+
+    written = {"bytes": 0}
+    real_write = mcap_log._LogFile.write
+
+    def write(self, data):
+        written["bytes"] += len(data)
+        if written["bytes"] > 4096:
+            raise OutputError(self.path, f"cannot be written: {os.strerror(errno.ENOSPC)}")
+        return real_write(self, data)
+
+    monkeypatch.setattr(mcap_log._LogFile, "write", write)
+    path = tmp_path / "log.mcap"
+    with pytest.raises(OutputError, match="No space left on device") as caught:
+        with RunLogger(path, chunk_size=256) as log:
+            for i in range(10_000):
+                log.log_stats(i, {"frame": i, "padding": "x" * 100})
+    assert str(path) in str(caught.value) and i < 10_000 - 1
+    assert not _log_threads()
+
+
+def test_a_killed_run_keeps_what_its_writer_had_written(tmp_path):
+    """SIGKILL after ``flush``: every whole chunk is on disk and replays (read_log, no footer)."""
+    import subprocess
+    import sys
+
+    path = tmp_path / "log.mcap"
+    code = (f"import os, signal\nfrom ti_fusion.io.mcap_log import RunLogger\nlog = RunLogger({str(path)!r}, "
+            "chunk_size=512)\nfor i in range(300):\n    log.log_stats(i * 0.1, {'frame': i, 'padding': 'x' * 40})\n"
+            "log.flush()\nos.kill(os.getpid(), signal.SIGKILL)\n")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert done.returncode == -9, done.stderr
+    log = read_log(path)
+    frames = [s["frame"] for s in log.stats]
+    assert not log.complete and 250 < len(frames) <= 300 and frames == list(range(len(frames)))
+
+
 def test_time_guards(tmp_path):
     path = tmp_path / "log.mcap"
     with pytest.warns(UserWarning, match="timestamp"):

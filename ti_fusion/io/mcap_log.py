@@ -38,8 +38,9 @@ on an exception and on Ctrl-C (KeyboardInterrupt passes through ``__exit__``); a
 is also finalised when it is garbage-collected or the interpreter exits. If the process is killed
 hard (SIGKILL, power loss) the footer is missing: ``mcap.reader.make_reader(...).iter_messages()``
 then fails (it seeks to the footer), but every chunk already on disk is intact. Chunks are kept
-small (64 KiB by default) and the file is flushed after every call, so a killed run loses at most
-the last open chunk. ``read_log`` below reads linearly, stops cleanly at a torn chunk and reports
+small (64 KiB by default) and the file is flushed after every message, so a killed run loses at most
+the last open chunk and the messages still queued for the writer thread (``QUEUE_SIZE``; see
+``RunLogger``). ``read_log`` below reads linearly, stops cleanly at a torn chunk and reports
 ``complete=False`` — the same thing ``mcap recover`` (the Go CLI) does.
 """
 
@@ -49,6 +50,8 @@ import json
 import math
 import os
 import platform
+import queue
+import threading
 import warnings
 import weakref
 from dataclasses import dataclass, field
@@ -213,23 +216,26 @@ class RunLogger:
     Times ``t`` are in seconds (the frame's dataset timestamp); they become nanosecond log times.
     ``live``: a second sink (``ti_fusion.io.live.LiveServer``) that gets every message too, and is closed
     with the log.
+
+    Each ``log_*`` call checks its arguments, copies the arrays it was given and hands the rest (encoding,
+    serialising, compressing chunks, writing, the live sink) to the log's writer thread, in call order, so
+    that the loop's thread does not wait for it. A write error there (a full disk) is raised by the next
+    call or by ``close``. ``threaded=False`` writes in the caller's thread instead.
     """
 
     def __init__(self, path: str | Path, metadata: dict[str, dict] | None = None,
-                 chunk_size: int = DEFAULT_CHUNK_SIZE, live=None):
+                 chunk_size: int = DEFAULT_CHUNK_SIZE, live=None, threaded: bool = True):
         self.live = live
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._file = _LogFile(self.path)
-        self._writer = _Uninterrupted(McapWriter(self._file, chunk_size=chunk_size, compression=CompressionType.ZSTD))
-        self._writer.start(profile="", library=f"ti-fusion {_package_version()}")
-        self._channels: dict[str, tuple[int, str]] = {}  # topic → (channel id, schema name)
-        self._schemas: dict[tuple[str, str], int] = {}   # (schema name, encoding) → schema id
+        self._sink = _Sink(self.path, chunk_size, live)
+        self._topics: dict[str, str] = {}  # topic → schema name, as the calls so far declared them
         self._last_ns = 0
         self._warned_time = False
         self.closed = False
+        self._queue = _WriteQueue(self._sink, threaded)
         # Finalise even when the caller forgets close(): at garbage collection or interpreter exit.
-        self._finalizer = weakref.finalize(self, _finish, self._writer, self._file)
+        self._finalizer = weakref.finalize(self, self._queue.finish)
         for name, record in (metadata or {}).items():
             self.log_metadata(name, record)
         if live is not None:
@@ -247,63 +253,59 @@ class RunLogger:
         return False  # let the exception (or Ctrl-C) continue
 
     def close(self) -> None:
-        """Write the summary and footer and close the file, and stop the live sink (idempotent)."""
+        """Write what is queued, the summary and the footer, close the file, and stop the live sink
+        (idempotent). A stop signal meanwhile waits for the file to be whole."""
         if not self.closed:
             self.closed = True
             try:
-                self._finalizer()  # runs _finish once, then detaches
+                with critical():
+                    self._finalizer()  # runs the queue's finish once, then detaches
             finally:
                 if self.live is not None:
                     self.live.close()
+            self._queue.raise_error()
+
+    def flush(self) -> None:
+        """Wait until everything logged so far is in the file."""
+        self._queue.wait()
 
     # -- channels ---------------------------------------------------------------------------------
     def log_metadata(self, name: str, record: dict) -> None:
         """A metadata record: str → str, non-string values JSON-encoded."""
-        data = {displayable(str(k)): displayable(v) if isinstance(v, str) else json.dumps(jsonable(v)) for k, v in record.items()}
-        self._writer.add_metadata(name, data)
-        self._file.flush()
+        data = {displayable(str(k)): displayable(v) if isinstance(v, str) else json.dumps(jsonable(v))
+                for k, v in record.items()}
+        self._submit(_Sink.metadata, name, data)
 
     def log_pose(self, t: float, pose: np.ndarray, gt_pose: np.ndarray | None = None) -> None:
         """Camera-to-world ``pose`` on /tf and /camera/pose; ``gt_pose`` on /gt/pose."""
         ns = self._ns(t)
-        pose = np.asarray(pose, dtype=np.float64)
-        if np.all(np.isfinite(pose)):
-            tf = FrameTransforms()
-            tr = tf.transforms.add()
-            _fill_transform(tr, ns, pose, WORLD_FRAME, CAMERA_FRAME)
-            self._write_proto("/tf", tf, ns)
-            self._write_proto("/camera/pose", _pose_in_frame(ns, pose), ns)
-        if gt_pose is not None:
-            gt_pose = np.asarray(gt_pose, dtype=np.float64)
-            if np.all(np.isfinite(gt_pose)):
-                self._write_proto("/gt/pose", _pose_in_frame(ns, gt_pose), ns)
-        self._file.flush()
+        pose = np.array(pose, dtype=np.float64)
+        gt_pose = None if gt_pose is None else np.array(gt_pose, dtype=np.float64)
+        for topic, kind in (("/tf", FrameTransforms), ("/camera/pose", PoseInFrame), ("/gt/pose", PoseInFrame)):
+            self._claim(topic, kind)
+        self._submit(_write_pose, ns, pose, gt_pose)
 
     def log_trajectory(self, t: float, poses, topic: str = TRAJECTORY_TOPIC) -> None:
         """The run's camera-to-world ``poses`` as one message (at the end: /camera/pose has each frame's pose as
         it was tracked, this one the trajectory as written, loop closure's corrections included)."""
         ns = self._ns(t)
-        msg = PosesInFrame(frame_id=WORLD_FRAME)
-        _set_stamp(msg.timestamp, ns)
-        for pose in poses:
-            pose = np.asarray(pose, dtype=np.float64)
-            if np.all(np.isfinite(pose)):
-                _fill_pose(msg.poses.add(), pose)
-        self._write_proto(topic, msg, ns)
-        self._file.flush()
+        poses = [np.array(p, dtype=np.float64) for p in poses]
+        self._claim(topic, PosesInFrame)
+        self._submit(_write_trajectory, ns, poses, topic)
 
     def declare_json(self, topic: str, schema: dict) -> None:
         """Declare a JSON channel and its JSON Schema before its first message (the schema record is named
         after the topic: /slam/stats → ti_fusion.SlamStats)."""
-        if topic in self._channels:
+        if topic in self._topics:
             raise ValueError(f"{topic} is declared already")
         problems = foxglove_schema_problems(schema)
         if problems:
             raise ValueError(f"{topic}: Foxglove cannot read this schema: {'; '.join(problems)}")
         schema = {"$schema": JSON_SCHEMA_DIALECT, "title": topic, **schema}
-        self._add_channel(topic, _stats_schema_name(topic), SchemaEncoding.JSONSchema,
-                          json.dumps(schema).encode(), MessageEncoding.JSON)
-        self._file.flush()
+        name = _stats_schema_name(topic)
+        self._topics[topic] = name
+        self._submit(_Sink.add_channel, topic, name, SchemaEncoding.JSONSchema, json.dumps(schema).encode(),
+                     MessageEncoding.JSON)
 
     def log_stats(self, t: float, stats: dict, channel: str = STATS_TOPIC) -> None:
         """One JSON message: any dict of numbers, strings, lists, nested dicts (NumPy values welcome). A
@@ -313,12 +315,10 @@ class RunLogger:
         if not isinstance(stats, dict):
             raise TypeError(f"stats must be a dict, got {type(stats).__name__}")
         ns = self._ns(t)
-        message = without_nulls(jsonable(stats))
-        if channel not in self._channels:
+        message = without_nulls(jsonable(stats))  # a copy: the caller may change its dict afterwards
+        if channel not in self._topics:
             self.declare_json(channel, _json_schema_of(message))
-        data = json.dumps(message, separators=(",", ":"), allow_nan=False).encode()
-        self._write(channel, data, ns)
-        self._file.flush()
+        self._submit(_write_json, channel, message, ns)
 
     def log_points(self, t: float, xyz: np.ndarray, rgb: np.ndarray | None = None,
                    topic: str = "/map/points", max_points: int = 200_000, file: bool = True,
@@ -330,28 +330,22 @@ class RunLogger:
         client subscribes to ``topic``, and at most its own ``max_points`` of it.
         """
         ns = self._ns(t)
-        xyz = np.asarray(xyz).reshape(-1, 3)
+        xyz = np.array(xyz).reshape(-1, 3)
         if rgb is not None and len(rgb) != len(xyz):
             raise ValueError(f"rgb has {len(rgb)} rows for {len(xyz)} points")
+        if rgb is not None:
+            rgb = np.array(rgb)
+            _as_rgba8(rgb[:0], 0)  # (its shape checked here: the error is the caller's)
         finite = np.flatnonzero(np.isfinite(xyz[:, 0] + xyz[:, 1] + xyz[:, 2]))  # NaN/inf anywhere → dropped
-        self._proto_channel(topic, PointCloud)  # advertised to live clients even when no cloud is sent
+        self._claim(topic, PointCloud)  # advertised to live clients even when no cloud is sent
         to_live = live and self.live is not None and self.live.subscribed(topic)
-        kept = {}  # sink → the indices it gets; both sinks share one message when they get the same
+        counts = {}  # sink → how many points it gets
         if file:
-            kept["file"] = _subset(finite, max_points)
+            counts["file"] = min(len(finite), max_points)
         if to_live:
-            kept["live"] = _subset(finite, min(max_points, self.live.max_points))
-        shared = file and to_live and len(kept["file"]) == len(kept["live"])
-        if shared:
-            del kept["live"]
-        for sink, idx in kept.items():
-            rows = slice(None) if len(idx) == len(xyz) else idx  # every point: views, not copies by index
-            colors = None if rgb is None else _as_rgba8(np.asarray(rgb)[rows], len(idx))
-            cloud = _point_cloud(ns, np.asarray(xyz[rows], dtype=np.float32), colors)
-            self._write_proto(topic, cloud, ns, file=sink == "file", live=sink == "live" or shared)
-        if file:
-            self._file.flush()
-        return len(kept.get("file", kept.get("live", ())))
+            counts["live"] = min(len(finite), max_points, self.live.max_points)
+        self._submit(_write_points, topic, ns, xyz, rgb, finite, counts)
+        return counts.get("file", counts.get("live", 0))
 
     def log_depth(self, t: float, depth: np.ndarray, topic: str = "/camera/depth") -> None:
         """A depth image in the camera frame as 16UC1 millimetres (0 = no depth).
@@ -359,47 +353,24 @@ class RunLogger:
         ``depth``: float metres (0, NaN, negative = invalid) or uint16 millimetres as is.
         """
         ns = self._ns(t)
-        depth = np.asarray(depth)
-        if depth.dtype == np.uint16:
-            mm = depth
-        else:
-            d = depth.astype(np.float64) * 1000.0
-            valid = np.isfinite(d) & (d > 0) & (d < 65535.5)
-            mm = np.where(valid, np.round(np.where(valid, d, 0.0)), 0).astype(np.uint16)
-        mm = np.ascontiguousarray(mm, dtype="<u2")
-        h, w = mm.shape
-        msg = RawImage(frame_id=CAMERA_FRAME, width=w, height=h, encoding="16UC1", step=2 * w,
-                       data=mm.tobytes())
-        _set_stamp(msg.timestamp, ns)
-        self._write_proto(topic, msg, ns)
-        self._file.flush()
+        self._claim(topic, RawImage)
+        self._submit(_write_depth, topic, ns, np.array(depth))
 
     def log_image(self, t: float, rgb: np.ndarray, topic: str = "/camera/color", fmt: str = "jpeg") -> None:
         """A colour image (H×W×3 uint8 RGB) as a CompressedImage, ``fmt`` "jpeg" or "png"."""
-        import cv2
-
         ns = self._ns(t)
-        ext = {"jpeg": ".jpg", "png": ".png"}[fmt]
-        ok, buf = cv2.imencode(ext, cv2.cvtColor(np.ascontiguousarray(rgb, dtype=np.uint8), cv2.COLOR_RGB2BGR))
-        if not ok:
-            raise ValueError(f"could not encode a {np.shape(rgb)} image as {fmt}")
-        msg = CompressedImage(frame_id=CAMERA_FRAME, data=buf.tobytes(), format=fmt)
-        _set_stamp(msg.timestamp, ns)
-        self._write_proto(topic, msg, ns)
-        self._file.flush()
+        if fmt not in ("jpeg", "png"):
+            raise ValueError(f"image format {fmt!r}: jpeg or png")
+        self._claim(topic, CompressedImage)
+        self._submit(_write_image, topic, ns, np.array(rgb, dtype=np.uint8), fmt)
 
     def log_calibration(self, t: float, intrinsics, topic: str = "/camera/calibration") -> None:
         """Pinhole intrinsics (``camera.Intrinsics``), so Foxglove can draw the camera frustum."""
         ns = self._ns(t)
-        fx, fy, cx, cy = (float(v) for v in (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy))
-        msg = CameraCalibration(
-            frame_id=CAMERA_FRAME, width=int(intrinsics.width), height=int(intrinsics.height),
-            distortion_model="plumb_bob", D=[0.0] * 5,
-            K=[fx, 0, cx, 0, fy, cy, 0, 0, 1], R=[1, 0, 0, 0, 1, 0, 0, 0, 1],
-            P=[fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0])
-        _set_stamp(msg.timestamp, ns)
-        self._write_proto(topic, msg, ns)
-        self._file.flush()
+        numbers = tuple(float(v) for v in (intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy))
+        size = (int(intrinsics.width), int(intrinsics.height))
+        self._claim(topic, CameraCalibration)
+        self._submit(_write_calibration, topic, ns, numbers, size)
 
     def log_loop_edges(self, t: float, segments, topic: str = LOOP_TOPIC) -> int:
         """Loop edges as a ``foxglove.SceneUpdate`` in the world frame (the poses' frame): one entity whose
@@ -408,50 +379,23 @@ class RunLogger:
         every edge to show (the entity replaces the previous message's, so pass all edges so far; an empty
         list clears them). Edges with a non-finite end are left out; returns how many were written."""
         ns = self._ns(t)
-        msg = SceneUpdate()
-        entity = msg.entities.add()
-        _set_stamp(entity.timestamp, ns)
-        entity.frame_id = WORLD_FRAME
-        entity.id = LOOP_ENTITY
-        entity.frame_locked = False
-        line = entity.lines.add()
-        line.type = LinePrimitive.LINE_LIST
-        line.thickness = 3.0  # pixels: visible at any zoom
-        line.scale_invariant = True
-        line.pose.orientation.w = 1.0
-        written = 0
-        for segment in segments:
-            p_from, p_to, applied = segment
-            ends = [np.asarray(p, dtype=np.float64).reshape(3) for p in (p_from, p_to)]
-            if not all(np.all(np.isfinite(e)) for e in ends):
-                continue
-            rgba = LOOP_APPLIED_RGBA if applied else LOOP_NOT_APPLIED_RGBA
-            for e in ends:
-                point = line.points.add()
-                point.x, point.y, point.z = (float(v) for v in e)
-                color = line.colors.add()
-                color.r, color.g, color.b, color.a = rgba
-            written += 1
-        line.color.r, line.color.g, line.color.b, line.color.a = LOOP_APPLIED_RGBA  # used only without colors
-        self._write_proto(topic, msg, ns)
-        self._file.flush()
-        return written
+        edges = []
+        for p_from, p_to, applied in segments:
+            ends = [np.array(p, dtype=np.float64).reshape(3) for p in (p_from, p_to)]
+            if all(np.all(np.isfinite(e)) for e in ends):
+                edges.append((ends[0], ends[1], bool(applied)))
+        self._claim(topic, SceneUpdate)
+        self._submit(_write_loop_edges, topic, ns, edges)
+        return len(edges)
 
     def log_mesh(self, t: float, mesh, topic: str = MESH_TOPIC) -> None:
         """A triangle mesh (``ti_fusion.mapping.mesh.Mesh``) as a ``foxglove.SceneUpdate`` in the world frame:
         one entity holding one TriangleListPrimitive with a colour per vertex (packed by
-        ``mesh_files.scene_update_bytes``: protobuf's classes take seconds over 100 k vertices)."""
-        from ti_fusion.io.mesh_files import scene_update_bytes
-
+        ``mesh_files.scene_update_bytes``: protobuf's classes take seconds over 100 k vertices). The mesh's
+        arrays are read by the writer thread: they must not change after the call."""
         ns = self._ns(t)
-        head = SceneUpdate().entities.add()
-        _set_stamp(head.timestamp, ns)
-        head.frame_id = WORLD_FRAME
-        head.id = MESH_ENTITY
-        head.frame_locked = False
-        self._proto_channel(topic, SceneUpdate)
-        self._write(topic, scene_update_bytes(head.SerializeToString(), mesh.vertices, mesh.faces, mesh.colors), ns)
-        self._file.flush()
+        self._claim(topic, SceneUpdate)
+        self._submit(_write_mesh, topic, ns, mesh)
 
     # -- internals --------------------------------------------------------------------------------
     def _ns(self, t: float) -> int:
@@ -471,37 +415,260 @@ class RunLogger:
         self._last_ns = int(round(t * 1e9))
         return self._last_ns
 
-    def _write_proto(self, topic: str, message, ns: int, file: bool = True, live: bool = True) -> None:
-        self._proto_channel(topic, type(message))
-        self._write(topic, message.SerializeToString(), ns, file, live)
-
-    def _proto_channel(self, topic: str, message_type) -> None:
+    def _claim(self, topic: str, message_type) -> None:
+        """``topic`` carries ``message_type`` from now on (an error here when it carries another)."""
         name = message_type.DESCRIPTOR.full_name
-        entry = self._channels.get(topic)
-        if entry is None:
-            self._add_channel(topic, name, SchemaEncoding.Protobuf,
-                              build_file_descriptor_set(message_type).SerializeToString(), MessageEncoding.Protobuf)
-        elif entry[1] != name:
-            raise ValueError(f"topic {topic} carries {entry[1]}, cannot write a {name}")
+        known = self._topics.setdefault(topic, name)
+        if known != name:
+            raise ValueError(f"topic {topic} carries {known}, cannot write a {name}")
 
-    def _add_channel(self, topic: str, schema_name: str, schema_encoding: str, schema_data: bytes,
-                     message_encoding: str) -> None:
+    def _submit(self, task, *args) -> None:
+        if self.closed:
+            raise RuntimeError(f"{self.path}: the log is closed")
+        self._queue.put(task, args)
+
+
+# --------------------------------------------------------------------------------------------------
+# The writer's side: what runs on the log's writer thread
+
+
+class _Sink:
+    """The file and the live sink as the writer thread writes them: the MCAP writer, the channels and
+    schemas registered so far. Only the writer thread (or, unthreaded, the caller) touches it."""
+
+    def __init__(self, path: Path, chunk_size: int, live):
+        self.file = _LogFile(path)
+        self.live = live
+        self.writer = _Uninterrupted(McapWriter(self.file, chunk_size=chunk_size, compression=CompressionType.ZSTD))
+        self.writer.start(profile="", library=f"ti-fusion {_package_version()}")
+        self.channels: dict[str, int] = {}  # topic → channel id
+        self.schemas: dict[tuple[str, str], int] = {}  # (schema name, encoding) → schema id
+
+    def metadata(self, name: str, data: dict) -> None:
+        self.writer.add_metadata(name, data)
+
+    def proto(self, topic: str, message, ns: int, file: bool = True, live: bool = True) -> None:
+        self.proto_channel(topic, type(message))
+        self.write(topic, message.SerializeToString(), ns, file, live)
+
+    def proto_channel(self, topic: str, message_type) -> None:
+        if topic not in self.channels:
+            self.add_channel(topic, message_type.DESCRIPTOR.full_name, SchemaEncoding.Protobuf,
+                             build_file_descriptor_set(message_type).SerializeToString(), MessageEncoding.Protobuf)
+
+    def add_channel(self, topic: str, schema_name: str, schema_encoding: str, schema_data: bytes,
+                    message_encoding: str) -> None:
         """A new topic: its channel (and its schema, unless another topic has it) in both sinks."""
-        schema_id = self._schemas.get((schema_name, schema_encoding))
+        schema_id = self.schemas.get((schema_name, schema_encoding))
         if schema_id is None:
-            schema_id = self._writer.register_schema(name=schema_name, encoding=schema_encoding, data=schema_data)
-            self._schemas[(schema_name, schema_encoding)] = schema_id
-        channel_id = self._writer.register_channel(topic, message_encoding, schema_id)
-        self._channels[topic] = (channel_id, schema_name)
+            schema_id = self.writer.register_schema(name=schema_name, encoding=schema_encoding, data=schema_data)
+            self.schemas[(schema_name, schema_encoding)] = schema_id
+        self.channels[topic] = self.writer.register_channel(topic, message_encoding, schema_id)
         if self.live is not None:
             self.live.add_channel(topic, message_encoding, schema_name, schema_encoding, schema_data)
 
-    def _write(self, topic: str, data: bytes, ns: int, file: bool = True, live: bool = True) -> None:
+    def write(self, topic: str, data: bytes, ns: int, file: bool = True, live: bool = True) -> None:
         """One message to the file and to the live sink (which drops it unless a client subscribes)."""
         if file:
-            self._writer.add_message(self._channels[topic][0], log_time=ns, data=data, publish_time=ns)
+            self.writer.add_message(self.channels[topic], log_time=ns, data=data, publish_time=ns)
         if live and self.live is not None:
             self.live.log(topic, data, ns)
+
+    def finish(self) -> None:
+        """Summary + footer, then close; the file is closed even if finishing fails (disk full...)."""
+        try:
+            self.writer.finish()
+        finally:
+            self.file.close()
+
+
+# Messages queued for the writer thread at most: a few frames' worth (a frame logs 3 to 6), so that a
+# slow disk holds the loop back rather than filling the memory, and a killed run loses only these.
+QUEUE_SIZE = 32
+
+
+class _WriteQueue:
+    """The log's writer thread and its bounded queue of (task, args); ``threaded=False`` runs each task at
+    once in the caller's thread. Holds no reference to the ``RunLogger``, whose collection finishes it."""
+
+    def __init__(self, sink: _Sink, threaded: bool):
+        self._sink = sink
+        self._failed: BaseException | None = None  # the write error that stopped the writing
+        self._unraised = False  # and it has not reached the caller yet
+        self._finished = False
+        self._queue: queue.Queue | None = None
+        self._thread: threading.Thread | None = None
+        if threaded:
+            self._queue = queue.Queue(QUEUE_SIZE)
+            # a daemon: a logger never closed must not keep the interpreter from exiting (its finalizer,
+            # at exit, still writes what is queued)
+            self._thread = threading.Thread(target=self._run, name="ti-fusion-log", daemon=True)
+            self._thread.start()
+
+    def put(self, task, args: tuple) -> None:
+        self.raise_error()
+        if self._queue is None:
+            self._do(task, args)
+            self.raise_error()
+            return
+        with critical():  # a stop waits until the message is queued: every call that returned is in the log
+            self._queue.put((task, args))
+
+    def _do(self, task, args: tuple) -> None:
+        if self._failed is not None:  # after a write error nothing more is written
+            return
+        try:
+            task(self._sink, *args)
+            self._sink.file.flush()  # each message on disk as soon as written: a killed run keeps it
+        except BaseException as exc:  # (a full disk): raised by the caller's next call or close
+            self._failed, self._unraised = exc, True
+
+    def _run(self) -> None:
+        while True:
+            item = self._queue.get()
+            try:
+                if item is None:
+                    return
+                self._do(*item)
+            finally:
+                self._queue.task_done()
+
+    def wait(self) -> None:
+        """Until every task queued so far is done."""
+        if self._queue is not None and self._thread.is_alive():
+            self._queue.join()
+        self.raise_error()
+
+    def raise_error(self) -> None:
+        """The write error of the writer thread, once."""
+        if self._unraised:
+            self._unraised = False
+            raise self._failed
+
+    def finish(self) -> None:
+        """Every queued task, then the summary and footer; the file closed. Once."""
+        if self._finished:
+            return
+        self._finished = True
+        try:
+            if self._thread is not None:
+                self._queue.put(None)
+                self._thread.join()
+        finally:
+            if self._failed is None:
+                self._sink.finish()
+            else:
+                try:  # the write that failed would fail again: close what can be closed
+                    self._sink.finish()
+                except Exception:
+                    pass
+
+
+def _write_pose(sink: _Sink, ns: int, pose: np.ndarray, gt_pose: np.ndarray | None) -> None:
+    if np.all(np.isfinite(pose)):
+        tf = FrameTransforms()
+        tr = tf.transforms.add()
+        _fill_transform(tr, ns, pose, WORLD_FRAME, CAMERA_FRAME)
+        sink.proto("/tf", tf, ns)
+        sink.proto("/camera/pose", _pose_in_frame(ns, pose), ns)
+    if gt_pose is not None and np.all(np.isfinite(gt_pose)):
+        sink.proto("/gt/pose", _pose_in_frame(ns, gt_pose), ns)
+
+
+def _write_trajectory(sink: _Sink, ns: int, poses: list, topic: str) -> None:
+    msg = PosesInFrame(frame_id=WORLD_FRAME)
+    _set_stamp(msg.timestamp, ns)
+    for pose in poses:
+        if np.all(np.isfinite(pose)):
+            _fill_pose(msg.poses.add(), pose)
+    sink.proto(topic, msg, ns)
+
+
+def _write_json(sink: _Sink, channel: str, message: dict, ns: int) -> None:
+    sink.write(channel, json.dumps(message, separators=(",", ":"), allow_nan=False).encode(), ns)
+
+
+def _write_points(sink: _Sink, topic: str, ns: int, xyz: np.ndarray, rgb, finite: np.ndarray, counts: dict) -> None:
+    sink.proto_channel(topic, PointCloud)
+    kept = {name: _subset(finite, n) for name, n in counts.items()}  # sink → the indices it gets
+    shared = "file" in kept and "live" in kept and len(kept["file"]) == len(kept["live"])
+    if shared:  # both sinks share one message when they get the same points
+        del kept["live"]
+    for name, idx in kept.items():
+        rows = slice(None) if len(idx) == len(xyz) else idx  # every point: views, not copies by index
+        colors = None if rgb is None else _as_rgba8(rgb[rows], len(idx))
+        cloud = _point_cloud(ns, np.asarray(xyz[rows], dtype=np.float32), colors)
+        sink.proto(topic, cloud, ns, file=name == "file", live=name == "live" or shared)
+
+
+def _write_depth(sink: _Sink, topic: str, ns: int, depth: np.ndarray) -> None:
+    if depth.dtype == np.uint16:
+        mm = depth
+    else:
+        d = depth.astype(np.float64) * 1000.0
+        valid = np.isfinite(d) & (d > 0) & (d < 65535.5)
+        mm = np.where(valid, np.round(np.where(valid, d, 0.0)), 0).astype(np.uint16)
+    mm = np.ascontiguousarray(mm, dtype="<u2")
+    h, w = mm.shape
+    msg = RawImage(frame_id=CAMERA_FRAME, width=w, height=h, encoding="16UC1", step=2 * w, data=mm.tobytes())
+    _set_stamp(msg.timestamp, ns)
+    sink.proto(topic, msg, ns)
+
+
+def _write_image(sink: _Sink, topic: str, ns: int, rgb: np.ndarray, fmt: str) -> None:
+    import cv2
+
+    ext = {"jpeg": ".jpg", "png": ".png"}[fmt]
+    ok, buf = cv2.imencode(ext, cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise ValueError(f"could not encode a {np.shape(rgb)} image as {fmt}")
+    msg = CompressedImage(frame_id=CAMERA_FRAME, data=buf.tobytes(), format=fmt)
+    _set_stamp(msg.timestamp, ns)
+    sink.proto(topic, msg, ns)
+
+
+def _write_calibration(sink: _Sink, topic: str, ns: int, numbers: tuple, size: tuple) -> None:
+    fx, fy, cx, cy = numbers
+    msg = CameraCalibration(
+        frame_id=CAMERA_FRAME, width=size[0], height=size[1], distortion_model="plumb_bob", D=[0.0] * 5,
+        K=[fx, 0, cx, 0, fy, cy, 0, 0, 1], R=[1, 0, 0, 0, 1, 0, 0, 0, 1], P=[fx, 0, cx, 0, 0, fy, cy, 0, 0, 0, 1, 0])
+    _set_stamp(msg.timestamp, ns)
+    sink.proto(topic, msg, ns)
+
+
+def _write_loop_edges(sink: _Sink, topic: str, ns: int, edges: list) -> None:
+    msg = SceneUpdate()
+    entity = msg.entities.add()
+    _set_stamp(entity.timestamp, ns)
+    entity.frame_id = WORLD_FRAME
+    entity.id = LOOP_ENTITY
+    entity.frame_locked = False
+    line = entity.lines.add()
+    line.type = LinePrimitive.LINE_LIST
+    line.thickness = 3.0  # pixels: visible at any zoom
+    line.scale_invariant = True
+    line.pose.orientation.w = 1.0
+    for p_from, p_to, applied in edges:
+        rgba = LOOP_APPLIED_RGBA if applied else LOOP_NOT_APPLIED_RGBA
+        for e in (p_from, p_to):
+            point = line.points.add()
+            point.x, point.y, point.z = (float(v) for v in e)
+            color = line.colors.add()
+            color.r, color.g, color.b, color.a = rgba
+    line.color.r, line.color.g, line.color.b, line.color.a = LOOP_APPLIED_RGBA  # used only without colors
+    sink.proto(topic, msg, ns)
+
+
+def _write_mesh(sink: _Sink, topic: str, ns: int, mesh) -> None:
+    from ti_fusion.io.mesh_files import scene_update_bytes
+
+    head = SceneUpdate().entities.add()
+    _set_stamp(head.timestamp, ns)
+    head.frame_id = WORLD_FRAME
+    head.id = MESH_ENTITY
+    head.frame_locked = False
+    sink.proto_channel(topic, SceneUpdate)
+    sink.write(topic, scene_update_bytes(head.SerializeToString(), mesh.vertices, mesh.faces, mesh.colors), ns)
 
 
 class _LogFile:
@@ -549,14 +716,6 @@ class _Uninterrupted:
                 return method(*args, **kwargs)
 
         return call
-
-
-def _finish(writer: McapWriter, file) -> None:
-    """Summary + footer, then close; the file is closed even if finishing fails (disk full...)."""
-    try:
-        writer.finish()
-    finally:
-        file.close()
 
 
 def _package_version() -> str:

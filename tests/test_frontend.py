@@ -94,3 +94,62 @@ def test_source_lines_are_kept_per_function(cpu):
     make(1.5)(0)
     make(2.5)(1)
     assert x.to_numpy().tolist() == [1.5, 2.5]
+
+
+# --------------------------------------------------------------------------------------------------
+# The kernels' first launches timed, and the terminal told when kernels compile
+# --------------------------------------------------------------------------------------------------
+def test_the_clock_counts_each_instance_once_and_says_once_that_kernels_compile():
+    from ti_fusion.frontend import COMPILING_S, KernelClock
+
+    clock, said = KernelClock(), []
+    clock.notice = said.append
+    clock.add(0.05, "loaded")
+    clock.add(COMPILING_S + 1.0, "slow")
+    clock.add(COMPILING_S + 2.0, "slow")
+    assert (clock.instances, clock.compiled, said) == (3, 2, [COMPILING_S + 1.0])
+    assert clock.by_kernel == {"slow": 2 * COMPILING_S + 3.0}
+    assert clock.seconds == pytest.approx(0.05 + 2 * COMPILING_S + 3.0)
+
+
+def test_first_launches_are_clocked(cpu):
+    from ti_fusion.frontend import CLOCK, clock_first_launches
+
+    assert clock_first_launches()
+    x = ti.field(ti.f32, shape=8)
+    y = ti.field(ti.f32, shape=8)
+
+    @ti.kernel
+    def fill(f: ti.template(), v: ti.f32):
+        for i in f:
+            f[i] = v
+
+    before = CLOCK.instances
+    fill(x, 1.0)
+    fill(x, 2.0)  # the same instance: not a first launch
+    assert CLOCK.instances == before + 1
+    fill(y, 3.0)  # another field, another instance
+    assert CLOCK.instances == before + 2 and x[0] == 2.0 and y[7] == 3.0
+
+
+def test_the_terminal_is_told_that_kernels_compile(monkeypatch, capsys):
+    import importlib
+
+    from ti_fusion import frontend
+
+    main = importlib.import_module("ti_fusion.cli.main")  # (the package's ``main`` attribute is the function)
+
+    monkeypatch.setattr(frontend, "offline_cache_files", lambda: ("/tmp/empty-cache", 0))
+    main._announce_compiling(quiet=False)
+    assert "compiling kernels: the kernel cache (/tmp/empty-cache) is empty" in capsys.readouterr().out
+    frontend.CLOCK.add(frontend.COMPILING_S + 0.5, "big")
+    fields = main._kernel_times(quiet=False)
+    assert f"kernels: 1 compiled in {frontend.COMPILING_S + 0.5:.1f} s" in capsys.readouterr().out
+    assert fields["kernels_compiled"] == 1 and fields["kernels_compiled_s"] == {"big": frontend.COMPILING_S + 0.5}
+
+    monkeypatch.setattr(frontend, "offline_cache_files", lambda: ("/tmp/full-cache", 40))
+    main._announce_compiling(quiet=False)  # a cache with kernels: said when the first one compiles
+    assert capsys.readouterr().out == ""
+    frontend.CLOCK.add(frontend.COMPILING_S + 0.5, "new")
+    assert "compiling kernels that are not in the kernel cache" in capsys.readouterr().out
+    main._kernel_times(quiet=True)

@@ -70,3 +70,101 @@ def _memoize_source_lines() -> None:
 
     getsourcelines.__wrapped__ = original
     kernel_impl.getsourcelines = getsourcelines
+
+
+# --------------------------------------------------------------------------------------------------
+# How long the kernels' first launches take: compiling (or loading from the offline cache)
+# --------------------------------------------------------------------------------------------------
+# A kernel instance's first launch that takes longer than this compiled it (a load from the offline cache
+# takes tens of milliseconds); the first such launch of a process says so on the terminal.
+COMPILING_S = 1.0
+
+
+class KernelClock:
+    """Seconds spent in each kernel instance's first launch (Taichi's front end, then compiling the
+    instance or loading it from the offline cache, then its first run), summed over the process;
+    ``compiled`` counts the launches that took longer than ``COMPILING_S``. ``notice`` (set by the CLI) is
+    called once, when the first such launch ends."""
+
+    def __init__(self):
+        self.seconds = 0.0
+        self.instances = 0
+        self.compiled = 0
+        self.compile_s = 0.0
+        self.by_kernel: dict[str, float] = {}  # kernel name → seconds of its instances' first launches that compiled
+        self.notice = None
+
+    def add(self, seconds: float, name: str = "?") -> None:
+        self.seconds += seconds
+        self.instances += 1
+        if seconds > COMPILING_S:
+            self.compiled += 1
+            self.compile_s += seconds
+            self.by_kernel[name] = self.by_kernel.get(name, 0.0) + seconds
+            if self.compiled == 1 and self.notice is not None:
+                self.notice(seconds)
+
+
+CLOCK = KernelClock()
+_clocked = False
+
+
+def clock_first_launches() -> bool:
+    """Time every kernel instance's first launch into ``CLOCK`` (once per process); True when installed."""
+    global _clocked
+    if _clocked:
+        return True
+    try:
+        from taichi.lang.kernel_impl import Kernel
+    except ImportError:
+        return False
+    import time
+
+    materialize, launch = Kernel.materialize, Kernel.launch_kernel
+    pending: dict = {}  # the instance being materialised → the front end's seconds, until its first launch
+    launched: set[int] = set()
+
+    def timed_materialize(self, key=None, args=None, arg_features=None):
+        if key is None or key in self.compiled_kernels:
+            return materialize(self, key, args, arg_features)
+        start = time.perf_counter()
+        try:
+            return materialize(self, key, args, arg_features)
+        finally:
+            kernel = self.compiled_kernels.get(key)
+            if kernel is not None:
+                pending[id(kernel)] = time.perf_counter() - start
+
+    def timed_launch(self, t_kernel, *args):
+        if id(t_kernel) in launched:
+            return launch(self, t_kernel, *args)
+        launched.add(id(t_kernel))
+        start = time.perf_counter()
+        try:
+            return launch(self, t_kernel, *args)
+        finally:
+            CLOCK.add(pending.pop(id(t_kernel), 0.0) + time.perf_counter() - start, getattr(self.func, "__name__", "?"))
+
+    Kernel.materialize, Kernel.launch_kernel = timed_materialize, timed_launch
+    _clocked = True
+    return True
+
+
+def offline_cache_files() -> tuple[str, int] | None:
+    """(the folder of Taichi's offline kernel cache, how many cached kernels it holds), or None where the
+    cache is off or this Taichi does not say where it is."""
+    try:
+        from taichi.lang import impl
+
+        cfg = impl.current_cfg()
+        if not cfg.offline_cache:
+            return None
+        folder = cfg.offline_cache_file_path
+    except Exception:
+        return None
+    import os
+
+    try:
+        return folder, sum(1 for name in os.listdir(folder) if name.endswith(".tic"))
+    except OSError:
+        return folder, 0

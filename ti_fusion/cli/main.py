@@ -226,6 +226,37 @@ def _stop_signals_raise():
             signal.signal(s, handler)
 
 
+def _announce_compiling(quiet: bool) -> None:
+    """Say on the terminal that kernels are being compiled: at once when Taichi's kernel cache is empty (a
+    first run), else when the first kernel that was not in it has compiled."""
+    from ti_fusion.frontend import CLOCK, offline_cache_files
+
+    CLOCK.__init__()  # this run's kernels (an earlier run in this process, e.g. a test's, compiled its own)
+    cache = offline_cache_files()
+    if cache is not None and cache[1] == 0:
+        if not quiet:
+            print(f"compiling kernels: the kernel cache ({cache[0]}) is empty, so this first run compiles each kernel "
+                  "as it is first used (up to a minute on 2 cores); later runs load them from the cache", flush=True)
+        CLOCK.notice = None
+    elif not quiet:
+        CLOCK.notice = lambda seconds: print(f"compiling kernels that are not in the kernel cache (the first run "
+                                             f"after ti-fusion or Taichi changed; {seconds:.1f} s for the first)",
+                                             flush=True)
+
+
+def _kernel_times(quiet: bool) -> dict:
+    """The summary's kernel compile figures, said on the terminal when kernels were compiled."""
+    from ti_fusion.frontend import CLOCK
+
+    CLOCK.notice = None
+    if CLOCK.compiled and not quiet:
+        print(f"kernels: {CLOCK.compiled} compiled in {CLOCK.compile_s:.1f} s (and {CLOCK.instances - CLOCK.compiled} "
+              f"loaded from the cache or compiled quickly, {CLOCK.seconds - CLOCK.compile_s:.1f} s)", flush=True)
+    return {"kernel_instances": CLOCK.instances, "kernels_compiled": CLOCK.compiled,
+            "kernel_first_launch_s": round(CLOCK.seconds, 2), "kernel_compile_s": round(CLOCK.compile_s, 2),
+            "kernels_compiled_s": {k: round(v, 2) for k, v in sorted(CLOCK.by_kernel.items(), key=lambda kv: -kv[1])}}
+
+
 def _os_error_line(exc: OSError) -> str:
     reason = exc.strerror or str(exc)
     return f"{exc.filename}: {reason}" if exc.filename else reason
@@ -310,6 +341,8 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
             backend = init_backend(args.arch) if getattr(module, "USES_TAICHI", False) else None
             if backend is not None and not args.quiet:
                 print(f"backend: {backend.arch} ({backend.reason})", flush=True)
+            if backend is not None:
+                _announce_compiling(args.quiet)
             ctx = RunContext(command, args, config, out, backend, args.quiet)
             watch = Stopwatch()
             result = module.run(ctx) or {}
@@ -319,6 +352,7 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
                                    result.pop("ms_per_stage", {}))
             if backend is not None:
                 summary["backend"] = backend.arch
+                summary.update(_kernel_times(args.quiet))
             summary.update(result)
             if out is not None:
                 path = out.write_summary(summary)

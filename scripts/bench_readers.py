@@ -9,8 +9,8 @@
   child or its server, which breaks a script without a ``__main__`` guard) and ``fork`` (of this process, which
   has imported Taichi and started it, as the pipeline's would have: unsafe, timed for comparison only).
 - ``decode``: milliseconds per image of DATA's first N 16-bit depth PNGs and colour JPEGs (7-Scenes
-  layout), OpenCV (``cv2.imdecode``) against imagecodecs (``png_decode``, ``jpeg8_decode``) where it is
-  installed, the decoders alternated image by image in each of R rounds (the median per decoder is printed),
+  layout), OpenCV (``cv2.imdecode``) against imagecodecs (``png_decode``, ``jpeg8_decode``), pyspng
+  (libspng) and simplejpeg (libjpeg-turbo) where they are installed, the decoders alternated image by image in each of R rounds (the median per decoder is printed),
   results checked equal; one thread each (``cv2.setNumThreads(1)``), as in a reader process.
 """
 
@@ -77,6 +77,18 @@ def bench_start(rounds: int) -> None:
         print(f"  {name:<46} {statistics.median(ts):.3f} ({min(ts):.3f}-{max(ts):.3f})")
 
 
+def _first_channel(image: np.ndarray) -> np.ndarray:
+    """The grey channel of libspng's grey + alpha decoding of a 16-bit PNG with a transparency chunk (libspng
+    has no 16-bit grey output), as a contiguous array like OpenCV's."""
+    return np.ascontiguousarray(image[..., 0]) if image.ndim == 3 else image
+
+
+def _version(dist: str) -> str:
+    from importlib import metadata
+
+    return metadata.version(dist)
+
+
 def bench_decode(data: Path, frames: int, rounds: int) -> None:
     import cv2
 
@@ -91,7 +103,19 @@ def bench_decode(data: Path, frames: int, rounds: int) -> None:
         decoders["png"][f"imagecodecs {imagecodecs.__version__}"] = imagecodecs.png_decode
         decoders["jpeg"][f"imagecodecs {imagecodecs.__version__}"] = imagecodecs.jpeg8_decode
     except ImportError:
-        print("imagecodecs is not installed: OpenCV alone")
+        print("imagecodecs is not installed")
+    try:
+        import pyspng
+
+        decoders["png"][f"pyspng {_version('pyspng')}"] = lambda d: _first_channel(pyspng.load(d.tobytes()))
+    except ImportError:
+        print("pyspng is not installed")
+    try:
+        import simplejpeg
+
+        decoders["jpeg"][f"simplejpeg {simplejpeg.__version__}"] = lambda d: simplejpeg.decode_jpeg(d, colorspace="RGB")
+    except ImportError:
+        print("simplejpeg is not installed")
     print(f"decoding {data.name}'s first {frames} images, ms per image: median of {rounds} rounds "
           f"(each round the decoders alternate image by image)")
     for kind, images in (("png", depth), ("jpeg", color)):

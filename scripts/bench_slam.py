@@ -14,10 +14,15 @@ peak memory and the cores to itself (apart from other users of the machine). Col
 - ``fps loop``: frames / wall-clock time of the frame loop (``fps_wall`` of ti-fusion's summary): with
   reading the images, the first frames' kernel compilation and logging, without start-up and outputs;
 - ``fps proc``: frames / time of tracking + fusion (+ logging for ti-fusion) after the first two frames,
-  without reading the images or compiling;
+  without reading the images or compiling; the JSON's ``fps_loop_steady`` is ti-fusion's whole loop after
+  those two frames (waiting for frames and logging included);
 - ``1st tracked s``: the child's age (from the kernel's record of its start) when its second frame (the
   first one tracked) was done: the cold start with the kernel cache as it is;
-- ``peak MB``: the child's maximum resident set size (``wait4``'s rusage, all of the process's life).
+- ``peak MB``: the child's maximum resident set size (``wait4``'s rusage, all of the process's life);
+- ``cores``: the cores the child used on average: its CPU time (user + system, its own and its reader
+  processes', from the same rusage) over its wall-clock life;
+- ``read wait``: the share of ti-fusion's loop spent waiting for the next frame (the ``load`` stage after
+  the first two frames, over the loop's wall-clock time).
 ti-fusion is the ``ti-fusion slam`` command itself (every output written), run in the child, with ``--set``
 passed on to it (e.g. ``--set slam.loop_closure=false`` where GTSAM is not installed). ``--cold``
 adds a run of it with an empty Taichi kernel cache (a fresh TI_OFFLINE_CACHE_FILE_PATH), and the next
@@ -100,7 +105,17 @@ def run_ti_fusion(args, cold: bool = False) -> dict:
             "ate_rmse_m": s.get("ate_rmse_m"), "rpe_trans_m": s.get("rpe_trans_m"),
             "failures": s["tracking_failures"], "loop_s": s.get("wall_s"), "age_end_s": s.get("process_s"),
             "warmup_s": s["warmup_ms"] / 1e3 if s.get("warmup_ms") is not None else None,
+            "fps_loop_steady": _steady(s),
             "stages_s": {k: v["total"] / 1e3 for k, v in (s.get("ms_per_stage") or {}).items()}}
+
+
+def _steady(s: dict) -> float | None:
+    """Frames per second of the whole loop after the first two frames (their kernel compiling or loading left
+    out, reading, logging and every stage kept): (frames − 2) / (loop − the two frames' step time)."""
+    frames, wall, warmup = s.get("frames", 0), s.get("wall_s"), s.get("warmup_ms")
+    if frames <= 2 or not wall or warmup is None or wall <= warmup / 1e3:
+        return None
+    return round((frames - 2) / (wall - warmup / 1e3), 2)
 
 
 def _trajectory_result(system, poses, gts, times, wall, first_tracked, failures) -> dict:
@@ -207,8 +222,16 @@ def _number(value, spec: str) -> str:
     return "-" if value is None else format(value, spec)
 
 
-def run_child(cmd: list[str], env: dict | None) -> tuple[dict | None, str, float, float]:
-    """(RESULT of the child or None, its last line of stderr, its wall-clock life in s, its peak RSS in MB)."""
+def _read_wait(r: dict) -> str:
+    """The share of ti-fusion's loop spent waiting for the next frame (its ``load`` stage after the warm-up
+    frames, over the whole loop's wall-clock time); "-" for a peer, which reads its frames in its loop."""
+    load = (r.get("stages_s") or {}).get("load")
+    return "-".rjust(9) if load is None or not r.get("loop_s") else f"{100 * load / r['loop_s']:8.1f}%"
+
+
+def run_child(cmd: list[str], env: dict | None) -> tuple[dict | None, str, float, float, float]:
+    """(RESULT of the child or None, its last line of stderr, its wall-clock life in s, its peak RSS in MB, its
+    CPU seconds: user + system, its own and those of the processes it waited for, e.g. its frame readers)."""
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     outs, errs = [], []
@@ -225,7 +248,7 @@ def run_child(cmd: list[str], env: dict | None) -> tuple[dict | None, str, float
     out, err = "".join(outs), "".join(errs)
     lines = [line for line in out.splitlines() if line.startswith("RESULT ")]
     return (json.loads(lines[-1][7:]) if lines else None, (err.strip().splitlines() or ["failed"])[-1], wall,
-            usage.ru_maxrss / 1024.0)
+            usage.ru_maxrss / 1024.0, usage.ru_utime + usage.ru_stime)
 
 
 def main() -> int:
@@ -273,10 +296,10 @@ def main() -> int:
             env["BENCH_SLAM_SITE"] = parent_site
         if system == "opencv" and args.opencv_path:
             env["PYTHONPATH"] = os.pathsep.join(filter(None, [args.opencv_path, env.get("PYTHONPATH")]))
-        result, last_err, wall, peak = run_child(cmd, env)
+        result, last_err, wall, peak, cpu = run_child(cmd, env)
         if result is None:
             result = {"system": system, "error": last_err}
-        result.update(process_s=wall, peak_mb=peak)
+        result.update(process_s=wall, peak_mb=peak, cpu_s=cpu)
         rows.append(result)
     if cache:
         cache.cleanup()
@@ -284,7 +307,7 @@ def main() -> int:
     print(f"dense SLAM on {name}, downsample {args.downsample}, {os.cpu_count()} CPUs; "
           f"{time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC")
     print(f"{'system':<48} {'frames':>6} {'process s':>9} {'fps process':>11} {'fps loop':>8} {'fps proc':>8} "
-          f"{'1st tracked s':>13} {'ATE m':>8} {'RPE m':>8} {'fail':>5} {'peak MB':>8}")
+          f"{'1st tracked s':>13} {'ATE m':>8} {'RPE m':>8} {'fail':>5} {'peak MB':>8} {'cores':>5} {'read wait':>9}")
     for r in rows:
         if "error" in r:
             print(f"{r['system']:<48} {r['error']}")
@@ -293,10 +316,13 @@ def main() -> int:
               f"{_number(r['fps_wall'], '8.2f')} {_number(r['fps'], '8.2f')} "
               f"{_number(r['first_tracked_s'], '13.2f')} "
               f"{_number(r.get('ate_rmse_m'), '8.4f')} {_number(r.get('rpe_trans_m'), '8.4f')} {r['failures']:>5} "
-              f"{r['peak_mb']:>8.0f}")
+              f"{r['peak_mb']:>8.0f} {r['cpu_s'] / r['process_s']:5.2f} {_read_wait(r)}")
     for r in rows:
         if r.get("stages_s"):
             stages = ", ".join(f"{k} {v:.2f}" for k, v in r["stages_s"].items())
+            print(f"{r['system']}: {r['cpu_s']:.2f} s of CPU in {r['process_s']:.2f} s ({r['cpu_s'] / r['process_s']:.2f} "
+                  f"cores); the loop waited {r['stages_s'].get('load', 0.0):.2f} s for frames ({_read_wait(r).strip()} of "
+                  f"it) and the readers read for {r['stages_s'].get('read', 0.0):.2f} s")
             print(f"{r['system']}: where the {r['process_s']:.2f} s went: before the loop and after it "
                   f"{r['process_s'] - r['loop_s']:.2f} s, the loop {r['loop_s']:.2f} s, of which its first two frames "
                   f"(compiling) {_number(r.get('warmup_s'), '.2f')} s; stage totals after them (s): {stages}")

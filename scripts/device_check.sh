@@ -153,8 +153,8 @@ import json, sys
 from pathlib import Path
 out = Path(sys.argv[1])
 print("| arch | data | launches/frame | reads/frame | kernel ms | host ms | host ms (profiled) | processing ms "
-      "| fps processing | busy | slam fps proc | slam fps loop | ATE m |")
-print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
+      "| fps processing | busy | slam fps proc | slam fps loop | slam fps loop after warm-up | cores | read wait | ATE m |")
+print("|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|")
 for host in sorted(out.glob("host_*.json")):
     arch = host.stem[5:]
     for r in json.loads(host.read_text()):
@@ -169,7 +169,10 @@ for host in sorted(out.glob("host_*.json")):
         print(f"| {arch} | {name} | {r['launches']:.1f} | {r['reads']:.2f} | {cell(r.get('kernel_ms'), '.2f')} | "
               f"{cell(r.get('host_ms'), '.2f')} | {cell(r.get('profiled_host_ms'), '.2f')} | {p:.2f} | {1e3 / p:.1f} | "
               f"{'n/a' if busy is None else format(100 * busy, '.0f') + ' %'} | {cell(s.get('fps'), '.1f')} | "
-              f"{cell(s.get('fps_wall'), '.1f')} | {cell(s.get('ate_rmse_m'), '.4f')} |")
+              f"{cell(s.get('fps_wall'), '.1f')} | {cell(s.get('fps_loop_steady'), '.1f')} | "
+              f"{cell(s['cpu_s'] / s['process_s'] if s.get('cpu_s') and s.get('process_s') else None, '.2f')} | "
+              f"{cell(100 * s['stages_s']['load'] / s['loop_s'] if 'load' in s.get('stages_s', {}) and s.get('loop_s') else None, '.1f')} % | "
+              f"{cell(s.get('ate_rmse_m'), '.4f')} |")
 for t in sorted(out.glob("launch_*.txt")):
     rows = [line for line in t.read_text().splitlines() if line.startswith("| ") and "µs" not in line]
     print(f"\nhost µs per launch on {t.stem[7:]} (bench_launch.py): " + "; ".join(

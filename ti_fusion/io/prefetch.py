@@ -25,6 +25,7 @@ processes and releases the shared memory.
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
 from typing import Iterator, Sequence
@@ -106,7 +107,12 @@ class Prefetcher:
             self._thread = threading.Thread(target=self._read_all, name="ti-fusion-reader", daemon=True)
             self._thread.start()
             return self._from_thread()
-        self.pool = WorkerPool(self.dataset, self.workers, self.ahead, self._slot_bytes())
+        try:
+            self.pool = WorkerPool(self.dataset, self.workers, self.ahead, self._slot_bytes())
+        except OSError as exc:  # (no process could be started: out of memory or of process slots)
+            logging.getLogger(__name__).warning(f"frames are read on a thread: no reader process could start ({exc})")
+            self.mode, self.workers = "thread", 1
+            return self.__enter__()
         # frame 0 is read by the caller while the processes start (an interpreter and its imports); frame j
         # goes to worker (j − 1) mod workers, into slot j mod ahead, at most ahead of them asked for at once
         self._asked = 1

@@ -156,8 +156,9 @@ def test_every_channel_decodes_with_its_values(written):
 
 
 def test_loop_edges_read_back(tmp_path, rng):
-    """Loop edges: a foxglove.SceneUpdate in the world frame, one entity holding one LINE_LIST (two points
-    per edge, applied green, not applied red), replaced by each message; non-finite edges are left out."""
+    """Loop edges: a foxglove.SceneUpdate in the world frame, one entity holding two LINE_LISTs (two points
+    per edge: not applied thin, faint and red, applied thick and green), replaced by each message; non-finite
+    edges are left out."""
     from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 
     poses = _trajectory(rng)
@@ -177,17 +178,17 @@ def test_loop_edges_read_back(tmp_path, rng):
     for msg in (one, two, none):
         (entity,) = msg.entities
         assert entity.frame_id == "world" and entity.id == "loop_closures"  # the poses' frame; one entity
-        (line,) = entity.lines
-        assert line.type == LinePrimitive.LINE_LIST and line.thickness > 0 and len(line.colors) == len(line.points)
-    got = loop_edges_from_msg(two)
-    want = [second[0], second[1], second[3]]
-    assert [ok for _, _, ok in got] == [True, False, True]
+        # the candidates not applied thin, faint and red under the applied loops, thick, opaque and green
+        refused, applied = entity.lines
+        assert refused.type == applied.type == LinePrimitive.LINE_LIST
+        assert refused.thickness < applied.thickness and refused.color.a < 1 == applied.color.a
+        assert refused.color.r > refused.color.g and applied.color.g > applied.color.r
+    got = sorted(loop_edges_from_msg(two), key=lambda e: -e[2])
+    want = [second[0], second[3], second[1]]  # the applied ones, then the refused one
+    assert [ok for _, _, ok in got] == [True, True, False]
     for (a, b, _), (c, d, _) in zip(got, want):
         np.testing.assert_allclose(a, c, atol=1e-12)
         np.testing.assert_allclose(b, d, atol=1e-12)
-    colors = [(c.r, c.g, c.b) for c in two.entities[0].lines[0].colors]
-    assert colors[0] == colors[1] and colors[0][1] > colors[0][0]  # green
-    assert colors[2] == colors[3] and colors[2][0] > colors[2][1]  # red
     assert len(loop_edges_from_msg(one)) == 1 and loop_edges_from_msg(none) == []
     contents = read_log(path)
     assert contents.channels[LOOP_TOPIC].count == 3 and contents.complete
@@ -599,7 +600,9 @@ def test_every_stats_message_validates_against_the_declared_schema(cpu, tmp_path
     jsonschema.Draft202012Validator.check_schema(schema)
     declared = _steps()[topic]
     assert {k: v for k, v in schema.items() if k not in ("$schema", "title")} == {
-        **declared, "properties": {**declared["properties"], "ms": schema["properties"]["ms"]}}
+        **declared, "properties": {**declared["properties"], "ms": schema["properties"]["ms"],
+                                   "first_launch_ms": schema["properties"]["first_launch_ms"]}}
+    assert schema["properties"]["first_launch_ms"]["type"] == "number"  # added by the pipeline, as ms.load
     assert set(declared["properties"]["ms"]["properties"]) | {"load", "log"} == set(
         schema["properties"]["ms"]["properties"])
     validator = jsonschema.Draft202012Validator(schema)
@@ -659,12 +662,15 @@ def test_the_foxglove_layout_shows_what_the_logs_have():
     topics = {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points", "/camera/depth", "/camera/color",
               "/camera/calibration", LOOP_TOPIC, "/map/mesh",  # /map/mesh: slam --mesh (tests/mapping/test_mesh.py)
               "/trajectory"}
-    slam_fields = set(_field_names(_steps()["/slam/stats"])) | {"ms.load", "ms.log"}
-    paths = set(re.findall(r'"(/[a-z/_]+(?:\.[a-z_.]+)?)"', text))
-    assert paths
+    slam_fields = set(_field_names(_steps()["/slam/stats"])) | {"ms.load", "ms.log", "first_launch_ms"}
+    paths = set(re.findall(r'"(/[a-z/_]+(?:\{[a-z_]+==[0-9]+\})?(?:\.[a-z_.]+)?)"', text))
+    assert paths and any("{first_launch_ms==0}" in p for p in paths)  # the ms plot leaves compiling frames out
     for path in paths:
         topic, _, field = path.partition(".")
+        topic, _, condition = topic.partition("{")
         assert topic in topics, path
+        if condition:
+            assert topic == "/slam/stats" and condition.split("==")[0] in slam_fields, path
         if topic == "/slam/stats":
             assert field in slam_fields, path
         elif field:

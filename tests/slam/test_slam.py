@@ -50,6 +50,8 @@ def test_slam_command_on_synthetic_default(cpu, tmp_path):
     assert len(log.stats) == FRAMES
     assert {"frame", "status", "surfels", "ms"} <= set(log.stats[-1])
     assert {"pyramid", "track", "fuse", "log", "load"} <= set(log.stats[-1]["ms"])
+    # the time in kernels' first launches, by which the layout's ms plot leaves compiling frames out
+    assert all(s["first_launch_ms"] >= 0 for s in log.stats) and log.stats[-1]["first_launch_ms"] == 0
     assert log.metadata_value("backend", "arch") == "cpu"
     # the map snapshot carries the surfels' colours (the textured room), not white
     from mcap.reader import make_reader

@@ -89,9 +89,11 @@ CAMERA_FRAME = "camera"
 STATS_TOPIC = "/slam/stats"
 LOOP_TOPIC = "/loop_closures"
 LOOP_ENTITY = "loop_closures"  # one entity, replaced by each message: it holds every loop edge so far
-# RGBA in [0, 1]: loop closures applied green, candidates not applied red
+# RGBA in [0, 1]: loop closures applied green and thick, candidates not applied red, thin and faint (a lap has
+# hundreds of them: drawn as the applied ones, they bury the map and the loop that was closed)
 LOOP_APPLIED_RGBA = (0.17, 0.80, 0.25, 1.0)
-LOOP_NOT_APPLIED_RGBA = (0.90, 0.15, 0.15, 1.0)
+LOOP_NOT_APPLIED_RGBA = (0.90, 0.15, 0.15, 0.3)
+LOOP_APPLIED_PX, LOOP_NOT_APPLIED_PX = 3.0, 1.0  # line widths, pixels at any zoom
 MESH_TOPIC = "/map/mesh"
 TRAJECTORY_TOPIC = "/trajectory"
 MESH_ENTITY = "mesh"
@@ -374,8 +376,8 @@ class RunLogger:
 
     def log_loop_edges(self, t: float, segments, topic: str = LOOP_TOPIC) -> int:
         """Loop edges as a ``foxglove.SceneUpdate`` in the world frame (the poses' frame): one entity whose
-        LinePrimitive of type LINE_LIST joins the two positions of each edge, green when applied, red when
-        not (per-vertex colours). ``segments``: (p_from (3,), p_to (3,), applied) in world coordinates,
+        LinePrimitive of type LINE_LIST per kind joins the two positions of each edge: applied loops thick and
+        green, candidates not applied thin, faint and red (drawn first, under them). ``segments``: (p_from (3,), p_to (3,), applied) in world coordinates,
         every edge to show (the entity replaces the previous message's, so pass all edges so far; an empty
         list clears them). Edges with a non-finite end are left out; returns how many were written."""
         ns = self._ns(t)
@@ -643,19 +645,20 @@ def _write_loop_edges(sink: _Sink, topic: str, ns: int, edges: list) -> None:
     entity.frame_id = WORLD_FRAME
     entity.id = LOOP_ENTITY
     entity.frame_locked = False
-    line = entity.lines.add()
-    line.type = LinePrimitive.LINE_LIST
-    line.thickness = 3.0  # pixels: visible at any zoom
-    line.scale_invariant = True
-    line.pose.orientation.w = 1.0
+    lines = {}  # a line list per kind, each with its own width: the candidates first, under the applied loops
+    for applied, rgba, px in ((False, LOOP_NOT_APPLIED_RGBA, LOOP_NOT_APPLIED_PX),
+                              (True, LOOP_APPLIED_RGBA, LOOP_APPLIED_PX)):
+        line = lines[applied] = entity.lines.add()
+        line.type = LinePrimitive.LINE_LIST
+        line.thickness = px
+        line.scale_invariant = True
+        line.pose.orientation.w = 1.0
+        line.color.r, line.color.g, line.color.b, line.color.a = rgba
     for p_from, p_to, applied in edges:
-        rgba = LOOP_APPLIED_RGBA if applied else LOOP_NOT_APPLIED_RGBA
+        line = lines[applied]
         for e in (p_from, p_to):
             point = line.points.add()
             point.x, point.y, point.z = (float(v) for v in e)
-            color = line.colors.add()
-            color.r, color.g, color.b, color.a = rgba
-    line.color.r, line.color.g, line.color.b, line.color.a = LOOP_APPLIED_RGBA  # used only without colors
     sink.proto(topic, msg, ns)
 
 

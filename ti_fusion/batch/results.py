@@ -150,6 +150,7 @@ def plot_ate(batch: Path, table: list[dict], inputs, variants) -> Path:
                 heights.append(ate * 100)
         ax.bar(xs, heights, width * 0.95, label=variant or None)
     ax.set_xticks(range(len(inputs)), inputs, rotation=20, ha="right", fontsize=8)
+    ax.set_xlim(-0.5, len(inputs) - 0.5)  # the groups with no bar (failed, no ground truth) stay in view
     ax.set_ylabel("ATE RMSE (cm)")
     if log:
         ax.set_yscale("log")

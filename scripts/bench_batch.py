@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """``ti-fusion batch`` on local Ray against the same ``ti-fusion slam`` runs one after another, in one run.
 
-    python scripts/bench_batch.py [--inputs room,wall,corridor,cabinet] [--frames 20] [--downsample 2]
+    python scripts/bench_batch.py [--inputs room,wall,corridor,loop] [--frames 20] [--downsample 2]
                                   [--jobs 2] [--threads 1] [--manifest FILE] [--keep DIR] [--no-warmup]
 
 The jobs are the manifest's (``--manifest``), or one per ``--inputs`` name: a synthetic scene (``room``,
@@ -59,7 +59,7 @@ def timed(argv: list[str], log: Path, env: dict | None = None) -> tuple[float, i
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--inputs", default="room,wall,corridor,cabinet",
+    ap.add_argument("--inputs", default="room,wall,corridor,loop",
                     help="synthetic scenes or shared data names (redkitchen, tum-cabinet), comma-separated")
     ap.add_argument("--frames", type=int, default=20)
     ap.add_argument("--downsample", type=int, default=2)
@@ -134,7 +134,12 @@ def main() -> int:
               f"{'yes' if same else 'NO'} |")
     print()
     print(f"one by one (Taichi's default threads): {sequential:.1f} s")
-    print(f"batch, {args.jobs} jobs at once x {args.threads} thread(s), Ray's start included: {batched:.1f} s")
+    try:
+        ray_s = json.loads((batch_dir / "summary.json").read_text()).get("ray_start_s")
+    except (OSError, ValueError):
+        ray_s = None
+    print(f"batch, {args.jobs} jobs at once x {args.threads} thread(s), Ray's start included: {batched:.1f} s"
+          + (f" (Ray's start: {ray_s:.1f} s)" if ray_s is not None else ""))
     print(f"batch / one by one: {batched / sequential:.2f}x; rows identical: {'yes' if same_all else 'NO'}; "
           f"load average after: {os.getloadavg()[0]:.2f}")
     return 0 if same_all else 1

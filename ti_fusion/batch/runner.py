@@ -167,6 +167,7 @@ class Batch:
         self.address, self.max_jobs, self.rerun_failed = address, max_jobs, rerun_failed
         self.progress, self.say = progress, say
         self.counts = {"ran": 0, "skipped_done": 0, "kept_failed": 0}
+        self.ray_start_s: float | None = None  # how long Ray took to start or connect (None: not needed)
 
     # what to do with each job
     def plan(self) -> list[Job]:
@@ -213,6 +214,7 @@ class Batch:
         ray = import_ray()
         local = self.address is None
         previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+        started = time.monotonic()
         try:
             if local:
                 ray.init(address="local", num_cpus=local_cpus(), include_dashboard=False, log_to_driver=False,
@@ -226,6 +228,7 @@ class Batch:
             for s, handler in previous.items():
                 if handler is not None:
                     signal.signal(s, handler)
+        self.ray_start_s = round(time.monotonic() - started, 3)
         try:
             self._schedule(ray, jobs)
         finally:

@@ -131,13 +131,16 @@ def _trajectory_result(system, poses, gts, times, wall, first_tracked, failures)
     return out
 
 
-def run_open3d(args) -> dict:
+def open3d_slam(args):
+    """Open3D's tensor SLAM over the frames of ``args`` (module docstring): (poses, ground truths, seconds of
+    processing per frame, wall-clock s of the loop, the process's age at the first tracked frame, Open3D's
+    version), or a string saying why Open3D is not available."""
     _add_parent_site()
     try:
         import open3d as o3d
         import open3d.core as o3c
     except ImportError as e:
-        return {"system": "Open3D", "error": f"not available ({e}; pip install open3d-cpu, or --open3d-python PY)"}
+        return f"not available ({e}; pip install open3d-cpu, or --open3d-python PY)"
     from ti_fusion.timing import process_age_s
 
     _, dataset = _dataset(args)
@@ -171,8 +174,15 @@ def run_open3d(args) -> dict:
         gts.append(frame.gt_pose)
         if i == 1:
             first_tracked = process_age_s()
-    return _trajectory_result(f"Open3D {o3d.__version__} (cpu)", poses, gts, times, time.perf_counter() - t_loop,
-                              first_tracked, 0)
+    return poses, gts, times, time.perf_counter() - t_loop, first_tracked, o3d.__version__
+
+
+def run_open3d(args) -> dict:
+    out = open3d_slam(args)
+    if isinstance(out, str):
+        return {"system": "Open3D", "error": out}
+    poses, gts, times, wall, first_tracked, version = out
+    return _trajectory_result(f"Open3D {version} (cpu)", poses, gts, times, wall, first_tracked, 0)
 
 
 def run_opencv(args) -> dict:

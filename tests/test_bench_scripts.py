@@ -33,3 +33,26 @@ def test_bench_launch_prints_a_row_per_argument_kind():
     assert len(rows) == 7 and any("common.data_oriented" in row for row in rows)
     bad = run("bench_launch.py", "--launches", "0")
     assert bad.returncode == 2 and "--launches must be at least 1" in bad.stderr
+
+
+CABINET = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum-fr3-cabinet-keyframes"
+
+
+def test_bench_real_prints_its_tables_on_real_keyframes():
+    if not (CABINET / "depth.txt").is_file():
+        import pytest
+
+        pytest.skip(f"real data not found at {CABINET}")
+    out = run("bench_real.py", str(CABINET), "--frames", "3", "--open3d-runs", "0", "--pairs", "2")
+    assert out.returncode == 0, out.stderr
+    lines = out.stdout.splitlines()
+    slam = [line for line in lines if line.strip().startswith("ti-fusion slam (defaults)")]
+    assert len(slam) == 1 and slam[0].split()[3] == "3"  # frames
+    pairs = [line for line in lines if "→" in line]
+    assert len(pairs) == 2 and pairs[0].split()[0] == "1→0"
+    assert any(line.strip().startswith("median") for line in lines)
+
+
+def test_bench_real_names_a_bad_option():
+    out = run("bench_real.py", "--pairs", "-1")
+    assert out.returncode == 2 and out.stderr.strip() == "bench_real.py: --pairs -1: give at least 0"

@@ -92,3 +92,23 @@ def test_camera_specs_and_what_is_refused(tmp_path):
     with pytest.raises(InputError, match="give one source of frames"):
         open_dataset(DatasetConfig(camera="realsense", path=str(tmp_path)))
     assert main(["slam", "--camera", "kinect", "--out", str(tmp_path / "o"), "--quiet"]) == 2
+
+
+def test_ci_installs_the_sdk_where_a_wheel_exists():
+    """The SDK's tests ran nowhere: CI installed only the test extra. .ci/run asks for the realsense extra
+    where pip finds a pyrealsense2 wheel (with libusb, which it links), and setup_env.sh installs the extras
+    it is given."""
+    from pathlib import Path
+
+    try:
+        import tomllib
+    except ModuleNotFoundError:  # Python 3.10
+        import tomli as tomllib
+    root = Path(__file__).resolve().parents[2]
+    ci = (root / ".ci" / "run").read_text()
+    assert "pip download" in ci and "'pyrealsense2>=2.54'" in ci and 'TI_FUSION_EXTRAS="test,realsense"' in ci
+    assert "libusb-1.0-0" in ci
+    assert ci.index("TI_FUSION_EXTRAS") < ci.index("scripts/test.sh")
+    extras = tomllib.loads((root / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert "pyrealsense2>=2.54" in extras["realsense"]
+    assert '-e ".[$EXTRAS]"' in (root / "scripts" / "setup_env.sh").read_text()

@@ -782,3 +782,21 @@ def test_color_extrinsics_from_a_file_or_a_topic_and_what_is_refused(tmp_path, r
     bag = write_bag(tmp_path / "c", shots, color_frame="camera_color_optical")
     with pytest.raises(InputError, match="no /camera/color/camera_info beside /camera/color/image_raw"):
         open_dataset(small_cfg(bag, color_extrinsics=str(tmp_path / "q.txt")))
+
+
+def test_a_pose_topic_not_named_is_hinted(tmp_path, rng, caplog):
+    """A bag with a pose topic and no --gt-topic: no ground truth (a bag's poses may be odometry), and one
+    line names the topic, the option, and where the trajectory starts either way."""
+    import logging
+
+    bag = write_bag(tmp_path / "bag", small_shots(rng, n=2), gt="pose")
+    with caplog.at_level(logging.INFO, logger="ti_fusion"):
+        assert open_dataset(small_cfg(bag)).has_ground_truth is False
+    (hint,) = [r.getMessage() for r in caplog.records if "pose topics" in r.getMessage()]
+    assert hint.startswith(f"the bag has pose topics ({GT} (geometry_msgs/msg/PoseStamped)): --gt-topic {GT} "
+                           "evaluates the run against one")
+    assert "starts at the identity" in hint
+    caplog.clear()
+    with caplog.at_level(logging.INFO, logger="ti_fusion"):
+        assert open_dataset(small_cfg(bag, gt_topic=GT)).has_ground_truth is True
+    assert not [r for r in caplog.records if "pose topics" in r.getMessage()]

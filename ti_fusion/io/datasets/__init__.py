@@ -136,8 +136,8 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
 # Dataset settings that only some formats read, with the option that sets them: given for another format they
 # would be ignored without a word.
 _ONLY_FOR = {
-    "ground_truth": ("--ground-truth", ("folder",), "a benchmark folder's ground truth is its own file, a bag's "
-                                                   "is a topic (--gt-topic)"),
+    "ground_truth": ("--ground-truth", ("folder", "rosbag"), "a benchmark folder's ground truth is its own file, "
+                                                              "a run log's is in the log"),
     **{key: (f"--{key.replace('_', '-')}", ("rosbag",), "topics are a bag's") for key in
        ("depth_topic", "color_topic", "camera_info_topic", "gt_topic")},
     "intrinsics": ("--intrinsics", ("tum", "iclnuim", "7scenes", "folder", "rosbag"), "a run's log holds its "

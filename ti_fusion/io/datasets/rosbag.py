@@ -453,6 +453,14 @@ class RosbagDataset(RecordedSequence):
                                              (CAMERA_INFO,))
         chosen["ground_truth"] = pick("ground truth", cfg.gt_topic, None, "--gt-topic", (POSE_STAMPED, ODOMETRY)) \
             if cfg.gt_topic else None
+        poses = sorted(t for t in bag.topics if bag.topics[t][0] in (POSE_STAMPED, ODOMETRY))
+        if poses and not cfg.gt_topic:  # a bag's poses may be anything (odometry, a plan): the user says which
+            import logging
+
+            logging.getLogger(__name__).info(
+                f"the bag has pose topics ({', '.join(f'{t} ({bag.topics[t][0]})' for t in poses)}): --gt-topic "
+                f"{poses[0]} evaluates the run against one (ATE, RPE; the trajectory then starts at its first "
+                "pose); without it there is no ground truth and the trajectory starts at the identity")
         if ambiguous:
             raise InputError(self.root, "more than one candidate topic: " + "; ".join(ambiguous))
         if chosen["depth"] is None:

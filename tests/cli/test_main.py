@@ -349,7 +349,10 @@ def test_the_format_line_warnings_and_summary_say_what_was_read(cpu, tmp_path, c
     metadata = read_log(out / "log.mcap").metadata["dataset"]
     assert json.loads(metadata["intrinsics"])["fx"] == 131.25 and json.loads(metadata["depth_scale"]) == 5000.0
 
-    # --quiet: no format line, but warnings still
+    # --quiet: the format line (what was understood of the input) and the warnings, nothing else
     assert main(["vo", str(seq), "--out", str(tmp_path / "quiet"), "--quiet"]) == 0
     captured = capsys.readouterr()
-    assert "format:" not in captured.out and len(captured.err.splitlines()) == 2
+    assert ("format: tum (detected from depth.txt); depth 5000 units per metre; intrinsics fx 131.25 fy 131.25 "
+            "cx 79.5 cy 59.5 at 160x120 (intrinsics.txt in the dataset folder)") in captured.out.splitlines()
+    assert not any(line.startswith("backend:") for line in captured.out.splitlines())
+    assert len(captured.err.splitlines()) == 2

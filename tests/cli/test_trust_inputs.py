@@ -297,5 +297,23 @@ def test_a_dataset_path_that_is_not_utf8(cpu, tum, tmp_path, capsys):
     shutil.copytree(tum, data)
     out = tmp_path / "run"
     assert main(["slam", str(data), "--frames", "3", "--out", str(out), "--quiet"]) == 0
+    # --quiet keeps the one line that says what was understood of the input
+    assert "format: tum (detected from" in capsys.readouterr().out
     assert (out / "trajectory.png").is_file()
     assert read_log(out / "log.mcap").metadata_value("dataset", "name") == "caf\\xe9"
+
+
+def test_a_late_error_still_writes_summary_json(cpu, tum, tmp_path, capsys):
+    """A frame that cannot be read, late in the run: the run ends with exit 2 and one line, and the frames
+    done keep their outputs, summary.json included (with the error), as the log and trajectory are kept."""
+    data = tmp_path / "tum"
+    shutil.copytree(tum, data)
+    depth = sorted((data / "depth").iterdir())
+    depth[8].write_bytes(b"not a png")
+    out = tmp_path / "run"
+    assert main(["slam", str(data), "--out", str(out), "--quiet"]) == 2
+    (line,) = _stderr_lines(capsys)
+    assert line.startswith("ti-fusion slam: error: ") and depth[8].name in line
+    summary = _summary(out)
+    assert summary["command"] == "slam" and summary["frames"] == 8 and depth[8].name in summary["error"]
+    assert {"trajectory.tum", "log.mcap", "map.ply", "summary.json"} <= {p.name for p in out.iterdir()}

@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+import os
+
 import numpy as np
 import pytest
 
@@ -237,6 +239,34 @@ def test_mesh_command(cpu, rng, tmp_path, capsys):
         assert main(argv + ["--out", str(tmp_path / f"bad{k}"), "--quiet"]) == 2
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and words in err, err
+
+
+def test_mesh_of_a_run_folder_goes_beside_its_map(cpu, rng, tmp_path, capsys, monkeypatch):
+    """``ti-fusion mesh RUN_DIR`` without --out writes mesh.ply and mesh.glb into the run's folder (it wrote a
+    ./logs/mesh-* folder), keeps the run's summary.json, and an --overwrite of the run later removes them as
+    the run's; a second call is refused unless --overwrite."""
+    import json
+
+    from ti_fusion.cli.main import main
+    from ti_fusion.io.outputs import RunDir
+    from ti_fusion.io.ply import write_ply
+
+    s = plane_surfels(rng, (0, 0, 1), (0, 0, 1), 0.1, 0.004)
+    with RunDir("slam", tmp_path / "run") as run:
+        write_ply(run.file("map.ply"), s["position"], s["normal"], s["color"], {"confidence": s["weight"],
+                                                                                "radius": s["radius"]})
+        run.write_summary({"command": "slam", "frames": 3})
+    monkeypatch.chdir(tmp_path)
+    assert main(["mesh", str(run.path), "--quiet"]) == 0
+    assert not (tmp_path / "logs").exists()
+    assert {"mesh.ply", "mesh.glb", "map.ply", "summary.json"} <= set(os.listdir(run.path))
+    assert json.loads(run.file("summary.json").read_text()) == {"command": "slam", "frames": 3}
+    capsys.readouterr()
+    assert main(["mesh", str(run.path), "--quiet"]) == 2
+    assert "holds mesh.ply and mesh.glb already" in capsys.readouterr().err
+    assert main(["mesh", str(run.path), "--quiet", "--overwrite"]) == 0
+    RunDir("slam", run.path, overwrite=True).release()  # the run's files, the mesh included, are the run's
+    assert os.listdir(run.path) == []
 
 
 def test_mesh_in_the_log(cpu, rng, tmp_path):

@@ -220,3 +220,23 @@ def test_maps_filled_in_the_scratch_pyramid_between_frames_change_no_pose(cpu):
             slam.icp.align(slam.scratch_pyramid(), slam.current_frame_pyramid(), init=np.eye(4))
             assert [len(k._primal.compiled_kernels) for k in kernels] == before
     np.testing.assert_array_equal(np.stack(poses), np.stack(plain))
+
+
+def test_the_pipeline_snippet_uses_only_what_it_defines():
+    """docs/DATA.md's SLAMPipeline snippet used an undefined ``backend``: every name it reads is imported or
+    assigned in it, or is one of the snippet above it (``frames``, ``Config``)."""
+    import ast
+
+    blocks, current = [], None
+    for line in DOCS.read_text().splitlines():
+        if line.startswith("```"):
+            blocks, current = (blocks + ["\n".join(current)], None) if current is not None else (blocks, [])
+        elif current is not None:
+            current.append(line)
+    (block,) = [b for b in blocks if "SLAMPipeline(" in b]
+    tree = ast.parse(block)
+    defined = {a.asname or a.name for n in ast.walk(tree) if isinstance(n, ast.ImportFrom) for a in n.names}
+    defined |= {t.id for n in ast.walk(tree) if isinstance(n, ast.Assign) for t in n.targets
+                if isinstance(t, ast.Name)}
+    read = {n.id for n in ast.walk(tree) if isinstance(n, ast.Name) and isinstance(n.ctx, ast.Load)}
+    assert read - defined <= {"frames", "Config"}, read - defined

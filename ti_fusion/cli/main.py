@@ -51,6 +51,7 @@ from ti_fusion.timing import Stopwatch
 #     USES_TAICHI: bool                 needs a Taichi backend (``--arch``)
 #     OUT_FROM_POSITIONAL: str          (optional) the positional that names the output folder, instead of --out
 #     writes_files(args) -> bool        (optional) False: this call writes nothing, and gets no folder (ctx.out None)
+#     adds_to_run(args) -> str | None   (optional) a run folder this call adds its files to (no --out given)
 #     RESUMES_OUT: bool                 (optional) an earlier run of this command in --out is continued, not refused
 #     add_arguments(parser) -> None     its own options
 #     run(ctx) -> dict                  does the work; returns the command's own summary fields (and, optionally,
@@ -170,7 +171,8 @@ def _check_out_holds_no_input(out: str | None, inputs: list[str], option: str) -
 
 
 class _TerminalHandler(logging.Handler):
-    """Shows the package's log records: warnings on stderr always, information on stdout unless --quiet."""
+    """Shows the package's log records: warnings on stderr always, information on stdout unless --quiet
+    (except a record marked ``essential``: the format line, what was understood of the input)."""
 
     def __init__(self, command: str, quiet: bool):
         super().__init__(logging.INFO)
@@ -180,7 +182,7 @@ class _TerminalHandler(logging.Handler):
         message = record.getMessage()
         if record.levelno >= logging.WARNING:
             print(f"ti-fusion {self.command}: warning: {message}", file=sys.stderr, flush=True)
-        elif not self.quiet:
+        elif not self.quiet or getattr(record, "essential", False):
             print(message, flush=True)
 
 
@@ -319,6 +321,22 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args, modules[args.command])
 
 
+def _write_partial_summary(command: str, out: RunDir | None, exc: TiFusionError) -> None:
+    """summary.json of the frames a run did before ``exc`` (which carries them as ``partial_summary``), with
+    the error's line; nothing when the run did no frame or the summary cannot be written."""
+    partial = dict(getattr(exc, "partial_summary", None) or {})
+    if out is None or out.adding or not partial:
+        return
+    summary = base_summary(command, partial.pop("frames", 0), partial.pop("wall_s", 0.0),
+                           partial.pop("ms_per_stage", {}))
+    summary.update(partial)
+    summary["error"] = str(_first_cause(exc))
+    try:
+        out.write_summary(summary)
+    except (TiFusionError, OSError):  # the first error is the one to report
+        pass
+
+
 def _run(args: argparse.Namespace, module: ModuleType) -> int:
     command = args.command
     out: RunDir | None = None
@@ -334,10 +352,12 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
             inputs = [config.dataset.path if getattr(module, "USES_DATASET", False) else "", getattr(args, "log", ""),
                       getattr(args, "map", ""), getattr(args, "manifest", "")]
             _check_out_holds_no_input(out_arg, inputs, positional.upper() if positional else "--out")
-            # A command that writes files only when asked (inspect) makes no folder otherwise.
+            # A command that writes files only when asked (inspect) makes no folder otherwise; one that derives
+            # files from a run (mesh RUN_DIR) writes them beside the run's own unless --out says otherwise.
             writes = getattr(module, "writes_files", lambda a: True)(args)
-            out = RunDir(command, out_arg, overwrite=args.overwrite,
-                         resume=getattr(module, "RESUMES_OUT", False)) if writes else None
+            adds_to = getattr(module, "adds_to_run", lambda a: None)(args)
+            out = RunDir(command, adds_to or out_arg, overwrite=args.overwrite,
+                         resume=getattr(module, "RESUMES_OUT", False), add_to=bool(adds_to)) if writes else None
             backend = init_backend(args.arch) if getattr(module, "USES_TAICHI", False) else None
             if backend is not None and not args.quiet:
                 print(f"backend: {backend.arch} ({backend.reason})", flush=True)
@@ -354,10 +374,15 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
                 summary["backend"] = backend.arch
                 summary.update(_kernel_times(args.quiet))
             summary.update(result)
-            if out is not None:
+            if out is not None and out.adding:  # the run's own summary.json stays the run's
+                print(f"outputs written to {out.path}/ beside the run's", flush=True)
+            elif out is not None:
                 path = out.write_summary(summary)
                 print(f"outputs written to {out.path}/ (summary: {path})", flush=True)
             return code
+        except TiFusionError as exc:  # a late error: the frames done so far still get their summary.json
+            _write_partial_summary(command, out, exc)
+            raise
         finally:
             if out is not None:
                 out.release()

@@ -1,7 +1,7 @@
 """``ti-fusion mesh RUN_DIR|map.ply``: a coloured triangle mesh of a run's confirmed surfels (docs/MESH.md).
 
 Writes ``mesh.ply`` (binary, vertex colours and normals) and ``mesh.glb`` (glTF binary) into the --out
-folder. The settings are the config's [mesh] section; --voxel, --min-weight and --max-triangles set the
+folder, or, given a run folder and no --out, into that folder beside the run's map. The settings are the config's [mesh] section; --voxel, --min-weight and --max-triangles set the
 common ones.
 """
 
@@ -29,6 +29,13 @@ def add_arguments(parser) -> None:
                              "re-integrated at the run's poses: made during the run by slam --mesh)")
     parser.add_argument("--max-triangles", type=int, default=None, metavar="N",
                         help="decimate to at most N triangles (mesh.max_triangles; default 0: no decimation)")
+
+
+def adds_to_run(args) -> str | None:
+    """A run folder and no --out: the mesh goes beside the run's map (its summary.json stays the run's)."""
+    from ti_fusion.io.outputs import is_run_folder
+
+    return args.map if not getattr(args, "out", None) and is_run_folder(args.map) else None
 
 
 def map_file(given: str) -> Path:
@@ -87,6 +94,11 @@ def run(ctx) -> dict:
         raise InputError(None, "--method depth re-integrates a run's depth frames, which a run folder does not "
                                "keep: it is made during the run (slam DATA --mesh-method depth)")
     path = map_file(ctx.args.map)
+    if ctx.out.adding and not ctx.args.overwrite:
+        taken = [n for n in ("mesh.ply", "mesh.glb") if ctx.out.file(n).exists()]
+        if taken:
+            raise InputError(ctx.out.path, f"holds {' and '.join(taken)} already (slam --mesh's, or an earlier "
+                                           "ti-fusion mesh): --overwrite replaces them, --out DIR writes elsewhere")
     surfels = surfels_from_ply(path)
     stats: dict = {}
     mesh = mesh_surfels(surfels, cfg, source=path, stats=stats)

@@ -63,9 +63,13 @@ class RunDir:
     ``release()`` (or the end of a ``with`` block) unlocks it; a run that wrote nothing leaves no trace.
     """
 
-    def __init__(self, command: str, out: str | Path | None = None, overwrite: bool = False, resume: bool = False):
+    def __init__(self, command: str, out: str | Path | None = None, overwrite: bool = False, resume: bool = False,
+                 add_to: bool = False):
         self.command = command
         self.resumed = False
+        # add_to: ``out`` holds an earlier run that this command adds files to (ti-fusion mesh RUN_DIR): its
+        # files are kept, and the marker goes on naming that run (and, after, every file in the folder)
+        self.adding = add_to
         self._fd: int | None = None
         self._created = False
         self._record: dict = {}  # what the marker says of this run
@@ -154,9 +158,13 @@ class RunDir:
                     with suppress(OSError):
                         marker.unlink()
                 raise
+            if self.adding:
+                self._record = {k: v for k, v in (_read_marker(fd) or _legacy_run(self.path) or {}).items()
+                                if k != "files"}
+            else:
+                self._record = {"command": self.command, "pid": os.getpid(), "host": socket.gethostname(),
+                                "started": datetime.now().isoformat(timespec="seconds")}
             os.ftruncate(fd, 0)
-            self._record = {"command": self.command, "pid": os.getpid(), "host": socket.gethostname(),
-                            "started": datetime.now().isoformat(timespec="seconds")}
             os.pwrite(fd, json.dumps(self._record).encode(), 0)
         except BaseException:
             with suppress(OSError):
@@ -167,9 +175,13 @@ class RunDir:
 
     def _check_contents(self, fd: int, new_marker: bool, overwrite: bool, resume: bool = False) -> None:
         entries = _entries(self.path)
+        if not entries and self.adding:
+            raise OutputError(self.path, "holds no run to add to")
         if not entries:
             return
         earlier = _legacy_run(self.path) if new_marker else (_read_marker(fd) or {})
+        if self.adding and earlier is not None:
+            return
         if earlier is None:
             shown = ", ".join(sorted(entries)[:3]) + (", ..." if len(entries) > 3 else "")
             raise OutputError(self.path, f"is not empty ({shown}) and holds no earlier ti-fusion run: "
@@ -246,6 +258,12 @@ def _read_marker(fd: int) -> dict | None:
         return record if isinstance(record, dict) else None
     except (OSError, ValueError):
         return None
+
+
+def is_run_folder(folder: str | Path) -> bool:
+    """Whether ``folder`` holds a ti-fusion run (its marker, or a summary.json that names a command)."""
+    folder = Path(folder)
+    return folder.is_dir() and ((folder / MARKER).is_file() or _legacy_run(folder) is not None)
 
 
 def run_in_progress(folder: str | Path) -> dict | None:

@@ -119,7 +119,7 @@ class Pipeline:
                     if hasattr(self.step, "log_end"):  # slam --mesh: the mesh, while the log is open
                         self.step.log_end(log, self.results[-1].timestamp)
         if error is not None:
-            self._outputs_after_error(error)
+            self._outputs_after_error(error, run_watch.ms / 1e3)
             raise error
         nothing = self._nothing_done()
         if nothing:
@@ -141,14 +141,18 @@ class Pipeline:
             if r.index in current:
                 r.pose = current[r.index]
 
-    def _outputs_after_error(self, error: Exception) -> None:
+    def _outputs_after_error(self, error: Exception, wall: float) -> None:
         """After an error in the loop: the evaluation, the plot and the step's files (the map, its views) of
-        the frames done, where they can still be written; the error itself is what the run reports."""
+        the frames done, where they can still be written; the error itself is what the run reports, and
+        carries their summary (``partial_summary``: the CLI writes it to summary.json with the error)."""
         if not self.results:
             return
         try:
-            self._evaluate()
-            self.step.outputs(self)
+            summary = self._summary(wall)
+            summary.update(self._evaluate())
+            summary.update(self.step.outputs(self))
+            summary["ms_per_stage"] = self.timer.summary(skip_first=self.step.warmup_frames)
+            error.partial_summary = summary
         except Exception as exc:  # the first error is the one to report; this one only limits what is kept
             logging.getLogger(__name__).warning(f"after the error, not every output of the {len(self.results)} "
                                                 f"frames done could be written: {exc}")

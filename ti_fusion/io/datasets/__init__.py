@@ -90,7 +90,7 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
         dataset = RealSenseCamera(cfg.camera, cfg, **common)
         dataset.format_from = "--camera"
         dataset.check_selection()
-        log.info(dataset.describe_format())
+        log.info(dataset.describe_format(), extra={"essential": True})  # shown with --quiet too
         return dataset
     if not cfg.path:
         if cfg.format not in ("auto", "synthetic"):
@@ -129,7 +129,7 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
     if (cfg.color_extrinsics or cfg.color_intrinsics) and not dataset.reads_color_camera:
         _color_camera(dataset, cfg)
     dataset.check_selection()
-    log.info(dataset.describe_format())
+    log.info(dataset.describe_format(), extra={"essential": True})  # shown with --quiet too
     return dataset
 
 

@@ -18,8 +18,9 @@ One frame at a time, as a robot's code has them (``scripts/example_stream.py`` r
     slam.mapper.export_ply("map.ply")
 
 A whole recording in memory: ``FrameList(frames)`` is a ``Dataset``, so ``SLAMPipeline(FrameList(frames),
-config, RunDir("slam", "out"), backend).run()`` writes what ``ti-fusion slam`` writes (log.mcap,
-trajectory.tum, map.ply, the plots, and ATE/RPE when the frames carry ground truth).
+config, RunDir("slam", "out"), current_backend()).run()`` (``ti_fusion.backend.current_backend``) writes
+what ``ti-fusion slam`` writes (log.mcap, trajectory.tum, map.ply, the plots, and ATE/RPE when the frames
+carry ground truth).
 """
 
 from __future__ import annotations

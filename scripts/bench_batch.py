@@ -121,7 +121,7 @@ def main() -> int:
             rows = {r["run_dir"].removeprefix("runs/"): r for r in csv.DictReader(f)}
 
     print()
-    print(f"| job | frames one / batch | ATE m one by one | ATE m batch | identical |")
+    print("| job | frames one / batch | ATE m one by one | ATE m batch | identical |")
     print("|---|---|---|---|---|")
     same_all = True
     for job in jobs:

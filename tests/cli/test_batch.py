@@ -22,7 +22,6 @@ from ti_fusion.batch import results
 from ti_fusion.batch.manifest import read_manifest
 from ti_fusion.batch.runner import MISSING_RAY, Batch, error_line
 from ti_fusion.cli.main import main
-from ti_fusion.errors import InputError
 
 TINY = 'downsample = 4\nframes = 3\n'  # 160x120 synthetic frames, three of them
 

@@ -30,6 +30,8 @@ from ti_fusion.batch import results
 from ti_fusion.batch.manifest import Job
 from ti_fusion.errors import InputError, TiFusionError
 
+log = logging.getLogger(__name__)
+
 STOP_GRACE_S = 20.0       # how long a stopped job may take to write what it has before it is killed
 MISSING_RAY = "ti-fusion batch runs its jobs on Ray, which is not installed: pip install 'ti-fusion[batch]'"
 
@@ -207,7 +209,7 @@ class Batch:
             try:
                 results.plot_ate(self.folder, table, self.manifest.inputs, self.manifest.variants)
             except Exception as exc:  # the table is the result; a plot that fails says so and is left out
-                self.say(f"ti-fusion batch: warning: no ate.png: {exc}")
+                log.warning("no ate.png: %s", exc)
         return table
 
     def _on_ray(self, jobs: list[Job]) -> None:
@@ -216,22 +218,22 @@ class Batch:
         previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
         started = time.monotonic()
         try:
-            if local:
-                ray.init(address="local", num_cpus=local_cpus(), include_dashboard=False, log_to_driver=False,
-                         logging_level=logging.ERROR)
-            else:
-                ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
-        except Exception as exc:
-            raise TiFusionError(f"cannot start Ray{'' if local else ' at ' + self.address}: "
-                                f"{' '.join(str(exc).split())[:300]}") from None
-        finally:  # ray.init sets its own SIGTERM handler: the CLI's stops the batch as Ctrl-C does
-            for s, handler in previous.items():
-                if handler is not None:
-                    signal.signal(s, handler)
-        self.ray_start_s = round(time.monotonic() - started, 3)
-        try:
+            try:
+                if local:
+                    ray.init(address="local", num_cpus=local_cpus(), include_dashboard=False, log_to_driver=False,
+                             logging_level=logging.ERROR)
+                else:
+                    ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
+            except Exception as exc:
+                raise TiFusionError(f"cannot start Ray{'' if local else ' at ' + self.address}: "
+                                    f"{' '.join(str(exc).split())[:300]}") from None
+            finally:  # ray.init sets its own SIGTERM handler: the CLI's stops the batch as Ctrl-C does
+                for s, handler in previous.items():
+                    if handler is not None:
+                        signal.signal(s, handler)
+            self.ray_start_s = round(time.monotonic() - started, 3)
             self._schedule(ray, jobs)
-        finally:
+        finally:  # also after a Ctrl-C during ray.init: what it started goes
             ray.shutdown()
 
     def _schedule(self, ray, jobs: list[Job]) -> None:

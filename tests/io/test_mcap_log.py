@@ -783,3 +783,20 @@ def test_inspect_tells_a_log_being_written_from_a_killed_runs(tmp_path, capsys):
     torn.write_bytes(data[:len(data) // 2])
     assert main(["inspect", str(torn)]) == 0
     assert "NOT finalised: the run was killed" in capsys.readouterr().out.splitlines()[0]
+
+
+def test_the_gil_switch_interval_is_shorter_while_a_writer_thread_runs(tmp_path):
+    """The loop's thread waits for the GIL while the writer holds it: at most the shorter interval, and
+    the interval is the caller's again once the last writer has closed."""
+    import sys
+
+    from ti_fusion.io import mcap_log
+
+    interval = sys.getswitchinterval()
+    with RunLogger(tmp_path / "a.mcap"):
+        with RunLogger(tmp_path / "b.mcap"):
+            assert sys.getswitchinterval() == min(interval, mcap_log._SWITCH_INTERVAL_S)
+        assert sys.getswitchinterval() == min(interval, mcap_log._SWITCH_INTERVAL_S)
+    assert sys.getswitchinterval() == interval
+    with RunLogger(tmp_path / "c.mcap", threaded=False):
+        assert sys.getswitchinterval() == interval

@@ -51,6 +51,7 @@ import math
 import os
 import platform
 import queue
+import sys
 import threading
 import warnings
 import weakref
@@ -489,6 +490,27 @@ class _Sink:
 QUEUE_SIZE = 32
 
 
+# The GIL's switch interval while a writer thread runs: the loop's thread waits for the GIL whenever the
+# writer holds it (building protobuf messages), up to the interval each time; CPython's default is 5 ms.
+_SWITCH_INTERVAL_S = 0.0005
+_switch = {"users": 0, "saved": None}
+_switch_lock = threading.Lock()
+
+
+def _shorter_switch_interval(take: bool) -> None:
+    """The first writer thread in shortens the interval, the last one out gives it back."""
+    with _switch_lock:
+        if take:
+            if _switch["users"] == 0:
+                _switch["saved"] = sys.getswitchinterval()
+                sys.setswitchinterval(min(_switch["saved"], _SWITCH_INTERVAL_S))
+            _switch["users"] += 1
+        else:
+            _switch["users"] -= 1
+            if _switch["users"] == 0:
+                sys.setswitchinterval(_switch["saved"])
+
+
 class _WriteQueue:
     """The log's writer thread and its bounded queue of (task, args); ``threaded=False`` runs each task at
     once in the caller's thread. Holds no reference to the ``RunLogger``, whose collection finishes it."""
@@ -506,6 +528,7 @@ class _WriteQueue:
             # at exit, still writes what is queued)
             self._thread = threading.Thread(target=self._run, name="ti-fusion-log", daemon=True)
             self._thread.start()
+            _shorter_switch_interval(True)
 
     def put(self, task, args: tuple) -> None:
         self.raise_error()
@@ -556,6 +579,7 @@ class _WriteQueue:
             if self._thread is not None:
                 self._queue.put(None)
                 self._thread.join()
+                _shorter_switch_interval(False)
         finally:
             if self._failed is None:
                 self._sink.finish()

@@ -32,6 +32,7 @@ LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
     (5, "evaluation", ("ti_fusion.evaluation.",)),
     (6, "loop", ("ti_fusion.loop.",)),
     (6, "reference", ("ti_fusion.reference.",)),
+    (6, "sinks", ("ti_fusion.sinks",)),
     (7, "slam", ("ti_fusion.slam.",)),
     (8, "cli", ("ti_fusion.cli", "ti_fusion.__main__", "ti_fusion.batch")),
 ]

@@ -74,18 +74,13 @@ def foxglove_parse(schema: dict, type_name: str = "root") -> dict[str, list[tupl
 
 
 def _stats_schemas() -> dict[str, dict]:
-    """Each command's stats schema as the pipeline declares it (with ms.load and ms.log)."""
+    """Each command's stats schema as the log sink declares it (with ms.load and ms.log)."""
+    from ti_fusion.sinks.log import stats_schema
     from ti_fusion.slam.fuse_step import FuseStep
-    from ti_fusion.slam.pipeline import Pipeline
     from ti_fusion.slam.slam_step import SLAMStep
     from ti_fusion.slam.vo_step import VOStep
 
-    out = {}
-    for step in (SLAMStep, VOStep, FuseStep):
-        pipeline = Pipeline.__new__(Pipeline)  # _stats_schema reads only the step
-        pipeline.step = step
-        out[step.stats_channel] = pipeline._stats_schema()
-    return out
+    return {step.stats_channel: stats_schema(step) for step in (SLAMStep, VOStep, FuseStep)}
 
 
 @pytest.mark.parametrize("topic", ["/slam/stats", "/vo/stats", "/fuse/stats"])

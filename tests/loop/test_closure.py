@@ -45,11 +45,12 @@ def test_corrections_move_each_pose_with_its_keyframe():
 
 
 def test_a_correction_reaches_the_poses_results_and_map(cpu):
-    """DenseSLAM's door: start_keyframe anchors the poses and the surfels fused after it; apply_corrections
-    moves the trajectory (DenseSLAM.poses), the pose re-localisation starts from and the surfels; the
+    """What DenseSLAM does with loop closure's report: start_keyframe anchors the poses and the surfels fused
+    after it; apply_corrections moves the trajectory (DenseSLAM.poses), the pose re-localisation starts from and the surfels; the
     results keep the poses as registered."""
     seq = sequence()
     cfg = Config()
+    cfg.slam.loop_closure = False  # the keyframes are the test's
     slam = DenseSLAM(cfg, seq.intrinsics)
     results = [slam.register_frame(view(seq, seq.poses[0], 0, seed=1))]
     slam.start_keyframe(0)
@@ -77,7 +78,7 @@ def test_a_correction_reaches_the_poses_results_and_map(cpu):
 def test_edges_are_green_only_for_loops_applied():
     """A candidate verification accepted but the pose graph refused (a look-alike place) is drawn as not
     applied, like one verification rejected: green in trajectory.png and /loop_closures means the map moved."""
-    loop = LoopClosure(Config(), SimpleNamespace())
+    loop = LoopClosure(Config())
     loop.keyframes = [SimpleNamespace(centre=np.array([k, 0.0, 0.0])) for k in range(4)]
     loop.candidates = [SimpleNamespace(match=0, query=3, verified=True),
                        SimpleNamespace(match=1, query=3, verified=True),
@@ -92,8 +93,7 @@ def test_edges_are_green_only_for_loops_applied():
 def test_a_loop_the_poses_already_agree_with_moves_nothing():
     """A verified loop within loop.min_loop_error of the current poses stays in the graph and moves nothing
     (solving would only add the loop's own measurement error); one further off is applied."""
-    moved = []
-    loop = LoopClosure(Config(), SimpleNamespace(apply_corrections=moved.append))
+    loop = LoopClosure(Config())
     poses = [make_pose(np.eye(3), [0.1 * k, 0.0, 0.0]) for k in range(6)]
     loop.keyframes = [SimpleNamespace(pose=T.copy()) for T in poses]
     for T in poses:
@@ -101,14 +101,14 @@ def test_a_loop_the_poses_already_agree_with_moves_nothing():
     # c.T: keyframe 0's camera coordinates into keyframe 5's, 3 mm off (a few tenths of the loop's sigma)
     agrees = SimpleNamespace(match=0, query=5, free=[],
                              T=np.linalg.inv(poses[5]) @ poses[0] @ se3_exp(np.r_[0, 0, 0, 0.003, 0, 0]))
-    report = SimpleNamespace(ms={}, outcome="", applied=None)
+    report = SimpleNamespace(ms={}, outcome="", applied=None, corrections=None)
     loop._close(agrees, report)
-    assert report.outcome.startswith("kept in the graph") and loop.kept == [(0, 5)] and not moved
+    assert report.outcome.startswith("kept in the graph") and loop.kept == [(0, 5)] and report.corrections is None
     assert loop.summary()["loops_kept"] == 1 and loop.summary()["loops_applied"] == 0
     far = SimpleNamespace(match=1, query=5, T=np.linalg.inv(poses[5]) @ poses[1] @ se3_exp(np.r_[0, 0, 0, 0.05, 0, 0]),
                           free=[])
     loop._close(far, report)
-    assert report.outcome == "applied" and loop.applied == [(1, 5)] and len(moved) == 1
+    assert report.outcome == "applied" and loop.applied == [(1, 5)] and report.corrections.shape == (6, 4, 4)
 
 
 def test_a_loop_candidate_is_older_than_the_active_window():
@@ -118,7 +118,7 @@ def test_a_loop_candidate_is_older_than_the_active_window():
     cfg = Config()
     cfg.loop.min_frame_gap, cfg.slam.active_window = 60, 200
     assert candidate_gap(cfg) == 200
-    assert LoopClosure(cfg, SimpleNamespace()).database.config.min_frame_gap == 200
+    assert LoopClosure(cfg).database.config.min_frame_gap == 200
     cfg.slam.active_window = 30
     assert candidate_gap(cfg) == 60
     cfg.slam.active_window = 0
@@ -161,7 +161,7 @@ def test_the_return_is_closed_onto_the_start(run):
     for name in ("detect", "verify", "optimise", "correct"):
         assert s["loop_ms"][name]["calls"] >= 1, name
     assert all({"query", "match", "verified", "reason"} <= set(c) for c in s["loop_candidates_log"])
-    odometry = [e for e in run.pipeline.step.loop.graph.edges if not e.loop]
+    odometry = [e for e in run.pipeline.step.slam.loop.graph.edges if not e.loop]
     assert odometry and all(e.covariance is not None and np.all(np.linalg.eigvalsh(e.covariance) > 0)
                             for e in odometry)
 
@@ -188,7 +188,7 @@ def test_the_corrected_trajectory_is_written(run):
     # the results and the keyframes took the corrections too
     results = [r.pose for r in run.pipeline.results if r.pose is not None]
     np.testing.assert_allclose(np.stack(results), written, atol=1e-6)
-    for kf in run.pipeline.step.loop.keyframes:
+    for kf in run.pipeline.step.slam.loop.keyframes:
         np.testing.assert_allclose(kf.pose, store.pose_of(kf.frame), atol=1e-9)
 
 
@@ -209,11 +209,11 @@ def test_loop_stats_and_edges_in_the_log(run):
 
 def test_summary_counts_without_loop_closure(run):
     step = run.pipeline.step
-    loop, step.loop = step.loop, None
+    loop, step.slam.loop = step.slam.loop, None
     try:
         assert step.loop_summary() == {"keyframes": 0, "loop_candidates": 0, "loops_applied": 0}
     finally:
-        step.loop = loop
+        step.slam.loop = loop
 
 
 def test_config_defaults():

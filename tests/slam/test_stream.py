@@ -210,14 +210,15 @@ def test_maps_filled_in_the_scratch_pyramid_between_frames_change_no_pose(cpu):
     poses = []
     for f in frames:
         poses.append(slam.register_frame(f).pose)
-        depth, K = slam.keyframe_depth()
+        level = slam.mapper.frame_level(slam.frame_pyramid)  # the keyframe's depth, as loop closure takes it
+        depth, K = slam.frame_pyramid.depth[level].to_numpy(), slam.frame_pyramid.intrinsics[level]
         other = np.roll(depth, 17, axis=1) * np.float32(1.2)  # another view: shifted and further away
         fill(slam.scratch_pyramid(), SimpleNamespace(depth=other, depth_intrinsics=K))
         assert np.allclose(slam.scratch_pyramid().depth[0].to_numpy(), other)
         if len(poses) == 2:  # tracking has compiled its kernels: verification's ICP adds no instance
             kernels = (slam.icp._kernels(0).k["iterate"], kmaps.pyramid_maps)  # the shared pass
             before = [len(k._primal.compiled_kernels) for k in kernels]
-            slam.icp.align(slam.scratch_pyramid(), slam.current_frame_pyramid(), init=np.eye(4))
+            slam.icp.align(slam.scratch_pyramid(), slam.frame_pyramid, init=np.eye(4))
             assert [len(k._primal.compiled_kernels) for k in kernels] == before
     np.testing.assert_array_equal(np.stack(poses), np.stack(plain))
 

@@ -20,8 +20,8 @@ def add_arguments(parser) -> None:
 def run(ctx) -> dict:
     cfg = ctx.config
     dataset = open_dataset(cfg.dataset, cfg.synth)
-    step = FuseStep(cfg, dataset, views=not ctx.args.no_views)
-    summary = Pipeline(dataset, cfg, ctx.out, step, ctx.backend, show_progress=not ctx.quiet).run()
+    summary = Pipeline(dataset, cfg, ctx.out, FuseStep(cfg, dataset), ctx.backend, show_progress=not ctx.quiet,
+                       outputs={"views": False} if ctx.args.no_views else None).run()
     _print_summary(summary)
     return summary
 

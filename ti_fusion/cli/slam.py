@@ -1,4 +1,5 @@
-"""``ti-fusion slam DATA``: frame-to-model dense SLAM over a sequence (the pipeline with ``SLAMStep``)."""
+"""``ti-fusion slam DATA``: frame-to-model dense SLAM over a sequence (the pipeline with ``SLAMStep``); the
+switches of the optional outputs come from their sinks (``ti_fusion.sinks``)."""
 
 from __future__ import annotations
 
@@ -12,6 +13,8 @@ USES_TAICHI = True
 
 
 def add_arguments(parser) -> None:
+    from ti_fusion.sinks import add_switches
+
     parser.add_argument("--no-relocalise", action="store_true",
                         help="after a tracking failure, do not re-initialise with ORB + PnP features")
     parser.add_argument("--mesh", action="store_true",
@@ -23,10 +26,12 @@ def add_arguments(parser) -> None:
     parser.add_argument("--live", metavar="[HOST:]PORT", default=None,
                         help="serve the run to Foxglove while it runs (Open connection > Foxglove WebSocket, "
                              "ws://HOST:PORT); HOST defaults to 127.0.0.1, PORT 0 picks a free port")
+    add_switches(parser, "slam")  # the optional outputs' own switches, e.g. --splats
 
 
 def run(ctx) -> dict:
     from ti_fusion.io.datasets import open_dataset
+    from ti_fusion.sinks import chosen
     from ti_fusion.slam.pipeline import SLAMPipeline
 
     cfg = ctx.config
@@ -47,7 +52,8 @@ def run(ctx) -> dict:
         ctx.log(f"{name}: {frames} at {d['width']}x{d['height']}")
     live = _live_server(ctx)
     try:
-        summary = SLAMPipeline(dataset, cfg, ctx.out, ctx.backend, show_progress=not ctx.quiet, live=live).run()
+        summary = SLAMPipeline(dataset, cfg, ctx.out, ctx.backend, show_progress=not ctx.quiet, live=live,
+                               outputs=chosen(ctx.args, "slam")).run()
     finally:  # the log closes the server; this covers a run that stops before its log is open
         if live is not None:
             live.close()

@@ -1,24 +1,22 @@
-"""Loop closure around dense SLAM: ``LoopClosure.after_frame`` runs after each ``DenseSLAM.register_frame``.
+"""Loop closure inside dense SLAM: ``DenseSLAM.register_frame`` runs ``LoopClosure.after_frame`` after each frame
+(with ``slam.loop_closure``) and applies what it returns.
 
-    loop = LoopClosure(config, slam)
-    for frame in dataset:
-        result = slam.register_frame(frame)
-        report = loop.after_frame(frame, result)   # None, or what this frame did (keyframe, candidates, loop)
+    loop = LoopClosure(config)
+    report = loop.after_frame(frame, result, maps)   # None, or what this frame did (keyframe, candidates, loop)
+    # the owner then anchors to report.keyframe, and moves poses and map by report.corrections when not None
 
 For a tracked frame that the selector makes a keyframe (``keyframes.py``): its ORB features and depth
-summary are kept, the pose graph gets the keyframe and an odometry edge, the surfel map's anchor becomes
-its id (the surfels fused from then on move with it), and place recognition (``place_recognition.py``)
-proposes earlier keyframes, the candidates, checked best first (``verification.py``) until one is verified.
-A verified loop goes into the pose graph (``pose_graph.py``); if the optimisation keeps it (not an outlier of the
-robust kernel, and within ``loop.max_loop_error`` of the optimised poses), every keyframe k gets its
-world-frame correction C_k = T_k,new · T_k,old⁻¹, and with it every frame pose and every surfel anchored
-to k. Tracking then goes on from the corrected last pose against the corrected map; the motion model is a
-relative motion and needs nothing.
+summary are kept, the pose graph gets the keyframe and an odometry edge, and place recognition
+(``place_recognition.py``) proposes earlier keyframes, the candidates, checked best first (``verification.py``)
+until one is verified. A verified loop goes into the pose graph (``pose_graph.py``); if the optimisation keeps
+it (not an outlier of the robust kernel, and within ``loop.max_loop_error`` of the optimised poses), every
+keyframe k gets its world-frame correction C_k = T_k,new · T_k,old⁻¹, returned in the report for the owner
+to move every frame pose and every surfel anchored to k with. Tracking then goes on from the corrected last
+pose against the corrected map; the motion model is a relative motion and needs nothing.
 
-Loop closure sees SLAM through a narrow door (``DenseSLAM``'s "loop closure's door"): ``keyframe_depth()``,
-``current_frame_pyramid()`` (read only: the target of verification), ``scratch_pyramid()`` (maps it may
-fill between frames: verification builds the earlier keyframe's maps there), ``start_keyframe(k)`` and
-``apply_corrections(C)``, which moves the trajectory (``slam/poses.py``) and the map.
+Loop closure calls nothing of SLAM: the owner hands it, per frame, the frame's maps (``LoopMaps``: the
+frame's pyramid, read only, the target of verification and the keyframe's depth; and maps it may fill
+until the next frame, where verification builds the earlier keyframe's maps), and applies the report.
 """
 
 from __future__ import annotations
@@ -50,8 +48,19 @@ def candidate_gap(config: Config) -> int:
 
 
 @dataclass
+class LoopMaps:
+    """What loop closure needs of the frame just registered: handed over by its owner each frame."""
+
+    frame: object  # FramePyramid: the frame's maps, read only (verification's target, the keyframe's depth)
+    scratch: object  # FramePyramid at the map's resolution that may be filled until the next frame
+    level: int  # the level of ``frame`` at the map's resolution
+
+
+@dataclass
 class LoopReport:
-    """What loop closure did after one frame (only frames that became keyframes have one)."""
+    """What loop closure did after one frame (only frames that became keyframes have one). The owner anchors
+    the frame just registered, the frames after it and the surfels fused from the next frame on to
+    ``keyframe``, then moves every pose and surfel by ``corrections`` when a loop was applied."""
 
     keyframe: int  # the new keyframe's id
     why: str  # "first", "moved", "turned", "overlap"
@@ -59,6 +68,7 @@ class LoopReport:
     applied: tuple[int, int] | None = None  # (earlier keyframe, this keyframe) of a loop applied
     outcome: str = ""  # for a verified candidate: "applied", or why the pose graph refused it
     ms: dict[str, float] = field(default_factory=dict)  # keyframe, detect, verify, optimise, correct
+    corrections: np.ndarray | None = None  # K×4×4 world-frame C_k of each keyframe, on an applied loop
 
     def stats(self) -> dict:
         """The frame's ``loop`` entry in /slam/stats."""
@@ -71,9 +81,8 @@ class LoopReport:
 class LoopClosure:
     """Keyframes, place recognition, verification, the pose graph and the correction of poses and map."""
 
-    def __init__(self, config: Config, slam):
+    def __init__(self, config: Config):
         self.config = config
-        self.slam = slam  # a DenseSLAM, used through its loop-closure door only (see the module's docstring)
         self.selector = KeyframeSelector(config.loop)
         self.gap = candidate_gap(config)
         self.database = PlaceDatabase(dataclasses.replace(config.loop, min_frame_gap=self.gap))
@@ -89,22 +98,24 @@ class LoopClosure:
         self.refused: list[tuple[int, int, str]] = []  # verified loops the pose graph refused, and why
         self.kept: list[tuple[int, int]] = []  # verified loops within loop.min_loop_error of the poses: in the graph,
         # nothing moved
-        self.ms: dict[str, list[float]] = {"detect": [], "verify": [], "optimise": [], "correct": []}
+        self.ms: dict[str, list[float]] = {"detect": [], "verify": [], "optimise": []}
+        self._corrected: list[LoopReport] = []  # the reports of loops applied: their ms["correct"] is whole once
+        # the owner has moved the poses and the map
         self._warmed_up = False  # the kernels that build maps from a stored depth are loaded (``after_frame``)
 
     # -- the verb -------------------------------------------------------------------------------
-    def after_frame(self, frame, result) -> LoopReport | None:
-        """Loop closure's part of one frame, after ``register_frame`` returned ``result`` for it."""
+    def after_frame(self, frame, result, maps: LoopMaps) -> LoopReport | None:
+        """Loop closure's part of one frame, after tracking and fusion gave ``result`` for it."""
         if result.pose is None:
             return None
         if self.config.loop.odometry_from_icp and self.keyframes:
             self._since.append((np.array(result.pose, dtype=np.float64),
                                 frame_covariance(self._information(result), self.config.loop)))
-        if not result.tracked or (why := self.selector.why(self.keyframes[-1] if self.keyframes else None,
+        if not result.tracking.tracked or (why := self.selector.why(self.keyframes[-1] if self.keyframes else None,
                                                            result.pose, frame.index)) is None:
             return None
         watch = Stopwatch()
-        kf = self._make_keyframe(frame, result.pose)
+        kf = self._make_keyframe(frame, result.pose, maps)
         report = LoopReport(kf.id, why)
         report.ms["keyframe"] = watch.lap()
         places = self.database.query(kf)
@@ -118,12 +129,12 @@ class LoopClosure:
             # candidates at all (a short run, a test, the default 120-frame run pays none of it); not counted
             # as detection.
             with Stopwatch(report.ms, "warmup"):
-                fill(self.slam.scratch_pyramid(), kf)
+                fill(maps.scratch, kf)
             self._warmed_up = True
         verified = None
         for place in places:
-            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, self.slam.scratch_pyramid(),
-                                     self.slam.current_frame_pyramid(), target_ready=True)
+            c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, maps.scratch, maps.frame,
+                                     target_ready=True)
             report.candidates.append(c)
             self.candidates.append(c)
             # on by default: a rejected candidate is routine (debug; every candidate is in summary.json)
@@ -147,7 +158,7 @@ class LoopClosure:
         of T = T_wc_new⁻¹ T_wc_last is a right perturbation of the new pose), the photometric term's added where
         it ran (``icp.color_weight``), or None."""
         icp = result.icp
-        if not result.tracked or icp is None or icp.sums is None:
+        if not result.tracking.tracked or icp is None or icp.sums is None:
             return None
         from ti_fusion.kernels.icp import combined_system, unpack_sums
 
@@ -155,8 +166,8 @@ class LoopClosure:
             return combined_system(icp.sums, self.config.icp.color_weight)[0]
         return unpack_sums(icp.sums)["AtA"]
 
-    def _make_keyframe(self, frame, pose: np.ndarray) -> Keyframe:
-        depth, K = self.slam.keyframe_depth()  # at the map's resolution
+    def _make_keyframe(self, frame, pose: np.ndarray, maps: LoopMaps) -> Keyframe:
+        depth, K = maps.frame.depth[maps.level].to_numpy(), maps.frame.intrinsics[maps.level]  # the map's resolution
         features = extract_features(frame, self._vo, self._orb)
         kf = Keyframe(len(self.keyframes), frame.index, frame.timestamp, pose.copy(), features, frame.intrinsics,
                       depth, K, grid_points(depth, K))
@@ -168,7 +179,6 @@ class LoopClosure:
         self.graph.add_keyframe(pose, covariance)
         if self.config.loop.keyframe_pnp and kf.id > 0:
             self._pnp_edge(self.keyframes[-2], kf)
-        self.slam.start_keyframe(kf.id)
         return kf
 
     def _pnp_edge(self, previous: Keyframe, kf: Keyframe) -> None:
@@ -206,13 +216,13 @@ class LoopClosure:
             self.refused.append((i, j, why))
             log.info(f"loop {i}-{j} {report.outcome}")
             return
-        with Stopwatch(report.ms, "correct"):
+        with Stopwatch(report.ms, "correct"):  # the owner adds its moving of the poses and the map
             corrections = np.stack([renormalize(new @ invert(kf.pose)) for new, kf in zip(opt.poses, self.keyframes)])
-            self.slam.apply_corrections(corrections)
             for kf, C in zip(self.keyframes, corrections):  # a keyframe's pose is its frame's: moved the same way
                 kf.pose = renormalize(C @ kf.pose)
             self.graph.set_poses(opt.poses)
-        self.ms["correct"].append(report.ms["correct"])
+        report.corrections = corrections
+        self._corrected.append(report)
         report.applied, report.outcome = (i, j), "applied"
         self.applied.append((i, j))
         moved = float(np.linalg.norm(corrections[-1][:3, 3]))
@@ -234,8 +244,9 @@ class LoopClosure:
 
     def summary(self) -> dict:
         """The counts for summary.json, and what each part cost per call (milliseconds: mean, max)."""
+        ms = {**self.ms, "correct": [r.ms["correct"] for r in self._corrected]}
         cost = {name: {"calls": len(v), "mean": round(float(np.mean(v)), 2), "max": round(float(np.max(v)), 2)}
-                for name, v in self.ms.items() if v}
+                for name, v in ms.items() if v}
         return {"keyframes": len(self.keyframes), "loop_candidates": len(self.candidates),
                 "loops_applied": len(self.applied),
                 "loops": [{"from": i, "to": j, "frames": [self.keyframes[i].frame, self.keyframes[j].frame]}

@@ -2,7 +2,13 @@
 
     slam = DenseSLAM(config, intrinsics)
     for frame in dataset:
-        result = slam.register_frame(frame)      # track against the model, then fuse
+        result = slam.register_frame(frame)      # track against the model, fuse, then loop closure
+
+Loop closure (``slam.loop_closure``, on by default; ``ti_fusion/loop/closure.py``) runs inside
+``register_frame`` after fusion: this class hands it the frame's maps and applies what it reports (the new
+keyframe's anchor, and on an applied loop the corrections of every pose and surfel); loop closure calls
+nothing of this class. ``result.pose`` stays the pose as registered; ``poses.by_frame()`` is the current
+trajectory, which a loop moves.
 
 Which cloud is the ICP source, and why
 --------------------------------------
@@ -67,7 +73,7 @@ from ti_fusion.kernels.pyramid import FramePyramid, grey_image
 from ti_fusion.slam.checks import check_frame
 from ti_fusion.slam.poses import PoseStore
 from ti_fusion.status import Tracking, status_text
-from ti_fusion.timing import StageTimer
+from ti_fusion.timing import StageTimer, Stopwatch
 
 log = logging.getLogger(__name__)
 
@@ -198,6 +204,11 @@ class DenseSLAM:
         self._frames_fused = 0
         self._color_warned = False  # the warning that the photometric term is off for unregistered colour
         self._degeneracy_warned = False  # the warning that depth (and colour) leave directions unconstrained
+        self.loop = None  # loop closure: keyframes, place recognition, verification, the pose graph
+        if config.slam.loop_closure:
+            from ti_fusion.loop.closure import LoopClosure  # GTSAM: imported only when loop closure is on
+
+            self.loop = LoopClosure(config)
 
     def _uses_color(self, frame: Frame) -> bool:
         """Whether this frame is tracked with the photometric term (warns once when the term is asked for
@@ -218,7 +229,30 @@ class DenseSLAM:
 
     # -- the verb -------------------------------------------------------------------------------
     def register_frame(self, frame: Frame) -> FrameResult:
+        """Track ``frame`` against the model, fuse it, then loop closure (``result.loop``: its report on a
+        frame that became a keyframe; a loop applied has moved ``poses`` and the map)."""
         check_usable(self._generation, "DenseSLAM.register_frame")
+        result = self._track_and_fuse(frame)
+        if self.loop is not None:
+            with Stopwatch(result.ms, "loop"):
+                result.loop = self._close_loops(frame, result)
+        return result
+
+    def _close_loops(self, frame: Frame, result: FrameResult):
+        """Loop closure's part of the frame, and what it reports applied here."""
+        from ti_fusion.loop.closure import LoopMaps
+
+        maps = LoopMaps(self.frame_pyramid, self.scratch_pyramid(), self.mapper.frame_level(self.frame_pyramid))
+        report = self.loop.after_frame(frame, result, maps)
+        if report is not None:
+            self.start_keyframe(report.keyframe)
+            if report.corrections is not None:
+                watch = Stopwatch()
+                self.apply_corrections(report.corrections)
+                report.ms["correct"] += watch.ms  # with loop closure's own part of the correction
+        return report
+
+    def _track_and_fuse(self, frame: Frame) -> FrameResult:
         check_frame(self, frame)  # one InputError for a frame this map cannot take (ti_fusion/slam/checks.py)
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
         color = self._uses_color(frame)
@@ -461,16 +495,7 @@ class DenseSLAM:
                 self._residuals.append(float(result.icp.residual_rms))
         self.poses.append(result.pose, result.index)
 
-    # -- loop closure's door: ti_fusion/loop/closure.py uses these and nothing else of this class --------
-    def keyframe_depth(self) -> tuple[np.ndarray, Intrinsics]:
-        """The depth of the frame just registered at the map's resolution, and the camera of that image."""
-        level = self.mapper.frame_level(self.frame_pyramid)
-        return self.frame_pyramid.depth[level].to_numpy(), self.frame_pyramid.intrinsics[level]
-
-    def current_frame_pyramid(self) -> FramePyramid:
-        """The maps of the frame just registered, for reading: the target of loop verification."""
-        return self.frame_pyramid
-
+    # -- what loop closure reports, applied ----------------------------------------------------------
     def scratch_pyramid(self) -> FramePyramid:
         """Maps at the map's resolution that may be filled between frames, until the next
         ``register_frame``: the model prediction's, which the next frame's tracking renders anew. Loop

@@ -1,9 +1,9 @@
 """``ti-fusion fuse``'s step in the pipeline: point-based fusion of each frame at its ground-truth pose.
 
 The classic assignment's fusion experiment: integrate every frame at its ground-truth pose, then report
-the surfel count against the naive count (every valid input point concatenated) and their ratio. Writes
-``map.ply`` (positions, normals, colours), and unless told not to ``map_color.png`` and
-``map_normals.png`` (the map from the first camera pulled back ``fusion.view_back`` metres).
+the surfel count against the naive count (every valid input point concatenated) and their ratio. The map
+sink writes ``map.ply`` (positions, normals, colours), and the views sink, unless told not to,
+``map_color.png`` and ``map_normals.png`` (the map from the first camera pulled back ``fusion.view_back`` metres).
 """
 
 from __future__ import annotations
@@ -18,7 +18,6 @@ from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import json_field, json_object
 from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.mapping.mapper import FusionStats, SurfelMapper
-from ti_fusion.mapping.views import save_views, view_pose
 from ti_fusion.timing import StageTimer
 
 
@@ -56,10 +55,11 @@ class FuseFrame:
     pose: np.ndarray  # the ground-truth camera-to-world pose it was fused at
     fusion: FusionStats
     ms: dict[str, float] = field(default_factory=dict)
+    loop = None  # no loop closure
 
 
 class FuseStep:
-    """Fuses each frame at its ground-truth pose into a surfel map; writes map.ply and the map's views."""
+    """Fuses each frame at its ground-truth pose into a surfel map (``mapper``, which the map and views sinks write)."""
 
     name = "fuse"
     stats_channel = "/fuse/stats"
@@ -68,13 +68,12 @@ class FuseStep:
     warmup_frames = 1  # the first frame compiles the kernels
     estimates_poses = False
 
-    def __init__(self, config: Config, dataset: Dataset, views: bool = True):
+    def __init__(self, config: Config, dataset: Dataset):
         if not dataset.has_ground_truth:
             raise InputError(dataset.root, "this sequence has no ground-truth poses, which fuse needs "
                                            "(ti-fusion slam estimates poses instead)")
         self.config = config
         self.root = dataset.root
-        self.views = views
         K = self.intrinsics = dataset.intrinsics
         # The frame maps that the SLAM loop fuses: averaged down to the map's level on input (by default),
         # the same smoothed depth and normals.
@@ -110,14 +109,14 @@ class FuseStep:
     def current_poses(self) -> dict:
         return {}  # the poses are the dataset's
 
+    def loop_edges(self) -> list:
+        return []
+
     def plot_title(self, run) -> str:
         return f"ti-fusion fuse: {run.dataset.name}"
 
-    def outputs(self, run) -> dict:
+    def summary(self, run) -> dict:
         mapper, results = self.mapper, run.results
-        ply = mapper.export_ply(run.out.file("map.ply"))
-        views = save_views(mapper.map, view_pose(results[0].pose, self.config.fusion.view_back), run.out.path) \
-            if self.views else {}
         surfels = mapper.count
         all_pixels = len(results) * self.intrinsics.width * self.intrinsics.height
         total = {k: sum(getattr(r.fusion, k) for r in results) for k in ("merged", "added", "removed", "covered")}
@@ -129,6 +128,4 @@ class FuseStep:
             "compression_ratio_all_pixels": surfels / all_pixels,
             **total,
             "capacity": mapper.map.capacity,
-            "ply": str(ply),
-            "views": {k: str(v) for k, v in views.items()},
         }

@@ -1,22 +1,16 @@
-"""``ti-fusion slam``'s step in the pipeline: dense SLAM (``DenseSLAM.register_frame``) on each frame, then
-loop closure (``ti_fusion.loop.closure``, with ``slam.loop_closure``), the /slam/stats message, the surfel
-map for /map/points, the loop edges for /loop_closures, and the map's files after the loop."""
+"""``ti-fusion slam``'s step in the pipeline: dense SLAM (``DenseSLAM.register_frame``: tracking, fusion and,
+with ``slam.loop_closure``, loop closure) on each frame; what the sinks read of it: the /slam/stats message,
+the surfel map, the loop edges; and the run's summary fields."""
 
 from __future__ import annotations
-
-import logging
 
 import numpy as np
 
 from ti_fusion.config import Config
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import json_field, json_object
-from ti_fusion.mapping.views import save_views, view_pose
 from ti_fusion.slam.dense import DenseSLAM, FrameResult
 from ti_fusion.status import Tracking
-from ti_fusion.timing import Stopwatch
-
-log = logging.getLogger(__name__)
 
 
 # One entry of loop.candidates (LoopCandidate.record(); a value not measured is left out).
@@ -135,7 +129,7 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
 
 
 class SLAMStep:
-    """Frame-to-model tracking and mapping of each frame; writes map.ply and the map's PNG views."""
+    """Frame-to-model tracking, mapping and loop closure of each frame (``DenseSLAM``)."""
 
     name = "slam"
     stats_channel = "/slam/stats"
@@ -147,16 +141,6 @@ class SLAMStep:
         self.config = config
         self.dataset_name = dataset.name
         self.slam = DenseSLAM(config, dataset.intrinsics)
-        self.loop = None
-        if config.slam.loop_closure:
-            from ti_fusion.loop.closure import LoopClosure  # GTSAM: imported only when loop closure is on
-
-            self.loop = LoopClosure(config, self.slam)
-        self.mesh = None
-        if config.mesh.after_run:  # slam --mesh
-            from ti_fusion.mapping.mesh import RunMesh
-
-            self.mesh = RunMesh(config.mesh)
 
     @property
     def warmup_frames(self) -> int:
@@ -164,29 +148,16 @@ class SLAMStep:
         skipped before the map started come first."""
         return len(self.slam.skipped) + 2
 
+    @property
+    def mapper(self):
+        return self.slam.mapper
+
     def register_frame(self, frame: Frame) -> FrameResult:
-        result = self.slam.register_frame(frame)
-        if self.loop is not None:
-            with Stopwatch(result.ms, "loop"):
-                result.loop = self.loop.after_frame(frame, result)  # on a loop, corrects the trajectory and the map
-        if self.mesh is not None and result.tracked:  # slam --mesh with mesh.method = "depth"
-            self.mesh.integrate(frame, result.pose)
-        return result
+        return self.slam.register_frame(frame)  # on a loop, also corrects the trajectory and the map
 
-    def log_frame(self, log, frame: Frame, result: FrameResult) -> None:
-        """The loop edges so far (at the keyframes' current poses) after a frame that verified candidates."""
-        report = result.loop
-        if report is not None and report.candidates:
-            log.log_loop_edges(frame.timestamp, self.loop.edges())
-
-    def log_end(self, log, t: float) -> None:
-        """slam --mesh: the mesh of the map, made while the log is open so that /map/mesh carries it."""
-        if self.mesh is not None and self.slam.surfels:
-            self.mesh.make(self.slam.mapper, log, t)
-
-    def loop_edges(self) -> list | None:
-        """Every loop candidate checked, as (from, to, applied) world points, for trajectory.png."""
-        return self.loop.edges() if self.loop is not None else None
+    def loop_edges(self) -> list:
+        """Every loop candidate checked, as (from, to, applied) world points (/loop_closures, trajectory.png)."""
+        return self.slam.loop.edges() if self.slam.loop is not None else []
 
     def stats(self, result: FrameResult) -> dict:
         return frame_stats(result, self.slam.surfels)
@@ -200,15 +171,9 @@ class SLAMStep:
     def plot_title(self, run) -> str:
         return f"ti-fusion slam: {self.dataset_name}"
 
-    def outputs(self, run) -> dict:
+    def summary(self, run) -> dict:
         slam = self.slam
-        slam.mapper.export_ply(run.out.file("map.ply"))
         first = next((r for r in run.results if r.pose is not None), None)
-        if first is not None:
-            save_views(slam.mapper, view_pose(first.pose, self.config.fusion.view_back), run.out.path)
-        else:
-            log.warning(f"no frame had depth enough to start the map ({slam.skipped[0][1]} in the first): the map "
-                        "is empty, and there are no views of it")
         lost = [r for r in run.results if r.lost]
         return {
             "surfels": slam.surfels,
@@ -222,12 +187,11 @@ class SLAMStep:
             "map_started_at": None if first is None else first.index,
             "skipped_frames": [{"frame": f, "reason": reason} for f, reason in slam.skipped][:50],
             **self.loop_summary(),
-            **(self.mesh.outputs(run.out) if self.mesh is not None else {}),
         }
 
     def loop_summary(self) -> dict:
         """summary.json's loop closure fields: the counts (0 with slam.loop_closure off), the loops, the
         candidates with their decisions, and the milliseconds per call of each part."""
-        if self.loop is None:
+        if self.slam.loop is None:
             return {"keyframes": 0, "loop_candidates": 0, "loops_applied": 0}
-        return self.loop.summary()
+        return self.slam.loop.summary()

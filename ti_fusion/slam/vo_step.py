@@ -2,9 +2,9 @@
 RANSAC) on each frame, and the accepted frames' depth joined into one coloured cloud.
 
 A rejected frame (too few good matches, too few RANSAC inliers, too large a motion) gets no pose: it is
-logged with the reason and left out of trajectory.tum. Writes ``cloud.ply`` after the loop: every
-``vo.cloud_stride``-th pixel of the accepted frames' depth in world coordinates, joined on a
-``vo.voxel_size`` voxel grid.
+logged with the reason and left out of trajectory.tum. The joined cloud (``cloud``: every ``vo.cloud_stride``-th
+pixel of the accepted frames' depth in world coordinates, on a ``vo.voxel_size`` voxel grid) is what the cloud
+sink writes as ``cloud.ply``.
 """
 
 from __future__ import annotations
@@ -17,7 +17,6 @@ from ti_fusion.config import Config
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import json_field, json_object
-from ti_fusion.io.ply import write_ply
 from ti_fusion.mapping.pointcloud import VoxelCloud, backproject
 from ti_fusion.tracking.features import REASONS, FeatureOdometry, VOResult
 from ti_fusion.timing import Stopwatch
@@ -51,6 +50,11 @@ class VOFrame:
 
     vo: VOResult
     ms: dict[str, float] = field(default_factory=dict)
+    loop = None  # no loop closure
+
+    @property
+    def status(self) -> str:
+        return self.vo.status
 
     @property
     def index(self) -> int:
@@ -74,6 +78,7 @@ class VOStep:
     stages = ("track", "cloud")
     warmup_frames = 0  # OpenCV: nothing to compile
     estimates_poses = True
+    mapper = None  # no surfel map: the joined cloud instead
 
     def __init__(self, config: Config, dataset: Dataset):
         self.config = config.vo
@@ -106,13 +111,14 @@ class VOStep:
     def current_poses(self) -> dict:
         return {}  # a pose does not change after its frame
 
+    def loop_edges(self) -> list:
+        return []
+
     def plot_title(self, run) -> str:
         accepted = sum(r.pose is not None for r in run.results)
         return f"Feature odometry (ORB + PnP RANSAC): {accepted}/{len(run.results)} frames accepted"
 
-    def outputs(self, run) -> dict:
-        xyz, rgb = self.cloud.points()
-        write_ply(run.out.file("cloud.ply"), xyz, None, rgb)
+    def summary(self, run) -> dict:
         done = len(run.results)
         accepted = sum(r.pose is not None for r in run.results)
         track_s = sum(run.timer.samples.get("track", [])) / 1e3
@@ -123,7 +129,6 @@ class VOStep:
             "rejected_frames": self.rejected_frames[:200],
             "first_pose": self.odometry.first_pose_source,  # ground truth (of the first accepted frame) | identity
             "tracking_fps": round(done / track_s, 3) if track_s > 0 else None,
-            "cloud_points": int(len(xyz)),
         }
 
 

@@ -1,0 +1,14 @@
+"""map.ply: the surfel map as a point cloud with normals and colours, and each surfel's confidence and radius
+(``ti-fusion mesh map.ply`` keeps the confirmed ones)."""
+
+from __future__ import annotations
+
+from ti_fusion.sinks.base import Run, Sink
+
+
+class MapSink(Sink):
+    name = "map"
+    commands = ("slam", "fuse")
+
+    def finish(self, run: Run) -> dict:
+        return {"ply": str(run.step.mapper.export_ply(run.out.file("map.ply")))}

@@ -153,3 +153,25 @@ def test_the_terminal_is_told_that_kernels_compile(monkeypatch, capsys):
     frontend.CLOCK.add(frontend.COMPILING_S + 0.5, "new")
     assert "compiling kernels that are not in the kernel cache" in capsys.readouterr().out
     main._kernel_times(quiet=True)
+
+
+def test_a_failed_run_leaves_no_notice_behind(cpu, tmp_path, monkeypatch):
+    """A ti-fusion run that stops with an error resets the clock's notice: later kernels of the process (a
+    user's own code after main()) print nothing."""
+    import importlib
+
+    from ti_fusion import frontend
+    from ti_fusion.cli.main import main
+
+    monkeypatch.setattr(frontend, "offline_cache_files", lambda: ("/tmp/full-cache", 40))
+    announced = []
+    real = importlib.import_module("ti_fusion.cli.main")._announce_compiling
+
+    def announce(quiet):
+        real(quiet)
+        announced.append(frontend.CLOCK.notice)
+
+    monkeypatch.setattr(importlib.import_module("ti_fusion.cli.main"), "_announce_compiling", announce)
+    assert main(["slam", str(tmp_path / "no-such-folder"), "--out", str(tmp_path / "run")]) == 2
+    assert announced and announced[0] is not None  # the notice was set for the run (Taichi had started)
+    assert frontend.CLOCK.notice is None

@@ -246,6 +246,11 @@ def _announce_compiling(quiet: bool) -> None:
                                              flush=True)
 
 
+def _silence_clock() -> None:
+    if "ti_fusion.frontend" in sys.modules:
+        sys.modules["ti_fusion.frontend"].CLOCK.notice = None
+
+
 def _kernel_times(quiet: bool) -> dict:
     """The summary's kernel compile figures, said on the terminal when kernels were compiled."""
     from ti_fusion.frontend import CLOCK
@@ -386,6 +391,7 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
         finally:
             if out is not None:
                 out.release()
+            _silence_clock()  # a run that failed does not leave its notice to the process's later kernels
     except BrokenPipeError:
         # Whoever read our output stopped reading (| head): say nothing more, and let the interpreter's
         # final flush of stdout go nowhere instead of failing again.

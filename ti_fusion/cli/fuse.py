@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from ti_fusion.io.datasets import open_dataset
 from ti_fusion.mapping.mapper import STAGES
+from ti_fusion.sinks import add_switches, chosen
 from ti_fusion.slam.fuse_step import FuseStep
 from ti_fusion.slam.pipeline import Pipeline
 
@@ -15,13 +16,15 @@ USES_TAICHI = True
 
 def add_arguments(parser) -> None:
     parser.add_argument("--no-views", action="store_true", help="skip the PNG views of the map")
+    add_switches(parser, "fuse")  # the optional outputs' own switches (ti_fusion.sinks)
 
 
 def run(ctx) -> dict:
     cfg = ctx.config
     dataset = open_dataset(cfg.dataset, cfg.synth)
+    outputs = {**chosen(ctx.args, "fuse"), **({"views": False} if ctx.args.no_views else {})}
     summary = Pipeline(dataset, cfg, ctx.out, FuseStep(cfg, dataset), ctx.backend, show_progress=not ctx.quiet,
-                       outputs={"views": False} if ctx.args.no_views else None).run()
+                       outputs=outputs).run()
     _print_summary(summary)
     return summary
 

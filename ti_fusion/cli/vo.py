@@ -28,6 +28,7 @@ import cv2
 from ti_fusion.errors import InputError
 from ti_fusion.io.datasets import open_dataset
 from ti_fusion.io.outputs import write_image
+from ti_fusion.sinks import add_switches, chosen
 from ti_fusion.slam.pipeline import Pipeline
 from ti_fusion.slam.vo_step import VOStep
 from ti_fusion.tracking.features import draw_match_panels
@@ -42,12 +43,14 @@ USES_TAICHI = False
 def add_arguments(parser) -> None:
     parser.add_argument("--pair", nargs=2, type=int, metavar=("I", "J"), default=None,
                         help="dataset frame numbers of the pair drawn in matches.png (default: the first two frames)")
+    add_switches(parser, "vo")  # the optional outputs' own switches (ti_fusion.sinks)
 
 
 def run(ctx) -> dict:
     cfg = ctx.config
     dataset = open_dataset(cfg.dataset, cfg.synth)
-    summary = Pipeline(dataset, cfg, ctx.out, VOStep(cfg, dataset), ctx.backend, show_progress=not ctx.quiet).run()
+    summary = Pipeline(dataset, cfg, ctx.out, VOStep(cfg, dataset), ctx.backend, show_progress=not ctx.quiet,
+                       outputs=chosen(ctx.args, "vo")).run()
     summary["pair"] = _write_matches(ctx, dataset)
     _print_summary(summary)
     return summary

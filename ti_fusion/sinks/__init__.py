@@ -20,6 +20,7 @@ SINKS: tuple[str, ...] = (
     "views:ViewsSink",
     "cloud:CloudSink",
     "mesh:MeshSink",
+    "splats:SplatSink",
     "log:LogSink",
 )
 

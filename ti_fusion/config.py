@@ -468,6 +468,14 @@ class SLAMConfig:
         default_factory=lambda: [20, 10, 4])  # dense re-localisation's ICP iterations per level (coarse → fine;
                                      # as many levels as icp.iterations, else icp.iterations)
     relocalise_level_dist_scale: Positive = 3.0  # its d_thr at level l: icp.dist_threshold × this**l
+    slide_ratio: Annotated[float, Range(ge=0, lt=1)] = 0.004  # where the weakest eigenvalue of the motion start's
+                                     # geometric AᵀA is below this fraction of the largest, ICP starts again
+                                     # slide_steps along that direction (0 = never): projective ICP stops in other
+                                     # minima along it (real TUM cabinet keyframes 13.0 → 3.3 cm; docs/TRACKING.md)
+    slide_color_ratio: Annotated[float, Range(gt=0)] = 0.1  # ... unless colour lifts that direction above this
+                                     # fraction of the largest (eᵀ(AᵀA + λ A_cᵀA_c)e / λmax): colour holds it
+    slide_steps: Annotated[list[float], Range(gt=0), Length(ge=1)] = field(
+        default_factory=lambda: [0.04, 0.08, 0.12])  # metres: those starts, each way along the weak direction
     score_gate: Positive = 0.03      # metres: starts that pass the checks are compared by the fraction of the
                                      # prediction within this of the frame at their pose (and its residual)
     min_inlier_ratio: Fraction = 0.15  # below → tracking failure (frame not fused)

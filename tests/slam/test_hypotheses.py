@@ -4,6 +4,8 @@ tracked frame, and the next frame is tried from rest too); a wrong guess tracked
 pose (depth first, then with colour: the photometric basin is narrower), the start that won in the stats.
 Synthetic room at 320×240, a few frames."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -176,3 +178,65 @@ def test_a_long_step_from_the_last_pose_is_judged_against_the_guess_too(cpu):
     assert slam._health(fit, pose, last).startswith("jump of")  # from its start alone
     far = make_pose(np.eye(3), [0.0, 0.4, 0.0])  # 40 cm from the start and 52 cm from the guess
     assert slam._health(fit, far, last, guess).startswith("jump of")
+
+
+def test_an_alignment_stopped_along_a_weak_direction_is_started_again_along_it(cpu):
+    """Projective ICP can stop in another minimum along a direction that depth leaves weak (the real TUM
+    cabinet keyframes: 5-8 cm off along it, every check passed; docs/TRACKING.md). Where the motion start's
+    weakest direction is below slam.slide_ratio, ICP starts again slam.slide_steps along it each way, and a
+    start that fits better by SLIDE_MARGIN wins; the motion model is not marked as beaten by it. Here the
+    motion start's alignment is moved 8 cm along its camera's x axis, made its weakest direction."""
+    from ti_fusion.geometry import renormalize
+
+    outcomes = {}
+    for ratio in (0.0, 0.004):
+        slam, dataset = _slam(frames=5, slide_ratio=ratio)
+        for i in range(4):
+            slam.register_frame(dataset[i])
+        align, calls = slam.icp.align, []
+
+        def stuck(*args, **kwargs):
+            result = align(*args, **kwargs)
+            calls.append(1)
+            if len(calls) == 1:  # the motion start: in a wrong minimum 8 cm along x
+                result.pose = renormalize(se3_exp(np.array([0.0, 0.0, 0.0, 0.08, 0.0, 0.0])) @ result.pose)
+                result.degeneracy = dict(result.degeneracy, weakest={"twist": [0.0, 0.0, 0.0, 1.0, 0.0, 0.0],
+                                                                     "ratio": 1e-3, "joint_ratio": 2e-3})
+            return result
+
+        slam.icp.align = stuck
+        outcomes[ratio] = slam.register_frame(dataset[4])
+        assert outcomes[ratio].tracked
+    off, on = outcomes[0.0], outcomes[0.004]
+    assert off.hypothesis == "motion" and not any(t.startswith("slide") for t in off.tried)
+    assert pose_error(off.pose, dataset[4].gt_pose)[1] > 0.07
+    assert on.hypothesis == "slide" and sum(t.startswith("slide") for t in on.tried) == 6, on.tried
+    assert pose_error(on.pose, dataset[4].gt_pose)[1] < 0.005
+    assert on.tracking.value == "ok" and not slam._guess_beaten
+
+
+CABINET = Path(__file__).resolve().parents[3] / "shared" / "data" / "tum-fr3-cabinet-keyframes"
+
+
+def test_the_real_cabinet_keyframes_do_not_slide(cpu):
+    """The real TUM cabinet keyframes 0-9 (Kinect v1, 0.67 s apart): with the slide starts off, the motion start's
+    alignment stops 5-8 cm off along the weakest direction on frames 5, 6, 8 and 9 and passes every check; with
+    them (the defaults) the worst step error over frames 1-9 is halved (docs/TRACKING.md)."""
+    if not (CABINET / "depth.txt").is_file():
+        pytest.skip(f"real data not found at {CABINET}")
+    worst = {}
+    for ratio in (0.0, Config().slam.slide_ratio):
+        cfg = Config()
+        cfg.dataset.path, cfg.dataset.stop, cfg.slam.slide_ratio = str(CABINET), 10, ratio
+        dataset = open_dataset(cfg.dataset, cfg.synth)
+        slam = DenseSLAM(cfg, dataset.intrinsics)
+        frames = list(dataset)
+        results = [slam.register_frame(f) for f in frames]
+        assert all(r.tracked for r in results)
+        steps = [pose_error(np.linalg.inv(a.pose) @ b.pose, np.linalg.inv(f.gt_pose) @ g.gt_pose)[1]
+                 for a, b, f, g in zip(results, results[1:], frames, frames[1:])]
+        worst[ratio] = (max(steps), sum(r.hypothesis == "slide" for r in results))
+        del slam
+    (before, slid_before), (after, slid_after) = worst.values()
+    assert slid_before == 0 and before > 0.05, worst
+    assert slid_after >= 2 and after < 0.045, worst  # 82 -> 36 mm (frame 6: its best start was 43 mm off)

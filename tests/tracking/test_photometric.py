@@ -112,6 +112,14 @@ def test_combined_system_and_weak_directions():
     assert d["directions"][0]["twist"] == [0, 0, 0, 0, 1, 0] and not d["directions"][0]["color"]
     assert d["directions"][1]["twist"] == [0, 0, 1, 0, 0, 0] and d["directions"][1]["color"]
     assert weak_directions(geo, None, 0.0, 1e-3)["constrained_by_color"] == 0
+    # the weakest direction is reported whether weak or not (the slide starts read it), with colour's lift
+    assert d["weakest"] == {"twist": [0, 0, 0, 0, 1, 0], "ratio": 1e-7, "joint_ratio": 1e-7}
+    mild = np.diag([1.0, 1.0, 1.0, 1.0, 2e-3, 1.0])
+    color = np.zeros((6, 6))
+    color[4, 4] = 0.5
+    d = weak_directions(mild, color, 0.1, 1e-3)
+    assert d["weak"] == 0 and d["weakest"]["twist"] == [0, 0, 0, 0, 1, 0]
+    assert d["weakest"]["ratio"] == pytest.approx(2e-3) and d["weakest"]["joint_ratio"] == pytest.approx(0.052)
 
 
 # -- a textured plane: depth sees 3 of the 6 directions ------------------------------------------------

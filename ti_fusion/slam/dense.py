@@ -86,6 +86,10 @@ IRREGULAR_FLOOR = 0.01
 # Between starts that converged to about the same pose the scores differ by noise: another start replaces the
 # motion model's alignment only when it fits better by more than this.
 SCORE_MARGIN = 0.02
+# A start moved along a weak direction from the motion start's alignment (``slam.slide_ratio``) is the same guess
+# in another minimum of a nearly flat cost: the right one scored 0.006-0.014 above the wrong one on the real TUM
+# cabinet keyframes (docs/TRACKING.md), so it replaces the motion start's alignment by this margin instead.
+SLIDE_MARGIN = 0.005
 # The residual a start is judged against: the median of the last this many tracked frames (doubt is on from the
 # first of them: a wrong minimum that passes every check early in a run corrupts the map for the rest of it;
 # docs/TRACKING.md).
@@ -374,17 +378,38 @@ class DenseSLAM:
         if not any(h.ok for h in tried) and cfg.hypotheses != "motion":
             for start in self._turned(predicted):  # a turn faster than the guess's
                 attempt("turn", start, depth_first=True)
+        if cfg.hypotheses != "motion":
+            for start in self._slid(first, last):  # the other minima along a direction depth leaves weak
+                attempt("slide", start)
         passed = [h for h in tried if h.ok]
         if len(passed) > 1:
             for h in passed:
                 h.score = self.alignment_score(source, h, color)
-        best = max(passed, key=lambda h: h.score + (SCORE_MARGIN if h is first else 0.0)) if passed else \
+        best = max(passed, key=lambda h: h.score + (SCORE_MARGIN if h is first else SCORE_MARGIN - SLIDE_MARGIN
+                                                    if h.name == "slide" else 0.0)) if passed else \
             max(tried, key=lambda h: h.icp.inlier_ratio)
         tracking = Tracking.LOST if not best.ok else \
-            Tracking.OK if best.name in ("motion", "last") else Tracking.RELOCALISED
+            Tracking.OK if best.name in ("motion", "last", "slide") else Tracking.RELOCALISED
         pose = best.pose if best.ok else predicted  # a lost frame reports the guess; it is not fused
         return FrameResult(frame.index, frame.timestamp, pose, tracking, best.failure, icp=best.icp,
                            hypothesis=best.name, tried=[f"{h.name}: {h.status}" for h in tried])
+
+    def _slid(self, base: Hypothesis, last: np.ndarray) -> list[np.ndarray]:
+        """Starts moved from the motion start's alignment ``base`` along the weakest direction of its geometry,
+        where depth leaves that direction weak enough (``slam.slide_ratio``) for projective ICP to stop in
+        another minimum along it, and colour does not constrain it (``slam.slide_color_ratio``; docs/TRACKING.md):
+        ``slam.slide_steps`` metres of its translation each way."""
+        cfg = self.config.slam
+        weakest = (base.icp.degeneracy or {}).get("weakest")
+        if not base.ok or weakest is None or weakest["ratio"] >= cfg.slide_ratio or \
+                weakest["joint_ratio"] >= cfg.slide_color_ratio:
+            return []
+        twist = np.asarray(weakest["twist"])
+        length = np.linalg.norm(twist[3:])
+        if length < 0.5:  # mostly a rotation: not a slide
+            return []
+        return [renormalize(last @ invert(se3_exp(twist * (sign * step / length)) @ base.icp.pose))
+                for step in cfg.slide_steps for sign in (1.0, -1.0)]
 
     def _turned(self, predicted: np.ndarray) -> list[np.ndarray]:
         """Starts that turn TURN_DEG further than the guess ``predicted``: about the axis of its rotation, or
@@ -486,9 +511,10 @@ class DenseSLAM:
             predicted = before @ se3_exp(self._velocity * dt)
             missed = np.linalg.norm(se3_log(renormalize(invert(predicted) @ result.pose)))
             irregular = bool(np.any(self._velocity)) and (  # from rest, a miss says nothing of the speed
-                result.hypothesis != "motion" or missed > max(0.5 * np.linalg.norm(step), IRREGULAR_FLOOR))
+                result.hypothesis not in ("motion", "slide") or
+                missed > max(0.5 * np.linalg.norm(step), IRREGULAR_FLOOR))
             self._velocity = step / dt * (cfg.motion_damping if irregular else 1.0)
-            self._guess_beaten = result.hypothesis != "motion"
+            self._guess_beaten = result.hypothesis not in ("motion", "slide")
         if result.tracked:
             self._last_stamp = timestamp
             if result.icp is not None and np.isfinite(result.icp.residual_rms):

@@ -38,8 +38,9 @@ STATS_SCHEMA = json_object({
     "surfels": json_field("integer", "surfels in the map after this frame"),
     "hypothesis": json_field("string", 'the start of ICP whose alignment was kept: "motion" (the motion model), '
                                        '"last" (the last good pose), "features" (ORB + PnP), "wide" (dense '
-                                       're-localisation) or "turn" (the guess turned further); every frame but the '
-                                       'first'),
+                                       're-localisation), "turn" (the guess turned further) or "slide" (the '
+                                       'motion start\'s alignment moved along a weak direction); every frame but '
+                                       'the first'),
     "hypotheses_tried": json_field("array", "every start tried for the frame, in order, each with its outcome "
                                             '("motion: ok", "last: lost: <reason>", ...)', items={"type": "string"}),
     "ms": json_object({
@@ -182,7 +183,7 @@ class SLAMStep:
             "failed_frames": [{"frame": r.index, "reason": r.status} for r in lost][:50],
             "relocalised": sum(r.tracking is Tracking.RELOCALISED for r in run.results),
             "hypotheses_won": {name: sum(r.hypothesis == name and r.tracked for r in run.results)
-                               for name in ("motion", "last", "features", "wide", "turn")},
+                               for name in ("motion", "last", "features", "wide", "turn", "slide")},
             "frames_with_second_start": sum(len(r.tried) > 1 for r in run.results),
             "map_started_at": None if first is None else first.index,
             "skipped_frames": [{"frame": f, "reason": reason} for f, reason in slam.skipped][:50],

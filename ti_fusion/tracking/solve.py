@@ -57,15 +57,20 @@ def weak_directions(AtA: np.ndarray, color_AtA: np.ndarray | None, color_weight:
 
     Returns {"weak": count, "constrained_by_color": count, "directions": [{"twist": unit 6-vector (ω, v),
     largest component positive, "ratio": λ / λmax of the geometry, "joint_ratio": eᵀ(AᵀA + λ_c A_cᵀA_c)e /
-    λmax, "color": bool}, ...]} (weakest first)."""
+    λmax, "color": bool}, ...] (weakest first), "weakest": {"twist", "ratio", "joint_ratio"} of the weakest
+    direction whether weak or not (None for a system without a positive eigenvalue)}."""
     AtA = np.asarray(AtA, dtype=np.float64)
-    out = {"weak": 0, "constrained_by_color": 0, "directions": []}
+    out = {"weak": 0, "constrained_by_color": 0, "directions": [], "weakest": None}
     if not np.all(np.isfinite(AtA)):
         return out
     lam, vec = np.linalg.eigh(AtA)
     top = lam[-1]
     if not top > 0:
         return out
+    e0 = vec[:, 0] * np.sign(vec[np.argmax(np.abs(vec[:, 0])), 0])
+    joint0 = float(lam[0]) if color_AtA is None else float(e0 @ (AtA + color_weight * color_AtA) @ e0)
+    out["weakest"] = {"twist": [float(x) for x in e0], "ratio": float(max(lam[0], 0.0) / top),
+                      "joint_ratio": float(max(joint0, 0.0) / top)}
     for i in range(6):
         if lam[i] >= weak_ratio * top:
             break

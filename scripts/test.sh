@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
 # Set up .venv (first run only) and run the test suite (Taichi CPU backend; Vulkan too where present).
 #   scripts/test.sh [pytest options]          (-n 0: one process; TI_FUSION_TEST_WORKERS=N: N processes)
+#   scripts/test.sh --fast [pytest options]   the fast tier: every test not marked slow (the end-to-end runs),
+#                                             which still launches every kernel on cpu (docs/CONTRIBUTING.md)
 # The suite runs in one process per core (at most 4), a test file per process at a time: most of its time
 # is Taichi compiling kernels on one thread, so a second process uses the core the first leaves idle.
 set -euo pipefail
@@ -10,4 +12,9 @@ source "$(dirname "$0")/setup_env.sh"
 # what ships.
 export TI_OPT_LEVEL="${TI_OPT_LEVEL:-0}"
 WORKERS="${TI_FUSION_TEST_WORKERS:-$(python -c 'import os; print(min(4, len(os.sched_getaffinity(0))))')}"
-exec python -m pytest -n "$WORKERS" --dist loadfile "$@"
+SELECT=()
+if [ "${1:-}" = "--fast" ]; then
+    shift
+    SELECT=(-m "not slow")
+fi
+exec python -m pytest -n "$WORKERS" --dist loadfile ${SELECT[@]+"${SELECT[@]}"} "$@"

@@ -106,3 +106,13 @@ def script():
         return loaded[name]
 
     return load
+
+
+def pytest_collection_modifyitems(config, items):
+    """The fast tier (``scripts/test.sh --fast``: every test not marked ``slow``) must still launch every
+    kernel, so a kernel test (one on the ``arch`` fixture) is never marked slow."""
+    marked = [item.nodeid for item in items
+              if "arch" in getattr(item, "fixturenames", ()) and item.get_closest_marker("slow") is not None]
+    if marked:
+        raise pytest.UsageError(f"kernel tests (on the arch fixture) are marked slow, which takes them out of the "
+                                f"fast tier: {', '.join(marked)}")

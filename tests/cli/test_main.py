@@ -198,6 +198,7 @@ def test_synth_out_dir_follows_the_same_rules(tmp_path, capsys):
 # --------------------------------------------------------------------------------------------------
 # SIGTERM and SIGHUP: handled as Ctrl-C
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
 def test_sigterm_and_sighup_keep_what_was_done(cpu, tmp_path, capsys, monkeypatch, signum):
     from ti_fusion.io.datasets.synthetic import SyntheticDataset
@@ -273,6 +274,7 @@ def test_an_environment_taichi_cannot_start_in_is_one_line(tmp_path):
 # --------------------------------------------------------------------------------------------------
 # Output errors: one line naming the file
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_a_full_disk_is_one_line_and_leaves_no_truncated_map(cpu, tmp_path, capsys, monkeypatch):
     real_open = open
 

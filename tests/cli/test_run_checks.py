@@ -132,6 +132,7 @@ def sequence(cpu, tmp_path, capsys):
     return make
 
 
+@pytest.mark.slow
 def test_blank_first_frames_are_skipped_and_the_map_starts_after_them(sequence, tmp_path, capsys):
     import cv2
 
@@ -171,6 +172,7 @@ def test_ate_over_part_of_the_frames_says_how_many(sequence, tmp_path, capsys):
 # --------------------------------------------------------------------------------------------------
 # The smaller messages
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_a_one_frame_run_says_why_it_has_no_frame_rate(cpu, tmp_path, capsys):
     assert main(["slam", "--frames", "1", "--downsample", "4", "--out", str(tmp_path / "run")]) == 0
     out = capsys.readouterr().out
@@ -179,6 +181,7 @@ def test_a_one_frame_run_says_why_it_has_no_frame_rate(cpu, tmp_path, capsys):
     assert "(every frame was warm-up)" in out
 
 
+@pytest.mark.slow
 def test_a_tracking_size_too_small_for_icps_pyramid_is_a_warning(cpu, tmp_path, capsys):
     assert main(["slam", "--frames", "1", "--downsample", "7", "--out", str(tmp_path / "run"), "--quiet"]) == 0
     assert _stderr_lines(capsys) == [
@@ -215,6 +218,7 @@ def disk_full_for(monkeypatch):
     return arm
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("argv, name", [
     (["vo", "--frames", "3", "--downsample", "4"], "matches.png"),
     (["vo", "--frames", "3", "--downsample", "4"], "trajectory.png"),

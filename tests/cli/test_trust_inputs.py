@@ -142,6 +142,7 @@ def run_log(tum, tmp_path_factory):
     return out / "log.mcap"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("keep, frames", [(-3000, FRAMES), (0.6, None)])
 def test_a_killed_runs_log_replays_up_to_the_cut_with_a_note(cpu, run_log, tmp_path, capsys, keep, frames):
     data = run_log.read_bytes()

@@ -34,6 +34,7 @@ def reddish_pixels(image_bgr, margin=40):
     return int(((rgb[..., 0] > rgb[..., 1] + margin) & (rgb[..., 0] > rgb[..., 2] + margin)).sum())
 
 
+@pytest.mark.slow
 def test_loop_edges_are_drawn(tmp_path):
     est = circle(drift=0.1)
     edges = [(59, 0, True), (55, 3, True), (40, 10, False),  # rows of the poses

@@ -51,6 +51,7 @@ def cfg(root, **kw) -> DatasetConfig:
     return DatasetConfig(path=str(root), format="folder", depth_scale=1000, intrinsics="262.5,262.5,159.5,119.5", **kw)
 
 
+@pytest.mark.slow
 def test_a_folder_with_a_second_color_camera_is_registered(offset_folder):
     """The colour camera 2.5 cm aside, its own intrinsics: the registrar reprojects its colour into the depth
     camera, within 2 grey levels (median) of the colour seen at the depth camera."""

@@ -99,6 +99,7 @@ def tum_run(tum_sequence, tmp_path_factory):
     return slam(DatasetConfig(path=str(tum_sequence)), tmp_path_factory.mktemp("runs") / "tum")
 
 
+@pytest.mark.slow
 def test_the_tum_pngs_as_a_plain_folder_give_the_same_trajectory(cpu, tum_sequence, tum_run, tmp_path):
     root = tum_to_folder(tum_sequence, tmp_path / "plain", millimetres=False)
     cfg = DatasetConfig(path=str(root), format="folder", depth_scale=5000, intrinsics=",".join(map(str, K)),
@@ -152,6 +153,7 @@ def test_opencv_log_level_comes_back_after_overlapping_readers():
     assert logging.getLogLevel() == before
 
 
+@pytest.mark.slow
 def test_millimetre_folder_from_the_command_line_tracks_as_well(cpu, tum_sequence, tum_run, tmp_path):
     """RealSense-like: millimetres, plain numbers, color/, camera.yaml, ground truth by frame number."""
     root = tum_to_folder(tum_sequence, tmp_path / "realsense", millimetres=True)

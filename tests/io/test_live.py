@@ -175,6 +175,7 @@ def test_a_taken_port_is_one_line(tmp_path, capsys):
     assert "--live nope: expected [HOST:]PORT" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
     """A client subscribed to every channel decodes the run's messages: the same schemas as the file, the
     same bytes at the same log times, and live maps of at most the live bound. The run waits for the
@@ -243,6 +244,7 @@ def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
         assert cloud.pose.HasField("position") and cloud.pose.orientation.w == 1.0
 
 
+@pytest.mark.slow
 def test_no_client_costs_no_map_and_changes_no_log(cpu, tmp_path):
     """With --live and nobody connected, the map is sampled for the file only, and the log holds what a run
     without --live writes."""

@@ -584,6 +584,7 @@ def _run(command: str, out: Path) -> None:
     Pipeline(dataset, cfg, RunDir(command, out), Step(cfg, dataset), backend, show_progress=False).run()
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("command", ["slam", "vo", "fuse"])
 def test_every_stats_message_validates_against_the_declared_schema(cpu, tmp_path, command):
     """Every message of a run (a lost frame included for slam) against its channel's schema, which is the

@@ -372,6 +372,7 @@ def _config() -> Config:
     return cfg
 
 
+@pytest.mark.slow
 def test_pipeline_reads_ahead_with_the_same_results(cpu, tmp_path):
     """Frames read on the loop's thread, on the reader thread and by three reader processes (frames of a
     dataset that pickles, ``reads_in_process``): the same trajectory and map; the summary says how."""

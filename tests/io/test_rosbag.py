@@ -235,6 +235,7 @@ def tum_run(tum_sequence, tmp_path_factory):
     return slam(DatasetConfig(path=str(tum_sequence)), tmp_path_factory.mktemp("runs") / "tum")
 
 
+@pytest.mark.slow
 def test_a_32fc1_bag_gives_the_tum_runs_trajectory(cpu, synthetic_shots, tum_run, tmp_path):
     """Depth in metres as 32FC1 (the TUM loader's float32 values), intrinsics from CameraInfo, ground truth
     from a PoseStamped topic: the same trajectory, with the header stamps as its times."""
@@ -251,6 +252,7 @@ def test_a_32fc1_bag_gives_the_tum_runs_trajectory(cpu, synthetic_shots, tum_run
     assert run["ate_rmse_m"] == pytest.approx(tum_run["ate_rmse_m"], abs=1e-6)
 
 
+@pytest.mark.slow
 def test_a_16uc1_mcap_file_with_lagging_bgr_color_from_the_command_line(cpu, synthetic_shots, tum_run, tmp_path):
     """Millimetres (REP 118), a bare .mcap file, colour 8 ms behind depth, ground truth from Odometry."""
     bag = write_bag(tmp_path / "bag", synthetic_shots, depth_encoding="16UC1", color_encoding="bgr8",
@@ -453,6 +455,7 @@ def test_what_is_not_a_bag_is_one_line(tmp_path):
         open_dataset(small_cfg(tmp_path / "empty.mcap"))
 
 
+@pytest.mark.slow
 def test_a_run_log_with_every_depth_image_replays(cpu, tmp_path):
     """ti-fusion's own log.mcap (log.depth_every = 1) replays as a sequence: the run's frames, times,
     intrinsics and ground truth; depth in whole millimetres, so the same accuracy within a millimetre."""
@@ -539,6 +542,7 @@ def test_selection_and_downsampling_apply(tmp_path, rng):
 REALSENSE_BAG = Path(__file__).resolve().parents[3] / "shared/data/realsense-d435-2frames/single_depth_color_640x480.bag"
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("compressed", [False, True])
 def test_the_synthetic_sequence_as_a_ros1_bag_tracks_as_its_tum_copy(cpu, synthetic_shots, tum_run, tmp_path,
                                                                     compressed):

@@ -431,6 +431,7 @@ def _instances(kernel) -> int:
     return len(kernel._primal.compiled_kernels)
 
 
+@pytest.mark.slow
 def test_every_level_shares_one_kernel_instance(cpu, rng):
     """The levels of a pyramid are rows of one field per quantity, so a new FramePyramid adds one instance
     of the kernel that builds the pyramid and the vertex/normal maps of all of its levels (in one launch),

@@ -11,6 +11,7 @@ pixels (filling it too doubled the synthetic room's ATE).
 """
 
 import numpy as np
+import pytest
 
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import FusionConfig, PyramidConfig
@@ -49,6 +50,7 @@ def walk() -> tuple[np.ndarray, list[np.ndarray]]:
     return np.array(covered), level0
 
 
+@pytest.mark.slow
 def test_coarse_levels_stay_dense_walking_forward(cpu, monkeypatch):
     filled, level0 = walk()
     assert filled[:, 1:].min() > 0.95, filled

@@ -670,6 +670,7 @@ def plane_frame(tilt=0.002):
     return pyramid, depth
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("confidence", [False, True])
 def test_same_frame_twice_adds_nothing(cpu, rng, confidence):
     pyramid, _ = plane_frame()
@@ -698,6 +699,7 @@ def test_auto_map_level_and_smoothing_follow_the_width():
     assert RAW.smooth_radius(640) == 0
 
 
+@pytest.mark.slow
 def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
     """fusion.level = 1: the surfels are level 1's vertices (colour subsampled alike), not level 0's."""
     _, u = np.mgrid[0:H, 0:W]
@@ -956,12 +958,14 @@ def _run_fuse(tmp_path, *args):
     return summary
 
 
+@pytest.mark.slow
 def test_fuse_command_on_the_synthetic_default(cpu, tmp_path):
     pytest.importorskip("ti_fusion.io.datasets.synthetic")
     summary = _run_fuse(tmp_path, "--frames", "4", "--downsample", "4")
     assert summary["frames"] == 4 and summary["naive_points"] > 4 * 160 * 120 * 0.5
 
 
+@pytest.mark.slow
 def test_fuse_command_on_redkitchen(cpu, tmp_path, redkitchen):
     summary = _run_fuse(tmp_path, str(redkitchen), "--frames", "3", "--stride", "5", "--downsample", "4")
     assert summary["frames"] == 3 and summary["compression_ratio"] < 0.8
@@ -986,6 +990,7 @@ def _benchmark_step(rng):
     return cfg, before, pyramid, depth, rgb, seq, frame, stats, mapper
 
 
+@pytest.mark.slow
 def test_numpy_step_of_fusion_benchmark_matches_kernels(cpu, rng):
     """NumpyFusion, the baseline of bench_fusion's 20× ratio, does the kernels' step: the same surfels
     merged, appended and removed, in the same places of the map."""
@@ -998,6 +1003,7 @@ def test_numpy_step_of_fusion_benchmark_matches_kernels(cpu, rng):
     assert fusion_numpy.matching_rows(got, mapper.to_numpy()) > 0.999
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(__import__("shutil").which("cc") is None, reason="no C compiler")
 @pytest.mark.parametrize("march", ["x86-64", "native"])
 def test_c_step_of_ceiling_benchmark_matches_kernels(cpu, rng, tmp_path, march, script):

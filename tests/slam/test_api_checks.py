@@ -58,6 +58,7 @@ def _refused(slam, frame, message: str) -> str:
 # --------------------------------------------------------------------------------------------------
 # Class 2: another camera, another size
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_a_frame_of_another_camera_or_size_is_refused_at_register_frame(cpu, frames):
     slam = _slam()
     other = dataclasses.replace(K, fx=200.0, fy=200.0)
@@ -98,6 +99,7 @@ def test_depth_in_metres_given_a_millimetre_scale_is_refused_at_the_first_frame(
 # --------------------------------------------------------------------------------------------------
 # Classes 7 and 9: timestamps
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_timestamps_must_be_finite_and_increasing(cpu, frames):
     """Each refused frame leaves the run as it was (one run for the three: a DenseSLAM compiles its kernels)."""
     slam = _slam()
@@ -150,6 +152,7 @@ def test_a_late_refusal_keeps_the_outputs_of_the_frames_done(cpu, frames, tmp_pa
         assert (out / name).is_file(), name
 
 
+@pytest.mark.slow
 def test_a_pipeline_runs_once(cpu, frames, tmp_path):
     from ti_fusion.io.outputs import RunDir
     from ti_fusion.slam.pipeline import SLAMPipeline

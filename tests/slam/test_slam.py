@@ -27,6 +27,7 @@ def _config(noise: bool = True) -> Config:
     return cfg
 
 
+@pytest.mark.slow
 def test_slam_command_on_synthetic_default(cpu, tmp_path):
     out = tmp_path / "run"
     assert main(["slam", "--frames", str(FRAMES), "--downsample", "2", "--out", str(out), "--quiet"]) == 0
@@ -158,6 +159,7 @@ def test_bad_input_in_a_frame_keeps_the_frames_before(cpu, tmp_path):
     assert log.complete and len(log.stats) == 5 and log.channels["/map/points"].count == 1
 
 
+@pytest.mark.slow
 def test_fuse_runs_in_the_same_pipeline(cpu, tmp_path):
     """fuse (at ground-truth poses) gets the pipeline's log and trajectory too, and stops at the first
     frame without a ground-truth pose, keeping the frames before it."""
@@ -231,6 +233,7 @@ class Jump(BlankFrame):
         return self.dataset[i if i < self.at else i + self.skip]
 
 
+@pytest.mark.slow
 def test_feature_relocalisation_after_a_jump(cpu, tmp_path):
     """A 20-frame gap (about 20 cm and 10 degrees) under a health check that allows at most 5 cm against
     the motion model: tracking from the motion model is refused, ORB + PnP against the last good frame
@@ -246,6 +249,7 @@ def test_feature_relocalisation_after_a_jump(cpu, tmp_path):
     assert summary["ate_rmse_m"] < 0.01
 
 
+@pytest.mark.slow
 def test_map_at_half_resolution_tracks(cpu, tmp_path):
     """fusion.level = 1 (the default's choice for 640×480 input): the frame is averaged down to half its
     resolution, and the model is rendered and tracked there."""

@@ -108,6 +108,7 @@ def _depth_only_frames(n: int):
     return cfg, synthetic, [synthetic[i] for i in range(n)]
 
 
+@pytest.mark.slow
 def test_frame_by_frame_and_as_a_frame_list_give_the_command_lines_trajectory(cpu, tmp_path):
     from ti_fusion.backend import current_backend
     from ti_fusion.io.outputs import RunDir
@@ -148,6 +149,7 @@ def test_frame_by_frame_and_as_a_frame_list_give_the_command_lines_trajectory(cp
     assert summary["dataset"]["name"] == "my-robot"
 
 
+@pytest.mark.slow
 def test_the_example_script_runs(cpu, tmp_path, script, capsys):
     result = script("example_stream").main(["--frames", "10", "--out", str(tmp_path / "out")])
     assert result["frames"] == 10 and result["position_rms_m"] < 0.01
@@ -156,6 +158,7 @@ def test_the_example_script_runs(cpu, tmp_path, script, capsys):
     assert "position error RMS" in capsys.readouterr().out
 
 
+@pytest.mark.slow
 def test_the_documented_snippet_runs_as_written(cpu, tmp_path, monkeypatch, capsys):
     """docs/DATA.md's "From Python" example, run as a user would paste it."""
     blocks = re.findall(r"```python\n(.*?)```", DOCS.read_text(), flags=re.S)

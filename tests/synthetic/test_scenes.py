@@ -41,6 +41,7 @@ def paths():
     return {name: spec.path(spec.times(spec.frames)) for name, spec in SCENES.items()}
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("name", NEW)
 def test_scene_renders_valid_textured_depth_on_its_surfaces(cpu, name):
     seq = SyntheticSequence(replace(TINY, scene=name))
@@ -209,6 +210,7 @@ BAD_TRAJECTORIES = {
 }
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", sorted(BAD_TRAJECTORIES))
 def test_bad_trajectory_file_is_one_line(cpu, tmp_path, capsys, case):
     from ti_fusion.cli.main import main
@@ -230,6 +232,7 @@ def test_bad_trajectory_file_is_one_line(cpu, tmp_path, capsys, case):
         assert len(err) == 1 and str(path) in err[0] and problem in err[0], err
 
 
+@pytest.mark.slow
 def test_synth_command_scene_and_trajectory(cpu, tmp_path, capsys):
     from ti_fusion.cli.main import main
     from ti_fusion.io.trajectory import read_tum

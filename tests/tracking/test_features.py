@@ -355,6 +355,7 @@ def test_vo_command_keeps_the_trajectory_and_log_when_interrupted(synth, tmp_pat
 # --------------------------------------------------------------------------------------------------
 # As the ICP initialiser
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_feature_initialised_icp_recovers_a_large_motion(synth):
     """≈ 20° and 30 cm between two noise-free frames: ICP from the identity fails, from ORB + PnP it converges."""
     from ti_fusion.config import ICPConfig, PyramidConfig
@@ -404,6 +405,7 @@ def test_vo_command_on_the_synthetic_default(synth, tmp_path):
     assert s["frames"] == 6 and s["accepted"] == 6 and s["ate_rmse_m"] < 0.01
 
 
+@pytest.mark.slow
 def test_icp_command_with_feature_initialisation(synth, tmp_path):
     from ti_fusion.cli.main import main
 

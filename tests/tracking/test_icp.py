@@ -360,6 +360,7 @@ def test_synthetic_motion_recovered_without_noise(arch, rng, sequence):
     assert losses[-1] < 1e-6 and result.inlier_ratio > 0.8
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("robust", ["none", "huber", "tukey", "huber+depth"])
 def test_synthetic_motion_recovered_with_noise(cpu, rng, sequence, robust):
     robust, _, depth = robust.partition("+")
@@ -513,6 +514,7 @@ def test_solve_in_kernel_hands_over_to_numpy(cpu, rng, sequence, monkeypatch, re
     assert_same_run(handed_over, _align_in_python(cfg, src, tgt))
 
 
+@pytest.mark.slow
 def test_iterate_refuses_more_iterations_than_records(cpu, rng, sequence):
     src, tgt, G = synthetic_pair(sequence, rng, noise=False)
     kernels = ICP(ICPConfig())._kernels(src.width * src.height)
@@ -544,6 +546,7 @@ def test_a_longer_schedule_grows_the_state_to_at_least_twice(arch, rng, sequence
         [(r.level, r.iteration) for r in _align_in_python(long, src, tgt).iterations]
 
 
+@pytest.mark.slow
 def test_single_plane_is_degenerate(cpu):
     K = Intrinsics(262.5, 262.5, 159.5, 119.5, 320, 240)
     v, u = np.mgrid[0:K.height, 0:K.width]
@@ -581,6 +584,7 @@ def test_all_invalid_depth_is_a_failure_not_an_exception(cpu, sequence):
 REAL_PAIRS = [(10, 20), (40, 50)]
 
 
+@pytest.mark.slow
 @pytest.mark.realdata
 @pytest.mark.parametrize("source, target", REAL_PAIRS)
 def test_redkitchen_pair_from_identity(cpu, redkitchen, source, target):
@@ -598,6 +602,7 @@ def test_redkitchen_pair_from_identity(cpu, redkitchen, source, target):
 
 
 # -- the command -------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_icp_command_on_the_synthetic_sequence(cpu, tmp_path, capsys):
     import json
 
@@ -630,6 +635,7 @@ def test_a_non_rigid_initial_pose_is_refused():
         ICP().align(Maps, Maps, init=np.diag([2.0, 1.0, 1.0, 1.0]))
 
 
+@pytest.mark.slow
 def test_align_compiles_one_iterate_instance_for_every_level(cpu, sequence):
     """The pyramid levels are rows of one field per quantity (``kernels/pyramid.py``), so aligning a new pair
     of maps over three levels adds one instance of the ``iterate`` kernel, not one per level (here a frame

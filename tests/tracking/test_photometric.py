@@ -156,6 +156,7 @@ def plane_pair(cpu):
     return source, target, G
 
 
+@pytest.mark.slow
 def test_color_tracks_what_depth_cannot_see(plane_pair):
     source, target, G = plane_pair
     cfg = ICPConfig(iterations=[10, 10], color_weight=0.0)
@@ -184,6 +185,7 @@ def test_joint_solve_in_kernel_matches_numpy(plane_pair, monkeypatch):
 
 
 # -- in the SLAM loop ------------------------------------------------------------------------------------
+@pytest.mark.slow
 @pytest.mark.parametrize("weight", [None, 0.02])
 def test_dense_slam_uses_color_only_where_registered(cpu, caplog, weight):
     """Frames with registered colour are tracked with the joint cost (colour residuals, degeneracy

@@ -110,9 +110,13 @@ def script():
 
 def pytest_collection_modifyitems(config, items):
     """The fast tier (``scripts/test.sh --fast``: every test not marked ``slow``) must still launch every
-    kernel, so a kernel test (one on the ``arch`` fixture) is never marked slow."""
-    marked = [item.nodeid for item in items
-              if "arch" in getattr(item, "fixturenames", ()) and item.get_closest_marker("slow") is not None]
+    kernel, so every kernel test (one on the ``arch`` fixture or an ``arch_...`` one) keeps a case unmarked:
+    a parametrised one may mark its other cases slow, never all of them."""
+    cases: dict[str, list[bool]] = {}
+    for item in items:
+        if any(name == "arch" or name.startswith("arch_") for name in getattr(item, "fixturenames", ())):
+            cases.setdefault(item.nodeid.split("[")[0], []).append(item.get_closest_marker("slow") is not None)
+    marked = [test for test, slow in cases.items() if all(slow)]
     if marked:
-        raise pytest.UsageError(f"kernel tests (on the arch fixture) are marked slow, which takes them out of the "
-                                f"fast tier: {', '.join(marked)}")
+        raise pytest.UsageError(f"every case of these kernel tests (on the arch fixture) is marked slow, which "
+                                f"takes them out of the fast tier: {', '.join(marked)}")

@@ -5,6 +5,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 
 
@@ -38,6 +40,7 @@ def test_bench_launch_prints_a_row_per_argument_kind():
 CABINET = Path(__file__).resolve().parents[2] / "shared" / "data" / "tum-fr3-cabinet-keyframes"
 
 
+@pytest.mark.slow
 def test_bench_real_prints_its_tables_on_real_keyframes():
     if not (CABINET / "depth.txt").is_file():
         import pytest

@@ -322,6 +322,7 @@ def test_numbered_pngs_without_evidence_are_refused(tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+@pytest.mark.slow
 def test_the_format_line_warnings_and_summary_say_what_was_read(cpu, tmp_path, capsys):
     seq = tmp_path / "seq"
     assert main(["synth", str(seq), "--frames", "4", "--width", "160", "--quiet"]) == 0

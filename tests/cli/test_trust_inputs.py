@@ -287,6 +287,7 @@ def test_a_ground_truth_file_that_is_missing_is_exit_2(tum, tmp_path, capsys):
     assert _stderr_lines(capsys) == [f"ti-fusion slam: error: {tmp_path / 'gt.tum'}: trajectory file not found"]
 
 
+@pytest.mark.slow
 def test_a_dataset_path_that_is_not_utf8(cpu, tum, tmp_path, capsys):
     """A folder name with a byte that is not UTF-8 (Python keeps it as a lone surrogate): the log's metadata
     and the plot's title write it escaped, instead of a UnicodeEncodeError traceback."""

@@ -115,6 +115,7 @@ def test_the_tum_pngs_as_a_plain_folder_give_the_same_trajectory(cpu, tum_sequen
     assert run["ate_rmse_m"] == pytest.approx(tum_run["ate_rmse_m"], abs=1e-6)
 
 
+@pytest.mark.slow
 def test_three_reader_processes_give_the_same_run(cpu, tum_sequence, tum_run, tmp_path):
     """Image files read by three processes at once (``dataset.read_workers``): the frames come in order, so
     the trajectory is the default run's, bit for bit."""

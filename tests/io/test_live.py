@@ -451,6 +451,7 @@ def test_channels_logged_at_the_end_reach_a_client_that_subscribed_at_once(tmp_p
         assert client.received(topic) and all(in_file[topic][ns] == data for ns, data in client.received(topic)), topic
 
 
+@pytest.mark.slow
 def test_every_interface_warns_and_gives_urls_a_client_can_use(cpu, tmp_path, capsys):
     """--live 0.0.0.0:PORT serves the network: the run warns, and prints URLs a client can use (this
     machine's addresses), not ws://0.0.0.0."""

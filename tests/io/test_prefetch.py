@@ -312,6 +312,7 @@ def test_reader_processes_from_a_script_without_a_main_guard(tmp_path, how):
     assert done.stdout.splitlines()[-1] == "done 60" and done.stdout.count("ready") == 1
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP], ids=["SIGINT", "SIGTERM", "SIGHUP"])
 def test_a_signal_to_the_whole_process_group_leaves_no_reader_behind(tmp_path, signum):
     """Ctrl-C in a terminal signals every process of the group, readers included: they ignore it, the
@@ -402,6 +403,7 @@ def test_pipeline_reads_ahead_with_the_same_results(cpu, tmp_path):
     assert not _readers() and _children() <= children
 
 
+@pytest.mark.slow
 def test_pipeline_keeps_the_frames_before_a_bad_one(cpu, tmp_path):
     cfg = _config()
     run = RunDir("slam", tmp_path / "run")

@@ -573,6 +573,7 @@ def offset_color_shots(shots: list[Shot], scene: str = "room") -> list[Shot]:
     return [Shot(s.t, s.depth, seq.render_offset_color(s.pose, T_OFFSET, K_COLOR), s.pose) for s in shots]
 
 
+@pytest.mark.slow
 def test_unregistered_color_with_its_extrinsics_tracks_as_registered_color(cpu, synthetic_shots, tum_sequence,
                                                                               tmp_path):
     """The synthetic sequence as a ROS 1 bag, millimetres, its colour from a camera 2.5 cm aside (its own
@@ -591,6 +592,7 @@ def test_unregistered_color_with_its_extrinsics_tracks_as_registered_color(cpu, 
     assert run["tracking_failures"] == 0 and abs(run["ate_rmse_m"] - tum["ate_rmse_m"]) < 1e-3
 
 
+@pytest.mark.slow
 def test_compressed_depth_on_ros2_tracks_as_the_raw_images(cpu, synthetic_shots, tmp_path):
     """compressedDepth 16UC1 is lossless: the same trajectory as the raw 16UC1 images, JPEG colour and all
     (depth-only tracking: JPEG's lossy colour would move the photometric term's result)."""

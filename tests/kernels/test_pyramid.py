@@ -190,7 +190,8 @@ def test_smoothing_and_pyramid_keep_a_ramp_up_to_the_border(arch):
     np.testing.assert_allclose(pyramid.depth[2].to_numpy(), depth[::4, ::4], rtol=1e-6)
 
 
-@pytest.mark.parametrize("radius, shape", [(1, (60, 80)), (2, (60, 80)), (6, (61, 83)), (12, (37, 85))])
+@pytest.mark.parametrize("radius, shape", [pytest.param(1, (60, 80), marks=pytest.mark.slow), pytest.param(2, (60, 80), marks=pytest.mark.slow),
+                                           (6, (61, 83)), (12, (37, 85))])
 def test_smoothing_matches_reference(arch_loops, rng, radius, shape):
     """Also widths that are no multiple of the 8-pixel packs, and radii whose window spans several packs."""
     depth = random_depth(rng, shape)
@@ -225,7 +226,7 @@ def test_pyramid_matches_reference(arch_loops, rng):
         np.testing.assert_allclose(pyramid.normal[level].to_numpy(), ref_n, atol=2e-5)
 
 
-@pytest.mark.parametrize("input_level, radius", [(1, 0), (1, 2), (2, 1)])
+@pytest.mark.parametrize("input_level, radius", [(1, 0), pytest.param(1, 2, marks=pytest.mark.slow), pytest.param(2, 1, marks=pytest.mark.slow)])
 def test_input_level_averages_down_first(arch_loops, rng, input_level, radius):
     """FramePyramid(input_level=L): level 0 is the input averaged down L times (then smoothed), the same
     maps as level L of full-resolution maps built without smoothing."""
@@ -310,13 +311,13 @@ def test_intensity_pyramid_and_gradients_match_reference(arch_loops, rng):
     check_intensity_pyramid(rng, input_level=1)
 
 
-@pytest.mark.parametrize("input_level", [0, 2])
+@pytest.mark.parametrize("input_level", [0, pytest.param(2, marks=pytest.mark.slow)])
 def test_intensity_pyramid_of_other_input_levels(arch, rng, input_level):
     """The grey image uploaded as level 0 (input_level 0), or averaged down twice before ``intensity_maps``."""
     check_intensity_pyramid(rng, input_level)
 
 
-@pytest.mark.parametrize("input_level, radius", [(1, 2), (0, 0)])
+@pytest.mark.parametrize("input_level, radius", [(1, 2), pytest.param(0, 0, marks=pytest.mark.slow)])
 def test_depth_and_grey_together(arch, rng, input_level, radius):
     """``compute(depth, K, grey)``: at input level 1 with smoothing one launch (``input_maps`` with the
     intensity loops), elsewhere one call after the other; the maps and the intensity pyramid as from
@@ -334,7 +335,7 @@ def test_depth_and_grey_together(arch, rng, input_level, radius):
         used.pyramid.compute(depth, K_in, used.image[:-1])
 
 
-@pytest.mark.parametrize("input_level, radius, level", [(1, 2, 1), (2, 1, 0)])
+@pytest.mark.parametrize("input_level, radius, level", [pytest.param(1, 2, 1, marks=pytest.mark.slow), (2, 1, 0)])
 def test_colour_packed_with_the_depth(arch, rng, monkeypatch, input_level, radius, level):
     """``compute(depth, K, grey, color, color_level)``: the uint8 RGB input packed r | g << 8 | b << 16 at
     every 2**(input level + level)-th pixel (the fusion step's colour), in ``input_maps``' launch at input

@@ -44,6 +44,7 @@ def test_corrections_move_each_pose_with_its_keyframe():
     assert store.pose_of(10)[0, 3] == 0.0 and store.pose_of(15) is None
 
 
+@pytest.mark.slow
 def test_a_correction_reaches_the_poses_results_and_map(cpu):
     """What DenseSLAM does with loop closure's report: start_keyframe anchors the poses and the surfels fused
     after it; apply_corrections moves the trajectory (DenseSLAM.poses), the pose re-localisation starts from and the surfels; the
@@ -151,6 +152,7 @@ def run(tmp_path_factory):
     return SimpleNamespace(summary=summary, out=out, pipeline=pipeline)
 
 
+@pytest.mark.slow
 def test_the_return_is_closed_onto_the_start(run):
     s = run.summary
     assert s["keyframes"] >= 4

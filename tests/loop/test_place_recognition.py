@@ -85,6 +85,7 @@ def verifier():
     return LoopVerifier(cfg), FramePyramid(cfg.pyramid, HEIGHT, WIDTH, 1), FramePyramid(cfg.pyramid, HEIGHT, WIDTH, 1)
 
 
+@pytest.mark.slow
 def test_verification_accepts_the_same_place_with_its_relative_pose(views, verifier):
     ver, source, target = verifier
     (pose_a, first), (pose_b, again) = views["first"], views["again"]

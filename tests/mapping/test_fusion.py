@@ -334,7 +334,7 @@ def test_compatible_association(arch, rng):
     assert (want >= 0).sum() > (nearest >= 0).sum()  # a compatible surfel behind the nearest one now merges
 
 
-@pytest.mark.parametrize("confidence", [False, True, "radial+depth"])
+@pytest.mark.parametrize("confidence", [pytest.param(False, marks=pytest.mark.slow), True, "radial+depth"])
 def test_merge_and_add(arch, rng, confidence):
     pose, vertex, normal, depth, color, data, smap = setup(rng)
     fv, fn, _ = frame_fields(vertex, normal, depth)
@@ -392,7 +392,7 @@ def ref_covered(assoc, data, vertex, normal, pose):
     return covered, ambiguous & ~covered
 
 
-@pytest.mark.parametrize("fused", [False, True])
+@pytest.mark.parametrize("fused", [pytest.param(False, marks=pytest.mark.slow), True])
 def test_covered_pixels_add_nothing(arch, rng, fused):
     """A slanted, partly noisy plane with surfels at a third of its pixels: the other pixels are covered
     (neither merged nor added) exactly where a neighbour's merged disc holds their point."""
@@ -727,7 +727,7 @@ def test_level_1_fuses_the_half_resolution_maps(cpu, rng):
     assert_close(again.to_numpy()["position"], fused["position"], 1e-6)
 
 
-@pytest.mark.parametrize("input_level, radius", [(1, 2), (0, 0)])
+@pytest.mark.parametrize("input_level, radius", [pytest.param(1, 2, marks=pytest.mark.slow), (0, 0)])
 def test_colour_packed_by_the_frame_fuses_as_colour_packed_by_the_mapper(cpu, rng, input_level, radius):
     """The SLAM packs a frame's colour with its depth (``FramePyramid.compute(..., color)``, one wait for
     the device fewer per frame off the CPU): two frames fused that way, the second merging into the
@@ -802,6 +802,7 @@ def test_model_maps_clear_the_holes_in_their_own_launch(arch, rng):
         small.compute_from_field(K.downsampled(2), level0_maps=False, clear_holes_of=mapper.map.prediction_images(H, W))
 
 
+@pytest.mark.slow
 def test_capacity_grows(cpu, rng):
     pyramid, _ = plane_frame()
     mapper = SurfelMapper(FusionConfig(capacity=100, grow=True, remove_unstable=False))
@@ -843,6 +844,7 @@ def test_capacity_error_names_the_setting(cpu):
     assert mapper.count == 0 and mapper.map.capacity == 1000  # nothing half-written
 
 
+@pytest.mark.slow
 def test_remove_unstable_in_pipeline(cpu):
     pyramid, _ = plane_frame()
     cfg = FusionConfig(capacity=20_000, confidence_weighting=False, unstable_weight=1.5, unstable_age=3)
@@ -903,6 +905,7 @@ def fuse_synthetic(noise, frames, stride=3):
     return seq, mapper, first
 
 
+@pytest.mark.slow
 def test_noise_free_fusion_lies_on_the_surfaces(cpu):
     seq, mapper, _ = fuse_synthetic(noise=False, frames=12)
     p = mapper.to_numpy()["position"].astype(np.float64)
@@ -912,6 +915,7 @@ def test_noise_free_fusion_lies_on_the_surfaces(cpu):
     assert np.percentile(dist, 99) < 0.002 and dist.max() < 0.006, (np.percentile(dist, 99), dist.max())
 
 
+@pytest.mark.slow
 def test_fusion_reduces_noise(cpu):
     """Surfels that averaged several measurements are closer to the truth than the first frame's raw
     points at the same places (each surfel paired with the raw point of the pixel it projects to)."""

@@ -70,6 +70,7 @@ def test_a_frame_of_another_camera_or_size_is_refused_at_register_frame(cpu, fra
     assert slam.register_frame(frames[0]).status == "init"  # the refusals left no trace
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("change, message", [
     (dict(cx=5000.0, cy=-300.0), r"DenseSLAM intrinsics: principal point \(5000, -300\) is outside the 160x120 image"),
     (dict(fx=1e-6, fy=1e-6), r"DenseSLAM intrinsics: fx 1e-06, fy 1e-06 give a 180° x 180° field of view at "
@@ -137,6 +138,7 @@ class _LateNaN:
         return dataclasses.replace(frame, timestamp=float("nan")) if i == self.bad else frame
 
 
+@pytest.mark.slow
 def test_a_late_refusal_keeps_the_outputs_of_the_frames_done(cpu, frames, tmp_path):
     from ti_fusion.io.outputs import RunDir
     from ti_fusion.slam.pipeline import SLAMPipeline
@@ -169,6 +171,7 @@ def test_a_pipeline_runs_once(cpu, frames, tmp_path):
 # --------------------------------------------------------------------------------------------------
 # Class 1 from Python: a calibrated camera's frames are undistorted
 # --------------------------------------------------------------------------------------------------
+@pytest.mark.slow
 def test_rgbd_frame_undistorts_a_camera_with_distortion_and_skew(cpu, frames):
     distorted = dataclasses.replace(K, skew=4.0, distortion=(0.25, -0.8, 0.001, 0.002, 0.9),
                                     distortion_model="plumb_bob")
@@ -235,6 +238,7 @@ print(json.dumps(out))
 '''
 
 
+@pytest.mark.slow
 def test_threads_and_a_second_init_backend(tmp_path):
     """register_frame from another thread than Taichi's says in one line how to do it (Taichi 1.7 allocates
     fields only on the thread that ran ti.init), and that way (one worker thread fed by a queue) works; a

@@ -26,6 +26,7 @@ def _slam(frames: int = 6, **slam) -> tuple[DenseSLAM, object]:
     return DenseSLAM(cfg, dataset.intrinsics), dataset
 
 
+@pytest.mark.slow
 def test_a_wrong_guess_is_tracked_again_from_the_last_pose(cpu):
     """A motion model pointing 25 cm and 17 degrees the wrong way: the frame still tracks, from another
     start, and the stats say which; with the guess alone (slam.hypotheses = motion, no feature

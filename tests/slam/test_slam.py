@@ -281,6 +281,7 @@ class BlankFirst(BlankFrame):
         return frame
 
 
+@pytest.mark.slow
 def test_the_map_starts_at_the_first_usable_frame(cpu, tmp_path):
     """Blank first frames (a sensor that starts dark) used to leave the map empty and lose every later
     frame; now they are skipped (no pose, status "skipped: ...") and the map starts at the first frame with

@@ -170,6 +170,7 @@ def test_the_documented_snippet_runs_as_written(cpu, tmp_path, monkeypatch, caps
     assert len(lines) >= 10 and all(" ok " in line or " init " in line for line in lines)
 
 
+@pytest.mark.slow
 def test_a_second_slam_object_reuses_the_frame_maps_of_one_that_is_gone(cpu):
     """Taichi compiles a kernel per set of fields it is given: a DenseSLAM made after another is collected
     takes over its frame pyramids (kernels.surfels.Pool.lend), so it compiles nothing, and tracks the same;

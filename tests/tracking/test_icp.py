@@ -132,7 +132,7 @@ def assert_sums_close(got, ref):
 
 # -- association ---------------------------------------------------------------------------------------
 @pytest.mark.parametrize("robust", ["none", "huber", "tukey", "none+depth", "huber+depth"])
-@pytest.mark.parametrize("chunks", ["parallel", "serial", "default"])
+@pytest.mark.parametrize("chunks", ["parallel", pytest.param("serial", marks=pytest.mark.slow), "default"])
 def test_status_and_sums_match_reference(arch, rng, robust, chunks):
     """Chunks: "parallel", 1100 chunks that do not divide the image (more than 2 × 512, so that Taichi's CPU
     backend splits them between threads); "serial", 97 such chunks on the calling thread; "default", the
@@ -561,6 +561,7 @@ def test_single_plane_is_degenerate(cpu):
     assert_same_run(result, _align_in_python(ICPConfig(), src, tgt, init))  # found on replay, as in NumPy
 
 
+@pytest.mark.slow
 def test_all_invalid_depth_is_a_failure_not_an_exception(cpu, sequence):
     K = sequence.intrinsics
     depth, _ = sequence.render(sequence.poses[0], noise=False)

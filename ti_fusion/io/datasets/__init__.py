@@ -133,27 +133,25 @@ def open_dataset(cfg: DatasetConfig, synth: SynthConfig | None = None) -> Datase
     return dataset
 
 
-# Dataset settings that only some formats read, with the option that sets them: given for another format they
-# would be ignored without a word.
-_ONLY_FOR = {
-    "ground_truth": ("--ground-truth", ("folder", "rosbag"), "a benchmark folder's ground truth is its own file, "
-                                                              "a run log's is in the log"),
-    **{key: (f"--{key.replace('_', '-')}", ("rosbag",), "topics are a bag's") for key in
-       ("depth_topic", "color_topic", "camera_info_topic", "gt_topic")},
-    "intrinsics": ("--intrinsics", ("tum", "iclnuim", "7scenes", "folder", "rosbag"), "a run's log holds its "
-                                                                                       "calibration"),
-    "depth_scale": ("--depth-scale", ("tum", "iclnuim", "7scenes", "folder", "rosbag"), "a run's log holds metres"),
+# Dataset settings that only some formats read (each loader's ``reads`` names those it does), with why the others
+# have none: given for a format that does not read it, a setting would be ignored without a word.
+_READ_BY_SOME = {
+    "ground_truth": "a benchmark folder's ground truth is its own file, a run log's is in the log",
+    **{key: "topics are a bag's" for key in ("depth_topic", "color_topic", "camera_info_topic", "gt_topic")},
+    "intrinsics": "a run's log holds its calibration",
+    "depth_scale": "a run's log holds metres",
 }
 
 
 def check_options_apply(fmt: str, cfg: DatasetConfig) -> None:
     """InputError (one line) for a dataset setting given that format ``fmt`` does not read."""
-    for key, (option, formats, why) in _ONLY_FOR.items():
-        if getattr(cfg, key, None) and fmt not in formats:
+    for key, why in _READ_BY_SOME.items():
+        if getattr(cfg, key, None) and key not in loader_class(fmt).reads:
+            formats = [name for name in LOADERS if key in loader_class(name).reads]
             what = "the synthetic sequence" if fmt == "synthetic" else f"a {fmt} dataset"
-            raise InputError(None, f"{option} (dataset.{key}) does not apply to {what}: it is read only for "
-                                   f"{' and '.join(formats) if len(formats) < 3 else ', '.join(formats)} data "
-                                   f"({why}); leave it out")
+            raise InputError(None, f"--{key.replace('_', '-')} (dataset.{key}) does not apply to {what}: it is read "
+                                   f"only for {' and '.join(formats) if len(formats) < 3 else ', '.join(formats)} "
+                                   f"data ({why}); leave it out")
 
 
 def _color_camera(dataset: Dataset, cfg: DatasetConfig) -> None:

@@ -45,6 +45,9 @@ class Dataset(ABC):
     single_file: bool = False         # an input may be one file (a bag, a run log) rather than a folder
     replaceable_calibration: bool = False  # dataset.intrinsics and dataset.depth_scale replace the format's own
     reads_color_camera: bool = False  # reads dataset.color_extrinsics and color_intrinsics itself (a bag's topics)
+    # which of the settings that only some formats read (ground_truth, the bag topics, intrinsics, depth_scale)
+    # this one does: open_dataset refuses the others in one line rather than ignore them
+    reads: frozenset[str] = frozenset()
     # ``dataset[i]`` may run in a reader process, on a pickled copy of the dataset (files and bags)
     reads_in_process: bool = False
 

@@ -76,6 +76,7 @@ class FolderDataset(ImageFileDataset):
     """A plain RGB-D folder (see the module docstring for the layout and what the user states)."""
 
     format = "folder"
+    reads = frozenset({"intrinsics", "depth_scale", "ground_truth"})
 
     def __init__(self, root, config: DatasetConfig | None = None, downsample: int = 1, start: int = 0,
                  stop: int | None = None, stride: int = 1):

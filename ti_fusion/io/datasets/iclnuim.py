@@ -68,6 +68,7 @@ class ICLNUIMDataset(ImageFileDataset):
     format = "iclnuim"
     identified_by = "ICL-NUIM (*.gt.freiburg)"
     replaceable_calibration = True
+    reads = frozenset({"intrinsics", "depth_scale"})
     color_registered = True  # rendered: colour and depth from the same camera
 
     depth_scale = DEPTH_SCALE

@@ -353,6 +353,8 @@ class RosbagDataset(RecordedSequence):
     identified_by = "a ROS 2 bag (metadata.yaml, *.mcap)"
     single_file = True
     reads_color_camera = True
+    reads = frozenset({"intrinsics", "depth_scale", "ground_truth", "depth_topic", "color_topic", "camera_info_topic",
+                       "gt_topic"})
     reads_in_process = True  # one reader process, in order (concurrent_reads is False: one open bag)
 
     @property

@@ -43,6 +43,7 @@ class SevenScenesDataset(ImageFileDataset):
     format = "7scenes"
     identified_by = "7-Scenes (frame-XXXXXX.depth.png)"
     replaceable_calibration = True
+    reads = frozenset({"intrinsics", "depth_scale"})
     color_registered = False  # the dataset says so: its colour and depth cameras are not calibrated together
 
     depth_scale = DEPTH_SCALE

@@ -107,6 +107,7 @@ class TUMDataset(ImageFileDataset):
     format = "tum"
     identified_by = "TUM (depth.txt)"
     replaceable_calibration = True
+    reads = frozenset({"intrinsics", "depth_scale"})
     color_registered = True  # the TUM tools register depth to colour
 
     depth_scale = DEPTH_SCALE

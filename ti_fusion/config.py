@@ -343,11 +343,13 @@ class DatasetConfig:
 
 @dataclass
 class SynthConfig:
-    scene: Annotated[str, OneOf("room", "loop", "twins", "wall", "corridor"), Flag()] = "room"
+    scene: Annotated[str, OneOf("room", "loop", "twins", "wall", "corridor", "jerky", "cabinet"), Flag()] = "room"
                                     # the scene and its own camera path (docs/DATA.md): room (furnished room),
                                     # loop (corridor loop around a block, for loop closure), twins (the loop with
-                                    # two identical sections, for false loops), wall (flat wall and floor) and
-                                    # corridor (plain walls, posters): geometry-poor, for photometric tracking
+                                    # two identical sections, for false loops), wall (flat wall and floor),
+                                    # corridor (plain walls, posters): geometry-poor, for photometric tracking,
+                                    # jerky (the room at random gaps of 0.1-0.7 s) and cabinet (a plain box
+                                    # circled in a plain room, a frame every 0.67 s)
     trajectory: Annotated[FilePath, Flag("FILE.tum")] = ""
                                     # a TUM file of camera-to-world poses to render instead of the scene's path:
                                     # one frame per pose at the file's timestamps; "" = the scene's own path

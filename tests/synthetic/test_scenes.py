@@ -321,3 +321,16 @@ def test_cabinet_is_low_texture_at_wide_baselines(cpu, paths):
         grey = cv2.cvtColor(color, cv2.COLOR_RGB2GRAY).astype(np.float64)
         gradient = np.hypot(*np.gradient(grey))
         assert np.median(gradient) < 1.0, i  # grey levels per pixel: flat almost everywhere
+
+
+def test_every_scene_is_a_choice_of_the_config_and_the_command_line():
+    from typing import get_type_hints
+
+    from ti_fusion.cli.main import build_parser
+    from ti_fusion.config import OneOf
+
+    rule = next(a for a in get_type_hints(SynthConfig, include_extras=True)["scene"].__metadata__
+                if isinstance(a, OneOf))
+    assert set(rule.choices) == set(SCENES)
+    for name in SCENES:
+        assert build_parser()[0].parse_args(["slam", "--scene", name]).scene == name

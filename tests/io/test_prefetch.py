@@ -218,6 +218,17 @@ def test_processes_stay_within_ahead_of_the_caller(clean, tmp_path):
             assert max(readers.read_indices(log)) <= k - 1 + ahead
 
 
+def test_reader_processes_are_out_of_reach_of_the_terminals_signals(clean):
+    """Readers run in a session of their own from the moment they start: a Ctrl-C that the terminal sends to
+    the caller's process group while a reader's interpreter is still starting (before it could ignore
+    SIGINT) would kill it and end the run as a failed read instead of an interrupted one."""
+    with Prefetcher(readers.Items(20), ahead=3, workers=2, mode="processes") as frames:
+        pids = _children()
+        assert len(pids) == 2
+        assert all(os.getsid(pid) == pid and os.getpgid(pid) != os.getpgid(0) for pid in pids)
+        assert [item for _, item, _ in frames] == list(range(20))
+
+
 @pytest.mark.parametrize("workers", [1, 3])
 def test_in_processes_an_error_comes_at_its_frame_and_nothing_after_it(clean, workers):
     error = InputError("frame-000007.depth.png", "cannot read the image")

@@ -21,9 +21,10 @@ left behind however the run ends (SIGKILL included). A frame's depth and colour 
 slot by the worker and copied out by the caller, which then reuses the slot for a later frame; what does
 not fit a slot (a colour camera larger than estimated) travels in the pickled message instead.
 
-A worker ignores SIGINT and SIGHUP (the terminal sends them to the whole process group; the caller
-decides how the run ends and stops the workers) and ends when the caller's end of its socket closes:
-the caller exited or was killed.
+A worker runs in a session of its own, so a Ctrl-C or hang-up that the terminal sends to the caller's
+process group never reaches it, not even while its interpreter is still starting (the caller decides how
+the run ends and stops the workers); it also ignores SIGINT and SIGHUP sent to it by pid, and it ends when
+the caller's end of its socket closes: the caller exited or was killed.
 """
 
 from __future__ import annotations
@@ -99,7 +100,7 @@ class WorkerPool:
             code = (f"import sys; sys.path[:] = {sys.path!r}; "
                     f"from ti_fusion.io.frame_workers import _main; _main({theirs.fileno()}, {self._fd})")
             proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(), self._fd),
-                                    stdin=subprocess.DEVNULL, close_fds=True)
+                                    stdin=subprocess.DEVNULL, close_fds=True, start_new_session=True)
         except BaseException:
             ours.close()
             raise

@@ -5,7 +5,7 @@
 // browser console's errors.
 //
 //   node scripts/foxglove_client_check.mjs --log RUN/log.mcap [--layout docs/foxglove-layout.json]
-//        [--out logs/foxglove-check] [--chromium /usr/bin/chromium] [--seconds 60]
+//        [--out logs/foxglove-check] [--chromium /usr/bin/chromium] [--seconds 60] [--zoom-out CLICKS]
 //   node scripts/foxglove_client_check.mjs --live ws://127.0.0.1:8765 [--relay yes] ...
 //   node scripts/foxglove_client_check.mjs --live-frames 300 ...   (starts ti-fusion slam --live itself)
 //
@@ -36,13 +36,13 @@ const CHROMIUM_FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disabl
 function parseArgs(argv) {
   const args = { layout: path.join(ROOT, "docs", "foxglove-layout.json"), out: path.join(ROOT, "logs", "foxglove-check"),
     client: path.join(ROOT, "logs", "foxglove-client"), chromium: "/usr/bin/chromium", log: undefined, live: undefined,
-    seconds: 60, width: 1600, height: 1000, relay: "yes", "live-frames": undefined };
+    seconds: 60, width: 1600, height: 1000, relay: "yes", "live-frames": undefined, "zoom-out": 0 };
   for (let i = 0; i < argv.length; i += 2) {
     const key = argv[i].replace(/^--/, "");
     if (!(key in args) || argv[i + 1] == undefined) {
       fail(`unknown option or missing value: ${argv[i]} (options: ${Object.keys(args).map((k) => "--" + k).join(" ")})`);
     }
-    args[key] = ["seconds", "width", "height", "live-frames"].includes(key) ? Number(argv[i + 1]) : argv[i + 1];
+    args[key] = ["seconds", "width", "height", "live-frames", "zoom-out"].includes(key) ? Number(argv[i + 1]) : argv[i + 1];
   }
   if ([args.log, args.live, args["live-frames"]].filter((a) => a != undefined).length !== 1) {
     fail("give one of --log RUN/log.mcap, --live ws://HOST:PORT, --live-frames N");
@@ -245,6 +245,17 @@ async function main() {
       await page.waitForTimeout(args.seconds * 1000);
     }
     await shot("2-played");
+    if (args["zoom-out"] > 0) {
+      // a scene larger than the layout's view (a loop of several metres): the mouse wheel over the 3D panel, as a user zooms
+      const title = await page.getByText("map and poses", { exact: true }).first().boundingBox();
+      await page.mouse.move(title.x + 250, title.y + 250);
+      for (let i = 0; i < args["zoom-out"]; i++) {
+        await page.mouse.wheel(0, 100);
+        await page.waitForTimeout(100);
+      }
+      await page.waitForTimeout(2000);
+      await shot("2-zoomed-out");
+    }
     report.panels = await panelsShown(page, JSON.parse(fs.readFileSync(args.layout, "utf8")));
     report.problems = await problems(page);
     await shot("3-problems");

@@ -370,6 +370,12 @@ class SynthConfig:
     color_noise: NonNegative = 2.0  # grey levels: Gaussian noise per colour channel (noise on)
     depth_noise_scale: NonNegative = 1.0  # the axial depth noise is this × the sensor's σ(z) (ti_fusion/sensor.py;
                                     # dimensionless, noise on): more noise, more drift (docs/DATA.md)
+    edge_shadow: bool = False       # Kinect v1 edges (noise on; default off, docs/TRACKING.md): no depth where the
+                                    # projector, synth.baseline to the camera's left, cannot light (beside near edges)
+    edge_holes: NonNegative = 0.0   # pixels (full resolution): depth dropped within this of a depth edge; 0 = none
+    flying_pixels: Annotated[float, Range(ge=0, le=1)] = 0.0  # share of the dropped edge pixels given a depth
+                                    # between the edge's two sides instead (flying pixels)
+    exposure: NonNegative = 0.0     # σ of a frame's log brightness gain (auto-exposure; noise on): 0.1 ≈ ±10 %
 
 
 @dataclass
@@ -753,7 +759,8 @@ RENAMED_SECTIONS = {"maps": "it is [pyramid] (pyramid.depth_smooth_radius, pyram
 ADVANCED = {
     "dataset": ("read_workers",),
     "synth": ("fx", "min_range", "max_range", "grazing_deg", "baseline", "subpixel", "sensor_width", "color_noise",
-              "depth_noise_scale"),
+              "depth_noise_scale", "edge_shadow", "edge_holes", "flying_pixels",
+              "exposure"),
     "pyramid": ("normal_max_depth_jump", "depth_sigma", "depth_smooth_radius"),
     "icp": ("normal_threshold_deg", "robust_scale", "depth_weighting", "min_inliers", "max_condition",
             "stop_update", "level_dist_scale", "color_robust_scale", "weak_ratio"),

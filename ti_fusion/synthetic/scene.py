@@ -117,6 +117,16 @@ class SyntheticSequence:
             seed = _mix(self.cfg.seed, zlib.crc32(pose.astype(np.float32).tobytes()))
         depth, color, labels = self._caster.render(pose, self.intrinsics, step=downsample,
                                                    sensor=self.sensor if noise else None, seed=seed)
+        c = self.cfg
+        if noise and (c.edge_shadow or c.edge_holes > 0):
+            from ti_fusion.synthetic.edges import kinect_edges
+
+            fx_baseline = self.intrinsics.fx * c.sensor_width / self.intrinsics.width * c.baseline
+            depth = kinect_edges(depth, fx_baseline, downsample, c.edge_shadow, c.edge_holes, c.flying_pixels,
+                                 _mix(seed, 0xED6E))
+        if noise and c.exposure > 0:  # one gain per frame, as auto-exposure changes it
+            gain = np.exp(c.exposure * np.random.default_rng(_mix(seed, 0xE4905E)).standard_normal())
+            color = np.clip(np.round(color * gain), 0, 255).astype(np.uint8)
         self.last_labels = labels
         return depth, color
 

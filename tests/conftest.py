@@ -120,3 +120,13 @@ def pytest_collection_modifyitems(config, items):
     if marked:
         raise pytest.UsageError(f"every case of these kernel tests (on the arch fixture) is marked slow, which "
                                 f"takes them out of the fast tier: {', '.join(marked)}")
+
+
+def terminal_signals() -> None:
+    """``preexec_fn`` of a child process that a test stops as a terminal would: Ctrl-C and hang-up act as in a
+    terminal, whatever the test process inherited (pytest-xdist's workers ignore SIGINT, nohup ignores
+    SIGHUP, and an ignored signal stays ignored across exec)."""
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.signal(signal.SIGHUP, signal.SIG_DFL)

@@ -24,6 +24,7 @@ from ti_fusion.batch.runner import MISSING_RAY, Batch, error_line
 from ti_fusion.cli.main import main
 from ti_fusion.errors import TiFusionError
 from ti_fusion.io.mcap_log import read_log
+from tests.conftest import terminal_signals
 
 TINY = 'downsample = 4\nframes = 3\n'  # 160x120 synthetic frames, three of them
 
@@ -176,7 +177,8 @@ def _pids_with(text: str) -> list[int]:
 
 def _start_batch(manifest: Path, out: Path, *extra: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "ti_fusion", "batch", str(manifest), "--out", str(out), *extra],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True)
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+                            preexec_fn=terminal_signals)
 
 
 def _wait_for_process(text: str, batch: subprocess.Popen) -> int:

@@ -28,6 +28,7 @@ from ti_fusion.io.frame_workers import ReaderDied
 from ti_fusion.io.prefetch import Prefetcher, read_mode, reader_count
 from ti_fusion.io.trajectory import read_tum
 from ti_fusion.slam.pipeline import READ_AHEAD, SLAMPipeline
+from tests.conftest import terminal_signals
 from tests.io import readers
 
 DEADLINE_S = 60  # a bound for a broken test, not a timing any test depends on
@@ -333,7 +334,8 @@ def test_a_signal_to_the_whole_process_group_leaves_no_reader_behind(tmp_path, s
     (tmp_path / "run.py").write_text(SCRIPT.format(root=root, stop_at=10**9))
     shm = set(os.listdir("/dev/shm"))
     proc = subprocess.Popen([sys.executable, str(tmp_path / "run.py")], stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, cwd=tmp_path, start_new_session=True)
+                            stderr=subprocess.PIPE, text=True, cwd=tmp_path, start_new_session=True,
+                            preexec_fn=terminal_signals)
     try:
         assert proc.stdout.readline().strip() == "ready"
         workers = _grandchildren(proc.pid)
@@ -466,7 +468,12 @@ def test_a_stop_ends_the_run_with_its_readers(clean, tmp_path, capsys, monkeypat
     args = _folder(tmp_path / "data")
     _at_frame(monkeypatch, 3, lambda: os.kill(os.getpid(), signum))
     out = tmp_path / "run"
-    assert main([*args, "--out", str(out)]) == 128 + signum
+    # Ctrl-C as in a terminal: pytest-xdist's workers ignore SIGINT, and a run leaves an ignored Ctrl-C ignored
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        assert main([*args, "--out", str(out)]) == 128 + signum
+    finally:
+        signal.signal(signal.SIGINT, previous)
     log = read_log(out / "log.mcap")
     assert log.complete and len(log.stats) == 3
     assert not (out / "summary.json").exists()

@@ -246,7 +246,12 @@ async function main() {
     }
     await shot("2-played");
     if (args["zoom-out"] > 0) {
-      // a scene larger than the layout's view (a loop of several metres): the mouse wheel over the 3D panel, as a user zooms
+      // a scene larger than the layout's view (a loop of several metres): the mouse wheel over the 3D panel, as a user zooms,
+      // at the log's last moment (a long log can be left playing from its start again): paused, the scrubber's right end
+      if (await page.locator('[title="Pause"]').count()) await page.locator('[title="Pause"]').first().click();
+      const controls = await page.locator('[title="Seek backward"]').first().boundingBox();
+      await page.mouse.click(args.width - 3, controls.y - 14);
+      await page.waitForTimeout(8000);
       const title = await page.getByText("map and poses", { exact: true }).first().boundingBox();
       await page.mouse.move(title.x + 250, title.y + 250);
       for (let i = 0; i < args["zoom-out"]; i++) {

@@ -183,6 +183,11 @@ def test_loop_edges_read_back(tmp_path, rng):
         assert refused.type == applied.type == LinePrimitive.LINE_LIST
         assert refused.thickness < applied.thickness and refused.color.a < 1 == applied.color.a
         assert refused.color.r > refused.color.g and applied.color.g > applied.color.r
+    # each applied loop's ends are marked too (its two keyframes are close: the line alone is a few pixels)
+    assert [len(m.entities[0].spheres) for m in (one, two, none)] == [2, 4, 0]
+    ends = [(s.pose.position.x, s.pose.position.y, s.pose.position.z) for s in two.entities[0].spheres]
+    np.testing.assert_allclose(ends, [second[0][0], second[0][1], second[3][0], second[3][1]], atol=1e-12)
+    assert all(s.color.g > s.color.r and s.color.a == 1 and s.size.x > 0 for s in two.entities[0].spheres)
     got = sorted(loop_edges_from_msg(two), key=lambda e: -e[2])
     want = [second[0], second[3], second[1]]  # the applied ones, then the refused one
     assert [ok for _, _, ok in got] == [True, True, False]

@@ -95,6 +95,9 @@ LOOP_ENTITY = "loop_closures"  # one entity, replaced by each message: it holds 
 LOOP_APPLIED_RGBA = (0.17, 0.80, 0.25, 1.0)
 LOOP_NOT_APPLIED_RGBA = (0.90, 0.15, 0.15, 0.3)
 LOOP_APPLIED_PX, LOOP_NOT_APPLIED_PX = 3.0, 1.0  # line widths, pixels at any zoom
+# A loop's two keyframes are close (it joins the return to the start): its line alone is a few pixels under the
+# trajectory and the candidates' lines in Foxglove, so a sphere (diameter, metres) marks each end as well.
+LOOP_APPLIED_END_M = 0.12
 MESH_TOPIC = "/map/mesh"
 TRAJECTORY_TOPIC = "/trajectory"
 MESH_ENTITY = "mesh"
@@ -378,7 +381,7 @@ class RunLogger:
     def log_loop_edges(self, t: float, segments, topic: str = LOOP_TOPIC) -> int:
         """Loop edges as a ``foxglove.SceneUpdate`` in the world frame (the poses' frame): one entity whose
         LinePrimitive of type LINE_LIST per kind joins the two positions of each edge: applied loops thick and
-        green, candidates not applied thin, faint and red (drawn first, under them). ``segments``: (p_from (3,), p_to (3,), applied) in world coordinates,
+        green with a sphere at each end, candidates not applied thin, faint and red (drawn first, under them). ``segments``: (p_from (3,), p_to (3,), applied) in world coordinates,
         every edge to show (the entity replaces the previous message's, so pass all edges so far; an empty
         list clears them). Edges with a non-finite end are left out; returns how many were written."""
         ns = self._ns(t)
@@ -683,6 +686,12 @@ def _write_loop_edges(sink: _Sink, topic: str, ns: int, edges: list) -> None:
         for e in (p_from, p_to):
             point = line.points.add()
             point.x, point.y, point.z = (float(v) for v in e)
+            if applied:
+                sphere = entity.spheres.add()
+                sphere.pose.position.x, sphere.pose.position.y, sphere.pose.position.z = (float(v) for v in e)
+                sphere.pose.orientation.w = 1.0
+                sphere.size.x = sphere.size.y = sphere.size.z = LOOP_APPLIED_END_M
+                sphere.color.r, sphere.color.g, sphere.color.b, sphere.color.a = LOOP_APPLIED_RGBA
     sink.proto(topic, msg, ns)
 
 

@@ -376,6 +376,8 @@ class SynthConfig:
     flying_pixels: Annotated[float, Range(ge=0, le=1)] = 0.0  # share of the dropped edge pixels given a depth
                                     # between the edge's two sides instead (flying pixels)
     exposure: NonNegative = 0.0     # σ of a frame's log brightness gain (auto-exposure; noise on): 0.1 ≈ ±10 %
+    jpeg_quality: Annotated[int, Range(ge=0, le=100)] = 0  # colour through JPEG at this quality (noise on), as
+                                    # TUM's re-encoded frames; 0 = none
 
 
 @dataclass
@@ -760,7 +762,7 @@ ADVANCED = {
     "dataset": ("read_workers",),
     "synth": ("fx", "min_range", "max_range", "grazing_deg", "baseline", "subpixel", "sensor_width", "color_noise",
               "depth_noise_scale", "edge_shadow", "edge_holes", "flying_pixels",
-              "exposure"),
+              "exposure", "jpeg_quality"),
     "pyramid": ("normal_max_depth_jump", "depth_sigma", "depth_smooth_radius"),
     "icp": ("normal_threshold_deg", "robust_scale", "depth_weighting", "min_inliers", "max_condition",
             "stop_update", "level_dist_scale", "color_robust_scale", "weak_ratio"),

@@ -1,6 +1,7 @@
 """The synthetic Kinect v1 edges (ti_fusion/synthetic/edges.py, synth.edge_shadow / edge_holes / flying_pixels):
 the projector's shadow beside a near edge, the holes along depth edges, flying pixels between an edge's two
-sides; off by default, so the frames without them stay as they were."""
+sides; and the colour's exposure changes (synth.exposure) and JPEG (synth.jpeg_quality). All off by default, so
+the frames without them stay as they were."""
 
 from __future__ import annotations
 
@@ -75,3 +76,13 @@ def test_exposure_scales_each_frame_by_its_own_gain(cpu):
     assert abs(np.log(gains[0] / gains[1])) > 0.01  # each frame its own
     assert (lit.frame(2)[1] == SyntheticSequence(SynthConfig(**base, exposure=0.2)).frame(2)[1]).all()
     assert SynthConfig().exposure == 0
+
+
+def test_jpeg_colour_is_opt_in(cpu):
+    """synth.jpeg_quality: the colour through JPEG (as TUM's re-encoded keyframes), depth untouched."""
+    base = dict(scene="cabinet", width=160, height=120, fx=131.25)
+    (d0, c0), (d1, c1) = SyntheticSequence(SynthConfig(**base)).frame(2), \
+        SyntheticSequence(SynthConfig(**base, jpeg_quality=75)).frame(2)
+    assert (d0 == d1).all() and c1.dtype == np.uint8 and c1.shape == c0.shape
+    assert 0.5 < np.abs(c0.astype(np.int16) - c1).mean() < 8
+    assert SynthConfig().jpeg_quality == 0

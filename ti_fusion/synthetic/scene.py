@@ -127,6 +127,11 @@ class SyntheticSequence:
         if noise and c.exposure > 0:  # one gain per frame, as auto-exposure changes it
             gain = np.exp(c.exposure * np.random.default_rng(_mix(seed, 0xE4905E)).standard_normal())
             color = np.clip(np.round(color * gain), 0, 255).astype(np.uint8)
+        if noise and c.jpeg_quality > 0:  # 8×8 blocks and chroma subsampling, at the rendered size
+            import cv2
+
+            ok, data = cv2.imencode(".jpg", color[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, int(c.jpeg_quality)])
+            color = np.ascontiguousarray(cv2.imdecode(data, cv2.IMREAD_COLOR)[..., ::-1])
         self.last_labels = labels
         return depth, color
 

@@ -378,6 +378,9 @@ class SynthConfig:
     exposure: NonNegative = 0.0     # σ of a frame's log brightness gain (auto-exposure; noise on): 0.1 ≈ ±10 %
     jpeg_quality: Annotated[int, Range(ge=0, le=100)] = 0  # colour through JPEG at this quality (noise on), as
                                     # TUM's re-encoded frames; 0 = none
+    color_offset_ms: Annotated[float, Range(ge=-100, le=100)] = 0.0  # ms: colour captured this long after depth
+                                    # (before, if negative; noise on), its pose moved along the step to the next
+                                    # (previous) frame's; 0 = together
 
 
 @dataclass
@@ -762,7 +765,7 @@ ADVANCED = {
     "dataset": ("read_workers",),
     "synth": ("fx", "min_range", "max_range", "grazing_deg", "baseline", "subpixel", "sensor_width", "color_noise",
               "depth_noise_scale", "edge_shadow", "edge_holes", "flying_pixels",
-              "exposure", "jpeg_quality"),
+              "exposure", "jpeg_quality", "color_offset_ms"),
     "pyramid": ("normal_max_depth_jump", "depth_sigma", "depth_smooth_radius"),
     "icp": ("normal_threshold_deg", "robust_scale", "depth_weighting", "min_inliers", "max_condition",
             "stop_update", "level_dist_scale", "color_robust_scale", "weak_ratio"),

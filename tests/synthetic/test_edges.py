@@ -1,6 +1,6 @@
 """The synthetic Kinect v1 edges (ti_fusion/synthetic/edges.py, synth.edge_shadow / edge_holes / flying_pixels):
 the projector's shadow beside a near edge, the holes along depth edges, flying pixels between an edge's two
-sides; and the colour's exposure changes (synth.exposure) and JPEG (synth.jpeg_quality). All off by default, so
+sides; and the colour's exposure changes (synth.exposure) JPEG (synth.jpeg_quality) and time offset (synth.color_offset_ms). All off by default, so
 the frames without them stay as they were."""
 
 from __future__ import annotations
@@ -86,3 +86,21 @@ def test_jpeg_colour_is_opt_in(cpu):
     assert (d0 == d1).all() and c1.dtype == np.uint8 and c1.shape == c0.shape
     assert 0.5 < np.abs(c0.astype(np.int16) - c1).mean() < 8
     assert SynthConfig().jpeg_quality == 0
+
+
+def test_colour_offset_moves_the_colour_camera_along_the_step(cpu):
+    """synth.color_offset_ms: the colour is rendered from the pose that far along the step to the next frame
+    (back towards the previous one when negative); depth stays at the frame's own pose."""
+    from ti_fusion.geometry import pose_error
+
+    base = dict(scene="cabinet", width=160, height=120, fx=131.25)
+    plain = SyntheticSequence(SynthConfig(**base))
+    seq = SyntheticSequence(SynthConfig(**base, color_offset_ms=67.0))  # a tenth of the cabinet's 0.67 s step
+    step = pose_error(seq.poses[3], seq.poses[4])
+    moved = pose_error(seq.poses[3], seq.color_pose(3))
+    assert abs(moved[1] - step[1] / 10) < 0.1 * step[1] / 10 + 1e-4, (moved, step)
+    back = SyntheticSequence(SynthConfig(**base, color_offset_ms=-67.0))
+    assert pose_error(back.color_pose(3), seq.poses[2])[1] < pose_error(seq.poses[3], seq.poses[2])[1]
+    (d0, c0), (d1, c1) = plain.frame(3), seq.frame(3)
+    assert (d0 == d1).all() and not (c0 == c1).all()
+    assert np.allclose(plain.color_pose(3), plain.poses[3]) and SynthConfig().color_offset_ms == 0

@@ -152,7 +152,23 @@ class SyntheticSequence:
 
     def frame(self, index: int, downsample: int = 1) -> tuple[np.ndarray, np.ndarray]:
         """Frame ``index`` of the sequence (noise per ``cfg.noise``, seed from ``cfg.seed`` and the index)."""
-        return self.render(self.poses[index], seed=frame_seed(self.cfg.seed, index), downsample=downsample)
+        seed = frame_seed(self.cfg.seed, index)
+        depth, color = self.render(self.poses[index], seed=seed, downsample=downsample)
+        if self.cfg.noise and self.cfg.color_offset_ms != 0 and len(self.poses) > 1:
+            _, color = self.render(self.color_pose(index), seed=seed, downsample=downsample)
+        return depth, color
+
+    def color_pose(self, index: int) -> np.ndarray:
+        """Camera-to-world pose of frame ``index``'s colour, ``synth.color_offset_ms`` after its depth: moved at
+        constant velocity along the step to the next frame (the previous one for a negative offset or the last
+        frame)."""
+        from ti_fusion.geometry import invert, renormalize, se3_exp, se3_log
+
+        dt = self.cfg.color_offset_ms / 1000.0
+        other = index + 1 if (dt > 0 and index + 1 < len(self.poses)) or index == 0 else index - 1
+        span = float(self.timestamps[other] - self.timestamps[index])
+        step = se3_log(invert(self.poses[index]) @ self.poses[other])
+        return renormalize(self.poses[index] @ se3_exp(step * (dt / span)))
 
     def surface_distance(self, points_world: np.ndarray) -> np.ndarray:
         """Distance (metres, float64) from each of N×3 world points to the nearest scene surface."""

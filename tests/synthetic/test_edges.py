@@ -1,7 +1,7 @@
 """The synthetic Kinect v1 edges (ti_fusion/synthetic/edges.py, synth.edge_shadow / edge_holes / flying_pixels):
 the projector's shadow beside a near edge, the holes along depth edges, flying pixels between an edge's two
-sides; and the colour's exposure changes (synth.exposure) JPEG (synth.jpeg_quality) and time offset (synth.color_offset_ms). All off by default, so
-the frames without them stay as they were."""
+sides; and the colour's exposure changes (synth.exposure), JPEG (synth.jpeg_quality) and time offset
+(synth.color_offset_ms). All off by default, so the frames without them stay as they were."""
 
 from __future__ import annotations
 

@@ -140,9 +140,9 @@ def test_how_a_dataset_is_read_and_by_how_many():
 # --------------------------------------------------------------------------------------------------
 # Reader processes
 # --------------------------------------------------------------------------------------------------
-def _children() -> set[int]:
-    """The pids of this process's live child processes (Linux /proc)."""
-    me, found = os.getpid(), set()
+def _children(parent: int | None = None) -> set[int]:
+    """The pids of the live child processes of ``parent`` (default: this process; Linux /proc)."""
+    parent, found = os.getpid() if parent is None else parent, set()
     for entry in os.listdir("/proc"):
         if entry.isdigit():
             try:
@@ -150,7 +150,7 @@ def _children() -> set[int]:
             except OSError:
                 continue
             fields = stat[stat.rindex(")") + 2:].split()  # after the command name, which may hold spaces
-            if int(fields[1]) == me and fields[0] != "Z":
+            if int(fields[1]) == parent and fields[0] != "Z":
                 found.add(int(entry))
     return found
 
@@ -298,19 +298,6 @@ def _alive(pid: int) -> bool:
         return False
 
 
-def _grandchildren(pid: int) -> set[int]:
-    found = set()
-    for entry in os.listdir("/proc"):
-        if entry.isdigit():
-            try:
-                stat = Path(f"/proc/{entry}/stat").read_text()
-            except OSError:
-                continue
-            if int(stat[stat.rindex(")") + 2:].split()[1]) == pid:
-                found.add(int(entry))
-    return found
-
-
 @pytest.mark.parametrize("how", ["script", "-c"])
 def test_reader_processes_from_a_script_without_a_main_guard(tmp_path, how):
     """The Python API from a script with no ``if __name__ == "__main__"`` guard, and from code with no file
@@ -338,7 +325,7 @@ def test_a_signal_to_the_whole_process_group_leaves_no_reader_behind(tmp_path, s
                             preexec_fn=terminal_signals)
     try:
         assert proc.stdout.readline().strip() == "ready"
-        workers = _grandchildren(proc.pid)
+        workers = _children(proc.pid)
         assert len(workers) == 2
         os.killpg(proc.pid, signum)
         proc.communicate(timeout=DEADLINE_S)

@@ -31,7 +31,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -84,21 +83,14 @@ def step_errors(poses, gts) -> dict:
 # -- children --------------------------------------------------------------------------------------------
 def worker_slam(args) -> dict:
     """``ti-fusion slam`` as a user runs it, and its trajectory against the ground truth."""
-    from ti_fusion.cli.main import main as cli
+    import bench_slam  # a sibling: scripts/ is on the path of a script run as a file
     from ti_fusion.io.datasets import open_dataset
-    from ti_fusion.io.trajectory import associate, read_tum
+    from ti_fusion.io.trajectory import associate
 
-    with tempfile.TemporaryDirectory() as tmp:
-        out = Path(tmp) / "run"
-        argv = ["slam", args.data, "--arch", args.arch, "--quiet", "--out", str(out)]
-        if args.frames:
-            argv += ["--frames", str(args.frames)]
-        argv += [f"--set={text}" for text in args.set]
-        code = cli(argv)
-        if code != 0:
-            return {"system": "ti-fusion", "error": f"ti-fusion slam exited with {code}"}
-        s = json.loads((out / "summary.json").read_text())
-        stamps, poses = read_tum(out / "trajectory.tum")
+    run = bench_slam.slam_run(args, [])
+    if isinstance(run, str):
+        return {"system": "ti-fusion", "error": run}
+    s, (stamps, poses) = run
     cfg = _config(args.data, args.frames, args.set)
     gt_stamps, gt_poses = open_dataset(cfg.dataset, cfg.synth).ground_truth()
     i, j = associate(stamps, gt_stamps)

@@ -86,20 +86,32 @@ def _dataset(args):
     return cfg, open_dataset(cfg.dataset, cfg.synth)
 
 
-def run_ti_fusion(args, cold: bool = False) -> dict:
-    """``ti-fusion slam`` in this process, as a user runs it (every output written)."""
+def slam_run(args, options: list[str]) -> tuple[dict, tuple] | str:
+    """``ti-fusion slam [DATA] OPTIONS`` in this process, as a user runs it (every output written, into a
+    temporary folder), with ``args``' arch, frames and --set: (its summary.json, its trajectory as
+    ``read_tum`` gives it), or the error line when it did not end with 0."""
     from ti_fusion.cli.main import main as cli
+    from ti_fusion.io.trajectory import read_tum
 
     with tempfile.TemporaryDirectory() as tmp:
-        argv = ["slam", *([args.data] if args.data else []), "--downsample", str(args.downsample), "--arch",
-                args.arch, "--quiet", "--out", str(Path(tmp) / "run")]
+        out = Path(tmp) / "run"
+        argv = ["slam", *([args.data] if args.data else []), *options, "--arch", args.arch, "--quiet",
+                "--out", str(out)]
         if args.frames:
             argv += ["--frames", str(args.frames)]
         argv += [f"--set={text}" for text in args.set]
         code = cli(argv)
         if code != 0:
-            return {"system": "ti-fusion", "error": f"ti-fusion slam exited with {code}"}
-        s = json.loads((Path(tmp) / "run" / "summary.json").read_text())
+            return f"ti-fusion slam exited with {code}"
+        return json.loads((out / "summary.json").read_text()), read_tum(out / "trajectory.tum")
+
+
+def run_ti_fusion(args, cold: bool = False) -> dict:
+    """``ti-fusion slam`` in this process, as a user runs it (every output written)."""
+    run = slam_run(args, ["--downsample", str(args.downsample)])
+    if isinstance(run, str):
+        return {"system": "ti-fusion", "error": run}
+    s = run[0]
     return {"system": f"ti-fusion ({s['backend']}{', empty kernel cache' if cold else ''})", "frames": s["frames"],
             "fps_wall": s["fps_wall"], "fps": s["fps_processing"], "first_tracked_s": s.get("second_frame_s"),
             "ate_rmse_m": s.get("ate_rmse_m"), "rpe_trans_m": s.get("rpe_trans_m"),

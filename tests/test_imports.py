@@ -23,7 +23,7 @@ LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
     (1, "config", ("ti_fusion.config",)),
     (2, "files", ("ti_fusion.io.outputs", "ti_fusion.io.ply", "ti_fusion.io.trajectory", "ti_fusion.io.mesh_files",
                   "ti_fusion.io.mcap_log", "ti_fusion.io.prefetch", "ti_fusion.io.frame_workers",
-                  "ti_fusion.io.live")),
+                  "ti_fusion.io.live", "ti_fusion.io.map_files")),
     (3, "kernels", ("ti_fusion.backend", "ti_fusion.kernels")),
     (4, "synthetic", ("ti_fusion.synthetic.",)),
     (5, "tracking", ("ti_fusion.tracking.",)),

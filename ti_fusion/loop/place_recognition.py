@@ -83,6 +83,27 @@ class PlaceDatabase:
     def __len__(self) -> int:
         return len(self._frames)
 
+    @property
+    def word_counts(self) -> np.ndarray:
+        """Keyframes × words: each keyframe's word counts (0 × 0 before the vocabulary exists)."""
+        return self._counts
+
+    def rng_state(self) -> dict:
+        """The state of the generator that picks the training descriptors (what ``restore`` takes)."""
+        return self._rng.bit_generator.state
+
+    def restore(self, keyframes: list[Keyframe], vocabulary: np.ndarray | None, word_counts: np.ndarray,
+                trainings: int, rng_state: dict) -> None:
+        """The database as it was after ``keyframes`` were added (a saved map): their descriptors, with the
+        vocabulary, word counts, training count and generator state saved with them, not learnt again."""
+        self._descriptors = [np.zeros((0, 32), np.uint8) if kf.features.descriptors is None
+                             else kf.features.descriptors for kf in keyframes]
+        self._frames = [kf.frame for kf in keyframes]
+        self.vocabulary = None if vocabulary is None else np.array(vocabulary)
+        self._counts = np.array(word_counts, dtype=np.float32)
+        self.trainings = int(trainings)
+        self._rng.bit_generator.state = rng_state
+
     def add(self, keyframe: Keyframe) -> None:
         """Add a keyframe (ids in creation order: 0, 1, 2, ...)."""
         if keyframe.id != len(self._frames):

@@ -209,6 +209,8 @@ class DenseSLAM:
         self._color_warned = False  # the warning that the photometric term is off for unregistered colour
         self._degeneracy_warned = False  # the warning that depth (and colour) leave directions unconstrained
         self.loop = None  # loop closure: keyframes, place recognition, verification, the pose graph
+        # the saved map this one started from (``from_map``), its surfels left out; None for a new map
+        self.loaded_map = None
         if config.slam.loop_closure:
             from ti_fusion.loop.closure import LoopClosure  # GTSAM: imported only when loop closure is on
 
@@ -545,6 +547,37 @@ class DenseSLAM:
             self.last_good = (frame, self.poses.pose_of(frame.index))
         window = self.config.slam.active_window
         self.mapper.apply_corrections(corrections, reactivate_at=self._frames_fused if window > 0 else None)
+
+    # -- a saved map (ti_fusion/slam/saved_map.py, docs/MAPS.md) ---------------------------------
+    @classmethod
+    def from_map(cls, source, config: Config | None = None, intrinsics: Intrinsics | None = None) -> "DenseSLAM":
+        """A DenseSLAM holding a saved map (a ``SavedMap``, or a path ``load_map`` takes), ready for frames to
+        track against it: its surfels, clock and anchor, and with loop closure its keyframes, place recognition
+        and pose graph. ``config`` and ``intrinsics`` default to the map's own; others are checked against it
+        (``check_camera``: InputError naming both cameras). No pose is registered yet: where the next frame
+        is in the map is the caller's to find."""
+        from ti_fusion.slam.saved_map import SavedMap, check_camera, load_map, restore
+
+        saved = source if isinstance(source, SavedMap) else load_map(source)
+        where = None if isinstance(source, SavedMap) else source
+        config = config if config is not None else saved.make_config()
+        intrinsics = intrinsics if intrinsics is not None else saved.intrinsics
+        check_camera(saved, intrinsics, where, config)
+        slam = cls(config, intrinsics)
+        restore(slam, saved)
+        return slam
+
+    def map_state(self):
+        """The map as it is now, as a ``SavedMap`` (copies: the run goes on unchanged)."""
+        from ti_fusion.slam.saved_map import capture
+
+        return capture(self)
+
+    def save_map(self, folder):
+        """The map as it is now, written into ``folder`` (map.json and map.bin; docs/MAPS.md); returns the folder."""
+        from ti_fusion.slam.saved_map import save_map
+
+        return save_map(self.map_state(), folder)
 
     # -- results --------------------------------------------------------------------------------
     @property

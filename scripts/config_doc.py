@@ -33,6 +33,7 @@ SECTIONS = {
     "vo": "Feature odometry (`ti-fusion vo`, the ICP initialiser and the re-localiser): ORB, matching, PnP",
     "loop": "Loop closure (with `slam.loop_closure`): keyframes, place recognition, verification, pose graph",
     "mesh": "The triangle mesh (`ti-fusion mesh`, `slam --mesh`)",
+    "map": "The saved map a slam run leaves for a later one (docs/MAPS.md)",
     "log": "The MCAP log and the terminal",
 }
 

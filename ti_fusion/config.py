@@ -116,6 +116,7 @@ class Flag:
 
     metavar: str | None = None
     range: Range | None = None
+    commands: tuple[str, ...] | None = None  # only these commands have the option (None: every one that reads frames)
 
 
 _KINDS = {bool: "true or false", int: "an integer", float: "a number", str: "text"}
@@ -587,6 +588,14 @@ class MeshConfig:
 
 
 @dataclass
+class MapConfig:
+    save_map: Annotated[str, Text("a folder path", path=True), Flag("DIR", commands=("slam",))] = ""
+                                     # where the run's saved map goes (map.json and map.bin, docs/MAPS.md), a new
+                                     # folder or one holding a saved map, which it replaces; "" = map/ in the run
+                                     # folder
+
+
+@dataclass
 class LogConfig:
     map_every: NonNegativeInt = 30   # frames between /map/points messages (and one at the end); 0 = at the end only
     map_max_points: Count = 200_000  # /map/points is downsampled to at most this many points
@@ -605,6 +614,7 @@ class Config:
     vo: VOConfig = field(default_factory=VOConfig)
     loop: LoopConfig = field(default_factory=LoopConfig)
     mesh: MeshConfig = field(default_factory=MeshConfig)
+    map: MapConfig = field(default_factory=MapConfig)
     log: LogConfig = field(default_factory=LogConfig)
 
     def frame_input_level(self, width: int) -> int:

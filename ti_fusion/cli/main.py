@@ -122,7 +122,7 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
                             "ROS bag (a ROS 1 .bag, e.g. a RealSense recording; a rosbag2 folder or an .mcap file); "
                             "omitted: the embedded synthetic sequence")
         d.add_argument("--frames", type=int, default=None, metavar="N", help="number of frames (from --start)")
-        add_flags(d)
+        add_flags(d, module.__name__.rsplit(".", 1)[-1])
 
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:

@@ -10,27 +10,31 @@ from __future__ import annotations
 
 import argparse
 
-from ti_fusion.config import Config, DatasetConfig, Rule, SynthConfig, field_docs, rules
+from ti_fusion.config import Config, DatasetConfig, MapConfig, Rule, SynthConfig, field_docs, rules
 from ti_fusion.errors import InputError
 
-# The sections whose flags the commands that read frames take; the synthetic sequence's only without DATA.
-SECTIONS = {"dataset": DatasetConfig, "synth": SynthConfig}
+# The sections whose flags the commands that read frames take; the synthetic sequence's only without DATA; a flag
+# with ``commands`` only on those.
+SECTIONS = {"dataset": DatasetConfig, "synth": SynthConfig, "map": MapConfig}
 
 
-def flags(section: str) -> list[tuple[str, Rule]]:
-    """(field name, rule) of every field of ``section`` that is a command-line option, in the class's order."""
-    return [(name, rule) for name, rule in rules(SECTIONS[section]).items() if rule.flag is not None]
+def flags(section: str, command: str | None = None) -> list[tuple[str, Rule]]:
+    """(field name, rule) of every field of ``section`` that is a command-line option (of ``command``, where
+    given), in the class's order."""
+    return [(name, rule) for name, rule in rules(SECTIONS[section]).items() if rule.flag is not None and
+            (command is None or rule.flag.commands is None or command in rule.flag.commands)]
 
 
 def option(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def add_flags(group: argparse._ArgumentGroup) -> None:
-    """Every section's flags as options of ``group``; an option left out stays None (the config's value)."""
+def add_flags(group: argparse._ArgumentGroup, command: str | None = None) -> None:
+    """Every section's flags (``command``'s) as options of ``group``; an option left out stays None (the
+    config's value)."""
     docs = field_docs()
     for section, section_type in SECTIONS.items():
-        for name, rule in flags(section):
+        for name, rule in flags(section, command):
             help_text = docs[section_type.__name__, name]
             if section == "synth":
                 help_text = "without DATA: " + help_text

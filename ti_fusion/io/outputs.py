@@ -34,8 +34,8 @@ MARKER = ".ti-fusion-run"
 # What a run whose marker lists no files (killed before it ended, or from before the list) may have written:
 # every command's outputs, synth's TUM layout, batch's folders and tables, and the temporary names of files
 # being written.
-RUN_OUTPUT_PATTERNS = ("summary.json", "*.mcap", "*.tum", "*.ply", "*.glb", "*.png", ".*.tmp*", "rgb", "depth",
-                       "rgb.txt", "depth.txt", "groundtruth.txt", "associations.txt", "runs", "jobs", "results.csv",
+RUN_OUTPUT_PATTERNS = ("summary.json", "*.mcap", "*.tum", "*.ply", "*.glb", "*.png", ".*.tmp*", "map", "rgb",
+                       "depth", "rgb.txt", "depth.txt", "groundtruth.txt", "associations.txt", "runs", "jobs", "results.csv",
                        "results.md")
 
 

@@ -17,6 +17,7 @@ SINKS: tuple[str, ...] = (
     "trajectory:TrajectorySink",
     "evaluation:EvaluationSink",
     "map:MapSink",
+    "saved_map:SavedMapSink",
     "views:ViewsSink",
     "cloud:CloudSink",
     "mesh:MeshSink",

@@ -504,6 +504,11 @@ class SLAMConfig:
     active_window: NonNegativeInt = 200  # frames: tracking renders only surfels updated within this many fused frames
                                      # (ElasticFusion's active model; older ones stay in the map for loop closure);
                                      # 0 = the whole map
+    unfound: Annotated[str, OneOf("fail", "map-anyway")] = "fail"  # a session against a saved map (--map) that
+                                     # never finds itself in it: fail = every frame tries, none gets a pose, the run
+                                     # exits with status 3 | map-anyway = after find_frames frames it maps on in its
+                                     # own frame, the loaded map set aside
+    find_frames: Count = 30          # map-anyway: frames a session tries to find itself in the map before it maps on
 
 
 @dataclass

@@ -14,6 +14,8 @@ def displayable(text: str) -> str:
 class TiFusionError(Exception):
     """Base class of every error the CLI reports as a one-line message (exit code 2)."""
 
+    exit_code = 2
+
 
 class InputError(TiFusionError):
     """Bad input data: a missing folder, an unreadable image, a pose that is not rigid, ..."""
@@ -25,6 +27,12 @@ class InputError(TiFusionError):
 
     def __reduce__(self):  # pickled by a frame reader process (ti_fusion.io.frame_workers)
         return type(self), (self.path, self.problem)
+
+
+class NotLocalised(InputError):
+    """A session against a saved map that never found itself in it: no frame got a pose (exit code 3)."""
+
+    exit_code = 3
 
 
 class OutputError(TiFusionError):

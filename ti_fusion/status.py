@@ -13,11 +13,12 @@ class Tracking(str, Enum):
     RELOCALISED = "relocalised"  # tracked from another start (features or the wide basin), and fused
     LOST = "lost"  # no start passed the checks: the frame reports its guess and is not fused
     SKIPPED = "skipped"  # before the map starts (e.g. a blank sensor): no pose
+    UNLOCALISED = "unlocalised"  # a session against a saved map that has not found itself in it yet: no pose
 
     @property
     def tracked(self) -> bool:
         """The frame got a pose of its own and was fused."""
-        return self not in (Tracking.LOST, Tracking.SKIPPED)
+        return self not in (Tracking.LOST, Tracking.SKIPPED, Tracking.UNLOCALISED)
 
 
 def status_text(tracking: Tracking, reason: str = "") -> str:

@@ -404,7 +404,7 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
         return 128 + 13  # as a process killed by SIGPIPE (13)
     except TiFusionError as exc:
         print(f"ti-fusion {command}: error: {_first_cause(exc)}", file=sys.stderr)
-        return 2
+        return exc.exit_code
     except OSError as exc:
         cause = _first_cause(exc)
         line = _os_error_line(cause) if isinstance(cause, OSError) else str(cause)

@@ -14,7 +14,7 @@ import weakref
 from contextlib import contextmanager, suppress
 from datetime import datetime
 from pathlib import Path
-from typing import IO, Iterable, Iterator, TypeVar
+from typing import IO, Callable, Iterable, Iterator, TypeVar
 
 import numpy as np
 
@@ -389,8 +389,10 @@ def jsonable(obj):
     return str(obj)
 
 
-def progress(items: Iterable[T], total: int, desc: str, enabled: bool = True) -> Iterator[T]:
-    """A one-line progress bar on stderr (only on a terminal, and not with --quiet)."""
+def progress(items: Iterable[T], total: int, desc: str, enabled: bool = True,
+             note: Callable[[], str] | None = None) -> Iterator[T]:
+    """A one-line progress bar on stderr (only on a terminal, and not with --quiet), ending with ``note()``
+    where it says something (e.g. "not localised")."""
     enabled = enabled and sys.stderr.isatty()
     watch = Stopwatch()
     for i, item in enumerate(items):
@@ -399,7 +401,9 @@ def progress(items: Iterable[T], total: int, desc: str, enabled: bool = True) ->
             done = i + 1
             rate = done / max(watch.ms / 1e3, 1e-9)
             bar = "#" * int(30 * done / max(total, 1))
-            sys.stderr.write(f"\r{desc} [{bar:<30}] {done}/{total} {rate:5.1f} it/s")
+            said = note() if note is not None else ""
+            sys.stderr.write(f"\r{desc} [{bar:<30}] {done}/{total} {rate:5.1f} it/s" +
+                             (f" {said}\x1b[K" if said else "\x1b[K"))
             sys.stderr.flush()
     if enabled:
         sys.stderr.write("\n")

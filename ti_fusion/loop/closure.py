@@ -14,6 +14,11 @@ keyframe k gets its world-frame correction C_k = T_k,new · T_k,old⁻¹, return
 to move every frame pose and every surfel anchored to k with. Tracking then goes on from the corrected last
 pose against the corrected map; the motion model is a relative motion and needs nothing.
 
+A second session against a saved map (``begin_session``): the map's keyframes are an earlier session's, loop
+candidates of every keyframe of the new one; until the new session has found itself, ``find_place`` looks for
+each frame among them (place recognition over every keyframe, then verification as for a loop), and the
+frame that found itself becomes the session's first keyframe, tied to the keyframe it matched (``found``).
+
 Loop closure calls nothing of SLAM: the owner hands it, per frame, the frame's maps (``LoopMaps``: the
 frame's pyramid, read only, the target of verification and the keyframe's depth; and maps it may fill
 until the next frame, where verification builds the earlier keyframe's maps), and applies the report.
@@ -57,13 +62,22 @@ class LoopMaps:
 
 
 @dataclass
+class Placement:
+    """Where a frame found itself among the keyframes (``LoopClosure.find_place``)."""
+
+    candidate: LoopCandidate  # the verified candidate: ``T`` maps the keyframe's camera into the frame's
+    keyframe: Keyframe  # the keyframe it matched
+    pose: np.ndarray  # the frame's camera-to-world pose that the match gives
+
+
+@dataclass
 class LoopReport:
     """What loop closure did after one frame (only frames that became keyframes have one). The owner anchors
     the frame just registered, the frames after it and the surfels fused from the next frame on to
     ``keyframe``, then moves every pose and surfel by ``corrections`` when a loop was applied."""
 
     keyframe: int  # the new keyframe's id
-    why: str  # "first", "moved", "turned", "overlap"
+    why: str  # "first", "moved", "turned", "overlap", "found" (a session's first: it found itself in the map)
     candidates: list[LoopCandidate] = field(default_factory=list)
     applied: tuple[int, int] | None = None  # (earlier keyframe, this keyframe) of a loop applied
     outcome: str = ""  # for a verified candidate: "applied", or why the pose graph refused it
@@ -102,6 +116,8 @@ class LoopClosure:
         self._corrected: list[LoopReport] = []  # the reports of loops applied: their ms["correct"] is whole once
         # the owner has moved the poses and the map
         self._warmed_up = False  # the kernels that build maps from a stored depth are loaded (``after_frame``)
+        self.session_start = 0  # the first keyframe of this session (``begin_session``): the ones before are the map's
+        self._link: int | None = None  # the keyframe the next keyframe is tied to instead of odometry (``found``)
 
     # -- the verb -------------------------------------------------------------------------------
     def after_frame(self, frame, result, maps: LoopMaps) -> LoopReport | None:
@@ -111,8 +127,10 @@ class LoopClosure:
         if self.config.loop.odometry_from_icp and self.keyframes:
             self._since.append((np.array(result.pose, dtype=np.float64),
                                 frame_covariance(self._information(result), self.config.loop)))
-        if not result.tracking.tracked or (why := self.selector.why(self.keyframes[-1] if self.keyframes else None,
-                                                           result.pose, frame.index)) is None:
+        why = "found" if self._link is not None and result.tracking.tracked else None
+        if why is None and (not result.tracking.tracked or (why := self.selector.why(
+                self.keyframes[-1] if len(self.keyframes) > self.session_start else None, result.pose,
+                frame.index)) is None):
             return None
         watch = Stopwatch()
         kf = self._make_keyframe(frame, result.pose, maps)
@@ -176,10 +194,47 @@ class LoopClosure:
         if self.config.loop.odometry_from_icp and self._since:
             covariance = edge_covariance(self._since, pose)
         self._since = []
-        self.graph.add_keyframe(pose, covariance)
-        if self.config.loop.keyframe_pnp and kf.id > 0:
+        link, self._link = self._link, None
+        self.graph.add_keyframe(pose, covariance, chained=link is None)
+        if link is not None:  # no odometry from the map's last keyframe: the match is this keyframe's tie to the map
+            self.graph.add_relative(link, kf.id, renormalize(invert(self.keyframes[link].pose) @ pose))
+        elif self.config.loop.keyframe_pnp and kf.id > self.session_start:
             self._pnp_edge(self.keyframes[-2], kf)
         return kf
+
+    # -- a session against a saved map ----------------------------------------------------------
+    def begin_session(self) -> None:
+        """The keyframes so far are an earlier session's (a saved map): each is a loop candidate of the new
+        session's keyframes from the first on, and the new session's first keyframe is the frame that
+        ``find_place`` placed (``found``), with no odometry edge from the map's last keyframe."""
+        self.session_start = len(self.keyframes)
+        self.database.earlier_session()
+        self._since = []
+        self._link = None
+
+    def find_place(self, frame, maps: LoopMaps) -> tuple[Placement | None, list[LoopCandidate]]:
+        """Where ``frame`` (tracked by nothing yet: its pose is unknown) is among the keyframes: place recognition
+        over all of them, then the candidates verified best first as a loop's are (pre-check, PnP, dense ICP
+        between the keyframe's stored depth and the frame's maps, ``maps.frame``). Returns the first verified
+        one's placement, or None, and every candidate checked."""
+        features = extract_features(frame, self._vo, self._orb)
+        # verification reads the frame's maps where they are (target_ready): the query needs no depth of its own
+        query = Keyframe(len(self.keyframes), frame.index, frame.timestamp, np.eye(4), features, frame.intrinsics,
+                         None, maps.frame.intrinsics[maps.level], np.zeros((0, 3)))
+        checked = []
+        for place in self.database.query(query, everything=True):
+            c = self.verifier.verify(query, self.keyframes[place.keyframe], place.score, maps.scratch, maps.frame,
+                                     target_ready=True)
+            checked.append(c)
+            if c.verified:
+                match = self.keyframes[c.match]
+                return Placement(c, match, renormalize(match.pose @ invert(c.T))), checked
+        return None, checked
+
+    def found(self, placement: Placement) -> None:
+        """The frame just registered found itself at ``placement``: it becomes the session's first keyframe,
+        tied to the keyframe it matched by the relative pose of the two (after tracking refined the frame's)."""
+        self._link = placement.keyframe.id
 
     def _pnp_edge(self, previous: Keyframe, kf: Keyframe) -> None:
         """``loop.keyframe_pnp``: the two keyframes' relative pose from PnP RANSAC on their ORB features (the

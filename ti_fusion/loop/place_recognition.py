@@ -38,6 +38,8 @@ WORDS = 512
 ITERATIONS = 3
 TRAINING_DESCRIPTORS = 5_000
 FIRST_VOCABULARY = 4
+# The frame index a keyframe of an earlier session counts as: before any frame of this one.
+EARLIER_SESSION = -(2**62)
 
 
 @dataclass
@@ -134,11 +136,17 @@ class PlaceDatabase:
         assign = [m.trainIdx for m in self._matcher.match(descriptors, self.vocabulary)]
         return np.bincount(assign, minlength=words).astype(np.float32)
 
-    def query(self, keyframe: Keyframe) -> list[Place]:
-        """Earlier keyframes at least ``min_frame_gap`` frames before ``keyframe`` with a score of at least
-        ``min_score``, best first, ``candidates`` of them at most."""
+    def earlier_session(self) -> None:
+        """The keyframes so far are an earlier session's (a saved map): from now on each is old enough to be a
+        candidate whatever the frame index of the query (a new session counts its frames from 0 again)."""
+        self._frames = [EARLIER_SESSION] * len(self._frames)
+
+    def query(self, keyframe: Keyframe, everything: bool = False) -> list[Place]:
+        """Earlier keyframes at least ``min_frame_gap`` frames before ``keyframe`` (``everything``: every
+        keyframe) with a score of at least ``min_score``, best first, ``candidates`` of them at most."""
         cfg = self.config
-        eligible = int(np.searchsorted(np.asarray(self._frames), keyframe.frame - cfg.min_frame_gap, side="right"))
+        eligible = len(self._frames) if everything else \
+            int(np.searchsorted(np.asarray(self._frames), keyframe.frame - cfg.min_frame_gap, side="right"))
         q = keyframe.features.descriptors
         if eligible == 0 or q is None or len(q) == 0:
             return []

@@ -143,12 +143,13 @@ class PoseGraph:
     def __len__(self) -> int:
         return len(self.poses)
 
-    def add_keyframe(self, pose: np.ndarray, covariance: np.ndarray | None = None) -> int:
+    def add_keyframe(self, pose: np.ndarray, covariance: np.ndarray | None = None, chained: bool = True) -> int:
         """A new keyframe at ``pose``; from the second on, an odometry edge from the previous one (the
         relative pose of the two current estimates) with ``covariance`` (6×6, (ω, v), ``edge_covariance``),
-        or the constant sigmas when None. Returns its id."""
+        or the constant sigmas when None; none when not ``chained`` (a new session's first keyframe: the
+        caller ties it to the map with ``add_relative``). Returns its id."""
         pose = np.asarray(pose, dtype=np.float64)
-        if self.poses:
+        if self.poses and chained:
             i = len(self.poses) - 1
             self.edges.append(Edge(i, i + 1, renormalize(invert(self.poses[i]) @ pose), loop=False,
                                    covariance=covariance))

@@ -1,5 +1,5 @@
-"""log.mcap (and with ``--live`` the same messages served to Foxglove): per frame the calibration when it
-changes, the pose, the step's stats, loop edges, depth and colour every ``log.depth_every`` frames and the
+"""log.mcap (and with ``--live`` the same messages served to Foxglove): a map the run starts from (a saved
+one) on the map topic at the first frame; per frame the calibration when it changes, the pose, the step's stats, loop edges, depth and colour every ``log.depth_every`` frames and the
 map every ``log.map_every``; at the end the map and the trajectory (docs/LOGS.md)."""
 
 from __future__ import annotations
@@ -39,14 +39,19 @@ class LogSink(Sink):
 
     def __init__(self):
         self._calibration = None  # the intrinsics last logged on /camera/calibration
+        self._loaded = None  # the map a run started from (a saved map, --map), logged at the first frame's time
 
     def start(self, run: Run) -> None:
         run.log = RunLogger(run.out.file("log.mcap"), metadata(run), live=run.live)
         run.log.declare_json(run.step.stats_channel, stats_schema(run.step))
+        self._loaded = run.step.map_points(run.config.log.map_max_points)  # None: the run starts with no map
 
     def frame(self, run: Run, frame, result) -> None:
         log, cfg = run.log, run.config.log
         with Stopwatch(result.ms, "log"):
+            if self._loaded is not None:  # on the map topic before anything of this run
+                log.log_points(frame.timestamp, *self._loaded, max_points=run.config.log.map_max_points)
+                self._loaded = None
             if frame.intrinsics != self._calibration:
                 log.log_calibration(frame.timestamp, frame.intrinsics)
                 self._calibration = frame.intrinsics

@@ -137,13 +137,15 @@ class FrameResult:
     loop: object | None = None  # the loop closure's report on a keyframe (``ti_fusion.loop.closure.LoopReport``)
     hypothesis: str | None = None  # the start whose alignment won: "motion", "last", "features", "wide" or "turn"
     tried: list[str] = field(default_factory=list)  # every start tried, in order, with its outcome
+    found: dict | None = None  # a session against a saved map: where the frame that found itself in it matched
 
     def __post_init__(self):
         self.tracking = Tracking(self.tracking)  # also from its value ("ok")
 
     @property
     def status(self) -> str:
-        """As logs and summaries write it: "init", "ok", "relocalised", "lost: <reason>", "skipped: <reason>"."""
+        """As logs and summaries write it: "init", "ok", "relocalised", "lost: <reason>", "skipped: <reason>",
+        "unlocalised: <reason>"."""
         return status_text(self.tracking, self.reason)
 
     @property
@@ -208,6 +210,7 @@ class DenseSLAM:
         self._frames_fused = 0
         self._color_warned = False  # the warning that the photometric term is off for unregistered colour
         self._degeneracy_warned = False  # the warning that depth (and colour) leave directions unconstrained
+        self.session = None  # a session against a saved map (``start_session``; ti_fusion/slam/session.py)
         self.loop = None  # loop closure: keyframes, place recognition, verification, the pose graph
         # the saved map this one started from (``from_map``), its surfels left out; None for a new map
         self.loaded_map = None
@@ -239,7 +242,7 @@ class DenseSLAM:
         frame that became a keyframe; a loop applied has moved ``poses`` and the map)."""
         check_usable(self._generation, "DenseSLAM.register_frame")
         result = self._track_and_fuse(frame)
-        if self.loop is not None:
+        if self.loop is not None and not (self.session is not None and self.session.localize):
             with Stopwatch(result.ms, "loop"):
                 result.loop = self._close_loops(frame, result)
         return result
@@ -271,10 +274,18 @@ class DenseSLAM:
             # depth, grey and the colour that fusion reads, in one launch
             self.frame_pyramid.compute(frame.depth, frame.intrinsics, grey, frame.color,
                                        self.mapper.frame_level(self.frame_pyramid))
-        if not self.poses and (problem := self.unusable(frame)):
+        if self.session is not None and not self.session.localised:  # where in the map? (slam/session.py)
+            from ti_fusion.slam.session import find_in_map
+
+            with timer.stage("track"):
+                result = find_in_map(self, frame, color, FrameResult)
+            if not result.tracked:
+                result.ms = dict(timer.last)
+                return result
+        elif not self.poses and (problem := self.unusable(frame)):
             self.skipped.append((frame.index, problem))
             return FrameResult(frame.index, frame.timestamp, None, Tracking.SKIPPED, problem, ms=dict(timer.last))
-        if not self.poses:
+        elif not self.poses:
             pose = frame.gt_pose if frame.gt_pose is not None and self.config.slam.start_at_ground_truth \
                 else np.eye(4)
             result = FrameResult(frame.index, frame.timestamp, pose.copy(), Tracking.INIT)
@@ -287,11 +298,12 @@ class DenseSLAM:
             with timer.stage("track"):
                 result = self._track(frame, color)
         before = self._held_pose() if self.poses else None  # the motion model's pose before this frame
-        if result.tracked:
+        if result.tracked and not (self.session is not None and self.session.localize):
             with timer.stage("fuse"):
                 result.fusion = self.mapper.integrate(self.frame_pyramid, frame.color, result.pose,
                                                       self._frames_fused)
             self._frames_fused += 1
+        if result.tracked:
             self.last_good = (frame, result.pose)
         self._update_motion(result, frame.timestamp, before)
         result.ms = dict(timer.last)
@@ -337,7 +349,7 @@ class DenseSLAM:
         # without them would be empty, every frame lost and never fused.
         warm = self._frames_fused >= fusion.unstable_age
         # slam.active_window: only the active model (surfels updated lately) is tracked against (ElasticFusion)
-        window = self.config.slam.active_window
+        window = 0 if self.session is not None and self.session.whole_map else self.config.slam.active_window
         self.mapper.render_pyramid(self.model_pyramid, last, self.model_intrinsics,
                                    min_weight=fusion.render_min_weight if warm else 0.0,
                                    min_time=self._frames_fused - window if window > 0 else -2**31, intensity=color)
@@ -578,6 +590,54 @@ class DenseSLAM:
         from ti_fusion.slam.saved_map import save_map
 
         return save_map(self.map_state(), folder)
+
+    # -- a session against a saved map (ti_fusion/slam/session.py) -----------------------------------
+    def start_session(self, localize: bool = False) -> None:
+        """The map is a saved one (or this run's, handed over): the camera's pose is unknown from the next frame
+        on, each frame looking for itself among the map's keyframes until one finds itself; then the session
+        extends the map, or with ``localize`` tracks against it without changing it. Its trajectory
+        (``poses``) starts empty, in the map's frame."""
+        from ti_fusion.errors import InputError
+        from ti_fusion.slam.session import Session
+
+        if self.loop is None or not self.loop.keyframes:
+            raise InputError(None, "the map has no keyframes (it was made with slam.loop_closure = false, or from "
+                                   "too few frames): a new session has nothing to find itself in")
+        cfg = self.config.slam
+        self.session = Session(localize, cfg.unfound, cfg.find_frames)
+        self.poses = PoseStore()
+        self.skipped = []
+        self.seed(None, None)
+        self.__dict__.pop("_frame_checks", None)  # a new session's timestamps start afresh (slam/checks.py)
+        self.loop.begin_session()
+
+    def seed(self, frame: Frame | None, pose: np.ndarray | None) -> None:
+        """Tracking starts afresh from ``pose`` (the frame that gave it: feature re-localisation's reference), at
+        rest, with no recent residuals; None: from nowhere (a session that has not found itself)."""
+        self.last_good = None if frame is None else (frame, np.array(pose, dtype=np.float64))
+        self._velocity = np.zeros(6)
+        self._last_stamp = None
+        self._lost_streak = 0
+        self._guess_beaten = False
+        self._residuals.clear()
+
+    def reactivate_map(self) -> None:
+        """The confirmed surfels of the whole map count as updated now, so the active window renders the place
+        a session found itself in whatever its age (as after a loop)."""
+        if self.config.slam.active_window > 0:
+            self.mapper.map.reactivate(self._frames_fused, self.config.fusion.unstable_weight)
+
+    def own_map(self) -> None:
+        """A session that did not find itself maps on in its own frame (``slam.unfound = map-anyway``): the
+        loaded map, its keyframes and its graph are set aside; the next usable frame starts a new map."""
+        self.mapper = SurfelMapper(self.config.fusion)
+        self._frames_fused = 0
+        self.poses = PoseStore()
+        self.seed(None, None)
+        if self.loop is not None:
+            from ti_fusion.loop.closure import LoopClosure
+
+            self.loop = LoopClosure(self.config)
 
     # -- results --------------------------------------------------------------------------------
     @property

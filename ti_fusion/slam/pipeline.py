@@ -19,7 +19,7 @@ import numpy as np
 
 from ti_fusion.backend import BackendInfo
 from ti_fusion.config import Config
-from ti_fusion.errors import InputError
+from ti_fusion.errors import InputError, NotLocalised
 from ti_fusion.frontend import CLOCK
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.outputs import RunDir, progress
@@ -118,6 +118,10 @@ class Pipeline:
                     logging.getLogger(__name__).warning(f"after the error, no summary of the {len(self.results)} "
                                                         f"frames done: {exc}")
             raise error
+        if nothing and self._unlocalised():  # a session against a saved map that never found itself in it
+            error = NotLocalised(self.dataset.root, nothing)
+            error.partial_summary = self._whole_summary(wall, fields)
+            raise error
         if nothing:
             raise InputError(self.dataset.root, nothing)
         if failure is not None:
@@ -173,6 +177,10 @@ class Pipeline:
         """The line for a run in which no frame got a pose (nothing to map or evaluate), else None."""
         if not self.step.estimates_poses or not self.results or any(r.pose is not None for r in self.results):
             return None
+        if self._unlocalised():
+            return (f"none of the {len(self.results)} frames found itself in the map (--map; the last: "
+                    f"{self.results[-1].status.removeprefix('unlocalised: ')}): not localised. The data may not see "
+                    "the mapped place; --unfound map-anyway maps it in its own frame instead")
         reasons = sorted({r.status.removeprefix("skipped: ") for r in self.results if r.status})
         line = f"none of the {len(self.results)} frames got a pose ({'; '.join(reasons[:2]) or 'no reason given'})"
         if not any("depth" in r for r in reasons):
@@ -182,6 +190,10 @@ class Pipeline:
         return (f"{line}: nothing was mapped. Check the depth's units and range: {stated}dataset.depth_max = "
                 f"{self.config.dataset.depth_max:g} m")
 
+    def _unlocalised(self) -> bool:
+        """Every frame done was a session's that did not find itself in its saved map."""
+        return bool(self.results) and all(r.status.startswith("unlocalised") for r in self.results)
+
     # -- the loop -------------------------------------------------------------------------------
     def _loop(self, sinks: list[Sink]) -> None:
         n = len(self.dataset)
@@ -190,7 +202,9 @@ class Pipeline:
         prefetcher = Prefetcher.for_dataset(self.dataset, self.config.dataset.read_workers, READ_AHEAD)
         self.read_workers, self.read_mode = prefetcher.workers, prefetcher.mode
         with prefetcher as frames:
-            for i in progress(range(n), n, self.step.name, self.show_progress):
+            note = lambda: "not localised" if self.results and self.results[-1].status.startswith("unlocalised") \
+                else ""  # a session against a saved map, until it has found itself in it
+            for i in progress(range(n), n, self.step.name, self.show_progress, note):
                 with self.timer.stage("load"):  # the wait for the frame: what reading it did not overlap
                     try:
                         _, frame, read_ms = next(frames)

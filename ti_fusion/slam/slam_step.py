@@ -32,8 +32,10 @@ LOOP_CANDIDATE_SCHEMA = json_object({
 STATS_SCHEMA = json_object({
     "frame": json_field("integer", "index of the frame in the run (0 = the first frame selected)"),
     "status": json_field("string", '"ok" (a tracked frame, the map\'s first one included), "relocalised", '
-                                   '"lost: <reason>" (not fused; its pose is the motion model\'s guess) or "skipped: '
-                                   '<reason>" (before the map started: no depth enough to start it on; no pose)'),
+                                   '"lost: <reason>" (not fused; its pose is the motion model\'s guess), "skipped: '
+                                   '<reason>" (before the map started: no depth enough to start it on; no pose) or '
+                                   '"unlocalised: <reason>" (a session against a saved map that has not found itself '
+                                   'in it yet; no pose)'),
     "tracking": json_field("string", 'the tracker\'s own word: "init" for the map\'s first frame, else as status'),
     "surfels": json_field("integer", "surfels in the map after this frame"),
     "hypothesis": json_field("string", 'the start of ICP whose alignment was kept: "motion" (the motion model), '
@@ -80,7 +82,8 @@ STATS_SCHEMA = json_object({
                                      "frames only", minimum=0),
     "loop": json_object({
         "keyframe": json_field("integer", "the keyframe's id (0, 1, 2, ...)", minimum=0),
-        "why": json_field("string", '"first", "moved", "turned" or "overlap" (too little of the last keyframe seen)'),
+        "why": json_field("string", '"first", "moved", "turned", "overlap" (too little of the last keyframe seen) or '
+                                    '"found" (a session\'s frame that found itself in its saved map)'),
         "candidates": json_field("array", "earlier keyframes place recognition proposed, each with its decision",
                                  items=LOOP_CANDIDATE_SCHEMA),
         "applied": json_field("array", "[earlier keyframe, this keyframe] of a loop applied, else []",
@@ -93,6 +96,18 @@ STATS_SCHEMA = json_object({
             ("correct", "moving the poses and the map, on an applied loop"))}, description="loop closure's stages"),
     }, required=("keyframe", "why", "candidates", "applied", "outcome", "ms"),
         description="loop closure, on frames that became keyframes (slam.loop_closure)"),
+    "localised": json_field("boolean", "a session against a saved map (--map): the frame has a pose in the map's "
+                                       "frame (false: not found in the map yet, or mapping in its own frame)"),
+    "found": json_object({
+        "frame": json_field("integer", "this frame's index in the run", minimum=0),
+        "keyframe": json_field("integer", "the map's keyframe it matched", minimum=0),
+        "map_frame": json_field("integer", "that keyframe's frame in the run that made the map", minimum=0),
+        "score": json_field("number", "place recognition's score"),
+        "pnp_inliers": json_field("integer", "PnP RANSAC inliers of the match", minimum=0),
+        "icp_inlier_ratio": json_field("number", "the match's dense ICP inlier ratio"),
+        "unlocalised_before": json_field("integer", "frames of the session not localised before this one", minimum=0),
+    }, required=("frame", "keyframe", "map_frame", "score", "pnp_inliers", "unlocalised_before"),
+        description="the event of a session against a saved map: this frame found itself in the map (once)"),
 }, required=("frame", "status", "tracking", "surfels", "ms"))
 
 
@@ -147,7 +162,8 @@ class SLAMStep:
     def warmup_frames(self) -> int:
         """The map's first frame compiles the maps and fusion kernels, the next one rendering and ICP; frames
         skipped before the map started come first."""
-        return len(self.slam.skipped) + 2
+        session = self.slam.session  # a session's frames before it found itself do not count either
+        return len(self.slam.skipped) + (len(session.unlocalised) if session is not None else 0) + 2
 
     @property
     def mapper(self):
@@ -161,7 +177,13 @@ class SLAMStep:
         return self.slam.loop.edges() if self.slam.loop is not None else []
 
     def stats(self, result: FrameResult) -> dict:
-        return frame_stats(result, self.slam.surfels)
+        stats = frame_stats(result, self.slam.surfels)
+        session = self.slam.session
+        if session is not None:
+            stats["localised"] = result.pose is not None and session.found is not None
+            if result.found is not None:
+                stats["found"] = result.found
+        return stats
 
     def map_points(self, max_points: int):
         return self.slam.mapper.sample_points(max_points) if self.slam.surfels else None
@@ -188,6 +210,7 @@ class SLAMStep:
             "map_started_at": None if first is None else first.index,
             "skipped_frames": [{"frame": f, "reason": reason} for f, reason in slam.skipped][:50],
             **self.loop_summary(),
+            **(slam.session.summary() if slam.session is not None else {}),
         }
 
     def loop_summary(self) -> dict:

@@ -1,0 +1,113 @@
+"""A session against a map (``DenseSLAM.start_session``, ti_fusion/slam/session.py): the pose unknown until a frame
+finds itself among the map's keyframes (place recognition, PnP, dense verification, then tracking against the
+map), no pose before that, never a start at the identity; then extending the map, or with ``localize`` tracking
+against it without changing it; a session that never sees the mapped place stays unlocalised, or with
+``slam.unfound = map-anyway`` maps on in its own frame. The map is handed over in the process (the same
+DenseSLAM), as a loaded one is. Synthetic room at 320×240."""
+
+import numpy as np
+import pytest
+
+from ti_fusion.config import Config
+from ti_fusion.errors import InputError
+from ti_fusion.geometry import pose_error
+from ti_fusion.io.datasets import open_dataset
+from ti_fusion.slam.dense import DenseSLAM
+from ti_fusion.slam.slam_step import STATS_SCHEMA, SLAMStep
+from ti_fusion.status import Tracking
+
+MAPPED = 40  # frames of the room mapped before the session
+
+
+def _mapped(scene: str = "room", **slam):
+    """A DenseSLAM that mapped the room's first frames, the config, and the frames of ``scene`` (same camera)."""
+    cfg = Config()
+    cfg.dataset.downsample = 2
+    for key, value in slam.items():
+        setattr(cfg.slam, key, value)
+    room = open_dataset(cfg.dataset, cfg.synth)
+    system = DenseSLAM(cfg, room.intrinsics)
+    for i in range(MAPPED):
+        system.register_frame(room[i])
+    if scene == "room":
+        return system, room
+    cfg.synth.scene = scene
+    return system, open_dataset(cfg.dataset, cfg.synth)
+
+
+def _step(system: DenseSLAM) -> SLAMStep:
+    step = SLAMStep.__new__(SLAMStep)  # the stats and summary of the step around this system
+    step.slam, step.config, step.dataset_name = system, system.config, "room"
+    return step
+
+
+def test_a_session_finds_itself_in_the_map_and_extends_it(cpu):
+    system, room = _mapped()
+    keyframes = len(system.loop.keyframes)
+    system.start_session()
+    assert len(system.poses) == 0 and system.session.whole_map
+    results = [system.register_frame(room[i]) for i in range(15, 21)]
+    first = results[0]
+    # the first frame sees mapped space: it finds itself there, in the map's frame (the room's ground truth)
+    assert first.tracking is Tracking.RELOCALISED, (first.status, first.tried)
+    assert first.tried[0].startswith("place: keyframe ") and first.tried[0].endswith(": verified")
+    assert first.found["frame"] == 15 and first.found["unlocalised_before"] == 0
+    for r, i in zip(results, range(15, 21)):
+        rot, trans = pose_error(r.pose, room[i].gt_pose)
+        assert r.tracked and rot < 0.5 and trans < 0.01, (i, r.status, rot, trans)
+    assert sorted(system.poses.by_frame()) == list(range(15, 21))  # the session's own trajectory
+    # extended: the frame that found itself is a keyframe tied to the one it matched, its surfels fused
+    assert first.fusion is not None and not system.session.whole_map
+    assert len(system.loop.keyframes) > keyframes and first.loop.why == "found"
+    ties = [e.i for e in system.loop.graph.edges if e.j == keyframes and not e.loop]
+    assert ties == [first.found["keyframe"]]  # no odometry edge from the map's last keyframe
+    step = _step(system)
+    stats = step.stats(first)
+    assert stats["localised"] and stats["found"] == first.found and stats["status"] == "relocalised"
+    assert {"localised", "found"} <= set(STATS_SCHEMA["properties"])
+    assert step.stats(results[1])["localised"] and "found" not in step.stats(results[1])
+
+
+@pytest.mark.slow
+def test_localize_tracks_against_the_map_without_changing_it(cpu):
+    system, room = _mapped()
+    before = {k: v.copy() for k, v in system.mapper.to_numpy().items()}
+    keyframes, edges = len(system.loop.keyframes), len(system.loop.graph.edges)
+    system.start_session(localize=True)
+    results = [system.register_frame(room[i]) for i in range(25, 31)]
+    assert results[0].tracking is Tracking.RELOCALISED, (results[0].status, results[0].tried)
+    for r, i in zip(results, range(25, 31)):
+        rot, trans = pose_error(r.pose, room[i].gt_pose)
+        assert r.tracked and r.fusion is None and r.loop is None and trans < 0.01, (i, r.status, trans)
+    after = system.mapper.to_numpy()
+    assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k]) for k in before)
+    assert (len(system.loop.keyframes), len(system.loop.graph.edges)) == (keyframes, edges)
+    assert system.session.whole_map  # nothing is fused: the whole map is rendered, not an active window
+
+
+@pytest.mark.slow
+def test_a_session_that_never_sees_the_map_gets_no_pose_or_maps_in_its_own_frame(cpu):
+    system, wall = _mapped("wall", find_frames=3)
+    system.start_session()
+    results = [system.register_frame(wall[i]) for i in range(3)]
+    for r in results:  # never a silent start at the identity
+        assert r.tracking is Tracking.UNLOCALISED and r.pose is None and r.status.startswith("unlocalised: "), r.status
+    summary = _step(system).summary(type("Run", (), {"results": results})())
+    assert summary["unlocalised_frames"] == 3 and summary["localised_at"] is None
+    assert summary["tracking_failures"] == 0 and len(system.poses.by_frame()) == 0
+
+    system, wall = _mapped("wall", find_frames=2, unfound="map-anyway")
+    system.start_session()
+    results = [system.register_frame(wall[i]) for i in range(4)]
+    assert [r.tracking for r in results[:2]] == [Tracking.UNLOCALISED] * 2
+    assert results[2].tracking is Tracking.INIT and results[3].tracked  # a map of its own from the third frame
+    assert system.session.own_map_at == 2 and system.surfels > 0 and len(system.loop.keyframes) == 1
+
+
+def test_a_map_without_keyframes_has_nothing_to_find_a_session_in(cpu):
+    cfg = Config()
+    cfg.dataset.downsample = 2
+    cfg.slam.loop_closure = False
+    room = open_dataset(cfg.dataset, cfg.synth)
+    with pytest.raises(InputError, match="the map has no keyframes"):
+        DenseSLAM(cfg, room.intrinsics).start_session()

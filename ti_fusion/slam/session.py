@@ -1,0 +1,107 @@
+"""A session against a saved map: the camera's pose is unknown until the session finds itself in the map.
+
+    slam.start_session(localize=False)     # a DenseSLAM holding a map: a loaded one, or the same object later on
+    result = slam.register_frame(frame)    # "unlocalised: <why>" until a frame finds itself, then as any run
+
+Until then every frame tries: place recognition against the map's keyframes, PnP and dense verification as a
+loop candidate is verified (``LoopClosure.find_place``), then ICP of the frame against the map rendered at the
+pose the match gives (the starts and health checks of any tracked frame, ``DenseSLAM._track``). A frame that
+does not find itself gets no pose (left out of trajectory.tum, as a frame skipped before a map starts) and is
+not fused: never a start at the identity. The frame that finds itself is "relocalised", carries the event
+(``FrameResult.found``), and the session goes on in the map's frame: extending the map (fusion, new keyframes,
+loop closures that may reach the map's keyframes) or, with ``localize``, tracking against the map without
+changing it (no fusion, no keyframes; the whole map is rendered, not an active window).
+
+A session that never finds itself ends with every frame unlocalised (the CLI exits with status 3), unless
+``slam.unfound = "map-anyway"``: after ``slam.find_frames`` unlocalised frames the session sets the loaded map
+aside and maps on in its own frame from the next frame, as a run without a map does.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+from ti_fusion.status import Tracking
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class Session:
+    """What a DenseSLAM knows of the session it runs against a map (``DenseSLAM.start_session``)."""
+
+    localize: bool = False  # track against the map without changing it
+    unfound: str = "fail"  # "map-anyway": after ``give_up`` unlocalised frames, map on in the session's own frame
+    give_up: int = 30
+    found: dict | None = None  # the event of the frame that found itself (``FrameResult.found``)
+    unlocalised: list[tuple[int, str]] = field(default_factory=list)  # (frame, why) of the frames before
+    own_map_at: int | None = None  # map-anyway: the frame the session's own map started at
+
+    @property
+    def localised(self) -> bool:
+        """The session knows its pose: in the map's frame (found) or in its own (map-anyway)."""
+        return self.found is not None or self.own_map_at is not None
+
+    @property
+    def whole_map(self) -> bool:
+        """Tracking renders the whole map, not the active window: while looking for itself (the place may be
+        of any age), and in localisation (nothing is fused, so nothing would stay active)."""
+        return self.found is not None and self.localize or self.found is None and self.own_map_at is None
+
+    def summary(self) -> dict:
+        """summary.json's session fields."""
+        return {"session": "localize" if self.localize else "extend",
+                "localised_at": None if self.found is None else self.found["frame"],
+                "unlocalised_frames": len(self.unlocalised),
+                "unlocalised": [{"frame": f, "reason": why} for f, why in self.unlocalised][:50],
+                "found": self.found, "own_map_at": self.own_map_at}
+
+
+def find_in_map(slam, frame, color: bool, result_type):
+    """One frame of a session that has not found itself: a ``result_type`` (FrameResult) that is relocalised
+    (with ``found``), or unlocalised with why."""
+    from ti_fusion.loop.closure import LoopMaps
+
+    session = slam.session
+    maps = LoopMaps(slam.frame_pyramid, slam.scratch_pyramid(), slam.mapper.frame_level(slam.frame_pyramid))
+    placement, checked = slam.loop.find_place(frame, maps)
+    tried = [f"place: keyframe {c.match} (score {c.score:.3f}): {c.reason}" for c in checked]
+    if placement is None:
+        why = "no keyframe of the map looks like this frame" if not checked else \
+            f"{len(checked)} keyframe(s) of the map look like it, none verified ({checked[0].reason})"
+        return _unlocalised(slam, frame, why, tried, result_type)
+    slam.seed(frame, placement.pose)
+    result = slam._track(frame, color)
+    result.tried = tried + result.tried
+    if not result.tracked:
+        slam.seed(None, None)
+        return _unlocalised(slam, frame, f"keyframe {placement.keyframe.id} verified, but the frame does not track "
+                                         f"against the map there ({result.reason})", result.tried, result_type)
+    c = placement.candidate
+    result.tracking = Tracking.RELOCALISED
+    result.found = session.found = {
+        "frame": frame.index, "keyframe": placement.keyframe.id, "map_frame": placement.keyframe.frame,
+        "score": round(c.score, 4), "pnp_inliers": c.pnp_inliers,
+        "icp_inlier_ratio": None if c.icp_inlier_ratio is None else round(c.icp_inlier_ratio, 4),
+        "unlocalised_before": len(session.unlocalised)}
+    if not session.localize:
+        slam.mapper.anchor = placement.keyframe.id  # its surfels move with the keyframe it matched until its own
+        slam.reactivate_map()
+        slam.loop.found(placement)
+    log.info(f"frame {frame.index}: found itself in the map at keyframe {placement.keyframe.id} (frame "
+             f"{placement.keyframe.frame} of the map's run), score {c.score:.3f}, {c.pnp_inliers} PnP inliers, after "
+             f"{len(session.unlocalised)} frame(s) not localised")
+    return result
+
+
+def _unlocalised(slam, frame, why: str, tried: list[str], result_type):
+    session = slam.session
+    session.unlocalised.append((frame.index, why))
+    if session.unfound == "map-anyway" and len(session.unlocalised) >= session.give_up:
+        log.warning(f"frame {frame.index}: the session has not found itself in the map in {len(session.unlocalised)} "
+                    "frames (slam.find_frames): it maps on in its own frame from the next frame "
+                    "(slam.unfound = map-anyway); the loaded map is set aside")
+        slam.own_map()
+        session.own_map_at = frame.index + 1
+    return result_type(frame.index, frame.timestamp, None, Tracking.UNLOCALISED, why, tried=tried)

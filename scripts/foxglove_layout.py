@@ -41,8 +41,10 @@ SCENE_TOPICS = {
     # the colour image in its camera: the client draws the frustum from the calibration
     "/camera/color": {"visible": True, "cameraInfoTopic": "/camera/calibration", "distance": 0.3},
     "/camera/calibration": {"visible": True, "distance": 0.3, "color": EST},
-    # loop edges (slam.loop_closure): the colours are the message's own (applied green, not applied red)
+    # loop edges (slam.loop_closure), in the messages' own colours: the loops applied (green) shown, the
+    # candidates not applied (red, hundreds a lap) hidden: the client draws them over the map and the loops
     "/loop_closures": {"visible": True},
+    "/loop_closures/refused": {"visible": False},
     # slam --mesh: the mesh of the map at the end of the run, its own vertex colours
     "/map/mesh": {"visible": True},
     # the trajectory as written at the end (loop closure's corrections included), as a line

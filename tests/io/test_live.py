@@ -209,7 +209,7 @@ def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
     advertised = {c["topic"] for c in client.channels.values()}
     assert set(in_file) == {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points", "/camera/depth",
                             "/camera/color", "/camera/calibration", "/trajectory"}
-    assert advertised == set(in_file) | {"/map/mesh", "/loop_closures"}  # advertised before they are logged
+    assert advertised == set(in_file) | {"/map/mesh", "/loop_closures", "/loop_closures/refused"}  # before logged
     assert client.received("/trajectory")  # logged as the run closes
     for topic in set(in_file):  # the same schema records: name, encoding and bytes
         schema = client.schema(topic)

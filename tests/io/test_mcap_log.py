@@ -18,8 +18,8 @@ from ti_fusion.camera import Intrinsics
 from ti_fusion.cli.main import main
 from ti_fusion.errors import InputError
 from ti_fusion.geometry import se3_exp
-from ti_fusion.io.mcap_log import (LOOP_TOPIC, RunLogger, depth_from_msg, loop_edges_from_msg, points_from_msg,
-                                pose_from_msg, read_log, software_versions)
+from ti_fusion.io.mcap_log import (LOOP_REFUSED_TOPIC, LOOP_TOPIC, RunLogger, depth_from_msg, loop_edges_from_msg,
+                                points_from_msg, pose_from_msg, read_log, software_versions)
 
 T0 = 1305031102.175304  # a TUM-style unix timestamp: the ns conversion must keep µs
 N_FRAMES = 6
@@ -156,9 +156,10 @@ def test_every_channel_decodes_with_its_values(written):
 
 
 def test_loop_edges_read_back(tmp_path, rng):
-    """Loop edges: a foxglove.SceneUpdate in the world frame, one entity holding two LINE_LISTs (two points
-    per edge: not applied thin, faint and red, applied thick and green), replaced by each message; non-finite
-    edges are left out."""
+    """Loop edges: foxglove.SceneUpdate messages in the world frame, the loops applied on /loop_closures (one
+    entity, one thick green LINE_LIST, a sphere at each end) and the candidates not applied on a topic of their
+    own (one thin, faint, red LINE_LIST), which the layout can hide: two points per edge, each entity replaced
+    by its topic's next message; non-finite edges are left out."""
     from foxglove_schemas_protobuf.LinePrimitive_pb2 import LinePrimitive
 
     poses = _trajectory(rng)
@@ -171,32 +172,38 @@ def test_loop_edges_read_back(tmp_path, rng):
         assert log.log_loop_edges(T0 + 0.1, first) == 1
         assert log.log_loop_edges(T0 + 0.2, second) == 3
         assert log.log_loop_edges(T0 + 0.3, []) == 0  # clears them
-    msgs = _decode_all(path)[LOOP_TOPIC]
-    assert [(t, s) for t, s, _ in msgs] == [(int(round((T0 + d) * 1e9)), "foxglove.SceneUpdate")
-                                           for d in (0.1, 0.2, 0.3)]
-    (_, _, one), (_, _, two), (_, _, none) = msgs
-    for msg in (one, two, none):
-        (entity,) = msg.entities
-        assert entity.frame_id == "world" and entity.id == "loop_closures"  # the poses' frame; one entity
-        # the candidates not applied thin, faint and red under the applied loops, thick, opaque and green
-        refused, applied = entity.lines
-        assert refused.type == applied.type == LinePrimitive.LINE_LIST
-        assert refused.thickness < applied.thickness and refused.color.a < 1 == applied.color.a
-        assert refused.color.r > refused.color.g and applied.color.g > applied.color.r
+    decoded = _decode_all(path)
+    stamps = [(int(round((T0 + d) * 1e9)), "foxglove.SceneUpdate") for d in (0.1, 0.2, 0.3)]
+    for topic, entity_id, kind in ((LOOP_TOPIC, "loop_closures", "applied"),
+                                   (LOOP_REFUSED_TOPIC, "loop_closures_refused", "refused")):
+        assert [(t, s) for t, s, _ in decoded[topic]] == stamps, topic
+        for _, _, msg in decoded[topic]:
+            (entity,) = msg.entities
+            assert entity.frame_id == "world" and entity.id == entity_id  # the poses' frame; one entity
+            (line,) = entity.lines
+            assert line.type == LinePrimitive.LINE_LIST
+            if kind == "applied":  # thick, opaque and green
+                assert line.thickness == 3 and line.color.a == 1 and line.color.g > line.color.r
+            else:  # thin, faint and red, and no spheres
+                assert line.thickness == 1 and line.color.a < 1 and line.color.r > line.color.g
+                assert len(entity.spheres) == 0
+    one, two, none = (m for _, _, m in decoded[LOOP_TOPIC])
+    r_one, r_two, r_none = (m for _, _, m in decoded[LOOP_REFUSED_TOPIC])
     # each applied loop's ends are marked too (its two keyframes are close: the line alone is a few pixels)
     assert [len(m.entities[0].spheres) for m in (one, two, none)] == [2, 4, 0]
     ends = [(s.pose.position.x, s.pose.position.y, s.pose.position.z) for s in two.entities[0].spheres]
     np.testing.assert_allclose(ends, [second[0][0], second[0][1], second[3][0], second[3][1]], atol=1e-12)
     assert all(s.color.g > s.color.r and s.color.a == 1 and s.size.x > 0 for s in two.entities[0].spheres)
-    got = sorted(loop_edges_from_msg(two), key=lambda e: -e[2])
-    want = [second[0], second[3], second[1]]  # the applied ones, then the refused one
-    assert [ok for _, _, ok in got] == [True, True, False]
-    for (a, b, _), (c, d, _) in zip(got, want):
+    got, refused = loop_edges_from_msg(two), loop_edges_from_msg(r_two)
+    assert [ok for _, _, ok in got] == [True, True] and [ok for _, _, ok in refused] == [False]
+    for (a, b, _), (c, d, _) in zip(got + refused, [second[0], second[3], second[1]]):
         np.testing.assert_allclose(a, c, atol=1e-12)
         np.testing.assert_allclose(b, d, atol=1e-12)
-    assert len(loop_edges_from_msg(one)) == 1 and loop_edges_from_msg(none) == []
+    assert len(loop_edges_from_msg(one)) == 1 and loop_edges_from_msg(r_one) == []
+    assert loop_edges_from_msg(none) == loop_edges_from_msg(r_none) == []
     contents = read_log(path)
-    assert contents.channels[LOOP_TOPIC].count == 3 and contents.complete
+    assert contents.channels[LOOP_TOPIC].count == contents.channels[LOOP_REFUSED_TOPIC].count == 3
+    assert contents.complete
 
 
 def test_metadata_records(written):
@@ -666,7 +673,8 @@ def test_the_foxglove_layout_shows_what_the_logs_have():
     text = (DOCS.parent / "foxglove-layout.json").read_text()
     assert json.loads(text) == _layout_module().layout()
     topics = {"/tf", "/camera/pose", "/gt/pose", "/slam/stats", "/map/points", "/camera/depth", "/camera/color",
-              "/camera/calibration", LOOP_TOPIC, "/map/mesh",  # /map/mesh: slam --mesh (tests/mapping/test_mesh.py)
+              "/camera/calibration", LOOP_TOPIC, LOOP_REFUSED_TOPIC,
+              "/map/mesh",  # /map/mesh: slam --mesh (tests/mapping/test_mesh.py)
               "/trajectory"}
     slam_fields = set(_field_names(_steps()["/slam/stats"])) | {"ms.load", "ms.log", "first_launch_ms"}
     paths = set(re.findall(r'"(/[a-z/_]+(?:\{[a-z_]+==[0-9]+\})?(?:\.[a-z_.]+)?)"', text))
@@ -706,6 +714,8 @@ def test_the_foxglove_layout_is_in_the_form_every_client_imports():
     (scene,) = [c for p, c in layout["configById"].items() if p.startswith("3D!")]
     cloud = scene["topics"]["/map/points"]
     assert cloud["colorMode"] == "rgba-fields" and cloud["colorField"] in ("red", "green", "blue", "alpha")
+    # the loops applied shown, the hundreds of candidates not applied hidden until the user turns them on
+    assert scene["topics"][LOOP_TOPIC]["visible"] and not scene["topics"][LOOP_REFUSED_TOPIC]["visible"]
     plots = [c for p, c in layout["configById"].items() if p.startswith("Plot!")]
     assert not any("xValuePath" in series or "xValue" in series for c in plots for series in c["paths"])
     xy = [c for c in plots if c["xAxisVal"] == "custom"]

@@ -10,7 +10,7 @@ import pytest
 from ti_fusion.config import Config
 from ti_fusion.geometry import make_pose, se3_exp
 from ti_fusion.io.datasets.arrays import FrameList
-from ti_fusion.io.mcap_log import read_log
+from ti_fusion.io.mcap_log import LOOP_REFUSED_TOPIC, LOOP_TOPIC, loop_edges_from_msg, read_log
 from ti_fusion.io.outputs import RunDir
 from ti_fusion.io.trajectory import read_tum
 from ti_fusion.loop.closure import LoopClosure, candidate_gap
@@ -206,7 +206,20 @@ def test_loop_stats_and_edges_in_the_log(run):
     assert len(loops) == run.summary["keyframes"]
     assert any(entry["applied"] for entry in loops)
     assert all("loop" in m["ms"] for m in log.stats)
-    assert log.channels["/loop_closures"].count >= 1
+    assert log.channels[LOOP_TOPIC].count >= 1
+    # the loops applied on /loop_closures, the candidates not applied on the topic the layout hides
+    from mcap.reader import make_reader
+    from mcap_protobuf.decoder import DecoderFactory
+
+    last = {}
+    with open(run.out / "log.mcap", "rb") as f:
+        for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                topics=[LOOP_TOPIC, LOOP_REFUSED_TOPIC]):
+            last[channel.topic] = loop_edges_from_msg(msg)
+    edges = run.pipeline.step.loop_edges()
+    assert len(last[LOOP_TOPIC]) == sum(e[2] for e in edges) >= 1 and all(e[2] for e in last[LOOP_TOPIC])
+    assert len(last[LOOP_REFUSED_TOPIC]) == sum(not e[2] for e in edges)
+    assert not any(e[2] for e in last[LOOP_REFUSED_TOPIC])
 
 
 def test_summary_counts_without_loop_closure(run):

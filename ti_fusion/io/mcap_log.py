@@ -10,7 +10,8 @@ Channels (log time = the frame's dataset timestamp; ``docs/LOGS.md`` has the ful
     /camera/depth       foxglove.RawImage          protobuf  16UC1, millimetres, 0 = no depth
     /camera/color       foxglove.CompressedImage   protobuf  jpeg (or png)
     /camera/calibration foxglove.CameraCalibration protobuf  pinhole K, P
-    /loop_closures      foxglove.SceneUpdate       protobuf  loop edges as one LINE_LIST, frame "world"
+    /loop_closures      foxglove.SceneUpdate       protobuf  loop closures applied: one LINE_LIST, frame "world"
+    /loop_closures/refused foxglove.SceneUpdate    protobuf  loop candidates not applied: one LINE_LIST
     /map/mesh           foxglove.SceneUpdate       protobuf  slam --mesh: the mesh as one TRIANGLE_LIST, frame "world"
     /trajectory         foxglove.PosesInFrame      protobuf  at the end: every pose as trajectory.tum has it (after
                                                              loop closure's corrections), frame "world"
@@ -89,9 +90,12 @@ WORLD_FRAME = "world"
 CAMERA_FRAME = "camera"
 STATS_TOPIC = "/slam/stats"
 LOOP_TOPIC = "/loop_closures"
-LOOP_ENTITY = "loop_closures"  # one entity, replaced by each message: it holds every loop edge so far
-# RGBA in [0, 1]: loop closures applied green and thick, candidates not applied red, thin and faint (a lap has
-# hundreds of them: drawn as the applied ones, they bury the map and the loop that was closed)
+# The candidates not applied have a topic of their own, which the layout hides: a lap has hundreds of them, and
+# Foxglove draws translucent lines after opaque ones, so even thin and faint they bury the map and the loop closed.
+LOOP_REFUSED_TOPIC = "/loop_closures/refused"
+LOOP_ENTITY = "loop_closures"  # one entity per topic, replaced by each message: it holds every edge so far
+LOOP_REFUSED_ENTITY = "loop_closures_refused"
+# RGBA in [0, 1]: loop closures applied green and thick, candidates not applied red, thin and faint
 LOOP_APPLIED_RGBA = (0.17, 0.80, 0.25, 1.0)
 LOOP_NOT_APPLIED_RGBA = (0.90, 0.15, 0.15, 0.3)
 LOOP_APPLIED_PX, LOOP_NOT_APPLIED_PX = 3.0, 1.0  # line widths, pixels at any zoom
@@ -108,7 +112,7 @@ MCAP_MAGIC = b"\x89MCAP0\r\n"
 LIVE_CHANNELS = {"/tf": FrameTransforms, "/camera/pose": PoseInFrame, "/gt/pose": PoseInFrame,
                  "/camera/calibration": CameraCalibration, "/camera/depth": RawImage,
                  "/camera/color": CompressedImage, "/map/points": PointCloud, "/trajectory": PosesInFrame,
-                 "/map/mesh": SceneUpdate, "/loop_closures": SceneUpdate}
+                 "/map/mesh": SceneUpdate, LOOP_TOPIC: SceneUpdate, LOOP_REFUSED_TOPIC: SceneUpdate}
 
 
 def live_channel_specs() -> list[tuple[str, str, str, str, bytes]]:
@@ -378,12 +382,14 @@ class RunLogger:
         self._claim(topic, CameraCalibration)
         self._submit(_write_calibration, topic, ns, numbers, size)
 
-    def log_loop_edges(self, t: float, segments, topic: str = LOOP_TOPIC) -> int:
-        """Loop edges as a ``foxglove.SceneUpdate`` in the world frame (the poses' frame): one entity whose
-        LinePrimitive of type LINE_LIST per kind joins the two positions of each edge: applied loops thick and
-        green with a sphere at each end, candidates not applied thin, faint and red (drawn first, under them). ``segments``: (p_from (3,), p_to (3,), applied) in world coordinates,
-        every edge to show (the entity replaces the previous message's, so pass all edges so far; an empty
-        list clears them). Edges with a non-finite end are left out; returns how many were written."""
+    def log_loop_edges(self, t: float, segments, topic: str = LOOP_TOPIC,
+                       refused_topic: str = LOOP_REFUSED_TOPIC) -> int:
+        """Loop edges as two ``foxglove.SceneUpdate`` messages in the world frame (the poses' frame), one entity
+        each whose LinePrimitive of type LINE_LIST joins the two positions of each edge: the loops applied on
+        ``topic``, thick and green with a sphere at each end; the candidates not applied on ``refused_topic``,
+        thin, faint and red. ``segments``: (p_from (3,), p_to (3,), applied) in world coordinates, every edge
+        to show (each entity replaces the previous message's, so pass all edges so far; an empty list clears
+        them). Edges with a non-finite end are left out; returns how many were written."""
         ns = self._ns(t)
         edges = []
         for p_from, p_to, applied in segments:
@@ -391,7 +397,9 @@ class RunLogger:
             if all(np.all(np.isfinite(e)) for e in ends):
                 edges.append((ends[0], ends[1], bool(applied)))
         self._claim(topic, SceneUpdate)
-        self._submit(_write_loop_edges, topic, ns, edges)
+        self._claim(refused_topic, SceneUpdate)
+        self._submit(_write_loop_edges, topic, ns, [e for e in edges if e[2]], True)
+        self._submit(_write_loop_edges, refused_topic, ns, [e for e in edges if not e[2]], False)
         return len(edges)
 
     def log_mesh(self, t: float, mesh, topic: str = MESH_TOPIC) -> None:
@@ -665,24 +673,22 @@ def _write_calibration(sink: _Sink, topic: str, ns: int, numbers: tuple, size: t
     sink.proto(topic, msg, ns)
 
 
-def _write_loop_edges(sink: _Sink, topic: str, ns: int, edges: list) -> None:
+def _write_loop_edges(sink: _Sink, topic: str, ns: int, edges: list, applied: bool) -> None:
+    """One kind's edges (the loops applied, or the candidates not) as one entity holding one LINE_LIST."""
     msg = SceneUpdate()
     entity = msg.entities.add()
     _set_stamp(entity.timestamp, ns)
     entity.frame_id = WORLD_FRAME
-    entity.id = LOOP_ENTITY
+    entity.id = LOOP_ENTITY if applied else LOOP_REFUSED_ENTITY
     entity.frame_locked = False
-    lines = {}  # a line list per kind, each with its own width: the candidates first, under the applied loops
-    for applied, rgba, px in ((False, LOOP_NOT_APPLIED_RGBA, LOOP_NOT_APPLIED_PX),
-                              (True, LOOP_APPLIED_RGBA, LOOP_APPLIED_PX)):
-        line = lines[applied] = entity.lines.add()
-        line.type = LinePrimitive.LINE_LIST
-        line.thickness = px
-        line.scale_invariant = True
-        line.pose.orientation.w = 1.0
-        line.color.r, line.color.g, line.color.b, line.color.a = rgba
-    for p_from, p_to, applied in edges:
-        line = lines[applied]
+    rgba, px = (LOOP_APPLIED_RGBA, LOOP_APPLIED_PX) if applied else (LOOP_NOT_APPLIED_RGBA, LOOP_NOT_APPLIED_PX)
+    line = entity.lines.add()
+    line.type = LinePrimitive.LINE_LIST
+    line.thickness = px
+    line.scale_invariant = True
+    line.pose.orientation.w = 1.0
+    line.color.r, line.color.g, line.color.b, line.color.a = rgba
+    for p_from, p_to, _ in edges:
         for e in (p_from, p_to):
             point = line.points.add()
             point.x, point.y, point.z = (float(v) for v in e)
@@ -1036,7 +1042,8 @@ def points_from_msg(msg: PointCloud) -> tuple[np.ndarray, np.ndarray | None]:
 
 
 def loop_edges_from_msg(msg: SceneUpdate) -> list[tuple[np.ndarray, np.ndarray, bool]]:
-    """The (p_from, p_to, applied) edges of a ``log_loop_edges`` message (applied: drawn green)."""
+    """The (p_from, p_to, applied) edges of a ``log_loop_edges`` message on either topic (applied: drawn
+    green)."""
     edges = []
     for entity in msg.entities:
         for line in entity.lines:
@@ -1058,4 +1065,4 @@ def depth_from_msg(msg: RawImage) -> np.ndarray:
 
 __all__ = ["RunLogger", "read_log", "LogContents", "ChannelInfo", "software_versions", "json_object", "json_field",
            "pose_from_msg", "points_from_msg", "depth_from_msg", "loop_edges_from_msg", "STATS_TOPIC",
-           "LOOP_TOPIC"]
+           "LOOP_TOPIC", "LOOP_REFUSED_TOPIC"]

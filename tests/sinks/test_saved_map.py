@@ -41,6 +41,10 @@ def test_every_run_saves_its_map_and_save_map_puts_it_elsewhere(cpu, tmp_path, c
     assert summary["saved_map"]["folder"] == str(out / "map")
     assert summary["saved_map"]["bytes"] == sum((out / "map" / n).stat().st_size for n in (HEADER, DATA))
     assert saved.intrinsics.width == 160 and saved.last_frame == 3 and saved.frames_fused == 4
+    capsys.readouterr()
+    assert main(["inspect", str(out)]) == 0  # the run's log, then its saved map
+    report = capsys.readouterr().out
+    assert report.index("log: ") < report.index(f"saved map: {out / 'map'}") and f"surfels   {saved.count:,}" in report
 
     elsewhere = tmp_path / "maps" / "room"
     other = tmp_path / "run2"

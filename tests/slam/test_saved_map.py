@@ -239,3 +239,41 @@ def test_a_map_loaded_for_another_camera_is_refused(mapped):
     slam, folder = mapped
     with pytest.raises(InputError, match="a map of camera .* at 320x240; the frames are of camera .* at 160x120"):
         DenseSLAM.from_map(folder, intrinsics=slam.intrinsics.downsampled(2))
+
+
+# --------------------------------------------------------------------------------------------------
+# ti-fusion inspect and mesh read a saved map
+# --------------------------------------------------------------------------------------------------
+def test_inspect_says_what_a_saved_map_holds(tmp_path, rng, capsys):
+    from ti_fusion.cli.main import main
+
+    saved = small_map(rng)
+    folder = save_map(saved, tmp_path / "m")
+    assert main(["inspect", str(folder), "--out", str(tmp_path / "i")]) == 0
+    out = capsys.readouterr().out
+    assert f"saved map: {folder} (format version {VERSION}" in out and "every checksum verified" in out
+    assert "surfels   500 (" in out and "keyframes 3, 40 frames fused (the last frame 39), 1 loops applied" in out
+    summary = json.loads((tmp_path / "i" / "summary.json").read_text())["saved_map"]
+    assert summary["surfels"] == 500 and summary["confirmed_surfels"] == int((saved.surfels["weight"] >= 3).sum())
+    assert main(["inspect", str(folder / HEADER)]) == 0
+    assert main(["inspect", str(folder), "--plot"]) == 2
+    assert "--plot draws a log's stats: this holds a saved map and no log.mcap" in capsys.readouterr().err
+    data = bytearray((folder / DATA).read_bytes())
+    data[100] ^= 1
+    (folder / DATA).write_bytes(bytes(data))
+    assert main(["inspect", str(folder)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"ti-fusion inspect: error: {folder / DATA}: is corrupted: array") and "\n" not in err
+
+
+@pytest.mark.slow
+def test_mesh_of_a_saved_map_is_the_mesh_of_its_map_ply(mapped, tmp_path):
+    from ti_fusion.cli.main import main
+
+    slam, folder = mapped
+    slam.mapper.export_ply(tmp_path / "map.ply")
+    assert main(["mesh", str(folder), "--out", str(tmp_path / "from_map"), "--quiet"]) == 0
+    assert main(["mesh", str(tmp_path / "map.ply"), "--out", str(tmp_path / "from_ply"), "--quiet"]) == 0
+    a, b = (json.loads((tmp_path / d / "summary.json").read_text()) for d in ("from_map", "from_ply"))
+    assert a["triangles"] == b["triangles"] > 0 and a["surfels_meshed"] == b["surfels_meshed"]
+    assert a["map"] == str(folder / HEADER)

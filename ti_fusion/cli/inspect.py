@@ -1,10 +1,12 @@
-"""``ti-fusion inspect LOG.mcap``: what a run log holds, and how the run went.
+"""``ti-fusion inspect LOG.mcap|MAP``: what a run log holds, and how the run went; what a saved map holds.
 
 Prints the channels (topic, schema, encoding, message count), the time range, the metadata records
 and a summary of the per-frame stats: median and max milliseconds per stage (the ``ms`` dict of each
 stats message; a plain number is the frame's total, as ``vo`` logs it), tracking failures (a ``status``
 that is not a success: ``failed``) and, when ground truth was logged, the ATE of /camera/pose against
-/gt/pose. ``--plot`` draws the stats over the frames to a PNG.
+/gt/pose. ``--plot`` draws the stats over the frames to a PNG. A saved map (its folder or map.json), or a run
+folder holding one (``map/``), adds what is in it: camera, surfels, keyframes, loops, extent, every checksum
+verified (docs/MAPS.md).
 """
 
 from __future__ import annotations
@@ -17,14 +19,15 @@ from ti_fusion.evaluation.metrics import associate_trajectories, ate_errors
 from ti_fusion.io.mcap_log import LogContents, read_log
 from ti_fusion.io.outputs import atomic_path, describe_run, run_in_progress
 
-HELP = "summarise an MCAP run log (channels, time range, ms per stage, failures, ATE); --plot for a PNG"
+HELP = ("summarise an MCAP run log (channels, time range, ms per stage, failures, ATE; --plot for a PNG) or a "
+        "saved map")
 USES_DATASET = False
 USES_TAICHI = False
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("log", metavar="LOG", help="an MCAP log written by slam or vo (log.mcap), or a run folder "
-                                                   "holding one")
+    parser.add_argument("log", metavar="LOG|MAP", help="an MCAP log written by slam or vo (log.mcap), a saved map "
+                                                       "(its folder or map.json), or a run folder holding either")
     parser.add_argument("--plot", metavar="PNG", nargs="?", const="stats.png", default=None,
                         help="plot the stats over the frames to this PNG (default name stats.png; "
                              "a relative path goes into the --out folder)")
@@ -36,10 +39,26 @@ def writes_files(args) -> bool:
 
 
 def run(ctx) -> dict:
+    from ti_fusion.io.map_files import HEADER, RUN_SUBFOLDER
+
+    given = Path(ctx.args.log)
+    has_map = (given.is_file() and given.name == HEADER) or (given / HEADER).is_file() or \
+        (given / RUN_SUBFOLDER / HEADER).is_file()
+    if has_map and not (given.is_dir() and (given / "log.mcap").is_file()):  # a saved map, or a run with no log
+        if ctx.args.plot:
+            from ti_fusion.errors import InputError
+
+            raise InputError(given, "--plot draws a log's stats: this holds a saved map and no log.mcap")
+        summary = {"saved_map": summarise_map(given)}
+        print(format_map(summary["saved_map"]), flush=True)
+        return summary
     log = read_log(ctx.args.log)
     summary = summarise(log)
     summary["writer"] = run_in_progress(log.path.parent) if not log.complete else None
     print(format_report(log, summary), flush=True)
+    if has_map:  # a run folder: its saved map too
+        summary["saved_map"] = summarise_map(given)
+        print(format_map(summary["saved_map"]), flush=True)
     if ctx.args.plot:
         plot = Path(ctx.args.plot)
         plot = plot if plot.is_absolute() else ctx.out.file(str(plot))
@@ -50,6 +69,43 @@ def run(ctx) -> dict:
 
 
 # --------------------------------------------------------------------------------------------------
+
+
+def summarise_map(path: Path) -> dict:
+    """What a saved map holds (``ti_fusion/io/map_files.py``), every array's checksum verified on the way."""
+    from ti_fusion.io.map_files import map_folder, read_map_folder
+
+    folder = map_folder(path)
+    header, arrays = read_map_folder(folder)
+    position, weight = arrays["surfels/position"], arrays["surfels/weight"]
+    confirmed = float(header["config"].get("fusion", {}).get("unstable_weight", 3.0))
+    loops = header.get("loops", {})
+    return {"folder": str(folder), "version": header["version"],
+            "bytes": sum(p.stat().st_size for p in folder.iterdir() if p.is_file()),
+            "camera": {k: header["camera"][k] for k in ("fx", "fy", "cx", "cy", "width", "height")},
+            "map_level": header["map_level"], "surfels": int(header["surfels"]),
+            "confirmed_surfels": int(np.count_nonzero(weight >= confirmed)), "confirmed_weight": confirmed,
+            "keyframes": len(header["keyframes"]), "frames_fused": header["frames_fused"],
+            "last_frame": header["last_frame"], "loops_applied": len(loops.get("applied", [])),
+            "extent_m": None if not len(position) else
+            [[round(float(v), 3) for v in position.min(axis=0)], [round(float(v), 3) for v in position.max(axis=0)]],
+            "checksums": "verified"}
+
+
+def format_map(m: dict) -> str:
+    c = m["camera"]
+    lines = [f"saved map: {m['folder']} (format version {m['version']}, {m['bytes'] / 1e6:.1f} MB, every checksum "
+             "verified)",
+             f"  camera    fx={c['fx']:g} fy={c['fy']:g} cx={c['cx']:g} cy={c['cy']:g} at {c['width']}x{c['height']}, "
+             f"the map at pyramid level {m['map_level']}",
+             f"  surfels   {m['surfels']:,} ({m['confirmed_surfels']:,} confirmed: confidence >= "
+             f"{m['confirmed_weight']:g})",
+             f"  keyframes {m['keyframes']}, {m['frames_fused']} frames fused (the last frame {m['last_frame']}), "
+             f"{m['loops_applied']} loops applied"]
+    if m["extent_m"] is not None:
+        lo, hi = m["extent_m"]
+        lines.append("  extent    " + ", ".join(f"{a} {lo[i]:.2f} to {hi[i]:.2f} m" for i, a in enumerate("xyz")))
+    return "\n".join(lines)
 
 
 # Statuses of a frame that was tracked: slam's "ok" (and "relocalised", a frame recovered by feature

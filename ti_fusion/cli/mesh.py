@@ -1,4 +1,7 @@
-"""``ti-fusion mesh RUN_DIR|map.ply``: a coloured triangle mesh of a run's confirmed surfels (docs/MESH.md).
+"""``ti-fusion mesh RUN_DIR|MAP|map.ply``: a coloured triangle mesh of a run's confirmed surfels (docs/MESH.md).
+
+The surfels come from the run folder's map.ply, or from a saved map (a map folder, its map.json, or a run folder
+that holds only ``map/``; docs/MAPS.md).
 
 Writes ``mesh.ply`` (binary, vertex colours and normals) and ``mesh.glb`` (glTF binary) into the --out
 folder, or, given a run folder and no --out, into that folder beside the run's map. The settings are the config's [mesh] section; --voxel, --min-weight and --max-triangles set the
@@ -12,14 +15,15 @@ from pathlib import Path
 
 log = logging.getLogger(__name__)
 
-HELP = "a coloured triangle mesh (mesh.ply, mesh.glb) of a run's map: RUN_DIR or a map.ply"
+HELP = "a coloured triangle mesh (mesh.ply, mesh.glb) of a run's map: RUN_DIR, a saved map or a map.ply"
 USES_DATASET = False
 USES_TAICHI = True
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("map", metavar="RUN_DIR|MAP.ply",
-                        help="a run folder of slam or fuse (its map.ply), or a map.ply itself")
+    parser.add_argument("map", metavar="RUN_DIR|MAP|MAP.ply",
+                        help="a run folder of slam or fuse (its map.ply, else its saved map/), a saved map (its "
+                             "folder or map.json), or a map.ply itself")
     parser.add_argument("--voxel", type=float, default=None, metavar="METRES",
                         help="edge of the grid's cubes (mesh.voxel_size, default 0.01)")
     parser.add_argument("--min-weight", type=float, default=None, metavar="CONFIDENCE",
@@ -39,17 +43,32 @@ def adds_to_run(args) -> str | None:
 
 
 def map_file(given: str) -> Path:
-    """The map.ply that ``given`` (a run folder or a file) names."""
+    """The map that ``given`` (a run folder or a file) names: a map.ply, or a saved map's map.json."""
     from ti_fusion.errors import InputError
+    from ti_fusion.io.map_files import HEADER, RUN_SUBFOLDER
 
     path = Path(given)
     if path.is_dir():
-        if not (path / "map.ply").is_file():
-            raise InputError(path, "holds no map.ply: give the folder of a slam or fuse run, or a map.ply")
-        return path / "map.ply"
+        for name in ("map.ply", HEADER, f"{RUN_SUBFOLDER}/{HEADER}"):
+            if (path / name).is_file():
+                return path / name
+        raise InputError(path, "holds no map.ply nor a saved map: give the folder of a slam or fuse run, a saved "
+                               "map or a map.ply")
     if not path.is_file():
         raise InputError(path, "no such file or folder")
     return path
+
+
+def saved_surfels(path: Path) -> tuple[dict, object]:
+    """(the surfels, the world's up for mesh.glb: the first keyframe's camera -y, or None) of the saved map
+    whose map.json is ``path``, every checksum verified."""
+    from ti_fusion.io.map_files import read_map_folder
+    from ti_fusion.io.mesh_files import camera_up
+
+    _, arrays = read_map_folder(path)
+    surfels = {name: arrays[f"surfels/{name}"] for name in ("position", "normal", "color", "weight", "radius")}
+    poses = arrays["keyframes/pose"]
+    return surfels, camera_up(poses[0]) if len(poses) else None
 
 
 def first_camera_up(folder: Path):
@@ -99,12 +118,17 @@ def run(ctx) -> dict:
         if taken:
             raise InputError(ctx.out.path, f"holds {' and '.join(taken)} already (slam --mesh's, or an earlier "
                                            "ti-fusion mesh): --overwrite replaces them, --out DIR writes elsewhere")
-    surfels = surfels_from_ply(path)
+    from ti_fusion.io.map_files import HEADER
+
+    if path.name == HEADER:
+        surfels, up = saved_surfels(path)
+    else:
+        surfels, up = surfels_from_ply(path), first_camera_up(path.parent)
     stats: dict = {}
     mesh = mesh_surfels(surfels, cfg, source=path, stats=stats)
     from ti_fusion.io.mesh_files import write_run_mesh
 
-    files = write_run_mesh(ctx.out, mesh, first_camera_up(path.parent))
+    files = write_run_mesh(ctx.out, mesh, up)
     ctx.log(f"{len(mesh)} triangles, {len(mesh.vertices)} vertices, {mesh.area():.2f} m² from "
             f"{stats['surfels_meshed']} of {stats['surfels_in_map']} surfels at {cfg.voxel_size * 100:g} cm voxels "
             f"({stats['ms']['splat'] / 1e3:.2f} s splat, {stats['ms']['extract'] / 1e3:.2f} s marching cubes)")

@@ -86,6 +86,10 @@ def main(argv=None) -> int:
                    help="a run folder or saved map whose keyframes, places and pose graph go with the surfels")
     p.add_argument("--repeat", type=int, default=3)
     args = p.parse_args(argv)
+    for name in ("surfels", "repeat"):
+        if getattr(args, name) < 1:
+            print(f"bench_map_io.py: --{name} {getattr(args, name)}: give at least 1", file=sys.stderr)
+            return 2
 
     from ti_fusion.backend import init_backend
     from ti_fusion.io.map_files import read_map_folder

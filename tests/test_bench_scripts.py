@@ -59,3 +59,12 @@ def test_bench_real_prints_its_tables_on_real_keyframes():
 def test_bench_real_names_a_bad_option():
     out = run("bench_real.py", "--pairs", "-1")
     assert out.returncode == 2 and out.stderr.strip() == "bench_real.py: --pairs -1: give at least 0"
+
+
+def test_bench_map_io_prints_its_table():
+    out = run("bench_map_io.py", "--surfels", "3000", "--repeat", "1")
+    assert out.returncode == 0, out.stderr
+    rows = [line for line in out.stdout.splitlines() if line.startswith("| ")]
+    assert len(rows) == 9 and any(r.startswith("| bytes per surfel") and "| 56.0 |" in r for r in rows)
+    bad = run("bench_map_io.py", "--repeat", "0")
+    assert bad.returncode == 2 and bad.stderr.strip() == "bench_map_io.py: --repeat 0: give at least 1"

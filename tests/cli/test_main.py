@@ -220,6 +220,7 @@ def test_sigterm_and_sighup_keep_what_was_done(cpu, tmp_path, capsys, monkeypatc
     assert len(stamps) == 3
     log = read_log(out / "log.mcap")
     assert log.complete and len(log.stats) == 3
+    assert not (out / "map.ply").exists() and not (out / "map").exists()  # the map's files: only at a run's end
     assert {s: signal.getsignal(s) for s in handlers} == handlers  # restored for whoever called main
 
 

@@ -93,6 +93,8 @@ def read_header(path: str | Path) -> tuple[Path, dict]:
         raise InputError(file, "is damaged: not UTF-8 text") from None
     except json.JSONDecodeError as exc:
         raise InputError(file, f"is damaged or truncated: not JSON ({exc.msg} at line {exc.lineno})") from None
+    except OSError as exc:
+        raise InputError(file, f"cannot be read: {exc.strerror or exc}") from None
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise InputError(file, f"is not a ti-fusion saved map (its format is not {FORMAT!r})")
     version = header.get("version")
@@ -121,9 +123,12 @@ def read_map_folder(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
         raise InputError(file, f"has {size} bytes, more than the {expected} that {HEADER} lists: it belongs "
                                "to another save")
     buffer = bytearray(size)
-    with open(file, "rb") as f:
-        if f.readinto(buffer) != size:
-            raise InputError(file, "could not be read whole")
+    try:
+        with open(file, "rb") as f:
+            if f.readinto(buffer) != size:
+                raise InputError(file, "could not be read whole")
+    except OSError as exc:
+        raise InputError(file, f"cannot be read: {exc.strerror or exc}") from None
     arrays = {}
     for name, entry in table.items():
         try:

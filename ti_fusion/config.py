@@ -504,11 +504,6 @@ class SLAMConfig:
     active_window: NonNegativeInt = 200  # frames: tracking renders only surfels updated within this many fused frames
                                      # (ElasticFusion's active model; older ones stay in the map for loop closure);
                                      # 0 = the whole map
-    unfound: Annotated[str, OneOf("fail", "map-anyway")] = "fail"  # a session against a saved map (--map) that
-                                     # never finds itself in it: fail = every frame tries, none gets a pose, the run
-                                     # exits with status 3 | map-anyway = after find_frames frames it maps on in its
-                                     # own frame, the loaded map set aside
-    find_frames: Count = 30          # map-anyway: frames a session tries to find itself in the map before it maps on
 
 
 @dataclass
@@ -598,6 +593,17 @@ class MapConfig:
                                      # where the run's saved map goes (map.json and map.bin, docs/MAPS.md), a new
                                      # folder or one holding a saved map, which it replaces; "" = map/ in the run
                                      # folder
+    map: Annotated[str, Text("a run folder or a saved map", path=True), Flag("RUN_OR_MAP_DIR", commands=("slam",))] = ""
+                                     # a saved map to start from (a run folder holding map/, or the map's folder): the
+                                     # run is a second session in it, not localised until a frame finds itself in the
+                                     # map; its trajectory is in the map's frame (docs/MAPS.md)
+    localize: Annotated[bool, Flag(commands=("slam",))] = False  # with map: track against the map without changing
+                                     # it (no fusion, no keyframes; no saved map written)
+    unfound: Annotated[str, OneOf("fail", "map-anyway"), Flag(commands=("slam",))] = "fail"  # with map, a session
+                                     # that never finds itself in it: fail = every frame tries, none gets a pose, the
+                                     # run exits with status 3 | map-anyway = after find_frames frames it maps on in
+                                     # its own frame, the loaded map set aside
+    find_frames: Count = 30          # map-anyway: frames a session tries to find itself in the map before it maps on
 
 
 @dataclass

@@ -2,7 +2,7 @@
 finds itself among the map's keyframes (place recognition, PnP, dense verification, then tracking against the
 map), no pose before that, never a start at the identity; then extending the map, or with ``localize`` tracking
 against it without changing it; a session that never sees the mapped place stays unlocalised, or with
-``slam.unfound = map-anyway`` maps on in its own frame. The map is handed over in the process (the same
+``map.unfound = map-anyway`` maps on in its own frame. The map is handed over in the process (the same
 DenseSLAM), as a loaded one is. Synthetic room at 320×240."""
 
 import numpy as np
@@ -19,12 +19,12 @@ from ti_fusion.status import Tracking
 MAPPED = 40  # frames of the room mapped before the session
 
 
-def _mapped(scene: str = "room", **slam):
+def _mapped(scene: str = "room", **session):
     """A DenseSLAM that mapped the room's first frames, the config, and the frames of ``scene`` (same camera)."""
     cfg = Config()
     cfg.dataset.downsample = 2
-    for key, value in slam.items():
-        setattr(cfg.slam, key, value)
+    for key, value in session.items():
+        setattr(cfg.map, key, value)
     room = open_dataset(cfg.dataset, cfg.synth)
     system = DenseSLAM(cfg, room.intrinsics)
     for i in range(MAPPED):

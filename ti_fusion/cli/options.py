@@ -40,7 +40,10 @@ def add_flags(group: argparse._ArgumentGroup, command: str | None = None) -> Non
                 help_text = "without DATA: " + help_text
             kwargs = dict(default=None, dest=name, metavar=rule.flag.metavar,
                           help=f"{help_text} ({section}.{name})".replace("%", "%%"))
-            if rule.choices is not None:
+            if rule.kind is bool:  # a switch: given, it is true
+                kwargs.pop("metavar")
+                kwargs["action"] = "store_true"
+            elif rule.choices is not None:
                 kwargs["choices"] = rule.choices.choices
             elif rule.kind in (int, float):
                 kwargs["type"] = rule.kind

@@ -41,6 +41,10 @@ def run(ctx) -> dict:
         cfg.mesh.after_run = True
     if ctx.args.mesh_method:
         cfg.mesh.method = ctx.args.mesh_method
+    if cfg.map.localize and not cfg.map.map:
+        from ti_fusion.errors import InputError
+
+        raise InputError(None, "--localize tracks against a saved map: give it with --map RUN_OR_MAP_DIR")
     dataset = open_dataset(cfg.dataset, cfg.synth)
     if not ctx.quiet:  # what the format line (format, depth scale, intrinsics) does not say
         d = dataset.describe()
@@ -94,6 +98,13 @@ def _print_summary(ctx, s: dict) -> None:
                  f"RPE {s['rpe_trans_m'] * 1000:.1f} mm")
     line += f", tracking failures: {s['tracking_failures']}"
     ctx.log(line)
+    if "session" in s:  # a session against a saved map (--map)
+        found = s["found"]
+        where = (f"found itself in the map at frame {found['frame']} (its keyframe {found['keyframe']}), after "
+                 f"{found['unlocalised_before']} frame(s) not localised") if found else \
+            f"did not find itself in the map; its own map from frame {s['own_map_at']}"
+        ctx.log(f"session ({'--localize: the map unchanged' if s['session'] == 'localize' else 'extending the map'}): "
+                f"{where}; {s['unlocalised_frames']} frame(s) without a pose")
     if s.get("gt_note"):
         log.warning(s["gt_note"])
     hint = _small_frames_hint(ctx.config, s)

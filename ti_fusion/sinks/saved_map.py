@@ -13,6 +13,11 @@ class SavedMapSink(Sink):
     name = "saved_map"
     commands = ("slam",)
 
+    @classmethod
+    def wanted(cls, command, config, outputs) -> bool:
+        """Not after --localize: that session changes no map, and the map it tracked against stays as it was."""
+        return super().wanted(command, config, outputs) and not config.map.localize
+
     def start(self, run: Run) -> None:
         """A --save-map folder that holds something other than a saved map is refused before the first frame."""
         from ti_fusion.errors import OutputError

@@ -600,10 +600,13 @@ class DenseSLAM:
         from ti_fusion.errors import InputError
         from ti_fusion.slam.session import Session
 
-        if self.loop is None or not self.loop.keyframes:
+        if self.loop is None:
+            raise InputError(None, "a session against a map finds itself among the map's keyframes: it needs "
+                                   "slam.loop_closure = true")
+        if not self.loop.keyframes:
             raise InputError(None, "the map has no keyframes (it was made with slam.loop_closure = false, or from "
                                    "too few frames): a new session has nothing to find itself in")
-        cfg = self.config.slam
+        cfg = self.config.map
         self.session = Session(localize, cfg.unfound, cfg.find_frames)
         self.poses = PoseStore()
         self.skipped = []
@@ -628,7 +631,7 @@ class DenseSLAM:
             self.mapper.map.reactivate(self._frames_fused, self.config.fusion.unstable_weight)
 
     def own_map(self) -> None:
-        """A session that did not find itself maps on in its own frame (``slam.unfound = map-anyway``): the
+        """A session that did not find itself maps on in its own frame (``map.unfound = map-anyway``): the
         loaded map, its keyframes and its graph are set aside; the next usable frame starts a new map."""
         self.mapper = SurfelMapper(self.config.fusion)
         self._frames_fused = 0

@@ -13,7 +13,7 @@ loop closures that may reach the map's keyframes) or, with ``localize``, trackin
 changing it (no fusion, no keyframes; the whole map is rendered, not an active window).
 
 A session that never finds itself ends with every frame unlocalised (the CLI exits with status 3), unless
-``slam.unfound = "map-anyway"``: after ``slam.find_frames`` unlocalised frames the session sets the loaded map
+``map.unfound = "map-anyway"``: after ``map.find_frames`` unlocalised frames the session sets the loaded map
 aside and maps on in its own frame from the next frame, as a run without a map does.
 """
 
@@ -100,8 +100,8 @@ def _unlocalised(slam, frame, why: str, tried: list[str], result_type):
     session.unlocalised.append((frame.index, why))
     if session.unfound == "map-anyway" and len(session.unlocalised) >= session.give_up:
         log.warning(f"frame {frame.index}: the session has not found itself in the map in {len(session.unlocalised)} "
-                    "frames (slam.find_frames): it maps on in its own frame from the next frame "
-                    "(slam.unfound = map-anyway); the loaded map is set aside")
+                    "frames (map.find_frames): it maps on in its own frame from the next frame "
+                    "(map.unfound = map-anyway); the loaded map is set aside")
         slam.own_map()
         session.own_map_at = frame.index + 1
     return result_type(frame.index, frame.timestamp, None, Tracking.UNLOCALISED, why, tried=tried)

@@ -156,7 +156,11 @@ class SLAMStep:
     def __init__(self, config: Config, dataset: Dataset):
         self.config = config
         self.dataset_name = dataset.name
-        self.slam = DenseSLAM(config, dataset.intrinsics)
+        if config.map.map:  # a second session: the saved map's camera is checked against the data's here
+            self.slam = DenseSLAM.from_map(config.map.map, config, dataset.intrinsics)
+            self.slam.start_session(localize=config.map.localize)
+        else:
+            self.slam = DenseSLAM(config, dataset.intrinsics)
 
     @property
     def warmup_frames(self) -> int:

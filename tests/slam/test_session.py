@@ -107,7 +107,9 @@ def test_a_session_that_never_sees_the_map_gets_no_pose_or_maps_in_its_own_frame
 def test_a_map_without_keyframes_has_nothing_to_find_a_session_in(cpu):
     cfg = Config()
     cfg.dataset.downsample = 2
-    cfg.slam.loop_closure = False
     room = open_dataset(cfg.dataset, cfg.synth)
     with pytest.raises(InputError, match="the map has no keyframes"):
+        DenseSLAM(cfg, room.intrinsics).start_session()
+    cfg.slam.loop_closure = False
+    with pytest.raises(InputError, match="finds itself among the map's keyframes: it needs slam.loop_closure = true"):
         DenseSLAM(cfg, room.intrinsics).start_session()

@@ -1,6 +1,7 @@
-"""Projective point-to-plane ICP on the Taichi side: association, linearisation and the 6×6 reduction.
+"""Projective ICP on the Taichi side: association, the tracking terms' linearisation and the 6×6 reduction.
 
-One ICP iteration at one pyramid level is one pass over the source pixels (``PointToPlane.reduce``):
+One ICP iteration at one pyramid level is one pass over the source pixels (``PointToPlane.reduce``), with
+the tracking terms it is given (``TermPass``; the terms themselves are ``ti_fusion.tracking.terms``):
 
 association (``_target_pixel`` then ``_correspondence``, shared by every kernel here; the reductions run
 them as two passes per chunk, see ``_project_chunk``)
@@ -16,24 +17,26 @@ them as two passes per chunk, see ``_project_chunk``)
         STATUS_NORMAL_ANGLE    5  not angle(R n_p, n_q) < θ, tested as (R n_p)·n_q > cos θ
         STATUS_OK              0  a correspondence (an inlier)
 
-linearisation (point to plane)
-    r = n_qᵀ (p′ − q). The update is applied on the left, T ← exp(δξ) T, with the twist
-    δξ = (ω, v) ROTATION FIRST (ti_fusion.geometry.se3_exp). To first order exp(δξ) p′ ≈ p′ + ω × p′ + v,
-    so r(δξ) ≈ r + n_qᵀ(ω × p′) + n_qᵀ v = r + (p′ × n_q)ᵀ ω + n_qᵀ v, hence the 1×6 Jacobian
-        A = [ (p′ × n_q)ᵀ , n_qᵀ ]          and b = r,
-    and the Gauss–Newton step solves (Σ w AᵀA) δξ = −Σ w Aᵀ b.
+linearisation (each term's per-pixel ``ti.func``, unrolled into the pass at compile time)
+    at each correspondence each term gives one row (ok, A, r, w): the 1×6 Jacobian A of its residual r with
+    respect to the twist δξ = (ω, v) ROTATION FIRST of the left update T ← exp(δξ) T
+    (ti_fusion.geometry.se3_exp; to first order exp(δξ) p′ ≈ p′ + ω × p′ + v), its weight w, and whether the
+    pixel has one. The first term is point to plane (r = n_qᵀ (p′ − q), A = [(p′ × n_q)ᵀ, n_qᵀ], robust and
+    depth-noise weights: ``ti_fusion.tracking.terms.point_to_plane``), always on; the photometric term
+    (``…terms.photometric``) and any other follow. The Gauss–Newton step solves
+    (Σ_k λ_k Σ w AᵀA) δξ = −Σ_k λ_k Σ w Aᵀ r over the terms k, λ_1 = 1.
 
 reduction
-    per correspondence, with the robust weight w (1, Huber or Tukey on r; optionally on r / σ(z) with a
-    factor 1/σ(z)², σ the depth noise at the target point, see DEPTH_WEIGHTED), the kernel accumulates
-    SUMS = 30 numbers: the 21 upper-triangle entries of Σ w AᵀA (row-major: (0,0), (0,1), …, (0,5),
-    (1,1), …, (5,5)), the 6 entries of Σ w Aᵀ b, Σ r² (unweighted: the loss), the inlier count and, as a
-    30th number, the count of valid source pixels (for the inlier ratio). The pixels are split into
-    ``n_chunks`` contiguous runs; one parallel task per run accumulates in registers and writes its 30
-    partial sums to ``partials[chunk, :]``; a second loop of the same kernel (Taichi runs top-level loops
+    per term, the kernel accumulates TERM_SUMS = 29 numbers: the 21 upper-triangle entries of Σ w AᵀA
+    (row-major: (0,0), (0,1), …, (0,5), (1,1), …, (5,5)), the 6 entries of Σ w Aᵀ r, Σ r² (unweighted: the
+    loss) and its row count; the first term's count is the inlier count, and the 30th number, after it, the
+    count of valid source pixels (for the inlier ratio); the other terms' 29 follow (``term_offset``): N_SUMS
+    = 30 numbers for the geometry alone, 59 with the photometric term. The pixels are split into
+    ``n_chunks`` contiguous runs; one parallel task per run accumulates every term's sums in registers and
+    writes them as partial sums to ``partials[chunk, :]``; a second loop of the same kernel (Taichi runs top-level loops
     one after the other) adds the partials into a NumPy array passed as an ndarray argument: one launch
     per iteration, no copy on the CPU. No atomics. In float64 (cpu) the partials are added in one serial
-    pass with 30 independent running sums; in float32 (GPU backends) in two more parallel loops, each
+    pass with independent running sums; in float32 (GPU backends) in two more parallel loops, each
     Kahan-compensated: GROUPS threads per sum add a contiguous run of the chunks each, then one thread per
     sum adds the GROUPS group totals. That keeps the float32 path within the stated tolerance of float64,
     and no thread adds more than a few hundred numbers in a row (one thread per sum over all 16384 chunks
@@ -41,7 +44,8 @@ reduction
     Every product and sum is in the arithmetic type, AᵀA's included: its off-diagonal entries are sums of
     signed terms that can cancel as well as Aᵀb's, so float32 products for them would miss float64 by
     more than the float32 path's tolerance (docs/KERNELS.md).
-    The robust weight is a compile-time choice (one kernel per robust mode).
+    The set of terms is a compile-time choice (``kernels_for``: one ``reduce`` and ``iterate`` per set, the terms'
+    functions unrolled with ``ti.static``), and so is each term's ``mode`` (e.g. the robust weight).
 
 solve (``iterate``, float64 backends)
     the same kernel can finish the iteration: after the partials are added, on the calling thread, it
@@ -49,19 +53,8 @@ solve (``iterate``, float64 backends)
     next launch starts there) and appends a record (the sums, the pose before, ‖δξ‖, the outcome).
     ``ti_fusion.tracking.icp`` replays the records through its checks. One launch per iteration and nothing read
     back but a flag: a round trip through NumPy per iteration costs as much as a coarse level's pass.
-
-photometric term (``joint``, a compile-time switch: the depth-only kernels are the ones above, unchanged)
-    at each correspondence (STATUS_OK, so occlusions and depth edges are left out as for the geometry) the
-    model's intensity I_m at the source pixel (``src_i``, −1 = none) is compared with the live frame's at the
-    projection of p′, bilinearly interpolated at x = fx x′/z′ + cx, y = fy y′/z′ + cy (no rounding) from
-    ``tgt_ig`` = (I, ∂I/∂x, ∂I/∂y) per pixel (I < 0 at any of the four taps: no residual). r_c = I(x, y) − I_m;
-    with g = ∂I/∂p′ = (g_x fx/z′, g_y fy/z′, −(g_x fx x′ + g_y fy y′)/z′²) and δp′ = ω × p′ + v, the row is
-        A_c = [ (p′ × g)ᵀ , gᵀ ]
-    (the point-to-plane row with the normal replaced by the intensity gradient in 3-D). Huber weights on r_c
-    (k = ``params[P_COLOR_SCALE]``). The joint pass accumulates N_SUMS_JOINT = 59 numbers: the 30 above, then
-    the colour's 21 AᵀA, 6 Aᵀb, Σr_c² and its count, in the same registers and partials. ``iterate_joint``
-    solves (Σ w AᵀA + λ Σ w_c A_cᵀA_c) δξ = −(Σ w Aᵀb + λ Σ w_c A_cᵀ r_c), λ = ``params[P_COLOR_WEIGHT]``
-    (``icp.color_weight``), and records the colour's sums after the geometric record (R_COLOR).
+    The system is the first term's plus each other term's times its weight λ (``params``' term columns, e.g.
+    ``icp.color_weight`` for the photometric term); a record holds the other terms' sums from R_TERMS on.
 
 Precision: arithmetic and accumulation are float64 when the backend has it (cpu) and float32 otherwise
 (vulkan, cuda), chosen when ``PointToPlane`` is built. Fields stay float32.
@@ -113,23 +106,27 @@ SUM_R2 = 27
 SUM_INLIERS = 28
 SUM_SOURCE = 29
 UPPER = [(i, j) for i in range(6) for j in range(i, 6)]  # order of the 21 AᵀA entries
-# the joint pass: the colour term's sums after the geometric 30
-SUM_C_ATA = 30
-SUM_C_ATB = 51
-SUM_C_R2 = 57
-SUM_C_COUNT = 58
-N_SUMS_JOINT = 59
+# Each tracking term's sums: 21 AᵀA, 6 Aᵀb, Σr² and its count of rows, at ``term_offset(k)`` for the k-th term of a
+# pass; the first term's are the first 29 of the 30 above (its count is the inliers), the others' follow the 30.
+TERM_SUMS = 29
+TERM_R2, TERM_COUNT = 27, 28  # within a term's sums
+MAX_TERMS = 4  # terms in one pass: the width of the params array's settings and records
 _UPPER_IDX = tuple(np.array(UPPER).T)
 
-ROBUST_CODES = {"none": 0, "huber": 1, "tukey": 2}
-# Added to a robust code: residuals weighted by the depth noise σ(z) at the target point (``ti_fusion.sensor``):
-# a point at 3 m is ~10× noisier than one at 1 m, and weighting all alike lets the far, noisy ones pull the
-# pose. Scaled so the weight is 1 at 1 m.
-DEPTH_WEIGHTED = 4
+
+def term_offset(k: int) -> int:
+    """Where the k-th term's 29 sums start in a pass's sums."""
+    return 0 if k == 0 else N_SUMS + TERM_SUMS * (k - 1)
 
 
-def robust_code(robust: str, depth_weighted: bool = False) -> int:
-    return ROBUST_CODES[robust] + (DEPTH_WEIGHTED if depth_weighted else 0)
+def n_sums(n_terms: int) -> int:
+    """The sums of a pass with ``n_terms`` terms: 30, and 29 more for each term after the first."""
+    return N_SUMS + TERM_SUMS * (n_terms - 1)
+
+
+def n_terms_of(sums: np.ndarray) -> int:
+    """The number of terms of a pass whose sums (the last axis) these are."""
+    return 1 + (np.shape(sums)[-1] - N_SUMS) // TERM_SUMS
 
 
 def unpack_sums(sums: np.ndarray) -> dict:
@@ -142,39 +139,71 @@ def unpack_sums(sums: np.ndarray) -> dict:
             "inliers": int(round(sums[SUM_INLIERS])), "sources": int(round(sums[SUM_SOURCE]))}
 
 
-def unpack_color_sums(sums: np.ndarray) -> dict | None:
-    """The colour term of a joint pass's 59 sums as AtA, Atb, r2 and count (None for a depth-only pass)."""
+def unpack_term_sums(sums: np.ndarray, k: int) -> dict | None:
+    """The k-th term's sums of a pass as AtA, Atb, r2 and count (None when the pass had fewer terms)."""
     sums = np.asarray(sums, dtype=np.float64)
-    if sums.shape[0] < N_SUMS_JOINT:
+    if k >= n_terms_of(sums):
         return None
-    s = unpack_sums(sums[SUM_C_ATA:SUM_C_ATA + 27].tolist() + [sums[SUM_C_R2], sums[SUM_C_COUNT], 0.0])
+    o = term_offset(k)
+    s = unpack_sums(sums[o:o + TERM_SUMS].tolist() + [0.0])
     return {"AtA": s["AtA"], "Atb": s["Atb"], "r2": s["r2"], "count": s["inliers"]}
 
 
-def combined_system(sums: np.ndarray, color_weight: float) -> tuple[np.ndarray, np.ndarray]:
-    """(AᵀA, Aᵀb) of the system solved: the geometric one, plus ``color_weight`` × the colour one when the
-    sums are a joint pass's."""
-    AtA, Atb = combined_systems(np.asarray(sums, dtype=np.float64)[None], color_weight)
+def combined_system(sums: np.ndarray, weights) -> tuple[np.ndarray, np.ndarray]:
+    """(AᵀA, Aᵀb) of the system solved: Σ over the pass's terms of its weight × its system (``weights`` one
+    per term, the first term's ignored: it is 1)."""
+    AtA, Atb = combined_systems(np.asarray(sums, dtype=np.float64)[None], weights)
     return AtA[0], Atb[0]
 
 
-def combined_systems(sums: np.ndarray, color_weight: float) -> tuple[np.ndarray, np.ndarray]:
-    """``combined_system`` of each row of ``sums`` (n × 30, or n × 59 for joint passes): n × 6 × 6, n × 6."""
+def combined_systems(sums: np.ndarray, weights) -> tuple[np.ndarray, np.ndarray]:
+    """``combined_system`` of each row of ``sums`` (n × ``n_sums(terms)``): n × 6 × 6, n × 6."""
     sums = np.asarray(sums, dtype=np.float64)
     upper, atb = sums[:, :21], sums[:, SUM_ATB:SUM_ATB + 6]
-    if sums.shape[1] >= N_SUMS_JOINT:
-        upper = upper + color_weight * sums[:, SUM_C_ATA:SUM_C_ATA + 21]
-        atb = atb + color_weight * sums[:, SUM_C_ATB:SUM_C_ATB + 6]
+    for k in range(1, n_terms_of(sums)):  # in the kernel's order: the first term, then each other's λ × its sums
+        o = term_offset(k)
+        upper = upper + weights[k] * sums[:, o:o + 21]
+        atb = atb + weights[k] * sums[:, o + 21:o + 27]
     AtA = np.zeros((sums.shape[0], 6, 6))
     AtA[(slice(None),) + _UPPER_IDX] = upper
     AtA.transpose(0, 2, 1)[(slice(None),) + _UPPER_IDX] = upper
     return AtA, atb.copy()
 
 
-def _code(robust: str) -> int:
-    """"huber", or "huber+depth" for the depth-weighted variant (see DEPTH_WEIGHTED)."""
-    name, _, depth = robust.partition("+")
-    return robust_code(name, depth == "depth")
+class Correspondence(NamedTuple):
+    """What a term's per-pixel function is given of a correspondence (Taichi values, the arithmetic type):
+    source pixel (v, u), p′ = R p + t, the target's vertex q and normal n_q at the associated pixel, the target
+    level's intrinsics K = (fx, fy, cx, cy), the pose (R, t), and the levels' first rows and the target's
+    size (a term's own images are levels of the same layout: source images at s0 + v, target at t0 + …)."""
+
+    v: object
+    u: object
+    pt: object
+    q: object
+    nq: object
+    K: object
+    R: object
+    t: object
+    s0: object
+    t0: object
+    Ht: object
+    Wt: object
+
+
+class TermPass(NamedTuple):
+    """A tracking term as one pass of the kernels sees it (``ti_fusion.tracking.terms``): ``row(real)`` makes its
+    per-pixel ``ti.func`` (c: Correspondence, mode, src, tgt, settings) → (ok, A, r, w), A the 1×6 Jacobian row
+    (rotation first), r the residual, w its weight, ok whether the pixel has a row; ``mode`` a compile-time int
+    handed to it; ``source``, ``target`` its own images (tuples of ``Level`` views or fields of the source's and
+    the target's layout); ``weight`` λ, its system's factor in the sum solved (the first term's is 1);
+    ``settings`` up to TERM_SETTINGS numbers its function reads (e.g. a robust scale)."""
+
+    row: object
+    mode: int = 0
+    source: tuple = ()
+    target: tuple = ()
+    weight: float = 1.0
+    settings: tuple = ()
 
 
 # cpu, small sources (run on the calling thread): at least this many pixels per chunk, so that the 30
@@ -211,30 +240,48 @@ def _blocks(n: int) -> list:
 # Row STATE holds the pose (and, for ``reduce`` and ``status_map``, the settings too);
 # ``iterate`` reads a level's settings from row SETTINGS + level and keeps its records from row RECORDS on,
 # so one array written once per ``align`` and read once after it holds everything that crosses.
-P_R, P_T, P_K, P_DIST2, P_COS, P_SCALE = 0, 9, 12, 16, 17, 18
+P_R, P_T, P_K, P_DIST2, P_COS = 0, 9, 12, 16, 17
 # ``iterate`` only: the system's checks (settings row), where its record goes and what it tells the caller
 # (state row)
 P_MIN_INLIERS, P_STOP, P_LEVEL, P_ITERATION, P_RECORDS, P_DONE = 19, 20, 21, 22, 23, 24
-# the joint pass only: λ of the colour term, Huber's k on the intensity residual
-P_COLOR_WEIGHT, P_COLOR_SCALE = 25, 26
 # ``iterate`` only: the level's images (source first row, height, width; the target's) and its chunk count
-P_S0, P_HS, P_WS, P_T0, P_HT, P_WT, P_CHUNKS, N_PARAMS = 27, 28, 29, 30, 31, 32, 33, 34
+P_S0, P_HS, P_WS, P_T0, P_HT, P_WT, P_CHUNKS = 25, 26, 27, 28, 29, 30, 31
+# each term's columns from P_TERMS: its weight λ, then its settings (``TermPass``)
+P_TERMS, TERM_SETTINGS = 32, 3
+N_PARAMS = P_TERMS + (1 + TERM_SETTINGS) * MAX_TERMS
 STATE, SETTINGS, MAX_LEVELS = 0, 1, 15
 RECORDS = SETTINGS + MAX_LEVELS
 
 # One ``iterate`` record: the 30 sums, the pose before the update (R row-major, t), level, iteration,
 # ‖δξ‖ and the outcome
 R_SUMS, R_POSE, R_LEVEL, R_ITERATION, R_UPDATE, R_OUTCOME, RECORD_LEN = 0, 30, 42, 43, 44, 45, 46
-R_COLOR = RECORD_LEN  # ``iterate_joint``: the colour term's 29 sums (SUM_C_ATA onwards) follow
-RECORD_LEN_JOINT = R_COLOR + N_SUMS_JOINT - N_SUMS
+R_TERMS = RECORD_LEN  # the sums of the terms after the first (the pass's sums from N_SUMS on) follow
 UPDATED, TOO_FEW_INLIERS, NOT_POSITIVE_DEFINITE = 0, 1, 2
 STOPPED, FAILED = 1, 2  # ``params[P_DONE]``: the update fell below P_STOP; the system was not solved
-PARAMS_WIDTH = max(N_PARAMS, RECORD_LEN_JOINT)
+PARAMS_WIDTH = max(N_PARAMS, R_TERMS + n_sums(MAX_TERMS) - N_SUMS)
 
 
-def _build_kernels(real, state_in_field: bool):
+def term_column(k: int) -> int:
+    """The params column of the k-th term's weight (its settings follow)."""
+    return P_TERMS + (1 + TERM_SETTINGS) * k
+
+
+def record_sums(records: np.ndarray, n_terms: int) -> np.ndarray:
+    """The sums of ``iterate`` records (rows of the R_* layout) of passes with ``n_terms`` terms."""
+    records = np.asarray(records)
+    return np.concatenate([records[:, R_SUMS:R_SUMS + N_SUMS], records[:, R_TERMS:R_TERMS + n_sums(n_terms) - N_SUMS]],
+                          axis=1)
+
+
+def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
     """The kernels for one arithmetic type (ti.f64 on cpu, ti.f32 on GPU backends); ``iterate``'s and
-    ``start``'s state array a field (``state_in_field``: off the CPU) or the host's NumPy array."""
+    ``start``'s state array a field (``state_in_field``: off the CPU) or the host's NumPy array; ``term_rows``
+    the ``TermPass.row`` of each term of the passes, in order: their per-pixel functions are unrolled into the
+    one pass (``ti.static`` over the terms), so each set of terms is its own instance of ``reduce`` and
+    ``iterate``."""
+    rows = tuple(make(real) for make in term_rows)
+    n_terms = len(rows)
+    n_all = n_sums(max(n_terms, 1))  # the pass's sums
     vec3 = ti.types.vector(3, real)
     params_t = ti.types.ndarray(dtype=real, ndim=2)
     out_t = ti.types.ndarray(dtype=real, ndim=1)
@@ -272,32 +319,6 @@ def _build_kernels(real, state_in_field: bool):
         valid = (p.z > 0) & (n.dot(n) > 0)
         return ti.select(valid, ti.select(inside, vi * Wt + ui, ti.select(front, NO_TARGET, BEHIND_TARGET)),
                          SOURCE_INVALID)
-
-    @ti.func
-    def _weight(r, robust: ti.template(), scale, z):
-        """The robust weight of residual r at target depth z (robust: ROBUST_CODES, + DEPTH_WEIGHTED)."""
-        s = ti.cast(1.0, real)
-        if ti.static(robust >= DEPTH_WEIGHTED):  # r in units of the noise at 1 m, weight 1/σ(z)² likewise
-            s = depth_noise_scale(z, real)
-        rn = r * s
-        w = ti.cast(1.0, real)
-        if ti.static(robust % DEPTH_WEIGHTED == 1):  # Huber: quadratic up to k, linear beyond
-            a = ti.abs(rn)
-            if a > scale:
-                w = scale / a
-        elif ti.static(robust % DEPTH_WEIGHTED == 2):  # Tukey's biweight: zero beyond c
-            w = 0.0
-            if ti.abs(rn) < scale:
-                u = 1.0 - (rn / scale) * (rn / scale)
-                w = u * u
-        return w * s * s
-
-    @ti.func
-    def _row(pt, q, nq):
-        """The Jacobian row A = [(p′ × n_q)ᵀ, n_qᵀ] and the residual r = n_qᵀ (p′ − q)."""
-        c = pt.cross(nq)
-        A = ti.Vector([c.x, c.y, c.z, nq.x, nq.y, nq.z], dt=real)
-        return A, nq.dot(pt - q)
 
     @ti.func
     def _chunk_range(H, W, c, n_chunks):
@@ -347,60 +368,19 @@ def _build_kernels(real, state_in_field: bool):
         return status, pt, q, nq
 
     @ti.func
-    def _bilinear(ig: ti.template(), t0, x, y):
-        """(I, ∂I/∂x, ∂I/∂y) of ``ig`` at the continuous pixel (x, y), 0 ≤ x < W − 1, 0 ≤ y < H − 1, and
-        whether all four taps hold an intensity (I ≥ 0)."""
-        x0 = ti.cast(x, ti.i32)  # truncation is the floor for x ≥ 0
-        y0 = ti.cast(y, ti.i32)
-        ax = x - x0
-        ay = y - y0
-        a = ti.cast(ig[t0 + y0, x0], real)
-        b = ti.cast(ig[t0 + y0, x0 + 1], real)
-        c = ti.cast(ig[t0 + y0 + 1, x0], real)
-        d = ti.cast(ig[t0 + y0 + 1, x0 + 1], real)
-        valid = ti.min(ti.min(a[0], b[0]), ti.min(c[0], d[0])) >= 0
-        return (1.0 - ay) * ((1.0 - ax) * a + ax * b) + ay * ((1.0 - ax) * c + ax * d), valid
-
-    @ti.func
-    def _photo_row(src_i: ti.template(), tgt_ig: ti.template(), s0, t0, Ht, Wt, v, u, pt, K, cscale):
-        """(ok, A_c, r_c, w_c) of the photometric term at source pixel (v, u) with p′ = ``pt`` (module
-        docstring): ok is False where the model has no intensity or the projection's four taps are not
-        all inside the target image with an intensity."""
-        ok = False
-        A = ti.Vector.zero(real, 6)
-        r = ti.cast(0.0, real)
-        w = ti.cast(0.0, real)
-        Im = ti.cast(src_i[s0 + v, u], real)
-        inv_z = 1.0 / pt.z
-        x = K[0] * pt.x * inv_z + K[2]
-        y = K[1] * pt.y * inv_z + K[3]
-        if Im >= 0 and 0 <= x and x < Wt - 1 and 0 <= y and y < Ht - 1:
-            s, valid = _bilinear(tgt_ig, t0, x, y)
-            if valid:
-                ok = True
-                r = s[0] - Im
-                gu = s[1] * K[0] * inv_z
-                gv = s[2] * K[1] * inv_z
-                g = vec3(gu, gv, -(gu * pt.x + gv * pt.y) * inv_z)
-                c = pt.cross(g)
-                A = ti.Vector([c.x, c.y, c.z, g.x, g.y, g.z], dt=real)
-                w = 1.0
-                a = ti.abs(r)
-                if a > cscale:  # Huber
-                    w = cscale / a
-        return ok, A, r, w
-
-    @ti.func
     def _chunk_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                    s0, Hs, W, t0, Ht, Wt, c, n_chunks, robust: ti.template(), params: ti.template(), row,
-                    target: ti.template(), joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template()):
-        """The 30 sums of chunk c of ``n_chunks``, in registers (two passes: ``_project_chunk``); with
-        ``joint``, the colour term's 29 after them (``src_i``, ``tgt_ig``: module docstring)."""
+                    s0, Hs, W, t0, Ht, Wt, c, n_chunks, params: ti.template(), row, target: ti.template(),
+                    terms: ti.template()):
+        """The sums of chunk c of ``n_chunks``, in registers (two passes: ``_project_chunk``): at each
+        correspondence, each term's row (``rows[j]``, with its mode and images ``terms[j]``) into its 29 sums,
+        and the count of valid source pixels."""
         begin, end = _chunk_range(Hs, W, c, n_chunks)
         _project_chunk(src_v, src_n, s0, W, Ht, Wt, begin, end, params, row, target)
         R, t, K = _pose(params, row)
-        dist2_thr, cos_thr, scale = params[row, P_DIST2], params[row, P_COS], params[row, P_SCALE]
-        acc = ti.Vector([0.0] * ti.static(N_SUMS_JOINT if joint else N_SUMS), dt=real)
+        dist2_thr, cos_thr = params[row, P_DIST2], params[row, P_COS]
+        settings = [ti.Vector([params[row, ti.static(term_column(j) + 1 + i)] for i in ti.static(range(TERM_SETTINGS))],
+                              dt=real) for j in ti.static(range(n_terms))]
+        acc = ti.Vector([0.0] * ti.static(n_all), dt=real)
         v = begin // W
         u = begin - v * W
         for k in range(begin, end):
@@ -411,26 +391,18 @@ def _build_kernels(real, state_in_field: bool):
                 status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, t0, Wt, tp, v, u, R, t,
                                                     dist2_thr, cos_thr)
                 if status == STATUS_OK:
-                    A, r = _row(pt, q, nq)
-                    w = _weight(r, robust, scale, q.z)
-                    wA = w * A
-                    for e in ti.static(range(21)):
-                        acc[e] += wA[UPPER[e][0]] * A[UPPER[e][1]]
-                    for e in ti.static(range(6)):
-                        acc[SUM_ATB + e] += wA[e] * r
-                    acc[SUM_R2] += r * r
-                    acc[SUM_INLIERS] += 1.0
-                    if ti.static(joint):
-                        ok, Ac, rc, wc = _photo_row(src_i, tgt_ig, s0, t0, Ht, Wt, v, u, pt, K,
-                                                    params[row, P_COLOR_SCALE])
+                    for j in ti.static(range(n_terms)):
+                        ok, A, r, w = rows[j](ti.static(Correspondence(v, u, pt, q, nq, K, R, t, s0, t0, Ht, Wt)),
+                                              terms[j][0], terms[j][1], terms[j][2], settings[j])
                         if ok:
-                            wAc = wc * Ac
+                            o = ti.static(term_offset(j))
+                            wA = w * A
                             for e in ti.static(range(21)):
-                                acc[SUM_C_ATA + e] += wAc[UPPER[e][0]] * Ac[UPPER[e][1]]
+                                acc[o + e] += wA[UPPER[e][0]] * A[UPPER[e][1]]
                             for e in ti.static(range(6)):
-                                acc[SUM_C_ATB + e] += wAc[e] * rc
-                            acc[SUM_C_R2] += rc * rc
-                            acc[SUM_C_COUNT] += 1.0
+                                acc[o + SUM_ATB + e] += wA[e] * r
+                            acc[o + TERM_R2] += r * r
+                            acc[o + TERM_COUNT] += 1.0
             u += 1
             if u == W:
                 u = 0
@@ -439,9 +411,8 @@ def _build_kernels(real, state_in_field: bool):
 
     @ti.func
     def _partial_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                      s0, Hs, Ws, t0, Ht, Wt, partials: ti.template(), n_chunks, robust: ti.template(),
-                      params: ti.template(), row, serial: ti.template(), target: ti.template(),
-                      joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template()):
+                      s0, Hs, Ws, t0, Ht, Wt, partials: ti.template(), n_chunks, params: ti.template(), row,
+                      serial: ti.template(), target: ti.template(), terms: ti.template()):
         """``partials[c, :]`` = the sums of chunk c, for every chunk. Call it at a kernel's top level: its
         loop is then the kernel's parallel loop over chunks (float64: on the calling thread with ``serial``).
         In float32 (off the CPU) the loop's bound is the partials' chunk rows, a compile-time constant, and
@@ -450,24 +421,23 @@ def _build_kernels(real, state_in_field: bool):
         if ti.static(real == ti.f32):
             for c in range(ti.static(partials.shape[0] - GROUPS)):
                 if c < n_chunks:
-                    _chunk_into(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, c, n_chunks, robust,
-                                params, row, target, joint, src_i, tgt_ig)
+                    _chunk_into(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, c, n_chunks, params,
+                                row, target, terms)
         else:
             if ti.static(serial):
                 ti.loop_config(serialize=True)
             for c in range(n_chunks):  # parallel over chunks, serial (in registers) inside one
-                _chunk_into(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, c, n_chunks, robust,
-                            params, row, target, joint, src_i, tgt_ig)
+                _chunk_into(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, c, n_chunks, params,
+                            row, target, terms)
 
     @ti.func
     def _chunk_into(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                    s0, Hs, Ws, t0, Ht, Wt, partials: ti.template(), c, n_chunks, robust: ti.template(),
-                    params: ti.template(), row, target: ti.template(), joint: ti.template(), src_i: ti.template(),
-                    tgt_ig: ti.template()):
+                    s0, Hs, Ws, t0, Ht, Wt, partials: ti.template(), c, n_chunks, params: ti.template(), row,
+                    target: ti.template(), terms: ti.template()):
         """The sums of chunk c (in registers) into ``partials[c, :]``."""
-        acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, c, n_chunks, robust, params,
-                          row, target, joint, src_i, tgt_ig)
-        for block in ti.static(_blocks(N_SUMS_JOINT if joint else N_SUMS)):
+        acc = _chunk_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, c, n_chunks, params, row, target,
+                          terms)
+        for block in ti.static(_blocks(n_all)):
             for e in ti.static(block):
                 partials[c, e] = acc[e]
 
@@ -516,18 +486,17 @@ def _build_kernels(real, state_in_field: bool):
     @ti.kernel
     def reduce(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
                s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32,
-               partials: ti.template(), n_chunks: ti.i32, robust: ti.template(), params: params_t,
-               out: out_t, serial: ti.template(), target: ti.template(), joint: ti.template(),
-               src_i: ti.template(), tgt_ig: ti.template()):
-        """The 30 sums (59 with ``joint``) into ``out`` (and the per-chunk partials into
-        ``partials[:n_chunks]``); ``serial``: the chunks run on the calling thread (small levels on the
-        CPU, see ``PointToPlane``); ``target``: scratch of one int per source pixel; ``src_i``, ``tgt_ig``:
-        the intensities of the joint pass (any field when not ``joint``: unused)."""
-        _partial_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, n_chunks, robust, params,
-                      STATE, serial, target, joint, src_i, tgt_ig)
-        n_sums = ti.static(N_SUMS_JOINT if joint else N_SUMS)
+               partials: ti.template(), n_chunks: ti.i32, params: params_t, out: out_t, serial: ti.template(),
+               target: ti.template(), terms: ti.template()):
+        """The pass's sums (``n_sums``) into ``out`` (and the per-chunk partials into ``partials[:n_chunks]``);
+        ``serial``: the chunks run on the calling thread (small levels on the CPU, see ``PointToPlane``);
+        ``target``: scratch of one int per source pixel; ``terms``: each term's (mode, source images, target
+        images)."""
+        _partial_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, n_chunks, params, STATE, serial,
+                      target, terms)
+        n_sums = ti.static(n_all)
         # Runs after the loop above has finished: add the partials.
-        if ti.static(real == ti.f64):  # cpu: one serial pass, 30 independent running sums in registers
+        if ti.static(real == ti.f64):  # cpu: one serial pass, independent running sums in registers
             # on the calling thread: handing even a one-iteration loop to the thread pool costs more
             ti.loop_config(serialize=True)
             for _ in range(1):
@@ -613,9 +582,8 @@ def _build_kernels(real, state_in_field: bool):
 
     @ti.kernel
     def iterate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                partials: ti.template(), robust: ti.template(), params: state_t, serial: ti.template(),
-                target: ti.template(), joint: ti.template(), src_i: ti.template(), tgt_ig: ti.template(),
-                row: ti.i32, it: ti.i32):
+                partials: ti.template(), params: state_t, serial: ti.template(), target: ti.template(),
+                terms: ti.template(), row: ti.i32, it: ti.i32):
         """One whole ICP iteration in one launch, at the level of settings row ``row`` (its images' first
         rows and sizes and its chunk count are in that row, written once per ``align``): the sums as
         ``reduce``, then on one thread the checks, the Cholesky solve and the update T ← exp(δξ) T of the
@@ -625,11 +593,11 @@ def _build_kernels(real, state_in_field: bool):
         next level's first iteration (``it`` = 0), a launch does nothing: its loops run zero times, so the
         caller may launch every iteration of the schedule without reading anything back. The caller
         replays the records (``ti_fusion.tracking.icp``), with the condition-number check of
-        ``ti_fusion.tracking.solve`` too, which is why it is not repeated here. With ``joint``, the system
-        solved is the geometric one plus λ × the colour one (module docstring), and the record holds the
-        colour's sums at R_COLOR. Float64 backends add the partials serially, float32 ones in groups and
+        ``ti_fusion.tracking.solve`` too, which is why it is not repeated here. The system solved is the first
+        term's plus λ × each other term's (module docstring), and the record holds the other terms' sums from
+        R_TERMS on. Float64 backends add the partials serially, float32 ones in groups and
         then the group totals (Kahan-compensated, as ``reduce``) into the record, which the solve then reads."""
-        n_sums = ti.static(N_SUMS_JOINT if joint else N_SUMS)
+        n_sums = ti.static(n_all)
         runs = _runs(params, it)
         n_chunks = ti.select(runs, ti.cast(params[row, P_CHUNKS], ti.i32), 0)
         s0 = ti.cast(params[row, P_S0], ti.i32)
@@ -638,14 +606,14 @@ def _build_kernels(real, state_in_field: bool):
         t0 = ti.cast(params[row, P_T0], ti.i32)
         Ht = ti.cast(params[row, P_HT], ti.i32)
         Wt = ti.cast(params[row, P_WT], ti.i32)
-        _partial_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, n_chunks, robust, params,
-                      row, serial, target, joint, src_i, tgt_ig)
+        _partial_sums(src_v, src_n, tgt_v, tgt_n, s0, Hs, Ws, t0, Ht, Wt, partials, n_chunks, params, row, serial,
+                      target, terms)
         if ti.static(real == ti.f32):  # groups of chunks in parallel, then one thread per sum, into the record
             _kahan_groups(partials, n_chunks, n_sums)  # n_chunks is 0 when the launch does nothing
             for e in range(n_sums):  # a static bound too: the test inside
                 if runs:
                     k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
-                    params[k, ti.select(e < N_SUMS, R_SUMS + e, R_COLOR + e - N_SUMS)] = _group_total(partials, e)
+                    params[k, ti.select(e < N_SUMS, R_SUMS + e, R_TERMS + e - N_SUMS)] = _group_total(partials, e)
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
         for _ in range(ti.select(runs, 1, 0)):
             k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
@@ -654,20 +622,18 @@ def _build_kernels(real, state_in_field: bool):
                 total = _total(partials, n_chunks, n_sums)
                 for e in ti.static(range(N_SUMS)):
                     params[k, R_SUMS + e] = total[e]
-                if ti.static(joint):
-                    for e in ti.static(range(N_SUMS_JOINT - N_SUMS)):
-                        params[k, R_COLOR + e] = total[N_SUMS + e]
+                for e in ti.static(range(n_sums - N_SUMS)):
+                    params[k, R_TERMS + e] = total[N_SUMS + e]
             else:
                 for e in ti.static(range(N_SUMS)):
                     total[e] = params[k, R_SUMS + e]
-                if ti.static(joint):
-                    for e in ti.static(range(N_SUMS_JOINT - N_SUMS)):
-                        total[N_SUMS + e] = params[k, R_COLOR + e]
+                for e in ti.static(range(n_sums - N_SUMS)):
+                    total[N_SUMS + e] = params[k, R_TERMS + e]
             system = ti.Vector([total[e] for e in ti.static(range(N_SUMS))], dt=real)
-            if ti.static(joint):
-                lam = params[row, P_COLOR_WEIGHT]
+            for j in ti.static(range(1, n_terms)):  # the other terms, each × its λ
+                lam = params[row, ti.static(term_column(j))]
                 for e in ti.static(range(27)):
-                    system[e] += lam * total[SUM_C_ATA + e]
+                    system[e] += lam * total[ti.static(term_offset(j) + e)]
             for e in ti.static(range(12)):
                 params[k, R_POSE + e] = params[STATE, P_R + e]
             params[k, R_LEVEL] = params[row, P_LEVEL]
@@ -723,22 +689,13 @@ def _build_kernels(real, state_in_field: bool):
     return {"reduce": reduce, "iterate": iterate, "start": start, "status_map": status_map}
 
 
-def kernels_for(real, state_in_field: bool = False):
-    key = (real, state_in_field)
+def kernels_for(real, state_in_field: bool = False, term_rows: tuple = ()):
+    """The kernels of one arithmetic type and state location, with ``reduce`` and ``iterate`` for the terms
+    whose ``TermPass.row`` are ``term_rows`` (made once per set of terms)."""
+    key = (real, state_in_field, tuple(term_rows))
     if key not in _KERNELS:
-        _KERNELS[key] = _build_kernels(real, state_in_field)
+        _KERNELS[key] = _build_kernels(real, state_in_field, tuple(term_rows))
     return _KERNELS[key]
-
-
-class Photometric(NamedTuple):
-    """The colour term of a joint pass: ``source`` the model's intensity at the source level (f32 field or
-    ``Level``, −1 = none), ``target`` the live frame's (I, ∂I/∂x, ∂I/∂y) at the target level (3-vector, I < 0
-    = none), ``weight`` λ (``icp.color_weight``), ``scale`` Huber's k on the intensity residual."""
-
-    source: object
-    target: object
-    weight: float
-    scale: float
 
 
 @data_oriented
@@ -762,39 +719,39 @@ class PointToPlane:
         # one choice for every level (each choice is an instance of the kernels): small maximum, serial
         self.serial = self.max_pixels < self.serial_below
         self.on_host = arch == "cpu"  # kernels read and write NumPy arrays in place: nothing to copy
-        self.k = kernels_for(self.real, state_in_field=not self.on_host)
-        # per chunk, then (float32) the GROUPS group totals of the second pass
+        self.k = kernels_for(self.real, state_in_field=not self.on_host)  # ``start``, ``status_map``
+        # per chunk, then (float32) the GROUPS group totals of the second pass; one field per number of sums
         self.partials = ti.field(self.real, shape=(self.n_chunks + GROUPS, N_SUMS))
-        self.partials_joint = None  # (n_chunks + GROUPS, N_SUMS_JOINT), allocated by the first joint pass
+        self._partials = {N_SUMS: self.partials}
         self.target = ti.field(ti.i32, shape=self.max_pixels)  # per-pixel scratch (``_project_chunk``)
         self.state = None  # ``iterate``'s params: state, settings, records (``begin_iterations``)
         self.state_device = None  # off the CPU, its copy on the device (a Taichi field)
         self._device_newer = False  # the device copy has records the host copy lacks
         self._settings_on_device = None  # the settings rows last copied to the device
         self.params = np.zeros((1, N_PARAMS), dtype=self.np_real)
-        self.out = np.zeros(N_SUMS, dtype=self.np_real)  # written by the kernel (no copy on cpu)
-        self.out_joint = np.zeros(N_SUMS_JOINT, dtype=self.np_real)
+        self._out = {}  # number of sums → the array ``reduce`` writes (no copy on cpu)
         self.status_field = {}
 
     def _set_params(self, T: np.ndarray | None, K, dist_threshold: float, normal_threshold_deg: float,
-                    robust_scale: float = 0.01, photometric=None) -> np.ndarray:
+                    terms: tuple = ()) -> np.ndarray:
         """Fill ``params`` for a pass (T None: leave the pose as it is)."""
-        self._fill(self.params[STATE], T, K, dist_threshold, normal_threshold_deg, robust_scale, photometric)
+        self._fill(self.params[STATE], T, K, dist_threshold, normal_threshold_deg, terms)
         return self.params
 
     @staticmethod
-    def _fill(p: np.ndarray, T, K, dist_threshold: float, normal_threshold_deg: float, robust_scale: float,
-              photometric) -> None:
-        """One row of params: the pose (unless T is None) and a pass's settings."""
+    def _fill(p: np.ndarray, T, K, dist_threshold: float, normal_threshold_deg: float, terms) -> None:
+        """One row of params: the pose (unless T is None), a pass's settings and each term's weight and settings."""
         if T is not None:
             p[P_R:P_T + 3] = flatten_pose(T)
         p[P_K:P_K + 4] = [float(x) for x in K]
         p[P_DIST2] = float(dist_threshold) ** 2
         p[P_COS] = math.cos(math.radians(normal_threshold_deg))
-        p[P_SCALE] = float(robust_scale)
-        if photometric is not None:
-            p[P_COLOR_WEIGHT] = float(photometric.weight)
-            p[P_COLOR_SCALE] = float(photometric.scale)
+        for k, term in enumerate(terms):
+            if len(term.settings) > TERM_SETTINGS:
+                raise ValueError(f"a tracking term has {len(term.settings)} settings; at most {TERM_SETTINGS}")
+            c = term_column(k)
+            p[c] = float(term.weight)
+            p[c + 1:c + 1 + len(term.settings)] = [float(x) for x in term.settings]
 
     @staticmethod
     def _images(src_v, src_n, tgt_v, tgt_n) -> tuple:
@@ -805,17 +762,30 @@ class PointToPlane:
             raise ValueError("vertex and normal images of one side must be levels of the same layout")
         return (s.field, sn.field, t.field, tn.field, s.row0, *s.shape, t.row0, *t.shape)
 
-    def _joint_args(self, images: tuple, photometric):
-        """(joint, partials, src_i, tgt_ig) of a pass: the kernels' last arguments (the depth-only pass
-        passes the source vertex field for the unused intensity fields, so it compiles as before)."""
-        if photometric is None:
-            return False, self.partials, images[0], images[0]
-        if self.partials_joint is None:
-            self.partials_joint = ti.field(self.real, shape=(self.n_chunks + GROUPS, N_SUMS_JOINT))
-        src_i, tgt_ig = as_level(photometric.source), as_level(photometric.target)
-        if (src_i.row0, src_i.shape) != (images[4], images[5:7]) or (tgt_ig.row0, tgt_ig.shape) != (images[7], images[8:10]):
-            raise ValueError("intensity images must be levels of the same layout as the vertex images")
-        return True, self.partials_joint, src_i.field, tgt_ig.field
+    def _terms(self, images: tuple, terms) -> tuple:
+        """(kernels, partials, out, per-term arguments) of a pass with ``terms`` (``TermPass``, the first the
+        one whose count is the inliers): each term's arguments are its mode and its images' fields, which must
+        be levels of the source's and the target's layout."""
+        terms = tuple(terms)
+        if not 1 <= len(terms) <= MAX_TERMS:
+            raise ValueError(f"a pass has 1 to {MAX_TERMS} tracking terms, not {len(terms)}")
+        args = []
+        for term in terms:
+            sides = []
+            layouts = ((term.source, (images[4], images[5:7])), (term.target, (images[7], images[8:10])))
+            for side, (row0, shape) in layouts:
+                levels = [as_level(x) for x in side]
+                if any((lv.row0, lv.shape) != (row0, shape) for lv in levels):
+                    raise ValueError("a tracking term's images must be levels of the same layout as the vertex images")
+                sides.append(tuple(lv.field for lv in levels))
+            args.append((int(term.mode), *sides))
+        n = n_sums(len(terms))
+        if n not in self._partials:
+            self._partials[n] = ti.field(self.real, shape=(self.n_chunks + GROUPS, n))
+        if n not in self._out:
+            self._out[n] = np.zeros(n, dtype=self.np_real)
+        k = kernels_for(self.real, not self.on_host, tuple(term.row for term in terms))
+        return k, self._partials[n], self._out[n], tuple(args)
 
     def _chunks(self, images: tuple) -> int:
         """Chunks of a pass over the source of ``images``: small levels (fewer than ``serial_below``
@@ -829,16 +799,14 @@ class PointToPlane:
         return min(self.n_chunks, n)
 
     def reduce(self, src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold: float, normal_threshold_deg: float,
-               robust: str = "none", robust_scale: float = 0.01, photometric: "Photometric | None" = None) -> np.ndarray:
-        """The 30 sums (float64 NumPy) of one association + linearisation pass at pose ``T``; with
-        ``photometric``, the joint pass's 59."""
+               terms) -> np.ndarray:
+        """The sums (float64 NumPy, ``n_sums(len(terms))``) of one association + linearisation pass at pose
+        ``T`` with ``terms`` (``TermPass``, e.g. ``ti_fusion.tracking.terms``' ``kernel_pass``)."""
         images = self._images(src_v, src_n, tgt_v, tgt_n)
         n_chunks = self._chunks(images)
-        params = self._set_params(T, K, dist_threshold, normal_threshold_deg, robust_scale, photometric)
-        joint, partials, src_i, tgt_ig = self._joint_args(images, photometric)
-        out = self.out_joint if joint else self.out
-        self.k["reduce"](*images, partials, n_chunks, _code(robust), params, out, self.serial, self.target, joint,
-                         src_i, tgt_ig)
+        params = self._set_params(T, K, dist_threshold, normal_threshold_deg, terms)
+        k, partials, out, args = self._terms(images, terms)
+        k["reduce"](*images, partials, n_chunks, params, out, self.serial, self.target, args)
         return out.astype(np.float64)
 
     # -- whole iterations in the kernel ----------------------------------------------------------------
@@ -876,24 +844,23 @@ class PointToPlane:
         self._device_newer = False
 
     def begin_level(self, src_v, src_n, tgt_v, tgt_n, K, dist_threshold: float, normal_threshold_deg: float,
-                    robust: str, robust_scale: float, level: int, min_inliers: int, stop_update: float,
-                    photometric: "Photometric | None" = None) -> None:
+                    level: int, min_inliers: int, stop_update: float, terms) -> None:
         """Settings of the ``iterate`` calls at ``level``: its images (source vertex and normal, target
-        vertex and normal; with ``photometric``, joint iterations with its images and weights) and
-        thresholds, in its settings row; the pose is the one the previous iteration left."""
+        vertex and normal), thresholds and tracking terms (``TermPass``: their images, weights and settings),
+        in its settings row; the pose is the one the previous iteration left."""
         if not 0 <= level < MAX_LEVELS:
             raise ValueError(f"pyramid level {level}: ICP runs on levels 0 to {MAX_LEVELS - 1}")
         if self._uploaded:
             raise ValueError("begin_level after the first iterate of a run: call begin_iterations first")
         p = self.state[SETTINGS + level]
-        self._fill(p, None, K, dist_threshold, normal_threshold_deg, robust_scale, photometric)
+        self._fill(p, None, K, dist_threshold, normal_threshold_deg, terms)
         p[P_LEVEL], p[P_MIN_INLIERS], p[P_STOP] = level, min_inliers, stop_update
         # worked out once per level: a Taichi field's .shape costs microseconds per call
         images = self._images(src_v, src_n, tgt_v, tgt_n)
         n_chunks = self._chunks(images)
         p[P_S0], p[P_HS], p[P_WS], p[P_T0], p[P_HT], p[P_WT] = images[4:10]
         p[P_CHUNKS] = n_chunks
-        self._levels[level] = (images[:4], _code(robust)) + self._joint_args(images, photometric)
+        self._levels[level] = (images[:4],) + self._terms(images, terms)
         self._level = level
 
     def iterate(self, iteration: int, level: int | None = None) -> int:
@@ -902,7 +869,7 @@ class PointToPlane:
         level / the run), so the caller launches no more than needed. Elsewhere nothing is read back: 0,
         and the caller launches the whole schedule, whose iterations after a stop are no-ops on the device."""
         level = self._level if level is None else level
-        images, robust, joint, partials, src_i, tgt_ig = self._levels[level]
+        images, k, partials, _, terms = self._levels[level]
         if self._launched >= self.records.shape[0]:  # the kernel could write past the records
             raise ValueError(f"more than {self.records.shape[0]} iterations since begin_iterations")
         self._launched += 1
@@ -913,8 +880,7 @@ class PointToPlane:
             params = self.state_device
             self._device_newer = True
         self._uploaded = True
-        self.k["iterate"](*images, partials, robust, params, self.serial, self.target, joint, src_i, tgt_ig,
-                          SETTINGS + level, iteration)
+        k["iterate"](*images, partials, params, self.serial, self.target, terms, SETTINGS + level, iteration)
         return int(self.state[STATE, P_DONE]) if self.on_host else 0
 
     def _start_on_device(self) -> None:
@@ -935,10 +901,10 @@ class PointToPlane:
 
     def iteration_records(self) -> np.ndarray:
         """The records of the iterations since ``begin_iterations`` (float64, one row each, R_* layout;
-        R_COLOR onwards only from joint iterations)."""
+        ``record_sums`` reads their sums)."""
         state = self._host_state()
         n = int(state[STATE, P_RECORDS])
-        return state[RECORDS:RECORDS + n, :RECORD_LEN_JOINT].astype(np.float64)
+        return state[RECORDS:RECORDS + n, :PARAMS_WIDTH].astype(np.float64)
 
     def pose(self) -> np.ndarray:
         """The pose ``iterate`` has reached (4×4 float64)."""

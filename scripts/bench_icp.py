@@ -255,20 +255,23 @@ class FinestIteration:
         self.icp, self.pose = icp, pose
         self.fields = (src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0])
         self.K = tgt.intrinsics[0].as_tuple()
-        self.thresholds = (icp.dist_threshold(0), c.normal_threshold_deg, icp.robust, c.robust_scale)
+        self.thresholds = (icp.dist_threshold(0), c.normal_threshold_deg)
+        self.terms = [icp.terms[0].kernel_pass(src, tgt, 0)]  # the geometric term, as ICP.align runs it
         self.kernels = icp._kernels(src.shapes[0][0] * src.shapes[0][1])
         self.in_kernel = self.kernels.solves_in_kernel  # as ICP.align decides
-        self.numpy_level = icp_numpy.LevelIteration(*(f.to_numpy() for f in self.fields), self.K, *self.thresholds)
+        self.numpy_level = icp_numpy.LevelIteration(*(f.to_numpy() for f in self.fields), self.K, *self.thresholds,
+                                                    icp.terms[0].robust, c.robust_scale)
 
     def start(self) -> None:
         if self.in_kernel:
             self.kernels.begin_iterations(self.pose, ITERATIONS_PER_RUN + 1)
-            self.kernels.begin_level(*self.fields, self.K, *self.thresholds, 0, self.icp.config.min_inliers, 0.0)
+            self.kernels.begin_level(*self.fields, self.K, *self.thresholds, 0, self.icp.config.min_inliers, 0.0,
+                                     self.terms)
 
     def taichi(self):
         if self.in_kernel:
             return self.kernels.iterate(0)
-        return self._solve(self.kernels.reduce(*self.fields, self.pose, self.K, *self.thresholds))
+        return self._solve(self.kernels.reduce(*self.fields, self.pose, self.K, *self.thresholds, self.terms))
 
     def numpy(self):
         return self._solve(self.numpy_level.sums(self.pose))
@@ -474,7 +477,7 @@ def photometric_cost(cfg, args) -> dict:
         tgt.compute_intensity(grey_image(ct))
 
     runs = {"intensity": intensity, "icp_depth_only": lambda: depth_only.align(src, tgt),
-            "icp_joint": lambda: joint.align(src, tgt, photometric=True)}
+            "icp_joint": lambda: joint.align(src, tgt, terms=("photometric",))}
     times: dict = {k: [] for k in runs}
     for _ in range(3):  # compile and warm up
         for fn in runs.values():

@@ -194,7 +194,7 @@ def main(argv=None) -> int:
     depth_s, depth_t, K, _, what = load_pair(args, cfg)
     with tempfile.TemporaryDirectory(prefix="icp_ceiling_") as tmp:
         workdir = Path(tmp)
-        robust = ICP(cfg.icp).robust
+        robust = ICP(cfg.icp).terms[0].robust  # the geometric term's
         executables = c_executables(args.cc, lambda: compile_c(args.cc, robust, workdir), "bench_icp_ceiling", "pass")
         rows = [bench_size(depth_s[::f, ::f].copy(), depth_t[::f, ::f].copy(), K.downsampled(f), cfg, executables,
                            args.repeats, workdir) for f in (1, 2)]

@@ -172,10 +172,10 @@ def worker_pairs(args) -> dict:
             pyramid.compute(frame.depth, frame.intrinsics, grey_image(frame.color) if color else None)
         step_deg, step_m = pose_error(np.eye(4), reference)
         row = {"source": source.index, "target": target.index, "step_mm": step_m * 1e3, "step_deg": step_deg}
-        depth_only = icp.align(maps[0], maps[1], None, photometric=False)
+        depth_only = icp.align(maps[0], maps[1], None)
         row["ours_depth_mm"] = pose_error(depth_only.pose, reference)[1] * 1e3
         if color:
-            joint = icp.align(maps[0], maps[1], None, photometric=True)
+            joint = icp.align(maps[0], maps[1], None, terms=("photometric",))
             row["ours_joint_mm"] = pose_error(joint.pose, reference)[1] * 1e3
         if o3d is not None:
             result = odometry.rgbd_odometry_multi_scale(rgbd(source), rgbd(target), intrinsic,

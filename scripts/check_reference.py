@@ -72,6 +72,7 @@ def main() -> int:
     from ti_fusion.geometry import invert
     from ti_fusion.tracking.icp import ICP
     from ti_fusion.kernels.icp import PointToPlane, unpack_sums
+    from ti_fusion.tracking.terms.point_to_plane import point_to_plane
     from ti_fusion.kernels.pyramid import FramePyramid
 
     dataset = open_dataset(cfg.dataset, cfg.synth)
@@ -102,7 +103,8 @@ def main() -> int:
     def system(T, a, b) -> dict:
         """The point-to-plane sums of a at pose T against b: correspondences within 5 cm, no robust weight."""
         return unpack_sums(kernels.reduce(a.vertex[0], a.normal[0], b.vertex[0], b.normal[0], T,
-                                          b.intrinsics[0].as_tuple(), 0.05, icp_cfg.normal_threshold_deg))
+                                          b.intrinsics[0].as_tuple(), 0.05, icp_cfg.normal_threshold_deg,
+                                          [point_to_plane()]))
 
     def residual_mm(T, a, b) -> float:
         s = system(T, a, b)

@@ -140,7 +140,7 @@ def test_a_file_value_against_its_rule_names_the_file(tmp_path):
 def test_choices_match_the_code_that_uses_them():
     from ti_fusion.config import rules, ICPConfig
     from ti_fusion.io.datasets import FORMATS
-    from ti_fusion.kernels.icp import ROBUST_CODES
+    from ti_fusion.tracking.terms.point_to_plane import ROBUST_CODES
     from ti_fusion.config import DatasetConfig
 
     icp = rules(ICPConfig)

@@ -26,6 +26,7 @@ from ti_fusion.tracking.icp import ICP, ICPResult, IterationRecord
 from ti_fusion.kernels import icp as kicp
 from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.synthetic.scene import SyntheticSequence
+from ti_fusion.tracking.terms.point_to_plane import point_to_plane
 from ti_fusion.tracking.solve import check_system, condition_number, condition_numbers, solve_normal_equations
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -146,7 +147,7 @@ def test_status_and_sums_match_reference(arch, rng, robust, chunks):
         kp.serial_below = n + 1 if chunks == "serial" else 0  # on the calling thread, or in parallel
     args = (vec_field(P), vec_field(N), vec_field(Vt), vec_field(Nt))
     status = kp.status(*args, T, K_t.as_tuple(), THR, THETA)
-    sums = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, robust, 0.05)
+    sums = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, [point_to_plane(robust, 0.05)])
     ref_status, ref_sums = icp_numpy.icp_pass(P, N, Vt, Nt, T, K_t.as_tuple(), THR, THETA, robust, 0.05)
     np.testing.assert_array_equal(status, ref_status)
     counts = np.bincount(status.ravel(), minlength=7)
@@ -389,7 +390,8 @@ def test_sums_at_convergence_match_reference(arch, rng, sequence, robust):
     fields = (src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0])
     K_t = tgt.intrinsics[0].as_tuple()
     thr = ICP(cfg).dist_threshold(0)
-    sums = pass_for(src.width * src.height).reduce(*fields, pose, K_t, thr, cfg.normal_threshold_deg, robust, 0.03)
+    sums = pass_for(src.width * src.height).reduce(*fields, pose, K_t, thr, cfg.normal_threshold_deg,
+                                                   [point_to_plane(robust, 0.03)])
     _, ref = icp_numpy.icp_pass(*(f.to_numpy() for f in fields), pose, K_t, thr, cfg.normal_threshold_deg,
                                 robust, 0.03)
     s = kicp.unpack_sums(ref)
@@ -520,7 +522,7 @@ def test_iterate_refuses_more_iterations_than_records(cpu, rng, sequence):
     kernels = ICP(ICPConfig())._kernels(src.width * src.height)
     kernels.begin_iterations(np.eye(4), 1)
     kernels.begin_level(src.vertex[0], src.normal[0], tgt.vertex[0], tgt.normal[0], tgt.intrinsics[0].as_tuple(),
-                        0.1, 30.0, "huber", 0.01, 0, 100, 0.0)
+                        0.1, 30.0, 0, 100, 0.0, [point_to_plane("huber", 0.01)])
     capacity = kernels.records.shape[0]
     for it in range(capacity):
         kernels.iterate(it)
@@ -646,7 +648,8 @@ def test_align_compiles_one_iterate_instance_for_every_level(cpu, sequence):
     pyramid = FramePyramid(PyramidConfig(depth_smooth_radius=0), K.height, K.width, len(cfg.iterations))  # new fields
     pyramid.compute(sequence.render(sequence.poses[0], noise=False)[0], K)
     icp = ICP(cfg)
-    iterate = icp._kernels(K.width * K.height).k["iterate"]._primal
+    kp = icp._kernels(K.width * K.height)
+    iterate = kicp.kernels_for(kp.real, not kp.on_host, (icp.terms[0].row,))["iterate"]._primal  # the geometry's
     before = len(iterate.compiled_kernels)
     result = icp.align(pyramid, pyramid)
     assert result.failure is None and {r.level for r in result.iterations} == {0, 1, 2}

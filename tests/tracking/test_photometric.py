@@ -20,6 +20,8 @@ from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.reference import icp as icp_numpy
 from ti_fusion.tracking.icp import ICP
 from ti_fusion.tracking.solve import weak_directions
+from ti_fusion.tracking.terms.photometric import photometric
+from ti_fusion.tracking.terms.point_to_plane import point_to_plane
 from tests.tracking.test_icp import THETA, THR, cs_scale, pass_for, random_pass_inputs, random_pose, rays, vec_field
 
 
@@ -49,16 +51,19 @@ def scalar_field(a):
     return f
 
 
+C = kicp.term_offset(1)  # the colour term's sums in a pass with the geometry first
+
+
 def assert_joint_close(got, ref):
     np.testing.assert_array_equal(got[kicp.SUM_INLIERS:kicp.N_SUMS], ref[kicp.SUM_INLIERS:kicp.N_SUMS])
-    assert got[kicp.SUM_C_COUNT] == ref[kicp.SUM_C_COUNT]
+    assert got[C + kicp.TERM_COUNT] == ref[C + kicp.TERM_COUNT]
     if current_backend().has_f64:
         np.testing.assert_allclose(got, ref, rtol=1e-5, atol=1e-12)
         return
     for part in (slice(0, kicp.N_SUMS), None):
         if part is None:  # the colour term laid out as a geometric pass's 30 sums
-            g = np.concatenate([got[kicp.SUM_C_ATA:kicp.SUM_C_R2 + 1], [got[kicp.SUM_C_COUNT], 0.0]])
-            r = np.concatenate([ref[kicp.SUM_C_ATA:kicp.SUM_C_R2 + 1], [ref[kicp.SUM_C_COUNT], 0.0]])
+            g = np.concatenate([got[C:C + kicp.TERM_SUMS], [0.0]])
+            r = np.concatenate([ref[C:C + kicp.TERM_SUMS], [0.0]])
         else:
             g, r = got[part], ref[part]
         err = np.abs(g - r) / np.maximum(cs_scale(r), 1e-30)
@@ -76,32 +81,32 @@ def test_joint_sums_match_reference(arch, rng, chunks):
     if chunks != "default":
         kp.serial_below = 0
     args = (vec_field(P), vec_field(N), vec_field(Vt), vec_field(Nt))
-    color = kicp.Photometric(scalar_field(src_i), vec_field(tgt_ig), 0.3, 0.2)
-    sums = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05, photometric=color)
+    color = photometric(scalar_field(src_i), vec_field(tgt_ig), 0.3, 0.2)
+    sums = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, [point_to_plane("huber+depth", 0.05), color])
     ref = icp_numpy.joint_pass(P, N, Vt, Nt, src_i, tgt_ig, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05, 0.2)
-    assert sums.shape == (kicp.N_SUMS_JOINT,)
-    inliers, with_color = ref[kicp.SUM_INLIERS], ref[kicp.SUM_C_COUNT]
+    assert sums.shape == (kicp.n_sums(2),) == (59,)
+    inliers, with_color = ref[kicp.SUM_INLIERS], ref[C + kicp.TERM_COUNT]
     assert 50 < with_color < inliers, (with_color, inliers)  # some correspondences have no colour residual
     assert_joint_close(sums, ref)
     # the depth-only pass of the same inputs: the first 30 sums, unchanged
-    plain = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05)
+    plain = kp.reduce(*args, T, K_t.as_tuple(), THR, THETA, [point_to_plane("huber+depth", 0.05)])
     np.testing.assert_allclose(plain, sums[:kicp.N_SUMS], rtol=1e-6 if current_backend().has_f64 else 1e-4,
                                atol=1e-12 if current_backend().has_f64 else 1e-4 * np.abs(plain).max())
 
 
 def test_combined_system_and_weak_directions():
     rng = np.random.default_rng(3)
-    sums = rng.normal(size=kicp.N_SUMS_JOINT)
-    AtA, Atb = kicp.combined_system(sums, 0.5)
-    s, c = kicp.unpack_sums(sums), kicp.unpack_color_sums(sums)
+    sums = rng.normal(size=kicp.n_sums(2))
+    AtA, Atb = kicp.combined_system(sums, (1.0, 0.5))
+    s, c = kicp.unpack_sums(sums), kicp.unpack_term_sums(sums, 1)
     np.testing.assert_allclose(AtA, s["AtA"] + 0.5 * c["AtA"])
     np.testing.assert_allclose(Atb, s["Atb"] + 0.5 * c["Atb"])
-    assert kicp.unpack_color_sums(sums[:kicp.N_SUMS]) is None
+    assert kicp.unpack_term_sums(sums[:kicp.N_SUMS], 1) is None
     # the batched form (ICP's replay of the kernel's records): row by row the same, joint and depth-only
-    for batch in (rng.normal(size=(4, kicp.N_SUMS_JOINT)), rng.normal(size=(3, kicp.N_SUMS))):
-        AtAs, Atbs = kicp.combined_systems(batch, 0.5)
+    for batch in (rng.normal(size=(4, kicp.n_sums(2))), rng.normal(size=(3, kicp.N_SUMS))):
+        AtAs, Atbs = kicp.combined_systems(batch, (1.0, 0.5))
         for row, A, b in zip(batch, AtAs, Atbs):
-            want = kicp.combined_system(row, 0.5)
+            want = kicp.combined_system(row, (1.0, 0.5))
             np.testing.assert_array_equal(A, want[0])
             np.testing.assert_array_equal(b, want[1])
     geo = np.diag([1.0, 1.0, 1e-6, 1.0, 1e-7, 1.0])  # weak: ω_z and v_y
@@ -160,10 +165,10 @@ def plane_pair(cpu):
 def test_color_tracks_what_depth_cannot_see(plane_pair):
     source, target, G = plane_pair
     cfg = ICPConfig(iterations=[10, 10], color_weight=0.0)
-    depth_only = ICP(cfg).align(source, target, photometric=True)  # λ = 0: the term stays off
+    depth_only = ICP(cfg).align(source, target, terms=("photometric",))  # λ = 0: the term stays off
     assert depth_only.color_inliers == 0
     assert depth_only.failure is not None and ("rank" in depth_only.failure or "ill-conditioned" in depth_only.failure)
-    joint = ICP(ICPConfig(iterations=[10, 10], color_weight=0.01)).align(source, target, photometric=True)
+    joint = ICP(ICPConfig(iterations=[10, 10], color_weight=0.01)).align(source, target, terms=("photometric",))
     rot, trans = pose_error(joint.pose, G)
     assert joint.failure is None and rot < 0.05 and trans < 1e-3, (joint.failure, rot, trans)
     d = joint.degeneracy
@@ -173,9 +178,9 @@ def test_color_tracks_what_depth_cannot_see(plane_pair):
 def test_joint_solve_in_kernel_matches_numpy(plane_pair, monkeypatch):
     source, target, _ = plane_pair
     cfg = ICPConfig(iterations=[4, 3], color_weight=0.01, stop_update=0.0)
-    in_kernel = ICP(cfg).align(source, target, photometric=True)
+    in_kernel = ICP(cfg).align(source, target, terms=("photometric",))
     monkeypatch.setattr(kicp.PointToPlane, "solves_in_kernel", property(lambda self: False))  # solves in NumPy
-    in_numpy = ICP(cfg).align(source, target, photometric=True)
+    in_numpy = ICP(cfg).align(source, target, terms=("photometric",))
     assert in_kernel.failure is None and in_numpy.failure is None
     assert [(r.level, r.iteration, r.inliers) for r in in_kernel.iterations] == \
         [(r.level, r.iteration, r.inliers) for r in in_numpy.iterations]
@@ -206,7 +211,7 @@ def test_dense_slam_uses_color_only_where_registered(cpu, caplog, weight):
         cfg.icp = dataclasses.replace(cfg.icp, color_weight=weight)
     slam = DenseSLAM(cfg, seq.intrinsics)
     caplog.clear()
-    caplog.set_level(logging.INFO, logger="ti_fusion.slam.dense")
+    caplog.set_level(logging.INFO, logger="ti_fusion.tracking.terms.photometric")  # the term says it
     results = []
     for i in range(5):
         depth, color = seq.frame(i)

@@ -173,15 +173,15 @@ class LoopClosure:
     # -- keyframes ------------------------------------------------------------------------------
     def _information(self, result) -> np.ndarray | None:
         """The tracked frame's AᵀA of ICP's last iteration ((ω, v) in the new camera's frame: ICP's left update
-        of T = T_wc_new⁻¹ T_wc_last is a right perturbation of the new pose), the photometric term's added where
-        it ran (``icp.color_weight``), or None."""
+        of T = T_wc_new⁻¹ T_wc_last is a right perturbation of the new pose), the other tracking terms' added where
+        they ran (each × its weight), or None."""
         icp = result.icp
         if not result.tracking.tracked or icp is None or icp.sums is None:
             return None
         from ti_fusion.kernels.icp import combined_system, unpack_sums
 
-        if icp.color_inliers > 0:
-            return combined_system(icp.sums, self.config.icp.color_weight)[0]
+        if any(t["count"] > 0 for t in icp.terms.values()):
+            return combined_system(icp.sums, icp.weights)[0]
         return unpack_sums(icp.sums)["AtA"]
 
     def _make_keyframe(self, frame, pose: np.ndarray, maps: LoopMaps) -> Keyframe:

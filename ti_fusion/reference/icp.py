@@ -12,9 +12,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ti_fusion.kernels.icp import (N_SUMS, N_SUMS_JOINT, SUM_C_ATA, SUM_C_ATB, SUM_C_COUNT, SUM_C_R2, STATUS_BEHIND, STATUS_NORMAL_ANGLE, STATUS_OK, STATUS_OUT_OF_IMAGE,
+from ti_fusion.kernels.icp import (N_SUMS, STATUS_BEHIND, STATUS_NORMAL_ANGLE, STATUS_OK, STATUS_OUT_OF_IMAGE,
                                    STATUS_SOURCE_INVALID, STATUS_TARGET_INVALID, STATUS_TOO_FAR, SUM_ATB,
-                                   SUM_INLIERS, SUM_R2, SUM_SOURCE, UPPER)
+                                   SUM_INLIERS, SUM_R2, SUM_SOURCE, TERM_COUNT, TERM_R2, UPPER, n_sums, term_offset)
 from ti_fusion.sensor import SIGMA_1M, depth_sigma
 
 
@@ -123,7 +123,7 @@ def bilinear(ig: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, 
 def photometric_rows(p: np.ndarray, pixels: np.ndarray, src_i: np.ndarray, tgt_ig: np.ndarray, K):
     """The colour term at the correspondences p′ (m×3) of the flat source pixels ``pixels``: (A_c k×6,
     r_c k) for those with a model intensity whose projection's four taps lie in the target with one
-    (``ti_fusion.kernels.icp``'s docstring has the math)."""
+    (``ti_fusion.tracking.terms.photometric``'s docstring has the math)."""
     fx, fy, cx, cy = (float(k) for k in K)
     Ht, Wt = tgt_ig.shape[:2]
     Im = np.asarray(src_i, dtype=np.float64).reshape(-1)[pixels]
@@ -141,18 +141,24 @@ def photometric_rows(p: np.ndarray, pixels: np.ndarray, src_i: np.ndarray, tgt_i
 
 def joint_pass(src_v, src_n, tgt_v, tgt_n, src_i, tgt_ig, T, K, dist_threshold: float, normal_threshold_deg: float,
                robust: str = "none", robust_scale: float = 0.01, color_scale: float = 0.05) -> np.ndarray:
-    """The 59 sums of a joint pass: the reference of ``PointToPlane.reduce(..., photometric=...)``: the 30 of
-    ``icp_pass``, then the colour term's 21 AᵀA, 6 Aᵀb, Σr_c² and count (Huber weights, k = ``color_scale``)."""
+    """The 59 sums of a pass with the point-to-plane and the photometric term: the reference of
+    ``PointToPlane.reduce`` with those two terms: the 30 of ``icp_pass``, then the colour term's 21 AᵀA, 6 Aᵀb,
+    Σr_c² and count (Huber weights, k = ``color_scale``)."""
     status, c = associate(src_v, src_n, tgt_v, tgt_n, T, K, dist_threshold, normal_threshold_deg)
     A, r = linearise(c["p"], c["q"], c["nq"])
-    sums = np.zeros(N_SUMS_JOINT)
+    sums = np.zeros(n_sums(2))
     sums[:N_SUMS] = reduce_sums(A, r, robust_weights(r, robust, robust_scale, c["q"][:, 2]), c["sources"])
     Ac, rc = photometric_rows(c["p"], np.flatnonzero(status.reshape(-1) == STATUS_OK), src_i, tgt_ig, K)
-    color = reduce_sums(Ac, rc, robust_weights(rc, "huber", color_scale), 0)
-    sums[SUM_C_ATA:SUM_C_ATB + 6] = color[:27]
-    sums[SUM_C_R2] = color[SUM_R2]
-    sums[SUM_C_COUNT] = color[SUM_INLIERS]
+    sums[term_offset(1):] = term_sums(Ac, rc, robust_weights(rc, "huber", color_scale))
     return sums
+
+
+def term_sums(A: np.ndarray, r: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """A tracking term's 29 sums from its rows (k×6), residuals and weights: 21 AᵀA, 6 Aᵀb, Σr², count."""
+    s = reduce_sums(A, r, w, 0)
+    out = np.zeros(TERM_COUNT + 1)
+    out[:27], out[TERM_R2], out[TERM_COUNT] = s[:27], s[SUM_R2], s[SUM_INLIERS]
+    return out
 
 
 class LevelIteration:

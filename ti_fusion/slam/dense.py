@@ -208,7 +208,6 @@ class DenseSLAM:
         self._guess_beaten = False
         self._residuals: deque[float] = deque(maxlen=RECENT_FRAMES)  # ICP residuals of the last tracked frames
         self._frames_fused = 0
-        self._color_warned = False  # the warning that the photometric term is off for unregistered colour
         self._degeneracy_warned = False  # the warning that depth (and colour) leave directions unconstrained
         self.session = None  # a session against a saved map (``start_session``; ti_fusion/slam/session.py)
         self.loop = None  # loop closure: keyframes, place recognition, verification, the pose graph
@@ -218,23 +217,6 @@ class DenseSLAM:
             from ti_fusion.loop.closure import LoopClosure  # GTSAM: imported only when loop closure is on
 
             self.loop = LoopClosure(config)
-
-    def _uses_color(self, frame: Frame) -> bool:
-        """Whether this frame is tracked with the photometric term (warns once when the term is asked for
-        but the frame's colour is missing or not registered to its depth)."""
-        weight = self.config.icp.color_weight
-        if weight <= 0:
-            return False
-        if frame.color is not None and frame.color_registered:
-            return True
-        if not self._color_warned:
-            self._color_warned = True
-            why = "has no colour" if frame.color is None else "has colour that is not registered to depth"
-            # the default weight asks for colour only where it can be used: elsewhere its absence is no news
-            say = log.info if weight == ICPConfig.color_weight else log.warning
-            say(f"icp.color_weight = {weight:g}, but frame {frame.index} {why}: the photometric tracking "
-                "term is off for such frames (depth only); see docs/PHOTOMETRIC.md")
-        return False
 
     # -- the verb -------------------------------------------------------------------------------
     def register_frame(self, frame: Frame) -> FrameResult:
@@ -264,10 +246,10 @@ class DenseSLAM:
     def _track_and_fuse(self, frame: Frame) -> FrameResult:
         check_frame(self, frame)  # one InputError for a frame this map cannot take (ti_fusion/slam/checks.py)
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
-        color = self._uses_color(frame)
+        terms = self.icp.terms_for(frame)  # the tracking terms besides the geometry that this frame can use
         with timer.stage("pyramid"):
             grey = None
-            if color:
+            if "intensity" in self.icp.needs(terms):
                 grey = grey_image(frame.color)
                 if frame.meta.get("color_valid") is not None:  # registered colour: none where the camera saw none
                     grey[~frame.meta["color_valid"]] = -1.0
@@ -296,7 +278,7 @@ class DenseSLAM:
                 log.warning(f"{which} skipped ({reason}): the map starts at frame {frame.index}")
         else:
             with timer.stage("track"):
-                result = self._track(frame, color)
+                result = self._track(frame, terms)
         before = self._held_pose() if self.poses else None  # the motion model's pose before this frame
         if result.tracked and not (self.session is not None and self.session.localize):
             with timer.stage("fuse"):
@@ -339,8 +321,8 @@ class DenseSLAM:
         dt = timestamp - self._last_stamp if self._last_stamp is not None else 0.0
         return dt if np.isfinite(dt) and dt > 0 else 1.0
 
-    def _reference(self, color: bool = False) -> tuple[FramePyramid, np.ndarray]:
-        """The ICP source and the camera-to-world pose of its camera frame (with ``color``, its intensity
+    def _reference(self, intensity: bool = False) -> tuple[FramePyramid, np.ndarray]:
+        """The ICP source and the camera-to-world pose of its camera frame (with ``intensity``, its intensity
         too: the model's colour at each pixel of the prediction)."""
         last = self._held_pose()
         fusion = self.config.fusion
@@ -352,23 +334,23 @@ class DenseSLAM:
         window = 0 if self.session is not None and self.session.whole_map else self.config.slam.active_window
         self.mapper.render_pyramid(self.model_pyramid, last, self.model_intrinsics,
                                    min_weight=fusion.render_min_weight if warm else 0.0,
-                                   min_time=self._frames_fused - window if window > 0 else -2**31, intensity=color)
+                                   min_time=self._frames_fused - window if window > 0 else -2**31, intensity=intensity)
         return self.model_pyramid, last
 
-    def _track(self, frame: Frame, color: bool = False) -> FrameResult:
+    def _track(self, frame: Frame, terms: tuple[str, ...] = ()) -> FrameResult:
         cfg = self.config.slam
         predicted = self._predicted_pose(frame.timestamp)
-        source, last = self._reference(color)
-        color = color and source.intensity is not None
+        source, last = self._reference("intensity" in self.icp.needs(terms))
+        terms = self.icp.ready(terms, source, self.frame_pyramid)
         tried: list[Hypothesis] = []
 
         def attempt(name: str, guess: np.ndarray, icp: ICP | None = None, depth_first: bool = False) -> Hypothesis:
             # ICP maps source points (camera frame of `last`) into the new camera: T = inv(T_wc_new) · T_wc_last.
             init = invert(guess) @ last
-            if depth_first and color:  # a start far from the frame: the photometric basin is narrower than depth's
-                geometry = (icp or self.icp).align(source, self.frame_pyramid, init=init, photometric=False)
+            if depth_first and terms:  # a start far from the frame: the photometric basin is narrower than depth's
+                geometry = (icp or self.icp).align(source, self.frame_pyramid, init=init)
                 init = init if geometry.failure else geometry.pose
-            result = (icp or self.icp).align(source, self.frame_pyramid, init=init, photometric=color)
+            result = (icp or self.icp).align(source, self.frame_pyramid, init=init, terms=terms)
             pose = renormalize(last @ invert(result.pose))
             tried.append(Hypothesis(name, result, pose, self._health(result, pose, guess, predicted)))
             return tried[-1]
@@ -386,7 +368,7 @@ class DenseSLAM:
             if (not settled() or self._lost_streak) and (apart[0] > 0.1 or apart[1] > 1e-3):
                 attempt("last", held, depth_first=True)
         if not settled() and cfg.relocalise == "features" and (cfg.hypotheses != "motion" or not first.ok):
-            self._relocalise(frame, source, last, color, tried, predicted)
+            self._relocalise(frame, source, last, terms, tried, predicted)
         if not settled() and cfg.hypotheses != "motion":
             attempt("wide", last, self.wide_icp, depth_first=True)  # dense re-localisation: a wider basin
         if not any(h.ok for h in tried) and cfg.hypotheses != "motion":
@@ -398,7 +380,7 @@ class DenseSLAM:
         passed = [h for h in tried if h.ok]
         if len(passed) > 1:
             for h in passed:
-                h.score = self.alignment_score(source, h, color)
+                h.score = self.alignment_score(source, h, terms)
         best = max(passed, key=lambda h: h.score + (SCORE_MARGIN if h is first else SCORE_MARGIN - SLIDE_MARGIN
                                                     if h.name == "slide" else 0.0)) if passed else \
             max(tried, key=lambda h: h.icp.inlier_ratio)
@@ -435,11 +417,11 @@ class DenseSLAM:
         return [renormalize(held @ se3_exp(np.concatenate([twist[:3] + axis * np.radians(deg), twist[3:]])))
                 for axis in axes for deg in TURN_DEG]
 
-    def alignment_score(self, source: FramePyramid, h: Hypothesis, color: bool) -> float:
+    def alignment_score(self, source: FramePyramid, h: Hypothesis, terms: tuple[str, ...] = ()) -> float:
         """How well a start's alignment of this frame's prediction fits the frame, comparable between starts
         (the same prediction and frame): the fraction of the prediction's pixels within slam.score_gate of
         the frame at its pose, times 1 − their RMS residual / slam.score_gate."""
-        fit = self.score_icp.align(source, self.frame_pyramid, init=h.icp.pose, photometric=color)
+        fit = self.score_icp.align(source, self.frame_pyramid, init=h.icp.pose, terms=terms)
         residual = fit.residual_rms if np.isfinite(fit.residual_rms) else self.config.slam.score_gate
         return float(fit.inlier_ratio * max(0.0, 1.0 - residual / self.config.slam.score_gate))
 
@@ -493,7 +475,7 @@ class DenseSLAM:
                         f"the camera's motion, and colour {d['constrained_by_color']} of the other {d['weak']}: "
                         f"tracking may slide{hint}")
 
-    def _relocalise(self, frame: Frame, source: FramePyramid, last: np.ndarray, color: bool,
+    def _relocalise(self, frame: Frame, source: FramePyramid, last: np.ndarray, terms: tuple[str, ...],
                     tried: list[Hypothesis], predicted: np.ndarray) -> None:
         """ICP again, initialised by ORB + PnP against the last well-tracked frame (a "features" hypothesis,
         checked against the PnP estimate)."""
@@ -508,7 +490,7 @@ class DenseSLAM:
         # The estimate maps the reference frame's camera into the new one; ICP's source (the prediction) sits
         # at `last`, the reference frame's pose.
         init = estimate.pose @ invert(reference_pose) @ last
-        icp = self.icp.align(source, self.frame_pyramid, init=init, photometric=color)
+        icp = self.icp.align(source, self.frame_pyramid, init=init, terms=terms)
         pose = renormalize(last @ invert(icp.pose))
         rough = renormalize(reference_pose @ invert(estimate.pose))
         tried.append(Hypothesis("features", icp, pose, self._health(icp, pose, rough, predicted)))

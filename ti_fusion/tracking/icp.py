@@ -12,11 +12,12 @@ through the same checks (too few inliers, rank, condition number) and bookkeepin
 same as solving in NumPy: a failure found on replay rewinds to the pose before that iteration, and a system
 the kernel refused but NumPy accepts goes on in NumPy (the sums cross every iteration, Cholesky in float64).
 
-Photometric term (``icp.color_weight`` λ > 0 and ``align(..., photometric=True)``; docs/PHOTOMETRIC.md): each
-iteration's pass is the joint one (``ti_fusion.kernels.icp``: the colour term's sums beside the geometric
-ones, in the same pass) and the system solved is AᵀA + λ A_cᵀA_c, Aᵀb + λ A_cᵀr_c; the checks (condition
-number) are those of that system. ``ICPResult.degeneracy`` reports the weak eigen-directions of the
-geometric AᵀA of the last iteration and whether the colour term constrained them.
+Tracking terms (``ti_fusion.tracking.terms``): the geometric one (point to plane) is always on; the others
+``align(..., terms=(name, ...))`` names (each with weight λ > 0; e.g. "photometric", docs/PHOTOMETRIC.md) join it
+in the same pass (``ti_fusion.kernels.icp``: each term's sums beside the geometric ones) and the system solved is
+AᵀA + Σ λ_k A_kᵀA_k, Aᵀb + Σ λ_k A_kᵀr_k; the checks (condition number) are those of that system.
+``ICPResult.degeneracy`` reports the weak eigen-directions of the geometric AᵀA of the last iteration and
+whether the other terms constrained them.
 """
 
 from __future__ import annotations
@@ -29,11 +30,11 @@ import numpy as np
 from ti_fusion.backend import current_backend
 from ti_fusion.config import ICPConfig
 from ti_fusion.geometry import rigidity_error, se3_exp, unflatten_pose
-from ti_fusion.kernels.icp import (FAILED, N_SUMS, N_SUMS_JOINT, R_COLOR, R_ITERATION, R_LEVEL, R_OUTCOME, R_POSE,
-                                   R_SUMS, R_UPDATE, ROBUST_CODES, SUM_C_COUNT, SUM_C_R2, SUM_INLIERS, SUM_R2,
-                                   SUM_SOURCE, UPDATED, Photometric, PointToPlane, combined_system, combined_systems,
-                                   unpack_color_sums, unpack_sums)
+from ti_fusion.kernels.icp import (FAILED, R_ITERATION, R_LEVEL, R_OUTCOME, R_POSE, R_UPDATE, SUM_INLIERS, SUM_R2,
+                                   SUM_SOURCE, UPDATED, PointToPlane, combined_system, combined_systems, n_terms_of,
+                                   record_sums, unpack_sums, unpack_term_sums)
 from ti_fusion.tracking.solve import check_system, condition_numbers, solve_normal_equations, weak_directions
+from ti_fusion.tracking.terms import make_terms
 
 
 @dataclass
@@ -69,10 +70,21 @@ class ICPResult:
     residual_rms: float = float("nan")
     condition: float = float("nan")
     update_norm: float = float("nan")
-    color_inliers: int = 0  # photometric residuals of the last iteration (0: the term was off)
-    color_rms: float = float("nan")  # RMS intensity residual of those, in [0, 1] units
+    terms: dict = field(default_factory=dict)  # each term but the first: name → its stats of the last iteration
+                                               # (``TrackingTerm.stats``: rows and RMS residual; 0 rows: off)
+    weights: tuple = (1.0,)  # λ of each term of the passes, in the order of their sums
     degeneracy: dict | None = None  # weak geometric directions (``ti_fusion.tracking.solve.weak_directions``)
-    sums: np.ndarray | None = field(default=None, repr=False)  # the last iteration's sums (30, or 59 joint)
+    sums: np.ndarray | None = field(default=None, repr=False)  # the last iteration's sums (``n_sums``)
+
+    @property
+    def color_inliers(self) -> int:
+        """The photometric term's rows in the last iteration (0: the term was off)."""
+        return int(self.terms.get("photometric", {}).get("count", 0))
+
+    @property
+    def color_rms(self) -> float:
+        """The RMS intensity residual of those, in [0, 1] units."""
+        return float(self.terms.get("photometric", {}).get("rms", float("nan")))
 
     def table(self) -> list[dict]:
         """The per-iteration records as plain dicts (for summary.json)."""
@@ -88,9 +100,28 @@ class ICP:
 
     def __init__(self, config: ICPConfig | None = None):
         self.config = config or ICPConfig()
-        if self.config.robust not in ROBUST_CODES:
-            raise ValueError(f"icp.robust {self.config.robust!r}: choose one of {', '.join(ROBUST_CODES)}")
-        self._photometric = False  # this align call's: the joint cost (``align``)
+        self.terms = make_terms(self.config)  # every registered term, the geometric one first
+        self._terms = self.terms[:1]  # this align call's (``align``)
+
+    def term(self, name: str):
+        """The registered term called ``name`` (ValueError naming the registered ones for another)."""
+        for term in self.terms:
+            if term.name == name:
+                return term
+        raise ValueError(f"no tracking term {name!r} (terms: {', '.join(t.name for t in self.terms)})")
+
+    def terms_for(self, frame) -> tuple[str, ...]:
+        """The terms after the geometric one that ``frame`` can use: weight > 0 and ``enabled(frame)`` (a term
+        that cannot says why, once)."""
+        return tuple(t.name for t in self.terms[1:] if t.weight() > 0 and t.enabled(frame))
+
+    def needs(self, names) -> frozenset:
+        """The pyramids' images the named terms read (``TrackingTerm.needs``)."""
+        return frozenset().union(*(self.term(n).needs for n in names))
+
+    def ready(self, names, source, target) -> tuple[str, ...]:
+        """Those of the named terms whose images the pyramids hold."""
+        return tuple(n for n in names if self.term(n).ready(source, target))
 
     def _kernels(self, n_pixels: int) -> PointToPlane:
         """The pass of the current backend, sized for ``n_pixels``, shared by every ICP object: Taichi
@@ -119,17 +150,14 @@ class ICP:
         level = result.iterations[-1].level if result.iterations else 0
         return bool(result.update_norm < self.stop_update(level))
 
-    @property
-    def robust(self) -> str:
-        """The kernels' robust mode: ``icp.robust``, with "+depth" when ``icp.depth_weighting`` is on."""
-        return self.config.robust + ("+depth" if self.config.depth_weighting else "")
-
-    def align(self, source, target, init: np.ndarray | None = None, photometric: bool = False) -> ICPResult:
-        """Align ``source`` to ``target`` starting from ``init`` (identity when None). With ``photometric``
-        and ``icp.color_weight`` > 0, the joint geometric + photometric cost: ``source.intensity`` (the
-        model's) and ``target.intensity_grad`` (the live frame's) must be computed."""
+    def align(self, source, target, init: np.ndarray | None = None, terms=()) -> ICPResult:
+        """Align ``source`` to ``target`` starting from ``init`` (identity when None), with the geometric term
+        and the registered terms named in ``terms`` whose weight is > 0 (in the registry's order; their images,
+        e.g. the photometric term's ``source.intensity`` and ``target.intensity_grad``, must be computed)."""
         cfg = self.config
-        self._photometric = photometric and cfg.color_weight > 0
+        for name in terms:
+            self.term(name)  # an unknown name: ValueError
+        self._terms = [self.terms[0]] + [t for t in self.terms[1:] if t.name in terms and t.weight() > 0]
         n_levels = len(cfg.iterations)
         if source.levels < n_levels or target.levels < n_levels:
             raise ValueError(f"icp.iterations has {n_levels} levels but the maps have "
@@ -146,18 +174,18 @@ class ICP:
             resume = self._align_in_kernel(kernels, source, target, schedule, result)
         if resume is not None:
             self._align_in_python(kernels, source, target, schedule, result, resume)
+        result.weights = tuple(t.weight() for t in self._terms)
         if result.sums is not None:
-            s, c = unpack_sums(result.sums), unpack_color_sums(result.sums)
-            result.degeneracy = weak_directions(s["AtA"], None if c is None else c["AtA"], cfg.color_weight,
-                                                cfg.weak_ratio)
+            others = None  # Σ λ_k AᵀA_k of the other terms: what they add along the geometry's weak directions
+            for k in range(1, n_terms_of(result.sums)):
+                part = result.weights[k] * unpack_term_sums(result.sums, k)["AtA"]
+                others = part if others is None else others + part
+            result.degeneracy = weak_directions(unpack_sums(result.sums)["AtA"], others, 1.0, cfg.weak_ratio)
         return result
 
-    def _color(self, source, target, level: int) -> Photometric | None:
-        """The colour term of a pass at ``level`` (None: depth only)."""
-        if not self._photometric:
-            return None
-        return Photometric(source.intensity[level], target.intensity_grad[level], self.config.color_weight,
-                           self.config.color_robust_scale)
+    def _passes(self, source, target, level: int) -> list:
+        """This align's terms as the kernels take them at ``level``."""
+        return [t.kernel_pass(source, target, level) for t in self._terms]
 
     def _align_in_kernel(self, kernels: PointToPlane, source, target, schedule, result: ICPResult):
         """Every iteration one launch of the ``iterate`` kernel, which solves and updates the pose itself
@@ -167,14 +195,13 @@ class ICP:
         Returns None when done, or the (stage, iteration) to go on from in Python, with
         ``result.pose`` set, if the kernel refused a system that NumPy's checks accept."""
         cfg = self.config
-        robust = self.robust
         kernels.begin_iterations(result.pose, sum(n for _, n in schedule))
         for level, n_iter in schedule:  # every level's settings first: they cross to a GPU in one copy
             if n_iter:
                 kernels.begin_level(source.vertex[level], source.normal[level], target.vertex[level],
                                     target.normal[level], target.intrinsics[level].as_tuple(),
-                                    self.dist_threshold(level), cfg.normal_threshold_deg, robust, cfg.robust_scale,
-                                    level, cfg.min_inliers, self.stop_update(level), self._color(source, target, level))
+                                    self.dist_threshold(level), cfg.normal_threshold_deg, level, cfg.min_inliers,
+                                    self.stop_update(level), self._passes(source, target, level))
         for level, n_iter in schedule:
             done = 0
             for it in range(n_iter):
@@ -185,11 +212,9 @@ class ICP:
                 break
         n_levels = len(schedule)
         records = kernels.iteration_records()
-        sums = records[:, R_SUMS:R_SUMS + N_SUMS]
-        if self._photometric:
-            sums = np.concatenate([sums, records[:, R_COLOR:R_COLOR + N_SUMS_JOINT - N_SUMS]], axis=1)
+        sums = record_sums(records, len(self._terms))
         # every record's system and condition number at once: one eigenvalue call rather than one per record
-        systems = combined_systems(sums, cfg.color_weight)
+        systems = combined_systems(sums, [t.weight() for t in self._terms])
         conds = condition_numbers(systems[0])
         for k, record in enumerate(records):
             level, it = int(record[R_LEVEL]), int(record[R_ITERATION])
@@ -237,11 +262,11 @@ class ICP:
         result.inlier_ratio = n / sources if sources else 0.0
         result.residual_rms = math.sqrt(loss) if n else float("nan")
         result.sums = sums
-        if sums.shape[0] >= N_SUMS_JOINT:
-            count = int(round(sums[SUM_C_COUNT]))
-            result.color_inliers = count
-            result.color_rms = math.sqrt(sums[SUM_C_R2] / count) if count else float("nan")
-        AtA, Atb = combined_system(sums, cfg.color_weight) if system is None else system
+        for k, term in enumerate(self._terms[1:], start=1):
+            s = unpack_term_sums(sums, k)
+            s["count"] = int(round(s["count"]))
+            result.terms[term.name] = term.stats(s)
+        AtA, Atb = combined_system(sums, [t.weight() for t in self._terms]) if system is None else system
         failure, result.condition = check_system(AtA, n, cfg.min_inliers, cfg.max_condition, cond)
         if failure is not None:
             result.failure = f"level {level} iteration {it}: {failure}"
@@ -255,8 +280,8 @@ class ICP:
         cfg = self.config
         args = (source.vertex[level], source.normal[level], target.vertex[level], target.normal[level],
                 result.pose, target.intrinsics[level].as_tuple(), self.dist_threshold(level),
-                cfg.normal_threshold_deg, self.robust, cfg.robust_scale)
-        sums = kernels.reduce(*args, photometric=self._color(source, target, level))
+                cfg.normal_threshold_deg)
+        sums = kernels.reduce(*args, self._passes(source, target, level))
         system = self._record(result, level, it, sums)
         if system is None:
             return None

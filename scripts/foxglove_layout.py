@@ -13,8 +13,8 @@ with one x path per plot (``xAxisPath``), since a per-series x path exists in cu
 The 3D panel in ``world``: the map in its own colours (``colorMode`` "rgba-fields" with a ``colorField``
 named: without one the client picks a colour field itself and colours the map by x with a colour map), the
 estimated and ground-truth poses, the camera frustum with the colour image in it, and the loop edges. Below
-it the colour and depth images; on the right plots of the stage milliseconds, the ICP inlier ratio, the
-surfel count, and each trajectory in the world's x-y plane (seen from above where z is up, as in the synthetic
+it the colour and depth images; on the right plots of the stage milliseconds, the ICP inlier ratio (with, for a
+session against a saved map, whether it has found itself in it), the surfel count, and each trajectory in the world's x-y plane (seen from above where z is up, as in the synthetic
 scenes).
 
 To add a panel: make it with ``panel(TYPE, NAME, CONFIG)`` and put the returned id into the tree in
@@ -108,7 +108,9 @@ def layout() -> dict:
     steady = "/slam/stats{first_launch_ms==0}"
     stages = ui.plot("ms", "ms per frame (frames that compiled kernels left out)", (f"{steady}.ms.track", "track"),
                      (f"{steady}.ms.fuse", "fuse"), (f"{steady}.ms.pyramid", "pyramid"), (f"{steady}.ms.log", "log"))
-    inliers = ui.plot("inliers", "ICP inlier ratio", ("/slam/stats.icp.inlier_ratio", "inlier ratio"))
+    # a session against a saved map (--map): 0 until it found itself in the map, then 1
+    inliers = ui.plot("inliers", "ICP inlier ratio; localised in a saved map (0/1)",
+                      ("/slam/stats.icp.inlier_ratio", "inlier ratio"), ("/slam/stats.localised", "localised (--map)"))
     surfels = ui.plot("surfels", "surfels", ("/slam/stats.surfels", "surfels"))
     estimate = ui.plot("trajectory-estimate", "estimate, y against x (m)",
                        ("/camera/pose.pose.position.y", "estimate"), x_path="/camera/pose.pose.position.x", color=EST)

@@ -110,6 +110,9 @@ def test_a_map_without_keyframes_has_nothing_to_find_a_session_in(cpu):
     room = open_dataset(cfg.dataset, cfg.synth)
     with pytest.raises(InputError, match="the map has no keyframes"):
         DenseSLAM(cfg, room.intrinsics).start_session()
+    cfg.map.unfound = "map-anyway"
+    with pytest.raises(InputError, match="--localize changes no map and --unfound map-anyway maps"):
+        DenseSLAM(cfg, room.intrinsics).start_session(localize=True)
     cfg.slam.loop_closure = False
     with pytest.raises(InputError, match="finds itself among the map's keyframes: it needs slam.loop_closure = true"):
         DenseSLAM(cfg, room.intrinsics).start_session()

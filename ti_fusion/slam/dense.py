@@ -260,7 +260,7 @@ class DenseSLAM:
             from ti_fusion.slam.session import find_in_map
 
             with timer.stage("track"):
-                result = find_in_map(self, frame, color, FrameResult)
+                result = find_in_map(self, frame, terms, FrameResult)
             if not result.tracked:
                 result.ms = dict(timer.last)
                 return result
@@ -582,6 +582,8 @@ class DenseSLAM:
         from ti_fusion.errors import InputError
         from ti_fusion.slam.session import Session
 
+        if localize and self.config.map.unfound == "map-anyway":
+            raise InputError(None, "--localize changes no map and --unfound map-anyway maps: give one of them")
         if self.loop is None:
             raise InputError(None, "a session against a map finds itself among the map's keyframes: it needs "
                                    "slam.loop_closure = true")

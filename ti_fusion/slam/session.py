@@ -58,7 +58,7 @@ class Session:
                 "found": self.found, "own_map_at": self.own_map_at}
 
 
-def find_in_map(slam, frame, color: bool, result_type):
+def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
     """One frame of a session that has not found itself: a ``result_type`` (FrameResult) that is relocalised
     (with ``found``), or unlocalised with why."""
     from ti_fusion.loop.closure import LoopMaps
@@ -72,7 +72,7 @@ def find_in_map(slam, frame, color: bool, result_type):
             f"{len(checked)} keyframe(s) of the map look like it, none verified ({checked[0].reason})"
         return _unlocalised(slam, frame, why, tried, result_type)
     slam.seed(frame, placement.pose)
-    result = slam._track(frame, color)
+    result = slam._track(frame, terms)
     result.tried = tried + result.tried
     if not result.tracked:
         slam.seed(None, None)

@@ -172,7 +172,7 @@ def pyramid_loop(fine: ti.template(), f0, H, W, coarse: ti.template(), c0, max_d
     three fine rows is read once as the 17 pixels the eight 3×3 windows span, and every tap is a fixed
     selection of them. Packs on the image border take the pixel-at-a-time path (``pyramid_pixel``). A
     function with one loop: called at a kernel's top level, that loop is one of the kernel's parallel loops
-    (``pyramid_down``, ``pyramid_maps``)."""
+    (``pyramid_down``, ``pyramid_levels``)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
     Wc = (W + 1) // 2
@@ -431,64 +431,79 @@ def vertex_normal_loop(depth: ti.template(), vertex: ti.template(), normal: ti.t
                     normal[r0 + v, u] = normal_at(depth, r0, H, W, v, u, c, ifx, ify, cx, cy, max_depth_jump)
 
 
-# ``pyramid_maps``'s per-level settings, one row per level: first row in the stack, height, width, fx, fy,
+# ``pyramid_levels``' and ``maps_levels``' per-level settings, one row per level: first row in the stack, height, width, fx, fy,
 # cx, cy, the depth-jump threshold of the normals
 G_ROW0, G_H, G_W, G_FX, G_FY, G_CX, G_CY, G_JUMP, N_GEOMETRY = range(9)
 
 
 @ti.kernel
-def pyramid_maps(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
-                 levels: ti.template(), first_maps: ti.i32, max_diff: ti.f32, serial: ti.template(),
-                 holes: ti.template(), with_holes: ti.template(), clear: ti.i32):
-    """``pyramid_maps_loops`` in one launch; with ``with_holes`` and ``clear`` = 1, then level 0 taken back
-    to the pixels a surfel projects to in the render ``holes`` (``prediction.clear_holes_loop``: the model's
+def pyramid_levels(depth: ti.template(), geometry: ti.template(), levels: ti.template(), max_diff: ti.f32,
+                   serial: ti.template()):
+    """``pyramid_levels_loops`` in one launch."""
+    pyramid_levels_loops(depth, geometry, levels, max_diff, serial)
+
+
+@ti.kernel
+def maps_levels(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
+                levels: ti.template(), first_maps: ti.i32, serial: ti.template(), holes: ti.template(),
+                with_holes: ti.template(), clear: ti.i32):
+    """``maps_levels_loops`` in one launch; with ``with_holes`` and ``clear`` = 1, then level 0 taken back to
+    the pixels a surfel projects to in the render ``holes`` (``prediction.clear_holes_loop``: the model's
     maps are built from a render whose holes were filled)."""
-    pyramid_maps_loops(depth, vertex, normal, geometry, levels, first_maps, max_diff, serial)
+    maps_levels_loops(depth, vertex, normal, geometry, levels, first_maps, serial)
     if ti.static(with_holes):
         clear_holes_loop(holes, vertex, normal, depth, clear)
 
 
 @ti.kernel
-def input_maps(fine: ti.types.ndarray(dtype=ti.f32, ndim=2), raw: ti.template(), rows: ti.template(),
-               depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
-               levels: ti.template(), radius: ti.template(), max_diff: ti.f32, serial_input: ti.template(),
-               serial: ti.template(), grey: ti.types.ndarray(dtype=ti.f32, ndim=2), intensity: ti.template(),
-               intensity_grad: ti.template(), intensity_rows: ti.template(), with_grey: ti.template(),
-               rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), color: ti.template(), color_step: ti.i32,
-               with_color: ti.template()):
-    """A frame's maps in one launch, for an input averaged down once and smoothed (the default at
-    640×480): ``pyramid_loop`` from the input image ``fine`` (the caller's array, not copied first) into
-    the packed ``raw``, the smoothing's row and column passes (``smooth_rows_loop``,
-    ``smooth_columns_loop``) into level 0 of ``depth``, then ``pyramid_maps_loops``: the loops of
-    ``FramePyramid.compute``'s five launches, one after the other. With ``with_grey``, the intensity
-    pyramid of the grey image ``grey`` as well (``intensity_maps_loops``); with ``with_color``, the uint8
-    RGB image ``rgb`` packed into ``color`` (``pack_color_loop``): off the CPU each array argument is
-    copied back after the launch, a wait, so depth, grey and colour cross together."""
+def input_images(fine: ti.types.ndarray(dtype=ti.f32, ndim=2), raw: ti.template(), max_diff: ti.f32,
+                 serial_input: ti.template(), grey: ti.types.ndarray(dtype=ti.f32, ndim=2), intensity: ti.template(),
+                 with_grey: ti.template(), rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), color: ti.template(),
+                 color_step: ti.i32, with_color: ti.template()):
+    """Every loop of a frame's maps that reads the caller's arrays, for an input averaged down once and
+    smoothed (the default at 640×480): ``pyramid_loop`` from the input image ``fine`` (not copied first)
+    into the packed ``raw``; with ``with_grey``, the grey image ``grey`` averaged down into level 0 of
+    ``intensity``; with ``with_color``, the uint8 RGB image ``rgb`` packed into ``color``
+    (``pack_color_loop``). Off the CPU each array argument is copied back after the launch, a wait, so
+    depth, grey and colour cross together; the rest of the maps are launches of their own
+    (``FramePyramid._input_launches``)."""
     H, W = fine.shape
     pyramid_loop(fine, 0, H, W, raw, 0, max_diff, True, serial_input)
-    smooth_rows_loop(raw, rows, ti.cast(geometry[0, G_W], ti.i32), radius, max_diff)
-    smooth_columns_loop(rows, depth, radius, max_diff)
-    pyramid_maps_loops(depth, vertex, normal, geometry, levels, 0, max_diff, serial)
     if ti.static(with_grey):
-        intensity_maps_loops(grey, intensity, intensity_grad, intensity_rows, True, serial_input, serial)
+        intensity_down_loop(grey, 0, H, W, intensity, 0, serial_input)
     if ti.static(with_color):
         pack_color_loop(color, rgb, color_step)
 
 
+@ti.kernel
+def smooth_depth(raw: ti.template(), rows: ti.template(), depth: ti.template(), width: ti.i32,
+                 radius: ti.template(), max_diff: ti.f32):
+    """The smoothing's row and column passes (``smooth_rows_loop``, ``smooth_columns_loop``) in one launch:
+    the packed level-0 depth ``raw`` into level 0 of ``depth``."""
+    smooth_rows_loop(raw, rows, width, radius, max_diff)
+    smooth_columns_loop(rows, depth, radius, max_diff)
+
+
 @ti.func
-def pyramid_maps_loops(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
-                       levels: ti.template(), first_maps, max_diff, serial: ti.template()):
-    """Every level of a stack in one launch: the depth pyramid from level 0 (``pyramid_loop`` per level,
-    each after the one it reads), then the vertex and normal maps of levels ``first_maps`` .. levels − 1
-    (``vertex_normal_loop``), as consecutive loops of one kernel (Taichi runs a kernel's top-level loops in
-    order). The levels' rows, sizes and intrinsics are read from ``geometry`` (G_* columns), written when
-    they change, so a frame passes one scalar. ``first_maps`` is a runtime value (the loops of the levels
-    before it run over no rows), so that one instance serves a rendered model, whose level 0 maps come
-    from the renderer, and depth uploaded into the same maps (loop verification's keyframes)."""
+def pyramid_levels_loops(depth: ti.template(), geometry: ti.template(), levels: ti.template(), max_diff,
+                         serial: ti.template()):
+    """The depth pyramid of a stack from level 0: ``pyramid_loop`` per level, each after the one it reads
+    (Taichi runs a kernel's top-level loops in order). The levels' rows and sizes are read from
+    ``geometry`` (G_* columns), written when they change, so a frame passes one scalar."""
     for l in ti.static(range(1, levels)):
         pyramid_loop(depth, ti.cast(geometry[l - 1, G_ROW0], ti.i32), ti.cast(geometry[l - 1, G_H], ti.i32),
                      ti.cast(geometry[l - 1, G_W], ti.i32), depth, ti.cast(geometry[l, G_ROW0], ti.i32), max_diff,
                      False, serial)
+
+
+@ti.func
+def maps_levels_loops(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
+                      levels: ti.template(), first_maps, serial: ti.template()):
+    """The vertex and normal maps of levels ``first_maps`` .. levels − 1 of a stack (``vertex_normal_loop``),
+    one loop per level, from ``geometry``'s rows, sizes and intrinsics. ``first_maps`` is a runtime value
+    (the loops of the levels before it run over no rows), so that one instance serves a rendered model,
+    whose level 0 maps come from the renderer, and depth uploaded into the same maps (loop verification's
+    keyframes)."""
     for l in ti.static(range(levels)):
         vertex_normal_loop(depth, vertex, normal, ti.cast(geometry[l, G_ROW0], ti.i32),
                            ti.select(l >= first_maps, ti.cast(geometry[l, G_H], ti.i32), 0),
@@ -497,7 +512,7 @@ def pyramid_maps_loops(depth: ti.template(), vertex: ti.template(), normal: ti.t
 
 
 GREY = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights of R, G, B
-_NO_GREY = np.zeros((1, 1), np.float32)  # input_maps' grey argument when it has none
+_NO_GREY = np.zeros((1, 1), np.float32)  # input_images' grey argument when it has none
 _NO_RGB = np.zeros((1, 1, 3), np.uint8)  # and its colour argument
 
 
@@ -668,7 +683,7 @@ class FramePyramid:
         self.intensity: list | None = None  # per level, f32 in [0, 1], −1 = none
         self.intensity_grad: list | None = None  # per level, (I, ∂I/∂x, ∂I/∂y) (live frames only)
         self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
-        self._geometry = None  # ``pyramid_maps``'s per-level rows, sizes and intrinsics (G_* columns)
+        self._geometry = None  # ``pyramid_levels``' and ``maps_levels``' per-level rows, sizes and intrinsics (G_* columns)
         self._geometry_for = None  # the intrinsics it holds
         self._holes = None  # the renderer's images whose holes ``compute_from_field`` clears (model pyramids)
         # the frame's colour packed for the fusion step (``compute(..., color=...)``): per level, on first use
@@ -699,8 +714,9 @@ class FramePyramid:
                 color: np.ndarray | None = None, color_level: int = 0) -> None:
         """Upload a float32 depth image (metres, 0 = invalid) and build every level's maps; with ``grey``,
         the intensity pyramid too (``compute_intensity``); with ``color`` (uint8 RGB of the input's size),
-        that image packed at level ``color_level`` for the fusion step (``packed_color``). All in one launch
-        where the layout allows: off the CPU every image given to a launch is a wait for the device.
+        that image packed at level ``color_level`` for the fusion step (``packed_color``). The images given
+        cross in one launch where the layout allows: off the CPU every image given to a launch is a wait for
+        the device.
 
         With a smoothing radius r > 0 the depth is first replaced by its range-checked (2r+1)² mean (see the
         module docstring); ``depth[0]`` then holds the smoothed depth."""
@@ -711,7 +727,7 @@ class FramePyramid:
             grey = self._checked_grey(grey)
         self._color_source = None
         packed = self._checked_color(color, color_level) if color is not None else None
-        if not self._one_launch(depth, intrinsics, grey, packed):
+        if not self._input_launches(depth, intrinsics, grey, packed):
             self._compute_depth(depth, intrinsics)
             if grey is not None:
                 self.compute_intensity(grey)
@@ -741,7 +757,7 @@ class FramePyramid:
         return np.ascontiguousarray(color, dtype=np.uint8), self._color[level], 2**(self.input_level + level)
 
     def _compute_depth(self, depth: np.ndarray, intrinsics: Intrinsics) -> None:
-        """``compute`` of the depth for a layout ``_one_launch`` does not take, in several launches."""
+        """``compute`` of the depth for a layout ``_input_launches`` does not take, in several launches."""
         smooth = self.smooth_radius > 0
         stack = self.depth[0].field
         if self.input_level == 0:
@@ -765,22 +781,29 @@ class FramePyramid:
             smooth_columns(rows, stack, self.smooth_radius, self.max_depth_diff)
         self.compute_from_field(intrinsics)
 
-    def _one_launch(self, depth: np.ndarray, intrinsics: Intrinsics, grey: np.ndarray | None, packed) -> bool:
-        """``compute`` of an input averaged down once and smoothed (the default at 640×480) as one launch
-        (``input_maps``), with the intensity pyramid of ``grey`` and the colour ``packed`` (from
-        ``_checked_color``) if given; False for any other layout."""
+    def _input_launches(self, depth: np.ndarray, intrinsics: Intrinsics, grey: np.ndarray | None, packed) -> bool:
+        """``compute`` of an input averaged down once and smoothed (the default at 640×480), with the
+        intensity pyramid of ``grey`` and the colour ``packed`` (from ``_checked_color``) if given: the
+        caller's arrays in one launch (``input_images``), then the smoothing, the pyramid, the maps and the
+        intensity levels, a launch each; False for any other layout. Kernels rather than one: Taichi's
+        compile time grows faster than the kernel, and these loops as one kernel took 2.3 times as long to
+        compile as the five (docs/PERFORMANCE.md, "Cold start")."""
         if self.input_level != 1 or self.smooth_radius <= 0:
             return False
         self._set_geometry(intrinsics.downsampled(2))
         raw, rows = self._packed_fields()
         h, w = self.input_shape
-        images = (grey, self.intensity[0].field, self.intensity_grad[0].field) if grey is not None else \
-            (_NO_GREY, 0, 0)  # not read: with_grey is off
-        colour = packed if packed is not None else (_NO_RGB, 0, 0)  # likewise
-        input_maps(depth, raw, rows, self.depth[0].field, self.vertex[0].field, self.normal[0].field,
-                   self._geometry, self.levels, self.smooth_radius, self.max_depth_diff,
-                   serial_for(((h + 1) // 2) * ((w + 1) // 2)), self._serial, *images, self._rows, grey is not None,
-                   *colour, packed is not None)
+        serial_input = serial_for(((h + 1) // 2) * ((w + 1) // 2))
+        intensity = self.intensity[0].field if grey is not None else 0
+        colour = packed if packed is not None else (_NO_RGB, 0, 0)  # not read: with_color is off
+        input_images(depth, raw, self.max_depth_diff, serial_input, grey if grey is not None else _NO_GREY,
+                     intensity, grey is not None, *colour, packed is not None)
+        stack = self.depth[0].field
+        smooth_depth(raw, rows, stack, self.width, self.smooth_radius, self.max_depth_diff)
+        self._levels_and_maps(0)
+        if grey is not None:
+            intensity_maps(intensity, intensity, self.intensity_grad[0].field, self._rows, False, self._serial,
+                           self._serial)
         return True
 
     def _checked_grey(self, grey: np.ndarray) -> np.ndarray:
@@ -857,11 +880,16 @@ class FramePyramid:
                 raise ValueError(f"a render of {clear_holes_of.height}x{clear_holes_of.width} pixels for maps "
                                  f"whose level 0 is {self.shapes[0][0]}x{self.shapes[0][1]}")
             self._holes = clear_holes_of
-        holes = self._holes
-        pyramid_maps(self.depth[0].field, self.vertex[0].field, self.normal[0].field, self._geometry, self.levels,
-                     0 if level0_maps else 1, self.max_depth_diff, self._serial,
-                     self.depth[0].field if holes is None else holes, holes is not None,
-                     int(clear_holes_of is not None))
+        self._levels_and_maps(0 if level0_maps else 1, int(clear_holes_of is not None))
+
+    def _levels_and_maps(self, first_maps: int, clear: int = 0) -> None:
+        """Every level's depth from level 0 (``pyramid_levels``), then the vertex and normal maps of levels
+        ``first_maps`` and on, and with ``clear`` the holes of the render ``_holes`` taken back
+        (``maps_levels``)."""
+        stack, holes = self.depth[0].field, self._holes
+        pyramid_levels(stack, self._geometry, self.levels, self.max_depth_diff, self._serial)
+        maps_levels(stack, self.vertex[0].field, self.normal[0].field, self._geometry, self.levels, first_maps,
+                    self._serial, stack if holes is None else holes, holes is not None, clear)
 
     def _set_geometry(self, intrinsics: Intrinsics) -> None:
         """``intrinsics`` (of level 0) and the levels' rows and sizes into ``_geometry``, where they changed."""

@@ -319,8 +319,8 @@ def test_intensity_pyramid_of_other_input_levels(arch, rng, input_level):
 
 @pytest.mark.parametrize("input_level, radius", [(1, 2), pytest.param(0, 0, marks=pytest.mark.slow)])
 def test_depth_and_grey_together(arch, rng, input_level, radius):
-    """``compute(depth, K, grey)``: at input level 1 with smoothing one launch (``input_maps`` with the
-    intensity loops), elsewhere one call after the other; the maps and the intensity pyramid as from
+    """``compute(depth, K, grey)``: at input level 1 with smoothing the grey image crosses in the depth's
+    launch (``input_images``), elsewhere one call after the other; the maps and the intensity pyramid as from
     ``compute`` and ``compute_intensity`` apart, and as the reference."""
     used = check_intensity_pyramid(rng, input_level, radius, together=True)
     depth, K_in = used.depth, used.intrinsics
@@ -338,7 +338,7 @@ def test_depth_and_grey_together(arch, rng, input_level, radius):
 @pytest.mark.parametrize("input_level, radius, level", [pytest.param(1, 2, 1, marks=pytest.mark.slow), (2, 1, 0)])
 def test_colour_packed_with_the_depth(arch, rng, monkeypatch, input_level, radius, level):
     """``compute(depth, K, grey, color, color_level)``: the uint8 RGB input packed r | g << 8 | b << 16 at
-    every 2**(input level + level)-th pixel (the fusion step's colour), in ``input_maps``' launch at input
+    every 2**(input level + level)-th pixel (the fusion step's colour), in ``input_images``' launch at input
     level 1 with smoothing, by a launch of its own elsewhere (that the maps are as without it, the fusion
     test of the packed colour shows). ``packed_color`` names only the image and level the last ``compute``
     packed."""
@@ -348,7 +348,7 @@ def test_colour_packed_with_the_depth(arch, rng, monkeypatch, input_level, radiu
     color = rng.integers(0, 256, (*grey.shape, 3), dtype=np.uint8)
     color[-1, -1] = 255  # the largest value of every channel: the packed word stays below 2**24
     pyramid = FramePyramid(settings(radius=radius), *grey.shape, levels=3, input_level=input_level)
-    if input_level == 1:  # the one-launch layout: packed inside input_maps, not by a launch of its own
+    if input_level == 1:  # packed inside input_images, not by a launch of its own
         from ti_fusion.kernels import pyramid as kmaps
 
         monkeypatch.setattr(kmaps, "pack_color", lambda *args: pytest.fail("packed by a launch of its own"))
@@ -435,17 +435,17 @@ def _instances(kernel) -> int:
 @pytest.mark.slow
 def test_every_level_shares_one_kernel_instance(cpu, rng):
     """The levels of a pyramid are rows of one field per quantity, so a new FramePyramid adds one instance
-    of the kernel that builds the pyramid and the vertex/normal maps of all of its levels (in one launch),
+    of each kernel that builds the pyramid and the vertex/normal maps of all of its levels (a launch each),
     not one per level, and no instance of the one-level kernels."""
     from ti_fusion.kernels import pyramid as kmaps
 
     depth = random_depth(rng, shape=(40, 48))
-    kernels = (kmaps.pyramid_maps, kmaps.pyramid_down, kmaps.vertex_normal_maps)
+    kernels = (kmaps.pyramid_levels, kmaps.maps_levels, kmaps.pyramid_down, kmaps.vertex_normal_maps)
     counts = [_instances(k) for k in kernels]
     pyramid = FramePyramid(settings(), *depth.shape, levels=4)
     pyramid.compute(depth, Intrinsics(60.0, 60.0, 24.0, 20.0, 48, 40))
     pyramid.compute(depth, Intrinsics(60.0, 60.0, 24.0, 20.0, 48, 40))
-    assert [_instances(k) - n for k, n in zip(kernels, counts)] == [1, 0, 0]
+    assert [_instances(k) - n for k, n in zip(kernels, counts)] == [1, 1, 0, 0]
     assert pyramid.depth[3].shape == (5, 6) and pyramid.depth[3].row0 == 40 + 20 + 10
 
 

@@ -769,7 +769,7 @@ def test_render_maps_reproduces_the_fused_frame(cpu, rng):
 
 def test_model_maps_clear_the_holes_in_their_own_launch(arch, rng):
     """``render_pyramid`` builds the model's levels from the filled render and takes level 0 back to the
-    surfels' own pixels in one launch (``pyramid_maps`` with the render's images): the same maps, bit for
+    surfels' own pixels in the maps' launch (``maps_levels`` with the render's images): the same maps, bit for
     bit, as the render, the pyramid and ``clear_holes`` launched one after the other. A depth uploaded into
     those maps later (loop verification's keyframes) is built by the same compiled instance and keeps
     every pixel."""
@@ -792,10 +792,10 @@ def test_model_maps_clear_the_holes_in_their_own_launch(arch, rng):
             np.testing.assert_array_equal(getattr(one, name)[level].to_numpy(), getattr(two, name)[level].to_numpy())
     holes = one.depth[0].to_numpy() == 0
     assert holes.any() and (one.depth[1].to_numpy() > 0).any()
-    instances = len(pyramid_kernels.pyramid_maps._primal.compiled_kernels)
+    instances = len(pyramid_kernels.maps_levels._primal.compiled_kernels)
     one.depth[0].from_numpy(np.full((H, W), 1.5, np.float32))
     one.compute_from_field(K)  # as loop verification's ``fill``
-    assert len(pyramid_kernels.pyramid_maps._primal.compiled_kernels) == instances
+    assert len(pyramid_kernels.maps_levels._primal.compiled_kernels) == instances
     assert np.all(one.depth[0].to_numpy() == 1.5) and np.all(one.normal[0].to_numpy()[1:-1, 1:-1, 2] != 0)
     small = FramePyramid(RAW, H // 2, W // 2, levels=1)
     with pytest.raises(ValueError, match="a render of 72x70 pixels for maps whose level 0 is 36x35"):

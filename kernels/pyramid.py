@@ -431,8 +431,8 @@ def vertex_normal_loop(depth: ti.template(), vertex: ti.template(), normal: ti.t
                     normal[r0 + v, u] = normal_at(depth, r0, H, W, v, u, c, ifx, ify, cx, cy, max_depth_jump)
 
 
-# ``pyramid_levels``' and ``maps_levels``' per-level settings, one row per level: first row in the stack, height, width, fx, fy,
-# cx, cy, the depth-jump threshold of the normals
+# ``pyramid_levels``' and ``maps_levels``' per-level settings, one row per level: first row in the stack,
+# height, width, fx, fy, cx, cy, the depth-jump threshold of the normals
 G_ROW0, G_H, G_W, G_FX, G_FY, G_CX, G_CY, G_JUMP, N_GEOMETRY = range(9)
 
 
@@ -683,7 +683,7 @@ class FramePyramid:
         self.intensity: list | None = None  # per level, f32 in [0, 1], −1 = none
         self.intensity_grad: list | None = None  # per level, (I, ∂I/∂x, ∂I/∂y) (live frames only)
         self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
-        self._geometry = None  # ``pyramid_levels``' and ``maps_levels``' per-level rows, sizes and intrinsics (G_* columns)
+        self._geometry = None  # the levels' rows, sizes and intrinsics (G_* columns) for the maps' kernels
         self._geometry_for = None  # the intrinsics it holds
         self._holes = None  # the renderer's images whose holes ``compute_from_field`` clears (model pyramids)
         # the frame's colour packed for the fusion step (``compute(..., color=...)``): per level, on first use

@@ -13,7 +13,7 @@ fresh ``TI_OFFLINE_CACHE_FILE_PATH`` (so every kernel compiles); ``--warm`` adds
 on the cache its cold run filled. Columns per run: the child's wall-clock life (``process s``), its CPU
 time (user + system, from ``wait4``: on a loaded machine the less noisy of the two), its age at the first
 frame done (``1st frame s``), and from its summary.json the kernel instances first launched, how many
-compiled (a first launch over 1 s) and their seconds, and the three that took longest. The last lines
+compiled (a first launch over 1 s) and their seconds, and the five that took longest. The last lines
 are the medians' ratios, under test / baseline, for wall-clock and CPU time, and the machine's load
 (``os.getloadavg``) before and after: the box is shared, so compare the ratio, not the seconds.
 """
@@ -79,7 +79,7 @@ def run_once(label: str, code_root: Path, args, cache: str, workdir: Path) -> di
         raise SystemExit(f"bench_cold_start.py: the {label} run exited with {child.returncode}: " + " | ".join(tail))
     s = json.loads((out / "summary.json").read_text())
     by_kernel = s.get("kernels_compiled_s") or {}
-    top = sorted(by_kernel.items(), key=lambda kv: -kv[1])[:3]
+    top = sorted(by_kernel.items(), key=lambda kv: -kv[1])[:5]
     return {"label": label, "wall": wall, "cpu": usage.ru_utime + usage.ru_stime,
             "first_frame": s.get("first_frame_s"), "instances": s.get("kernel_instances"),
             "compiled": s.get("kernels_compiled"), "compile_s": s.get("kernel_compile_s"),
@@ -103,8 +103,14 @@ def main() -> int:
     for name in ("rounds", "frames"):
         if getattr(args, name) < 1:
             parser.exit(2, f"bench_cold_start.py: --{name} {getattr(args, name)}: give at least 1\n")
+    known = subprocess.run(["git", "-C", str(ROOT), "rev-parse", "--verify", "--quiet", f"{args.baseline}^{{commit}}"],
+                           capture_output=True)
+    if known.returncode != 0:
+        parser.exit(2, f"bench_cold_start.py: --baseline {args.baseline}: not a commit of {ROOT}\n")
     if args.data:
         args.data = str(Path(args.data).resolve())
+        if not Path(args.data).exists():
+            parser.exit(2, f"bench_cold_start.py: {args.data}: no such file or folder\n")
     load_before = os.getloadavg()
     rows: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="bench-cold-") as tmp:

@@ -68,3 +68,11 @@ def test_bench_map_io_prints_its_table():
     assert len(rows) == 9 and any(r.startswith("| bytes per surfel") and "| 56.0 |" in r for r in rows)
     bad = run("bench_map_io.py", "--repeat", "0")
     assert bad.returncode == 2 and bad.stderr.strip() == "bench_map_io.py: --repeat 0: give at least 1"
+
+
+def test_bench_cold_start_names_a_bad_option():
+    out = run("bench_cold_start.py", "--rounds", "0")
+    assert out.returncode == 2 and out.stderr.strip() == "bench_cold_start.py: --rounds 0: give at least 1"
+    out = run("bench_cold_start.py", "--baseline", "no-such-ref-here")
+    assert out.returncode == 2 and out.stderr.strip().startswith("bench_cold_start.py: --baseline no-such-ref-here: ")
+    assert "Traceback" not in out.stderr

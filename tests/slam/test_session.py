@@ -83,6 +83,19 @@ def test_localize_tracks_against_the_map_without_changing_it(cpu):
     assert before.keys() == after.keys() and all(np.array_equal(before[k], after[k]) for k in before)
     assert (len(system.loop.keyframes), len(system.loop.graph.edges)) == (keyframes, edges)
     assert system.session.whole_map  # nothing is fused: the whole map is rendered, not an active window
+    # three frames lost in a row (no depth): off the map, it looks for itself again, then finds itself again
+    blank = [room[i] for i in range(31, 35)]
+    for frame in blank:
+        frame.depth[:] = 0
+    lost = [system.register_frame(frame) for frame in blank]
+    assert [r.tracking for r in lost] == [Tracking.LOST] * 3 + [Tracking.UNLOCALISED], [r.status for r in lost]
+    assert lost[3].pose is None and system.session.searches == [34]
+    again = system.register_frame(room[35])
+    assert again.tracking is Tracking.RELOCALISED and again.found["frame"] == 35, (again.status, again.tried)
+    assert system.session.found["frame"] == 25  # the first time stays the session's event
+    assert pose_error(again.pose, room[35].gt_pose)[1] < 0.01
+    summary = _step(system).summary(type("Run", (), {"results": results + lost + [again]})())
+    assert summary["searches_again"] == [34] and summary["unlocalised_frames"] == 1
 
 
 @pytest.mark.slow

@@ -72,6 +72,7 @@ from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.pyramid import FramePyramid, grey_image
 from ti_fusion.slam.checks import check_frame
 from ti_fusion.slam.poses import PoseStore
+from ti_fusion.slam.session import LOST_FRAMES
 from ti_fusion.status import Tracking, status_text
 from ti_fusion.timing import StageTimer, Stopwatch
 
@@ -288,6 +289,9 @@ class DenseSLAM:
         if result.tracked:
             self.last_good = (frame, result.pose)
         self._update_motion(result, frame.timestamp, before)
+        if self.session is not None and self.session.localize and self._lost_streak >= LOST_FRAMES:
+            self.session.lost_track(frame.index)  # off the map: look for itself again (slam/session.py)
+            self.seed(None, None)
         result.ms = dict(timer.last)
         return result
 

@@ -26,6 +26,10 @@ from ti_fusion.status import Tracking
 
 log = logging.getLogger(__name__)
 
+# A localisation whose tracking is lost this many frames in a row has left the map (it fuses nothing, so nothing
+# new can be tracked against): it looks for itself again instead of reporting the motion model's guesses.
+LOST_FRAMES = 3
+
 
 @dataclass
 class Session:
@@ -34,20 +38,31 @@ class Session:
     localize: bool = False  # track against the map without changing it
     unfound: str = "fail"  # "map-anyway": after ``give_up`` unlocalised frames, map on in the session's own frame
     give_up: int = 30
-    found: dict | None = None  # the event of the frame that found itself (``FrameResult.found``)
-    unlocalised: list[tuple[int, str]] = field(default_factory=list)  # (frame, why) of the frames before
+    found: dict | None = None  # the event of the frame that first found itself (``FrameResult.found``)
+    located: bool = False  # tracking in the map's frame now (false before it found itself, and in a localisation
+    # that lost the map until it finds itself again)
+    unlocalised: list[tuple[int, str]] = field(default_factory=list)  # (frame, why) of the frames without a pose
+    searches: list[int] = field(default_factory=list)  # localize: the frames at which it lost the map and searched
     own_map_at: int | None = None  # map-anyway: the frame the session's own map started at
 
     @property
     def localised(self) -> bool:
         """The session knows its pose: in the map's frame (found) or in its own (map-anyway)."""
-        return self.found is not None or self.own_map_at is not None
+        return self.located or self.own_map_at is not None
 
     @property
     def whole_map(self) -> bool:
         """Tracking renders the whole map, not the active window: while looking for itself (the place may be
         of any age), and in localisation (nothing is fused, so nothing would stay active)."""
-        return self.found is not None and self.localize or self.found is None and self.own_map_at is None
+        return self.own_map_at is None and (self.localize or not self.located)
+
+    def lost_track(self, frame: int) -> None:
+        """A localisation lost the map for ``LOST_FRAMES`` frames (it went where the map has nothing to track
+        against): from the next frame it looks for itself again, its frames without a pose until it does."""
+        self.located = False
+        self.searches.append(frame + 1)
+        log.info(f"frame {frame}: lost the map for {LOST_FRAMES} frames: looking for itself in it again from the "
+                 "next frame")
 
     def summary(self) -> dict:
         """summary.json's session fields."""
@@ -55,7 +70,7 @@ class Session:
                 "localised_at": None if self.found is None else self.found["frame"],
                 "unlocalised_frames": len(self.unlocalised),
                 "unlocalised": [{"frame": f, "reason": why} for f, why in self.unlocalised][:50],
-                "found": self.found, "own_map_at": self.own_map_at}
+                "found": self.found, "own_map_at": self.own_map_at, "searches_again": self.searches[:50]}
 
 
 def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
@@ -80,11 +95,16 @@ def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
                                          f"against the map there ({result.reason})", result.tried, result_type)
     c = placement.candidate
     result.tracking = Tracking.RELOCALISED
-    result.found = session.found = {
+    session.located = True
+    result.found = {
         "frame": frame.index, "keyframe": placement.keyframe.id, "map_frame": placement.keyframe.frame,
         "score": round(c.score, 4), "pnp_inliers": c.pnp_inliers,
         "icp_inlier_ratio": None if c.icp_inlier_ratio is None else round(c.icp_inlier_ratio, 4),
         "unlocalised_before": len(session.unlocalised)}
+    if session.found is not None:  # found itself again after losing the map (localize)
+        log.info(f"frame {frame.index}: found itself in the map again at keyframe {placement.keyframe.id}")
+        return result
+    session.found = result.found
     if not session.localize:
         slam.mapper.anchor = placement.keyframe.id  # its surfels move with the keyframe it matched until its own
         slam.reactivate_map()

@@ -167,7 +167,9 @@ class SLAMStep:
         """The map's first frame compiles the maps and fusion kernels, the next one rendering and ICP; frames
         skipped before the map started come first."""
         session = self.slam.session  # a session's frames before it found itself do not count either
-        return len(self.slam.skipped) + (len(session.unlocalised) if session is not None else 0) + 2
+        before = 0 if session is None else \
+            session.found["unlocalised_before"] if session.found is not None else len(session.unlocalised)
+        return len(self.slam.skipped) + before + 2
 
     @property
     def mapper(self):
@@ -184,7 +186,7 @@ class SLAMStep:
         stats = frame_stats(result, self.slam.surfels)
         session = self.slam.session
         if session is not None:
-            stats["localised"] = result.pose is not None and session.found is not None
+            stats["localised"] = result.pose is not None and session.own_map_at is None
             if result.found is not None:
                 stats["found"] = result.found
         return stats

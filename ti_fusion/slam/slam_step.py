@@ -11,6 +11,7 @@ from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.mcap_log import json_field, json_object
 from ti_fusion.slam.dense import DenseSLAM, FrameResult
 from ti_fusion.status import Tracking
+from ti_fusion.tracking.terms import term_classes
 
 
 # One entry of loop.candidates (LoopCandidate.record(); a value not measured is left out).
@@ -66,8 +67,8 @@ STATS_SCHEMA = json_object({
                                           "infinite)"),
         "update_norm": json_field("number", "norm of the last se(3) update (radians and metres together), the "
                                             "convergence test's value (left out: no update computed)"),
-        "color_residuals": json_field("integer", "photometric residuals of the last iteration (0: the term is "
-                                                 "off, icp.color_weight = 0 or colour not registered)", minimum=0),
+        **{key: json_field(kind, text, **({"minimum": 0} if kind == "integer" else {}))  # each tracking term's
+           for cls in term_classes() for key, (kind, text, _) in cls.stats_fields.items()},
         "weak_directions": json_field("integer", "eigen-directions of the geometric AᵀA below icp.weak_ratio of "
                                                  "its largest: what depth alone leaves unconstrained", minimum=0),
         "weak_constrained_by_color": json_field("integer", "of those, the ones the photometric term lifted above "
@@ -130,7 +131,9 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
             "inlier_ratio": icp.inlier_ratio,
             "condition": icp.condition,
             "update_norm": icp.update_norm,
-            "color_residuals": icp.color_inliers,
+            # each registered term's fields (TrackingTerm.stats_fields): 0 rows where it did not run
+            **{key: icp.terms.get(cls.name, {}).get(entry, 0) for cls in term_classes()
+               for key, (_, _, entry) in cls.stats_fields.items()},
         }
         if icp.degeneracy is not None:
             stats["icp"]["weak_directions"] = icp.degeneracy["weak"]

@@ -28,6 +28,8 @@ class TrackingTerm:
 
     name: str = ""  # in stats, in ICPResult.terms and in align(terms=...)
     needs: frozenset = frozenset()  # the pyramids' images it reads besides depth's: {"intensity"}
+    # its fields in each frame's /slam/stats "icp" object: key → (JSON type, description, the ``stats`` entry)
+    stats_fields: dict = {}
 
     def __init__(self, config):
         self.config = config  # the ICPConfig

@@ -73,6 +73,8 @@ def row(real):
 class PhotometricTerm(TrackingTerm):
     name = "photometric"
     needs = frozenset({"intensity"})
+    stats_fields = {"color_residuals": ("integer", "photometric residuals of the last iteration (0: the term is off, "
+                                                   "icp.color_weight = 0 or colour not registered)", "count")}
     row = staticmethod(row)
 
     def __init__(self, config):

@@ -122,6 +122,18 @@ def pytest_collection_modifyitems(config, items):
                                 f"takes them out of the fast tier: {', '.join(marked)}")
 
 
+@pytest.fixture
+def terminal_ctrl_c():
+    """Ctrl-C as in a terminal for a run in this process: Python's own handler, which the run takes over, whatever
+    this process inherited (pytest-xdist's workers ignore SIGINT, and a run leaves an ignored Ctrl-C ignored)."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    if previous is not None:  # (None: a handler not set from Python)
+        signal.signal(signal.SIGINT, previous)
+
+
 def terminal_signals() -> None:
     """``preexec_fn`` of a child process that a test stops as a terminal would: Ctrl-C and hang-up act as in a
     terminal, whatever the test process inherited (pytest-xdist's workers ignore SIGINT, nohup ignores

@@ -9,6 +9,10 @@ keeps ``exc`` and the block raises it as it ends. A flag rather than blocking th
 a signal blocked in the main thread is still delivered to any other thread (Taichi's, OpenCV's, a frame
 reader's), and Python then runs the handler in the main thread at once, inside the write. Python runs
 signal handlers in the main thread only, so blocks on other threads defer nothing.
+
+A stream without an end of its own (a live camera) ends at Ctrl-C: the loop over it runs inside
+``stream_end()``, and the CLI's Ctrl-C handler first calls ``end_stream()``, which asks that loop to end after
+its current frame (the run then finishes as at a recording's end); a second Ctrl-C stops the run.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import threading
 
 _depth = 0                                 # critical blocks the main thread is in
 _pending: BaseException | None = None      # the stop that arrived inside one
+_stream: "stream_end | None" = None        # the endless stream whose loop the main thread is in
 
 
 class critical:
@@ -51,3 +56,35 @@ def interrupt(exc: BaseException) -> None:
         raise exc
     if _pending is None:
         _pending = exc
+
+
+class stream_end:
+    """``with stream_end() as end:`` around the main thread's loop over an endless stream: the first Ctrl-C
+    inside it (``end_stream()``) sets ``end.requested``, and the loop ends when it sees it."""
+
+    __slots__ = ("requested", "_outer")
+
+    def __init__(self) -> None:
+        self.requested = False
+
+    def __enter__(self) -> "stream_end":
+        global _stream
+        self._outer = _stream
+        if threading.current_thread() is threading.main_thread():  # the one thread signal handlers run in
+            _stream = self
+        return self
+
+    def __exit__(self, exc_type, exc, tb) -> bool:
+        global _stream
+        if _stream is self:
+            _stream = self._outer
+        return False
+
+
+def end_stream() -> bool:
+    """For the Ctrl-C handler: True when this Ctrl-C asked the loop over an endless stream to end (the first one
+    inside ``stream_end()``), False when it is to stop the run as any other."""
+    if _stream is None or _stream.requested:
+        return False
+    _stream.requested = True
+    return True

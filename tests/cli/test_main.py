@@ -199,10 +199,14 @@ def test_synth_out_dir_follows_the_same_rules(tmp_path, capsys):
 # SIGTERM and SIGHUP: handled as Ctrl-C
 # --------------------------------------------------------------------------------------------------
 @pytest.mark.slow
-@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP], ids=["SIGTERM", "SIGHUP"])
-def test_sigterm_and_sighup_keep_what_was_done(cpu, tmp_path, capsys, monkeypatch, signum):
+@pytest.mark.parametrize("signum, endless", [(signal.SIGTERM, False), (signal.SIGHUP, True)],
+                         ids=["SIGTERM", "SIGHUP-live-stream"])
+def test_sigterm_and_sighup_keep_what_was_done(cpu, tmp_path, capsys, monkeypatch, signum, endless):
+    """Also during a live camera's stream (``endless``), which Ctrl-C would end with its map: these stop it."""
     from ti_fusion.io.datasets.synthetic import SyntheticDataset
 
+    if endless:
+        monkeypatch.setattr(SyntheticDataset, "endless", property(lambda self: True))
     original = SyntheticDataset.__getitem__
 
     def signalled(self, i):
@@ -222,6 +226,82 @@ def test_sigterm_and_sighup_keep_what_was_done(cpu, tmp_path, capsys, monkeypatc
     assert log.complete and len(log.stats) == 3
     assert not (out / "map.ply").exists() and not (out / "map").exists()  # the map's files: only at a run's end
     assert {s: signal.getsignal(s) for s in handlers} == handlers  # restored for whoever called main
+
+
+# --------------------------------------------------------------------------------------------------
+# Ctrl-C during an endless stream (a live camera): the first ends the stream, the run finishes
+# --------------------------------------------------------------------------------------------------
+def test_the_first_ctrl_c_ends_an_endless_streams_loop_the_second_stops(capfd, terminal_ctrl_c):
+    from ti_fusion.cli.main import FINISHING, _stop_signals_raise
+    from ti_fusion.interrupts import stream_end
+
+    with _stop_signals_raise():
+        with pytest.raises(KeyboardInterrupt):
+            with stream_end() as end:
+                signal.raise_signal(signal.SIGINT)  # to this thread, handled before it returns
+                assert end.requested  # and nothing raised: the loop ends when it sees it
+                signal.raise_signal(signal.SIGINT)
+        with stream_end() as end:  # a stream's loop after another's end: its first Ctrl-C ends it again
+            signal.raise_signal(signal.SIGINT)
+            assert end.requested
+        with pytest.raises(KeyboardInterrupt):  # outside a stream's loop (a dataset, finishing): a stop at once
+            signal.raise_signal(signal.SIGINT)
+    assert capfd.readouterr().err == 2 * (FINISHING + "\n")  # to stderr's file itself (not the buffered stream)
+
+
+def _signals_at(monkeypatch, signals: list[int], endless: bool = True, at: int = 3) -> None:
+    """``signals`` sent to the run as frame ``at`` is registered, each handled before the next is sent; with
+    ``endless``, the synthetic sequence is a live camera's stream (a length, but no end of its own)."""
+    from ti_fusion.io.datasets.synthetic import SyntheticDataset
+    from ti_fusion.slam.slam_step import SLAMStep
+
+    if endless:
+        monkeypatch.setattr(SyntheticDataset, "endless", property(lambda self: True))
+    original = SLAMStep.register_frame
+
+    def register_frame(self, frame):
+        result = original(self, frame)
+        if frame.index == at:
+            for signum in signals:
+                signal.raise_signal(signum)  # to this thread: handled before it returns (os.kill's may wait)
+        return result
+
+    monkeypatch.setattr(SLAMStep, "register_frame", register_frame)
+
+
+@pytest.mark.slow
+def test_ctrl_c_finishes_a_live_streams_run_with_its_map(cpu, tmp_path, capsys, monkeypatch, terminal_ctrl_c):
+    from ti_fusion.cli.main import FINISHING
+
+    _signals_at(monkeypatch, [signal.SIGINT])
+    out = tmp_path / "run"
+    assert main(["slam", "--frames", "8", "--downsample", "4", "--mesh", "--out", str(out), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert FINISHING in err and "interrupted" not in err, err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == 4 and summary["dataset"]["frames"] is None  # frames 0 to 3: the one Ctrl-C came in
+    stamps, _ = read_tum(out / "trajectory.tum")
+    log = read_log(out / "log.mcap")
+    assert len(stamps) == 4 and log.complete and len(log.stats) == 4
+    assert (out / "map.ply").is_file() and (out / "map" / "map.json").is_file() and (out / "mesh.ply").is_file()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("endless", [True, False], ids=["live-stream-twice", "dataset-once"])
+def test_ctrl_c_stops_a_dataset_and_a_second_ctrl_c_a_live_stream(cpu, tmp_path, capsys, monkeypatch,
+                                                                   terminal_ctrl_c, endless):
+    """Today's stop: a dataset's run at its first Ctrl-C, a live stream's at its second."""
+    from ti_fusion.cli.main import FINISHING
+
+    _signals_at(monkeypatch, [signal.SIGINT] * (1 + endless), endless)
+    out = tmp_path / "run"
+    assert main(["slam", "--frames", "8", "--downsample", "4", "--out", str(out), "--quiet"]) == 130
+    err = [line for line in capsys.readouterr().err.splitlines() if line.strip()]
+    assert err == [FINISHING] * endless + [f"ti-fusion slam: interrupted; what was written is in {out}/"]
+    stamps, _ = read_tum(out / "trajectory.tum")
+    log = read_log(out / "log.mcap")
+    assert len(stamps) == 3 and log.complete and len(log.stats) == 3  # frame 3 is left out: its Ctrl-C stopped it
+    assert not (out / "map.ply").exists() and not (out / "map").exists() and not (out / "summary.json").exists()
 
 
 def test_sigterm_from_outside_the_process(tmp_path):

@@ -354,3 +354,35 @@ def test_overwrite_removes_only_the_earlier_runs_files(tmp_path):
     (folder / "notes.txt").unlink()
     RunDir("slam", folder, overwrite=True).release()
     assert not (folder / "trajectory.tum").exists()
+
+
+# --------------------------------------------------------------------------------------------------
+# The progress bar
+# --------------------------------------------------------------------------------------------------
+class _Terminal:
+    """stderr as a terminal (the bar is drawn only on one)."""
+
+    def __init__(self):
+        self.text = ""
+
+    def write(self, s: str) -> None:
+        self.text += s
+
+    def flush(self) -> None:
+        pass
+
+    def isatty(self) -> bool:
+        return True
+
+
+def test_the_progress_bar_of_a_stream_counts_frames_and_ends_its_line_when_the_loop_stops_early(monkeypatch):
+    terminal = _Terminal()
+    monkeypatch.setattr(sys, "stderr", terminal)
+    for i in outputs.progress(range(1000), None, "slam"):  # an endless stream: no total to show
+        if i == 2:
+            break  # (a Ctrl-C that ended the stream)
+    assert "\rslam: 2 frames" in terminal.text and "(Ctrl-C ends the stream)" in terminal.text
+    assert terminal.text.endswith("\x1b[K\n")  # the line after it starts on its own
+    terminal.text = ""
+    assert list(outputs.progress(range(3), 3, "vo")) == [0, 1, 2]
+    assert "\rvo [" in terminal.text and " 3/3 " in terminal.text and terminal.text.endswith("\x1b[K\n")

@@ -48,10 +48,15 @@ def test_the_sdks_playback_gives_what_the_recording_reader_reads():
         assert frame.depth.shape == (480, 640) and frame.color.shape == (480, 640, 3)
         assert frame.meta["color_camera"][0] == camera.color_intrinsics and frame.color_registered is False
         np.testing.assert_array_equal(frame.depth, bag[1].depth)  # the SDK's syncer pairs the second depth frame
-        assert camera.describe()["frames"] is None
+        assert camera.describe()["frames"] is None and camera.endless  # until Ctrl-C
     finally:
         camera.close()
         bag.close()
+    counted = open_dataset(DatasetConfig(camera=f"realsense:{RECORDING}", stop=1))  # --frames 1: Ctrl-C stops it
+    try:
+        assert not counted.endless and counted.describe()["frames"] == 1
+    finally:
+        counted.close()
 
 
 @needs_sdk
@@ -64,6 +69,33 @@ def test_slam_on_the_camera_path_ends_with_the_recording(cpu, tmp_path, capsys):
     assert summary["tracking_failures"] == 0 and (out / "trajectory.tum").is_file()
     err = capsys.readouterr()
     assert "frames until Ctrl-C at 640x480" in err.out + err.err
+
+
+@needs_sdk
+@needs_recording
+def test_ctrl_c_on_the_camera_path_ends_the_stream_and_the_run_finishes(cpu, tmp_path, capsys, monkeypatch,
+                                                                          terminal_ctrl_c):
+    """Ctrl-C as the recording's first frame is registered: the stream ends after it, as a live camera's would,
+    and the run writes its map, saved map and summary (exit 0), not only the trajectory (130)."""
+    import signal
+
+    from ti_fusion.cli.main import FINISHING
+    from ti_fusion.slam.slam_step import SLAMStep
+
+    original = SLAMStep.register_frame
+
+    def register_frame(self, frame):
+        result = original(self, frame)
+        signal.raise_signal(signal.SIGINT)  # to this thread: handled before it returns
+        return result
+
+    monkeypatch.setattr(SLAMStep, "register_frame", register_frame)
+    out = tmp_path / "run"
+    assert main(["slam", "--camera", f"realsense:{RECORDING}", "--downsample", "2", "--out", str(out), "--quiet"]) == 0
+    assert FINISHING in capsys.readouterr().err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["dataset"]["format"] == "realsense" and summary["frames"] == 1
+    assert (out / "map.ply").is_file() and (out / "map" / "map.json").is_file() and (out / "trajectory.tum").is_file()
 
 
 def test_without_the_extra_one_line_says_how_to_install_it(monkeypatch):

@@ -11,7 +11,8 @@ How a run ends, and its exit code:
     0        done; the last line says where the outputs are
     1        ``batch``: it ran, and one or more of its jobs failed (each failed row of its table says why)
     2        bad input or an output that cannot be written: one line on stderr naming the file or option
-    130      Ctrl-C (SIGINT)
+    130      Ctrl-C (SIGINT); a live camera's stream (no --frames) ends at the first Ctrl-C instead, and the run
+             finishes as at a recording's end (0, with its map); a second Ctrl-C stops it (130)
     128 + n  stopped by signal n: SIGTERM (143) and SIGHUP (129) are handled as Ctrl-C is, so the run
              keeps what it has done (``slam`` and ``vo``: the trajectory so far and a finalised log)
     141      the reader of the output went away (``ti-fusion inspect LOG | head``): nothing more is said
@@ -40,7 +41,7 @@ from ti_fusion.backend import ARCH_CHOICES, BackendInfo, init_backend
 from ti_fusion.cli.options import add_flags, apply_flags
 from ti_fusion.config import Config, load_config
 from ti_fusion.errors import InputError, OutputError, TiFusionError
-from ti_fusion.interrupts import interrupt
+from ti_fusion.interrupts import end_stream, interrupt
 from ti_fusion.io.outputs import RunDir, base_summary
 from ti_fusion.timing import Stopwatch
 
@@ -61,6 +62,9 @@ COMMAND_NAMES = ("synth", "icp", "fuse", "slam", "vo", "inspect", "mesh", "batch
 # Signals that stop a run the way Ctrl-C does: what kill, timeout, systemd and container runtimes send
 # (SIGTERM), and a closed terminal (SIGHUP).
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
+
+# What the first Ctrl-C during a live camera's stream says (ti_fusion.interrupts.end_stream).
+FINISHING = "Ctrl-C: finishing the run (map, mesh, summary); Ctrl-C again to stop at once"
 
 
 class Stopped(KeyboardInterrupt):
@@ -205,7 +209,9 @@ def _stop_signals_raise():
     """SIGTERM and SIGHUP raise ``Stopped`` in the main thread, Ctrl-C ``KeyboardInterrupt``; later SIGTERMs
     and SIGHUPs are ignored while the run writes what it has (SIGKILL still ends it at once). A stop that
     arrives during a write that must not be cut in two (``ti_fusion.interrupts.critical``: the log's) is
-    raised when the write ends. Handlers are restored afterwards."""
+    raised when the write ends. The first Ctrl-C during the loop over an endless stream (a live camera's)
+    ends that loop instead, and the run finishes normally (``ti_fusion.interrupts.end_stream``). Handlers
+    are restored afterwards."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
@@ -216,6 +222,9 @@ def _stop_signals_raise():
         interrupt(Stopped(signum))
 
     def ctrl_c(signum, frame):
+        if end_stream():  # a live camera's: the run ends as at a recording's end, with its map
+            _say_from_handler(FINISHING)
+            return
         interrupt(KeyboardInterrupt())
 
     previous = {s: signal.signal(s, stop) for s in STOP_SIGNALS}
@@ -226,6 +235,21 @@ def _stop_signals_raise():
     finally:
         for s, handler in previous.items():
             signal.signal(s, handler)
+
+
+def _say_from_handler(line: str) -> None:
+    """One line on stderr from a signal handler: to the file descriptor itself, since the handler may run
+    inside a write to ``sys.stderr`` (the progress bar's), which the buffered stream refuses to re-enter."""
+    try:
+        text = ("\r\x1b[K" if sys.stderr.isatty() else "") + line + "\n"  # \r\x1b[K: over the progress bar
+        fd = sys.stderr.fileno()
+    except (AttributeError, OSError, ValueError):  # stderr captured in-process
+        print(line, file=sys.stderr)
+        return
+    try:
+        os.write(fd, text.encode())
+    except OSError:  # nobody reads stderr any more: the run still finishes
+        pass
 
 
 def _announce_compiling(quiet: bool) -> None:

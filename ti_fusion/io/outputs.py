@@ -389,21 +389,27 @@ def jsonable(obj):
     return str(obj)
 
 
-def progress(items: Iterable[T], total: int, desc: str, enabled: bool = True,
+def progress(items: Iterable[T], total: int | None, desc: str, enabled: bool = True,
              note: Callable[[], str] | None = None) -> Iterator[T]:
     """A one-line progress bar on stderr (only on a terminal, and not with --quiet), ending with ``note()``
-    where it says something (e.g. "not localised")."""
+    where it says something (e.g. "not localised"); a ``total`` of None (an endless stream) counts frames
+    and says how the stream ends."""
     enabled = enabled and sys.stderr.isatty()
     watch = Stopwatch()
-    for i, item in enumerate(items):
-        yield item
+    try:
+        for i, item in enumerate(items):
+            yield item
+            if enabled:
+                done = i + 1
+                rate = done / max(watch.ms / 1e3, 1e-9)
+                said = note() if note is not None else ""
+                if total is None:
+                    line = f"\r{desc}: {done} frames {rate:5.1f} it/s (Ctrl-C ends the stream)"
+                else:
+                    bar = "#" * int(30 * done / max(total, 1))
+                    line = f"\r{desc} [{bar:<30}] {done}/{total} {rate:5.1f} it/s"
+                sys.stderr.write(line + (f" {said}\x1b[K" if said else "\x1b[K"))
+                sys.stderr.flush()
+    finally:  # also when the loop ends early (a stream's end, Ctrl-C): the next line starts on its own
         if enabled:
-            done = i + 1
-            rate = done / max(watch.ms / 1e3, 1e-9)
-            bar = "#" * int(30 * done / max(total, 1))
-            said = note() if note is not None else ""
-            sys.stderr.write(f"\r{desc} [{bar:<30}] {done}/{total} {rate:5.1f} it/s" +
-                             (f" {said}\x1b[K" if said else "\x1b[K"))
-            sys.stderr.flush()
-    if enabled:
-        sys.stderr.write("\n")
+            sys.stderr.write("\n")

@@ -7,12 +7,14 @@ for slam, ``DenseSLAM`` with tracking, mapping and loop closure inside), then ev
 order of ``ti_fusion.sinks.SINKS`` (the log, the mesh, ...). After the loop each sink's ``finish`` writes its
 files. Whatever ends the loop (its normal end, bad input in frame 300, Ctrl-C), the frames done so far leave a
 finalised ``log.mcap`` and a ``trajectory.tum`` (the sinks with ``on_stop``); after an error every other
-output is still attempted, and the error is what the run reports.
+output is still attempted, and the error is what the run reports. An endless stream (a live camera) ends at
+the first Ctrl-C after the frame being done, as a recording ends: the run then finishes normally.
 """
 
 from __future__ import annotations
 
 import logging
+from contextlib import nullcontext
 from typing import Any, Protocol
 
 import numpy as np
@@ -21,6 +23,7 @@ from ti_fusion.backend import BackendInfo
 from ti_fusion.config import Config
 from ti_fusion.errors import InputError, NotLocalised
 from ti_fusion.frontend import CLOCK
+from ti_fusion.interrupts import stream_end
 from ti_fusion.io.datasets.base import Dataset, Frame
 from ti_fusion.io.outputs import RunDir, progress
 from ti_fusion.io.prefetch import Prefetcher
@@ -201,10 +204,12 @@ class Pipeline:
         register_color = ColorRegistrar(getattr(self.dataset, "color_camera", None))
         prefetcher = Prefetcher.for_dataset(self.dataset, self.config.dataset.read_workers, READ_AHEAD)
         self.read_workers, self.read_mode = prefetcher.workers, prefetcher.mode
-        with prefetcher as frames:
+        # an endless stream's loop ends at the first Ctrl-C (the CLI's handler sets ``end.requested``)
+        endless = getattr(self.dataset, "endless", False)
+        with prefetcher as frames, (stream_end() if endless else nullcontext()) as end:
             note = lambda: "not localised" if self.results and self.results[-1].status.startswith("unlocalised") \
                 else ""  # a session against a saved map, until it has found itself in it
-            for i in progress(range(n), n, self.step.name, self.show_progress, note):
+            for i in progress(range(n), None if endless else n, self.step.name, self.show_progress, note):
                 with self.timer.stage("load"):  # the wait for the frame: what reading it did not overlap
                     try:
                         _, frame, read_ms = next(frames)
@@ -224,6 +229,8 @@ class Pipeline:
                 self.gt.append(frame.gt_pose)
                 if len(self.first_frames_s) < 2:
                     self.first_frames_s.append(process_age_s())
+                if end is not None and end.requested:  # Ctrl-C: this stream ends here, like a recording's
+                    break
 
     # -- after the loop -------------------------------------------------------------------------
     def trajectory(self) -> tuple[list[float], list[np.ndarray]]:

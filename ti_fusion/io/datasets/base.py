@@ -90,6 +90,12 @@ class Dataset(ABC):
         return False
 
     @property
+    def endless(self) -> bool:
+        """A stream without an end of its own (a live camera without --frames): its run ends at the first
+        Ctrl-C as at a recording's end, with every output (``ti_fusion.interrupts.stream_end``)."""
+        return False
+
+    @property
     def color_for_tracking(self) -> bool:
         """Whether the photometric tracking term may use this set's colour: only colour registered to depth.
         A format whose registration is the user's word (a folder, a log) overrides this with
@@ -189,7 +195,7 @@ class Dataset(ABC):
             "format": self.format,
             "format_from": self.format_from,
             "root": str(self.root),
-            "frames": len(self),
+            "frames": None if self.endless else len(self),  # None: until Ctrl-C
             "width": K.width,
             "height": K.height,
             "downsample": self.downsample,

@@ -6,8 +6,10 @@ the depth units come from the depth sensor, the intrinsics from the depth stream
 camera's intrinsics and the depth-to-colour extrinsics from theirs, so colour is registered to depth by
 the same kernel as a recording's (``ti_fusion/io/registration.py``). Frames are handed to the run loop
 like any dataset's (one loop owner: the pipeline), in arrival order; a frame's time is the depth frame's
-timestamp in seconds. The stream has no end: the run stops at ``--frames N`` or Ctrl-C (the pipeline
-keeps what was done and finalises the log), and the device is stopped when the dataset is closed.
+timestamp in seconds. The stream has no end of its own (``endless``): the run ends at ``--frames N``, or
+at the first Ctrl-C, which ends the stream as a recording's end would (the run finishes with its map and
+summary; a second Ctrl-C stops it at once, keeping the trajectory and a finalised log); the device is
+stopped when the dataset is closed.
 
 ``realsense:FILE.bag`` plays a recording back through the SDK (``enable_device_from_file``, not in real
 time), which runs the same calls as a device: the tests' way in, and a way to check a recording as the
@@ -142,6 +144,10 @@ class RealSenseCamera(Dataset):
     def _num_raw_frames(self) -> int:
         return OPEN_ENDED
 
+    @property
+    def endless(self) -> bool:
+        return self._selection[1] is None  # no --frames (or --stop): until Ctrl-C
+
     def _read(self) -> tuple:
         """The next (time s, raw uint16 depth, RGB colour or None) from the SDK."""
         rs = self._rs
@@ -188,8 +194,6 @@ class RealSenseCamera(Dataset):
 
     def describe(self) -> dict:
         info = super().describe()
-        if self._selection[1] is None:
-            info["frames"] = None  # a stream: as many as come before Ctrl-C (or a recording's end)
         info.update(camera=self.device_name, recording=str(self.recording) if self.recording else None,
                     depth_scale_from=self.depth_scale_source, color=self.color_extrinsics is not None)
         return info

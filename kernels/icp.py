@@ -229,9 +229,9 @@ _KERNELS: dict = {}
 
 
 def _blocks(n: int) -> list:
-    """range(n) in ranges of at most 30, for nested ``ti.static`` loops: the joint pass unrolls its 59 register
-    sums on purpose (as the depth-only pass its 30), and Taichi warns at every compile about a static range
-    of more than 32."""
+    """range(n) in ranges of at most 30, for nested ``ti.static`` loops: a pass with several terms unrolls its
+    register sums on purpose (59 with two, as the depth-only pass its 30), and Taichi warns at every compile
+    about a static range of more than 32."""
     return [range(b, min(b + 30, n)) for b in range(0, n, 30)]
 
 

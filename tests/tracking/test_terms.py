@@ -78,6 +78,30 @@ def test_a_term_s_sums_match_numpy(cpu, rng):
     np.testing.assert_allclose(Atb, kicp.unpack_sums(sums)["Atb"] + 2.0 * kicp.unpack_term_sums(sums, 1)["Atb"])
 
 
+def test_three_terms_in_one_pass(cpu, rng):
+    """Geometry, colour and the prior in one pass (88 sums): each term's sums where ``term_offset`` puts them."""
+    from tests.tracking.test_photometric import random_intensities, scalar_field
+    from ti_fusion.tracking.terms.photometric import photometric
+
+    T = random_pose(rng, 0.1)
+    K_t = Intrinsics(120.0, 110.0, 27.3, 20.6, 56, 40)
+    P, N, Vt, Nt = random_pass_inputs(rng, T, K_t)
+    P, src_i, tgt_ig = random_intensities(rng, P, T, K_t)
+    kp = pass_for(P.shape[0] * P.shape[1])
+    target = (0.01, 0.02, -0.03)
+    passes = [point_to_plane("huber+depth", 0.05), photometric(scalar_field(src_i), vec_field(tgt_ig), 0.3, 0.2),
+              kicp.TermPass(prior_row, 2, (), (), 5.0, target)]
+    sums = kp.reduce(vec_field(P), vec_field(N), vec_field(Vt), vec_field(Nt), T, K_t.as_tuple(), THR, THETA, passes)
+    assert sums.shape == (kicp.n_sums(3),) == (88,)
+    joint = icp_numpy.joint_pass(P, N, Vt, Nt, src_i, tgt_ig, T, K_t.as_tuple(), THR, THETA, "huber+depth", 0.05, 0.2)
+    np.testing.assert_allclose(sums[:kicp.n_sums(2)], joint, rtol=1e-5, atol=1e-12)
+    n = int(joint[kicp.SUM_INLIERS])
+    t, e = T[:3, 3], np.array([0.0, 0.0, 1.0])
+    want = icp_numpy.term_sums(np.tile(np.concatenate([np.cross(t, e), e]), (n, 1)), np.full(n, t[2] - target[2]),
+                               np.ones(n))
+    np.testing.assert_allclose(sums[kicp.term_offset(2):], want, rtol=1e-9, atol=1e-12)
+
+
 @pytest.mark.slow
 def test_a_third_term_is_one_registration_line(cpu, rng, sequence, monkeypatch):
     """Registered by one line, the prior joins the pass where its weight is > 0: strong, it holds the pose's

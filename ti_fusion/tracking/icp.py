@@ -70,8 +70,8 @@ class ICPResult:
     residual_rms: float = float("nan")
     condition: float = float("nan")
     update_norm: float = float("nan")
-    terms: dict = field(default_factory=dict)  # each term but the first: name → its stats of the last iteration
-                                               # (``TrackingTerm.stats``: rows and RMS residual; 0 rows: off)
+    terms: dict = field(default_factory=dict)  # each term but the first that ran: name → its stats of the last
+                                               # iteration (``TrackingTerm.stats``: rows and RMS residual)
     weights: tuple = (1.0,)  # λ of each term of the passes, in the order of their sums
     degeneracy: dict | None = None  # weak geometric directions (``ti_fusion.tracking.solve.weak_directions``)
     sums: np.ndarray | None = field(default=None, repr=False)  # the last iteration's sums (``n_sums``)

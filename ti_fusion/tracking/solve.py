@@ -53,7 +53,9 @@ def weak_directions(AtA: np.ndarray, color_AtA: np.ndarray | None, color_weight:
                     weak_ratio: float) -> dict:
     """The eigen-directions of the geometric AᵀA whose eigenvalue is below ``weak_ratio`` × the largest
     (what depth alone leaves unconstrained: two translations and a rotation facing a plane), and whether
-    the colour term (``color_weight`` × ``color_AtA``) lifts each above that line.
+    the other tracking terms (``color_weight`` × ``color_AtA``: ICP passes Σ λ_k AᵀA_k of the terms after the
+    geometry, with weight 1; the keys keep the photometric term's name, "color", the log's stats read them)
+    lift each above that line.
 
     Returns {"weak": count, "constrained_by_color": count, "directions": [{"twist": unit 6-vector (ω, v),
     largest component positive, "ratio": λ / λmax of the geometry, "joint_ratio": eᵀ(AᵀA + λ_c A_cᵀA_c)e /

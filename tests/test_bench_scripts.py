@@ -76,3 +76,8 @@ def test_bench_cold_start_names_a_bad_option():
     out = run("bench_cold_start.py", "--baseline", "no-such-ref-here")
     assert out.returncode == 2 and out.stderr.strip().startswith("bench_cold_start.py: --baseline no-such-ref-here: ")
     assert "Traceback" not in out.stderr
+
+
+def test_bench_sessions_names_a_bad_case():
+    out = run("bench_sessions.py", "--cases", "redkitchen,kitchen")
+    assert out.returncode == 2 and "--cases: no case 'kitchen' (redkitchen, loop)" in out.stderr

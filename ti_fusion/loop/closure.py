@@ -133,10 +133,16 @@ class LoopClosure:
                 frame.index)) is None):
             return None
         watch = Stopwatch()
+        tied = self._link
         kf = self._make_keyframe(frame, result.pose, maps)
         report = LoopReport(kf.id, why)
         report.ms["keyframe"] = watch.lap()
-        places = self.database.query(kf)
+        exclude = set()
+        if tied is not None:  # the tie is this keyframe's measurement of the place it found: loops from here are
+            # to the map's other visits of it (a lap's end where it met its start), which can undo the map's drift
+            near = self.keyframes[tied].frame
+            exclude = {k for k in range(self.session_start) if abs(self.keyframes[k].frame - near) < self.gap}
+        places = self.database.query(kf, exclude=exclude)
         self.database.add(kf)
         report.ms["detect"] = watch.lap()
         self.ms["detect"].append(report.ms["keyframe"] + report.ms["detect"])

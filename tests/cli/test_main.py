@@ -440,3 +440,18 @@ def test_the_format_line_warnings_and_summary_say_what_was_read(cpu, tmp_path, c
             "cx 79.5 cy 59.5 at 160x120 (intrinsics.txt in the dataset folder)") in captured.out.splitlines()
     assert not any(line.startswith("backend:") for line in captured.out.splitlines())
     assert len(captured.err.splitlines()) == 2
+
+
+def test_a_command_builds_only_its_own_parser():
+    """``ti-fusion COMMAND`` imports that command's module alone (``build_parser(only)``): ``batch``'s driver and
+    its manifest reader load no Taichi; a slam command line parses as with every command's parser."""
+    from ti_fusion.cli.main import build_parser
+
+    code = ("import sys; from ti_fusion.cli.main import build_parser; build_parser('batch'); "
+            "from ti_fusion.batch.manifest import slam_options; slam_options(); "
+            "sys.exit(1 if 'taichi' in sys.modules else 0)")
+    assert subprocess.run([sys.executable, "-c", code], timeout=120).returncode == 0
+    argv = ["slam", "--frames", "3", "--set", "icp.dist_threshold=0.05", "--scene", "loop"]
+    parsers = [build_parser(only)[0] for only in (None, "slam")]
+    assert vars(parsers[0].parse_args(argv)) == vars(parsers[1].parse_args(argv))
+    assert set(build_parser("slam")[1]) == {"slam"} and "batch" in build_parser()[1]

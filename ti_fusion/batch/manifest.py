@@ -80,7 +80,7 @@ def slam_options() -> dict[str, argparse.Action]:
 def _slam_parser() -> argparse.ArgumentParser:
     from ti_fusion.cli.main import build_parser
 
-    parser, _ = build_parser()
+    parser, _ = build_parser("slam")
     for action in parser._actions:
         if isinstance(action, argparse._SubParsersAction):
             return action.choices["slam"]

@@ -91,9 +91,9 @@ class RunContext:
         print(message, flush=True)
 
 
-def _available_commands() -> dict[str, ModuleType]:
+def _available_commands(names: tuple[str, ...] = COMMAND_NAMES) -> dict[str, ModuleType]:
     modules = {}
-    for name in COMMAND_NAMES:
+    for name in names:
         try:
             modules[name] = importlib.import_module(f"ti_fusion.cli.{name}")
         except ModuleNotFoundError as exc:
@@ -129,14 +129,16 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
         add_flags(d, module.__name__.rsplit(".", 1)[-1])
 
 
-def build_parser() -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
+def build_parser(only: str | None = None) -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
+    """The command line's parser and the commands' modules; with ``only`` (a command's name), that command's
+    alone: the other commands' modules import Taichi and the kernels, which ``batch``'s driver never needs."""
     parser = argparse.ArgumentParser(
         prog="ti-fusion",
         description="Dense RGB-D SLAM with point-to-plane ICP and surfel fusion on Taichi kernels.",
     )
     parser.add_argument("--version", action="version", version=f"ti-fusion {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    modules = _available_commands()
+    modules = _available_commands((only,) if only in COMMAND_NAMES else COMMAND_NAMES)
     for name, module in modules.items():
         p = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.add_arguments(p)
@@ -340,9 +342,9 @@ def _join_negative_values(argv: list[str], options: set[str]) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser, modules = build_parser()
-    args = parser.parse_args(_join_negative_values(list(sys.argv[1:] if argv is None else argv),
-                                                   _value_options(parser)))
+    argv = list(sys.argv[1:] if argv is None else argv)
+    parser, modules = build_parser(argv[0] if argv else None)
+    args = parser.parse_args(_join_negative_values(argv, _value_options(parser)))
     if not args.command:
         parser.print_help()
         return 0

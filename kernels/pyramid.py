@@ -380,55 +380,62 @@ def vertex_normal_loop(depth: ti.template(), vertex: ti.template(), normal: ti.t
         ti.loop_config(serialize=True)  # one division per launch, not two per pixel
     ify = 1.0 / fy
     for v, b in ti.ndrange(H, (W + LANES - 1) // LANES):  # a range-for: ``serialize`` skips a struct-for
-        u0 = b * LANES
-        if 0 < v < H - 1 and 0 < u0 and u0 + LANES < W:  # every lane has its four neighbours
-            xs = Pack([(u0 + l - cx) * ifx for l in ti.static(range(LANES))])
-            y = (v - cy) * ify
-            zc = row_pack(depth, r0 + v, u0)
-            for l in ti.static(range(LANES)):
-                vertex[r0 + v, u0 + l] = ti.Vector([xs[l] * zc[l], y * zc[l], zc[l]])
-            # left and right neighbours: the row pack shifted by one pixel
-            row = ti.Vector([0.0] * (LANES + 2))
-            row[0] = ti.select(depth[r0 + v, u0 - 1] > 0, depth[r0 + v, u0 - 1], 0.0)
-            row[LANES + 1] = ti.select(depth[r0 + v, u0 + LANES] > 0, depth[r0 + v, u0 + LANES], 0.0)
-            for l in ti.static(range(LANES)):
-                row[l + 1] = zc[l]
-            zl = Pack([row[l] for l in ti.static(range(LANES))])
-            zr = Pack([row[l + 2] for l in ti.static(range(LANES))])
-            zt = row_pack(depth, r0 + v - 1, u0)
-            zb = row_pack(depth, r0 + v + 1, u0)
-            xl = Pack([(u0 + l - 1 - cx) * ifx for l in ti.static(range(LANES))])
-            xr = Pack([(u0 + l + 1 - cx) * ifx for l in ti.static(range(LANES))])
-            yt = (v - 1 - cy) * ify
-            yb = (v + 1 - cy) * ify
-            # m = (r − l) × (b − t), with r − l and b − t from the back-projected neighbours
-            ax = xr * zr - xl * zl
-            ay = y * zr - y * zl
-            az = zr - zl
-            bx = xs * zb - xs * zt
-            by = yb * zb - yt * zt
-            bz = zb - zt
-            mx = ay * bz - az * by
-            my = az * bx - ax * bz
-            mz = ax * by - ay * bx
-            lo = ti.min(ti.min(zl, zr), ti.min(zt, zb))
-            hi = ti.max(ti.max(zl, zr), ti.max(zt, zb))
-            len2 = mx * mx + my * my + mz * mz
-            ok = (zc > 0) & (lo > 0) & (hi - zc <= max_depth_jump) & (zc - lo <= max_depth_jump) & (len2 > 0)
-            s = ti.rsqrt(ti.select(ok, len2, 1.0))
-            s = ti.select(mx * xs * zc + my * y * zc + mz * zc > 0, -s, s)  # face the camera
-            nx = ti.select(ok, mx * s, 0.0)
-            ny = ti.select(ok, my * s, 0.0)
-            nz = ti.select(ok, mz * s, 0.0)
-            for l in ti.static(range(LANES)):
-                normal[r0 + v, u0 + l] = ti.Vector([nx[l], ny[l], nz[l]])
-        else:
-            for l in range(LANES):  # a loop, not unrolled: one copy of the slow path to compile
-                u = u0 + l
-                if u < W:
-                    c = backproject_pixel(depth, r0, v, u, ifx, ify, cx, cy)
-                    vertex[r0 + v, u] = c
-                    normal[r0 + v, u] = normal_at(depth, r0, H, W, v, u, c, ifx, ify, cx, cy, max_depth_jump)
+        vertex_normal_pack(depth, vertex, normal, r0, H, W, v, b, ifx, ify, cx, cy, max_depth_jump)
+
+
+@ti.func
+def vertex_normal_pack(depth: ti.template(), vertex: ti.template(), normal: ti.template(), r0, H, W, v, b, ifx, ify,
+                       cx, cy, max_depth_jump):
+    """Pixels 8b .. 8b + 7 of row v of ``vertex_normal_loop`` (``ifx``, ``ify``: 1 / fx, 1 / fy)."""
+    u0 = b * LANES
+    if 0 < v < H - 1 and 0 < u0 and u0 + LANES < W:  # every lane has its four neighbours
+        xs = Pack([(u0 + l - cx) * ifx for l in ti.static(range(LANES))])
+        y = (v - cy) * ify
+        zc = row_pack(depth, r0 + v, u0)
+        for l in ti.static(range(LANES)):
+            vertex[r0 + v, u0 + l] = ti.Vector([xs[l] * zc[l], y * zc[l], zc[l]])
+        # left and right neighbours: the row pack shifted by one pixel
+        row = ti.Vector([0.0] * (LANES + 2))
+        row[0] = ti.select(depth[r0 + v, u0 - 1] > 0, depth[r0 + v, u0 - 1], 0.0)
+        row[LANES + 1] = ti.select(depth[r0 + v, u0 + LANES] > 0, depth[r0 + v, u0 + LANES], 0.0)
+        for l in ti.static(range(LANES)):
+            row[l + 1] = zc[l]
+        zl = Pack([row[l] for l in ti.static(range(LANES))])
+        zr = Pack([row[l + 2] for l in ti.static(range(LANES))])
+        zt = row_pack(depth, r0 + v - 1, u0)
+        zb = row_pack(depth, r0 + v + 1, u0)
+        xl = Pack([(u0 + l - 1 - cx) * ifx for l in ti.static(range(LANES))])
+        xr = Pack([(u0 + l + 1 - cx) * ifx for l in ti.static(range(LANES))])
+        yt = (v - 1 - cy) * ify
+        yb = (v + 1 - cy) * ify
+        # m = (r − l) × (b − t), with r − l and b − t from the back-projected neighbours
+        ax = xr * zr - xl * zl
+        ay = y * zr - y * zl
+        az = zr - zl
+        bx = xs * zb - xs * zt
+        by = yb * zb - yt * zt
+        bz = zb - zt
+        mx = ay * bz - az * by
+        my = az * bx - ax * bz
+        mz = ax * by - ay * bx
+        lo = ti.min(ti.min(zl, zr), ti.min(zt, zb))
+        hi = ti.max(ti.max(zl, zr), ti.max(zt, zb))
+        len2 = mx * mx + my * my + mz * mz
+        ok = (zc > 0) & (lo > 0) & (hi - zc <= max_depth_jump) & (zc - lo <= max_depth_jump) & (len2 > 0)
+        s = ti.rsqrt(ti.select(ok, len2, 1.0))
+        s = ti.select(mx * xs * zc + my * y * zc + mz * zc > 0, -s, s)  # face the camera
+        nx = ti.select(ok, mx * s, 0.0)
+        ny = ti.select(ok, my * s, 0.0)
+        nz = ti.select(ok, mz * s, 0.0)
+        for l in ti.static(range(LANES)):
+            normal[r0 + v, u0 + l] = ti.Vector([nx[l], ny[l], nz[l]])
+    else:
+        for l in range(LANES):  # a loop, not unrolled: one copy of the slow path to compile
+            u = u0 + l
+            if u < W:
+                c = backproject_pixel(depth, r0, v, u, ifx, ify, cx, cy)
+                vertex[r0 + v, u] = c
+                normal[r0 + v, u] = normal_at(depth, r0, H, W, v, u, c, ifx, ify, cx, cy, max_depth_jump)
 
 
 # ``pyramid_levels``' and ``maps_levels``' per-level settings, one row per level: first row in the stack,
@@ -499,16 +506,26 @@ def pyramid_levels_loops(depth: ti.template(), geometry: ti.template(), levels: 
 @ti.func
 def maps_levels_loops(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
                       levels: ti.template(), first_maps, serial: ti.template()):
-    """The vertex and normal maps of levels ``first_maps`` .. levels − 1 of a stack (``vertex_normal_loop``),
-    one loop per level, from ``geometry``'s rows, sizes and intrinsics. ``first_maps`` is a runtime value
-    (the loops of the levels before it run over no rows), so that one instance serves a rendered model,
-    whose level 0 maps come from the renderer, and depth uploaded into the same maps (loop verification's
-    keyframes)."""
-    for l in ti.static(range(levels)):
-        vertex_normal_loop(depth, vertex, normal, ti.cast(geometry[l, G_ROW0], ti.i32),
-                           ti.select(l >= first_maps, ti.cast(geometry[l, G_H], ti.i32), 0),
-                           ti.cast(geometry[l, G_W], ti.i32), geometry[l, G_FX],
-                           geometry[l, G_FY], geometry[l, G_CX], geometry[l, G_CY], geometry[l, G_JUMP], serial)
+    """The vertex and normal maps of levels ``first_maps`` .. levels − 1 of a stack (``vertex_normal_loop``'s
+    packs) in one loop over the rows of every level, each pack with its level's row, size and intrinsics
+    from ``geometry``: one copy of the per-pack code for every level (one loop per level compiled 3.5 times
+    as long). ``first_maps`` is a runtime value (the rows of the levels before it are skipped), so that one
+    instance serves a rendered model, whose level 0 maps come from the renderer, and depth uploaded into
+    the same maps (loop verification's keyframes)."""
+    rows = ti.cast(geometry[levels - 1, G_ROW0] + geometry[levels - 1, G_H], ti.i32)
+    packs = (ti.cast(geometry[0, G_W], ti.i32) + LANES - 1) // LANES
+    if ti.static(serial):
+        ti.loop_config(serialize=True)
+    for row, b in ti.ndrange(rows, packs):
+        l = 0
+        for k in ti.static(range(1, levels)):
+            l += ti.select(row >= ti.cast(geometry[k, G_ROW0], ti.i32), 1, 0)
+        r0 = ti.cast(geometry[l, G_ROW0], ti.i32)
+        W = ti.cast(geometry[l, G_W], ti.i32)
+        if l >= first_maps and b * LANES < W:
+            vertex_normal_pack(depth, vertex, normal, r0, ti.cast(geometry[l, G_H], ti.i32), W, row - r0, b,
+                               1.0 / geometry[l, G_FX], 1.0 / geometry[l, G_FY], geometry[l, G_CX], geometry[l, G_CY],
+                               geometry[l, G_JUMP])
 
 
 GREY = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights of R, G, B

@@ -14,8 +14,8 @@ The 3D panel in ``world``: the map in its own colours (``colorMode`` "rgba-field
 named: without one the client picks a colour field itself and colours the map by x with a colour map), the
 estimated and ground-truth poses, the camera frustum with the colour image in it, and the loop edges. Below
 it the colour and depth images; on the right plots of the stage milliseconds, the ICP inlier ratio (with, for a
-session against a saved map, whether it has found itself in it), the surfel count, and each trajectory in the world's x-y plane (seen from above where z is up, as in the synthetic
-scenes).
+session against a saved map, whether it has found itself in it), the surfel count, and each trajectory in the
+world's x-y plane (seen from above where z is up, as in the synthetic scenes).
 
 To add a panel: make it with ``panel(TYPE, NAME, CONFIG)`` and put the returned id into the tree in
 ``layout()``; a 3D topic is one more entry of ``SCENE_TOPICS``.

@@ -129,3 +129,23 @@ def test_a_map_without_keyframes_has_nothing_to_find_a_session_in(cpu):
     cfg.slam.loop_closure = False
     with pytest.raises(InputError, match="finds itself among the map's keyframes: it needs slam.loop_closure = true"):
         DenseSLAM(cfg, room.intrinsics).start_session()
+
+
+def test_a_localisation_frame_mostly_off_the_map_is_lost():
+    """With localize, a frame whose correspondences cover less than ON_MAP of its depth is off the map: lost (its
+    pose would rest on the little of the map it sees); extending, the same frame stays tracked."""
+    from types import SimpleNamespace
+
+    from ti_fusion.slam.dense import FrameResult
+    from ti_fusion.slam.session import ON_MAP, check_on_map
+
+    frame = SimpleNamespace(depth=np.ones((480, 640), np.float32))  # 320x240 = 76800 pixels at map level 1
+    for localize, inliers in ((True, 0.2 * 76800), (False, 0.2 * 76800), (True, (ON_MAP + 0.05) * 76800)):
+        slam = SimpleNamespace(session=SimpleNamespace(localize=localize), map_level=1)
+        result = FrameResult(0, 0.0, np.eye(4), Tracking.OK, icp=SimpleNamespace(inliers=int(inliers)))
+        check_on_map(slam, frame, result)
+        assert result.lost == (localize and inliers < ON_MAP * 76800), (localize, inliers, result.status)
+    slam = SimpleNamespace(session=SimpleNamespace(localize=True), map_level=1)
+    result = FrameResult(0, 0.0, np.eye(4), Tracking.OK, icp=SimpleNamespace(inliers=15360))
+    check_on_map(slam, frame, result)
+    assert result.status == "lost: off the map: its correspondences cover 20% of the frame's depth < 30%"

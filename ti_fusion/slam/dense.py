@@ -72,7 +72,7 @@ from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.pyramid import FramePyramid, grey_image
 from ti_fusion.slam.checks import check_frame
 from ti_fusion.slam.poses import PoseStore
-from ti_fusion.slam.session import LOST_FRAMES
+from ti_fusion.slam.session import LOST_FRAMES, check_on_map
 from ti_fusion.status import Tracking, status_text
 from ti_fusion.timing import StageTimer, Stopwatch
 
@@ -280,6 +280,8 @@ class DenseSLAM:
         else:
             with timer.stage("track"):
                 result = self._track(frame, terms)
+            if self.session is not None:
+                check_on_map(self, frame, result)  # a localisation off the map is lost (slam/session.py)
         before = self._held_pose() if self.poses else None  # the motion model's pose before this frame
         if result.tracked and not (self.session is not None and self.session.localize):
             with timer.stage("fuse"):

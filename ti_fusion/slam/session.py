@@ -22,6 +22,8 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 
+import numpy as np
+
 from ti_fusion.status import Tracking
 
 log = logging.getLogger(__name__)
@@ -29,6 +31,9 @@ log = logging.getLogger(__name__)
 # A localisation whose tracking is lost this many frames in a row has left the map (it fuses nothing, so nothing
 # new can be tracked against): it looks for itself again instead of reporting the motion model's guesses.
 LOST_FRAMES = 3
+# A localisation's frame whose tracked correspondences cover less than this fraction of its depth is off the map: the
+# little of the map it sees does not hold its pose (nothing is fused to extend it), so it counts as lost.
+ON_MAP = 0.3
 
 
 @dataclass
@@ -88,6 +93,7 @@ def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
         return _unlocalised(slam, frame, why, tried, result_type)
     slam.seed(frame, placement.pose)
     result = slam._track(frame, terms)
+    check_on_map(slam, frame, result)
     result.tried = tried + result.tried
     if not result.tracked:
         slam.seed(None, None)
@@ -113,6 +119,18 @@ def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
              f"{placement.keyframe.frame} of the map's run), score {c.score:.3f}, {c.pnp_inliers} PnP inliers, after "
              f"{len(session.unlocalised)} frame(s) not localised")
     return result
+
+
+def check_on_map(slam, frame, result) -> None:
+    """With ``localize``: a tracked ``result`` whose ICP correspondences cover less than ``ON_MAP`` of the frame's
+    valid depth (at the resolution it is tracked at) becomes lost, "off the map"."""
+    if not slam.session.localize or not result.tracked or result.icp is None:
+        return
+    valid = np.count_nonzero(frame.depth > 0) / 4 ** slam.map_level
+    cover = result.icp.inliers / max(valid, 1.0)
+    if cover < ON_MAP:
+        result.tracking = Tracking.LOST
+        result.reason = f"off the map: its correspondences cover {cover:.0%} of the frame's depth < {ON_MAP:.0%}"
 
 
 def _unlocalised(slam, frame, why: str, tried: list[str], result_type):

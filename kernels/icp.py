@@ -157,7 +157,8 @@ def combined_system(sums: np.ndarray, weights) -> tuple[np.ndarray, np.ndarray]:
 
 
 def combined_systems(sums: np.ndarray, weights) -> tuple[np.ndarray, np.ndarray]:
-    """``combined_system`` of each row of ``sums`` (n × ``n_sums(terms)``): n × 6 × 6, n × 6."""
+    """``combined_system`` of each row of ``sums`` (n × ``n_sums(terms)``): n × 6 × 6, n × 6; a term's weight may
+    be an n × 1 array (each row's level's)."""
     sums = np.asarray(sums, dtype=np.float64)
     upper, atb = sums[:, :21], sums[:, SUM_ATB:SUM_ATB + 6]
     for k in range(1, n_terms_of(sums)):  # in the kernel's order: the first term, then each other's λ × its sums

@@ -407,6 +407,9 @@ class ICPConfig:
                                      # registered to depth (7-Scenes). 0.01 measured best on every synthetic scene
                                      # (docs/BENCHMARKS.md, colour by default: wall 147 → 0.09 cm)
     color_robust_scale: Positive = 0.05  # intensity in [0, 1]: Huber's k on the photometric residual
+    color_finest_scale: Annotated[float, Range(ge=0, le=1)] = 0.4  # the finest pyramid level's colour weight is
+                                     # color_weight × this: there real colour (TUM cabinet) pulled pairs off
+                                     # the truth, the coarser levels held them (docs/PHOTOMETRIC.md, real colour)
     weak_ratio: Annotated[float, Range(gt=0, lt=1)] = 1e-3  # a direction of the geometric AᵀA whose eigenvalue
                                      # is below this fraction of the largest is reported weak (degeneracy)
 
@@ -789,7 +792,7 @@ ADVANCED = {
               "exposure", "jpeg_quality", "color_offset_ms"),
     "pyramid": ("normal_max_depth_jump", "depth_sigma", "depth_smooth_radius"),
     "icp": ("normal_threshold_deg", "robust_scale", "depth_weighting", "min_inliers", "max_condition",
-            "stop_update", "level_dist_scale", "color_robust_scale", "weak_ratio"),
+            "stop_update", "level_dist_scale", "color_robust_scale", "color_finest_scale", "weak_ratio"),
     "fusion": ("dist_threshold", "normal_threshold_deg", "confidence_weighting", "remove_unstable", "unstable_weight",
                "unstable_age", "remove_free_space", "free_space_margin", "depth_weighting", "confidence_sigma",
                "skip_covered", "render_min_weight"),

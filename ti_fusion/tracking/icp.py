@@ -72,7 +72,7 @@ class ICPResult:
     update_norm: float = float("nan")
     terms: dict = field(default_factory=dict)  # each term but the first that ran: name → its stats of the last
                                                # iteration (``TrackingTerm.stats``: rows and RMS residual)
-    weights: tuple = (1.0,)  # λ of each term of the passes, in the order of their sums
+    weights: tuple = (1.0,)  # λ of each term of the last iteration's pass (at its level), in the order of their sums
     degeneracy: dict | None = None  # weak geometric directions (``ti_fusion.tracking.solve.weak_directions``)
     sums: np.ndarray | None = field(default=None, repr=False)  # the last iteration's sums (``n_sums``)
 
@@ -174,11 +174,12 @@ class ICP:
             resume = self._align_in_kernel(kernels, source, target, schedule, result)
         if resume is not None:
             self._align_in_python(kernels, source, target, schedule, result, resume)
-        result.weights = tuple(t.weight() for t in self._terms)
         if result.sums is not None:
             others = None  # Σ λ_k AᵀA_k of the other terms: what they add along the geometry's weak directions
+            # each term's lift at its own weight(), not its last level's: whether it holds a direction, as the slide
+            # starts ask, not how much a lighter finest level pulls on it
             for k in range(1, n_terms_of(result.sums)):
-                part = result.weights[k] * unpack_term_sums(result.sums, k)["AtA"]
+                part = self._terms[k].weight() * unpack_term_sums(result.sums, k)["AtA"]
                 others = part if others is None else others + part
             result.degeneracy = weak_directions(unpack_sums(result.sums)["AtA"], others, 1.0, cfg.weak_ratio)
         return result
@@ -214,7 +215,9 @@ class ICP:
         records = kernels.iteration_records()
         sums = record_sums(records, len(self._terms))
         # every record's system and condition number at once: one eigenvalue call rather than one per record
-        systems = combined_systems(sums, [t.weight() for t in self._terms])
+        levels = records[:, R_LEVEL].astype(int)
+        systems = combined_systems(sums, [np.array([t.level_weight(level) for level in levels])[:, None]
+                                          for t in self._terms])
         conds = condition_numbers(systems[0])
         for k, record in enumerate(records):
             level, it = int(record[R_LEVEL]), int(record[R_ITERATION])
@@ -266,7 +269,8 @@ class ICP:
             s = unpack_term_sums(sums, k)
             s["count"] = int(round(s["count"]))
             result.terms[term.name] = term.stats(s)
-        AtA, Atb = combined_system(sums, [t.weight() for t in self._terms]) if system is None else system
+        result.weights = tuple(t.level_weight(level) for t in self._terms)
+        AtA, Atb = combined_system(sums, result.weights) if system is None else system
         failure, result.condition = check_system(AtA, n, cfg.min_inliers, cfg.max_condition, cond)
         if failure is not None:
             result.failure = f"level {level} iteration {it}: {failure}"

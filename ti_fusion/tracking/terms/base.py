@@ -47,6 +47,10 @@ class TrackingTerm:
         """λ, the factor of its system in the sum solved; 0 turns the term off."""
         return 1.0
 
+    def level_weight(self, level: int) -> float:
+        """λ at pyramid ``level`` (0 the finest): ``weight()`` unless a term weighs its levels apart."""
+        return self.weight()
+
     def mode(self) -> int:
         """A compile-time choice handed to its ``ti.func`` (e.g. which robust weight): one kernel instance each."""
         return 0
@@ -81,4 +85,5 @@ class TrackingTerm:
     def kernel_pass(self, source, target, level: int) -> TermPass:
         """The term as the kernels take it at ``level``."""
         src, tgt = self.images(source, target, level)
-        return TermPass(type(self).row, self.mode(), tuple(src), tuple(tgt), self.weight(), tuple(self.settings()))
+        return TermPass(type(self).row, self.mode(), tuple(src), tuple(tgt), self.level_weight(level),
+                        tuple(self.settings()))

@@ -6,7 +6,8 @@ frame's at the projection of p′, bilinearly interpolated at x = fx x′/z′ +
 from ``target.intensity_grad`` = (I, ∂I/∂x, ∂I/∂y) per pixel (I < 0 at any of the four taps: no row).
 r_c = I(x, y) − I_m; with g = ∂I/∂p′ = (g_x fx/z′, g_y fy/z′, −(g_x fx x′ + g_y fy y′)/z′²) and δp′ = ω × p′ +
 v, the row is A_c = [(p′ × g)ᵀ, gᵀ] (the point-to-plane row with the normal replaced by the intensity
-gradient in 3-D). Huber weights on r_c (k = ``icp.color_robust_scale``). Only where colour is registered to
+gradient in 3-D). Huber weights on r_c (k = ``icp.color_robust_scale``). λ is ``icp.color_weight`` at the
+coarse levels and ``icp.color_weight`` × ``icp.color_finest_scale`` at the finest (``level_weight``). Only where colour is registered to
 depth (``Frame.color_registered``): elsewhere the term is off for the frame, said once a run.
 """
 
@@ -83,6 +84,11 @@ class PhotometricTerm(TrackingTerm):
 
     def weight(self) -> float:
         return self.config.color_weight
+
+    def level_weight(self, level: int) -> float:
+        # on real colour the finest level's intensity gradients pulled pairs off the truth, the coarser levels held
+        # them (docs/PHOTOMETRIC.md, real colour)
+        return self.config.color_weight * (self.config.color_finest_scale if level == 0 else 1.0)
 
     def settings(self) -> tuple:
         return (self.config.color_robust_scale,)

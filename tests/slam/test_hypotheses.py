@@ -270,8 +270,8 @@ def test_the_synthetic_cabinet_slides_without_the_slide_starts(cpu):
     direction (λmin/λmax about 5e-4) and passes every check; with the defaults a slide start wins there and
     no step is off by more than about 1 cm (docs/TRACKING.md, the synthetic sensor)."""
     (before, frame, slid_before), (after, _, slid_after) = _cabinet_steps(11)
-    assert slid_before == 0 and before > 0.03 and frame == 10, worst  # 50 mm
-    assert slid_after >= 1 and after < 0.015, worst  # 8 mm
+    assert slid_before == 0 and before > 0.03 and frame == 10, (before, frame, slid_before)  # 50 mm
+    assert slid_after >= 1 and after < 0.015, (after, slid_after)  # 8 mm
 
 
 def test_exposure_changes_make_the_synthetic_cabinet_slide_as_the_real_one(cpu):

@@ -16,6 +16,8 @@ the kernel too; the order of the additions, and so the last bits, may differ bet
 
 import taichi as ti
 
+from ti_fusion.kernels.common import depth_sigma
+
 BLOCK_EDGE = 8                       # voxels along each edge of a block
 BLOCK_VOXELS = BLOCK_EDGE ** 3
 KEY_BITS = 10                        # bits per axis of a packed block key: 1024 blocks per axis at most
@@ -206,3 +208,36 @@ def integrate_depth(depth: DepthArray, color: ColorArray, has_color: ti.i32, K: 
                             ti.atomic_add(sdf[i], sd)
                             ti.atomic_add(wsum[i], 1.0)
                             ti.atomic_add(rgb[i], c)
+
+
+BlockArray = ti.types.ndarray(dtype=ti.math.ivec3, ndim=1)
+
+
+@ti.kernel
+def carve_depth(depth: DepthArray, K: ti.math.vec4, rot: Mat3, trans: ti.math.vec3, voxel: ti.f32, trunc: ti.f32,
+                sigmas: ti.f32, band: ti.f32, blocks: BlockArray, slots: IntArray, n_blocks: ti.i32,
+                free: FloatArray, near: FloatArray):
+    """Count, for every voxel of the given blocks (absolute block coordinates, their pool slots), the frame if it
+    saw through it: ``free`` += 1 where all four pixels around the voxel centre's projection have depth and the
+    nearest of them lies beyond it by more than ``trunc`` + ``sigmas``·σ(depth); ``near`` += 1 where the nearest
+    pixel's depth is within ``band`` of it (the frame saw a surface there)."""
+    for i, k in ti.ndrange(n_blocks, BLOCK_VOXELS):
+        g = blocks[i] * BLOCK_EDGE + ti.math.ivec3(k // (BLOCK_EDGE * BLOCK_EDGE), (k // BLOCK_EDGE) % BLOCK_EDGE,
+                                                   k % BLOCK_EDGE)
+        p = rot.transpose() @ (ti.cast(g, ti.f32) * voxel - trans)  # the voxel centre in the camera
+        if p.z > 0:
+            u = K[0] * p.x / p.z + K[2]
+            v = K[1] * p.y / p.z + K[3]
+            u0 = ti.cast(ti.floor(u), ti.i32)
+            v0 = ti.cast(ti.floor(v), ti.i32)
+            if 0 <= u0 and u0 + 1 < depth.shape[1] and 0 <= v0 and v0 + 1 < depth.shape[0]:
+                a, b = depth[v0, u0], depth[v0, u0 + 1]
+                c, e = depth[v0 + 1, u0], depth[v0 + 1, u0 + 1]
+                j = slots[i] * BLOCK_VOXELS + k
+                if ti.min(a, b, c, e) > 0:
+                    nearest = ti.min(a, b, c, e)
+                    if nearest - p.z > trunc + sigmas * depth_sigma(nearest, ti.f32):
+                        free[j] += 1.0  # one thread per voxel: no other thread writes it
+                dn = depth[ti.cast(ti.floor(v + 0.5), ti.i32), ti.cast(ti.floor(u + 0.5), ti.i32)]
+                if dn > 0 and ti.abs(dn - p.z) <= band:
+                    near[j] += 1.0

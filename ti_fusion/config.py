@@ -344,13 +344,15 @@ class DatasetConfig:
 
 @dataclass
 class SynthConfig:
-    scene: Annotated[str, OneOf("room", "loop", "twins", "wall", "corridor", "jerky", "cabinet"), Flag()] = "room"
+    scene: Annotated[str, OneOf("room", "loop", "twins", "wall", "corridor", "jerky", "cabinet", "slats"),
+                     Flag()] = "room"
                                     # the scene and its own camera path (docs/DATA.md): room (furnished room),
                                     # loop (corridor loop around a block, for loop closure), twins (the loop with
                                     # two identical sections, for false loops), wall (flat wall and floor),
                                     # corridor (plain walls, posters): geometry-poor, for photometric tracking,
                                     # jerky (the room at random gaps of 0.1-0.7 s) and cabinet (a plain box
-                                    # circled in a plain room, a frame every 0.67 s)
+                                    # circled in a plain room, a frame every 0.67 s), slats (a chair back of
+                                    # slats with 3 cm slots, for the mesh's openings)
     trajectory: Annotated[FilePath, Flag("FILE.tum")] = ""
                                     # a TUM file of camera-to-world poses to render instead of the scene's path:
                                     # one frame per pose at the file's timestamps; "" = the scene's own path
@@ -579,6 +581,10 @@ class MeshConfig:
                                      # confirmed surfels (ti-fusion mesh RUN_DIR: always). Room: F@1cm 0.984 vs 0.900
     truncation: Annotated[float, Range(ge=1.0, le=10.0)] = 4.0  # depth: voxels each side of a pixel's depth it writes
     depth_min_weight: NonNegative = 0.0  # depth: voxels with at most this many pixel samples are not meshed
+    carve_frames: NonNegativeInt = 2  # depth: a voxel this many frames saw through (and more than saw a surface
+                                     # at it) is empty space, so openings stay open; 0 = off (docs/MESH.md)
+    carve_sigmas: NonNegative = 3.0  # depth: seen through = the depth beyond the voxel by more than the
+                                     # truncation plus this many σ(depth) of the sensor's noise
     min_weight: NonNegative = 3.0    # only surfels at least this confident are meshed (fusion.unstable_weight: the
                                      # confirmed ones, never removed as unstable)
     band: Annotated[float, Range(ge=1.0, le=4.0)] = 2.0  # voxels: how far along its normal a surfel writes its distance

@@ -23,7 +23,7 @@ from ti_fusion.timing import Stopwatch
 log = logging.getLogger(__name__)
 
 E = 8  # voxels along a block's edge (kernels/mesh.py's BLOCK_EDGE; kept here so that NumPy-only callers need no Taichi)
-BYTES_PER_VOXEL = 20 + 4 * 5 * 729 // 512  # the kernel's sums, and the padded copies marching cubes reads
+BYTES_PER_VOXEL = 28 + 4 * 5 * 729 // 512  # the kernels' sums and counts, and the padded copies marching cubes reads
 VOXEL_RANGE = (0.001, 0.5)  # metres: finer is below any RGB-D sensor's noise, coarser is no longer a surface
 
 
@@ -347,7 +347,12 @@ class DepthFusion:
     Blocks of 8³ voxels get a slot in a pool when a frame's samples first reach them, so memory grows with the
     observed surface (and a band of ± the truncation about it), never with the bounding box; a frame's own
     lookup table spans only the box of its samples. More than ``mesh.max_voxels`` stops the integration with
-    one line naming the setting."""
+    one line naming the setting.
+
+    Each frame also counts, per voxel of the blocks in its view, whether it saw through the voxel (its depth
+    beyond it by more than the truncation and ``mesh.carve_sigmas`` σ of the sensor's noise) or saw a surface
+    within a voxel of it; voxels seen through by ``mesh.carve_frames`` frames and more often than at a surface
+    are empty space when the grid is meshed, so openings that the band behind a surface closed stay open."""
 
     OFFSET = 1 << 20  # block coordinates are packed into 21 bits each, shifted by this
 
@@ -364,7 +369,10 @@ class DepthFusion:
         self.sdf = np.zeros(0, np.float32)
         self.wsum = np.zeros(0, np.float32)
         self.rgb = np.zeros((0, 3), np.float32)
+        self.free = np.zeros(0, np.float32)  # per voxel: frames that saw through it (depth well beyond it)
+        self.near = np.zeros(0, np.float32)  # per voxel: frames that saw a surface within a voxel of it
         self.frames = 0
+        self.carved = 0  # voxels with samples that the last grid() turned into empty space
 
     def __len__(self) -> int:
         return len(self.keys)
@@ -379,7 +387,7 @@ class DepthFusion:
             return
         cap = max(blocks, 2 * self.capacity, 256)
         cap = min(cap, max(blocks, self.settings.max_voxels // E ** 3))
-        for name, shape in (("sdf", ()), ("wsum", ()), ("rgb", (3,))):
+        for name, shape in (("sdf", ()), ("wsum", ()), ("rgb", (3,)), ("free", ()), ("near", ())):
             new = np.zeros((cap * E ** 3,) + shape, np.float32)
             old = getattr(self, name)
             new[:len(old)] = old
@@ -400,15 +408,7 @@ class DepthFusion:
             return
         K = intrinsics
         pose = np.asarray(pose, np.float64)
-        # a box holding every sample: the frustum's corners at the nearest and farthest sample depths
-        z0, z1 = max(float(valid.min()) - self.trunc, 0.0), float(valid.max()) + self.trunc
-        u = np.array([0.0, w - 1.0, 0.0, w - 1.0])
-        v = np.array([0.0, 0.0, h - 1.0, h - 1.0])
-        cam = np.concatenate([np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, np.full(4, z)], axis=1)
-                              for z in (z0, z1)])
-        pts = cam @ pose[:3, :3].T + pose[:3, 3]
-        lo = np.floor(np.floor(pts.min(axis=0) / self.voxel - 0.5) / E).astype(np.int64) - 1
-        hi = np.floor(np.floor(pts.max(axis=0) / self.voxel + 1.5) / E).astype(np.int64) + 1
+        lo, hi = self._frame_box(depth, K, pose)
         dims = hi - lo + 1
         if np.prod(dims) > max(self.settings.max_voxels // E ** 3, 1 << 22):
             raise InputError(self.source, f"a frame's depth spans {dims.max() * E * self.voxel:.1f} m: more blocks "
@@ -448,22 +448,77 @@ class DepthFusion:
         else:
             c = np.zeros((1, 1, 3), np.float32)
         kmesh.integrate_depth(depth, c, int(has_color), *args, table, self.sdf, self.wsum, self.rgb)
+        if self.settings.carve_frames > 0:
+            self._carve(depth, K, pose, lo, hi)
         self.frames += 1
+
+    def _frame_box(self, depth: np.ndarray, K, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The first and last block coordinates of a box holding every sample of the frame: its frustum's corners
+        at the nearest and farthest valid depth, widened by the truncation."""
+        h, w = depth.shape
+        valid = depth[depth > 0]
+        z0, z1 = max(float(valid.min()) - self.trunc, 0.0), float(valid.max()) + self.trunc
+        u = np.array([0.0, w - 1.0, 0.0, w - 1.0])
+        v = np.array([0.0, 0.0, h - 1.0, h - 1.0])
+        cam = np.concatenate([np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, np.full(4, z)], axis=1)
+                              for z in (z0, z1)])
+        pts = cam @ pose[:3, :3].T + pose[:3, 3]
+        lo = np.floor(np.floor(pts.min(axis=0) / self.voxel - 0.5) / E).astype(np.int64) - 1
+        hi = np.floor(np.floor(pts.max(axis=0) / self.voxel + 1.5) / E).astype(np.int64) + 1
+        return lo, hi
+
+    def _carve(self, depth: np.ndarray, K, pose: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Count the frame's look through every voxel of the blocks so far inside its frustum's box (``free``,
+        ``near``: the kernel's ``carve_depth``)."""
+        from ti_fusion.kernels import mesh as kmesh
+        import taichi as ti
+
+        blocks = self._block_coords()
+        inside = np.flatnonzero(((blocks >= lo) & (blocks <= hi)).all(axis=1))
+        if not len(inside):
+            return
+        kmesh.carve_depth(depth, ti.math.vec4(K.fx, K.fy, K.cx, K.cy), ti.Matrix(pose[:3, :3].astype(np.float32)),
+                          ti.math.vec3(*pose[:3, 3].astype(np.float32)), self.voxel, self.trunc,
+                          float(self.settings.carve_sigmas), self.voxel,
+                          np.ascontiguousarray(blocks[inside], np.int32),
+                          np.ascontiguousarray(self.slots[inside], np.int32), len(inside), self.free, self.near)
+
+    def _block_coords(self) -> np.ndarray:
+        """The absolute block coordinates (B × 3 int64) of the sorted keys."""
+        o, m = self.OFFSET, (1 << 21) - 1
+        return np.stack([(self.keys >> 42) - o, ((self.keys >> 21) & m) - o, (self.keys & m) - o], axis=1)
 
     def grid(self) -> tuple[SparseGrid, dict]:
         """The sparse grid of the blocks so far and its voxels (as ``splat_surfels`` returns them)."""
         if not len(self.keys):
             raise InputError(self.source, "no frame had valid depth: no surface to mesh")
-        o, m = self.OFFSET, (1 << 21) - 1
-        blocks = np.stack([(self.keys >> 42) - o, ((self.keys >> 21) & m) - o, (self.keys & m) - o], axis=1)
-        grid = SparseGrid.of_blocks(blocks, self.voxel, self.source)
+        grid = SparseGrid.of_blocks(self._block_coords(), self.voxel, self.source)
         idx = (self.slots[:, None] * E ** 3 + np.arange(E ** 3)).reshape(-1)
         wsum = self.wsum[idx]
         with np.errstate(invalid="ignore", divide="ignore"):
             inv = np.where(wsum > 0, 1.0 / wsum, 0.0).astype(np.float32)
+        sdf = self.sdf[idx] * inv
+        # Seen-through voxels that the band behind a surface made negative (a slot beside a slat, the space behind
+        # it) are empty space. Where a frame saw a surface within a voxel of one, it stays as one voxel in front
+        # of that surface, so the surface it borders is contoured (a slot's sides); elsewhere it leaves the grid,
+        # so that no surface is made in the middle of empty space (a spurious one between it and the shadow
+        # behind a slat, which no camera saw).
+        carved = self.empty(idx) & (wsum > self.settings.depth_min_weight) & (sdf <= 0)
+        seen = self.near[idx] > 0
+        sdf[carved & seen] = np.float32(self.voxel)
+        wsum = np.where(carved & ~seen, np.float32(0), wsum)
+        self.carved = int(carved.sum())
         shape = (len(grid), E, E, E)
-        return grid, {"sdf": (self.sdf[idx] * inv).reshape(shape), "weight": wsum.reshape(shape),
+        return grid, {"sdf": sdf.reshape(shape), "weight": wsum.reshape(shape),
                       "color": (self.rgb[idx] * inv[:, None]).reshape(shape + (3,))}
+
+    def empty(self, idx: np.ndarray) -> np.ndarray:
+        """Which of the voxels ``idx`` (pool indices) are empty space: seen through by at least
+        ``mesh.carve_frames`` frames, and by more frames than saw a surface within a voxel of them."""
+        if self.settings.carve_frames <= 0:
+            return np.zeros(len(idx), bool)
+        free = self.free[idx]
+        return (free >= self.settings.carve_frames) & (free > self.near[idx])
 
     def mesh(self, stats: dict | None = None) -> Mesh:
         """Marching cubes over the voxels with more than ``mesh.depth_min_weight`` samples."""
@@ -477,6 +532,7 @@ class DepthFusion:
             mesh = decimate(mesh, self.settings.max_triangles)
         ms["decimate"] = round(watch.lap(), 1)
         stats.update({"method": "depth", "frames_integrated": self.frames, "blocks": len(grid),
+                      "voxels_carved": self.carved,
                       "voxels": len(grid) * E ** 3,
                       "voxels_reached": int((voxels["weight"] > self.settings.depth_min_weight).sum()),
                       "ms": ms})

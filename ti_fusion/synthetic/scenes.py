@@ -19,6 +19,8 @@
 ``cabinet``   a plain box (a cabinet) in a room of plain walls, only mild colour gradients, circled once by a
               camera whose speed changes; one frame every 0.67 s (every 20th of the 30 Hz path), steps of up
               to ~23 cm and ~17°: wide baselines on low texture, where feature re-localisation has little to match.
+``slats``     a chair back of vertical slats with 3 cm slots between them, 0.6 m in front of a wall, seen from an
+              arc of ±35° in front of it: the wall shows through every slot (a mesh must keep them open).
 
 World frame as in ``shapes``: metres, z up. The loop scenes are centred under the renderer's point light
 (``kernels.scene_render.LIGHT``) so their shading, like their geometry, is symmetric under a half turn about
@@ -374,6 +376,58 @@ def cabinet_path(times: np.ndarray) -> np.ndarray:
     return np.array([look_at(np.array([x[i], y[i], z[i]]), target[i], roll[i]) for i in range(len(t))])
 
 
+# -- the slats --------------------------------------------------------------------------------------------
+SLATS_Y = 0.4                  # the slats' middle plane (world y); the wall behind at SLATS_WALL_Y
+SLATS_WALL_Y = 1.0
+SLAT_HALF = (0.02, 0.01, 0.3)  # 4 cm wide, 2 cm deep, 60 cm high
+SLOT = 0.03                    # metres between two slats
+SLATS = 10
+SLATS_Z = 0.8                  # the slats' middle height
+
+
+def slat_xs() -> np.ndarray:
+    """The x of each slat's middle (symmetric about x = 0)."""
+    pitch = 2 * SLAT_HALF[0] + SLOT
+    return (np.arange(SLATS) - (SLATS - 1) / 2) * pitch
+
+
+def slot_xs() -> np.ndarray:
+    """The x of each slot's middle, between neighbouring slats."""
+    xs = slat_xs()
+    return 0.5 * (xs[1:] + xs[:-1])
+
+
+def slats_scene() -> Scene:
+    wood = M("plaid", 0.05, (0.45, 0.28, 0.15), (0.80, 0.62, 0.40))
+    xs = slat_xs()
+    width = xs[-1] - xs[0] + 2 * SLAT_HALF[0]
+    rail_z = SLAT_HALF[2] + 0.02
+    return Scene([
+        Plane((0, 0, 0), (0, 0, 1), M("tiles", 0.25, (0.40, 0.36, 0.30), (0.82, 0.78, 0.70), detail=0.35)),
+        Plane((0, SLATS_WALL_Y, 0), (0, -1, 0), M("blobs", 0.18, (0.25, 0.30, 0.45), (0.92, 0.86, 0.72), detail=0.45)),
+        *[Box((float(x), SLATS_Y, SLATS_Z), SLAT_HALF, wood) for x in xs],
+        # top and bottom rails close each slot's ends; two posts carry the frame to the floor
+        *[Box((0.0, SLATS_Y, SLATS_Z + sign * rail_z), (width / 2 + 0.03, 0.015, 0.02), wood) for sign in (-1, 1)],
+        *[Box((sign * (width / 2 + 0.05), SLATS_Y, (SLATS_Z + rail_z + 0.02) / 2), (0.02, 0.015,
+              (SLATS_Z + rail_z + 0.02) / 2), wood) for sign in (-1, 1)],
+    ])
+
+
+def slats_path(times: np.ndarray) -> np.ndarray:
+    """An arc 1.2–1.4 m in front of the slats, from 35° one side to 35° the other and back (one sweep in
+    about 4 s), at eye height, looking at points that wander over the slats."""
+    t = np.asarray(times, dtype=np.float64)
+    a = np.radians(35.0) * np.sin(0.8 * t)
+    r = 1.3 + 0.1 * np.sin(0.5 * t + 0.7)
+    x = r * np.sin(a)
+    y = SLATS_Y - r * np.cos(a)
+    z = 1.15 + 0.1 * np.sin(0.6 * t + 0.3) + 0.004 * np.sin(2 * np.pi * 1.3 * t)
+    target = np.stack([0.15 * np.sin(0.9 * t + 0.5), np.full_like(t, SLATS_Y),
+                       SLATS_Z + 0.1 * np.sin(0.7 * t + 1.1)], 1)
+    roll = np.radians(3.0 * np.sin(0.8 * t + 0.4))
+    return np.array([look_at(np.array([x[i], y[i], z[i]]), target[i], roll[i]) for i in range(len(t))])
+
+
 # -- the catalogue -------------------------------------------------------------------------------------
 @dataclass(frozen=True)
 class SceneSpec:
@@ -400,6 +454,8 @@ SCENES: dict[str, SceneSpec] = {
     "cabinet": SceneSpec("cabinet", cabinet_scene, cabinet_path, 58,
                          "a plain cabinet in a plain room circled at changing speed, a frame every 0.67 s "
                          "(wide baselines, low texture)", cabinet_times),
+    "slats": SceneSpec("slats", slats_scene, slats_path, 120,
+                       "a chair back of slats with 3 cm slots in front of a wall (openings a mesh keeps open)"),
 }
 
 

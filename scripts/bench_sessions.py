@@ -19,7 +19,7 @@ continuous run (aligned once over all of its frames); their ratio.
     .venv/bin/python scripts/bench_sessions.py --cases loop --loop-second 300  # the loop's second lap cut short
 
 Cases: ``redkitchen`` (``--data``, 7-Scenes, frames 0-249 saved, then 250-499) and ``loop`` (the synthetic loop
-at ``--loop-downsample``: its first lap saved, then ``--loop-second`` frames of the second lap).
+at ``--loop-downsample``: its first lap saved (``--loop-first``), then ``--loop-second`` frames of the second lap).
 """
 
 from __future__ import annotations
@@ -175,7 +175,9 @@ def main() -> int:
     p.add_argument("--end", type=int, default=500, help="redkitchen: one past its last frame")
     p.add_argument("--downsample", type=int, default=1, help="redkitchen: --downsample")
     p.add_argument("--loop-downsample", type=int, default=2, help="the loop: --downsample")
-    p.add_argument("--loop-second", type=int, default=0, help="the loop: frames of the second lap (0 = all of it)")
+    p.add_argument("--loop-first", type=int, default=0, help="the loop: frames of the first session (0 = one lap; "
+                   "the scene's own length, once round and 3 m on, lets the first session close its loop)")
+    p.add_argument("--loop-second", type=int, default=0, help="the loop: frames of the second session (0 = a lap)")
     p.add_argument("--seen", type=float, default=0.3, help="'sees mapped space': this fraction of the grid covered")
     p.add_argument("--no-localize", dest="localize", action="store_false", help="leave out the --localize run")
     p.add_argument("--arch", default="cpu")
@@ -196,9 +198,9 @@ def main() -> int:
             rows.append(run_case(case, data, args.split, args.end, args))
         else:  # the loop
             lap = int(round(LOOP_LENGTH / LOOP_SPEED * FPS))
-            second = args.loop_second or lap
+            first, second = args.loop_first or lap, args.loop_second or lap
             data = ["--scene", "loop", "--downsample", str(args.loop_downsample), *common]
-            rows.append(run_case(case, data, lap, lap + second, args))
+            rows.append(run_case(case, data, first, first + second, args))
         print(json.dumps(rows[-1]), file=sys.stderr, flush=True)
 
     print("| case | first session | second session | found at (frame of the session) | first frame seeing the "

@@ -367,8 +367,10 @@ def test_a_full_disk_is_one_line_and_leaves_no_truncated_map(cpu, tmp_path, caps
     monkeypatch.setattr(outputs, "open", full_for_the_map, raising=False)
     out = tmp_path / "run"
     assert main(["slam", *TINY, "--out", str(out)]) == 2
-    assert _one_line(capsys) == f"ti-fusion slam: error: {out / 'map.ply'}: cannot be written: No space left on device"
+    assert _one_line(capsys) == (f"ti-fusion slam: error: {out / 'map.ply'}: cannot be written: No space left on device"
+                                 f" (nor {Path('map') / 'map.json'})")  # the saved map, refused for the same reason
     assert not (out / "map.ply").exists() and not [p for p in os.listdir(out) if ".tmp" in p]
+    assert not (out / "map" / "map.json").exists()
     assert len(read_tum(out / "trajectory.tum")[0]) == 3 and read_log(out / "log.mcap").complete
 
 

@@ -15,13 +15,14 @@ from __future__ import annotations
 
 import logging
 from contextlib import nullcontext
+from pathlib import Path
 from typing import Any, Protocol
 
 import numpy as np
 
 from ti_fusion.backend import BackendInfo
 from ti_fusion.config import Config
-from ti_fusion.errors import InputError, NotLocalised
+from ti_fusion.errors import InputError, NotLocalised, OutputError
 from ti_fusion.frontend import CLOCK
 from ti_fusion.interrupts import stream_end
 from ti_fusion.io.datasets.base import Dataset, Frame
@@ -149,6 +150,7 @@ class Pipeline:
         fields: dict = {}
         failure: Exception | None = None
         stop: BaseException | None = None
+        also: list[Path] = []  # outputs refused for the same reason as the one reported
         with self.timer.stage("export"):
             for sink in sinks:
                 if (only_kept or stop is not None) and not sink.on_stop:
@@ -158,12 +160,16 @@ class Pipeline:
                 except Exception as exc:
                     if error is None and failure is None:
                         failure = exc
+                    elif _same_cause(error or failure, exc):  # a full disk refuses every output: one line
+                        also.append(exc.path)
                     else:  # the first error is the one to report; this one only limits what is kept
                         logging.getLogger(__name__).warning(
                             f"after the error, {sink.name} of the {len(self.results)} frames done could not be "
                             f"written: {exc}")
                 except BaseException as exc:  # a stop while finishing: the trajectory and the log still
                     stop = stop or exc
+        if also:
+            _name_also(error or failure, also)
         if stop is not None:
             raise stop
         return fields, failure
@@ -270,3 +276,15 @@ class SLAMPipeline(Pipeline):
         from ti_fusion.slam.slam_step import SLAMStep  # Taichi: imported by the commands that use it only
 
         super().__init__(dataset, config, run_dir, SLAMStep(config, dataset), backend, show_progress, live, outputs)
+
+
+def _same_cause(reported: Exception, later: Exception) -> bool:
+    """Both outputs refused for one reason (a full disk, a folder gone read-only)."""
+    return isinstance(reported, OutputError) and isinstance(later, OutputError) and reported.problem == later.problem
+
+
+def _name_also(reported: Exception, paths: list[Path]) -> None:
+    """The reported line also names the other outputs refused for the same reason."""
+    base = reported.path.parent
+    names = ", ".join(str(p.relative_to(base)) if p.is_relative_to(base) else str(p) for p in paths)
+    reported.args = (f"{reported} (nor {names})",)

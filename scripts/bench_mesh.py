@@ -330,7 +330,8 @@ def main() -> int:
                 shutil.copy(Path(tmp) / "open3d.ply", out / "mesh_open3d.ply")
                 size = f"{640 // args.open3d_downsample}x{480 // args.open3d_downsample}"
                 rows.append({"system": f"Open3D {o['version']} TSDF (gt poses, {size}, trunc {args.sdf_trunc:g} voxels)",
-                             "mesh_s": round(o["mesh_s"], 2), **metrics(o["vertices"], o["faces"], scene, truth, rng)})
+                             "mesh_s": round(o["mesh_s"], 2), **metrics(o["vertices"], o["faces"], scene, truth, rng),
+                             **(slot_openings(o["vertices"], o["faces"]) if args.scene == "slats" else {})})
     print(f"{args.scene}, {len(dataset)} frames, voxel {args.voxel * 100:g} cm, observed truth {len(truth)} points "
           f"(every {args.truth_stride}th frame, 5 mm)")
     cols = ["triangles", "accuracy_mm", "precision_1cm", "completeness_1cm", "f_1cm", "f_5cm", "mesh_s"]

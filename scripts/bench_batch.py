@@ -23,6 +23,7 @@ results.csv) and whether they are identical, the two times and their ratio (batc
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import csv
 import json
 import os
@@ -72,8 +73,12 @@ def main() -> int:
 
     sys.path.insert(0, str(ROOT))
     from ti_fusion.batch.manifest import read_manifest
-    from ti_fusion.batch.runner import job_env
+    from ti_fusion.batch.runner import MISSING_RAY, job_env
     from ti_fusion.errors import InputError
+
+    if importlib.util.find_spec("ray") is None:  # else the batch arm fails in a second and the ratio means nothing
+        print(f"bench_batch.py: {MISSING_RAY}", file=sys.stderr)
+        return 2
 
     work = Path(args.keep) if args.keep else Path(tempfile.mkdtemp(prefix="bench-batch-"))
     work.mkdir(parents=True, exist_ok=True)
@@ -115,6 +120,9 @@ def main() -> int:
     batched, code = timed(py + ["batch", str(manifest), "--out", str(batch_dir), "--overwrite", "--jobs",
                                 str(args.jobs), "--threads", str(args.threads)], work / "batch.log")
     print(f"  batch: {batched:.1f} s, exit {code}", flush=True)
+    if code != 0:
+        print(f"bench_batch.py: the batch failed (exit {code}); no ratio: see {work / 'batch.log'}", file=sys.stderr)
+        return 1
     rows = {}
     if (batch_dir / "results.csv").is_file():
         with open(batch_dir / "results.csv") as f:

@@ -228,7 +228,10 @@ class LoopClosure:
         query = Keyframe(len(self.keyframes), frame.index, frame.timestamp, np.eye(4), features, frame.intrinsics,
                          None, maps.frame.intrinsics[maps.level], np.zeros((0, 3)))
         checked = []
-        for place in self.database.query(query, everything=True):
+        # a shortlist, not a gate: in a small map tf-idf scores every keyframe low (a word in each of them weighs
+        # nothing), and a frame that is not found tries again next frame, so the best few are verified whatever
+        # their score (PnP and dense ICP decide)
+        for place in self.database.query(query, everything=True, min_score=0.0):
             c = self.verifier.verify(query, self.keyframes[place.keyframe], place.score, maps.scratch, maps.frame,
                                      target_ready=True)
             checked.append(c)

@@ -141,11 +141,13 @@ class PlaceDatabase:
         candidate whatever the frame index of the query (a new session counts its frames from 0 again)."""
         self._frames = [EARLIER_SESSION] * len(self._frames)
 
-    def query(self, keyframe: Keyframe, everything: bool = False, exclude: set[int] = frozenset()) -> list[Place]:
+    def query(self, keyframe: Keyframe, everything: bool = False, exclude: set[int] = frozenset(),
+              min_score: float | None = None) -> list[Place]:
         """Earlier keyframes at least ``min_frame_gap`` frames before ``keyframe`` (``everything``: every
-        keyframe), not in ``exclude``, with a score of at least ``min_score``, best first, ``candidates`` of them
-        at most."""
+        keyframe), not in ``exclude``, with a score of at least ``min_score`` (default: the config's), best
+        first, ``candidates`` of them at most."""
         cfg = self.config
+        min_score = cfg.min_score if min_score is None else min_score
         eligible = len(self._frames) if everything else \
             int(np.searchsorted(np.asarray(self._frames), keyframe.frame - cfg.min_frame_gap, side="right"))
         q = keyframe.features.descriptors
@@ -154,7 +156,7 @@ class PlaceDatabase:
         scores = self._bow_scores(q, eligible) if self.vocabulary is not None else self._vote_scores(q, eligible)
         order = np.argsort(-scores, kind="stable")
         return [Place(int(k), float(scores[k])) for k in order
-                if scores[k] >= cfg.min_score and int(k) not in exclude][:cfg.candidates]
+                if scores[k] >= min_score and int(k) not in exclude][:cfg.candidates]
 
     def _bow_scores(self, q: np.ndarray, eligible: int) -> np.ndarray:
         """DBoW2's L1 score of the query against each of the first ``eligible`` keyframes, tf-idf weighted

@@ -631,13 +631,9 @@ def _frames_and_truth(script, scene: str, frames: int, stride: int):
         dataset.sequence.scene
 
 
-@pytest.mark.slow
-def test_depth_mesh_keeps_the_slots_open(cpu, script):
-    """The slats scene (a chair back with 3 cm slots, a wall 0.6 m behind) at its ground-truth poses: with the
-    space the frames saw through carved, rays pass through the slots where the band behind the slats filled part
-    of them, and the F-score against the true surfaces is no worse (measured on these 20 frames: the slots' clear
-    width 1.9 -> 3.3 cm (the truth 3 cm), their middles open 0.917 -> 1.0, F@1cm 0.997494 -> 0.997647)."""
-    bench, frames, truth, scene = _frames_and_truth(script, "slats", 40, 2)
+def _carved_and_plain(frames) -> tuple:
+    """The depth mesh of ``frames`` at their ground-truth poses with the seen-through space carved (some voxels
+    were) and without."""
     fusion = M.DepthFusion(MeshConfig(method="depth"))
     for f in frames:
         fusion.integrate(f.depth, f.color, f.intrinsics, f.gt_pose)
@@ -645,7 +641,17 @@ def test_depth_mesh_keeps_the_slots_open(cpu, script):
     carved = fusion.mesh(stats)
     assert stats["voxels_carved"] > 0
     fusion.settings.carve_frames = 0
-    plain = fusion.mesh()
+    return carved, fusion.mesh()
+
+
+@pytest.mark.slow
+def test_depth_mesh_keeps_the_slots_open(cpu, script):
+    """The slats scene (a chair back with 3 cm slots, a wall 0.6 m behind) at its ground-truth poses: with the
+    space the frames saw through carved, rays pass through the slots where the band behind the slats filled part
+    of them, and the F-score against the true surfaces is no worse (measured on these 20 frames: the slots' clear
+    width 1.9 -> 3.3 cm (the truth 3 cm), their middles open 0.917 -> 1.0, F@1cm 0.997494 -> 0.997647)."""
+    bench, frames, truth, scene = _frames_and_truth(script, "slats", 40, 2)
+    carved, plain = _carved_and_plain(frames)
     got = {name: {**bench.metrics(m.vertices, m.faces, scene, truth, np.random.default_rng(0)),
                   **bench.slot_openings(m.vertices, m.faces)} for name, m in (("carved", carved), ("plain", plain))}
     assert got["carved"]["open"] > 0.98 and got["carved"]["width_cm"] >= 2.6, got
@@ -659,14 +665,7 @@ def test_carving_keeps_the_room_as_accurate(cpu, script):
     F@1cm by less than 0.0005 either way (measured: 0.972520 -> 0.972465, -0.000055; 60 frames, bench_mesh.py:
     0.988485 -> 0.988442, within the ±0.00005 that another sampling of the same meshes moves it)."""
     bench, frames, truth, scene = _frames_and_truth(script, "room", 60, 3)
-    fusion = M.DepthFusion(MeshConfig(method="depth"))
-    for f in frames:
-        fusion.integrate(f.depth, f.color, f.intrinsics, f.gt_pose)
-    stats: dict = {}
-    carved = fusion.mesh(stats)
-    assert stats["voxels_carved"] > 0
-    fusion.settings.carve_frames = 0
-    plain = fusion.mesh()
+    carved, plain = _carved_and_plain(frames)
     f_carved, f_plain = (bench.metrics(m.vertices, m.faces, scene, truth, np.random.default_rng(0))["f_1cm"]
                          for m in (carved, plain))
     assert abs(f_carved - f_plain) < 0.0005, (f_carved, f_plain)

@@ -64,7 +64,7 @@ COMMAND_NAMES = ("synth", "icp", "fuse", "slam", "vo", "inspect", "mesh", "batch
 STOP_SIGNALS = tuple(getattr(signal, name) for name in ("SIGTERM", "SIGHUP") if hasattr(signal, name))
 
 # What the first Ctrl-C during a live camera's stream says (ti_fusion.interrupts.end_stream).
-FINISHING = "Ctrl-C: finishing the run (map, mesh, summary); Ctrl-C again to stop at once"
+FINISHING = "Ctrl-C: finishing the run (its outputs and summary.json); Ctrl-C again to stop at once"
 
 
 class Stopped(KeyboardInterrupt):

@@ -264,6 +264,15 @@ def test_inspect_says_what_a_saved_map_holds(tmp_path, rng, capsys):
     assert main(["inspect", str(folder)]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"ti-fusion inspect: error: {folder / DATA}: is corrupted: array") and "\n" not in err
+    # a header that parses but lacks a field: one line from inspect and from mesh, as from a session
+    folder = save_map(saved, tmp_path / "n")
+    header = json.loads((folder / HEADER).read_text())
+    del header["camera"]
+    (folder / HEADER).write_text(json.dumps(header))
+    for command in (["inspect", str(folder)], ["mesh", str(folder), "--out", str(tmp_path / "mesh"), "--quiet"]):
+        assert main(command) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith(f"ti-fusion {command[0]}: error: {folder}") and "\n" not in err, err
 
 
 @pytest.mark.slow

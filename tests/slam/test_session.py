@@ -123,8 +123,12 @@ def test_a_session_that_never_sees_the_map_gets_no_pose_or_maps_in_its_own_frame
     assert summary["tracking_failures"] == 0 and len(system.poses.by_frame()) == 0
 
     system, wall = _mapped("wall", find_frames=2, unfound="map-anyway")
+    loaded, fields = system.surfels, system.mapper.map
     system.start_session()
-    results = [system.register_frame(wall[i]) for i in range(4)]
+    results = [system.register_frame(wall[i]) for i in range(3)]
+    assert system.surfels < loaded  # the loaded map set aside: only the third frame's surfels
+    results.append(system.register_frame(wall[3]))
+    assert system.mapper.map is fields  # emptied in place: no second map's fields
     assert [r.tracking for r in results[:2]] == [Tracking.UNLOCALISED] * 2
     assert results[2].tracking is Tracking.INIT and results[3].tracked  # a map of its own from the third frame
     assert system.session.own_map_at == 2 and system.surfels > 0 and len(system.loop.keyframes) == 1

@@ -73,20 +73,23 @@ def run(ctx) -> dict:
 
 def summarise_map(path: Path) -> dict:
     """What a saved map holds (``ti_fusion/io/map_files.py``), every array's checksum verified on the way."""
-    from ti_fusion.io.map_files import map_folder, read_map_folder
+    from dataclasses import asdict
+
+    from ti_fusion.io.map_files import map_folder
+    from ti_fusion.slam.saved_map import load_map
 
     folder = map_folder(path)
-    header, arrays = read_map_folder(folder)
-    position, weight = arrays["surfels/position"], arrays["surfels/weight"]
-    confirmed = float(header["config"].get("fusion", {}).get("unstable_weight", 3.0))
-    loops = header.get("loops", {})
-    return {"folder": str(folder), "version": header["version"],
+    saved = load_map(folder)  # a damaged header is one InputError line there, as for a session
+    position, weight = saved.surfels["position"], saved.surfels["weight"]
+    confirmed = saved.make_config().fusion.unstable_weight
+    camera = asdict(saved.intrinsics)
+    return {"folder": str(folder), "version": saved.version,
             "bytes": sum(p.stat().st_size for p in folder.iterdir() if p.is_file()),
-            "camera": {k: header["camera"][k] for k in ("fx", "fy", "cx", "cy", "width", "height")},
-            "map_level": header["map_level"], "surfels": int(header["surfels"]),
+            "camera": {k: camera[k] for k in ("fx", "fy", "cx", "cy", "width", "height")},
+            "map_level": saved.map_level, "surfels": saved.count,
             "confirmed_surfels": int(np.count_nonzero(weight >= confirmed)), "confirmed_weight": confirmed,
-            "keyframes": len(header["keyframes"]), "frames_fused": header["frames_fused"],
-            "last_frame": header["last_frame"], "loops_applied": len(loops.get("applied", [])),
+            "keyframes": len(saved.keyframes), "frames_fused": saved.frames_fused,
+            "last_frame": saved.last_frame, "loops_applied": len(saved.loops.get("applied", [])),
             "extent_m": None if not len(position) else
             [[round(float(v), 3) for v in position.min(axis=0)], [round(float(v), 3) for v in position.max(axis=0)]],
             "checksums": "verified"}

@@ -62,13 +62,12 @@ def map_file(given: str) -> Path:
 def saved_surfels(path: Path) -> tuple[dict, object]:
     """(the surfels, the world's up for mesh.glb: the first keyframe's camera -y, or None) of the saved map
     whose map.json is ``path``, every checksum verified."""
-    from ti_fusion.io.map_files import read_map_folder
     from ti_fusion.io.mesh_files import camera_up
+    from ti_fusion.slam.saved_map import load_map
 
-    _, arrays = read_map_folder(path)
-    surfels = {name: arrays[f"surfels/{name}"] for name in ("position", "normal", "color", "weight", "radius")}
-    poses = arrays["keyframes/pose"]
-    return surfels, camera_up(poses[0]) if len(poses) else None
+    saved = load_map(path)  # a damaged header is one InputError line there
+    surfels = {name: saved.surfels[name] for name in ("position", "normal", "color", "weight", "radius")}
+    return surfels, camera_up(saved.keyframes[0].pose) if saved.keyframes else None
 
 
 def first_camera_up(folder: Path):

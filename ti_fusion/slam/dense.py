@@ -623,7 +623,9 @@ class DenseSLAM:
     def own_map(self) -> None:
         """A session that did not find itself maps on in its own frame (``map.unfound = map-anyway``): the
         loaded map, its keyframes and its graph are set aside; the next usable frame starts a new map."""
-        self.mapper = SurfelMapper(self.config.fusion)
+        # emptied in place: a new mapper would allocate a second map's fields (and their kernels) beside these
+        self.mapper.map.count = 0
+        self.mapper.anchor = 0
         self._frames_fused = 0
         self.poses = PoseStore()
         self.seed(None, None)

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 
+import numpy as np
 import pytest
 
 from ti_fusion.cli.main import main
@@ -83,3 +84,18 @@ def test_a_session_finds_itself_extends_the_map_or_localises_leaving_it_unchange
     assert summary["session"] == "extend" and summary["localised_at"] == 8
     assert summary["saved_map"]["keyframes"] > json.loads((first / "summary.json").read_text())["keyframes"]
     assert len(_poses(extended)) == 4
+    # map_trajectory.tum: both sessions' frames in the map's frame (no loop moved the first's: as it wrote them),
+    # and the extended map carries them on
+    from ti_fusion.io.trajectory import read_tum
+    from ti_fusion.slam.saved_map import load_map
+
+    stamps, poses = read_tum(extended / "map_trajectory.tum")
+    first_stamps, first_poses = read_tum(first / "trajectory.tum")
+    own_stamps, own_poses = read_tum(extended / "trajectory.tum")
+    np.testing.assert_allclose(stamps, np.concatenate([first_stamps, own_stamps]))
+    np.testing.assert_allclose(np.asarray(poses), np.concatenate([first_poses, own_poses]), atol=1e-5)
+    assert summary["map_trajectory"] == {"frames": 24, "earlier_sessions_frames": 20}
+    saved = load_map(extended)
+    assert len(saved.trajectory) == 24 and saved.trajectory.sessions == 2
+    assert saved.trajectory.session.tolist() == [0] * 20 + [1] * 4
+    assert not (localised / "map_trajectory.tum").exists()

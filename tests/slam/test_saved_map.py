@@ -13,11 +13,11 @@ import pytest
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import Config
 from ti_fusion.errors import InputError
-from ti_fusion.io.map_files import DATA, HEADER, VERSION, map_folder
+from ti_fusion.io.map_files import DATA, HEADER, VERSION, map_folder, write_map_folder
 from ti_fusion.io.outputs import RunDir
 from ti_fusion.loop.keyframes import Keyframe, grid_points
 from ti_fusion.loop.pose_graph import Edge
-from ti_fusion.slam.saved_map import PlaceState, SavedMap, check_camera, load_map, save_map
+from ti_fusion.slam.saved_map import MapTrajectory, PlaceState, SavedMap, check_camera, load_map, save_map
 from ti_fusion.tracking.features import FrameFeatures
 
 K = Intrinsics(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
@@ -59,8 +59,15 @@ def small_map(rng, surfels: int = 500) -> SavedMap:
              Edge(0, 2, kfs[2].pose, True, np.diag(rng.uniform(1, 2, 6)))]
     config = Config()
     config.fusion.capacity = 1000
+    # two sessions' frames: the first's anchored to keyframes 0 and 1, the second's to 2, one in the world frame
+    relative = np.tile(np.eye(4), (6, 1, 1))
+    relative[:, :3, 3] = rng.normal(size=(6, 3))
+    trajectory = MapTrajectory(np.array([0, 0, 0, 1, 1, 1], np.int32), np.array([0, 1, 5, 0, 1, 2], np.int32),
+                               np.array([1e-7, 0.2, 1.0, 10.0, 10.2, 10.4]), np.array([0, 0, 1, 2, 2, -1], np.int32),
+                               relative, sessions=2)
     return SavedMap(K, 1, config.to_dict(), s, 40, 2, 39, kfs, places, [kf.pose for kf in kfs], edges,
-                    {"applied": [[0, 2]], "refused": [[1, 2, "an outlier of the robust kernel"]], "kept": []})
+                    {"applied": [[0, 2]], "refused": [[1, 2, "an outlier of the robust kernel"]], "kept": []},
+                    trajectory)
 
 
 def _same(a: SavedMap, b: SavedMap) -> None:
@@ -91,8 +98,57 @@ def test_saved_loaded_and_saved_again_is_the_same_bytes(tmp_path, rng):
     assert loaded.places.rng == saved.places.rng
     assert loaded.make_config().fusion.capacity == 1000
     header = json.loads((tmp_path / "a" / HEADER).read_text())
-    assert header["version"] == VERSION and header["surfels"] == 500 and header["camera"]["width"] == 320
+    assert header["version"] == VERSION == 2 and header["surfels"] == 500 and header["camera"]["width"] == 320
+    assert header["trajectory"] == {"frames": 6, "sessions": 2}
 
+
+def test_the_map_trajectory_moves_with_its_keyframes(tmp_path, rng):
+    saved = load_map(save_map(small_map(rng), tmp_path / "m"))
+    stamps, poses = saved.trajectory_poses()
+    t = saved.trajectory
+    np.testing.assert_array_equal(stamps, t.timestamp)
+    np.testing.assert_allclose(poses[2], saved.keyframes[1].pose @ t.relative[2], atol=1e-12)
+    np.testing.assert_array_equal(poses[5], t.relative[5])  # anchor -1: in the world frame
+    C = np.eye(4)
+    C[:3, 3] = (0.1, -0.2, 0.3)
+    saved.keyframes[2].pose = C @ saved.keyframes[2].pose  # a loop moved keyframe 2 by C
+    moved = saved.trajectory_poses()[1]
+    np.testing.assert_allclose(moved[3:5], C @ poses[3:5], atol=1e-12)
+    np.testing.assert_array_equal(moved[[0, 1, 2, 5]], poses[[0, 1, 2, 5]])
+    # the next session's frames go on after these, relative to the keyframes they were anchored to
+    pose = np.eye(4)
+    pose[:3, 3] = (1.0, 2.0, 3.0)
+    after = saved.trajectory.then([(7, 20.0, pose, 1), (8, 20.2, pose, 9)], saved.keyframes)
+    assert after.sessions == 3 and list(after.session[-2:]) == [2, 2] and list(after.anchor[-2:]) == [1, -1]
+    np.testing.assert_allclose(after.poses(saved.keyframes)[-2:], [pose, pose], atol=1e-12)
+    assert saved.trajectory.then([], saved.keyframes) is saved.trajectory  # a session without poses adds nothing
+
+
+def _as_version_1(folder) -> None:
+    """The map in ``folder`` rewritten as format version 1 wrote it: no trajectory."""
+    saved = load_map(folder)
+    header, arrays = saved.to_arrays()
+    del header["trajectory"]
+    arrays = {name: a for name, a in arrays.items() if not name.startswith("trajectory/")}
+    write_map_folder(folder, header, arrays)
+    full = json.loads((folder / HEADER).read_text())
+    full["version"] = 1
+    (folder / HEADER).write_text(json.dumps(full, indent=1) + "\n")
+
+
+def test_a_version_1_map_loads_without_a_trajectory_and_saves_as_version_2(tmp_path, rng):
+    saved = small_map(rng)
+    folder = save_map(saved, tmp_path / "v1")
+    _as_version_1(folder)
+    loaded = load_map(folder)
+    assert loaded.version == 1 and len(loaded.trajectory) == 0 and loaded.trajectory.sessions == 1
+    saved.trajectory = MapTrajectory.empty(sessions=1)
+    _same(saved, loaded)
+    save_map(loaded, tmp_path / "v2")
+    header = json.loads((tmp_path / "v2" / HEADER).read_text())
+    assert header["version"] == 2 and header["trajectory"] == {"frames": 0, "sessions": 1}
+    # its next session's frames are session 1
+    assert loaded.trajectory.then([(0, 5.0, np.eye(4), 0)], loaded.keyframes).session.tolist() == [1]
 
 def test_a_map_is_found_from_its_folder_its_header_or_its_run(tmp_path, rng):
     save_map(small_map(rng), tmp_path / "run" / "map")
@@ -140,10 +196,15 @@ def test_another_format_version_is_refused(tmp_path, rng):
     header = json.loads((folder / HEADER).read_text())
     header["version"] = VERSION + 1
     (folder / HEADER).write_text(json.dumps(header))
-    with pytest.raises(InputError, match=f"format version {VERSION + 1}; this ti-fusion reads version {VERSION} "
-                                         "only \\(a newer ti-fusion wrote it\\)") as exc:
+    with pytest.raises(InputError, match=f"format version {VERSION + 1}; this ti-fusion reads versions 1 and 2 "
+                                         "\\(a newer ti-fusion wrote it\\)") as exc:
         load_map(folder)
     _one_line(exc)
+    for version in (0, "2", True, None):
+        header["version"] = version
+        (folder / HEADER).write_text(json.dumps(header))
+        with pytest.raises(InputError, match=f"format version {version!r}; this ti-fusion reads versions 1 and 2$"):
+            load_map(folder)
     header["format"] = "something else"
     (folder / HEADER).write_text(json.dumps(header))
     with pytest.raises(InputError, match="is not a ti-fusion saved map"):
@@ -212,6 +273,11 @@ def test_a_run_saved_and_loaded_into_a_fresh_slam_is_the_same_map(mapped, tmp_pa
     state = slam.map_state()
     assert state.count == slam.surfels > 0 and len(state.keyframes) >= 4 and state.places.vocabulary is not None
     assert state.loops["applied"] and any(e.loop for e in state.graph_edges)
+    # the trajectory: every posed frame, relative to its keyframe, at the poses the run's loops left
+    posed = slam.poses.posed()
+    assert len(state.trajectory) == len(posed) and state.trajectory.sessions == 1
+    np.testing.assert_allclose(state.trajectory_poses()[1], [p for _, _, p, _ in posed], atol=1e-9)
+    np.testing.assert_allclose(slam.map_trajectory()[1], state.trajectory_poses()[1], atol=1e-12)
     loaded = DenseSLAM.from_map(folder)
     _same(state, loaded.map_state())
     assert loaded.surfels == slam.surfels and loaded.loaded_map.count == 0 and loaded.loaded_map.keyframes
@@ -253,6 +319,7 @@ def test_inspect_says_what_a_saved_map_holds(tmp_path, rng, capsys):
     out = capsys.readouterr().out
     assert f"saved map: {folder} (format version {VERSION}" in out and "every checksum verified" in out
     assert "surfels   500 (" in out and "keyframes 3, 40 frames fused (the last frame 39), 1 loops applied" in out
+    assert "trajectory 6 posed frames of 2 session(s)" in out
     summary = json.loads((tmp_path / "i" / "summary.json").read_text())["saved_map"]
     assert summary["surfels"] == 500 and summary["confirmed_surfels"] == int((saved.surfels["weight"] >= 3).sum())
     assert main(["inspect", str(folder / HEADER)]) == 0

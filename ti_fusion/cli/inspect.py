@@ -90,6 +90,7 @@ def summarise_map(path: Path) -> dict:
             "confirmed_surfels": int(np.count_nonzero(weight >= confirmed)), "confirmed_weight": confirmed,
             "keyframes": len(saved.keyframes), "frames_fused": saved.frames_fused,
             "last_frame": saved.last_frame, "loops_applied": len(saved.loops.get("applied", [])),
+            "trajectory_frames": len(saved.trajectory), "sessions": saved.trajectory.sessions,
             "extent_m": None if not len(position) else
             [[round(float(v), 3) for v in position.min(axis=0)], [round(float(v), 3) for v in position.max(axis=0)]],
             "checksums": "verified"}
@@ -104,7 +105,9 @@ def format_map(m: dict) -> str:
              f"  surfels   {m['surfels']:,} ({m['confirmed_surfels']:,} confirmed: confidence >= "
              f"{m['confirmed_weight']:g})",
              f"  keyframes {m['keyframes']}, {m['frames_fused']} frames fused (the last frame {m['last_frame']}), "
-             f"{m['loops_applied']} loops applied"]
+             f"{m['loops_applied']} loops applied",
+             f"  trajectory {m['trajectory_frames']} posed frames of {m['sessions']} session(s)"
+             + (" (a version 1 map keeps none)" if m["version"] == 1 else "")]
     if m["extent_m"] is not None:
         lo, hi = m["extent_m"]
         lines.append("  extent    " + ", ".join(f"{a} {lo[i]:.2f} to {hi[i]:.2f} m" for i, a in enumerate("xyz")))

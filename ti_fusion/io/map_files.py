@@ -23,7 +23,8 @@ from ti_fusion.errors import InputError
 from ti_fusion.io.outputs import atomic_path, atomic_write, is_run_folder
 
 FORMAT = "ti-fusion map"
-VERSION = 1  # raised with every change a reader of the previous version would misread
+VERSION = 2  # raised with every change a reader of the previous version would misread (2: the trajectory)
+READS = (1, 2)  # the versions this reader takes (a version 1 map has no trajectory: it loads without one)
 HEADER = "map.json"
 DATA = "map.bin"
 RUN_SUBFOLDER = "map"  # where a run keeps its saved map
@@ -98,10 +99,10 @@ def read_header(path: str | Path) -> tuple[Path, dict]:
     if not isinstance(header, dict) or header.get("format") != FORMAT:
         raise InputError(file, f"is not a ti-fusion saved map (its format is not {FORMAT!r})")
     version = header.get("version")
-    if version != VERSION:
-        raise InputError(file, f"is a saved map of format version {version!r}; this ti-fusion reads version "
-                               f"{VERSION} only" + (" (a newer ti-fusion wrote it)" if isinstance(version, int)
-                                                    and version > VERSION else ""))
+    if version not in READS or isinstance(version, bool):
+        raise InputError(file, f"is a saved map of format version {version!r}; this ti-fusion reads versions "
+                               f"{' and '.join(map(str, READS))}" + (" (a newer ti-fusion wrote it)" if isinstance(
+                                   version, int) and not isinstance(version, bool) and version > VERSION else ""))
     return folder, header
 
 

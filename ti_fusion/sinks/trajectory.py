@@ -1,5 +1,7 @@
 """trajectory.tum: the camera-to-world pose of every frame done that got one, at its current estimate
-(after any loop closure), written whatever ended the run."""
+(after any loop closure), written whatever ended the run. A session that extends a saved map (``slam --map``,
+not ``--localize``) also writes map_trajectory.tum: every posed frame of the map, the earlier sessions' as this
+run's loops moved them, then its own, in the map's frame (docs/MAPS.md)."""
 
 from __future__ import annotations
 
@@ -18,4 +20,10 @@ class TrajectorySink(Sink):
         stamps, poses = run.trajectory()
         if stamps:
             write_tum(run.out.file("trajectory.tum"), stamps, np.stack(poses))
-        return {}
+        slam = getattr(run.step, "slam", None)
+        if slam is None or slam.loaded_map is None or run.config.map.localize:
+            return {}
+        stamps, poses = slam.map_trajectory()
+        if len(stamps):
+            write_tum(run.out.file("map_trajectory.tum"), stamps, poses)
+        return {"map_trajectory": {"frames": len(stamps), "earlier_sessions_frames": len(slam.loaded_map.trajectory)}}

@@ -521,7 +521,7 @@ class DenseSLAM:
             self._last_stamp = timestamp
             if result.icp is not None and np.isfinite(result.icp.residual_rms):
                 self._residuals.append(float(result.icp.residual_rms))
-        self.poses.append(result.pose, result.index)
+        self.poses.append(result.pose, result.index, timestamp)
 
     # -- what loop closure reports, applied ----------------------------------------------------------
     def scratch_pyramid(self) -> FramePyramid:
@@ -572,6 +572,13 @@ class DenseSLAM:
         from ti_fusion.slam.saved_map import capture
 
         return capture(self)
+
+    def map_trajectory(self) -> tuple:
+        """(timestamps, N×4×4 camera-to-world poses) of every posed frame of the map: a loaded map's earlier
+        sessions' frames, moved with its keyframes by this run's loops, then this run's (map_trajectory.tum)."""
+        from ti_fusion.slam.saved_map import map_trajectory
+
+        return map_trajectory(self)
 
     def save_map(self, folder):
         """The map as it is now, written into ``folder`` (map.json and map.bin; docs/MAPS.md); returns the folder."""
@@ -626,6 +633,7 @@ class DenseSLAM:
         # emptied in place: a new mapper would allocate a second map's fields (and their kernels) beside these
         self.mapper.map.count = 0
         self.mapper.anchor = 0
+        self.loaded_map = None  # its keyframes and trajectory are not this map's
         self._frames_fused = 0
         self.poses = PoseStore()
         self.seed(None, None)

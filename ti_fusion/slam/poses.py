@@ -23,13 +23,15 @@ class PoseStore:
     def __init__(self):
         self._poses: list[np.ndarray | None] = []
         self._frames: list[int] = []
+        self._stamps: list[float] = []
         self._anchors: list[int] = []
         self.keyframe = 0  # the anchor of the next frame appended
 
-    def append(self, pose: np.ndarray | None, frame: int) -> None:
-        """``pose`` of frame ``frame`` (its index in the run), copied."""
+    def append(self, pose: np.ndarray | None, frame: int, timestamp: float = float("nan")) -> None:
+        """``pose`` of frame ``frame`` (its index in the run, taken at ``timestamp``), copied."""
         self._poses.append(None if pose is None else np.array(pose, dtype=np.float64))
         self._frames.append(int(frame))
+        self._stamps.append(float(timestamp))
         self._anchors.append(self.keyframe)
 
     def start_keyframe(self, keyframe: int) -> None:
@@ -52,6 +54,11 @@ class PoseStore:
     def by_frame(self) -> dict[int, np.ndarray]:
         """Frame index → a copy of its current pose (frames without a pose left out)."""
         return {f: p.copy() for f, p in zip(self._frames, self._poses) if p is not None}
+
+    def posed(self) -> list[tuple[int, float, np.ndarray, int]]:
+        """(frame, timestamp, current pose (not a copy), anchor) of every frame with a pose, in order."""
+        return [(f, t, p, k) for f, t, p, k in zip(self._frames, self._stamps, self._poses, self._anchors)
+                if p is not None]
 
     def pose_of(self, frame: int) -> np.ndarray | None:
         """The current pose of frame ``frame`` (the last one appended with that index), or None."""

@@ -23,6 +23,7 @@ import numpy as np
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import Config, apply_dict
 from ti_fusion.errors import InputError
+from ti_fusion.geometry import invert, renormalize
 from ti_fusion.io.map_files import VERSION, read_map_folder, write_map_folder
 from ti_fusion.loop.keyframes import Keyframe, grid_points
 from ti_fusion.loop.pose_graph import Edge
@@ -47,6 +48,54 @@ class PlaceState:
 
 
 @dataclass
+class MapTrajectory:
+    """Every posed frame of the sessions that made the map, each anchored to a keyframe: its pose is kept relative
+    to that keyframe's (``relative`` = T_wk⁻¹ T_wc), so a loop that moves the keyframe moves the frame with it, as it
+    moves the surfels anchored there; anchor -1: the pose is in the world frame (a run without loop closure)."""
+
+    session: np.ndarray    # N int32: 0 for the run that started the map, 1 for the first session that extended it, ...
+    frame: np.ndarray      # N int32: the frame's index in its session's data
+    timestamp: np.ndarray  # N float64: seconds, as in that session's trajectory.tum
+    anchor: np.ndarray     # N int32: the keyframe id, or -1
+    relative: np.ndarray   # N×4×4 float64: the camera-to-keyframe pose (camera-to-world where anchor is -1)
+    sessions: int = 0      # the sessions that posed frames in the map (a version 1 map: 1, its frames unknown)
+
+    ARRAYS = ("session", "frame", "timestamp", "anchor", "relative")
+    DTYPES = (np.int32, np.int32, np.float64, np.int32, np.float64)
+
+    @classmethod
+    def empty(cls, sessions: int = 0) -> "MapTrajectory":
+        return cls(*(np.zeros((0, 4, 4) if name == "relative" else 0, dtype)
+                     for name, dtype in zip(cls.ARRAYS, cls.DTYPES)), sessions=sessions)
+
+    def __len__(self) -> int:
+        return len(self.frame)
+
+    def poses(self, keyframes: list) -> np.ndarray:
+        """N×4×4 camera-to-world poses: each relative pose composed with its keyframe's current pose."""
+        out = self.relative.copy()
+        for i, k in enumerate(self.anchor):
+            if k >= 0:
+                out[i] = keyframes[k].pose @ self.relative[i]
+        return out
+
+    def then(self, frames: list[tuple[int, float, np.ndarray, int]], keyframes: list) -> "MapTrajectory":
+        """This trajectory and the next session's posed ``frames`` ((frame, timestamp, camera-to-world pose,
+        anchor), ``PoseStore.posed``), each made relative to its anchor among ``keyframes`` (-1 past them)."""
+        if not frames:  # a session that posed no frame (a map loaded and saved again) adds none
+            return self
+        rows = []
+        for frame, stamp, pose, k in frames:
+            k = k if 0 <= k < len(keyframes) else -1
+            rows.append((frame, stamp, k, pose if k < 0 else renormalize(invert(keyframes[k].pose) @ pose)))
+        new = MapTrajectory(np.full(len(rows), self.sessions, np.int32), np.array([r[0] for r in rows], np.int32),
+                            np.array([r[1] for r in rows], np.float64), np.array([r[2] for r in rows], np.int32),
+                            np.array([r[3] for r in rows], np.float64).reshape(-1, 4, 4), self.sessions + 1)
+        return MapTrajectory(*(np.concatenate([getattr(self, n), getattr(new, n)]) for n in self.ARRAYS),
+                             sessions=new.sessions)
+
+
+@dataclass
 class SavedMap:
     """Everything a later run needs to track against a map, extend it and close loops into it."""
 
@@ -62,7 +111,14 @@ class SavedMap:
     graph_poses: list[np.ndarray] = field(default_factory=list)  # the pose graph's keyframe poses
     graph_edges: list[Edge] = field(default_factory=list)  # its odometry, PnP and loop edges
     loops: dict = field(default_factory=lambda: {"applied": [], "refused": [], "kept": []})  # loops closed so far
+    trajectory: MapTrajectory = field(default_factory=MapTrajectory.empty)  # the posed frames of every session
+    # (none in a version 1 map)
     version: int = VERSION
+
+    def trajectory_poses(self) -> tuple[np.ndarray, np.ndarray]:
+        """(timestamps, N×4×4 camera-to-world poses) of every posed frame of the sessions that made the map, at the
+        keyframes' current poses (every loop applied), in the map's world frame, session after session."""
+        return self.trajectory.timestamp.copy(), self.trajectory.poses(self.keyframes)
 
     @property
     def count(self) -> int:
@@ -93,6 +149,7 @@ class SavedMap:
             "graph_edges": [{"i": e.i, "j": e.j, "loop": e.loop, "robust": e.robust,
                              "covariance": e.covariance is not None} for e in self.graph_edges],
             "loops": self.loops, "config": self.config,
+            "trajectory": {"frames": len(self.trajectory), "sessions": self.trajectory.sessions},
         }
         arrays = {f"surfels/{name}": self.surfels[name] for name in SURFEL_ATTRIBUTES}
         kfs = self.keyframes
@@ -118,6 +175,9 @@ class SavedMap:
         arrays["graph/edge_transforms"] = _stack([e.T for e in self.graph_edges], (4, 4), np.float64)
         arrays["graph/edge_covariances"] = _stack([e.covariance for e in self.graph_edges if e.covariance is not None],
                                                   (6, 6), np.float64)
+        t = self.trajectory
+        for name, dtype in zip(MapTrajectory.ARRAYS, MapTrajectory.DTYPES):
+            arrays[f"trajectory/{name}"] = np.ascontiguousarray(getattr(t, name), dtype=dtype)
         return header, arrays
 
     @classmethod
@@ -177,9 +237,19 @@ class SavedMap:
             edges.append(Edge(int(e["i"]), int(e["j"]), np.array(T), bool(e["loop"]), covariance, bool(e["robust"])))
         if len(edges) != len(header["graph_edges"]) or k_cov != len(covariances):
             raise ValueError("pose-graph arrays of another length than its edges")
+        trajectory = MapTrajectory.empty(sessions=1)  # version 1 kept no trajectory
+        if int(header["version"]) >= 2:
+            trajectory = MapTrajectory(*(np.array(arrays[f"trajectory/{name}"]) for name in MapTrajectory.ARRAYS),
+                                       sessions=int(header["trajectory"]["sessions"]))
+            n = int(header["trajectory"]["frames"])
+            if any(len(getattr(trajectory, name)) != n for name in MapTrajectory.ARRAYS) or \
+                    trajectory.relative.shape[1:] != (4, 4) or np.any(trajectory.anchor >= len(keyframes)) or \
+                    np.any(trajectory.anchor < -1):
+                raise ValueError(f"trajectory arrays that are not {n} poses anchored to its keyframes")
         return cls(_camera(header["camera"]), int(header["map_level"]), header["config"], surfels,
                    int(header["frames_fused"]), int(header["anchor"]), int(header["last_frame"]), keyframes, places,
-                   [np.array(p) for p in arrays["graph/poses"]], edges, header["loops"], int(header["version"]))
+                   [np.array(p) for p in arrays["graph/poses"]], edges, header["loops"], trajectory,
+                   int(header["version"]))
 
 
 def save_map(saved: SavedMap, folder: str | Path) -> Path:
@@ -239,7 +309,22 @@ def capture(slam) -> SavedMap:
     elif carried is not None:  # loop closure off in this run: the loaded map's keyframes stay as they were
         saved.keyframes, saved.places = carried.keyframes, carried.places
         saved.graph_poses, saved.graph_edges, saved.loops = carried.graph_poses, carried.graph_edges, carried.loops
+    # the earlier sessions' frames (anchored to the map's keyframes, which this run's loops may have moved), then
+    # this run's, anchored to the keyframes it made (none without loop closure: in the world frame)
+    earlier = carried.trajectory if carried is not None else MapTrajectory.empty()
+    saved.trajectory = earlier.then(slam.poses.posed(), loop.keyframes if loop is not None else [])
     return saved
+
+
+def map_trajectory(slam) -> tuple[np.ndarray, np.ndarray]:
+    """(timestamps, N×4×4 camera-to-world poses) of every posed frame of the map ``slam`` holds: the earlier
+    sessions' (a loaded map's trajectory) at its keyframes' current poses, then this run's, in the map's frame."""
+    carried = slam.loaded_map
+    earlier = carried.trajectory if carried is not None else MapTrajectory.empty()
+    own = slam.loop.keyframes if slam.loop is not None else []
+    trajectory = earlier.then(slam.poses.posed(), own)
+    return trajectory.timestamp.copy(), trajectory.poses(own if slam.loop is not None else carried.keyframes
+                                                         if carried is not None else [])
 
 
 def restore(slam, saved: SavedMap) -> None:

@@ -18,7 +18,7 @@ from ti_fusion.kernels import fusion, prediction
 from ti_fusion.kernels.common import PoseArgs
 from ti_fusion.kernels.fusion import FusionImages
 from ti_fusion.kernels.prediction import PredictionImages
-from ti_fusion.kernels.surfels import Pool, SurfelStore
+from ti_fusion.kernels.surfels import Pool, SurfelStore, ThisStart
 
 
 class AddCounts(NamedTuple):
@@ -34,6 +34,9 @@ class SurfelMap(SurfelStore):
 
     ``count`` surfels are live, at indices [0, count).
     """
+
+    counts = ThisStart()
+    _pose = ThisStart()
 
     def __init__(self, capacity: int = 4_000_000, grow: bool = True):
         super().__init__(capacity, grow)

@@ -19,6 +19,7 @@ import numpy as np
 import taichi as ti
 from taichi.lang import impl
 
+from ti_fusion.backend import check_started, current_backend
 from ti_fusion.errors import MapCapacityError
 from ti_fusion.kernels.common import BLOCK, data_oriented
 
@@ -169,12 +170,33 @@ class Pool:
         return pool.small[name]
 
 
+class ThisStart:
+    """An attribute holding Taichi objects of the start of Taichi its owner was made on (``owner._generation``):
+    read after ``init_backend`` started Taichi again, it raises BackendMisuse, since a kernel or read-back on the
+    freed fields would crash the process."""
+
+    def __set_name__(self, owner, name: str) -> None:
+        self.slot = "_taichi_" + name.lstrip("_")
+
+    def __get__(self, obj, owner=None):
+        if obj is None:
+            return self
+        check_started(obj._generation, f"the surfel map ({type(obj).__name__}; DenseSLAM.mapper.map)")
+        return getattr(obj, self.slot)
+
+    def __set__(self, obj, value) -> None:
+        setattr(obj, self.slot, value)
+
+
 class SurfelStore:
     """``count`` live surfels at indices [0, count) of pooled ``SurfelArrays``, growable."""
+
+    arrays = ThisStart()
 
     def __init__(self, capacity: int = 4_000_000, grow: bool = True):
         if capacity < 1:
             raise MapCapacityError(f"fusion.capacity must be positive (got {capacity})")
+        self._generation = current_backend().generation  # every use of its fields checks it (ThisStart)
         self.grow = grow
         self.count = 0
         self._projected = 0  # surfels [0, _projected) have a current fusion projection (proj_pixel, proj_depth)

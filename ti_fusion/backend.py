@@ -73,12 +73,17 @@ def check_environment() -> None:
                                      f"instead of --arch): unset it, or set one of cpu, cuda, vulkan")
 
 
-def check_usable(generation: int, what: str) -> None:
+def check_started(generation: int, what: str) -> None:
     """BackendMisuse when an object made on start ``generation`` of Taichi (``current_backend().generation``)
-    is used after another start, or on another thread than the one that started Taichi."""
+    is used after another start (its fields are freed: a kernel or read-back on them crashes the process)."""
     if _current is None or _current.generation != generation:
         raise BackendMisuse(f"{what}: made before Taichi was started again (init_backend resets Taichi and frees "
                             "every field made before): make a new one after the last init_backend")
+
+
+def check_usable(generation: int, what: str) -> None:
+    """``check_started``, and BackendMisuse when used on another thread than the one that started Taichi."""
+    check_started(generation, what)
     if threading.get_ident() != _current.thread:
         raise BackendMisuse(f"{what} called on thread {threading.current_thread().name!r}, but Taichi allocates its "
                             f"fields only on the thread that started it ({_current.thread_name!r}, in init_backend): "

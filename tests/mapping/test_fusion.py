@@ -1039,3 +1039,53 @@ def test_set_color_packs_every_steps_pixel(arch, rng):
         np.testing.assert_array_equal(img.color.to_numpy(), c[..., 0] | (c[..., 1] << 8) | (c[..., 2] << 16))
     with pytest.raises(ValueError, match="colour of shape"):
         img.set_color(color[:, :-4], step)
+
+
+_RESTART_SCRIPT = r'''
+import json
+from ti_fusion.backend import init_backend
+from ti_fusion.cli.main import main
+from ti_fusion.config import Config, SynthConfig
+from ti_fusion.io.datasets import rgbd_frame
+from ti_fusion.slam.dense import DenseSLAM
+from ti_fusion.synthetic.scene import SyntheticSequence
+
+init_backend("cpu")
+seq = SyntheticSequence(SynthConfig(frames=2, width=160, height=120, fx=131.25))
+cfg = Config()
+cfg.log.progress = False
+slam = DenseSLAM(cfg, seq.intrinsics)
+for i in range(2):
+    depth, rgb = seq.frame(i)
+    slam.register_frame(rgbd_frame(depth, seq.intrinsics, color=rgb, timestamp=seq.timestamps[i], index=i,
+                                   depth_max=None))
+slam.mapper.export_ply("map.ply")
+out = {"mesh": main(["mesh", "map.ply", "--min-weight", "0", "--out", "mesh", "--quiet"])}  # starts Taichi again
+for name, use in [("export_ply", lambda: slam.mapper.export_ply("again.ply")), ("map_state", slam.map_state),
+                  ("render_image", lambda: slam.mapper.render_image(slam.poses[-1], seq.intrinsics))]:
+    try:
+        use()
+        out[name] = "ran"
+    except Exception as exc:
+        out[name] = f"{type(exc).__name__}: {exc}"
+print(json.dumps(out))
+'''
+
+
+@pytest.mark.slow
+def test_a_map_made_before_taichi_started_again_is_refused(tmp_path):
+    """A command run from Python (``ti_fusion.cli.main``) starts Taichi again, which frees the fields of a map
+    made before: using that map is one line (BackendMisuse), not a segmentation fault (run in a subprocess,
+    so a crash cannot take the test worker with it)."""
+    import json
+    import subprocess
+    import sys
+
+    proc = subprocess.run([sys.executable, "-c", _RESTART_SCRIPT], capture_output=True, text=True, timeout=600,
+                          cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    out = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert out.pop("mesh") == 0
+    for name, message in out.items():
+        assert message.startswith("BackendMisuse: ") and "made before Taichi was started again" in message, name
+        assert "\n" not in message

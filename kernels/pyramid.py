@@ -172,7 +172,7 @@ def pyramid_loop(fine: ti.template(), f0, H, W, coarse: ti.template(), c0, max_d
     three fine rows is read once as the 17 pixels the eight 3×3 windows span, and every tap is a fixed
     selection of them. Packs on the image border take the pixel-at-a-time path (``pyramid_pixel``). A
     function with one loop: called at a kernel's top level, that loop is one of the kernel's parallel loops
-    (``pyramid_down``, ``pyramid_levels``)."""
+    (``pyramid_down``)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
     Wc = (W + 1) // 2
@@ -438,16 +438,9 @@ def vertex_normal_pack(depth: ti.template(), vertex: ti.template(), normal: ti.t
                 normal[r0 + v, u] = normal_at(depth, r0, H, W, v, u, c, ifx, ify, cx, cy, max_depth_jump)
 
 
-# ``pyramid_levels``' and ``maps_levels``' per-level settings, one row per level: first row in the stack,
+# ``maps_levels``' per-level settings, one row per level: first row in the stack,
 # height, width, fx, fy, cx, cy, the depth-jump threshold of the normals
 G_ROW0, G_H, G_W, G_FX, G_FY, G_CX, G_CY, G_JUMP, N_GEOMETRY = range(9)
-
-
-@ti.kernel
-def pyramid_levels(depth: ti.template(), geometry: ti.template(), levels: ti.template(), max_diff: ti.f32,
-                   serial: ti.template()):
-    """``pyramid_levels_loops`` in one launch."""
-    pyramid_levels_loops(depth, geometry, levels, max_diff, serial)
 
 
 @ti.kernel
@@ -489,18 +482,6 @@ def smooth_depth(raw: ti.template(), rows: ti.template(), depth: ti.template(), 
     the packed level-0 depth ``raw`` into level 0 of ``depth``."""
     smooth_rows_loop(raw, rows, width, radius, max_diff)
     smooth_columns_loop(rows, depth, radius, max_diff)
-
-
-@ti.func
-def pyramid_levels_loops(depth: ti.template(), geometry: ti.template(), levels: ti.template(), max_diff,
-                         serial: ti.template()):
-    """The depth pyramid of a stack from level 0: ``pyramid_loop`` per level, each after the one it reads
-    (Taichi runs a kernel's top-level loops in order). The levels' rows and sizes are read from
-    ``geometry`` (G_* columns), written when they change, so a frame passes one scalar."""
-    for l in ti.static(range(1, levels)):
-        pyramid_loop(depth, ti.cast(geometry[l - 1, G_ROW0], ti.i32), ti.cast(geometry[l - 1, G_H], ti.i32),
-                     ti.cast(geometry[l - 1, G_W], ti.i32), depth, ti.cast(geometry[l, G_ROW0], ti.i32), max_diff,
-                     False, serial)
 
 
 @ti.func
@@ -900,11 +881,14 @@ class FramePyramid:
         self._levels_and_maps(0 if level0_maps else 1, int(clear_holes_of is not None))
 
     def _levels_and_maps(self, first_maps: int, clear: int = 0) -> None:
-        """Every level's depth from level 0 (``pyramid_levels``), then the vertex and normal maps of levels
-        ``first_maps`` and on, and with ``clear`` the holes of the render ``_holes`` taken back
-        (``maps_levels``)."""
+        """Every level's depth from level 0 (``pyramid_down``, a launch per level), then the vertex and normal
+        maps of levels ``first_maps`` and on, and with ``clear`` the holes of the render ``_holes`` taken back
+        (``maps_levels``). A launch per level rather than the levels' loops in one kernel: that kernel took
+        2.4 times as long to compile as this one for 3 levels (docs/PERFORMANCE.md, "Cold start")."""
         stack, holes = self.depth[0].field, self._holes
-        pyramid_levels(stack, self._geometry, self.levels, self.max_depth_diff, self._serial)
+        for l in range(1, self.levels):
+            h, w = self.shapes[l - 1]
+            pyramid_down(stack, self.row0[l - 1], h, w, stack, self.row0[l], self.max_depth_diff, False, self._serial)
         maps_levels(stack, self.vertex[0].field, self.normal[0].field, self._geometry, self.levels, first_maps,
                     self._serial, stack if holes is None else holes, holes is not None, clear)
 

@@ -220,7 +220,7 @@ def test_maps_filled_in_the_scratch_pyramid_between_frames_change_no_pose(cpu):
         fill(slam.scratch_pyramid(), SimpleNamespace(depth=other, depth_intrinsics=K))
         assert np.allclose(slam.scratch_pyramid().depth[0].to_numpy(), other)
         if len(poses) == 2:  # tracking has compiled its kernels: verification's ICP adds no instance
-            kernels = (slam.icp._kernels(0).k["iterate"], kmaps.pyramid_levels, kmaps.maps_levels)  # shared
+            kernels = (slam.icp._kernels(0).k["iterate"], kmaps.pyramid_down, kmaps.maps_levels)  # shared
             before = [len(k._primal.compiled_kernels) for k in kernels]
             slam.icp.align(slam.scratch_pyramid(), slam.frame_pyramid, init=np.eye(4))
             assert [len(k._primal.compiled_kernels) for k in kernels] == before

@@ -162,6 +162,8 @@ def run_case(name: str, data: list[str], split: int, end: int, args) -> dict:
             row["localize_exit"] = code
             row["map_unchanged"] = _digest(tmp / "first" / "map") == digest
             row["fps_localize"] = localised.get("fps_processing")
+            row["localize_unlocalised"] = localised.get("unlocalised_frames")
+            row["localize_odometry"] = localised.get("odometry_frames")  # posed by odometry off the map
             d_stamps, d = _trajectory(tmp / "localised")
             row["ate_localize_m"] = _ate_of(np.concatenate([a_stamps, d_stamps]), np.concatenate([a, d]), gt_stamps,
                                             gt, d_stamps)

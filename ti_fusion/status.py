@@ -14,10 +14,11 @@ class Tracking(str, Enum):
     LOST = "lost"  # no start passed the checks: the frame reports its guess and is not fused
     SKIPPED = "skipped"  # before the map starts (e.g. a blank sensor): no pose
     UNLOCALISED = "unlocalised"  # a session against a saved map that has not found itself in it yet: no pose
+    ODOMETRY = "odometry"  # a localisation off the map: posed by frame-to-frame odometry, not against the map
 
     @property
     def tracked(self) -> bool:
-        """The frame got a pose of its own and was fused."""
+        """The frame got a pose of its own (and was fused, where the run maps)."""
         return self not in (Tracking.LOST, Tracking.SKIPPED, Tracking.UNLOCALISED)
 
 

@@ -112,6 +112,39 @@ def test_localize_tracks_against_the_map_without_changing_it(cpu):
 
 
 @pytest.mark.slow
+def test_a_localisation_off_the_map_is_posed_by_odometry_until_it_tracks_against_the_map_again(cpu):
+    """Where the map is out of view (here: its surfels hidden), a localisation poses each frame by frame-to-frame
+    odometry from the last posed one, reported as such ("odometry: off the map", not localised on /slam/stats),
+    instead of searching the map every frame; where the map rendered at its pose covers the frame again, it
+    tracks against the map again."""
+    system, room = _mapped()
+    before = {k: v.copy() for k, v in system.mapper.to_numpy().items()}
+    system.start_session(localize=True)
+    found = system.register_frame(room[25])
+    assert found.tracking is Tracking.RELOCALISED, (found.status, found.tried)
+    count = system.mapper.map.count
+    system.mapper.map.count = 0  # nothing of the map in view
+    off = [system.register_frame(room[i]) for i in range(26, 31)]
+    for r, i in zip(off, range(26, 31)):
+        assert r.tracking is Tracking.ODOMETRY and r.status.startswith("odometry: off the map"), (i, r.status, r.tried)
+        assert pose_error(r.pose, room[i].gt_pose)[1] < 0.01, (i, pose_error(r.pose, room[i].gt_pose))
+    assert not any(t.startswith("place:") for r in off for t in r.tried)  # no search of the map off it
+    assert off[1].tried[-1] == "map: covers 0% of the frame < 30%"  # the cheap test: no ICP against the map
+    system.mapper.map.count = count  # the map in view again
+    back = [system.register_frame(room[i]) for i in range(31, 34)]
+    assert [r.tracking for r in back] == [Tracking.OK] * 3, [(r.status, r.tried) for r in back]
+    assert all(pose_error(r.pose, room[i].gt_pose)[1] < 0.01 for r, i in zip(back, range(31, 34)))
+    assert system.session.odometry == list(range(26, 31)) and system.session.back_on_map == [31]
+    assert system.session.searches == [] and len(system.poses) == 9
+    step = _step(system)
+    assert [step.stats(r)["localised"] for r in [found, off[0], back[0]]] == [True, False, True]
+    summary = step.summary(type("Run", (), {"results": [found, *off, *back]})())
+    assert summary["odometry_frames"] == 5 and summary["odometry"] == [[26, 30]] and summary["back_on_map"] == [31]
+    after = system.mapper.to_numpy()
+    assert all(np.array_equal(before[k], after[k]) for k in before)
+
+
+@pytest.mark.slow
 def test_a_session_that_never_sees_the_map_gets_no_pose_or_maps_in_its_own_frame(cpu):
     system, wall = _mapped("wall", find_frames=3)
     system.start_session()

@@ -104,7 +104,9 @@ def _print_summary(ctx, s: dict) -> None:
                  f"{found['unlocalised_before']} frame(s) not localised") if found else \
             f"did not find itself in the map; its own map from frame {s['own_map_at']}"
         ctx.log(f"session ({'--localize: the map unchanged' if s['session'] == 'localize' else 'extending the map'}): "
-                f"{where}; {s['unlocalised_frames']} frame(s) without a pose")
+                f"{where}; {s['unlocalised_frames']} frame(s) without a pose" + (
+                    f", {s['odometry_frames']} posed by odometry off the map (not localised against it)"
+                    if s.get("odometry_frames") else ""))
     if s.get("gt_note"):
         log.warning(s["gt_note"])
     hint = _small_frames_hint(ctx.config, s)

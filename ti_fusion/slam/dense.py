@@ -72,7 +72,7 @@ from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.pyramid import FramePyramid, grey_image
 from ti_fusion.slam.checks import check_frame
 from ti_fusion.slam.poses import PoseStore
-from ti_fusion.slam.session import LOST_FRAMES, check_on_map
+from ti_fusion.slam.session import LOST_FRAMES, localize_frame
 from ti_fusion.status import Tracking, status_text
 from ti_fusion.timing import StageTimer, Stopwatch
 
@@ -99,6 +99,9 @@ RECENT_FRAMES = 10
 # (measured in docs/BENCHMARKS.md), so the starts add this much rotation to the guess about its own axis (about
 # the camera's vertical both ways when it did not turn).
 TURN_DEG = (15.0, 30.0, 45.0)
+# The starts that follow the motion model's guess (a localisation off the map: odometry from the last frame): a win
+# of another start says the guess is in doubt.
+GUESSES = ("motion", "slide", "odometry")
 # Below this rotation (radians) the guess's step has no axis to turn on.
 TURN_FLOOR = np.radians(1.0)
 
@@ -277,11 +280,12 @@ class DenseSLAM:
                 which = f"frame {first} was" if n == 1 else \
                     f"the first {n} frames ({first} to {self.skipped[-1][0]}) were"
                 log.warning(f"{which} skipped ({reason}): the map starts at frame {frame.index}")
+        elif self.session is not None and self.session.localize:
+            with timer.stage("track"):  # against the map, or by odometry off it (slam/session.py)
+                result = localize_frame(self, frame, terms, FrameResult)
         else:
             with timer.stage("track"):
                 result = self._track(frame, terms)
-            if self.session is not None:
-                check_on_map(self, frame, result)  # a localisation off the map is lost (slam/session.py)
         before = self._held_pose() if self.poses else None  # the motion model's pose before this frame
         if result.tracked and not (self.session is not None and self.session.localize):
             with timer.stage("fuse"):
@@ -290,6 +294,8 @@ class DenseSLAM:
             self._frames_fused += 1
         if result.tracked:
             self.last_good = (frame, result.pose)
+            if self.session is not None and self.session.localize:
+                self.session.keep_maps(self, frame)  # the next frame's odometry source, if it leaves the map
         self._update_motion(result, frame.timestamp, before)
         if self.session is not None and self.session.localize and self._lost_streak >= LOST_FRAMES:
             self.session.lost_track(frame.index)  # off the map: look for itself again (slam/session.py)
@@ -327,10 +333,10 @@ class DenseSLAM:
         dt = timestamp - self._last_stamp if self._last_stamp is not None else 0.0
         return dt if np.isfinite(dt) and dt > 0 else 1.0
 
-    def _reference(self, intensity: bool = False) -> tuple[FramePyramid, np.ndarray]:
+    def _reference(self, intensity: bool = False, at: np.ndarray | None = None) -> tuple[FramePyramid, np.ndarray]:
         """The ICP source and the camera-to-world pose of its camera frame (with ``intensity``, its intensity
-        too: the model's colour at each pixel of the prediction)."""
-        last = self._held_pose()
+        too: the model's colour at each pixel of the prediction): the map rendered at the held pose, or ``at``."""
+        last = self._held_pose() if at is None else at
         fusion = self.config.fusion
         # Only confirmed surfels predict the surface (Keller's stable points, fusion.render_min_weight),
         # once the map has had time to confirm any: at first every surfel is new, and a prediction
@@ -513,13 +519,15 @@ class DenseSLAM:
             predicted = before @ se3_exp(self._velocity * dt)
             missed = np.linalg.norm(se3_log(renormalize(invert(predicted) @ result.pose)))
             irregular = bool(np.any(self._velocity)) and (  # from rest, a miss says nothing of the speed
-                result.hypothesis not in ("motion", "slide") or
+                result.hypothesis not in GUESSES or
                 missed > max(0.5 * np.linalg.norm(step), IRREGULAR_FLOOR))
             self._velocity = step / dt * (cfg.motion_damping if irregular else 1.0)
-            self._guess_beaten = result.hypothesis not in ("motion", "slide")
+            self._guess_beaten = result.hypothesis not in GUESSES
         if result.tracked:
             self._last_stamp = timestamp
-            if result.icp is not None and np.isfinite(result.icp.residual_rms):
+            # odometry's residual is against the last frame, not the map: the recent residuals are the map's
+            if result.icp is not None and np.isfinite(result.icp.residual_rms) and \
+                    result.tracking is not Tracking.ODOMETRY:
                 self._residuals.append(float(result.icp.residual_rms))
         self.poses.append(result.pose, result.index, timestamp)
 

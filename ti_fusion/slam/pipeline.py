@@ -213,8 +213,9 @@ class Pipeline:
         # an endless stream's loop ends at the first Ctrl-C (the CLI's handler sets ``end.requested``)
         endless = getattr(self.dataset, "endless", False)
         with prefetcher as frames, (stream_end() if endless else nullcontext()) as end:
-            note = lambda: "not localised" if self.results and self.results[-1].status.startswith("unlocalised") \
-                else ""  # a session against a saved map, until it has found itself in it
+            # a session against a saved map, until it has found itself in it, and a localisation off the map
+            note = lambda: "" if not self.results else "not localised" if self.results[-1].status.startswith(
+                "unlocalised") else "off the map: odometry" if self.results[-1].status.startswith("odometry") else ""
             for i in progress(range(n), None if endless else n, self.step.name, self.show_progress, note):
                 with self.timer.stage("load"):  # the wait for the frame: what reading it did not overlap
                     try:

@@ -24,7 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ti_fusion.status import Tracking
+from ti_fusion.status import Tracking, status_text
 
 log = logging.getLogger(__name__)
 
@@ -48,6 +48,10 @@ class Session:
     # that lost the map until it finds itself again)
     unlocalised: list[tuple[int, str]] = field(default_factory=list)  # (frame, why) of the frames without a pose
     searches: list[int] = field(default_factory=list)  # localize: the frames at which it lost the map and searched
+    off_map: bool = False  # localize: the map is out of view, frames are posed by odometry from the last one
+    odometry: list[int] = field(default_factory=list)  # localize: the frames posed by odometry off the map
+    back_on_map: list[int] = field(default_factory=list)  # localize: the frames that tracked against it again
+    kept: "KeptMaps | None" = None  # localize: the last posed frame's maps, odometry's source
     own_map_at: int | None = None  # map-anyway: the frame the session's own map started at
 
     @property
@@ -65,6 +69,7 @@ class Session:
         """A localisation lost the map for ``LOST_FRAMES`` frames (it went where the map has nothing to track
         against): from the next frame it looks for itself again, its frames without a pose until it does."""
         self.located = False
+        self.off_map = False
         self.searches.append(frame + 1)
         log.info(f"frame {frame}: lost the map for {LOST_FRAMES} frames: looking for itself in it again from the "
                  "next frame")
@@ -75,7 +80,15 @@ class Session:
                 "localised_at": None if self.found is None else self.found["frame"],
                 "unlocalised_frames": len(self.unlocalised),
                 "unlocalised": [{"frame": f, "reason": why} for f, why in self.unlocalised][:50],
-                "found": self.found, "own_map_at": self.own_map_at, "searches_again": self.searches[:50]}
+                "found": self.found, "own_map_at": self.own_map_at, "searches_again": self.searches[:50],
+                **({"odometry_frames": len(self.odometry), "odometry": _spans(self.odometry)[:50],
+                    "back_on_map": self.back_on_map[:50]} if self.localize else {})}
+
+    def keep_maps(self, slam, frame) -> None:
+        """localize: ``frame`` got a pose; its vertex and normal maps are the next frame's odometry source."""
+        if self.kept is None:
+            self.kept = KeptMaps(slam.frame_pyramid, slam.model_pyramid)
+        self.kept.keep(frame.index)
 
 
 def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
@@ -119,6 +132,134 @@ def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
              f"{placement.keyframe.frame} of the map's run), score {c.score:.3f}, {c.pnp_inliers} PnP inliers, after "
              f"{len(session.unlocalised)} frame(s) not localised")
     return result
+
+
+class KeptMaps:
+    """Copies of the frame pyramid's vertex and normal maps (every level) of the last frame with a pose: off the
+    map, a localisation tracks the next frame against them (``odometry``), put into the model pyramid, whose
+    maps ICP's kernels already take as the source. None where the two pyramids differ in shape."""
+
+    def __init__(self, frame_pyramid, model_pyramid):
+        import taichi as ti
+
+        self.frame, self.model = frame_pyramid, model_pyramid
+        fields = [(frame_pyramid.vertex[0].field, model_pyramid.vertex[0].field),
+                  (frame_pyramid.normal[0].field, model_pyramid.normal[0].field)]
+        self.usable = all(a.shape == b.shape for a, b in fields) and frame_pyramid.row0 == model_pyramid.row0 and \
+            frame_pyramid.levels >= model_pyramid.levels
+        self.copies = [ti.Vector.field(3, ti.f32, shape=a.shape) for a, _ in fields] if self.usable else []
+        self.index: int | None = None  # the frame whose maps are kept
+
+    def keep(self, index: int) -> None:
+        if self.usable:
+            self.copies[0].copy_from(self.frame.vertex[0].field)
+            self.copies[1].copy_from(self.frame.normal[0].field)
+            self.index = index
+
+    def into_model(self):
+        """The model pyramid holding the kept frame's maps (its depth and intensity are not used by depth ICP)."""
+        self.model.vertex[0].field.copy_from(self.copies[0])
+        self.model.normal[0].field.copy_from(self.copies[1])
+        return self.model
+
+
+def localize_frame(slam, frame, terms: tuple[str, ...], result_type):
+    """One frame of a localisation that has found itself: tracked against the map while it is in view; where the
+    frame leaves it (tracking lost, or its correspondences cover less than ``ON_MAP`` of its depth), posed by
+    frame-to-frame odometry from the last posed frame ("odometry: off the map"), and from there each frame
+    tracks against the map again only where the map rendered at its odometry pose covers ``ON_MAP`` of its
+    depth. A frame that neither tracks nor has odometry is lost (``LOST_FRAMES`` of them: search again)."""
+    session = slam.session
+    if not session.off_map:
+        result = slam._track(frame, terms)
+        check_on_map(slam, frame, result)
+        if result.tracked:
+            return result
+        moved = odometry(slam, frame, result_type, f"off the map ({result.reason})")
+        if moved is None or not moved.tracked:
+            if moved is not None:
+                result.tried += moved.tried
+            return result
+        session.off_map = True
+        session.odometry.append(frame.index)
+        log.info(f"frame {frame.index}: off the map ({result.reason}): posed by odometry until it sees the map again")
+        moved.tried = result.tried + moved.tried
+        return moved
+    moved = odometry(slam, frame, result_type, "off the map")
+    if moved is None or not moved.tracked:
+        return moved if moved is not None else result_type(
+            frame.index, frame.timestamp, slam._predicted_pose(frame.timestamp), Tracking.LOST, "off the map, and "
+            "no odometry", tried=[])
+    back = back_on_map(slam, frame, moved, terms, result_type)
+    if back is None:
+        session.odometry.append(frame.index)
+        return moved
+    session.off_map = False
+    session.back_on_map.append(frame.index)
+    log.info(f"frame {frame.index}: back on the map after {len(session.odometry)} frame(s) by odometry")
+    return back
+
+
+def odometry(slam, frame, result_type, why: str):
+    """The frame tracked against the last posed frame's maps (depth ICP from the motion model's guess, then from
+    that frame's pose): status "odometry: <why>" with its pose, or lost; None where no maps are kept."""
+    from ti_fusion.geometry import invert, renormalize
+
+    kept = slam.session.kept
+    if kept is None or not kept.usable or slam.last_good is None or kept.index != slam.last_good[0].index:
+        return None
+    source, last = kept.into_model(), slam.last_good[1]
+    predicted = slam._predicted_pose(frame.timestamp)
+    tried, first = [], None
+    for guess in (predicted, last):
+        icp = slam.icp.align(source, slam.frame_pyramid, init=invert(guess) @ last)
+        pose = renormalize(last @ invert(icp.pose))
+        failure = slam._health(icp, pose, guess, predicted)
+        tried.append(f"odometry: {status_text(Tracking.LOST, failure) if failure else Tracking.OK.value}")
+        first = first or (icp, failure)
+        if not failure:
+            return result_type(frame.index, frame.timestamp, pose, Tracking.ODOMETRY, why, icp=icp,
+                               hypothesis="odometry", tried=tried)
+    return result_type(frame.index, frame.timestamp, predicted, Tracking.LOST, f"{why}; odometry: {first[1]}",
+                       icp=first[0], hypothesis="odometry", tried=tried)
+
+
+def back_on_map(slam, frame, moved, terms: tuple[str, ...], result_type):
+    """Off the map, the frame posed by odometry (``moved``) tracked against the map rendered at that pose, where
+    the render covers ``ON_MAP`` of its depth (at the coarsest level: a cheap test, no ICP where it fails);
+    the result where it tracks and its correspondences cover ``ON_MAP`` of the frame's depth, else None."""
+    from ti_fusion.geometry import invert, renormalize
+
+    source, start = slam._reference("intensity" in slam.icp.needs(terms), at=moved.pose)
+    level = source.levels - 1
+    live = slam.frame_pyramid.depth[level].to_numpy() > 0
+    seen = np.count_nonzero(live & (source.depth[level].to_numpy() > 0)) / max(np.count_nonzero(live), 1)
+    if seen < ON_MAP:
+        moved.tried.append(f"map: covers {seen:.0%} of the frame < {ON_MAP:.0%}")
+        return None
+    terms = slam.icp.ready(terms, source, slam.frame_pyramid)
+    icp = slam.icp.align(source, slam.frame_pyramid, init=np.eye(4), terms=terms)
+    pose = renormalize(start @ invert(icp.pose))
+    failure = slam._health(icp, pose, start)
+    result = result_type(frame.index, frame.timestamp, pose, Tracking.LOST if failure else Tracking.OK, failure,
+                         icp=icp, hypothesis="odometry", tried=moved.tried + [
+                             f"map: {status_text(Tracking.LOST, failure) if failure else Tracking.OK.value}"])
+    check_on_map(slam, frame, result)
+    if not result.tracked:
+        moved.tried.append(f"map: {result.status}")
+        return None
+    return result
+
+
+def _spans(frames: list[int]) -> list[list[int]]:
+    """[[first, last], ...] of the runs of consecutive frames."""
+    spans: list[list[int]] = []
+    for f in frames:
+        if spans and f == spans[-1][1] + 1:
+            spans[-1][1] = f
+        else:
+            spans.append([f, f])
+    return spans
 
 
 def check_on_map(slam, frame, result) -> None:

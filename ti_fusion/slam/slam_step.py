@@ -98,7 +98,8 @@ STATS_SCHEMA = json_object({
     }, required=("keyframe", "why", "candidates", "applied", "outcome", "ms"),
         description="loop closure, on frames that became keyframes (slam.loop_closure)"),
     "localised": json_field("boolean", "a session against a saved map (--map): the frame has a pose in the map's "
-                                       "frame (false: not found in the map yet, or mapping in its own frame)"),
+                                       "frame (false: not found in the map yet, mapping in its own frame, or off the "
+                                       "map in a localisation, posed by odometry: status \"odometry\")"),
     "found": json_object({
         "frame": json_field("integer", "this frame's index in the run", minimum=0),
         "keyframe": json_field("integer", "the map's keyframe it matched", minimum=0),
@@ -189,7 +190,8 @@ class SLAMStep:
         stats = frame_stats(result, self.slam.surfels)
         session = self.slam.session
         if session is not None:
-            stats["localised"] = result.pose is not None and session.own_map_at is None
+            stats["localised"] = result.pose is not None and session.own_map_at is None and \
+                result.tracking is not Tracking.ODOMETRY
             if result.found is not None:
                 stats["found"] = result.found
         return stats

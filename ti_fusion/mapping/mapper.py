@@ -175,9 +175,14 @@ class SurfelMapper:
         return data["position"], np.clip(np.rint(data["color"]), 0, 255).astype(np.uint8)
 
     def export_ply(self, path: str | Path) -> Path:
+        return self.ply_writer(path)()
+
+    def ply_writer(self, path: str | Path):
+        """A function that writes the map as it is now as a PLY file at ``path`` (and returns the path): the map
+        is read here, the file written when it is called, with no Taichi (so on any thread)."""
         from ti_fusion.io.ply import write_ply
 
         data = self.map.to_numpy()
         # confidence and radius: what ``ti-fusion mesh map.ply`` needs to keep only confirmed surfels
-        return write_ply(path, data["position"], data["normal"], data["color"],
-                         {"confidence": data["weight"], "radius": data["radius"]})
+        return lambda: write_ply(path, data["position"], data["normal"], data["color"],
+                                 {"confidence": data["weight"], "radius": data["radius"]})

@@ -41,11 +41,16 @@ class EvaluationSink(Sink):
             fields["gt_note"] = (f"ATE and RPE are over the {len(pairs)} of {len(poses)} posed frames that have "
                                  "ground truth" if metrics is not None else
                                  f"no ATE or RPE: 1 of the {len(poses)} posed frames has ground truth, they need 2")
-        from ti_fusion.evaluation.plots import plot_trajectory  # Matplotlib: only once there is a plot to draw
-
         with_gt = len(pairs) == len(poses) and metrics is not None  # else the estimate alone
         title = run.step.plot_title(run) + (f"\n({fields['gt_note']})" if "gt_note" in fields else "")
         edges = run.step.loop_edges()
-        plot_trajectory(run.out.file("trajectory.png"), np.stack(poses), np.stack(gt) if with_gt else None,
-                        timestamps=stamps, title=title, metrics=metrics, **({"loop_edges": edges} if edges else {}))
+        path, est, ref = run.out.file("trajectory.png"), np.stack(poses), np.stack(gt) if with_gt else None
+
+        def plot():  # Matplotlib (its import too) on an outputs' thread, beside the map's files and views
+            from ti_fusion.evaluation.plots import plot_trajectory
+
+            plot_trajectory(path, est, ref, timestamps=stamps, title=title, metrics=metrics,
+                            **({"loop_edges": edges} if edges else {}))
+
+        run.in_background(plot)
         return fields

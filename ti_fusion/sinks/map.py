@@ -11,4 +11,6 @@ class MapSink(Sink):
     commands = ("slam", "fuse")
 
     def finish(self, run: Run) -> dict:
-        return {"ply": str(run.step.mapper.export_ply(run.out.file("map.ply")))}
+        path = run.out.file("map.ply")
+        run.in_background(run.step.mapper.ply_writer(path))  # the map read here, the file written beside
+        return {"ply": str(path)}

@@ -21,6 +21,7 @@ class ViewsSink(Sink):
         if first is None:
             log.warning("no frame got a pose: the map is empty, and there are no views of it")
             return {}
-        views = save_views(run.step.mapper, view_pose(first.pose, run.config.fusion.view_back), run.out.path)
+        views = save_views(run.step.mapper, view_pose(first.pose, run.config.fusion.view_back), run.out.path,
+                           later=run.in_background)  # rendered here, encoded and written beside
         return {"views": {k: str(v) for k, v in views.items()}}
 

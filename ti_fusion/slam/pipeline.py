@@ -14,9 +14,10 @@ the first Ctrl-C after the frame being done, as a recording ends: the run then f
 from __future__ import annotations
 
 import logging
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import nullcontext
 from pathlib import Path
-from typing import Any, Protocol
+from typing import Any, Callable, Protocol
 
 import numpy as np
 
@@ -85,6 +86,7 @@ class Pipeline:
         self.read_workers = 0  # processes (or the thread) that read the frames ahead (0: the loop's own thread)
         self.read_mode = "inline"  # how: "processes", "thread" or "inline" (ti_fusion.io.prefetch.read_mode)
         self.frame_clock = 0.0  # seconds of kernels' first launches (frontend.CLOCK) when the frame being done began
+        self._background = None  # during a sink's finish: (the outputs' threads, what it handed to them)
         self._ran = False  # one run per pipeline: a second would mix two runs' frames in one folder
 
     def run(self) -> dict:
@@ -146,33 +148,67 @@ class Pipeline:
         """Every started sink's ``finish``, in order; with ``only_kept`` (a stop, a run that did nothing) those
         with ``on_stop`` only. A sink that fails does not keep the later ones from finishing: after an error
         in the loop its failure is a warning (that error is what the run reports), else the first failure is
-        returned. A stop while finishing leaves only the ``on_stop`` sinks to finish, and is raised after."""
+        returned. A stop while finishing leaves only the ``on_stop`` sinks to finish, and is raised after.
+        What a sink hands to ``in_background`` runs on the outputs' threads beside the later sinks; its
+        fields and failure count as the sink's, in the sinks' order, once every sink has finished."""
+        outcomes: list[tuple[Sink, dict | Exception | None, list[Future]]] = []
+        stop: BaseException | None = None
+        with self.timer.stage("export"):
+            # the encoding, writing and fsync of the files (GIL-free) and the plot overlap the next sinks' work
+            pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="outputs")
+            try:
+                for sink in sinks:
+                    if (only_kept or stop is not None) and not sink.on_stop:
+                        continue
+                    self._background = later = (pool, [])
+                    try:
+                        outcome = sink.finish(self)
+                    except Exception as exc:
+                        outcome = exc
+                    except BaseException as exc:  # a stop while finishing: the trajectory and the log still
+                        stop, outcome = stop or exc, None
+                    outcomes.append((sink, outcome, later[1]))
+                    self._background = None
+            finally:
+                self._background = None
+                try:
+                    pool.shutdown(wait=True)
+                except BaseException as exc:  # a stop while the last files are written: they finish on their own
+                    pool.shutdown(wait=False, cancel_futures=True)
+                    stop = stop or exc
         fields: dict = {}
         failure: Exception | None = None
-        stop: BaseException | None = None
         also: list[Path] = []  # outputs refused for the same reason as the one reported
-        with self.timer.stage("export"):
-            for sink in sinks:
-                if (only_kept or stop is not None) and not sink.on_stop:
+        for sink, outcome, futures in outcomes:
+            parts = [outcome] + [(f.exception() or f.result()) if f.done() and not f.cancelled() else None
+                                 for f in futures]
+            for part in parts:
+                if part is None:
                     continue
-                try:
-                    fields.update(sink.finish(self))
-                except Exception as exc:
-                    if error is None and failure is None:
-                        failure = exc
-                    elif _same_cause(error or failure, exc):  # a full disk refuses every output: one line
-                        also.append(exc.path)
-                    else:  # the first error is the one to report; this one only limits what is kept
-                        logging.getLogger(__name__).warning(
-                            f"after the error, {sink.name} of the {len(self.results)} frames done could not be "
-                            f"written: {exc}")
-                except BaseException as exc:  # a stop while finishing: the trajectory and the log still
-                    stop = stop or exc
+                if isinstance(part, BaseException) and not isinstance(part, Exception):
+                    stop = stop or part
+                elif not isinstance(part, Exception):
+                    fields.update(part if isinstance(part, dict) else {})  # a function's own return value: none
+                elif error is None and failure is None:
+                    failure = part
+                elif _same_cause(error or failure, part):  # a full disk refuses every output: one line
+                    also.append(part.path)
+                else:  # the first error is the one to report; this one only limits what is kept
+                    logging.getLogger(__name__).warning(
+                        f"after the error, {sink.name} of the {len(self.results)} frames done could not be "
+                        f"written: {part}")
         if also:
             _name_also(error or failure, also)
         if stop is not None:
             raise stop
         return fields, failure
+
+    def in_background(self, fn: Callable[[], dict | None]) -> None:
+        """From a sink's ``finish``: run ``fn`` (no Taichi: it reads only what the sink handed it) on an outputs'
+        thread beside the later sinks; a dict it returns joins summary.json after the sink's own fields, what
+        it raises is the sink's failure."""
+        pool, futures = self._background
+        futures.append(pool.submit(fn))
 
     def _take_current_poses(self) -> None:
         """Each result holds its frame's pose as registered; where the step has moved it since (a loop

@@ -28,6 +28,31 @@ def test_save_map_is_an_option_of_slam_only(tmp_path, capsys):
     assert "unrecognized arguments: --save-map" in capsys.readouterr().err
 
 
+def test_no_save_map_turns_it_off_and_is_refused_beside_save_map(tmp_path, capsys):
+    from ti_fusion.cli.main import build_parser
+    from ti_fusion.sinks import chosen, make_sinks
+
+    parser, _ = build_parser()
+    outputs = chosen(parser.parse_args(["slam", "--no-save-map"]), "slam")
+    assert outputs == {"saved_map": False} and chosen(parser.parse_args(["slam"]), "slam") == {}
+    assert not any(isinstance(s, SavedMapSink) for s in make_sinks("slam", Config(), outputs))
+    with pytest.raises(SystemExit):
+        main(["vo", "--no-save-map"])
+    assert "unrecognized arguments: --no-save-map" in capsys.readouterr().err
+    assert main(["slam", *TINY, "--no-save-map", "--save-map", str(tmp_path / "m"), "--out", str(tmp_path / "r")]) == 2
+    assert capsys.readouterr().err.strip() == (f"ti-fusion slam: error: --no-save-map writes no saved map and "
+                                               f"--save-map {tmp_path / 'm'} names where it goes: give one of them")
+    assert not (tmp_path / "m").exists()
+
+
+@pytest.mark.slow
+def test_a_run_with_no_save_map_writes_none(cpu, tmp_path):
+    out = tmp_path / "run"
+    assert main(["slam", *TINY, "--no-save-map", "--out", str(out)]) == 0
+    assert not (out / "map").exists() and "saved_map" not in json.loads((out / "summary.json").read_text())
+    assert (out / "map.ply").exists() and (out / "trajectory.tum").exists()
+
+
 @pytest.mark.slow
 def test_every_run_saves_its_map_and_save_map_puts_it_elsewhere(cpu, tmp_path, capsys):
     from ti_fusion.io.trajectory import read_tum

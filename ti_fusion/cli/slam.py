@@ -45,6 +45,12 @@ def run(ctx) -> dict:
         from ti_fusion.errors import InputError
 
         raise InputError(None, "--localize tracks against a saved map: give it with --map RUN_OR_MAP_DIR")
+    outputs = chosen(ctx.args, "slam")
+    if outputs.get("saved_map") is False and cfg.map.save_map:
+        from ti_fusion.errors import InputError
+
+        raise InputError(None, f"--no-save-map writes no saved map and --save-map {cfg.map.save_map} names where "
+                               "it goes: give one of them")
     dataset = open_dataset(cfg.dataset, cfg.synth)
     if not ctx.quiet:  # what the format line (format, depth scale, intrinsics) does not say
         d = dataset.describe()
@@ -57,7 +63,7 @@ def run(ctx) -> dict:
     live = _live_server(ctx)
     try:
         summary = SLAMPipeline(dataset, cfg, ctx.out, ctx.backend, show_progress=not ctx.quiet, live=live,
-                               outputs=chosen(ctx.args, "slam")).run()
+                               outputs=outputs).run()
     finally:  # the log closes the server; this covers a run that stops before its log is open
         if live is not None:
             live.close()

@@ -48,12 +48,15 @@ def make_sinks(command: str, config, outputs: dict[str, bool] | None = None) -> 
 
 
 def add_switches(parser, command: str) -> None:
-    """The command-line switch of each of ``command``'s sinks that has one (``Sink.flag``)."""
+    """The command-line switch of each of ``command``'s sinks that has one (``Sink.flag``, or ``Sink.off_flag``)."""
     for cls in sink_classes(command):
-        if cls.flag:
-            parser.add_argument(cls.flag, action="store_true", dest=f"output_{cls.name}", help=cls.help)
+        if cls.flag or cls.off_flag:
+            parser.add_argument(cls.flag or cls.off_flag, action="store_true", dest=f"output_{cls.name}",
+                                help=cls.help)
 
 
 def chosen(args, command: str) -> dict[str, bool]:
-    """name → True for each of ``command``'s switched sinks whose switch ``args`` (argparse) has."""
-    return {cls.name: True for cls in sink_classes(command) if cls.flag and getattr(args, f"output_{cls.name}")}
+    """name → True (False for an ``off_flag``) for each of ``command``'s switched sinks whose switch ``args``
+    (argparse) has."""
+    return {cls.name: cls.off_flag is None for cls in sink_classes(command)
+            if (cls.flag or cls.off_flag) and getattr(args, f"output_{cls.name}")}

@@ -76,13 +76,14 @@ class Sink:
     name: str = ""                      # what it writes, in a word; also its key in Pipeline(outputs=...)
     commands: tuple[str, ...] = ()      # the commands it serves ("slam", "vo", "fuse")
     flag: str | None = None             # a switch of those commands that turns it on (off without it), e.g. "--splats"
+    off_flag: str | None = None         # a switch that turns it off (on without it), e.g. "--no-save-map"
     help: str = ""                      # the switch's help line
     on_stop: bool = False               # finished after a stop (Ctrl-C, SIGTERM) too: what an interrupted run keeps
 
     @classmethod
     def wanted(cls, command: str, config: Config, outputs: dict[str, bool]) -> bool:
         """Whether a run of ``command`` has this output: ``outputs[name]`` where given (a switch, an API
-        caller), else on unless it has a switch."""
+        caller), else on unless it has a switch that turns it on."""
         return command in cls.commands and outputs.get(cls.name, cls.flag is None)
 
     def start(self, run: Run) -> None:

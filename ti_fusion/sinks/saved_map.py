@@ -1,6 +1,6 @@
 """map/: the run's saved map (map.json, map.bin; docs/MAPS.md), which ``ti-fusion slam --map``, ``mesh`` and
 ``inspect`` read, or the folder ``--save-map DIR`` names. Like map.ply, written when the run ends, and not
-after a stop (Ctrl-C, SIGTERM)."""
+after a stop (Ctrl-C, SIGTERM); not at all with ``--no-save-map``."""
 
 from __future__ import annotations
 
@@ -12,6 +12,8 @@ from ti_fusion.sinks.base import Run, Sink
 class SavedMapSink(Sink):
     name = "saved_map"
     commands = ("slam",)
+    off_flag = "--no-save-map"
+    help = "do not write the run's saved map (map/ in the run folder, or --save-map DIR; docs/MAPS.md)"
 
     @classmethod
     def wanted(cls, command, config, outputs) -> bool:

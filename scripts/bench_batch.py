@@ -17,7 +17,9 @@ The jobs are the manifest's (``--manifest``), or one per ``--inputs`` name: a sy
    included).
 
 Prints each job's frames and ATE in both arms (from the one-by-one run's summary.json and the batch's
-results.csv) and whether they are identical, the two times and their ratio (batch / one by one).
+results.csv) and whether they are identical, the batch's timeline (its summary.json's: Ray's start, each
+job's Ray worker, task, process and frame loop, Ray's shutdown), the two times and their ratio (batch / one
+by one).
 """
 
 from __future__ import annotations
@@ -56,6 +58,40 @@ def timed(argv: list[str], log: Path, env: dict | None = None) -> tuple[float, i
         code = subprocess.run(argv, stdout=f, stderr=subprocess.STDOUT, cwd=ROOT,
                               env={**os.environ, **(env or {})}).returncode
     return time.perf_counter() - started, code
+
+
+def print_timeline(launched: float, ended: float, summary: dict, batch_dir: Path) -> None:
+    """The batch's events in seconds since the bench launched its command; per job, its steps."""
+    origin = summary.get("started_at")
+    events = summary.get("timeline") or []
+    if origin is None or not events:
+        return
+    shift = origin - launched
+    print("batch timeline (s since the command was launched):")
+    print(f"  {shift:6.2f}  driver process started")
+    per_job: dict[str, dict] = {}
+    for t, event, job in events:
+        if job:
+            per_job.setdefault(job, {})[event] = t + shift
+        else:
+            print(f"  {t + shift:6.2f}  {event}")
+    print(f"  {ended - launched:6.2f}  driver process ended")
+    print()
+    print("| job | task submitted | its worker process started | task started | job process started | "
+          "frame loop started | job process ended | result seen |")
+    print("|---|---|---|---|---|---|---|---|")
+    for job, at in per_job.items():
+        loop = None
+        try:
+            run = json.loads((batch_dir / "runs" / job / "summary.json").read_text())
+            if "job process end" in at and run.get("wall_s") is not None:
+                loop = at["job process end"] - run["wall_s"]  # the run's wall_s is its frame loop's
+        except (OSError, ValueError):
+            pass
+        cells = [at.get(k) for k in ("task submitted", "worker process", "task", "job process")] + [loop] + \
+                [at.get(k) for k in ("job process end", "result")]
+        print(f"| {job} | " + " | ".join("" if c is None else f"{c:.2f}" for c in cells) + " |")
+    print()
 
 
 def main() -> int:
@@ -117,6 +153,7 @@ def main() -> int:
     sequential = time.perf_counter() - started
 
     batch_dir = work / "batch"
+    launched = time.time()
     batched, code = timed(py + ["batch", str(manifest), "--out", str(batch_dir), "--overwrite", "--jobs",
                                 str(args.jobs), "--threads", str(args.threads)], work / "batch.log")
     print(f"  batch: {batched:.1f} s, exit {code}", flush=True)
@@ -141,11 +178,13 @@ def main() -> int:
         print(f"| {job.name} | {s.get('frames')} / {frames_batch} | {ate_one!r} | {ate_batch!r} | "
               f"{'yes' if same else 'NO'} |")
     print()
-    print(f"one by one (Taichi's default threads): {sequential:.1f} s")
     try:
-        ray_s = json.loads((batch_dir / "summary.json").read_text()).get("ray_start_s")
+        batch_summary = json.loads((batch_dir / "summary.json").read_text())
     except (OSError, ValueError):
-        ray_s = None
+        batch_summary = {}
+    print_timeline(launched, launched + batched, batch_summary, batch_dir)
+    ray_s = batch_summary.get("ray_start_s")
+    print(f"one by one (Taichi's default threads): {sequential:.1f} s")
     print(f"batch, {args.jobs} jobs at once x {args.threads} thread(s), Ray's start included: {batched:.1f} s"
           + (f" (Ray's start: {ray_s:.1f} s)" if ray_s is not None else ""))
     print(f"batch / one by one: {batched / sequential:.2f}x; rows identical: {'yes' if same_all else 'NO'}; "

@@ -242,6 +242,15 @@ data = "empty"
     assert "| synthetic-room |  | done | 0 | 3 |" in (out / "results.md").read_text()
     assert (out / "ate.png").stat().st_size > 0
     assert "3 jobs: 1 done, 2 failed" in stdout and "victim failed: killed by SIGKILL" in stdout
+    # the timeline: Ray's lean start (without its monitor, log monitor and dashboard API), then each job's steps
+    timeline = json.loads((out / "summary.json").read_text())["timeline"]
+    events = [(event, job) for _, event, job in timeline]
+    assert [t for t, _, _ in timeline] == sorted(t for t, _, _ in timeline)
+    assert events.index(("ray init", "")) < events.index(("ray node started", "")) < events.index(("ray ready", ""))
+    for job in ("synthetic-room", "victim", "empty"):
+        steps = [events.index((e, job)) for e in ("task submitted", "task", "job process", "job process end", "result")]
+        assert steps == sorted(steps) and events.index(("ray ready", "")) < steps[0]
+    assert events.index(("ray down", "")) < events.index(("table and plot written", ""))
 
     # resumed: nothing runs (Ray is not even started), the rows stay
     room_record = (out / "jobs" / "synthetic-room.json").read_text()

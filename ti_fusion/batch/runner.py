@@ -53,6 +53,45 @@ def local_cpus() -> int:
         return os.cpu_count() or 1
 
 
+def start_local_node(cpus: int):
+    """A Ray head on this machine with only what the batch's tasks need: its GCS, raylet (with the raylet's
+    agents) and workers, without the autoscaler's monitor, the log monitor (the batch does not forward the
+    workers' output) and the dashboard's API server: three Python processes that each import Ray, half of
+    ``ray.init``'s CPU time (docs/BATCH.md, "Ray's start"). Ray's own ``Node``, which ``ray.init`` starts,
+    with those three turned off; None where this Ray's internals differ, and ``ray.init`` then starts the
+    usual node."""
+    try:
+        from ray._private.node import Node
+        from ray._private.parameter import RayParams
+    except ImportError:
+        return None
+
+    class BatchNode(Node):
+        def start_api_server(self, *args, **kwargs):  # the dashboard's API: the batch asks it nothing
+            return None
+
+    try:
+        try:  # as ray.init does for the clusters it starts
+            from ray._common.usage.usage_lib import set_usage_stats_enabled_via_env_var
+
+            set_usage_stats_enabled_via_env_var(False)
+        except ImportError:
+            os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
+        params = RayParams(num_cpus=cpus, include_dashboard=False, no_monitor=True, include_log_monitor=False)
+        return BatchNode(params, head=True, shutdown_at_exit=False, spawn_reaper=True, ray_init_cluster=True)
+    except Exception as exc:  # another Ray's internals: the usual start
+        log.debug("Ray's lean start failed (%s); ray.init starts the usual node", exc)
+        return None
+
+
+def stop_local_node(node) -> None:
+    """What ``ray.shutdown`` does for the node ``ray.init`` started: its processes, raylet first."""
+    try:
+        node.kill_all_processes(check_alive=False, allow_graceful=True)
+    except Exception as exc:
+        log.debug("stopping Ray's node: %s", exc)
+
+
 def job_env(threads: int) -> dict[str, str]:
     """What a job's process gets on top of the worker's environment: the driver's Taichi and ti-fusion
     settings (a cluster's workers do not inherit the driver's environment), and its thread counts."""
@@ -61,6 +100,18 @@ def job_env(threads: int) -> dict[str, str]:
                 "OMP_NUM_THREADS": str(threads), "OPENBLAS_NUM_THREADS": str(threads),
                 "MKL_NUM_THREADS": str(threads)})
     return env
+
+
+def process_started(pid: int | str = "self") -> float | None:
+    """When a process started, as ``time.time()`` (Linux /proc; None elsewhere): the batch's timeline."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            ticks = int(f.read().rsplit(")", 1)[1].split()[19])  # field 22, starttime, in clock ticks since boot
+        with open("/proc/uptime") as f:
+            uptime = float(f.read().split()[0])
+        return time.time() - uptime + ticks / os.sysconf("SC_CLK_TCK")
+    except (OSError, ValueError, IndexError, AttributeError):
+        return None
 
 
 # -- on the worker -------------------------------------------------------------------------------------------
@@ -78,12 +129,13 @@ def run_job(spec: dict) -> dict:
     """A Ray task: the job's ``ti-fusion slam`` process, its output into its log file; its exit code, wall
     time, error line and the figures of its run's summary.json. A cancel (the batch stopping) stops the
     process the way Ctrl-C stops a run, and is raised on."""
+    entered = time.time()
     argv = [sys.executable, "-m", "ti_fusion", "slam", *spec["args"], "--out", spec["run_dir"], "--overwrite"]
     log_path = Path(spec["log"])
     log_path.parent.mkdir(parents=True, exist_ok=True)
     env = dict(os.environ)
     env.update(spec["env"])
-    started = time.monotonic()
+    started, at = time.monotonic(), {"worker process": process_started(), "task": entered}
     with open(log_path, "wb") as log:
         log.write(("$ " + " ".join(argv) + "\n").encode())
         log.flush()
@@ -91,6 +143,7 @@ def run_job(spec: dict) -> dict:
                                 cwd=spec.get("cwd") if spec.get("cwd") and os.path.isdir(spec["cwd"]) else None,
                                 start_new_session=True,  # a terminal's Ctrl-C reaches the batch, which stops the jobs
                                 preexec_fn=_die_with_parent if sys.platform.startswith("linux") else None)
+        at["job process"] = time.time()
         try:
             while proc.poll() is None:  # polled: Ray's cancel is raised between Python steps, not in a wait
                 time.sleep(0.1)
@@ -98,6 +151,7 @@ def run_job(spec: dict) -> dict:
             stop_process(proc)
             raise
     wall = time.monotonic() - started
+    at["job process end"] = time.time()
     summary = None
     summary_path = Path(spec["run_dir"]) / "summary.json"
     if proc.returncode == 0:
@@ -111,7 +165,7 @@ def run_job(spec: dict) -> dict:
     import socket
 
     return {"exit_code": proc.returncode, "wall_s": round(wall, 3), "summary": summary, "pid": proc.pid,
-            "host": socket.gethostname(),
+            "host": socket.gethostname(), "at": at,
             "error": "" if proc.returncode == 0 and summary is not None else error_line(proc.returncode, log_path)}
 
 
@@ -170,6 +224,16 @@ class Batch:
         self.progress, self.say = progress, say
         self.counts = {"ran": 0, "skipped_done": 0, "kept_failed": 0}
         self.ray_start_s: float | None = None  # how long Ray took to start or connect (None: not needed)
+        # (time.time(), event, job): where a batch's time goes, in its summary.json and bench_batch.py's output
+        self.origin = process_started() or time.time()
+        self.events: list[tuple[float, str, str]] = []
+
+    def mark(self, event: str, job: str = "", at: float | None = None) -> None:
+        self.events.append((time.time() if at is None else at, event, job))
+
+    def timeline(self) -> list[list]:
+        """[seconds since this process started, event, job], in time order."""
+        return [[round(t - self.origin, 3), event, job] for t, event, job in sorted(self.events)]
 
     # what to do with each job
     def plan(self) -> list[Job]:
@@ -189,6 +253,7 @@ class Batch:
     def run(self) -> list[dict]:
         """Run what the plan says, then write the table and plot from every job's record; the table too when
         the batch is stopped, with the finished rows."""
+        self.mark("batch start")
         to_run = self.plan()
         if self.counts["skipped_done"] or self.counts["kept_failed"]:
             kept = self.counts["kept_failed"]
@@ -210,6 +275,7 @@ class Batch:
                 results.plot_ate(self.folder, table, self.manifest.inputs, self.manifest.variants)
             except Exception as exc:  # the table is the result; a plot that fails says so and is left out
                 log.warning("no ate.png: %s", exc)
+            self.mark("table and plot written")
         return table
 
     def _on_ray(self, jobs: list[Job]) -> None:
@@ -217,11 +283,23 @@ class Batch:
         local = self.address is None
         previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
         started = time.monotonic()
+        self.mark("ray init")
+        node = None
         try:
             try:
                 if local:
-                    ray.init(address="local", num_cpus=local_cpus(), include_dashboard=False, log_to_driver=False,
-                             logging_level=logging.ERROR)
+                    node = start_local_node(local_cpus())
+                    if node is not None:
+                        self.mark("ray node started")
+                        try:
+                            ray.init(address=node.address, log_to_driver=False, logging_level=logging.ERROR)
+                        except Exception as exc:
+                            log.debug("connecting to the lean node: %s; ray.init starts the usual one", exc)
+                            stop_local_node(node)
+                            node = None
+                    if node is None:
+                        ray.init(address="local", num_cpus=local_cpus(), include_dashboard=False,
+                                 log_to_driver=False, logging_level=logging.ERROR)
                 else:
                     ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
             except Exception as exc:
@@ -232,9 +310,14 @@ class Batch:
                     if handler is not None:
                         signal.signal(s, handler)
             self.ray_start_s = round(time.monotonic() - started, 3)
+            self.mark("ray ready")
             self._schedule(ray, jobs)
         finally:  # also after a Ctrl-C during ray.init: what it started goes
+            self.mark("ray shutdown")
             ray.shutdown()
+            if node is not None:
+                stop_local_node(node)
+            self.mark("ray down")
 
     def _schedule(self, ray, jobs: list[Job]) -> None:
         total = ray.cluster_resources()
@@ -265,6 +348,7 @@ class Batch:
                     ref = remote.options(num_cpus=job.threads, num_gpus=job.gpus, max_retries=0,
                                          name=f"ti-fusion-batch:{job.name}").remote(self._spec(job))
                     running[ref] = (job, time.monotonic())
+                    self.mark("task submitted", job.name)
                     used_cpu += job.threads
                     used_gpu += job.gpus
                 progress.show(len(running), pending, running, walls, slots)
@@ -272,6 +356,7 @@ class Batch:
                 for ref in ready:
                     job, started = running.pop(ref)
                     rec = self._finish(ray, job, ref, started)
+                    self.mark("result", job.name)
                     walls.append(rec["wall_s"] or time.monotonic() - started)
                     self.counts["ran"] += 1
                     if rec["status"] == results.DONE:
@@ -309,6 +394,9 @@ class Batch:
             return self._record(job, error=(text[-1] if text else type(exc).__name__)[:500],
                                 wall_s=round(time.monotonic() - started, 3))
         ok = out["exit_code"] == 0 and out["summary"] is not None
+        for event, at in (out.get("at") or {}).items():
+            if at is not None:
+                self.mark(event, job.name, at)
         return self._record(job, status=results.DONE if ok else results.FAILED, exit_code=out["exit_code"],
                             error=out["error"], wall_s=out["wall_s"], summary=out["summary"], host=out["host"])
 

@@ -50,6 +50,7 @@ def run(ctx) -> dict:
             (f" (failed: {', '.join(r['job'] for r in failed[:3])}{', ...' if len(failed) > 3 else ''})" if failed else ""))
     return {"frames": sum(r["frames"] or 0 for r in done), "jobs": len(table), "done": len(done),
             "failed": len(failed), "ran": batch.counts["ran"], "skipped": batch.counts["skipped_done"],
-            "ray_start_s": batch.ray_start_s,
+            "ray_start_s": batch.ray_start_s, "timeline": batch.timeline(),
+            "started_at": batch.origin,
             "manifest": str(manifest.path.resolve()), "results": "results.csv",
             "exit_code": 1 if failed else 0}

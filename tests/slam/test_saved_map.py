@@ -102,6 +102,24 @@ def test_saved_loaded_and_saved_again_is_the_same_bytes(tmp_path, rng):
     assert header["trajectory"] == {"frames": 6, "sessions": 2}
 
 
+def test_loading_reads_each_array_once_into_its_own_memory(tmp_path, rng):
+    """A load holds the map once: each array read straight into its own (no buffer of the whole file beside
+    copies of it: the peak was twice the map), and the SavedMap takes them as they are."""
+    import tracemalloc
+
+    save_map(small_map(rng, surfels=200_000), tmp_path / "a")
+    size = (tmp_path / "a" / DATA).stat().st_size
+    tracemalloc.start()
+    try:
+        loaded = load_map(tmp_path / "a")
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert size > 8e6 and peak < 1.25 * size, (peak, size)
+    assert all(a.base is None for a in loaded.surfels.values())  # each its own array, not a view of another's
+    assert loaded.keyframes[2].depth.base is not None  # a keyframe's depth: a view of the loaded stack, not a copy
+
+
 def test_the_map_trajectory_moves_with_its_keyframes(tmp_path, rng):
     saved = load_map(save_map(small_map(rng), tmp_path / "m"))
     stamps, poses = saved.trajectory_poses()
@@ -281,6 +299,8 @@ def test_a_run_saved_and_loaded_into_a_fresh_slam_is_the_same_map(mapped, tmp_pa
     loaded = DenseSLAM.from_map(folder)
     _same(state, loaded.map_state())
     assert loaded.surfels == slam.surfels and loaded.loaded_map.count == 0 and loaded.loaded_map.keyframes
+    # the surfels set aside are arrays of their own: nothing holds the loaded surfels once they are in the fields
+    assert all(a.base is None for a in loaded.loaded_map.surfels.values())
     loaded.save_map(tmp_path / "again")
     for name in (HEADER, DATA):
         assert (folder / name).read_bytes() == (tmp_path / "again" / name).read_bytes(), name

@@ -106,6 +106,27 @@ def read_header(path: str | Path) -> tuple[Path, dict]:
     return folder, header
 
 
+def _read_array(f, name: str, entry, size: int, folder: Path) -> np.ndarray:
+    """Array ``name`` of the open map.bin ``f`` (``size`` bytes) as its table ``entry`` places it, read straight
+    into an array of its own (the only copy a load makes) and its CRC-32 checked."""
+    try:
+        dtype, shape, offset, nbytes, crc = (entry["dtype"], tuple(int(s) for s in entry["shape"]),
+                                             int(entry["offset"]), int(entry["bytes"]), int(entry["crc32"]))
+    except (KeyError, TypeError, ValueError):
+        raise InputError(folder / HEADER, f"is damaged: the entry of array {name!r}") from None
+    if dtype not in DTYPES or offset < 0 or offset + nbytes > size or any(n < 0 for n in shape) or \
+            nbytes != int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize:
+        raise InputError(folder / HEADER, f"is damaged: array {name!r} does not fit {DATA}")
+    array = np.empty(shape, dtype=dtype)
+    raw = array.reshape(-1).view(np.uint8)  # its bytes (a memoryview cannot cast an empty array's)
+    f.seek(offset)
+    if f.readinto(raw) != nbytes:
+        raise InputError(folder / DATA, "could not be read whole")
+    if zlib.crc32(raw) != crc:
+        raise InputError(folder / DATA, f"is corrupted: array {name!r} fails its checksum")
+    return array
+
+
 def read_map_folder(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
     """(header, name → array) of the saved map ``path`` names; every array's size and CRC-32 checked, so a
     truncated or corrupted map.bin is refused in one line naming it and the first bad array."""
@@ -123,26 +144,11 @@ def read_map_folder(path: str | Path) -> tuple[dict, dict[str, np.ndarray]]:
     if size > expected:
         raise InputError(file, f"has {size} bytes, more than the {expected} that {HEADER} lists: it belongs "
                                "to another save")
-    buffer = bytearray(size)
+    arrays = {}
     try:
         with open(file, "rb") as f:
-            if f.readinto(buffer) != size:
-                raise InputError(file, "could not be read whole")
+            for name, entry in table.items():
+                arrays[name] = _read_array(f, name, entry, size, folder)
     except OSError as exc:
         raise InputError(file, f"cannot be read: {exc.strerror or exc}") from None
-    arrays = {}
-    for name, entry in table.items():
-        try:
-            dtype, shape, offset, nbytes, crc = (entry["dtype"], tuple(int(s) for s in entry["shape"]),
-                                                 int(entry["offset"]), int(entry["bytes"]), int(entry["crc32"]))
-        except (KeyError, TypeError, ValueError):
-            raise InputError(folder / HEADER, f"is damaged: the entry of array {name!r}") from None
-        if dtype not in DTYPES or offset < 0 or offset + nbytes > size or \
-                nbytes != int(np.prod(shape, dtype=np.int64)) * np.dtype(dtype).itemsize:
-            raise InputError(folder / HEADER, f"is damaged: array {name!r} does not fit {DATA}")
-        view = memoryview(buffer)[offset:offset + nbytes]
-        if zlib.crc32(view) != crc:
-            raise InputError(file, f"is corrupted: array {name!r} fails its checksum")
-        arrays[name] = np.frombuffer(buffer, dtype=dtype, count=nbytes // np.dtype(dtype).itemsize,
-                                     offset=offset).reshape(shape)
     return header, arrays

@@ -193,7 +193,8 @@ class SavedMap:
     def _from_arrays(cls, header: dict, arrays: dict[str, np.ndarray]) -> "SavedMap":
         import cv2
 
-        surfels = {name: np.array(arrays[f"surfels/{name}"]) for name in SURFEL_ATTRIBUTES}
+        # the arrays are the map's own (read_map_folder reads each into one): taken, not copied again
+        surfels = {name: arrays[f"surfels/{name}"] for name in SURFEL_ATTRIBUTES}
         n = int(header["surfels"])
         if any(len(a) != n for a in surfels.values()):
             raise ValueError(f"surfel arrays of another length than the {n} surfels")
@@ -208,38 +209,37 @@ class SavedMap:
                                   for (x, y, s, a, r), (o, c) in zip(kp[k_kp:k_kp + m], kp_ids[k_kp:k_kp + m]))
                 descriptors = None
                 if meta["descriptors"]:
-                    descriptors = np.array(desc[k_desc:k_desc + m])
+                    descriptors = desc[k_desc:k_desc + m]
                     k_desc += m
-                features = FrameFeatures(keypoints, descriptors, np.array(pixels[k_kp:k_kp + m]),
-                                         np.array(points[k_kp:k_kp + m]))
+                features = FrameFeatures(keypoints, descriptors, pixels[k_kp:k_kp + m], points[k_kp:k_kp + m])
             else:  # as extract_features leaves a frame without keypoints
                 features = FrameFeatures((), None, np.zeros((0, 2)), np.zeros((0, 3)))
             k_kp += m
-            depth = np.array(arrays["keyframes/depth"][index])
+            depth = arrays["keyframes/depth"][index]
             depth_intrinsics = _camera(meta["depth_intrinsics"])
             keyframes.append(Keyframe(int(meta["id"]), int(meta["frame"]), float(meta["timestamp"]),
-                                      np.array(arrays["keyframes/pose"][index]), features, _camera(meta["intrinsics"]),
+                                      arrays["keyframes/pose"][index], features, _camera(meta["intrinsics"]),
                                       depth, depth_intrinsics, grid_points(depth, depth_intrinsics)))
         if k_kp != len(kp) or k_desc != len(desc):
             raise ValueError("feature arrays of another length than the keyframes' features")
         places = None
         if header["places"] is not None:
             p = header["places"]
-            places = PlaceState(np.array(arrays["places/vocabulary"]) if p["vocabulary"] else None,
-                                np.array(arrays["places/word_counts"]), int(p["trainings"]), p["rng"])
+            places = PlaceState(arrays["places/vocabulary"] if p["vocabulary"] else None,
+                                arrays["places/word_counts"], int(p["trainings"]), p["rng"])
         edges, k_cov = [], 0
         covariances = arrays["graph/edge_covariances"]
         for e, T in zip(header["graph_edges"], arrays["graph/edge_transforms"]):
             covariance = None
             if e["covariance"]:
-                covariance = np.array(covariances[k_cov])
+                covariance = covariances[k_cov]
                 k_cov += 1
-            edges.append(Edge(int(e["i"]), int(e["j"]), np.array(T), bool(e["loop"]), covariance, bool(e["robust"])))
+            edges.append(Edge(int(e["i"]), int(e["j"]), T, bool(e["loop"]), covariance, bool(e["robust"])))
         if len(edges) != len(header["graph_edges"]) or k_cov != len(covariances):
             raise ValueError("pose-graph arrays of another length than its edges")
         trajectory = MapTrajectory.empty(sessions=1)  # version 1 kept no trajectory
         if int(header["version"]) >= 2:
-            trajectory = MapTrajectory(*(np.array(arrays[f"trajectory/{name}"]) for name in MapTrajectory.ARRAYS),
+            trajectory = MapTrajectory(*(arrays[f"trajectory/{name}"] for name in MapTrajectory.ARRAYS),
                                        sessions=int(header["trajectory"]["sessions"]))
             n = int(header["trajectory"]["frames"])
             if any(len(getattr(trajectory, name)) != n for name in MapTrajectory.ARRAYS) or \
@@ -248,7 +248,7 @@ class SavedMap:
                 raise ValueError(f"trajectory arrays that are not {n} poses anchored to its keyframes")
         return cls(_camera(header["camera"]), int(header["map_level"]), header["config"], surfels,
                    int(header["frames_fused"]), int(header["anchor"]), int(header["last_frame"]), keyframes, places,
-                   [np.array(p) for p in arrays["graph/poses"]], edges, header["loops"], trajectory,
+                   list(arrays["graph/poses"]), edges, header["loops"], trajectory,
                    int(header["version"]))
 
 
@@ -297,13 +297,11 @@ def capture(slam) -> SavedMap:
                      slam.mapper.map.to_numpy(SURFEL_ATTRIBUTES), slam._frames_fused, slam.mapper.anchor, last)
     loop = slam.loop
     if loop is not None:
-        saved.keyframes = [dataclasses.replace(kf, pose=kf.pose.copy()) for kf in loop.keyframes]
+        saved.keyframes = _copied_keyframes(loop.keyframes)
         db = loop.database
         saved.places = PlaceState(None if db.vocabulary is None else db.vocabulary.copy(), db.word_counts.copy(),
                                   db.trainings, db.rng_state())
-        saved.graph_poses = [p.copy() for p in loop.graph.poses]
-        saved.graph_edges = [dataclasses.replace(e, T=e.T.copy(), covariance=None if e.covariance is None
-                                                 else e.covariance.copy()) for e in loop.graph.edges]
+        saved.graph_poses, saved.graph_edges = _copied_graph(loop.graph.poses, loop.graph.edges)
         saved.loops = {"applied": [list(x) for x in loop.applied], "refused": [list(x) for x in loop.refused],
                        "kept": [list(x) for x in loop.kept]}
     elif carried is not None:  # loop closure off in this run: the loaded map's keyframes stay as they were
@@ -337,23 +335,34 @@ def restore(slam, saved: SavedMap) -> None:
     slam.mapper.anchor = saved.anchor
     slam.poses.keyframe = saved.anchor
     slam._frames_fused = saved.frames_fused
-    slam.loaded_map = dataclasses.replace(saved, surfels={name: saved.surfels[name][:0] for name in SURFEL_ATTRIBUTES})
+    # its surfels left out (empty arrays of their own, not views that would keep the loaded ones for the run)
+    slam.loaded_map = dataclasses.replace(saved, surfels={name: np.empty((0, *a.shape[1:]), a.dtype)
+                                                          for name, a in saved.surfels.items()})
     loop = slam.loop
     if loop is None:
         return
-    loop.keyframes = [dataclasses.replace(kf, pose=kf.pose.copy()) for kf in saved.keyframes]
+    loop.keyframes = _copied_keyframes(saved.keyframes)
     if saved.places is not None:
         loop.database.restore(loop.keyframes, saved.places.vocabulary, saved.places.word_counts,
                               saved.places.trainings, saved.places.rng)
     else:
         for kf in loop.keyframes:  # a map from a run without place recognition's state: learnt again here
             loop.database.add(kf)
-    loop.graph.poses = [p.copy() for p in saved.graph_poses]
-    loop.graph.edges = [dataclasses.replace(e, T=e.T.copy(), covariance=None if e.covariance is None
-                                            else e.covariance.copy()) for e in saved.graph_edges]
+    loop.graph.poses, loop.graph.edges = _copied_graph(saved.graph_poses, saved.graph_edges)
     loop.applied = [tuple(x) for x in saved.loops.get("applied", [])]
     loop.refused = [tuple(x) for x in saved.loops.get("refused", [])]
     loop.kept = [tuple(x) for x in saved.loops.get("kept", [])]
+
+
+def _copied_keyframes(keyframes: list[Keyframe]) -> list[Keyframe]:
+    """The keyframes with poses of their own (loop corrections move them in place); the rest is never written."""
+    return [dataclasses.replace(kf, pose=kf.pose.copy()) for kf in keyframes]
+
+
+def _copied_graph(poses: list[np.ndarray], edges: list[Edge]) -> tuple[list[np.ndarray], list[Edge]]:
+    """The pose graph's poses and edges as copies, between a running map and a SavedMap either way."""
+    return [p.copy() for p in poses], [dataclasses.replace(e, T=e.T.copy(), covariance=None if e.covariance is None
+                                                           else e.covariance.copy()) for e in edges]
 
 
 def _camera_dict(K: Intrinsics) -> dict:

@@ -203,14 +203,8 @@ class DenseSLAM:
             log.warning(warning)
         self.poses = PoseStore()  # the trajectory, each pose with its keyframe (loop closure corrects it)
         self.skipped: list[tuple[int, str]] = []  # (frame, reason) of the frames before the map started
-        self.last_good: tuple[Frame, np.ndarray] | None = None  # for feature re-localisation
-        self._velocity = np.zeros(6)  # last motion per second, twist (ω, v) of the camera-to-camera step
-        self._last_stamp: float | None = None  # timestamp of the last tracked frame
-        self._lost_streak = 0  # frames lost since the last tracked one
-        # Another start than the motion model's won the last tracked frame: the next guess is in doubt too, and
-        # every start is tried (a wrong minimum can pass every check with a residual as low as the recent ones).
-        self._guess_beaten = False
         self._residuals: deque[float] = deque(maxlen=RECENT_FRAMES)  # ICP residuals of the last tracked frames
+        self.seed(None, None)  # tracking's state: from nowhere, at rest
         self._frames_fused = 0
         self._degeneracy_warned = False  # the warning that depth (and colour) leave directions unconstrained
         self.session = None  # a session against a saved map (``start_session``; ti_fusion/slam/session.py)
@@ -622,10 +616,14 @@ class DenseSLAM:
     def seed(self, frame: Frame | None, pose: np.ndarray | None) -> None:
         """Tracking starts afresh from ``pose`` (the frame that gave it: feature re-localisation's reference), at
         rest, with no recent residuals; None: from nowhere (a session that has not found itself)."""
-        self.last_good = None if frame is None else (frame, np.array(pose, dtype=np.float64))
-        self._velocity = np.zeros(6)
-        self._last_stamp = None
-        self._lost_streak = 0
+        self.last_good: tuple[Frame, np.ndarray] | None = None  # for feature re-localisation
+        if frame is not None:
+            self.last_good = (frame, np.array(pose, dtype=np.float64))
+        self._velocity = np.zeros(6)  # last motion per second, twist (ω, v) of the camera-to-camera step
+        self._last_stamp: float | None = None  # timestamp of the last tracked frame
+        self._lost_streak = 0  # frames lost since the last tracked one
+        # Another start than the motion model's won the last tracked frame: the next guess is in doubt too, and
+        # every start is tried (a wrong minimum can pass every check with a residual as low as the recent ones).
         self._guess_beaten = False
         self._residuals.clear()
 

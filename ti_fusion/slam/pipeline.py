@@ -247,7 +247,7 @@ class Pipeline:
         prefetcher = Prefetcher.for_dataset(self.dataset, self.config.dataset.read_workers, READ_AHEAD)
         self.read_workers, self.read_mode = prefetcher.workers, prefetcher.mode
         # an endless stream's loop ends at the first Ctrl-C (the CLI's handler sets ``end.requested``)
-        endless = getattr(self.dataset, "endless", False)
+        endless = self.dataset.endless
         with prefetcher as frames, (stream_end() if endless else nullcontext()) as end:
             # a session against a saved map, until it has found itself in it, and a localisation off the map
             note = lambda: "" if not self.results else "not localised" if self.results[-1].status.startswith(

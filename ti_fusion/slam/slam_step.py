@@ -113,6 +113,10 @@ STATS_SCHEMA = json_object({
 }, required=("frame", "status", "tracking", "surfels", "ms"))
 
 
+# (stats key, term name, entry of its sums) of every registered term's fields, as STATS_SCHEMA lists them
+TERM_STATS = tuple((key, cls.name, entry) for cls in term_classes() for key, (_, _, entry) in cls.stats_fields.items())
+
+
 def frame_stats(result: FrameResult, surfels: int) -> dict:
     """The /slam/stats message of one frame (``STATS_SCHEMA``)."""
     stats = {"frame": result.index, "status": "ok" if result.tracking is Tracking.INIT else result.status,
@@ -133,8 +137,7 @@ def frame_stats(result: FrameResult, surfels: int) -> dict:
             "condition": icp.condition,
             "update_norm": icp.update_norm,
             # each registered term's fields (TrackingTerm.stats_fields): 0 rows where it did not run
-            **{key: icp.terms.get(cls.name, {}).get(entry, 0) for cls in term_classes()
-               for key, (_, _, entry) in cls.stats_fields.items()},
+            **{key: icp.terms.get(term, {}).get(entry, 0) for key, term, entry in TERM_STATS},
         }
         if icp.degeneracy is not None:
             stats["icp"]["weak_directions"] = icp.degeneracy["weak"]

@@ -41,10 +41,16 @@ def _step(system: DenseSLAM) -> SLAMStep:
     return step
 
 
-def test_a_session_finds_itself_in_the_map_and_extends_it(cpu):
+def test_a_session_finds_itself_in_the_map_and_extends_it(cpu, monkeypatch):
+    import ti_fusion.loop.closure as closure
+
     system, room = _mapped()
     keyframes = len(system.loop.keyframes)
     system.start_session()
+    extracted = []  # the frames whose ORB features were extracted, once each
+    extract = closure.extract_features
+    monkeypatch.setattr(closure, "extract_features", lambda frame, *a: extracted.append(frame.index) or extract(
+        frame, *a))
     assert len(system.poses) == 0 and system.session.whole_map
     results = [system.register_frame(room[i]) for i in range(15, 21)]
     first = results[0]
@@ -61,6 +67,7 @@ def test_a_session_finds_itself_in_the_map_and_extends_it(cpu):
     assert len(system.loop.keyframes) > keyframes and first.loop.why == "found"
     ties = [e.i for e in system.loop.graph.edges if e.j == keyframes and not e.loop]
     assert ties == [first.found["keyframe"]]  # no odometry edge from the map's last keyframe
+    assert extracted.count(15) == 1  # its keyframe took the features that found it
     step = _step(system)
     stats = step.stats(first)
     assert stats["localised"] and stats["found"] == first.found and stats["status"] == "relocalised"

@@ -68,6 +68,8 @@ class Placement:
     candidate: LoopCandidate  # the verified candidate: ``T`` maps the keyframe's camera into the frame's
     keyframe: Keyframe  # the keyframe it matched
     pose: np.ndarray  # the frame's camera-to-world pose that the match gives
+    frame: int = -1  # the frame's index
+    features: object = None  # its ORB features (FrameFeatures), which its keyframe takes instead of extracting again
 
 
 @dataclass
@@ -118,6 +120,7 @@ class LoopClosure:
         self._warmed_up = False  # the kernels that build maps from a stored depth are loaded (``after_frame``)
         self.session_start = 0  # the first keyframe of this session (``begin_session``): the ones before are the map's
         self._link: int | None = None  # the keyframe the next keyframe is tied to instead of odometry (``found``)
+        self._found_features: tuple[int, object] | None = None  # (frame, features) of the frame that found itself
 
     # -- the verb -------------------------------------------------------------------------------
     def after_frame(self, frame, result, maps: LoopMaps) -> LoopReport | None:
@@ -192,7 +195,10 @@ class LoopClosure:
 
     def _make_keyframe(self, frame, pose: np.ndarray, maps: LoopMaps) -> Keyframe:
         depth, K = maps.frame.depth[maps.level].to_numpy(), maps.frame.intrinsics[maps.level]  # the map's resolution
-        features = extract_features(frame, self._vo, self._orb)
+        found, self._found_features = self._found_features, None
+        # the frame that found itself in a saved map has its features from ``find_place``
+        features = found[1] if found is not None and found[0] == frame.index else \
+            extract_features(frame, self._vo, self._orb)
         kf = Keyframe(len(self.keyframes), frame.index, frame.timestamp, pose.copy(), features, frame.intrinsics,
                       depth, K, grid_points(depth, K))
         self.keyframes.append(kf)
@@ -217,6 +223,7 @@ class LoopClosure:
         self.database.earlier_session()
         self._since = []
         self._link = None
+        self._found_features = None
 
     def find_place(self, frame, maps: LoopMaps) -> tuple[Placement | None, list[LoopCandidate]]:
         """Where ``frame`` (tracked by nothing yet: its pose is unknown) is among the keyframes: place recognition
@@ -237,13 +244,14 @@ class LoopClosure:
             checked.append(c)
             if c.verified:
                 match = self.keyframes[c.match]
-                return Placement(c, match, renormalize(match.pose @ invert(c.T))), checked
+                return Placement(c, match, renormalize(match.pose @ invert(c.T)), frame.index, features), checked
         return None, checked
 
     def found(self, placement: Placement) -> None:
         """The frame just registered found itself at ``placement``: it becomes the session's first keyframe,
         tied to the keyframe it matched by the relative pose of the two (after tracking refined the frame's)."""
         self._link = placement.keyframe.id
+        self._found_features = (placement.frame, placement.features)
 
     def _pnp_edge(self, previous: Keyframe, kf: Keyframe) -> None:
         """``loop.keyframe_pnp``: the two keyframes' relative pose from PnP RANSAC on their ORB features (the

@@ -229,10 +229,7 @@ class DenseSLAM:
 
     def _close_loops(self, frame: Frame, result: FrameResult):
         """Loop closure's part of the frame, and what it reports applied here."""
-        from ti_fusion.loop.closure import LoopMaps
-
-        maps = LoopMaps(self.frame_pyramid, self.scratch_pyramid(), self.mapper.frame_level(self.frame_pyramid))
-        report = self.loop.after_frame(frame, result, maps)
+        report = self.loop.after_frame(frame, result, self.loop_maps())
         if report is not None:
             self.start_keyframe(report.keyframe)
             if report.corrections is not None:
@@ -526,6 +523,13 @@ class DenseSLAM:
         self.poses.append(result.pose, result.index, timestamp)
 
     # -- what loop closure reports, applied ----------------------------------------------------------
+    def loop_maps(self):
+        """What loop closure reads of this frame (``LoopMaps``): its maps, the scratch maps it may fill, and the
+        level of the map's resolution."""
+        from ti_fusion.loop.closure import LoopMaps
+
+        return LoopMaps(self.frame_pyramid, self.scratch_pyramid(), self.mapper.frame_level(self.frame_pyramid))
+
     def scratch_pyramid(self) -> FramePyramid:
         """Maps at the map's resolution that may be filled between frames, until the next
         ``register_frame``: the model prediction's, which the next frame's tracking renders anew. Loop

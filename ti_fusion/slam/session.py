@@ -94,11 +94,8 @@ class Session:
 def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
     """One frame of a session that has not found itself: a ``result_type`` (FrameResult) that is relocalised
     (with ``found``), or unlocalised with why."""
-    from ti_fusion.loop.closure import LoopMaps
-
     session = slam.session
-    maps = LoopMaps(slam.frame_pyramid, slam.scratch_pyramid(), slam.mapper.frame_level(slam.frame_pyramid))
-    placement, checked = slam.loop.find_place(frame, maps)
+    placement, checked = slam.loop.find_place(frame, slam.loop_maps())
     tried = [f"place: keyframe {c.match} (score {c.score:.3f}): {c.reason}" for c in checked]
     if placement is None:
         why = "no keyframe of the map looks like this frame" if not checked else \

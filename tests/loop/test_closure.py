@@ -112,6 +112,41 @@ def test_a_loop_the_poses_already_agree_with_moves_nothing():
     assert report.outcome == "applied" and loop.applied == [(1, 5)] and report.corrections.shape == (6, 4, 4)
 
 
+def test_a_sessions_first_keyframe_tries_the_maps_keyframes_near_it_densely():
+    """When ORB verifies none of its candidates, the keyframe tied to the map tries the map's keyframes within
+    DENSE_TIE_M / DENSE_TIE_DEG of it by the estimates, nearest first, at most DENSE_TRIES, not those of its tie's
+    own visit, and stops at the first verified; the candidates are recorded with the reason."""
+    from ti_fusion.loop.closure import DENSE_TIE_DEG, DENSE_TIE_M, DENSE_TRIES
+    from ti_fusion.loop.verification import LoopCandidate
+
+    loop = LoopClosure(Config())
+    here = make_pose(np.eye(3), [0.0, 0.0, 0.0])
+    turned = make_pose(se3_exp(np.r_[0, np.radians(DENSE_TIE_DEG + 5), 0, 0, 0, 0])[:3, :3], [0.0, 0.0, 0.0])
+    shifts = [0.02, 0.25, 0.05, 0.1, DENSE_TIE_M + 0.05, None, 0.15]  # None: turned away, at the same spot
+    loop.keyframes = [SimpleNamespace(id=k, frame=10 * k,
+                                      pose=turned if d is None else make_pose(np.eye(3), [d, 0, 0]))
+                      for k, d in enumerate(shifts)]
+    loop.session_start = len(shifts)
+    kf = SimpleNamespace(id=len(shifts), frame=9999, pose=here)
+    tried = []
+
+    def verify_dense(query, match, init, source, target, verified=()):
+        tried.append(match.id)
+        np.testing.assert_allclose(init, np.linalg.inv(query.pose) @ match.pose)
+        c = LoopCandidate(query.id, match.id, 0.0)
+        c.verified, c.reason = match.id in verified, "stub"
+        return c
+
+    loop.verifier = SimpleNamespace(verify_dense=verify_dense)
+    report = SimpleNamespace(candidates=[])
+    maps = SimpleNamespace(scratch=None, frame=None)
+    assert loop._dense_tie(kf, {0}, report, maps) is None  # keyframe 0: the tie's own visit
+    assert tried == [2, 3, 6][:DENSE_TRIES] and len(report.candidates) == len(tried) == len(loop.candidates)
+    tried.clear()
+    loop.verifier = SimpleNamespace(verify_dense=lambda *a: verify_dense(*a, verified=(3,)))
+    assert loop._dense_tie(kf, set(), report, maps).match == 3 and tried == [0, 2, 3]
+
+
 def test_a_loop_candidate_is_older_than_the_active_window():
     """Tracking aligns to the active window's surfels already, so a loop to a keyframe inside it repeats
     odometry with the loop's own error added (the loop scene driven backwards, seed 11: one such loop, frames

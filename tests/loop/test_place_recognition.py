@@ -111,3 +111,93 @@ def test_verification_rejects_a_look_alike_with_the_wrong_geometry(views, verifi
                                 features=dataclasses.replace(first.features, points=first.features.points * 1.25))
     c = ver.verify(views["again"][1], wrong, 0.5, source, target)
     assert not c.verified and c.reason
+
+
+# -- dense verification from the estimated poses (a session's tie to keyframes ORB cannot match) -----------------
+@pytest.fixture(scope="module")
+def dense_verifier():
+    """The run's own ICP (every pyramid level): how far off a start it converges from is what is tested."""
+    _use("cpu")
+    from ti_fusion.kernels.pyramid import FramePyramid
+
+    cfg = Config()
+    levels = len(cfg.icp.iterations)
+    return LoopVerifier(cfg), FramePyramid(cfg.pyramid, HEIGHT, WIDTH, levels), FramePyramid(cfg.pyramid, HEIGHT,
+                                                                                            WIDTH, levels)
+
+
+def _off(T: np.ndarray, yaw_deg: float, shift) -> np.ndarray:
+    """``T`` (p_query = T p_match) as estimates that drifted by ``yaw_deg`` and ``shift`` (metres) would give it."""
+    return moved(np.eye(4), yaw_deg, shift) @ T
+
+
+@pytest.mark.slow
+def test_dense_verification_takes_the_same_place_from_drifted_estimates(views, dense_verifier):
+    ver, source, target = dense_verifier
+    (pose_a, first), (pose_b, again) = views["first"], views["again"]
+    truth = invert(pose_b) @ pose_a
+    fill_target(target, again)
+    c = ver.verify_dense(again, first, _off(truth, 3.0, (0.05, -0.02, 0.04)), source, target)
+    assert c.verified, c.reason
+    rot_deg, trans_m = pose_error(c.T, truth)
+    assert rot_deg < 1.0 and trans_m < 0.02
+    assert c.reason == "verified (dense, from the estimated poses)" and c.score == 0.0 and not c.free
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("other", ["far", "left"])
+def test_dense_verification_refuses_another_place_the_estimates_put_near(views, dense_verifier, other):
+    """The estimates say the two keyframes are 6 cm apart; the match saw another wall of the room."""
+    ver, source, target = dense_verifier
+    (pose_a, first), (pose_b, again) = views["first"], views["again"]
+    fill_target(target, again)
+    c = ver.verify_dense(again, views[other][1], invert(pose_b) @ pose_a, source, target)
+    assert not c.verified and c.reason.startswith("dense: ICP"), c.reason
+
+
+@pytest.mark.slow
+def test_dense_verification_refuses_a_look_alike_with_the_wrong_geometry(views, dense_verifier):
+    ver, source, target = dense_verifier
+    (pose_a, first), (pose_b, again) = views["first"], views["again"]
+    wrong = dataclasses.replace(first, depth=first.depth * 1.25)
+    fill_target(target, again)
+    c = ver.verify_dense(again, wrong, invert(pose_b) @ pose_a, source, target)
+    assert not c.verified and c.reason.startswith("dense: ICP"), c.reason
+
+
+@pytest.mark.slow
+def test_dense_verification_refuses_estimates_further_off_than_icp_may_move_them(views, dense_verifier):
+    """The right place, but the estimates 25 cm off (more than loop.max_icp_change_m): not taken on ICP's word."""
+    ver, source, target = dense_verifier
+    (pose_a, first), (pose_b, again) = views["first"], views["again"]
+    fill_target(target, again)
+    c = ver.verify_dense(again, first, _off(invert(pose_b) @ pose_a, 0.0, (0.25, 0.0, 0.0)), source, target)
+    assert not c.verified and c.reason.startswith("dense: ICP"), c.reason
+
+
+@pytest.mark.slow
+def test_dense_verification_refuses_a_corridor_where_the_estimates_would_be_the_measurement(dense_verifier):
+    """Down a corridor of plain walls two places 20 cm apart look the same to depth: ICP from the estimates (which
+    say they are one place) stays where it starts, with an inlier ratio, residual and even weak-direction test
+    that pass; from starts around the estimate it ends as far apart as they are, so it is refused."""
+    from ti_fusion.config import SynthConfig
+    from ti_fusion.synthetic.scene import SyntheticSequence
+    from ti_fusion.synthetic.scenes import CORRIDOR_Y
+    from ti_fusion.synthetic.shapes import look_at
+
+    ver, source, target = dense_verifier
+    seq = SyntheticSequence(SynthConfig(scene="corridor", width=WIDTH, height=HEIGHT, fx=262.5))
+    mid = 0.5 * (CORRIDOR_Y[0] + CORRIDOR_Y[1])
+    poses = [look_at(np.array([x, mid, 1.5]), np.array([x + 3.0, mid, 1.4]), 0.0) for x in (-3.0, -2.8)]
+    a, b = (keyframe(i, view(seq, p, i, seed=i), p) for i, p in enumerate(poses))
+    fill_target(target, b)
+    c = ver.verify_dense(b, a, np.eye(4), source, target)
+    assert not c.verified and c.reason.endswith("the place does not fix the pose"), c.reason
+    assert c.icp_inlier_ratio >= Config().loop.min_inlier_ratio  # the single ICP alone would have passed
+
+
+def fill_target(target, keyframe) -> None:
+    """The query keyframe's maps, as the SLAM loop hands over the frame's (verify_dense's target is ready)."""
+    from ti_fusion.loop.verification import fill
+
+    fill(target, keyframe)

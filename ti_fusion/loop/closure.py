@@ -17,7 +17,11 @@ pose against the corrected map; the motion model is a relative motion and needs 
 A second session against a saved map (``begin_session``): the map's keyframes are an earlier session's, loop
 candidates of every keyframe of the new one; until the new session has found itself, ``find_place`` looks for
 each frame among them (place recognition over every keyframe, then verification as for a loop), and the
-frame that found itself becomes the session's first keyframe, tied to the keyframe it matched (``found``).
+frame that found itself becomes the session's first keyframe, tied to the keyframe it matched (``found``). That
+keyframe's loop candidates are the map's other visits of the place (outside the tie's frame gap); when ORB verifies
+none of them, the map's keyframes nearest it by the estimated poses are tried by dense ICP alone
+(``LoopVerifier.verify_dense``): where the first session ended just before its start came back into view, its last
+keyframes see the place with keypoints beyond the depth camera's range, and this tie is what closes its loop.
 
 Loop closure calls nothing of SLAM: the owner hands it, per frame, the frame's maps (``LoopMaps``: the
 frame's pyramid, read only, the target of verification and the keyframe's depth; and maps it may fill
@@ -34,7 +38,7 @@ import cv2
 import numpy as np
 
 from ti_fusion.config import Config
-from ti_fusion.geometry import invert, renormalize
+from ti_fusion.geometry import invert, pose_error, renormalize
 from ti_fusion.loop.keyframes import Keyframe, KeyframeSelector, grid_points
 from ti_fusion.loop.place_recognition import PlaceDatabase
 from ti_fusion.loop.pose_graph import PoseGraph, edge_covariance, frame_covariance
@@ -43,6 +47,14 @@ from ti_fusion.tracking.features import extract_features, solve_pnp
 from ti_fusion.timing import Stopwatch
 
 log = logging.getLogger(__name__)
+
+# A session's first keyframe tries, when ORB verifies none of its candidates, the map's keyframes (outside the tie's
+# frame gap) whose estimated pose is within this distance and angle of its own, nearest first, at most DENSE_TRIES:
+# they see most of what it sees (keyframes are 0.25 m / 20 degrees apart); verify_dense then accepts an estimate
+# off by at most loop.max_icp_change_m / _deg (the map's drift between the two visits).
+DENSE_TIE_M = 0.3
+DENSE_TIE_DEG = 20.0
+DENSE_TRIES = 3
 
 
 def candidate_gap(config: Config) -> int:
@@ -172,6 +184,8 @@ class LoopClosure:
             if c.verified:
                 verified = c
                 break
+        if verified is None and tied is not None:
+            verified = self._dense_tie(kf, exclude, report, maps)
         if report.candidates:
             report.ms["verify"] = sum(c.ms for c in report.candidates)
             self.ms["verify"].append(report.ms["verify"])
@@ -252,6 +266,30 @@ class LoopClosure:
         tied to the keyframe it matched by the relative pose of the two (after tracking refined the frame's)."""
         self._link = placement.keyframe.id
         self._found_features = (placement.frame, placement.features)
+
+    def _dense_tie(self, kf: Keyframe, exclude: set, report: LoopReport, maps: LoopMaps) -> LoopCandidate | None:
+        """A session's first keyframe against the map's keyframes near it by the estimated poses (``DENSE_TIE_M``,
+        ``DENSE_TIE_DEG``; not those of ``exclude``, the tie's own visit), dense ICP alone, nearest first: the
+        first verified, or None."""
+        near = []
+        for k in range(self.session_start):
+            if k in exclude:
+                continue
+            rot_deg, trans_m = pose_error(self.keyframes[k].pose, kf.pose)
+            if trans_m <= DENSE_TIE_M and rot_deg <= DENSE_TIE_DEG:
+                near.append((trans_m, k))
+        for trans_m, k in sorted(near)[:DENSE_TRIES]:
+            match = self.keyframes[k]
+            c = self.verifier.verify_dense(kf, match, renormalize(invert(kf.pose) @ match.pose), maps.scratch,
+                                           maps.frame)
+            report.candidates.append(c)
+            self.candidates.append(c)
+            say = log.info if c.verified else log.debug
+            say(f"dense tie: keyframe {kf.id} (frame {kf.frame}) with the map's keyframe {k} (frame {match.frame}), "
+                f"{trans_m * 100:.1f} cm away by the estimates: {c.reason}")
+            if c.verified:
+                return c
+        return None
 
     def _pnp_edge(self, previous: Keyframe, kf: Keyframe) -> None:
         """``loop.keyframe_pnp``: the two keyframes' relative pose from PnP RANSAC on their ORB features (the

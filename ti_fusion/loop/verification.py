@@ -9,6 +9,14 @@ Three gates, cheapest first, every outcome recorded with its reason (``LoopCandi
    earlier keyframe's stored depth as the source, the current keyframe's maps as the target), from PnP's
    guess: no ICP failure, an inlier ratio of at least ``loop.min_inlier_ratio``, an RMS residual of at most
    ``loop.max_residual``, and a pose within ``loop.max_icp_change_deg`` / ``_m`` of PnP's (both agree).
+
+``verify_dense`` is the third gate alone, from the two keyframes' estimated relative pose instead of PnP's, for
+keyframes ORB cannot match (a view whose keypoints lie beyond the depth camera's range): the same ICP gates, the
+pose within the same limits of the estimate, and the same pose from starts around the estimate. With no appearance
+behind it, where depth does not fix the pose (down a corridor of plain walls ICP stays where it starts, and its
+weak-direction test need not say so) ICP would return the estimate as the measurement: ICP from starts
+``DENSE_OFFSET_M`` / ``DENSE_OFFSET_DEG`` off the estimate along each axis must all end within ``DENSE_SPREAD_M`` /
+``DENSE_SPREAD_DEG`` of the first.
 """
 
 from __future__ import annotations
@@ -19,12 +27,32 @@ from dataclasses import dataclass
 import numpy as np
 
 from ti_fusion.config import Config
-from ti_fusion.geometry import pose_error
+from ti_fusion.geometry import pose_error, se3_exp
 from ti_fusion.loop.keyframes import Keyframe
 from ti_fusion.loop.place_recognition import precheck
 from ti_fusion.tracking.features import solve_pnp
 from ti_fusion.tracking.icp import ICP
 from ti_fusion.timing import Stopwatch
+
+
+# verify_dense: the starts around the estimate (each axis, both signs, in the query's camera frame), and how far
+# apart the poses ICP ends at from them may be. ICP of one place converges to one pose from a few cm and degrees
+# off (within a millimetre on the synthetic room); along a corridor of plain walls it ends where it started.
+DENSE_OFFSET_M = 0.05
+DENSE_OFFSET_DEG = 3.0
+DENSE_SPREAD_M = 0.01
+DENSE_SPREAD_DEG = 0.5
+
+
+def dense_starts(init: np.ndarray) -> list[np.ndarray]:
+    """``init`` moved by ±``DENSE_OFFSET_M`` along each axis and turned by ±``DENSE_OFFSET_DEG`` about each."""
+    starts = []
+    for axis in range(6):
+        for sign in (-1.0, 1.0):
+            twist = np.zeros(6)
+            twist[axis] = sign * (np.radians(DENSE_OFFSET_DEG) if axis < 3 else DENSE_OFFSET_M)
+            starts.append(se3_exp(twist) @ init)
+    return starts
 
 
 @dataclass
@@ -117,6 +145,49 @@ class LoopVerifier:
         c.free = [np.asarray(d["twist"], dtype=np.float64) for d in (icp.degeneracy or {}).get("directions", [])
                   if not d["color"]]
         c.verified, c.reason = True, "verified"
+
+    def verify_dense(self, query: Keyframe, match: Keyframe, init: np.ndarray, source, target) -> LoopCandidate:
+        """``match`` against ``query`` (whose maps are in ``target`` already) by dense ICP alone, from ``init``
+        (p_query = init p_match, the two keyframes' estimated poses); score 0: place recognition had no say."""
+        cfg = self.config.loop
+        watch = Stopwatch()
+        c = LoopCandidate(query.id, match.id, 0.0)
+        fill(source, match)
+        icp = self.icp.align(source, target, init=init)
+        c.icp_inlier_ratio, c.icp_residual_m = float(icp.inlier_ratio), float(icp.residual_rms)
+        rot_deg, trans_m = pose_error(icp.pose, init)
+        if icp.failure:
+            c.reason = f"dense: ICP: {icp.failure}"
+        elif not icp.inlier_ratio >= cfg.min_inlier_ratio:
+            c.reason = f"dense: ICP: inlier ratio {icp.inlier_ratio:.3f} < {cfg.min_inlier_ratio:g}"
+        elif not icp.residual_rms <= cfg.max_residual:
+            c.reason = f"dense: ICP: residual {icp.residual_rms * 1e3:.1f} mm > {cfg.max_residual * 1e3:g} mm"
+        elif rot_deg > cfg.max_icp_change_deg or trans_m > cfg.max_icp_change_m:
+            c.reason = (f"dense: ICP moved the estimate by {rot_deg:.1f} deg / {trans_m * 100:.1f} cm (at most "
+                        f"{cfg.max_icp_change_deg:g} deg / {cfg.max_icp_change_m * 100:g} cm)")
+        else:
+            c.reason = self._spread(icp.pose, init, source, target)
+        if not c.reason:
+            c.T = icp.pose
+            c.free = [np.asarray(d["twist"], dtype=np.float64) for d in (icp.degeneracy or {}).get("directions", [])
+                      if not d["color"]]
+            c.verified, c.reason = True, "verified (dense, from the estimated poses)"
+        c.ms = watch.ms
+        return c
+
+    def _spread(self, pose: np.ndarray, init: np.ndarray, source, target) -> str:
+        """"" when ICP from every start of ``dense_starts(init)`` ends within DENSE_SPREAD_M / _DEG of ``pose``,
+        else why not."""
+        for start in dense_starts(init):
+            other = self.icp.align(source, target, init=start)
+            rot_deg, trans_m = pose_error(other.pose, pose)
+            if other.failure or rot_deg > DENSE_SPREAD_DEG or trans_m > DENSE_SPREAD_M:
+                return (f"dense: ICP from a start {DENSE_OFFSET_M * 100:g} cm / {DENSE_OFFSET_DEG:g} deg off the "
+                        f"estimate ends {trans_m * 100:.1f} cm / {rot_deg:.1f} deg from where it ends from the "
+                        f"estimate (at most "
+                        f"{DENSE_SPREAD_M * 100:g} cm / {DENSE_SPREAD_DEG:g} deg): the place does not fix the pose"
+                        + (f" ({other.failure})" if other.failure else ""))
+        return ""
 
 
 def fill(pyramid, keyframe: Keyframe) -> None:

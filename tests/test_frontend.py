@@ -175,3 +175,56 @@ def test_a_failed_run_leaves_no_notice_behind(cpu, tmp_path, monkeypatch):
     assert main(["slam", str(tmp_path / "no-such-folder"), "--out", str(tmp_path / "run")]) == 2
     assert announced and announced[0] is not None  # the notice was set for the run (Taichi had started)
     assert frontend.CLOCK.notice is None
+
+
+def test_the_class_check_answers_as_taichis(monkeypatch):
+    """``fast_class_check``'s replacement of Taichi's in-class test gives the original's answer for every
+    ``ti.kernel`` and ``ti.func`` defined while the kernels are imported and below: in a ``data_oriented``
+    class body (True), in a function and at module level (False)."""
+    from taichi.lang import kernel_impl
+
+    from ti_fusion.frontend import fast_class_check
+
+    assert fast_class_check()
+    fast = kernel_impl._inside_class
+    assert hasattr(fast, "__wrapped__")
+    answers = []
+
+    def both(level_of_class_stackframe):
+        mine = fast(level_of_class_stackframe + 1)
+        theirs = fast.__wrapped__(level_of_class_stackframe + 1)
+        answers.append((mine, theirs))
+        return mine
+
+    monkeypatch.setattr(kernel_impl, "_inside_class", both)
+
+    @ti.data_oriented
+    class Owner:
+        @ti.kernel
+        def method(self):
+            pass
+
+        @ti.func
+        def helper(self):
+            pass
+
+    @ti.kernel
+    def plain():
+        pass
+
+    @ti.func
+    def plain_func():
+        pass
+
+    import types
+    from pathlib import Path
+
+    import ti_fusion.kernels.surfel_map as module
+
+    # every decorator of a kernels module, run again in a copy of it (the module itself stays as it is)
+    copy = types.ModuleType("surfel_map_copy")
+    copy.__file__ = module.__file__
+    exec(compile(Path(module.__file__).read_text(), module.__file__, "exec"), copy.__dict__)
+    assert answers[:4] == [(True, True), (True, True), (False, False), (False, False)]
+    assert len(answers) > 10 and all(mine == theirs for mine, theirs in answers)
+    assert Owner.method._is_classkernel and not plain._is_classkernel

@@ -72,6 +72,44 @@ def _memoize_source_lines() -> None:
     kernel_impl.getsourcelines = getsourcelines
 
 
+def fast_class_check() -> bool:
+    """Make Taichi's check of whether a ``ti.kernel`` / ``ti.func`` is defined in a class body cheap; True
+    when installed (once per process). Taichi 1.7's decorators read the source line the defining frame is
+    at with ``inspect.getframeinfo``, which finds the frame's module by scanning every loaded module's
+    file (``inspect.getmodule``) and reads the whole file: about 1.5 ms a decorator here, paid for every
+    kernel and function defined at import and for ICP's kernels built per set of terms. This reads the
+    same line through ``linecache`` and matches it against the same patterns."""
+    global _class_check_installed
+    if _class_check_installed:
+        return True
+    try:
+        from taichi.lang import kernel_impl
+    except ImportError:
+        return False
+    original = getattr(kernel_impl, "_inside_class", None)
+    patterns = getattr(kernel_impl, "_KERNEL_CLASS_STACKFRAME_STMT_RES", None)
+    if original is None or patterns is None:
+        return False
+    import linecache
+    import sys
+
+    def _inside_class(level_of_class_stackframe):
+        try:
+            frame = sys._getframe(level_of_class_stackframe)
+            line = linecache.getline(frame.f_code.co_filename, frame.f_lineno, frame.f_globals).strip()
+        except Exception:
+            return False
+        return any(pattern.match(line) for pattern in patterns)
+
+    _inside_class.__wrapped__ = original
+    kernel_impl._inside_class = _inside_class
+    _class_check_installed = True
+    return True
+
+
+_class_check_installed = False
+
+
 # --------------------------------------------------------------------------------------------------
 # How long the kernels' first launches take: compiling (or loading from the offline cache)
 # --------------------------------------------------------------------------------------------------

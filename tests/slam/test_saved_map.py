@@ -13,7 +13,7 @@ import pytest
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import Config
 from ti_fusion.errors import InputError
-from ti_fusion.io.map_files import DATA, HEADER, VERSION, map_folder, write_map_folder
+from ti_fusion.io.map_files import DATA, HEADER, VERSION, find_map_folder, map_folder, write_map_folder
 from ti_fusion.io.outputs import RunDir
 from ti_fusion.loop.keyframes import Keyframe, grid_points
 from ti_fusion.loop.pose_graph import Edge
@@ -171,8 +171,14 @@ def test_a_version_1_map_loads_without_a_trajectory_and_saves_as_version_2(tmp_p
 def test_a_map_is_found_from_its_folder_its_header_or_its_run(tmp_path, rng):
     save_map(small_map(rng), tmp_path / "run" / "map")
     for given in (tmp_path / "run", tmp_path / "run" / "map", tmp_path / "run" / "map" / HEADER):
-        assert map_folder(given) == tmp_path / "run" / "map"
+        assert map_folder(given) == find_map_folder(given) == tmp_path / "run" / "map"
         assert load_map(given).count == 500
+    # what is no saved map: None from the lookup that ti-fusion mesh and inspect make, one line from map_folder
+    (tmp_path / "run" / "notes.txt").write_text("mine")
+    for given in (tmp_path, tmp_path / "run" / "notes.txt", tmp_path / "missing", tmp_path / "run" / "map" / DATA):
+        assert find_map_folder(given) is None
+        with pytest.raises(InputError):
+            map_folder(given)
 
 
 def _one_line(exc: pytest.ExceptionInfo) -> str:

@@ -39,11 +39,10 @@ def writes_files(args) -> bool:
 
 
 def run(ctx) -> dict:
-    from ti_fusion.io.map_files import HEADER, RUN_SUBFOLDER
+    from ti_fusion.io.map_files import find_map_folder
 
     given = Path(ctx.args.log)
-    has_map = (given.is_file() and given.name == HEADER) or (given / HEADER).is_file() or \
-        (given / RUN_SUBFOLDER / HEADER).is_file()
+    has_map = find_map_folder(given) is not None
     if has_map and not (given.is_dir() and (given / "log.mcap").is_file()):  # a saved map, or a run with no log
         if ctx.args.plot:
             from ti_fusion.errors import InputError

@@ -45,13 +45,14 @@ def adds_to_run(args) -> str | None:
 def map_file(given: str) -> Path:
     """The map that ``given`` (a run folder or a file) names: a map.ply, or a saved map's map.json."""
     from ti_fusion.errors import InputError
-    from ti_fusion.io.map_files import HEADER, RUN_SUBFOLDER
+    from ti_fusion.io.map_files import HEADER, find_map_folder
 
     path = Path(given)
     if path.is_dir():
-        for name in ("map.ply", HEADER, f"{RUN_SUBFOLDER}/{HEADER}"):
-            if (path / name).is_file():
-                return path / name
+        if (path / "map.ply").is_file():
+            return path / "map.ply"
+        if (folder := find_map_folder(path)) is not None:
+            return folder / HEADER
         raise InputError(path, "holds no map.ply nor a saved map: give the folder of a slam or fuse run, a saved "
                                "map or a map.ply")
     if not path.is_file():

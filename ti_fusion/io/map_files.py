@@ -61,22 +61,31 @@ def write_map_folder(folder: str | Path, header: dict, arrays: dict[str, np.ndar
     return folder
 
 
+def find_map_folder(path: str | Path) -> Path | None:
+    """The folder of the saved map that ``path`` names (a map folder, its map.json, or a run folder that holds
+    one, ``map/``), or None: the one lookup ``map_folder``, ``ti-fusion mesh`` and ``inspect`` make."""
+    path = Path(path)
+    if path.is_file() and path.name == HEADER:
+        return path.parent
+    if path.is_dir():
+        for folder in (path, path / RUN_SUBFOLDER):
+            if (folder / HEADER).is_file():
+                return folder
+    return None
+
+
 def map_folder(path: str | Path) -> Path:
     """The folder of the saved map that ``path`` names: a map folder, its map.json, or a run folder that holds
     one (``map/``); InputError otherwise."""
     path = Path(path)
-    if path.is_file() and path.name == HEADER:
-        return path.parent
+    if (found := find_map_folder(path)) is not None:
+        return found
     if not path.exists():
         raise InputError(path, "no such file or folder: expected a saved map (a folder with map.json) or a run "
                                "folder holding one")
     if not path.is_dir():
         raise InputError(path, f"not a saved map: expected a folder with {HEADER} (a run's {RUN_SUBFOLDER}/ "
                                f"folder) or the run folder itself")
-    if (path / HEADER).is_file():
-        return path
-    if (path / RUN_SUBFOLDER / HEADER).is_file():
-        return path / RUN_SUBFOLDER
     if is_run_folder(path):
         raise InputError(path, f"a ti-fusion run folder without a saved map (no {RUN_SUBFOLDER}/{HEADER}): only "
                                "slam runs save one, and an interrupted run or one from an older ti-fusion has none")

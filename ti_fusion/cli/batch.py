@@ -41,6 +41,12 @@ def run(ctx) -> dict:
     batch = Batch(manifest, ctx.out.path, address=args.address, max_jobs=args.jobs,
                   rerun_failed=args.rerun_failed, progress=not ctx.quiet, say=say)
     table = batch.run()
+    if batch.ray_start_s is not None:
+        # the interpreter's exit with Ray's modules loaded spends its time in the garbage collector's last
+        # passes, which skip frozen objects (measured after a batch: 0.7 s -> 0.07 s at load 14)
+        import gc
+
+        gc.freeze()
     done = [r for r in table if r["status"] == DONE]
     failed = [r for r in table if r["status"] == FAILED]
     line = f"{len(table)} jobs: {len(done)} done, {len(failed)} failed"

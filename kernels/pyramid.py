@@ -632,6 +632,41 @@ def grey_image(color: np.ndarray) -> np.ndarray:
         * np.float32(1.0 / 255.0)
 
 
+def jpeg_blockiness(grey: np.ndarray) -> float:
+    """How strongly a grey image shows the block grid of JPEG compression: 1 for none, about 3-4 for the real
+    TUM keyframes (re-encoded JPEG) and synthetic colour through JPEG at quality 75 (docs/PHOTOMETRIC.md).
+
+    Along every few rows (and columns; about 60 of each), a step between neighbouring pixels that is larger
+    than both its neighbouring steps is a peak; JPEG's 8×8 blocks put more peaks at one phase of the pixel
+    index modulo 8 (4 in a frame subsampled by 2). The measure is the share of peaks at the phase with the most
+    over the mean share at the others, the smaller of the rows' and columns' figures, the larger of periods 8
+    and 4; 1 for an image too small (under 16 periods a side) or too flat to tell. Counting peaks rather than
+    summing steps keeps a few strong edges at one phase from reading as a grid, and a peak count does not grow
+    with the image's noise or contrast. Host NumPy on the grey image the frame's intensity is built from (no
+    launch, no read-back)."""
+    g = np.asarray(grey, dtype=np.float32)
+    step = max(1, min(g.shape) // 60)
+    profiles = []  # per axis: the share of the lines with a peak at each pixel index
+    for lines in (g[::step], np.ascontiguousarray(g[:, ::step].T)):
+        d = np.abs(lines[:, 1:] - lines[:, :-1])
+        mid = d[:, 1:-1]
+        peak = (mid > d[:, :-2]) & (mid > d[:, 2:])
+        profiles.append(np.count_nonzero(peak, axis=0) / max(peak.shape[0], 1))
+    found = []
+    for period in (8, 4):
+        ratios = []
+        for profile in profiles:
+            n = len(profile) // period * period
+            if n < 16 * period:  # too few blocks: a smooth pattern's peaks can line up with a phase by chance
+                break
+            share = profile[:n].reshape(-1, period).mean(axis=0)
+            top = int(np.argmax(share))
+            ratios.append((share[top] + 1e-3) / (np.delete(share, top).mean() + 1e-3))  # a flat image: 1
+        if len(ratios) == 2:
+            found.append(min(ratios))
+    return float(max(found)) if found else 1.0
+
+
 @data_oriented
 class FramePyramid:
     """Depth, vertex and normal maps of one frame at every pyramid level (camera frame, metres).
@@ -680,6 +715,7 @@ class FramePyramid:
         # the photometric term's images (``compute_intensity``, ``intensity_from_surfels``), on first use
         self.intensity: list | None = None  # per level, f32 in [0, 1], −1 = none
         self.intensity_grad: list | None = None  # per level, (I, ∂I/∂x, ∂I/∂y) (live frames only)
+        self.blockiness = float("nan")  # ``jpeg_blockiness`` of the last grey image given (live frames only)
         self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
         self._geometry = None  # the levels' rows, sizes and intrinsics (G_* columns) for the maps' kernels
         self._geometry_for = None  # the intrinsics it holds
@@ -728,7 +764,7 @@ class FramePyramid:
         if not self._input_launches(depth, intrinsics, grey, packed):
             self._compute_depth(depth, intrinsics)
             if grey is not None:
-                self.compute_intensity(grey)
+                self._intensity_maps(grey)
             if packed is not None:
                 pack_color(packed[1], packed[0], packed[2])
         if packed is not None:  # weakly: the pyramid does not keep the frame's image alive
@@ -805,11 +841,14 @@ class FramePyramid:
         return True
 
     def _checked_grey(self, grey: np.ndarray) -> np.ndarray:
-        """``grey`` as float32 C-contiguous, with the intensity fields allocated; ValueError for another size."""
+        """``grey`` as float32 C-contiguous, with the intensity fields allocated and its ``blockiness`` measured;
+        ValueError for another size."""
         if grey.shape != self.input_shape:
             raise ValueError(f"grey image of shape {grey.shape} given to FramePyramid of shape {self.input_shape}")
         self._intensity_fields(True)
-        return np.ascontiguousarray(grey, dtype=np.float32)
+        grey = np.ascontiguousarray(grey, dtype=np.float32)
+        self.blockiness = jpeg_blockiness(grey)
+        return grey
 
     def _intensity_fields(self, gradients: bool) -> None:
         if self.intensity is None:
@@ -820,7 +859,10 @@ class FramePyramid:
     def compute_intensity(self, grey: np.ndarray) -> None:
         """The live frame's intensity pyramid and gradients from a float32 grey image of the input's size
         (``grey_image``; values in [0, 1], negative = none), averaged down like the depth."""
-        grey = self._checked_grey(grey)
+        self._intensity_maps(self._checked_grey(grey))
+
+    def _intensity_maps(self, grey: np.ndarray) -> None:
+        """``compute_intensity`` of a grey image ``_checked_grey`` returned."""
         stack, grad = self.intensity[0].field, self.intensity_grad[0].field
         if self.input_level == 0:
             self._upload_level0(stack, grey)

@@ -409,9 +409,11 @@ class ICPConfig:
                                      # registered to depth (7-Scenes). 0.01 measured best on every synthetic scene
                                      # (docs/BENCHMARKS.md, colour by default: wall 147 → 0.09 cm)
     color_robust_scale: Positive = 0.05  # intensity in [0, 1]: Huber's k on the photometric residual
-    color_finest_scale: Annotated[float, Range(ge=0, le=1)] = 0.4  # the finest pyramid level's colour weight is
-                                     # color_weight × this: there real colour (TUM cabinet) pulled pairs off
-                                     # the truth, the coarser levels held them (docs/PHOTOMETRIC.md, real colour)
+    color_finest_scale: Annotated[float, Range(ge=0, le=1)] = 0.4  # on JPEG-compressed colour (the live frame's
+                                     # blockiness) the finest pyramid level's colour weight is color_weight ×
+                                     # this: there real colour (TUM cabinet) pulled pairs off the truth, the
+                                     # coarser levels held them; clean colour keeps the whole weight
+                                     # (docs/PHOTOMETRIC.md, real colour)
     weak_ratio: Annotated[float, Range(gt=0, lt=1)] = 1e-3  # a direction of the geometric AᵀA whose eigenvalue
                                      # is below this fraction of the largest is reported weak (degeneracy)
 

@@ -13,7 +13,7 @@ import pytest
 from ti_fusion import backend
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import PyramidConfig
-from ti_fusion.kernels.pyramid import FramePyramid
+from ti_fusion.kernels.pyramid import FramePyramid, jpeg_blockiness
 from tests.conftest import ARCHES, use_arch
 
 K = Intrinsics(fx=150.0, fy=140.0, cx=39.5, cy=30.25, width=80, height=60)
@@ -479,3 +479,32 @@ def test_level_views_read_and_write_their_own_pixels(arch, rng):
     assert np.all(whole[:5] == -1.0) and np.all(whole[5:, 5:] == -1.0)
     with pytest.raises(ValueError, match="shape"):
         level.from_numpy(values[:, :4])
+
+
+# -- JPEG blockiness of the grey image (host NumPy) ----------------------------------------------------------
+def _jpeg(image: np.ndarray, quality: int) -> np.ndarray:
+    import cv2
+
+    return cv2.imdecode(cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])[1], cv2.IMREAD_GRAYSCALE)
+
+
+def test_jpeg_blockiness_tells_compressed_from_clean_images():
+    """About 1 on a clean image however noisy, well above 2 on the same through JPEG at quality 75 (the grid at
+    any offset, or subsampled by 2 at a lower quality), 1 where an image is flat or too small to tell
+    (docs/PHOTOMETRIC.md, real colour)."""
+    from ti_fusion.tracking.terms.photometric import CLEAN_BLOCKINESS, JPEG_BLOCKINESS
+
+    rng = np.random.default_rng(3)
+    v, u = np.mgrid[0:480, 0:640]
+    shading = 128 + 60 * np.sin(u / 23.0) * np.cos(v / 17.0) + 30 * (((u // 40) + (v // 55)) % 2)
+    for sigma in (0.0, 2.0, 5.0):  # grey levels of sensor noise
+        clean = np.clip(np.round(shading + sigma * rng.standard_normal(shading.shape)), 0, 255).astype(np.uint8)
+        assert jpeg_blockiness(clean / np.float32(255)) < CLEAN_BLOCKINESS - 0.2, sigma
+        assert jpeg_blockiness(clean[::2, ::2] / np.float32(255)) < CLEAN_BLOCKINESS - 0.1, sigma
+        if sigma < 5:  # strong noise hides the blocks of a mild compression
+            compressed = _jpeg(clean, 75) / np.float32(255)
+            assert jpeg_blockiness(compressed) > JPEG_BLOCKINESS + 0.4, sigma
+            assert jpeg_blockiness(compressed[3:, 5:]) > JPEG_BLOCKINESS + 0.4, sigma  # cropped: the grid moved
+            assert jpeg_blockiness(_jpeg(clean, 50)[::2, ::2] / np.float32(255)) > JPEG_BLOCKINESS, sigma
+    assert jpeg_blockiness(np.full((480, 640), 0.5, np.float32)) == 1.0
+    assert jpeg_blockiness(_jpeg(clean, 50)[:60, :60] / np.float32(255)) == 1.0  # under 16 periods a side

@@ -20,7 +20,7 @@ from ti_fusion.kernels.pyramid import FramePyramid
 from ti_fusion.reference import icp as icp_numpy
 from ti_fusion.tracking.icp import ICP
 from ti_fusion.tracking.solve import weak_directions
-from ti_fusion.tracking.terms.photometric import photometric
+from ti_fusion.tracking.terms.photometric import CLEAN_BLOCKINESS, JPEG_BLOCKINESS, photometric
 from ti_fusion.tracking.terms.point_to_plane import point_to_plane
 from tests.tracking.test_icp import THETA, THR, cs_scale, pass_for, random_pass_inputs, random_pose, rays, vec_field
 
@@ -225,20 +225,37 @@ def test_dense_slam_uses_color_only_where_registered(cpu, caplog, weight):
     assert "frame 3" in said[0].getMessage() and said[0].levelno == (logging.WARNING if weight else logging.INFO)
 
 
-# -- the finest level's colour weight (icp.color_finest_scale) -------------------------------------------
+# -- the finest level's colour weight (icp.color_finest_scale on JPEG colour) ------------------------------
+def test_the_finest_scale_follows_the_frames_blockiness():
+    """The whole weight at and below CLEAN_BLOCKINESS, icp.color_finest_scale at and above JPEG_BLOCKINESS,
+    linear between; the configured scale where the frame's blockiness is unknown."""
+    from ti_fusion.tracking.terms.photometric import finest_scale
+
+    assert finest_scale(0.4, 1.0) == finest_scale(0.4, CLEAN_BLOCKINESS) == 1.0
+    assert finest_scale(0.4, JPEG_BLOCKINESS) == pytest.approx(0.4) and finest_scale(0.4, 9.0) == pytest.approx(0.4)
+    assert finest_scale(0.4, (CLEAN_BLOCKINESS + JPEG_BLOCKINESS) / 2) == pytest.approx(0.7)
+    assert finest_scale(0.4, float("nan")) == 0.4 and finest_scale(1.0, 9.0) == 1.0
+
+
 def test_the_finest_level_weighs_colour_by_its_scale(plane_pair, monkeypatch):
-    """λ is icp.color_weight at the coarse levels and color_weight × color_finest_scale at the finest, in the
-    kernel's solve and in NumPy's alike (the replay checks the kernel's records with the same systems)."""
+    """λ is icp.color_weight at the coarse levels and, on JPEG colour (the live frame's blockiness), color_weight
+    × color_finest_scale at the finest; on clean colour the whole weight there too. In the kernel's solve and in
+    NumPy's alike (the replay checks the kernel's records with the same systems)."""
     source, target, _ = plane_pair
     from ti_fusion.tracking.terms.photometric import PhotometricTerm
 
     cfg = ICPConfig(iterations=[4, 3], color_weight=0.01, color_finest_scale=0.3, stop_update=0.0)
     term = PhotometricTerm(cfg)
     assert term.weight() == term.level_weight(1) == 0.01 and term.level_weight(0) == pytest.approx(0.003)
+    assert target.blockiness == 1.0  # the plane's smooth texture, too small to tell: clean
+    clean = ICP(cfg).align(source, target, terms=("photometric",))
+    assert clean.weights == pytest.approx((1.0, 0.01))  # the last iteration's: the finest level's
+    target.blockiness = 3.0  # as the real keyframes' JPEG
     in_kernel = ICP(cfg).align(source, target, terms=("photometric",))
-    assert in_kernel.weights == pytest.approx((1.0, 0.003))  # the last iteration's: the finest level's
+    assert in_kernel.weights == pytest.approx((1.0, 0.003))
     whole = ICP(ICPConfig(iterations=[4, 3], color_weight=0.01, color_finest_scale=1.0, stop_update=0.0)) \
         .align(source, target, terms=("photometric",))
+    np.testing.assert_array_equal(whole.pose, clean.pose)  # clean colour: as with the whole weight
     assert np.abs(whole.pose - in_kernel.pose).max() > 1e-9  # the scale reached the kernel
     monkeypatch.setattr(kicp.PointToPlane, "solves_in_kernel", property(lambda self: False))  # solves in NumPy
     in_numpy = ICP(cfg).align(source, target, terms=("photometric",))
@@ -247,9 +264,10 @@ def test_the_finest_level_weighs_colour_by_its_scale(plane_pair, monkeypatch):
     assert in_numpy.weights == in_kernel.weights
 
 
-def _synthetic_pair_error(finest_scale: float, source: int, **synth) -> float:
+def _synthetic_pair_error(finest_scale: float, source: int, **synth) -> tuple[float, float]:
     """Translation error (m) of the synthetic cabinet's pair ``source`` → ``source`` − 1 aligned jointly from the
-    identity at the resolution SLAM tracks at (as scripts/bench_real.py's pairwise table)."""
+    identity at the resolution SLAM tracks at (as scripts/bench_real.py's pairwise table), and the live (target)
+    frame's JPEG blockiness."""
     from ti_fusion.config import Config
     from ti_fusion.geometry import invert
     from ti_fusion.io.datasets import open_dataset
@@ -270,14 +288,18 @@ def _synthetic_pair_error(finest_scale: float, source: int, **synth) -> float:
         maps.append((pyramid, frame.gt_pose))
     (src, src_pose), (tgt, tgt_pose) = maps
     result = ICP(cfg.icp).align(src, tgt, None, terms=("photometric",))
-    return pose_error(result.pose, invert(tgt_pose) @ src_pose)[1]
+    return pose_error(result.pose, invert(tgt_pose) @ src_pose)[1], tgt.blockiness
 
 
 @pytest.mark.slow
-def test_a_lighter_finest_level_keeps_colour_from_pulling_a_pair_off(cpu):
-    """With exposure changes (synth.exposure, as the real keyframes' auto-exposure), the synthetic cabinet's pair
-    24 → 23 aligned jointly from the identity ends about 33 mm off with the whole colour weight at the finest
-    level, and about 11 mm with the default icp.color_finest_scale (docs/PHOTOMETRIC.md, real colour)."""
-    whole = _synthetic_pair_error(1.0, 24, exposure=0.035)
-    default = _synthetic_pair_error(ICPConfig().color_finest_scale, 24, exposure=0.035)
-    assert whole > 0.025 and default < 0.018, (whole, default)
+def test_a_lighter_finest_level_keeps_jpeg_colour_from_pulling_a_pair_off(cpu):
+    """Colour as the real keyframes' (synth.jpeg_quality 75, exposure changes, colour 20 ms after depth): the
+    synthetic cabinet's pair 24 → 23 aligned jointly from the identity ends about 42 mm off with the whole colour
+    weight at the finest level, and about 18 mm with the defaults, which read the frame's JPEG blocks and weigh
+    the finest level by icp.color_finest_scale; clean colour keeps the whole weight (docs/PHOTOMETRIC.md, real
+    colour)."""
+    real_like = dict(jpeg_quality=75, exposure=0.035, color_offset_ms=20.0)
+    whole, _ = _synthetic_pair_error(1.0, 24, **real_like)
+    default, blockiness = _synthetic_pair_error(ICPConfig().color_finest_scale, 24, **real_like)
+    assert blockiness > JPEG_BLOCKINESS and whole > 0.03 and default < 0.025, (blockiness, whole, default)
+    assert _synthetic_pair_error(ICPConfig().color_finest_scale, 24)[1] < CLEAN_BLOCKINESS  # clean: the whole weight

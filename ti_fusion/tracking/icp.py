@@ -158,6 +158,8 @@ class ICP:
         for name in terms:
             self.term(name)  # an unknown name: ValueError
         self._terms = [self.terms[0]] + [t for t in self.terms[1:] if t.name in terms and t.weight() > 0]
+        for term in self._terms:
+            term.prepare(source, target)
         n_levels = len(cfg.iterations)
         if source.levels < n_levels or target.levels < n_levels:
             raise ValueError(f"icp.iterations has {n_levels} levels but the maps have "

@@ -69,6 +69,10 @@ class TrackingTerm:
         once a run."""
         return True
 
+    def prepare(self, source, target) -> None:
+        """Called by ``ICP.align`` with its pyramids before the first pass: a term whose weights depend on the
+        frames (e.g. on how its images were made) sets them here."""
+
     def ready(self, source, target) -> bool:
         """Whether the pyramids hold the images it reads (``needs``)."""
         return True

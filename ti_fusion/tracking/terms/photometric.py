@@ -7,8 +7,10 @@ from ``target.intensity_grad`` = (I, ∂I/∂x, ∂I/∂y) per pixel (I < 0 at a
 r_c = I(x, y) − I_m; with g = ∂I/∂p′ = (g_x fx/z′, g_y fy/z′, −(g_x fx x′ + g_y fy y′)/z′²) and δp′ = ω × p′ +
 v, the row is A_c = [(p′ × g)ᵀ, gᵀ] (the point-to-plane row with the normal replaced by the intensity
 gradient in 3-D). Huber weights on r_c (k = ``icp.color_robust_scale``). λ is ``icp.color_weight`` at the
-coarse levels and ``icp.color_weight`` × ``icp.color_finest_scale`` at the finest (``level_weight``). Only where colour is registered to
-depth (``Frame.color_registered``): elsewhere the term is off for the frame, said once a run.
+coarse levels and at the finest level too on clean colour; on JPEG-compressed colour (the live frame's
+``FramePyramid.blockiness``) the finest level's is ``icp.color_weight`` × ``icp.color_finest_scale``
+(``level_weight``, ``finest_scale``). Only where colour is registered to depth (``Frame.color_registered``):
+elsewhere the term is off for the frame, said once a run.
 """
 
 import logging
@@ -18,6 +20,26 @@ import taichi as ti
 from ti_fusion.tracking.terms.base import TrackingTerm
 
 log = logging.getLogger(__name__)
+
+
+# The live frame's JPEG blockiness (kernels/pyramid.py, ``jpeg_blockiness``) at and below which its colour counts as
+# clean (the finest level keeps the whole colour weight) and at and above which as compressed (the finest level's
+# weight × icp.color_finest_scale), linear between. Measured (docs/PHOTOMETRIC.md): clean synthetic frames
+# 1.01-1.12, the real TUM cabinet keyframes 3.0-3.9 (2.0-3.7 with --downsample 2), synthetic colour through JPEG
+# at quality 75 / 90 / 95 3.1-4.1 / 1.7-2.0 / 1.3-1.5.
+CLEAN_BLOCKINESS = 1.4
+JPEG_BLOCKINESS = 2.0
+
+
+def finest_scale(scale: float, blockiness: float) -> float:
+    """The finest level's factor on the colour weight for a live frame of ``blockiness``: 1 on clean colour,
+    ``scale`` (``icp.color_finest_scale``) on compressed colour, linear between; ``scale`` where the frame's
+    blockiness is unknown (NaN)."""
+    if not blockiness == blockiness or blockiness >= JPEG_BLOCKINESS:
+        return scale
+    if blockiness <= CLEAN_BLOCKINESS:
+        return 1.0
+    return 1.0 - (1.0 - scale) * (blockiness - CLEAN_BLOCKINESS) / (JPEG_BLOCKINESS - CLEAN_BLOCKINESS)
 
 
 def row(real):
@@ -81,14 +103,19 @@ class PhotometricTerm(TrackingTerm):
     def __init__(self, config):
         super().__init__(config)
         self._warned = False  # the line saying the term is off for frames without registered colour
+        self._finest = self.config.color_finest_scale  # the finest level's factor for this alignment (``prepare``)
 
     def weight(self) -> float:
         return self.config.color_weight
 
     def level_weight(self, level: int) -> float:
-        # on real colour the finest level's intensity gradients pulled pairs off the truth, the coarser levels held
-        # them (docs/PHOTOMETRIC.md, real colour)
-        return self.config.color_weight * (self.config.color_finest_scale if level == 0 else 1.0)
+        # on real (JPEG) colour the finest level's intensity gradients pulled pairs off the truth, the coarser levels
+        # held them; on clean colour they are information (docs/PHOTOMETRIC.md, real colour)
+        return self.config.color_weight * (self._finest if level == 0 else 1.0)
+
+    def prepare(self, source, target) -> None:
+        """The finest level's factor from the live frame's (``target``'s) JPEG blockiness."""
+        self._finest = finest_scale(self.config.color_finest_scale, getattr(target, "blockiness", float("nan")))
 
     def settings(self) -> tuple:
         return (self.config.color_robust_scale,)

@@ -20,7 +20,10 @@ peak memory and the cores to itself (apart from other users of the machine). Col
   first one tracked) was done: the cold start with the kernel cache as it is;
 - ``peak MB``: the child's maximum resident set size (``wait4``'s rusage, all of the process's life);
 - ``cores``: the cores the child used on average: its CPU time (user + system, its own and its reader
-  processes', from the same rusage) over its wall-clock life;
+  processes', from the same rusage) over its wall-clock life; for ti-fusion the line after the table also
+  gives its main thread's CPU time (the loop's Python and kernel launches; Taichi's CPU workers run the
+  kernels while it waits), which no other thread can take over: a lower bound on the process's
+  wall-clock time that another process's load changes little;
 - ``read wait``: the share of ti-fusion's loop spent waiting for the next frame (the ``load`` stage after
   the first two frames, over the loop's wall-clock time).
 ti-fusion is the ``ti-fusion slam`` command itself (every output written), run in the child, with ``--set``
@@ -117,7 +120,7 @@ def run_ti_fusion(args, cold: bool = False) -> dict:
             "ate_rmse_m": s.get("ate_rmse_m"), "rpe_trans_m": s.get("rpe_trans_m"),
             "failures": s["tracking_failures"], "loop_s": s.get("wall_s"), "age_end_s": s.get("process_s"),
             "warmup_s": s["warmup_ms"] / 1e3 if s.get("warmup_ms") is not None else None,
-            "fps_loop_steady": _steady(s),
+            "fps_loop_steady": _steady(s), "main_thread_cpu_s": time.thread_time(),
             "stages_s": {k: v["total"] / 1e3 for k, v in (s.get("ms_per_stage") or {}).items()}}
 
 
@@ -342,9 +345,12 @@ def main() -> int:
     for r in rows:
         if r.get("stages_s"):
             stages = ", ".join(f"{k} {v:.2f}" for k, v in r["stages_s"].items())
+            main_cpu = r.get("main_thread_cpu_s")
+            on_main = "" if main_cpu is None else \
+                f", {main_cpu:.2f} s of it on the loop's thread (Python and launches; Taichi's workers wait)"
             print(f"{r['system']}: {r['cpu_s']:.2f} s of CPU in {r['process_s']:.2f} s ({r['cpu_s'] / r['process_s']:.2f} "
-                  f"cores); the loop waited {r['stages_s'].get('load', 0.0):.2f} s for frames ({_read_wait(r).strip()} of "
-                  f"it) and the readers read for {r['stages_s'].get('read', 0.0):.2f} s")
+                  f"cores){on_main}; the loop waited {r['stages_s'].get('load', 0.0):.2f} s for frames "
+                  f"({_read_wait(r).strip()} of it) and the readers read for {r['stages_s'].get('read', 0.0):.2f} s")
             print(f"{r['system']}: where the {r['process_s']:.2f} s went: before the loop and after it "
                   f"{r['process_s'] - r['loop_s']:.2f} s, the loop {r['loop_s']:.2f} s, of which its first two frames "
                   f"(compiling) {_number(r.get('warmup_s'), '.2f')} s; stage totals after them (s): {stages}")

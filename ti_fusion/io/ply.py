@@ -52,7 +52,7 @@ def write_ply(path: str | Path, position: np.ndarray, normal: np.ndarray | None 
     header.append("end_header")
     with atomic_write(path, "wb") as f:  # never a truncated map that looks complete
         f.write(("\n".join(header) + "\n").encode("ascii"))
-        f.write(data.tobytes())
+        f.write(data.data)  # the array's own buffer: no second copy of a million-point map
     return path
 
 

@@ -545,6 +545,22 @@ def test_depth_memory_follows_the_surface(cpu):
     assert len(two.mesh()) > 0
 
 
+def test_depth_mesh_without_carving_allocates_no_counts(cpu):
+    """mesh.carve_frames = 0: no per-voxel carving counts are kept, and the mesh is the one a carving grid gives
+    meshed with carving off."""
+    plain = M.DepthFusion(MeshConfig(method="depth", carve_frames=0))
+    carving = M.DepthFusion(MeshConfig(method="depth"))
+    for frame in plane_frames():
+        plain.integrate(*frame)
+        carving.integrate(*frame)
+    assert plain.free is None and plain.near is None and len(carving.free) == len(carving.sdf)
+    carving.settings.carve_frames = 0
+    a, b = plain.mesh(), carving.mesh()
+    assert len(a) > 0
+    for name in ("vertices", "faces", "normals", "colors"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name))
+
+
 def reference_carve(depth, K, pose, cfg: MeshConfig, blocks: np.ndarray):
     """``carve_depth`` in float64 over every voxel of ``blocks`` (absolute block coordinates): (free, near, doubtful)
     per voxel, B × E³ in the kernel's order; doubtful where float32 may decide otherwise (a projection within 1e-4
@@ -600,19 +616,20 @@ def test_carving_matches_numpy(arch, rng, centre):
     # once every block exists, each frame counted again, against the reference over the blocks in its box
     fusion.free[:] = 0
     fusion.near[:] = 0
-    blocks = fusion._block_coords()
+    blocks = fusion.blocks[:len(fusion)]  # slot order
     free = np.zeros((len(blocks), E ** 3), int)
     near = np.zeros_like(free)
     doubtful = np.zeros(free.shape, bool)
     for depth, pose in frames:
-        lo, hi = fusion._frame_box(depth, K, pose)
+        valid = depth[depth > 0]
+        lo, hi = fusion._frame_box(depth.shape, float(valid.min()), float(valid.max()), K, pose)
         fusion._carve(depth, K, pose, lo, hi)
         inside = ((blocks >= lo) & (blocks <= hi)).all(axis=1)
         f, n, dbt = reference_carve(depth, K, pose, cfg, blocks[inside])
         free[inside] += f.reshape(-1, E ** 3)
         near[inside] += n.reshape(-1, E ** 3)
         doubtful[inside] |= dbt.reshape(-1, E ** 3)
-    idx = fusion.slots[:, None] * E ** 3 + np.arange(E ** 3)
+    idx = np.arange(len(blocks))[:, None] * E ** 3 + np.arange(E ** 3)
     sure = ~doubtful
     assert sure.mean() > 0.95 and free[sure].sum() > 100 and near[sure].sum() > 100
     np.testing.assert_array_equal(fusion.free[idx][sure], free[sure])

@@ -365,12 +365,16 @@ class DepthFusion:
         self.step = self.voxel  # along z: about one sample per voxel a ray crosses (neighbouring rays fill the rest)
         self.keys = np.zeros(0, np.int64)   # packed block keys, sorted
         self.slots = np.zeros(0, np.int64)  # the pool slot of each key
+        self.blocks = np.zeros((0, 3), np.int64)  # per slot: the block's absolute coordinates
         self.capacity = 0
         self.sdf = np.zeros(0, np.float32)
         self.wsum = np.zeros(0, np.float32)
         self.rgb = np.zeros((0, 3), np.float32)
-        self.free = np.zeros(0, np.float32)  # per voxel: frames that saw through it (depth well beyond it)
-        self.near = np.zeros(0, np.float32)  # per voxel: frames that saw a surface within a voxel of it
+        # Carving's counts per voxel (None with mesh.carve_frames = 0): frames that saw through it (depth well beyond
+        # it), and frames that saw a surface within a voxel of it.
+        self.carving = settings.carve_frames > 0
+        self.free = np.zeros(0, np.float32) if self.carving else None
+        self.near = np.zeros(0, np.float32) if self.carving else None
         self.frames = 0
         self.carved = 0  # voxels with samples that the last grid() turned into empty space
 
@@ -387,11 +391,17 @@ class DepthFusion:
             return
         cap = max(blocks, 2 * self.capacity, 256)
         cap = min(cap, max(blocks, self.settings.max_voxels // E ** 3))
-        for name, shape in (("sdf", ()), ("wsum", ()), ("rgb", (3,)), ("free", ()), ("near", ())):
-            new = np.zeros((cap * E ** 3,) + shape, np.float32)
+        arrays = [("sdf", (), np.float32), ("wsum", (), np.float32), ("rgb", (3,), np.float32)]
+        if self.carving:
+            arrays += [("free", (), np.float32), ("near", (), np.float32)]
+        for name, shape, dtype in arrays:
+            new = np.zeros((cap * E ** 3,) + shape, dtype)
             old = getattr(self, name)
             new[:len(old)] = old
             setattr(self, name, new)
+        blocks = np.zeros((cap, 3), np.int64)
+        blocks[:len(self.keys)] = self.blocks[:len(self.keys)]
+        self.blocks = blocks
         self.capacity = cap
 
     def integrate(self, depth: np.ndarray, color: np.ndarray | None, intrinsics, pose: np.ndarray) -> None:
@@ -408,7 +418,7 @@ class DepthFusion:
             return
         K = intrinsics
         pose = np.asarray(pose, np.float64)
-        lo, hi = self._frame_box(depth, K, pose)
+        lo, hi = self._frame_box((h, w), float(valid.min()), float(valid.max()), K, pose)
         dims = hi - lo + 1
         if np.prod(dims) > max(self.settings.max_voxels // E ** 3, 1 << 22):
             raise InputError(self.source, f"a frame's depth spans {dims.max() * E * self.voxel:.1f} m: more blocks "
@@ -433,6 +443,7 @@ class DepthFusion:
         if len(fresh):
             self._grow(len(self.keys) + len(fresh))
             slot[fresh] = len(self.keys) + np.arange(len(fresh))
+            self.blocks[slot[fresh]] = absolute[fresh]
             keys = np.concatenate([self.keys, key[fresh]])
             slots = np.concatenate([self.slots, slot[fresh]])
             order = np.argsort(keys, kind="stable")
@@ -448,16 +459,16 @@ class DepthFusion:
         else:
             c = np.zeros((1, 1, 3), np.float32)
         kmesh.integrate_depth(depth, c, int(has_color), *args, table, self.sdf, self.wsum, self.rgb)
-        if self.settings.carve_frames > 0:
+        if self.carving:
             self._carve(depth, K, pose, lo, hi)
         self.frames += 1
 
-    def _frame_box(self, depth: np.ndarray, K, pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The first and last block coordinates of a box holding every sample of the frame: its frustum's corners
-        at the nearest and farthest valid depth, widened by the truncation."""
-        h, w = depth.shape
-        valid = depth[depth > 0]
-        z0, z1 = max(float(valid.min()) - self.trunc, 0.0), float(valid.max()) + self.trunc
+    def _frame_box(self, shape: tuple[int, int], nearest: float, farthest: float, K,
+                   pose: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The first and last block coordinates of a box holding every sample of a frame of ``shape`` (h, w) whose
+        valid depth lies in [nearest, farthest]: its frustum's corners there, widened by the truncation."""
+        h, w = shape
+        z0, z1 = max(nearest - self.trunc, 0.0), farthest + self.trunc
         u = np.array([0.0, w - 1.0, 0.0, w - 1.0])
         v = np.array([0.0, 0.0, h - 1.0, h - 1.0])
         cam = np.concatenate([np.stack([(u - K.cx) / K.fx * z, (v - K.cy) / K.fy * z, np.full(4, z)], axis=1)
@@ -473,52 +484,49 @@ class DepthFusion:
         from ti_fusion.kernels import mesh as kmesh
         import taichi as ti
 
-        blocks = self._block_coords()
+        blocks = self.blocks[:len(self.keys)]  # slot order: block i's voxels are at slot i
         inside = np.flatnonzero(((blocks >= lo) & (blocks <= hi)).all(axis=1))
         if not len(inside):
             return
         kmesh.carve_depth(depth, ti.math.vec4(K.fx, K.fy, K.cx, K.cy), ti.Matrix(pose[:3, :3].astype(np.float32)),
                           ti.math.vec3(*pose[:3, 3].astype(np.float32)), self.voxel, self.trunc,
                           float(self.settings.carve_sigmas), self.voxel,
-                          np.ascontiguousarray(blocks[inside], np.int32),
-                          np.ascontiguousarray(self.slots[inside], np.int32), len(inside), self.free, self.near)
-
-    def _block_coords(self) -> np.ndarray:
-        """The absolute block coordinates (B × 3 int64) of the sorted keys."""
-        o, m = self.OFFSET, (1 << 21) - 1
-        return np.stack([(self.keys >> 42) - o, ((self.keys >> 21) & m) - o, (self.keys & m) - o], axis=1)
+                          np.ascontiguousarray(blocks[inside], np.int32), inside.astype(np.int32), len(inside),
+                          self.free, self.near)
 
     def grid(self) -> tuple[SparseGrid, dict]:
         """The sparse grid of the blocks so far and its voxels (as ``splat_surfels`` returns them)."""
         if not len(self.keys):
             raise InputError(self.source, "no frame had valid depth: no surface to mesh")
-        grid = SparseGrid.of_blocks(self._block_coords(), self.voxel, self.source)
+        grid = SparseGrid.of_blocks(self.blocks[self.slots], self.voxel, self.source)  # in the keys' order
         idx = (self.slots[:, None] * E ** 3 + np.arange(E ** 3)).reshape(-1)
         wsum = self.wsum[idx]
         with np.errstate(invalid="ignore", divide="ignore"):
             inv = np.where(wsum > 0, 1.0 / wsum, 0.0).astype(np.float32)
         sdf = self.sdf[idx] * inv
+        self.carved = 0
+        if self.carving and self.settings.carve_frames > 0:
+            self._carve_empty(idx, wsum, sdf)
+        shape = (len(grid), E, E, E)
+        return grid, {"sdf": sdf.reshape(shape), "weight": wsum.reshape(shape),
+                      "color": (self.rgb[idx] * inv[:, None]).reshape(shape + (3,))}
+
+    def _carve_empty(self, idx: np.ndarray, wsum: np.ndarray, sdf: np.ndarray) -> None:
+        """Make no surface in the empty space among the voxels ``idx`` (pool indices; their ``wsum`` and mean ``sdf``
+        are changed in place): voxels seen through by at least ``mesh.carve_frames`` frames, and by more frames than
+        saw a surface within a voxel of them."""
         # Seen-through voxels that the band behind a surface made negative (a slot beside a slat, the space behind
         # it) are empty space. Where a frame saw a surface within a voxel of one, it stays as one voxel in front
         # of that surface, so the surface it borders is contoured (a slot's sides); elsewhere it leaves the grid,
         # so that no surface is made in the middle of empty space (a spurious one between it and the shadow
         # behind a slat, which no camera saw).
-        carved = self.empty(idx) & (wsum > self.settings.depth_min_weight) & (sdf <= 0)
-        seen = self.near[idx] > 0
+        free, near = self.free[idx], self.near[idx]
+        empty = (free >= self.settings.carve_frames) & (free > near)
+        carved = empty & (wsum > self.settings.depth_min_weight) & (sdf <= 0)
+        seen = near > 0
         sdf[carved & seen] = np.float32(self.voxel)
-        wsum = np.where(carved & ~seen, np.float32(0), wsum)
+        wsum[carved & ~seen] = np.float32(0)
         self.carved = int(carved.sum())
-        shape = (len(grid), E, E, E)
-        return grid, {"sdf": sdf.reshape(shape), "weight": wsum.reshape(shape),
-                      "color": (self.rgb[idx] * inv[:, None]).reshape(shape + (3,))}
-
-    def empty(self, idx: np.ndarray) -> np.ndarray:
-        """Which of the voxels ``idx`` (pool indices) are empty space: seen through by at least
-        ``mesh.carve_frames`` frames, and by more frames than saw a surface within a voxel of them."""
-        if self.settings.carve_frames <= 0:
-            return np.zeros(len(idx), bool)
-        free = self.free[idx]
-        return (free >= self.settings.carve_frames) & (free > self.near[idx])
 
     def mesh(self, stats: dict | None = None) -> Mesh:
         """Marching cubes over the voxels with more than ``mesh.depth_min_weight`` samples."""

@@ -530,6 +530,20 @@ def test_depth_bad_input_and_bound(cpu):
         M.DepthFusion(MeshConfig(voxel_size=0.0))
 
 
+def test_bound_messages_count_each_grids_own_memory(cpu):
+    """The bound's message gives its own grid's memory: the surfel grid's sums and marching cubes' copies (48 bytes a
+    voxel); the depth grid's the same, and 8 more for carving's counts where carving is on."""
+    g = np.arange(48) * 0.16 + 0.04  # one surfel in the middle of every other block of 8 cm
+    p = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    with pytest.raises(InputError) as info:
+        M.SparseGrid(p, np.full_like(p, 0.001), 0.01, 1000)
+    assert f"(~{48 ** 3 * 512 * 48 / 2 ** 30:.1f} GB)" in str(info.value)
+    for carve, per_voxel in ((2, 56), (0, 48)):
+        with pytest.raises(InputError) as info:
+            M.DepthFusion(MeshConfig(method="depth", max_voxels=1000, carve_frames=carve))._grow(2 ** 17)
+        assert f"(~{2 ** 17 * 512 * per_voxel / 2 ** 30:.1f} GB)" in str(info.value)
+
+
 def test_depth_memory_follows_the_surface(cpu):
     """Frames of one plane from far apart places: blocks of the seen surface's band, not of the box between."""
     frames = plane_frames(1, hole=False)

@@ -23,7 +23,11 @@ from ti_fusion.timing import Stopwatch
 log = logging.getLogger(__name__)
 
 E = 8  # voxels along a block's edge (kernels/mesh.py's BLOCK_EDGE; kept here so that NumPy-only callers need no Taichi)
-BYTES_PER_VOXEL = 28 + 4 * 5 * 729 // 512  # the kernels' sums and counts, and the padded copies marching cubes reads
+# Memory per voxel, for the messages of the grids' bound: each grid's sums (Σw·d, Σw, Σw·colour in float32), the
+# depth grid's carving counts where carving is on, and the copies padded to 9³ per block that marching cubes reads.
+SUMS_BYTES_PER_VOXEL = 4 + 4 + 12
+CARVE_BYTES_PER_VOXEL = 4 + 4
+EXTRACT_BYTES_PER_VOXEL = 4 * 5 * 729 // 512  # distance, colour, masks: about five floats
 VOXEL_RANGE = (0.001, 0.5)  # metres: finer is below any RGB-D sensor's noise, coarser is no longer a surface
 
 
@@ -105,8 +109,9 @@ class SparseGrid:
         self.keys = np.unique(np.concatenate(keys)).astype(np.int32)
         voxels = len(self.keys) * E ** 3
         if voxels > max_voxels:
+            gb = voxels * (SUMS_BYTES_PER_VOXEL + EXTRACT_BYTES_PER_VOXEL) / 2**30
             raise InputError(source, f"the surface needs {voxels / 1e6:.1f} M voxels of {voxel:g} m "
-                                     f"(~{voxels * BYTES_PER_VOXEL / 2**30:.1f} GB), more than mesh.max_voxels "
+                                     f"(~{gb:.1f} GB), more than mesh.max_voxels "
                                      f"({max_voxels / 1e6:.1f} M): choose a larger mesh.voxel_size or raise the bound")
         k = self.keys.astype(np.int64)
         mask = KEY_SPAN - 1
@@ -383,8 +388,9 @@ class DepthFusion:
 
     def _grow(self, blocks: int) -> None:
         if blocks * E ** 3 > self.settings.max_voxels:
+            per_voxel = SUMS_BYTES_PER_VOXEL + CARVE_BYTES_PER_VOXEL * self.carving + EXTRACT_BYTES_PER_VOXEL
             raise InputError(self.source, f"the frames' surface needs {blocks * E ** 3 / 1e6:.1f} M voxels of "
-                                          f"{self.voxel:g} m (~{blocks * E ** 3 * BYTES_PER_VOXEL / 2**30:.1f} GB), "
+                                          f"{self.voxel:g} m (~{blocks * E ** 3 * per_voxel / 2**30:.1f} GB), "
                                           f"more than mesh.max_voxels ({self.settings.max_voxels / 1e6:.1f} M): "
                                           "choose a larger mesh.voxel_size or raise the bound")
         if blocks <= self.capacity:

@@ -298,3 +298,25 @@ def test_ctrl_c_stops_the_running_jobs_and_keeps_the_table(tmp_path):
     assert row["status"] == "interrupted" and row["error"] == "stopped with the batch"
     assert f"ti-fusion slam: stopped by SIGTERM; what was written is in {run}/" in log.read_text()
     assert read_log(run / "log.mcap").complete and (run / "trajectory.tum").is_file()  # the job kept its work
+
+
+@pytest.mark.slow
+@pytestmark_ray
+def test_the_lean_local_ray_runs_tasks_at_the_batch_priority():
+    ray = pytest.importorskip("ray")
+    import logging
+
+    from ti_fusion.batch.runner import start_local_node, stop_local_node
+
+    node = start_local_node(1)
+    assert node is not None  # this Ray's internals are the ones the lean start was written for
+    try:
+        ray.init(address=node.address, log_to_driver=False, logging_level=logging.ERROR)
+        # Ray lowers its workers' priority by default (nice 15), and a job's process would inherit it
+        job_nice = ray.get(ray.remote(num_cpus=1)(lambda: subprocess.run(
+            ["sh", "-c", "nice"], capture_output=True, text=True).stdout.strip()).remote())
+        assert job_nice == str(os.nice(0))
+        assert ray.cluster_resources().get("CPU") == 1
+    finally:
+        ray.shutdown()
+        stop_local_node(node)

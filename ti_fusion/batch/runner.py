@@ -33,6 +33,9 @@ from ti_fusion.errors import InputError, TiFusionError
 
 log = logging.getLogger(__name__)
 
+# Ray lowers its workers' priority (nice 15) and a job's process inherits it: a batch's job then yields
+# to everything else on the machine, a run alone does not. Workers keep the batch's own priority.
+RAY_SYSTEM_CONFIG = {"worker_niceness": 0}
 MISSING_RAY = "ti-fusion batch runs its jobs on Ray, which is not installed: pip install 'ti-fusion[batch]'"
 
 
@@ -77,7 +80,8 @@ def start_local_node(cpus: int):
             set_usage_stats_enabled_via_env_var(False)
         except ImportError:
             os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-        params = RayParams(num_cpus=cpus, include_dashboard=False, no_monitor=True, include_log_monitor=False)
+        params = RayParams(num_cpus=cpus, include_dashboard=False, no_monitor=True, include_log_monitor=False,
+                           _system_config=RAY_SYSTEM_CONFIG)
         return BatchNode(params, head=True, shutdown_at_exit=False, spawn_reaper=True, ray_init_cluster=True)
     except Exception as exc:  # another Ray's internals: the usual start
         log.debug("Ray's lean start failed (%s); ray.init starts the usual node", exc)
@@ -203,7 +207,7 @@ class Batch:
                             node = None
                     if node is None:
                         ray.init(address="local", num_cpus=local_cpus(), include_dashboard=False,
-                                 log_to_driver=False, logging_level=logging.ERROR)
+                                 log_to_driver=False, logging_level=logging.ERROR, _system_config=RAY_SYSTEM_CONFIG)
                 else:
                     ray.init(address=self.address, log_to_driver=False, logging_level=logging.ERROR)
             except Exception as exc:
@@ -249,10 +253,10 @@ class Batch:
                 while pending and len(running) < (self.max_jobs or len(jobs)) and (
                         not running or (used_cpu + pending[0].threads <= cpus and used_gpu + pending[0].gpus <= gpus)):
                     job = pending.pop(0)
+                    self.mark("task submitted", job.name)  # before: its worker may start it before .remote returns
                     ref = remote.options(num_cpus=job.threads, num_gpus=job.gpus, max_retries=0,
                                          name=f"ti-fusion-batch:{job.name}").remote(self._spec(job))
                     running[ref] = (job, time.monotonic())
-                    self.mark("task submitted", job.name)
                     used_cpu += job.threads
                     used_gpu += job.gpus
                 progress.show(len(running), pending, running, walls, slots)

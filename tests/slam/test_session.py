@@ -119,11 +119,15 @@ def test_localize_tracks_against_the_map_without_changing_it(cpu):
 
 
 @pytest.mark.slow
-def test_a_localisation_off_the_map_is_posed_by_odometry_until_it_tracks_against_the_map_again(cpu):
+def test_a_localisation_off_the_map_is_posed_by_odometry_until_it_tracks_against_the_map_again(cpu, monkeypatch):
     """Where the map is out of view (here: its surfels hidden), a localisation poses each frame by frame-to-frame
     odometry from the last posed one, reported as such ("odometry: off the map", not localised on /slam/stats),
-    instead of searching the map every frame; where the map rendered at its pose covers the frame again, it
-    tracks against the map again."""
+    instead of searching the map every frame (only every SEARCH_EVERY-th); where the map rendered at its pose
+    covers the frame again, it tracks against the map again, and where odometry drifted too far for that, the
+    bounded search finds it."""
+    import ti_fusion.slam.session as session_module
+
+    monkeypatch.setattr(session_module, "SEARCH_EVERY", 3)
     system, room = _mapped()
     before = {k: v.copy() for k, v in system.mapper.to_numpy().items()}
     system.start_session(localize=True)
@@ -135,7 +139,9 @@ def test_a_localisation_off_the_map_is_posed_by_odometry_until_it_tracks_against
     for r, i in zip(off, range(26, 31)):
         assert r.tracking is Tracking.ODOMETRY and r.status.startswith("odometry: off the map"), (i, r.status, r.tried)
         assert pose_error(r.pose, room[i].gt_pose)[1] < 0.01, (i, pose_error(r.pose, room[i].gt_pose))
-    assert not any(t.startswith("place:") for r in off for t in r.tried)  # no search of the map off it
+    # no search of the map off it but every third frame's (the 3rd by odometry): its keyframes verify, the map does not
+    assert [any(t.startswith("place:") for t in r.tried) for r in off] == [False, False, True, False, False]
+    assert system.session.searched_off_map == [28]
     assert off[1].tried[-1] == "map: covers 0% of the frame < 30%"  # the cheap test: no ICP against the map
     system.mapper.map.count = count  # the map in view again
     back = [system.register_frame(room[i]) for i in range(31, 34)]
@@ -147,6 +153,20 @@ def test_a_localisation_off_the_map_is_posed_by_odometry_until_it_tracks_against
     assert [step.stats(r)["localised"] for r in [found, off[0], back[0]]] == [True, False, True]
     summary = step.summary(type("Run", (), {"results": [found, *off, *back]})())
     assert summary["odometry_frames"] == 5 and summary["odometry"] == [[26, 30]] and summary["back_on_map"] == [31]
+    # off the map again, and odometry 1 m off: the map rendered there does not bring it back; the search does
+    system.mapper.map.count = 0
+    assert system.register_frame(room[34]).tracking is Tracking.ODOMETRY
+    frame, pose = system.last_good
+    shifted = pose.copy()
+    shifted[:3, 3] += [1.0, 0.0, 0.0]
+    system.last_good = (frame, shifted)
+    system.mapper.map.count = count
+    drifted = system.register_frame(room[35])
+    assert drifted.tracking is Tracking.ODOMETRY and "map: " in drifted.tried[-1], drifted.tried
+    found = system.register_frame(room[36])
+    assert found.tracking is Tracking.RELOCALISED and found.found["frame"] == 36, (found.status, found.tried)
+    assert pose_error(found.pose, room[36].gt_pose)[1] < 0.01
+    assert system.session.searched_off_map == [28, 36] and system.session.back_on_map == [31, 36]
     after = system.mapper.to_numpy()
     assert all(np.array_equal(before[k], after[k]) for k in before)
 

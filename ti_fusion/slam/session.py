@@ -34,6 +34,10 @@ LOST_FRAMES = 3
 # A localisation's frame whose tracked correspondences cover less than this fraction of its depth is off the map: the
 # little of the map it sees does not hold its pose (nothing is fused to extend it), so it counts as lost.
 ON_MAP = 0.3
+# Off the map, every this many frames posed by odometry the frame also looks for itself in the map (place recognition
+# and verification, as a search does): odometry drifts, and from a pose too far off the map's render does not
+# bring it back (a jump beyond slam.max_update_m); a bounded cost, not a search every frame.
+SEARCH_EVERY = 10
 
 
 @dataclass
@@ -51,6 +55,8 @@ class Session:
     off_map: bool = False  # localize: the map is out of view, frames are posed by odometry from the last one
     odometry: list[int] = field(default_factory=list)  # localize: the frames posed by odometry off the map
     back_on_map: list[int] = field(default_factory=list)  # localize: the frames that tracked against it again
+    searched_off_map: list[int] = field(default_factory=list)  # localize: the frames off it that searched the map
+    streak: int = 0  # localize: frames off the map so far, by odometry
     kept: "KeptMaps | None" = None  # localize: the last posed frame's maps, odometry's source
     own_map_at: int | None = None  # map-anyway: the frame the session's own map started at
 
@@ -70,6 +76,7 @@ class Session:
         against): from the next frame it looks for itself again, its frames without a pose until it does."""
         self.located = False
         self.off_map = False
+        self.streak = 0
         self.searches.append(frame + 1)
         log.info(f"frame {frame}: lost the map for {LOST_FRAMES} frames: looking for itself in it again from the "
                  "next frame")
@@ -82,7 +89,8 @@ class Session:
                 "unlocalised": [{"frame": f, "reason": why} for f, why in self.unlocalised][:50],
                 "found": self.found, "own_map_at": self.own_map_at, "searches_again": self.searches[:50],
                 **({"odometry_frames": len(self.odometry), "odometry": _spans(self.odometry)[:50],
-                    "back_on_map": self.back_on_map[:50]} if self.localize else {})}
+                    "back_on_map": self.back_on_map[:50], "searched_off_map": len(self.searched_off_map)}
+                   if self.localize else {})}
 
     def keep_maps(self, slam, frame) -> None:
         """localize: ``frame`` got a pose; its vertex and normal maps are the next frame's odometry source."""
@@ -112,11 +120,7 @@ def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
     c = placement.candidate
     result.tracking = Tracking.RELOCALISED
     session.located = True
-    result.found = {
-        "frame": frame.index, "keyframe": placement.keyframe.id, "map_frame": placement.keyframe.frame,
-        "score": round(c.score, 4), "pnp_inliers": c.pnp_inliers,
-        "icp_inlier_ratio": None if c.icp_inlier_ratio is None else round(c.icp_inlier_ratio, 4),
-        "unlocalised_before": len(session.unlocalised)}
+    result.found = _found_event(frame, placement, session)
     if session.found is not None:  # found itself again after losing the map (localize)
         log.info(f"frame {frame.index}: found itself in the map again at keyframe {placement.keyframe.id}")
         return result
@@ -177,7 +181,7 @@ def localize_frame(slam, frame, terms: tuple[str, ...], result_type):
             if moved is not None:
                 result.tried += moved.tried
             return result
-        session.off_map = True
+        session.off_map, session.streak = True, 1
         session.odometry.append(frame.index)
         log.info(f"frame {frame.index}: off the map ({result.reason}): posed by odometry until it sees the map again")
         moved.tried = result.tried + moved.tried
@@ -188,12 +192,37 @@ def localize_frame(slam, frame, terms: tuple[str, ...], result_type):
             frame.index, frame.timestamp, slam._predicted_pose(frame.timestamp), Tracking.LOST, "off the map, and "
             "no odometry", tried=[])
     back = back_on_map(slam, frame, moved, terms, result_type)
+    session.streak += 1
+    if back is None and session.streak % SEARCH_EVERY == 0:
+        back = search_off_map(slam, frame, moved, terms, result_type)
     if back is None:
         session.odometry.append(frame.index)
         return moved
     session.off_map = False
     session.back_on_map.append(frame.index)
-    log.info(f"frame {frame.index}: back on the map after {len(session.odometry)} frame(s) by odometry")
+    log.info(f"frame {frame.index}: back on the map after {session.streak - 1} frame(s) by odometry")
+    session.streak = 0
+    return back
+
+
+def search_off_map(slam, frame, moved, terms: tuple[str, ...], result_type):
+    """Off the map, a frame posed by odometry (``moved``) looks for itself in the map as a search does; where a
+    keyframe verifies and the frame tracks against the map from there, that result ("relocalised"), else None
+    (``moved.tried`` says what was tried)."""
+    import dataclasses
+
+    session = slam.session
+    session.searched_off_map.append(frame.index)
+    placement, checked = slam.loop.find_place(frame, slam.loop_maps())
+    moved.tried += [f"place: keyframe {c.match} (score {c.score:.3f}): {c.reason}" for c in checked]
+    if placement is None:
+        return None
+    back = back_on_map(slam, frame, dataclasses.replace(moved, pose=placement.pose), terms, result_type)
+    if back is None:
+        return None
+    back.tracking = Tracking.RELOCALISED
+    back.found = _found_event(frame, placement, session)
+    log.info(f"frame {frame.index}: found itself in the map again at keyframe {placement.keyframe.id} while off it")
     return back
 
 
@@ -246,6 +275,15 @@ def back_on_map(slam, frame, moved, terms: tuple[str, ...], result_type):
         moved.tried.append(f"map: {result.status}")
         return None
     return result
+
+
+def _found_event(frame, placement, session) -> dict:
+    """``FrameResult.found`` of a frame that found itself at ``placement`` (/slam/stats ``found``)."""
+    c = placement.candidate
+    return {"frame": frame.index, "keyframe": placement.keyframe.id, "map_frame": placement.keyframe.frame,
+            "score": round(c.score, 4), "pnp_inliers": c.pnp_inliers,
+            "icp_inlier_ratio": None if c.icp_inlier_ratio is None else round(c.icp_inlier_ratio, 4),
+            "unlocalised_before": len(session.unlocalised)}
 
 
 def _spans(frames: list[int]) -> list[list[int]]:

@@ -132,6 +132,7 @@ class LoopClosure:
         self._warmed_up = False  # the kernels that build maps from a stored depth are loaded (``after_frame``)
         self.session_start = 0  # the first keyframe of this session (``begin_session``): the ones before are the map's
         self._link: int | None = None  # the keyframe the next keyframe is tied to instead of odometry (``found``)
+        self._link_T: np.ndarray | None = None  # the tie: the next keyframe's camera in that keyframe's (T_ij)
         self._found_features: tuple[int, object] | None = None  # (frame, features) of the frame that found itself
 
     # -- the verb -------------------------------------------------------------------------------
@@ -223,7 +224,8 @@ class LoopClosure:
         link, self._link = self._link, None
         self.graph.add_keyframe(pose, covariance, chained=link is None)
         if link is not None:  # no odometry from the map's last keyframe: the match is this keyframe's tie to the map
-            self.graph.add_relative(link, kf.id, renormalize(invert(self.keyframes[link].pose) @ pose))
+            self.graph.add_relative(link, kf.id, renormalize(self._link_T))
+            self._link_T = None
         elif self.config.loop.keyframe_pnp and kf.id > self.session_start:
             self._pnp_edge(self.keyframes[-2], kf)
         return kf
@@ -236,7 +238,7 @@ class LoopClosure:
         self.session_start = len(self.keyframes)
         self.database.earlier_session()
         self._since = []
-        self._link = None
+        self._link, self._link_T = None, None
         self._found_features = None
 
     def find_place(self, frame, maps: LoopMaps) -> tuple[Placement | None, list[LoopCandidate]]:
@@ -263,8 +265,12 @@ class LoopClosure:
 
     def found(self, placement: Placement) -> None:
         """The frame just registered found itself at ``placement``: it becomes the session's first keyframe,
-        tied to the keyframe it matched by the relative pose of the two (after tracking refined the frame's)."""
+        tied to the keyframe it matched by the relative pose verification measured between the two (the keyframe's
+        stored depth against the frame), not by the pose tracking gave the frame: where the map saw the place twice
+        with its drift between (a lap's start and end), tracking against the map rendered there mixes both visits'
+        surfels, and the tie would pull the loop to the other visit towards that mix."""
         self._link = placement.keyframe.id
+        self._link_T = invert(placement.candidate.T)
         self._found_features = (placement.frame, placement.features)
 
     def _dense_tie(self, kf: Keyframe, exclude: set, report: LoopReport, maps: LoopMaps) -> LoopCandidate | None:

@@ -91,6 +91,11 @@ def print_timeline(launched: float, ended: float, summary: dict, batch_dir: Path
         cells = [at.get(k) for k in ("task submitted", "worker process", "task", "job process")] + [loop] + \
                 [at.get(k) for k in ("job process end", "result")]
         print(f"| {job} | " + " | ".join("" if c is None else f"{c:.2f}" for c in cells) + " |")
+    starts = [at["job process"] for at in per_job.values() if "job process" in at]
+    ends = [at["job process end"] for at in per_job.values() if "job process end" in at]
+    if starts and ends:
+        print(f"the batch's own cost: {min(starts):.2f} s before the first job's process, "
+              f"{ended - launched - max(ends):.2f} s after the last one ended")
     print()
 
 

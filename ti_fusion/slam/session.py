@@ -10,7 +10,9 @@ does not find itself gets no pose (left out of trajectory.tum, as a frame skippe
 not fused: never a start at the identity. The frame that finds itself is "relocalised", carries the event
 (``FrameResult.found``), and the session goes on in the map's frame: extending the map (fusion, new keyframes,
 loop closures that may reach the map's keyframes) or, with ``localize``, tracking against the map without
-changing it (no fusion, no keyframes; the whole map is rendered, not an active window).
+changing it (no fusion, no keyframes; the whole map is rendered, not an active window). A localisation's frames
+where the map is out of view are posed by frame-to-frame odometry ("odometry: off the map", ``localize_frame``)
+until the map rendered at their pose covers them again, rather than searching the map every frame.
 
 A session that never finds itself ends with every frame unlocalised (the CLI exits with status 3), unless
 ``map.unfound = "map-anyway"``: after ``map.find_frames`` unlocalised frames the session sets the loaded map
@@ -169,7 +171,8 @@ def localize_frame(slam, frame, terms: tuple[str, ...], result_type):
     frame leaves it (tracking lost, or its correspondences cover less than ``ON_MAP`` of its depth), posed by
     frame-to-frame odometry from the last posed frame ("odometry: off the map"), and from there each frame
     tracks against the map again only where the map rendered at its odometry pose covers ``ON_MAP`` of its
-    depth. A frame that neither tracks nor has odometry is lost (``LOST_FRAMES`` of them: search again)."""
+    depth, and every ``SEARCH_EVERY``-th also searches the map. A frame that neither tracks nor has odometry is
+    lost (``LOST_FRAMES`` of them: search again)."""
     session = slam.session
     if not session.off_map:
         result = slam._track(frame, terms)

@@ -226,3 +226,21 @@ def test_a_localisation_frame_mostly_off_the_map_is_lost():
     result = FrameResult(0, 0.0, np.eye(4), Tracking.OK, icp=SimpleNamespace(inliers=15360))
     check_on_map(slam, frame, result)
     assert result.status == "lost: off the map: its correspondences cover 20% of the frame's depth < 30%"
+
+
+def test_odometry_near_a_localisations_alignment_settles_its_weak_direction(monkeypatch):
+    """A localisation's frame whose alignment against the map has a weak direction (where the slide starts would
+    be tried) is settled by odometry from the last frame when the two land within SETTLED of each other; odometry
+    farther off, lost, or not there (no kept maps) settles nothing, and the slide starts are tried."""
+    import ti_fusion.slam.session as session_module
+    from ti_fusion.geometry import se3_exp
+    from ti_fusion.slam.dense import FrameResult
+
+    alignment = se3_exp(np.array([0.1, 0.2, 0.0, 0.5, 0.0, 1.0]))
+    near = alignment @ se3_exp(np.array([0.0, 0.0, 0.0, 0.002, 0.0, 0.0]))  # 2 mm off
+    far = alignment @ se3_exp(np.array([0.0, 0.0, 0.0, 0.04, 0.0, 0.0]))  # one slide step off
+    for moved, settles in ((FrameResult(1, 0.0, near, Tracking.ODOMETRY), True),
+                           (FrameResult(1, 0.0, far, Tracking.ODOMETRY), False),
+                           (FrameResult(1, 0.0, near, Tracking.LOST, "odometry: few inliers"), False), (None, False)):
+        monkeypatch.setattr(session_module, "odometry", lambda slam, frame, result_type, why, moved=moved: moved)
+        assert session_module.odometry_settles(None, None, alignment) is settles, (moved and moved.status)

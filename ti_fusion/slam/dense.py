@@ -72,7 +72,7 @@ from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.pyramid import FramePyramid, grey_image
 from ti_fusion.slam.checks import check_frame
 from ti_fusion.slam.poses import PoseStore
-from ti_fusion.slam.session import LOST_FRAMES, localize_frame
+from ti_fusion.slam.session import LOST_FRAMES, localize_frame, odometry_settles
 from ti_fusion.status import Tracking, status_text
 from ti_fusion.timing import StageTimer, Stopwatch
 
@@ -378,7 +378,15 @@ class DenseSLAM:
             for start in self._turned(predicted):  # a turn faster than the guess's
                 attempt("turn", start, depth_first=True)
         if cfg.hypotheses != "motion":
-            for start in self._slid(first, last):  # the other minima along a direction depth leaves weak
+            slid = self._slid(first, last)  # the other minima along a direction depth leaves weak
+            if slid and len(tried) == 1 and self.session is not None and self.session.localize:
+                # a localisation's odometry from the last frame, which sees more than the map, settles it cheaper
+                # (slam/session.py); it fills the source with that frame's maps, so the map is rendered again
+                if odometry_settles(self, frame, first.pose):
+                    slid = []
+                else:
+                    source, last = self._reference("intensity" in self.icp.needs(terms), at=last)
+            for start in slid:
                 attempt("slide", start)
         passed = [h for h in tried if h.ok]
         if len(passed) > 1:

@@ -40,6 +40,9 @@ ON_MAP = 0.3
 # and verification, as a search does): odometry drifts, and from a pose too far off the map's render does not
 # bring it back (a jump beyond slam.max_update_m); a bounded cost, not a search every frame.
 SEARCH_EVERY = 10
+# (degrees, metres): odometry this near a localisation's alignment against the map settles a weak direction of the
+# map's depth in place of the slide starts (their steps are 4 cm and more; odometry's step error is millimetres).
+SETTLED = (0.5, 0.005)
 
 
 @dataclass
@@ -251,6 +254,20 @@ def odometry(slam, frame, result_type, why: str):
                                hypothesis="odometry", tried=tried)
     return result_type(frame.index, frame.timestamp, predicted, Tracking.LOST, f"{why}; odometry: {first[1]}",
                        icp=first[0], hypothesis="odometry", tried=tried)
+
+
+def odometry_settles(slam, frame, pose: np.ndarray) -> bool:
+    """A localisation's frame tracked against the map to ``pose`` along a direction the map's depth leaves weak:
+    whether odometry from the last posed frame (its whole view, not only the part the map covers) lands within
+    ``SETTLED`` of it, so the other minima along that direction need not be tried (slam.slide_ratio)."""
+    from ti_fusion.geometry import pose_error
+    from ti_fusion.slam.dense import FrameResult
+
+    moved = odometry(slam, frame, FrameResult, "check")
+    if moved is None or not moved.tracked:
+        return False
+    rot_deg, trans_m = pose_error(moved.pose, pose)
+    return rot_deg < SETTLED[0] and trans_m < SETTLED[1]
 
 
 def back_on_map(slam, frame, moved, terms: tuple[str, ...], result_type):

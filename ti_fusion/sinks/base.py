@@ -68,6 +68,10 @@ class Run(Protocol):
     def trajectory(self) -> tuple[list[float], list[np.ndarray]]:
         """(timestamps, camera-to-world poses) of the frames done that got a pose."""
 
+    def in_background(self, fn) -> None:
+        """From ``finish``: run ``fn`` (no Taichi) on an outputs' thread while the later sinks finish; a dict
+        it returns joins summary.json, what it raises is this sink's failure."""
+
 
 class Sink:
     """One output of a run. Subclasses set ``name`` and ``commands``, and override what they need of

@@ -23,8 +23,8 @@ peak memory and the cores to itself (apart from other users of the machine). Col
   processes', from the same rusage) over its wall-clock life; for ti-fusion the line after the table also
   gives its main thread's CPU time (the loop's Python and kernel launches; Taichi's CPU workers run the
   kernels while it waits), which no other thread can take over: a lower bound on the process's
-  wall-clock time, which other processes' load moves far less than the wall-clock time itself (by about a
-  quarter between runs at load 6 and 19 here, where the wall-clock time doubled);
+  wall-clock time, which other processes' load moves less than the wall-clock time itself (by up to a
+  quarter between runs here, through the caches it shares with them);
 - ``read wait``: the share of ti-fusion's loop spent waiting for the next frame (the ``load`` stage after
   the first two frames, over the loop's wall-clock time).
 ti-fusion is the ``ti-fusion slam`` command itself (every output written), run in the child, with ``--set``

@@ -143,7 +143,8 @@ def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
 class KeptMaps:
     """Copies of the frame pyramid's vertex and normal maps (every level) of the last frame with a pose: off the
     map, a localisation tracks the next frame against them (``odometry``), put into the model pyramid, whose
-    maps ICP's kernels already take as the source. None where the two pyramids differ in shape."""
+    maps ICP's kernels already take as the source. Not ``usable`` where the two pyramids differ in shape (then
+    a frame off the map has no odometry: lost, as before)."""
 
     def __init__(self, frame_pyramid, model_pyramid):
         import taichi as ti

@@ -247,10 +247,11 @@ def test_the_class_check_answers_as_taichis(monkeypatch):
     import types
     from pathlib import Path
 
-    import ti_fusion.kernels.surfel_map as module
+    import ti_fusion.kernels.pyramid as module
 
-    # every decorator of a kernels module, run again in a copy of it (the module itself stays as it is)
-    copy = types.ModuleType("surfel_map_copy")
+    # every decorator of a kernels module, run again in a copy of it (the module itself stays as it is, and
+    # whether an earlier test imported it already does not matter)
+    copy = types.ModuleType("pyramid_copy")
     copy.__file__ = module.__file__
     exec(compile(Path(module.__file__).read_text(), module.__file__, "exec"), copy.__dict__)
     assert answers[:4] == [(True, True), (True, True), (False, False), (False, False)]

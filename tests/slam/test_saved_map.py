@@ -17,7 +17,7 @@ from ti_fusion.io.map_files import DATA, HEADER, VERSION, find_map_folder, map_f
 from ti_fusion.io.outputs import RunDir
 from ti_fusion.loop.keyframes import Keyframe, grid_points
 from ti_fusion.loop.pose_graph import Edge
-from ti_fusion.slam.saved_map import MapTrajectory, PlaceState, SavedMap, check_camera, load_map, save_map
+from ti_fusion.slam.saved_map import MapTrajectory, PlaceState, SavedMap, check_camera, load_map
 from ti_fusion.tracking.features import FrameFeatures
 
 K = Intrinsics(fx=262.5, fy=262.5, cx=159.5, cy=119.5, width=320, height=240)
@@ -85,10 +85,10 @@ def _same(a: SavedMap, b: SavedMap) -> None:
 # --------------------------------------------------------------------------------------------------
 def test_saved_loaded_and_saved_again_is_the_same_bytes(tmp_path, rng):
     saved = small_map(rng)
-    save_map(saved, tmp_path / "a")
+    saved.write(tmp_path / "a")
     loaded = load_map(tmp_path / "a")
     _same(saved, loaded)
-    save_map(loaded, tmp_path / "b")
+    loaded.write(tmp_path / "b")
     for name in (HEADER, DATA):
         assert (tmp_path / "a" / name).read_bytes() == (tmp_path / "b" / name).read_bytes(), name
     kf = loaded.keyframes[0]
@@ -107,7 +107,7 @@ def test_loading_reads_each_array_once_into_its_own_memory(tmp_path, rng):
     copies of it: the peak was twice the map), and the SavedMap takes them as they are."""
     import tracemalloc
 
-    save_map(small_map(rng, surfels=200_000), tmp_path / "a")
+    small_map(rng, surfels=200_000).write(tmp_path / "a")
     size = (tmp_path / "a" / DATA).stat().st_size
     tracemalloc.start()
     try:
@@ -121,7 +121,7 @@ def test_loading_reads_each_array_once_into_its_own_memory(tmp_path, rng):
 
 
 def test_the_map_trajectory_moves_with_its_keyframes(tmp_path, rng):
-    saved = load_map(save_map(small_map(rng), tmp_path / "m"))
+    saved = load_map(small_map(rng).write(tmp_path / "m"))
     stamps, poses = saved.trajectory_poses()
     t = saved.trajectory
     np.testing.assert_array_equal(stamps, t.timestamp)
@@ -156,20 +156,20 @@ def _as_version_1(folder) -> None:
 
 def test_a_version_1_map_loads_without_a_trajectory_and_saves_as_version_2(tmp_path, rng):
     saved = small_map(rng)
-    folder = save_map(saved, tmp_path / "v1")
+    folder = saved.write(tmp_path / "v1")
     _as_version_1(folder)
     loaded = load_map(folder)
     assert loaded.version == 1 and len(loaded.trajectory) == 0 and loaded.trajectory.sessions == 1
     saved.trajectory = MapTrajectory.empty(sessions=1)
     _same(saved, loaded)
-    save_map(loaded, tmp_path / "v2")
+    loaded.write(tmp_path / "v2")
     header = json.loads((tmp_path / "v2" / HEADER).read_text())
     assert header["version"] == 2 and header["trajectory"] == {"frames": 0, "sessions": 1}
     # its next session's frames are session 1
     assert loaded.trajectory.then([(0, 5.0, np.eye(4), 0)], loaded.keyframes).session.tolist() == [1]
 
 def test_a_map_is_found_from_its_folder_its_header_or_its_run(tmp_path, rng):
-    save_map(small_map(rng), tmp_path / "run" / "map")
+    small_map(rng).write(tmp_path / "run" / "map")
     for given in (tmp_path / "run", tmp_path / "run" / "map", tmp_path / "run" / "map" / HEADER):
         assert map_folder(given) == find_map_folder(given) == tmp_path / "run" / "map"
         assert load_map(given).count == 500
@@ -188,7 +188,7 @@ def _one_line(exc: pytest.ExceptionInfo) -> str:
 
 
 def test_a_truncated_map_is_refused(tmp_path, rng):
-    folder = save_map(small_map(rng), tmp_path / "m")
+    folder = small_map(rng).write(tmp_path / "m")
     data = (folder / DATA).read_bytes()
     (folder / DATA).write_bytes(data[:len(data) // 2])
     with pytest.raises(InputError, match="map.bin: is truncated") as exc:
@@ -204,7 +204,7 @@ def test_a_truncated_map_is_refused(tmp_path, rng):
 
 
 def test_a_corrupted_map_fails_its_checksum(tmp_path, rng):
-    folder = save_map(small_map(rng), tmp_path / "m")
+    folder = small_map(rng).write(tmp_path / "m")
     data = bytearray((folder / DATA).read_bytes())
     header = json.loads((folder / HEADER).read_text())
     at = header["arrays"]["surfels/weight"]["offset"] + 17
@@ -216,7 +216,7 @@ def test_a_corrupted_map_fails_its_checksum(tmp_path, rng):
 
 
 def test_another_format_version_is_refused(tmp_path, rng):
-    folder = save_map(small_map(rng), tmp_path / "m")
+    folder = small_map(rng).write(tmp_path / "m")
     header = json.loads((folder / HEADER).read_text())
     header["version"] = VERSION + 1
     (folder / HEADER).write_text(json.dumps(header))
@@ -340,7 +340,7 @@ def test_inspect_says_what_a_saved_map_holds(tmp_path, rng, capsys):
     from ti_fusion.cli.main import main
 
     saved = small_map(rng)
-    folder = save_map(saved, tmp_path / "m")
+    folder = saved.write(tmp_path / "m")
     assert main(["inspect", str(folder), "--out", str(tmp_path / "i")]) == 0
     out = capsys.readouterr().out
     assert f"saved map: {folder} (format version {VERSION}" in out and "every checksum verified" in out
@@ -358,7 +358,7 @@ def test_inspect_says_what_a_saved_map_holds(tmp_path, rng, capsys):
     err = capsys.readouterr().err.strip()
     assert err.startswith(f"ti-fusion inspect: error: {folder / DATA}: is corrupted: array") and "\n" not in err
     # a header that parses but lacks a field: one line from inspect and from mesh, as from a session
-    folder = save_map(saved, tmp_path / "n")
+    folder = saved.write(tmp_path / "n")
     header = json.loads((folder / HEADER).read_text())
     del header["camera"]
     (folder / HEADER).write_text(json.dumps(header))

@@ -39,15 +39,13 @@ class SavedMapSink(Sink):
     def finish(self, run: Run) -> dict:
         from ti_fusion.io.map_files import DATA, HEADER
 
-        from ti_fusion.slam.saved_map import save_map
-
         slam = run.step.slam
         target = Path(run.config.map.save_map) if run.config.map.save_map else run.out.file("map")
         state, surfels = slam.map_state(), slam.surfels  # read here; written on an outputs' thread
         keyframes = 0 if slam.loop is None else len(slam.loop.keyframes)
 
         def write() -> dict:
-            folder = save_map(state, target)
+            folder = state.write(target)
             return {"saved_map": {"folder": str(folder), "surfels": surfels, "keyframes": keyframes,
                                   "bytes": sum((folder / name).stat().st_size for name in (HEADER, DATA))}}
 

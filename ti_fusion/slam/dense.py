@@ -596,9 +596,7 @@ class DenseSLAM:
 
     def save_map(self, folder):
         """The map as it is now, written into ``folder`` (map.json and map.bin; docs/MAPS.md); returns the folder."""
-        from ti_fusion.slam.saved_map import save_map
-
-        return save_map(self.map_state(), folder)
+        return self.map_state().write(folder)
 
     # -- a session against a saved map (ti_fusion/slam/session.py) -----------------------------------
     def start_session(self, localize: bool = False) -> None:

@@ -135,6 +135,11 @@ class SavedMap:
                 f"camera {describe_camera(self.intrinsics)}")
 
     # -- to and from the file layout ---------------------------------------------------------------
+    def write(self, folder: str | Path) -> Path:
+        """This map written into ``folder`` (created if missing): map.json and map.bin (docs/MAPS.md)."""
+        header, arrays = self.to_arrays()
+        return write_map_folder(folder, header, arrays)
+
     def to_arrays(self) -> tuple[dict, dict[str, np.ndarray]]:
         """(header, name → array) as ``write_map_folder`` takes them (docs/MAPS.md lists every one)."""
         header = {
@@ -250,12 +255,6 @@ class SavedMap:
                    int(header["frames_fused"]), int(header["anchor"]), int(header["last_frame"]), keyframes, places,
                    list(arrays["graph/poses"]), edges, header["loops"], trajectory,
                    int(header["version"]))
-
-
-def save_map(saved: SavedMap, folder: str | Path) -> Path:
-    """``saved`` written into ``folder`` (created if missing): map.json and map.bin (docs/MAPS.md)."""
-    header, arrays = saved.to_arrays()
-    return write_map_folder(folder, header, arrays)
 
 
 def load_map(path: str | Path) -> SavedMap:

@@ -243,4 +243,4 @@ def test_odometry_near_a_localisations_alignment_settles_its_weak_direction(monk
                            (FrameResult(1, 0.0, far, Tracking.ODOMETRY), False),
                            (FrameResult(1, 0.0, near, Tracking.LOST, "odometry: few inliers"), False), (None, False)):
         monkeypatch.setattr(session_module, "odometry", lambda slam, frame, result_type, why, moved=moved: moved)
-        assert session_module.odometry_settles(None, None, alignment) is settles, (moved and moved.status)
+        assert session_module.odometry_settles(None, None, alignment, FrameResult) is settles, (moved and moved.status)

@@ -382,7 +382,7 @@ class DenseSLAM:
             if slid and len(tried) == 1 and self.session is not None and self.session.localize:
                 # a localisation's odometry from the last frame, which sees more than the map, settles it cheaper
                 # (slam/session.py); it fills the source with that frame's maps, so the map is rendered again
-                if odometry_settles(self, frame, first.pose):
+                if odometry_settles(self, frame, first.pose, FrameResult):
                     slid = []
                 else:
                     source, last = self._reference("intensity" in self.icp.needs(terms), at=last)

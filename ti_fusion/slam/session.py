@@ -257,14 +257,13 @@ def odometry(slam, frame, result_type, why: str):
                        icp=first[0], hypothesis="odometry", tried=tried)
 
 
-def odometry_settles(slam, frame, pose: np.ndarray) -> bool:
+def odometry_settles(slam, frame, pose: np.ndarray, result_type) -> bool:
     """A localisation's frame tracked against the map to ``pose`` along a direction the map's depth leaves weak:
     whether odometry from the last posed frame (its whole view, not only the part the map covers) lands within
     ``SETTLED`` of it, so the other minima along that direction need not be tried (slam.slide_ratio)."""
     from ti_fusion.geometry import pose_error
-    from ti_fusion.slam.dense import FrameResult
 
-    moved = odometry(slam, frame, FrameResult, "check")
+    moved = odometry(slam, frame, result_type, "check")
     if moved is None or not moved.tracked:
         return False
     rot_deg, trans_m = pose_error(moved.pose, pose)

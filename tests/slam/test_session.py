@@ -242,5 +242,5 @@ def test_odometry_near_a_localisations_alignment_settles_its_weak_direction(monk
     for moved, settles in ((FrameResult(1, 0.0, near, Tracking.ODOMETRY), True),
                            (FrameResult(1, 0.0, far, Tracking.ODOMETRY), False),
                            (FrameResult(1, 0.0, near, Tracking.LOST, "odometry: few inliers"), False), (None, False)):
-        monkeypatch.setattr(session_module, "odometry", lambda slam, frame, result_type, why, moved=moved: moved)
-        assert session_module.odometry_settles(None, None, alignment, FrameResult) is settles, (moved and moved.status)
+        monkeypatch.setattr(session_module, "odometry", lambda slam, frame, why, moved=moved: moved)
+        assert session_module.odometry_settles(None, None, alignment) is settles, (moved and moved.status)

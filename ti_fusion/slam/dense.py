@@ -58,7 +58,7 @@ from __future__ import annotations
 import logging
 import statistics
 from collections import deque
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -72,6 +72,7 @@ from ti_fusion.tracking.icp import ICP, ICPResult
 from ti_fusion.kernels.pyramid import FramePyramid, grey_image
 from ti_fusion.slam.checks import check_frame
 from ti_fusion.slam.poses import PoseStore
+from ti_fusion.slam.result import FrameResult
 from ti_fusion.slam.session import LOST_FRAMES, localize_frame, odometry_settles
 from ti_fusion.status import Tracking, status_text
 from ti_fusion.timing import StageTimer, Stopwatch
@@ -123,47 +124,6 @@ class Hypothesis:
     @property
     def status(self) -> str:
         return status_text(Tracking.LOST, self.failure) if self.failure else Tracking.OK.value
-
-
-@dataclass
-class FrameResult:
-    """What ``register_frame`` did with one frame."""
-
-    index: int
-    timestamp: float
-    pose: np.ndarray | None  # camera-to-world estimate when registered (the current one after a loop
-    # closure: DenseSLAM.poses); None for a frame skipped before the map starts
-    tracking: Tracking
-    reason: str = ""  # why the frame was lost or skipped
-    icp: ICPResult | None = None
-    fusion: FusionStats | None = None
-    ms: dict[str, float] = field(default_factory=dict)
-    loop: object | None = None  # the loop closure's report on a keyframe (``ti_fusion.loop.closure.LoopReport``)
-    hypothesis: str | None = None  # the start whose alignment won: "motion", "last", "features", "wide" or "turn"
-    tried: list[str] = field(default_factory=list)  # every start tried, in order, with its outcome
-    found: dict | None = None  # a session against a saved map: where the frame that found itself in it matched
-
-    def __post_init__(self):
-        self.tracking = Tracking(self.tracking)  # also from its value ("ok")
-
-    @property
-    def status(self) -> str:
-        """As logs and summaries write it: "init", "ok", "relocalised", "lost: <reason>", "skipped: <reason>",
-        "unlocalised: <reason>"."""
-        return status_text(self.tracking, self.reason)
-
-    @property
-    def tracked(self) -> bool:
-        """The frame got a pose (tracked, or the first of the map) and was fused."""
-        return self.tracking.tracked
-
-    @property
-    def lost(self) -> bool:
-        return self.tracking is Tracking.LOST
-
-    @property
-    def skipped(self) -> bool:
-        return self.tracking is Tracking.SKIPPED
 
 
 class DenseSLAM:
@@ -255,7 +215,7 @@ class DenseSLAM:
             from ti_fusion.slam.session import find_in_map
 
             with timer.stage("track"):
-                result = find_in_map(self, frame, terms, FrameResult)
+                result = find_in_map(self, frame, terms)
             if not result.tracked:
                 result.ms = dict(timer.last)
                 return result
@@ -273,7 +233,7 @@ class DenseSLAM:
                 log.warning(f"{which} skipped ({reason}): the map starts at frame {frame.index}")
         elif self.session is not None and self.session.localize:
             with timer.stage("track"):  # against the map, or by odometry off it (slam/session.py)
-                result = localize_frame(self, frame, terms, FrameResult)
+                result = localize_frame(self, frame, terms)
         else:
             with timer.stage("track"):
                 result = self._track(frame, terms)
@@ -382,7 +342,7 @@ class DenseSLAM:
             if slid and len(tried) == 1 and self.session is not None and self.session.localize:
                 # a localisation's odometry from the last frame, which sees more than the map, settles it cheaper
                 # (slam/session.py); it fills the source with that frame's maps, so the map is rendered again
-                if odometry_settles(self, frame, first.pose, FrameResult):
+                if odometry_settles(self, frame, first.pose):
                     slid = []
                 else:
                     source, last = self._reference("intensity" in self.icp.needs(terms), at=last)

@@ -26,6 +26,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ti_fusion.slam.result import FrameResult
 from ti_fusion.status import Tracking, status_text
 
 log = logging.getLogger(__name__)
@@ -104,8 +105,8 @@ class Session:
         self.kept.keep(frame.index)
 
 
-def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
-    """One frame of a session that has not found itself: a ``result_type`` (FrameResult) that is relocalised
+def find_in_map(slam, frame, terms: tuple[str, ...]):
+    """One frame of a session that has not found itself: a ``FrameResult`` that is relocalised
     (with ``found``), or unlocalised with why."""
     session = slam.session
     placement, checked = slam.loop.find_place(frame, slam.loop_maps())
@@ -113,7 +114,7 @@ def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
     if placement is None:
         why = "no keyframe of the map looks like this frame" if not checked else \
             f"{len(checked)} keyframe(s) of the map look like it, none verified ({checked[0].reason})"
-        return _unlocalised(slam, frame, why, tried, result_type)
+        return _unlocalised(slam, frame, why, tried)
     slam.seed(frame, placement.pose)
     result = slam._track(frame, terms)
     check_on_map(slam, frame, result)
@@ -121,7 +122,7 @@ def find_in_map(slam, frame, terms: tuple[str, ...], result_type):
     if not result.tracked:
         slam.seed(None, None)
         return _unlocalised(slam, frame, f"keyframe {placement.keyframe.id} verified, but the frame does not track "
-                                         f"against the map there ({result.reason})", result.tried, result_type)
+                                         f"against the map there ({result.reason})", result.tried)
     c = placement.candidate
     result.tracking = Tracking.RELOCALISED
     session.located = True
@@ -170,7 +171,7 @@ class KeptMaps:
         return self.model
 
 
-def localize_frame(slam, frame, terms: tuple[str, ...], result_type):
+def localize_frame(slam, frame, terms: tuple[str, ...]):
     """One frame of a localisation that has found itself: tracked against the map while it is in view; where the
     frame leaves it (tracking lost, or its correspondences cover less than ``ON_MAP`` of its depth), posed by
     frame-to-frame odometry from the last posed frame ("odometry: off the map"), and from there each frame
@@ -183,7 +184,7 @@ def localize_frame(slam, frame, terms: tuple[str, ...], result_type):
         check_on_map(slam, frame, result)
         if result.tracked:
             return result
-        moved = odometry(slam, frame, result_type, f"off the map ({result.reason})")
+        moved = odometry(slam, frame, f"off the map ({result.reason})")
         if moved is None or not moved.tracked:
             if moved is not None:
                 result.tried += moved.tried
@@ -193,15 +194,15 @@ def localize_frame(slam, frame, terms: tuple[str, ...], result_type):
         log.info(f"frame {frame.index}: off the map ({result.reason}): posed by odometry until it sees the map again")
         moved.tried = result.tried + moved.tried
         return moved
-    moved = odometry(slam, frame, result_type, "off the map")
+    moved = odometry(slam, frame, "off the map")
     if moved is None or not moved.tracked:
-        return moved if moved is not None else result_type(
+        return moved if moved is not None else FrameResult(
             frame.index, frame.timestamp, slam._predicted_pose(frame.timestamp), Tracking.LOST, "off the map, and "
             "no odometry", tried=[])
-    back = back_on_map(slam, frame, moved, terms, result_type)
+    back = back_on_map(slam, frame, moved, terms)
     session.streak += 1
     if back is None and session.streak % SEARCH_EVERY == 0:
-        back = search_off_map(slam, frame, moved, terms, result_type)
+        back = search_off_map(slam, frame, moved, terms)
     if back is None:
         session.odometry.append(frame.index)
         return moved
@@ -212,7 +213,7 @@ def localize_frame(slam, frame, terms: tuple[str, ...], result_type):
     return back
 
 
-def search_off_map(slam, frame, moved, terms: tuple[str, ...], result_type):
+def search_off_map(slam, frame, moved, terms: tuple[str, ...]):
     """Off the map, a frame posed by odometry (``moved``) looks for itself in the map as a search does; where a
     keyframe verifies and the frame tracks against the map from there, that result ("relocalised"), else None
     (``moved.tried`` says what was tried)."""
@@ -224,7 +225,7 @@ def search_off_map(slam, frame, moved, terms: tuple[str, ...], result_type):
     moved.tried += [f"place: keyframe {c.match} (score {c.score:.3f}): {c.reason}" for c in checked]
     if placement is None:
         return None
-    back = back_on_map(slam, frame, dataclasses.replace(moved, pose=placement.pose), terms, result_type)
+    back = back_on_map(slam, frame, dataclasses.replace(moved, pose=placement.pose), terms)
     if back is None:
         return None
     back.tracking = Tracking.RELOCALISED
@@ -233,7 +234,7 @@ def search_off_map(slam, frame, moved, terms: tuple[str, ...], result_type):
     return back
 
 
-def odometry(slam, frame, result_type, why: str):
+def odometry(slam, frame, why: str):
     """The frame tracked against the last posed frame's maps (depth ICP from the motion model's guess, then from
     that frame's pose): status "odometry: <why>" with its pose, or lost; None where no maps are kept."""
     from ti_fusion.geometry import invert, renormalize
@@ -251,26 +252,26 @@ def odometry(slam, frame, result_type, why: str):
         tried.append(f"odometry: {status_text(Tracking.LOST, failure) if failure else Tracking.OK.value}")
         first = first or (icp, failure)
         if not failure:
-            return result_type(frame.index, frame.timestamp, pose, Tracking.ODOMETRY, why, icp=icp,
+            return FrameResult(frame.index, frame.timestamp, pose, Tracking.ODOMETRY, why, icp=icp,
                                hypothesis="odometry", tried=tried)
-    return result_type(frame.index, frame.timestamp, predicted, Tracking.LOST, f"{why}; odometry: {first[1]}",
+    return FrameResult(frame.index, frame.timestamp, predicted, Tracking.LOST, f"{why}; odometry: {first[1]}",
                        icp=first[0], hypothesis="odometry", tried=tried)
 
 
-def odometry_settles(slam, frame, pose: np.ndarray, result_type) -> bool:
+def odometry_settles(slam, frame, pose: np.ndarray) -> bool:
     """A localisation's frame tracked against the map to ``pose`` along a direction the map's depth leaves weak:
     whether odometry from the last posed frame (its whole view, not only the part the map covers) lands within
     ``SETTLED`` of it, so the other minima along that direction need not be tried (slam.slide_ratio)."""
     from ti_fusion.geometry import pose_error
 
-    moved = odometry(slam, frame, result_type, "check")
+    moved = odometry(slam, frame, "check")
     if moved is None or not moved.tracked:
         return False
     rot_deg, trans_m = pose_error(moved.pose, pose)
     return rot_deg < SETTLED[0] and trans_m < SETTLED[1]
 
 
-def back_on_map(slam, frame, moved, terms: tuple[str, ...], result_type):
+def back_on_map(slam, frame, moved, terms: tuple[str, ...]):
     """Off the map, the frame posed by odometry (``moved``) tracked against the map rendered at that pose, where
     the render covers ``ON_MAP`` of its depth (at the coarsest level: a cheap test, no ICP where it fails);
     the result where it tracks and its correspondences cover ``ON_MAP`` of the frame's depth, else None."""
@@ -287,7 +288,7 @@ def back_on_map(slam, frame, moved, terms: tuple[str, ...], result_type):
     icp = slam.icp.align(source, slam.frame_pyramid, init=np.eye(4), terms=terms)
     pose = renormalize(start @ invert(icp.pose))
     failure = slam._health(icp, pose, start)
-    result = result_type(frame.index, frame.timestamp, pose, Tracking.LOST if failure else Tracking.OK, failure,
+    result = FrameResult(frame.index, frame.timestamp, pose, Tracking.LOST if failure else Tracking.OK, failure,
                          icp=icp, hypothesis="odometry", tried=moved.tried + [
                              f"map: {status_text(Tracking.LOST, failure) if failure else Tracking.OK.value}"])
     check_on_map(slam, frame, result)
@@ -329,7 +330,7 @@ def check_on_map(slam, frame, result) -> None:
         result.reason = f"off the map: its correspondences cover {cover:.0%} of the frame's depth < {ON_MAP:.0%}"
 
 
-def _unlocalised(slam, frame, why: str, tried: list[str], result_type):
+def _unlocalised(slam, frame, why: str, tried: list[str]):
     session = slam.session
     session.unlocalised.append((frame.index, why))
     if session.unfound == "map-anyway" and len(session.unlocalised) >= session.give_up:
@@ -338,4 +339,4 @@ def _unlocalised(slam, frame, why: str, tried: list[str], result_type):
                     "(map.unfound = map-anyway); the loaded map is set aside")
         slam.own_map()
         session.own_map_at = frame.index + 1
-    return result_type(frame.index, frame.timestamp, None, Tracking.UNLOCALISED, why, tried=tried)
+    return FrameResult(frame.index, frame.timestamp, None, Tracking.UNLOCALISED, why, tried=tried)

@@ -20,7 +20,8 @@ import pytest
 
 from ti_fusion.batch import results
 from ti_fusion.batch.manifest import read_manifest
-from ti_fusion.batch.runner import MISSING_RAY, Batch, error_line
+from ti_fusion.batch.runner import MISSING_RAY, Batch
+from ti_fusion.batch.task import error_line
 from ti_fusion.cli.main import main
 from ti_fusion.errors import TiFusionError
 from ti_fusion.io.mcap_log import read_log

@@ -28,7 +28,7 @@ from pathlib import Path
 
 from ti_fusion.batch import results
 from ti_fusion.batch.manifest import Job
-from ti_fusion.batch.task import STOP_GRACE_S, error_line, process_started, run_job, stop_process  # noqa: F401
+from ti_fusion.batch.task import STOP_GRACE_S, process_started, run_job
 from ti_fusion.errors import InputError, TiFusionError
 
 log = logging.getLogger(__name__)

@@ -397,11 +397,9 @@ class DepthFusion:
             return
         cap = max(blocks, 2 * self.capacity, 256)
         cap = min(cap, max(blocks, self.settings.max_voxels // E ** 3))
-        arrays = [("sdf", (), np.float32), ("wsum", (), np.float32), ("rgb", (3,), np.float32)]
-        if self.carving:
-            arrays += [("free", (), np.float32), ("near", (), np.float32)]
-        for name, shape, dtype in arrays:
-            new = np.zeros((cap * E ** 3,) + shape, dtype)
+        arrays = [("sdf", ()), ("wsum", ()), ("rgb", (3,))] + ([("free", ()), ("near", ())] if self.carving else [])
+        for name, shape in arrays:
+            new = np.zeros((cap * E ** 3,) + shape, np.float32)
             old = getattr(self, name)
             new[:len(old)] = old
             setattr(self, name, new)
@@ -511,6 +509,7 @@ class DepthFusion:
             inv = np.where(wsum > 0, 1.0 / wsum, 0.0).astype(np.float32)
         sdf = self.sdf[idx] * inv
         self.carved = 0
+        # counted while integrating, and still asked for (mesh.carve_frames set to 0 since: the same frames uncarved)
         if self.carving and self.settings.carve_frames > 0:
             self._carve_empty(idx, wsum, sdf)
         shape = (len(grid), E, E, E)

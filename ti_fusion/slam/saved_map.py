@@ -306,10 +306,7 @@ def capture(slam) -> SavedMap:
     elif carried is not None:  # loop closure off in this run: the loaded map's keyframes stay as they were
         saved.keyframes, saved.places = carried.keyframes, carried.places
         saved.graph_poses, saved.graph_edges, saved.loops = carried.graph_poses, carried.graph_edges, carried.loops
-    # the earlier sessions' frames (anchored to the map's keyframes, which this run's loops may have moved), then
-    # this run's, anchored to the keyframes it made (none without loop closure: in the world frame)
-    earlier = carried.trajectory if carried is not None else MapTrajectory.empty()
-    saved.trajectory = earlier.then(slam.poses.posed(), loop.keyframes if loop is not None else [])
+    saved.trajectory = _trajectory(slam)
     return saved
 
 
@@ -317,11 +314,17 @@ def map_trajectory(slam) -> tuple[np.ndarray, np.ndarray]:
     """(timestamps, N×4×4 camera-to-world poses) of every posed frame of the map ``slam`` holds: the earlier
     sessions' (a loaded map's trajectory) at its keyframes' current poses, then this run's, in the map's frame."""
     carried = slam.loaded_map
+    keyframes = slam.loop.keyframes if slam.loop is not None else carried.keyframes if carried is not None else []
+    trajectory = _trajectory(slam)
+    return trajectory.timestamp.copy(), trajectory.poses(keyframes)
+
+
+def _trajectory(slam) -> MapTrajectory:
+    """The earlier sessions' frames (anchored to the map's keyframes, which this run's loops may have moved), then
+    this run's, anchored to the keyframes it made (none without loop closure: in the world frame)."""
+    carried = slam.loaded_map
     earlier = carried.trajectory if carried is not None else MapTrajectory.empty()
-    own = slam.loop.keyframes if slam.loop is not None else []
-    trajectory = earlier.then(slam.poses.posed(), own)
-    return trajectory.timestamp.copy(), trajectory.poses(own if slam.loop is not None else carried.keyframes
-                                                         if carried is not None else [])
+    return earlier.then(slam.poses.posed(), slam.loop.keyframes if slam.loop is not None else [])
 
 
 def restore(slam, saved: SavedMap) -> None:

@@ -925,8 +925,8 @@ class FramePyramid:
     def _levels_and_maps(self, first_maps: int, clear: int = 0) -> None:
         """Every level's depth from level 0 (``pyramid_down``, a launch per level), then the vertex and normal
         maps of levels ``first_maps`` and on, and with ``clear`` the holes of the render ``_holes`` taken back
-        (``maps_levels``). A launch per level rather than the levels' loops in one kernel: that kernel took
-        2.4 times as long to compile as this one for 3 levels (docs/PERFORMANCE.md, "Cold start")."""
+        (``maps_levels``). A launch per level rather than the levels' loops in one kernel, which compiled
+        slower (docs/PERFORMANCE.md, "Cold start")."""
         stack, holes = self.depth[0].field, self._holes
         for l in range(1, self.levels):
             h, w = self.shapes[l - 1]

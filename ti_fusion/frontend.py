@@ -76,9 +76,9 @@ def fast_class_check() -> bool:
     """Make Taichi's check of whether a ``ti.kernel`` / ``ti.func`` is defined in a class body cheap; True
     when installed (once per process). Taichi 1.7's decorators read the source line the defining frame is
     at with ``inspect.getframeinfo``, which finds the frame's module by scanning every loaded module's
-    file (``inspect.getmodule``) and reads the whole file: about 1.5 ms a decorator here, paid for every
-    kernel and function defined at import and for ICP's kernels built per set of terms. This reads the
-    same line through ``linecache`` and matches it against the same patterns."""
+    file (``inspect.getmodule``) and reads the whole file, for every kernel and function defined at import
+    and for ICP's kernels built per set of terms (docs/PERFORMANCE.md). This reads the same line through
+    ``linecache`` and matches it against the same patterns."""
     global _class_check_installed
     if _class_check_installed:
         return True
@@ -117,7 +117,7 @@ _class_check_installed = False
 # takes tens of milliseconds); the first such launch of a process says so on the terminal. Where Taichi's
 # compile step itself is timed (``clock_first_launches``), its CPU time on the launching thread decides
 # instead: a load from the cache takes milliseconds of it, a compile a tenth of a second or more, however
-# loaded the machine (on 2 cores shared by a dozen processes a load's wall time passed a second).
+# loaded the machine (where a load's wall time can pass COMPILING_S; docs/PERFORMANCE.md).
 COMPILING_S = 1.0
 COMPILING_CPU_S = 0.1
 

@@ -1,8 +1,8 @@
 """A batch job's Ray task, on the worker: the job's ``ti-fusion slam`` process, its log, its result.
 
 Its own module, importing only the standard library: a Ray worker imports the module of the function it runs
-when it takes its first task, and ``runner`` brings NumPy with the results table (0.4 s of a job's start at
-load 10, for nothing the task uses).
+when it takes its first task, and ``runner`` brings NumPy with the results table, which the task does not
+use (docs/BATCH.md, "Ray's start").
 """
 
 from __future__ import annotations

@@ -24,9 +24,8 @@ log = logging.getLogger(__name__)
 
 # The live frame's JPEG blockiness (kernels/pyramid.py, ``jpeg_blockiness``) at and below which its colour counts as
 # clean (the finest level keeps the whole colour weight) and at and above which as compressed (the finest level's
-# weight × icp.color_finest_scale), linear between. Measured (docs/PHOTOMETRIC.md): clean synthetic frames
-# 1.01-1.12, the real TUM cabinet keyframes 3.0-3.9 (2.0-3.7 with --downsample 2), synthetic colour through JPEG
-# at quality 75 / 90 / 95 3.1-4.1 / 1.7-2.0 / 1.3-1.5.
+# weight × icp.color_finest_scale), linear between: the gap between clean and JPEG colour's measured values
+# (docs/PHOTOMETRIC.md, "Which colour is real: the frame's JPEG blocks").
 CLEAN_BLOCKINESS = 1.4
 JPEG_BLOCKINESS = 2.0
 

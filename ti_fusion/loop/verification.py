@@ -124,54 +124,48 @@ class LoopVerifier:
         if not target_ready:
             fill(target, query)
         icp = self.icp.align(source, target, init=pnp.T)
+        c.reason = self._icp_gates(c, icp, pnp.T, "PnP's pose")
+        if not c.reason:
+            self._verified(c, icp, "verified")
+
+    def _icp_gates(self, c: LoopCandidate, icp, start: np.ndarray, what: str) -> str:
+        """ICP's figures into ``c``; "" where ``icp`` passes the ICP gates (no failure, ``loop.min_inlier_ratio``,
+        ``loop.max_residual``, within ``loop.max_icp_change_deg`` / ``_m`` of ``start``, ``what``), else why not."""
+        cfg = self.config.loop
         c.icp_inlier_ratio, c.icp_residual_m = float(icp.inlier_ratio), float(icp.residual_rms)
         if icp.failure:
-            c.reason = f"ICP: {icp.failure}"
-            return
+            return f"ICP: {icp.failure}"
         if not icp.inlier_ratio >= cfg.min_inlier_ratio:
-            c.reason = f"ICP: inlier ratio {icp.inlier_ratio:.3f} < {cfg.min_inlier_ratio:g}"
-            return
+            return f"ICP: inlier ratio {icp.inlier_ratio:.3f} < {cfg.min_inlier_ratio:g}"
         if not icp.residual_rms <= cfg.max_residual:
-            c.reason = f"ICP: residual {icp.residual_rms * 1e3:.1f} mm > {cfg.max_residual * 1e3:g} mm"
-            return
-        rot_deg, trans_m = pose_error(icp.pose, pnp.T)
+            return f"ICP: residual {icp.residual_rms * 1e3:.1f} mm > {cfg.max_residual * 1e3:g} mm"
+        rot_deg, trans_m = pose_error(icp.pose, start)
         if rot_deg > cfg.max_icp_change_deg or trans_m > cfg.max_icp_change_m:
-            c.reason = (f"ICP moved PnP's pose by {rot_deg:.1f} deg / {trans_m * 100:.1f} cm (at most "
-                        f"{cfg.max_icp_change_deg:g} deg / {cfg.max_icp_change_m * 100:g} cm)")
-            return
+            return (f"ICP moved {what} by {rot_deg:.1f} deg / {trans_m * 100:.1f} cm (at most "
+                    f"{cfg.max_icp_change_deg:g} deg / {cfg.max_icp_change_m * 100:g} cm)")
+        return ""
+
+    @staticmethod
+    def _verified(c: LoopCandidate, icp, reason: str) -> None:
+        """``c`` verified at ICP's pose."""
         c.T = icp.pose
         # ICP slides freely along a weak direction (a plain wall: along it), so its pose there is whatever the
-        # iterations left, often worse than PnP's start: the loop must not pull the graph that way.
+        # iterations left, often worse than its start: the loop must not pull the graph that way.
         c.free = [np.asarray(d["twist"], dtype=np.float64) for d in (icp.degeneracy or {}).get("directions", [])
                   if not d["color"]]
-        c.verified, c.reason = True, "verified"
+        c.verified, c.reason = True, reason
 
     def verify_dense(self, query: Keyframe, match: Keyframe, init: np.ndarray, source, target) -> LoopCandidate:
         """``match`` against ``query`` (whose maps are in ``target`` already) by dense ICP alone, from ``init``
         (p_query = init p_match, the two keyframes' estimated poses); score 0: place recognition had no say."""
-        cfg = self.config.loop
         watch = Stopwatch()
         c = LoopCandidate(query.id, match.id, 0.0)
         fill(source, match)
         icp = self.icp.align(source, target, init=init)
-        c.icp_inlier_ratio, c.icp_residual_m = float(icp.inlier_ratio), float(icp.residual_rms)
-        rot_deg, trans_m = pose_error(icp.pose, init)
-        if icp.failure:
-            c.reason = f"dense: ICP: {icp.failure}"
-        elif not icp.inlier_ratio >= cfg.min_inlier_ratio:
-            c.reason = f"dense: ICP: inlier ratio {icp.inlier_ratio:.3f} < {cfg.min_inlier_ratio:g}"
-        elif not icp.residual_rms <= cfg.max_residual:
-            c.reason = f"dense: ICP: residual {icp.residual_rms * 1e3:.1f} mm > {cfg.max_residual * 1e3:g} mm"
-        elif rot_deg > cfg.max_icp_change_deg or trans_m > cfg.max_icp_change_m:
-            c.reason = (f"dense: ICP moved the estimate by {rot_deg:.1f} deg / {trans_m * 100:.1f} cm (at most "
-                        f"{cfg.max_icp_change_deg:g} deg / {cfg.max_icp_change_m * 100:g} cm)")
-        else:
-            c.reason = self._spread(icp.pose, init, source, target)
+        gates = self._icp_gates(c, icp, init, "the estimate")
+        c.reason = f"dense: {gates}" if gates else self._spread(icp.pose, init, source, target)
         if not c.reason:
-            c.T = icp.pose
-            c.free = [np.asarray(d["twist"], dtype=np.float64) for d in (icp.degeneracy or {}).get("directions", [])
-                      if not d["color"]]
-            c.verified, c.reason = True, "verified (dense, from the estimated poses)"
+            self._verified(c, icp, "verified (dense, from the estimated poses)")
         c.ms = watch.ms
         return c
 

@@ -182,7 +182,7 @@ class DenseSLAM:
         frame that became a keyframe; a loop applied has moved ``poses`` and the map)."""
         check_usable(self._generation, "DenseSLAM.register_frame")
         result = self._track_and_fuse(frame)
-        if self.loop is not None and not (self.session is not None and self.session.localize):
+        if self.loop is not None and not self.localizing:
             with Stopwatch(result.ms, "loop"):
                 result.loop = self._close_loops(frame, result)
         return result
@@ -231,24 +231,24 @@ class DenseSLAM:
                 which = f"frame {first} was" if n == 1 else \
                     f"the first {n} frames ({first} to {self.skipped[-1][0]}) were"
                 log.warning(f"{which} skipped ({reason}): the map starts at frame {frame.index}")
-        elif self.session is not None and self.session.localize:
+        elif self.localizing:
             with timer.stage("track"):  # against the map, or by odometry off it (slam/session.py)
                 result = localize_frame(self, frame, terms)
         else:
             with timer.stage("track"):
                 result = self._track(frame, terms)
         before = self._held_pose() if self.poses else None  # the motion model's pose before this frame
-        if result.tracked and not (self.session is not None and self.session.localize):
+        if result.tracked and not self.localizing:
             with timer.stage("fuse"):
                 result.fusion = self.mapper.integrate(self.frame_pyramid, frame.color, result.pose,
                                                       self._frames_fused)
             self._frames_fused += 1
         if result.tracked:
             self.last_good = (frame, result.pose)
-            if self.session is not None and self.session.localize:
+            if self.localizing:
                 self.session.keep_maps(self, frame)  # the next frame's odometry source, if it leaves the map
         self._update_motion(result, frame.timestamp, before)
-        if self.session is not None and self.session.localize and self._lost_streak >= LOST_FRAMES:
+        if self.localizing and self._lost_streak >= LOST_FRAMES:
             self.session.lost_track(frame.index)  # off the map: look for itself again (slam/session.py)
             self.seed(None, None)
         result.ms = dict(timer.last)
@@ -339,7 +339,7 @@ class DenseSLAM:
                 attempt("turn", start, depth_first=True)
         if cfg.hypotheses != "motion":
             slid = self._slid(first, last)  # the other minima along a direction depth leaves weak
-            if slid and len(tried) == 1 and self.session is not None and self.session.localize:
+            if slid and len(tried) == 1 and self.localizing:
                 # a localisation's odometry from the last frame, which sees more than the map, settles it cheaper
                 # (slam/session.py); it fills the source with that frame's maps, so the map is rendered again
                 if odometry_settles(self, frame, first.pose):
@@ -559,6 +559,11 @@ class DenseSLAM:
         return self.map_state().write(folder)
 
     # -- a session against a saved map (ti_fusion/slam/session.py) -----------------------------------
+    @property
+    def localizing(self) -> bool:
+        """A session that tracks against the map without changing it (``start_session(localize=True)``)."""
+        return self.session is not None and self.session.localize
+
     def start_session(self, localize: bool = False) -> None:
         """The map is a saved one (or this run's, handed over): the camera's pose is unknown from the next frame
         on, each frame looking for itself among the map's keyframes until one finds itself; then the session

@@ -14,6 +14,7 @@ elsewhere the term is off for the frame, said once a run.
 """
 
 import logging
+import math
 
 import taichi as ti
 
@@ -34,7 +35,7 @@ def finest_scale(scale: float, blockiness: float) -> float:
     """The finest level's factor on the colour weight for a live frame of ``blockiness``: 1 on clean colour,
     ``scale`` (``icp.color_finest_scale``) on compressed colour, linear between; ``scale`` where the frame's
     blockiness is unknown (NaN)."""
-    if not blockiness == blockiness or blockiness >= JPEG_BLOCKINESS:
+    if math.isnan(blockiness) or blockiness >= JPEG_BLOCKINESS:
         return scale
     if blockiness <= CLEAN_BLOCKINESS:
         return 1.0

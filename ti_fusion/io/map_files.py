@@ -111,7 +111,7 @@ def read_header(path: str | Path) -> tuple[Path, dict]:
     if version not in READS or isinstance(version, bool):
         raise InputError(file, f"is a saved map of format version {version!r}; this ti-fusion reads versions "
                                f"{' and '.join(map(str, READS))}" + (" (a newer ti-fusion wrote it)" if isinstance(
-                                   version, int) and not isinstance(version, bool) and version > VERSION else ""))
+                                   version, int) and version > VERSION else ""))
     return folder, header
 
 

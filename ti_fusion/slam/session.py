@@ -22,7 +22,7 @@ aside and maps on in its own frame from the next frame, as a run without a map d
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -109,8 +109,7 @@ def find_in_map(slam, frame, terms: tuple[str, ...]):
     """One frame of a session that has not found itself: a ``FrameResult`` that is relocalised
     (with ``found``), or unlocalised with why."""
     session = slam.session
-    placement, checked = slam.loop.find_place(frame, slam.loop_maps())
-    tried = [f"place: keyframe {c.match} (score {c.score:.3f}): {c.reason}" for c in checked]
+    placement, checked, tried = _find_place(slam, frame)
     if placement is None:
         why = "no keyframe of the map looks like this frame" if not checked else \
             f"{len(checked)} keyframe(s) of the map look like it, none verified ({checked[0].reason})"
@@ -217,15 +216,13 @@ def search_off_map(slam, frame, moved, terms: tuple[str, ...]):
     """Off the map, a frame posed by odometry (``moved``) looks for itself in the map as a search does; where a
     keyframe verifies and the frame tracks against the map from there, that result ("relocalised"), else None
     (``moved.tried`` says what was tried)."""
-    import dataclasses
-
     session = slam.session
     session.searched_off_map.append(frame.index)
-    placement, checked = slam.loop.find_place(frame, slam.loop_maps())
-    moved.tried += [f"place: keyframe {c.match} (score {c.score:.3f}): {c.reason}" for c in checked]
+    placement, _, tried = _find_place(slam, frame)
+    moved.tried += tried
     if placement is None:
         return None
-    back = back_on_map(slam, frame, dataclasses.replace(moved, pose=placement.pose), terms)
+    back = back_on_map(slam, frame, replace(moved, pose=placement.pose), terms)
     if back is None:
         return None
     back.tracking = Tracking.RELOCALISED
@@ -296,6 +293,13 @@ def back_on_map(slam, frame, moved, terms: tuple[str, ...]):
         moved.tried.append(f"map: {result.status}")
         return None
     return result
+
+
+def _find_place(slam, frame) -> tuple:
+    """(where ``frame`` is in the map or None, the keyframes checked, each as a line of ``FrameResult.tried``):
+    loop closure's ``find_place``."""
+    placement, checked = slam.loop.find_place(frame, slam.loop_maps())
+    return placement, checked, [f"place: keyframe {c.match} (score {c.score:.3f}): {c.reason}" for c in checked]
 
 
 def _found_event(frame, placement, session) -> dict:

@@ -25,3 +25,8 @@ class Tracking(str, Enum):
 def status_text(tracking: Tracking, reason: str = "") -> str:
     """The status string of logs and summaries: "ok", or "lost: <reason>"."""
     return f"{tracking.value}: {reason}" if reason else tracking.value
+
+
+def alignment_status(failure: str) -> str:
+    """One alignment's outcome as a start's line says it: "ok", or "lost: <failure>" (``failure`` "": it passed)."""
+    return status_text(Tracking.LOST, failure) if failure else Tracking.OK.value

@@ -74,7 +74,7 @@ from ti_fusion.slam.checks import check_frame
 from ti_fusion.slam.poses import PoseStore
 from ti_fusion.slam.result import FrameResult
 from ti_fusion.slam.session import LOST_FRAMES, localize_frame, odometry_settles
-from ti_fusion.status import Tracking, status_text
+from ti_fusion.status import Tracking, alignment_status
 from ti_fusion.timing import StageTimer, Stopwatch
 
 log = logging.getLogger(__name__)
@@ -123,7 +123,7 @@ class Hypothesis:
 
     @property
     def status(self) -> str:
-        return status_text(Tracking.LOST, self.failure) if self.failure else Tracking.OK.value
+        return alignment_status(self.failure)
 
 
 class DenseSLAM:

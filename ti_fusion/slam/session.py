@@ -27,7 +27,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ti_fusion.slam.result import FrameResult
-from ti_fusion.status import Tracking, status_text
+from ti_fusion.status import Tracking, alignment_status
 
 log = logging.getLogger(__name__)
 
@@ -246,7 +246,7 @@ def odometry(slam, frame, why: str):
         icp = slam.icp.align(source, slam.frame_pyramid, init=invert(guess) @ last)
         pose = renormalize(last @ invert(icp.pose))
         failure = slam._health(icp, pose, guess, predicted)
-        tried.append(f"odometry: {status_text(Tracking.LOST, failure) if failure else Tracking.OK.value}")
+        tried.append(f"odometry: {alignment_status(failure)}")
         first = first or (icp, failure)
         if not failure:
             return FrameResult(frame.index, frame.timestamp, pose, Tracking.ODOMETRY, why, icp=icp,
@@ -287,7 +287,7 @@ def back_on_map(slam, frame, moved, terms: tuple[str, ...]):
     failure = slam._health(icp, pose, start)
     result = FrameResult(frame.index, frame.timestamp, pose, Tracking.LOST if failure else Tracking.OK, failure,
                          icp=icp, hypothesis="odometry", tried=moved.tried + [
-                             f"map: {status_text(Tracking.LOST, failure) if failure else Tracking.OK.value}"])
+                             f"map: {alignment_status(failure)}"])
     check_on_map(slam, frame, result)
     if not result.tracked:
         moved.tried.append(f"map: {result.status}")

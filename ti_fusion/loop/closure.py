@@ -131,9 +131,9 @@ class LoopClosure:
         # the owner has moved the poses and the map
         self._warmed_up = False  # the kernels that build maps from a stored depth are loaded (``after_frame``)
         self.session_start = 0  # the first keyframe of this session (``begin_session``): the ones before are the map's
-        self._link: int | None = None  # the keyframe the next keyframe is tied to instead of odometry (``found``)
-        self._link_T: np.ndarray | None = None  # the tie: the next keyframe's camera in that keyframe's (T_ij)
-        self._found_features: tuple[int, object] | None = None  # (frame, features) of the frame that found itself
+        # where the frame that found itself in a saved map matched (``found``): the next keyframe is tied to that
+        # keyframe instead of odometry, and takes that frame's features
+        self._found: Placement | None = None
 
     # -- the verb -------------------------------------------------------------------------------
     def after_frame(self, frame, result, maps: LoopMaps) -> LoopReport | None:
@@ -143,13 +143,13 @@ class LoopClosure:
         if self.config.loop.odometry_from_icp and self.keyframes:
             self._since.append((np.array(result.pose, dtype=np.float64),
                                 frame_covariance(self._information(result), self.config.loop)))
-        why = "found" if self._link is not None and result.tracking.tracked else None
+        why = "found" if self._found is not None and result.tracking.tracked else None
         if why is None and (not result.tracking.tracked or (why := self.selector.why(
                 self.keyframes[-1] if len(self.keyframes) > self.session_start else None, result.pose,
                 frame.index)) is None):
             return None
         watch = Stopwatch()
-        tied = self._link
+        tied = None if self._found is None else self._found.keyframe.id
         kf = self._make_keyframe(frame, result.pose, maps)
         report = LoopReport(kf.id, why)
         report.ms["keyframe"] = watch.lap()
@@ -210,9 +210,9 @@ class LoopClosure:
 
     def _make_keyframe(self, frame, pose: np.ndarray, maps: LoopMaps) -> Keyframe:
         depth, K = maps.frame.depth[maps.level].to_numpy(), maps.frame.intrinsics[maps.level]  # the map's resolution
-        found, self._found_features = self._found_features, None
+        found, self._found = self._found, None
         # the frame that found itself in a saved map has its features from ``find_place``
-        features = found[1] if found is not None and found[0] == frame.index else \
+        features = found.features if found is not None and found.frame == frame.index else \
             extract_features(frame, self._vo, self._orb)
         kf = Keyframe(len(self.keyframes), frame.index, frame.timestamp, pose.copy(), features, frame.intrinsics,
                       depth, K, grid_points(depth, K))
@@ -221,11 +221,9 @@ class LoopClosure:
         if self.config.loop.odometry_from_icp and self._since:
             covariance = edge_covariance(self._since, pose)
         self._since = []
-        link, self._link = self._link, None
-        self.graph.add_keyframe(pose, covariance, chained=link is None)
-        if link is not None:  # no odometry from the map's last keyframe: the match is this keyframe's tie to the map
-            self.graph.add_relative(link, kf.id, renormalize(self._link_T))
-            self._link_T = None
+        self.graph.add_keyframe(pose, covariance, chained=found is None)
+        if found is not None:  # no odometry from the map's last keyframe: the match is this keyframe's tie to the map
+            self.graph.add_relative(found.keyframe.id, kf.id, renormalize(invert(found.candidate.T)))
         elif self.config.loop.keyframe_pnp and kf.id > self.session_start:
             self._pnp_edge(self.keyframes[-2], kf)
         return kf
@@ -238,8 +236,7 @@ class LoopClosure:
         self.session_start = len(self.keyframes)
         self.database.earlier_session()
         self._since = []
-        self._link, self._link_T = None, None
-        self._found_features = None
+        self._found = None
 
     def find_place(self, frame, maps: LoopMaps) -> tuple[Placement | None, list[LoopCandidate]]:
         """Where ``frame`` (tracked by nothing yet: its pose is unknown) is among the keyframes: place recognition
@@ -269,9 +266,7 @@ class LoopClosure:
         stored depth against the frame), not by the pose tracking gave the frame: where the map saw the place twice
         with its drift between (a lap's start and end), tracking against the map rendered there mixes both visits'
         surfels, and the tie would pull the loop to the other visit towards that mix."""
-        self._link = placement.keyframe.id
-        self._link_T = invert(placement.candidate.T)
-        self._found_features = (placement.frame, placement.features)
+        self._found = placement
 
     def _dense_tie(self, kf: Keyframe, exclude: set, report: LoopReport, maps: LoopMaps) -> LoopCandidate | None:
         """A session's first keyframe against the map's keyframes near it by the estimated poses (``DENSE_TIE_M``,

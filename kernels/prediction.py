@@ -51,16 +51,22 @@ def render(s: ti.template(), n: ti.i32, img: ti.template(), pose: Rigid, fx: ti.
 
 @ti.func
 def gather_front_loop(s: ti.template(), img: ti.template(), pose: ti.template()):
-    """Camera-frame position, normal and radius of each pixel's front surfel (radius -1: none)."""
+    """Camera-frame position, normal and radius of each pixel's front surfel (radius -1: none): every pixel
+    cleared, then each listed surfel that won its pixel in the index map writes it there. Visiting the
+    listed surfels in index order reads their attributes in memory order, where a loop over the pixels
+    reached them in random order (docs/PERFORMANCE.md)."""
     for v, u in img.front_radius:
+        img.front_radius[v, u] = -1.0
+    W = img.front_radius.shape[1]
+    for k in range(s.n_listed[None]):
         R, t = rigid(pose)
-        i = img.index_map.index[v, u]
-        r = -1.0
-        if i != INT_MAX:
+        i = s.listed[k]
+        pix = s.proj_pixel[i]
+        v, u = pix // W, pix % W
+        if img.index_map.index[v, u] == i:
             img.front_position[v, u] = R @ s.position[i] + t
             img.front_normal[v, u] = R @ s.normal[i]
-            r = s.radius[i]
-        img.front_radius[v, u] = r
+            img.front_radius[v, u] = s.radius[i]
 
 
 @ti.func

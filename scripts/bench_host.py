@@ -14,7 +14,7 @@ ti-fusion's ``--set`` does (e.g. ``icp.color_weight=0`` for the synthetic sequen
 
 Each data set runs twice (``--repeat N``: 2N times, alternating, reported by the median run of each kind),
 each in a child process of its own:
-- counting (no profiler): ``launches`` = calls of Taichi's ``Kernel.launch_kernel`` (this project's kernels
+- counting (no profiler): ``launches`` = calls of Taichi's ``Kernel.__call__`` (this project's kernels
   and Taichi's own, e.g. the copy kernels behind ``to_numpy``/``from_numpy``/``fill``); ``reads`` =
   device→host reads, counted by wrappers around Taichi's Python API, not by hand: ``to_numpy`` of a field
   or ndarray, a field element read from Python (``field[i]``), a kernel that returns a value, and, off the
@@ -82,9 +82,11 @@ class Counter:
         from taichi.types.ndarray_type import NdarrayType  # a NumPy array for a vector argument is copied by value
 
         counter = self
-        launch = kernel_impl.Kernel.launch_kernel
+        # a launch is a call: ti_fusion.frontend's shorter path launches an instance again without
+        # ``Kernel.launch_kernel``
+        call = kernel_impl.Kernel.__call__
 
-        def launch_kernel(kernel, t_kernel, *args):
+        def counted_call(kernel, *args, **kwargs):
             if counter.active:
                 name = kernel.func.__name__
                 counter.launches[name] = counter.launches.get(name, 0) + 1
@@ -93,10 +95,10 @@ class Counter:
                 elif counter.arch != "cpu" and any(isinstance(a, np.ndarray) and isinstance(p.annotation, NdarrayType)
                                                    for a, p in zip(args, kernel.arguments)):
                     counter._read(f"NumPy argument of {name}")
-            return launch(kernel, t_kernel, *args)
+            return call(kernel, *args, **kwargs)
 
-        self._originals.append((kernel_impl.Kernel, "launch_kernel", launch))
-        kernel_impl.Kernel.launch_kernel = launch_kernel
+        self._originals.append((kernel_impl.Kernel, "__call__", call))
+        kernel_impl.Kernel.__call__ = counted_call
 
         def reading(cls, method: str, what: str):
             original = cls.__dict__.get(method, getattr(cls, method))

@@ -32,7 +32,8 @@ def test_bench_launch_prints_a_row_per_argument_kind():
     out = run("bench_launch.py", "--arch", "cpu", "--launches", "3")
     assert out.returncode == 0, out.stderr
     rows = [line for line in out.stdout.splitlines() if line.startswith("| ") and "µs" not in line]
-    assert len(rows) == 7 and any("common.data_oriented" in row for row in rows)
+    assert len(rows) == 8 and any("common.data_oriented" in row for row in rows)
+    assert all(len(row.split("|")) == 7 for row in rows)  # both paths' wall and CPU columns
     bad = run("bench_launch.py", "--launches", "0")
     assert bad.returncode == 2 and "--launches must be at least 1" in bad.stderr
 

@@ -104,11 +104,12 @@ def _try_start(arch: str, **kwargs) -> bool:
     """Start Taichi on ``arch``; False (and Taichi reset) when that backend is absent."""
     import taichi as ti
 
-    from ti_fusion.frontend import clock_first_launches, fast_class_check, memoize_source_positions
+    from ti_fusion.frontend import clock_first_launches, fast_class_check, fast_launches, memoize_source_positions
 
     memoize_source_positions()
     fast_class_check()
     clock_first_launches()
+    fast_launches()
     global _threads_before_init, _generation
     _generation += 1
     ti.reset()

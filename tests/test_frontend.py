@@ -176,6 +176,15 @@ def test_the_terminal_is_told_that_kernels_compile(monkeypatch, capsys):
     assert f"kernels: 1 compiled in {frontend.COMPILING_S + 0.5:.1f} s" in capsys.readouterr().out
     assert fields["kernels_compiled"] == 1 and fields["kernels_compiled_s"] == {"big": frontend.COMPILING_S + 0.5}
 
+    main._announce_compiling(quiet=True)
+    frontend.CLOCK.add(0.02, "loaded")
+    frontend.CLOCK.add(3.0, "render_kernel", True, elsewhere=True)  # a frame reader process's, beside the loop
+    fields = main._kernel_times(quiet=False)
+    assert "kernels: 1 compiled in 3.0 s, 3.0 s of it in the frame reader process (and 1 loaded from the cache " \
+           "or compiled quickly, 0.0 s)" in capsys.readouterr().out
+    assert fields["kernel_first_launch_s"] == 0.02 and fields["kernel_compile_elsewhere_s"] == 3.0
+    assert fields["kernels_compiled_s"] == {"render_kernel": 3.0} and fields["kernel_instances"] == 2
+
     monkeypatch.setattr(frontend, "offline_cache_files", lambda: ("/tmp/full-cache", 40))
     main._announce_compiling(quiet=False)  # a cache with kernels: said when the first one compiles
     assert capsys.readouterr().out == ""

@@ -134,14 +134,23 @@ class KernelClock:
         self.compiled = 0
         self.compile_s = 0.0
         self.by_kernel: dict[str, float] = {}  # kernel name → seconds of its instances' first launches that compiled
+        self.launches: list[tuple[str, float, bool]] = []  # (name, seconds, compiled) of each first launch, in order
+        self.elsewhere_s = 0.0  # of compile_s, the seconds compiled in other processes (``add(..., elsewhere=True)``)
         self.notice = None
 
-    def add(self, seconds: float, name: str = "?", compiled: bool | None = None) -> None:
+    def add(self, seconds: float, name: str = "?", compiled: bool | None = None, elsewhere: bool = False) -> None:
         """One first launch of ``seconds``; ``compiled``: whether it compiled the instance (None: judged by
-        ``seconds`` against ``COMPILING_S``)."""
-        self.seconds += seconds
+        ``seconds`` against ``COMPILING_S``); ``elsewhere``: launched in another process (a frame reader's
+        renderer), so its seconds are not this process's (``seconds`` leaves them out)."""
+        if compiled is None:
+            compiled = seconds > COMPILING_S
+        self.launches.append((name, seconds, bool(compiled)))
+        if not elsewhere:
+            self.seconds += seconds
         self.instances += 1
-        if seconds > COMPILING_S if compiled is None else compiled:
+        if compiled:
+            if elsewhere:
+                self.elsewhere_s += seconds
             self.compiled += 1
             self.compile_s += seconds
             self.by_kernel[name] = self.by_kernel.get(name, 0.0) + seconds

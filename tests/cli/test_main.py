@@ -204,17 +204,18 @@ def test_synth_out_dir_follows_the_same_rules(tmp_path, capsys):
 def test_sigterm_and_sighup_keep_what_was_done(cpu, tmp_path, capsys, monkeypatch, signum, endless):
     """Also during a live camera's stream (``endless``), which Ctrl-C would end with its map: these stop it."""
     from ti_fusion.io.datasets.synthetic import SyntheticDataset
+    from ti_fusion.slam.slam_step import SLAMStep
 
     if endless:
         monkeypatch.setattr(SyntheticDataset, "endless", property(lambda self: True))
-    original = SyntheticDataset.__getitem__
+    original = SLAMStep.register_frame
 
-    def signalled(self, i):
-        if i == 3:
+    def signalled(self, frame):  # (the frames are rendered in a reader process: signalled here, in the loop)
+        if frame.index == 3:
             os.kill(os.getpid(), signum)  # as `kill`, `timeout` or systemd would, at the fourth frame
-        return original(self, i)
+        return original(self, frame)
 
-    monkeypatch.setattr(SyntheticDataset, "__getitem__", signalled)
+    monkeypatch.setattr(SLAMStep, "register_frame", signalled)
     handlers = {s: signal.getsignal(s) for s in (signal.SIGTERM, signal.SIGHUP)}
     out = tmp_path / "run"
     assert main(["slam", "--frames", "8", "--downsample", "4", "--out", str(out), "--quiet"]) == 128 + signum

@@ -11,7 +11,9 @@ from pathlib import Path
 import numpy as np
 
 from ti_fusion.camera import Intrinsics
+from ti_fusion.errors import InputError
 from ti_fusion.frame import Frame
+from ti_fusion.io.datasets.synthetic import SyntheticDataset
 
 
 class Items:
@@ -68,3 +70,20 @@ class Frames:
         color = rng.integers(0, 256, (K.height * scale, K.width * scale, 3), dtype=np.uint8)
         return Frame(index=i, timestamp=float(i), depth=depth, intrinsics=K, color=color, gt_pose=np.eye(4),
                      meta={"i": i})
+
+
+
+class Synthetic(SyntheticDataset):
+    """The synthetic sequence, whose reading of frame ``bad`` raises an ``InputError`` and of frame ``die_at``
+    kills the reading process (SIGKILL)."""
+
+    def __init__(self, *args, bad: int = -1, die_at: int = -1, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.bad, self.die_at = bad, die_at
+
+    def __getitem__(self, i: int):
+        if i == self.die_at:
+            os.kill(os.getpid(), signal.SIGKILL)
+        if i == self.bad:
+            raise InputError(f"frame {i}", "cannot render the frame")
+        return super().__getitem__(i)

@@ -135,6 +135,9 @@ def test_how_a_dataset_is_read_and_by_how_many():
         renders_on_taichi = True
 
     assert read_mode(Rendered()) == "inline"
+    synthetic = readers.Synthetic()  # rendered in a reader process on the CPU; on a GPU by the loop's backend
+    assert read_mode(synthetic, "cpu") == "processes"
+    assert read_mode(synthetic, "cuda") == read_mode(synthetic, "vulkan") == read_mode(synthetic) == "inline"
 
 
 # --------------------------------------------------------------------------------------------------
@@ -271,6 +274,45 @@ def test_a_reader_process_that_dies_ends_the_loop_at_its_frame(clean):
     assert done == [0, 1, 2, 3, 4]
 
 
+def test_synthetic_frames_rendered_in_a_reader_process_are_the_frames_rendered_here(clean, cpu):
+    """The synthetic sequence rendered in a reader process (its own Taichi on the CPU) gives the frames of
+    the loop's own renderer bit for bit, frame 0 included (rendered there too, so that its renderer
+    compiles beside the loop); the reader's first kernel launches are counted with this process's."""
+    from ti_fusion.frontend import CLOCK
+
+    dataset = readers.Synthetic.from_config(Config().synth, stride=37, stop=148)  # four frames, full size
+    launches = len(CLOCK.launches)
+    with Prefetcher.for_dataset(dataset, ahead=3, arch="cpu") as frames:
+        got = list(frames)
+    assert [i for i, _, _ in got] == [0, 1, 2, 3]
+    assert "render_kernel" in [name for name, _, _ in CLOCK.launches[launches:]]
+    for i, frame, _ in got:
+        here = dataset[i]
+        assert frame.index == here.index and frame.timestamp == here.timestamp and frame.meta == here.meta
+        np.testing.assert_array_equal(frame.depth, here.depth)
+        np.testing.assert_array_equal(frame.color, here.color)
+        np.testing.assert_array_equal(frame.gt_pose, here.gt_pose)
+
+
+@pytest.mark.parametrize("how", ["error", "killed"])
+def test_a_failing_renderer_process_ends_the_run_at_its_frame(cpu, clean, tmp_path, how):
+    """A synthetic frame that cannot be rendered (an error in the reader process, or the process killed):
+    the run ends at that frame with its error, keeping the trajectory and a finalised log of the frames
+    before it, and leaves no process behind."""
+    cfg = _config()
+    dataset = readers.Synthetic.from_config(cfg.synth, downsample=4, stop=8)
+    dataset.bad, dataset.die_at = (5, -1) if how == "error" else (-1, 5)
+    run = RunDir("slam", tmp_path / "run")
+    expected = (InputError, "frame 5: cannot render the frame") if how == "error" else \
+        (ReaderDied, r"the frame reader process \(pid \d+\) was killed by SIGKILL while reading frame 5")
+    with pytest.raises(expected[0], match=expected[1]):
+        SLAMPipeline(dataset, cfg, run, current_backend(), show_progress=False).run()
+    stamps, _ = read_tum(run.file("trajectory.tum"))
+    assert len(stamps) == 5
+    log = read_log(run.file("log.mcap"))
+    assert log.complete and len(log.stats) == 5
+
+
 SCRIPT = """
 import os, sys
 sys.path.insert(0, {root!r})
@@ -382,6 +424,9 @@ def test_pipeline_reads_ahead_with_the_same_results(cpu, tmp_path):
     cfg = _config()
     children = _children()  # (another test's processes in this worker are not the readers)
     dataset = open_dataset(cfg.dataset, cfg.synth)
+    rendered = SLAMPipeline(dataset, cfg, RunDir("slam", tmp_path / "rendered"), current_backend(),
+                            show_progress=False).run()  # the frames rendered in a reader process
+    dataset.renders_in_process = False
     inline = SLAMPipeline(dataset, cfg, RunDir("slam", tmp_path / "inline"), current_backend(),
                           show_progress=False).run()
     threaded = SLAMPipeline(InMemory(dataset), cfg, RunDir("slam", tmp_path / "threaded"), current_backend(),
@@ -391,13 +436,15 @@ def test_pipeline_reads_ahead_with_the_same_results(cpu, tmp_path):
     files = FrameList([dataset[i] for i in range(len(dataset))], name="synthetic")
     files.reads_in_process = files.concurrent_reads = True
     three = SLAMPipeline(files, cfg3, RunDir("slam", tmp_path / "three"), current_backend(), show_progress=False).run()
-    (_, a), (_, b), (_, c) = (read_tum(tmp_path / name / "trajectory.tum") for name in ("inline", "threaded", "three"))
+    (_, a), (_, b), (_, c), (_, d) = (read_tum(tmp_path / name / "trajectory.tum")
+                                      for name in ("inline", "threaded", "three", "rendered"))
     np.testing.assert_array_equal(a, b)
     np.testing.assert_array_equal(a, c)
-    assert inline["surfels"] == threaded["surfels"] == three["surfels"]
-    assert [(s["read_mode"], s["read_workers"]) for s in (inline, threaded, three)] == \
-        [("inline", 0), ("thread", 1), ("processes", 3)]
-    for s in (inline, threaded, three):
+    np.testing.assert_array_equal(a, d)
+    assert inline["surfels"] == threaded["surfels"] == three["surfels"] == rendered["surfels"]
+    assert [(s["read_mode"], s["read_workers"]) for s in (inline, threaded, three, rendered)] == \
+        [("inline", 0), ("thread", 1), ("processes", 3), ("processes", 1)]
+    for s in (inline, threaded, three, rendered):
         assert s["fps_wall"] > 0 and s["frames"] == 8 and "read" in s["ms_per_stage"]
         assert s["first_frame_s"] <= s["second_frame_s"] <= s["process_s"]
     assert not _readers() and _children() <= children

@@ -7,7 +7,9 @@
     pool.close()                       # stops and reaps every process
 
 Why processes: Taichi holds the GIL through every kernel launch, so a reader thread gets the interpreter
-only between launches; a process decodes beside them (docs/PERFORMANCE.md, reading in processes).
+only between launches; a process decodes beside them (docs/PERFORMANCE.md, reading in processes). A reader
+that renders frames with Taichi (the synthetic sequence) starts Taichi of its own on the CPU; its kernels'
+first launches travel with the frames to the caller's ``ti_fusion.frontend.CLOCK``.
 
 How they start: a fresh interpreter (``sys.executable -c``) that imports this module only, with the
 dataset pickled to it. Not multiprocessing's ``fork`` (Taichi's threads and LLVM state in a forked child
@@ -46,6 +48,9 @@ from ti_fusion.errors import TiFusionError
 _ALIGN = 64  # each array in a slot starts on a cache line
 _ARRAYS = ("depth", "color")  # the Frame fields that travel through shared memory
 _STOP_WAIT_S = 5.0  # how long a stopping worker may take to finish its frame before it is killed
+# A reader that renders frames with Taichi (the synthetic sequence) does so on the CPU, leaving the caller's
+# threads pinned to the CPUs alone (ti_fusion.backend).
+_WORKER_ENV = {"TI_FUSION_ARCH": "cpu", "TI_FUSION_PIN_THREADS": "0"}
 
 
 class ReaderDied(TiFusionError):
@@ -100,7 +105,8 @@ class WorkerPool:
             code = (f"import sys; sys.path[:] = {sys.path!r}; "
                     f"from ti_fusion.io.frame_workers import _main; _main({theirs.fileno()}, {self._fd})")
             proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(), self._fd),
-                                    stdin=subprocess.DEVNULL, close_fds=True, start_new_session=True)
+                                    stdin=subprocess.DEVNULL, close_fds=True, start_new_session=True,
+                                    env={**os.environ, **_WORKER_ENV})
         except BaseException:
             ours.close()
             raise
@@ -125,9 +131,14 @@ class WorkerPool:
             message = self._conns[worker].recv()
         except (EOFError, OSError):
             raise self._died(i, worker) from None
-        kind, index, item, read_ms = message
+        kind, index, item, read_ms, launches = message
         if index != i:  # (a protocol error, not a user's: say it plainly)
             raise RuntimeError(f"frame reader sent item {index} where {i} was due")
+        if launches:  # kernels the reader launched first (a renderer's): counted with this process's
+            from ti_fusion.frontend import CLOCK
+
+            for name, seconds, compiled in launches:
+                CLOCK.add(seconds, name, compiled, elsewhere=True)
         if kind == "frame":
             item = self._unpack(item, slot)
         return kind, item, read_ms
@@ -226,6 +237,7 @@ def _main(sock_fd: int, mem_fd: int) -> None:
         except BaseException as exc:  # (a dataset that cannot be opened again here): every frame says so
             dataset, failed = None, exc
         buf = mmap.mmap(mem_fd, os.fstat(mem_fd).st_size)
+        sent = 0  # first kernel launches (ti_fusion.frontend.CLOCK) already reported to the caller
         while True:
             i, slot = conn.recv()
             start = time.perf_counter()
@@ -236,10 +248,13 @@ def _main(sock_fd: int, mem_fd: int) -> None:
                 message = ("frame", i, _pack(item, buf, slot, slot_bytes), (time.perf_counter() - start) * 1e3)
             except BaseException as exc:  # raised in the caller at item i
                 message = ("error", i, _picklable(exc), 0.0)
+            clock = sys.modules.get("ti_fusion.frontend")
+            launches = clock.CLOCK.launches[sent:] if clock is not None else []
+            sent += len(launches)
             try:
-                conn.send(message)
+                conn.send((*message, launches))
             except (pickle.PicklingError, TypeError, AttributeError) as exc:
-                conn.send(("error", i, RuntimeError(f"frame {i} could not be handed over: {exc}"), 0.0))
+                conn.send(("error", i, RuntimeError(f"frame {i} could not be handed over: {exc}"), 0.0, launches))
     except (EOFError, OSError, KeyboardInterrupt):  # the caller closed its end, or is gone
         return
 

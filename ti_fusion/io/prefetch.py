@@ -10,10 +10,11 @@ Frames come out in order. ``mode``:
 - "processes" (files and bags): ``workers`` reader processes (``ti_fusion.io.frame_workers``) decode
   frames and hand their depth and colour over through shared memory, so decoding runs beside Taichi's
   kernel launches, which hold the GIL (docs/PERFORMANCE.md, reading in processes). The caller reads the
-  first frame itself while the processes start. Frame j goes to worker j mod ``workers``.
+  first frame itself while the processes start, except a rendered one. On the CPU backend the synthetic
+  sequence is rendered in a reader process too: its renderer compiles and runs beside the loop's kernels.
 - "thread": one background thread (a camera, frames in memory, a dataset that does not pickle).
-- "inline": the caller's thread (the synthetic sequence: its frames come from Taichi kernels, which would
-  hold the GIL anyway, and Taichi is not meant to launch from two threads at once).
+- "inline": the caller's thread (the synthetic sequence on a GPU backend: its frames come from Taichi kernels,
+  which would hold the GIL anyway, and Taichi is not meant to launch from two threads at once).
 
 No frame j is asked for before the caller has taken frame j − ``ahead`` (``ahead`` is at least one per
 worker). An error raised while reading frame k (an ``InputError`` for an unreadable file) is raised in
@@ -57,11 +58,18 @@ def reader_count(setting: int, dataset) -> int:
     return max(1, min(4, usable_cpus() // 4))
 
 
-def read_mode(dataset) -> str:
+def read_mode(dataset, arch: str | None = None) -> str:
     """How the pipeline reads ``dataset``: "inline" (frames made by Taichi kernels, on the loop's thread),
     "processes" (files and bags: ``Dataset.reads_in_process``, where the dataset pickles) or "thread"
-    (a camera, frames in memory, a dataset class of the caller's own)."""
+    (a camera, frames in memory, a dataset class of the caller's own). Frames made by Taichi kernels are
+    made in a reader process where the loop runs on the CPU (``arch``) and the dataset says they may be
+    (``renders_in_process``, on its class: a wrapper that hands its attributes on renders inline, as it may
+    not survive pickling): the reader's Taichi, on the CPU too, compiles the same code, so the frames are the
+    same bits; on a GPU the loop's own backend renders them, as before."""
     if getattr(dataset, "renders_on_taichi", False):
+        declared = getattr(type(dataset), "renders_in_process", False) and getattr(dataset, "renders_in_process")
+        if arch == "cpu" and declared and can_use_processes(dataset):
+            return "processes"
         return "inline"
     if getattr(dataset, "reads_in_process", False) and can_use_processes(dataset):
         return "processes"
@@ -94,10 +102,10 @@ class Prefetcher:
         self._thread: threading.Thread | None = None
 
     @classmethod
-    def for_dataset(cls, dataset, setting: int = 0, ahead: int = 3) -> "Prefetcher":
-        """The pipeline's prefetcher: ``read_mode(dataset)``, and ``reader_count(setting, dataset)`` processes
-        (``setting``: ``dataset.read_workers``)."""
-        mode = read_mode(dataset)
+    def for_dataset(cls, dataset, setting: int = 0, ahead: int = 3, arch: str | None = None) -> "Prefetcher":
+        """The pipeline's prefetcher: ``read_mode(dataset, arch)`` (``arch``: the loop's backend), and
+        ``reader_count(setting, dataset)`` processes (``setting``: ``dataset.read_workers``)."""
+        mode = read_mode(dataset, arch)
         return cls(dataset, ahead, reader_count(setting, dataset) if mode == "processes" else 1, mode)
 
     def __enter__(self) -> Iterator[tuple[int, object, float]]:
@@ -110,16 +118,31 @@ class Prefetcher:
         try:
             self.pool = WorkerPool(self.dataset, self.workers, self.ahead, self._slot_bytes())
         except OSError as exc:  # (no process could be started: out of memory or of process slots)
-            logging.getLogger(__name__).warning(f"frames are read on a thread: no reader process could start ({exc})")
-            self.mode, self.workers = "thread", 1
+            # (rendered frames on the loop's own thread: Taichi is not meant to launch from two threads)
+            self.mode = "inline" if getattr(self.dataset, "renders_on_taichi", False) else "thread"
+            self.workers = 0 if self.mode == "inline" else 1
+            logging.getLogger(__name__).warning(f"frames are read on {'the loop' if self.workers == 0 else 'a'} "
+                                                f"thread: no reader process could start ({exc})")
             return self.__enter__()
-        # frame 0 is read by the caller while the processes start (an interpreter and its imports); frame j
-        # goes to worker (j − 1) mod workers, into slot j mod ahead, at most ahead of them asked for at once
-        self._asked = 1
-        while self._asked < min(self.n, 1 + self.ahead):
-            self.pool.request(self._asked, (self._asked - 1) % self.workers, self._asked % self.ahead)
+        # frame 0 is read by the caller while the processes start (an interpreter and its imports), unless
+        # frames are rendered (the point of the reader is then that the renderer compiles and runs beside the
+        # loop's kernels); frame j goes to worker (j − first) mod workers, into slot j mod ahead, at most
+        # ahead of them asked for at once
+        self._first = 0 if getattr(self.dataset, "renders_on_taichi", False) else 1
+        self._asked = self._first
+        while self._asked < min(self.n, self._first + self.ahead):
+            self.pool.request(self._asked, self._worker(self._asked), self._asked % self.ahead)
             self._asked += 1
         return self._from_processes()
+
+    @property
+    def renders_elsewhere(self) -> bool:
+        """Frames made by Taichi kernels are being made in reader processes (entered, "processes" mode)."""
+        return self.pool is not None and getattr(self.dataset, "renders_on_taichi", False)
+
+    def _worker(self, i: int) -> int:
+        """The reader process that reads frame ``i``."""
+        return (i - self._first) % self.workers
 
     def __exit__(self, *exc) -> None:
         self.close()
@@ -159,18 +182,19 @@ class Prefetcher:
 
     # -- processes ------------------------------------------------------------------------------
     def _from_processes(self) -> Iterator[tuple[int, object, float]]:
-        pool, n, ahead, workers, asked = self.pool, self.n, self.ahead, self.workers, self._asked
-        watch = Stopwatch()
-        frame = self.dataset[0]
-        yield 0, frame, watch.ms
-        for i in range(1, n):
+        pool, n, ahead, asked = self.pool, self.n, self.ahead, self._asked
+        if self._first:
+            watch = Stopwatch()
+            frame = self.dataset[0]
+            yield 0, frame, watch.ms
+        for i in range(self._first, n):
             if self.pool is None:  # closed while the caller still iterates: nothing more comes
                 return
-            kind, payload, read_ms = pool.receive(i, (i - 1) % workers, i % ahead)
+            kind, payload, read_ms = pool.receive(i, self._worker(i), i % ahead)
             if kind == "error":
                 raise payload
             if asked < n:  # the slot is free again: the next frame into it
-                pool.request(asked, (asked - 1) % workers, asked % ahead)
+                pool.request(asked, self._worker(asked), asked % ahead)
                 asked += 1
             yield i, payload, read_ms
 

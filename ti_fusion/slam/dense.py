@@ -198,19 +198,32 @@ class DenseSLAM:
                 report.ms["correct"] += watch.ms  # with loop closure's own part of the correction
         return report
 
+    def _frame_maps(self, frame: Frame, terms) -> None:
+        """The frame's pyramid: depth, grey where the tracking ``terms`` read intensity, and the colour that
+        fusion reads, in one launch."""
+        grey = None
+        if "intensity" in self.icp.needs(terms):
+            grey = grey_image(frame.color)
+            if frame.meta.get("color_valid") is not None:  # registered colour: none where the camera saw none
+                grey[~frame.meta["color_valid"]] = -1.0
+        self.frame_pyramid.compute(frame.depth, frame.intrinsics, grey, frame.color,
+                                   self.mapper.frame_level(self.frame_pyramid))
+
+    def warm_up(self, frame: Frame) -> None:
+        """The kernels of a frame's maps first launched (compiled, with an empty kernel cache) on ``frame``, a
+        blank frame of the run's camera, while the first frame is being made in another process; the next
+        frame's maps replace what they leave. Nothing when ``frame`` is not of this map's size."""
+        check_usable(self._generation, "DenseSLAM.warm_up")
+        if frame.depth.shape != self.frame_pyramid.input_shape:
+            return
+        self._frame_maps(frame, self.icp.terms_for(frame))
+
     def _track_and_fuse(self, frame: Frame) -> FrameResult:
         check_frame(self, frame)  # one InputError for a frame this map cannot take (ti_fusion/slam/checks.py)
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
         terms = self.icp.terms_for(frame)  # the tracking terms besides the geometry that this frame can use
         with timer.stage("pyramid"):
-            grey = None
-            if "intensity" in self.icp.needs(terms):
-                grey = grey_image(frame.color)
-                if frame.meta.get("color_valid") is not None:  # registered colour: none where the camera saw none
-                    grey[~frame.meta["color_valid"]] = -1.0
-            # depth, grey and the colour that fusion reads, in one launch
-            self.frame_pyramid.compute(frame.depth, frame.intrinsics, grey, frame.color,
-                                       self.mapper.frame_level(self.frame_pyramid))
+            self._frame_maps(frame, terms)
         if self.session is not None and not self.session.localised:  # where in the map? (slam/session.py)
             from ti_fusion.slam.session import find_in_map
 

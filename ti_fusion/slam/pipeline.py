@@ -244,11 +244,15 @@ class Pipeline:
         n = len(self.dataset)
         # colour of a separate camera, reprojected here (Taichi's thread)
         register_color = ColorRegistrar(getattr(self.dataset, "color_camera", None))
-        prefetcher = Prefetcher.for_dataset(self.dataset, self.config.dataset.read_workers, READ_AHEAD)
+        prefetcher = Prefetcher.for_dataset(self.dataset, self.config.dataset.read_workers, READ_AHEAD,
+                                            self.backend.arch if self.backend is not None else None)
         self.read_workers, self.read_mode = prefetcher.workers, prefetcher.mode
         # an endless stream's loop ends at the first Ctrl-C (the CLI's handler sets ``end.requested``)
         endless = self.dataset.endless
         with prefetcher as frames, (stream_end() if endless else nullcontext()) as end:
+            warm_up = getattr(self.step, "warm_up", None)
+            if prefetcher.renders_elsewhere and warm_up is not None:  # meanwhile, the first frame's own kernels
+                warm_up(self.dataset)
             # a session against a saved map, until it has found itself in it, and a localisation off the map
             note = lambda: "" if not self.results else "not localised" if self.results[-1].status.startswith(
                 "unlocalised") else "off the map: odometry" if self.results[-1].status.startswith("odometry") else ""

@@ -169,6 +169,14 @@ class SLAMStep:
         else:
             self.slam = DenseSLAM(config, dataset.intrinsics)
 
+    def warm_up(self, dataset: Dataset) -> None:
+        """While the first frame is being rendered in a reader process: the kernels of its maps, on a blank
+        frame of ``dataset``'s camera (``DenseSLAM.warm_up``)."""
+        K = dataset.intrinsics
+        blank = Frame(-1, 0.0, np.zeros((K.height, K.width), np.float32), K,
+                      np.zeros((K.height, K.width, 3), np.uint8), color_registered=dataset.color_registered)
+        self.slam.warm_up(blank)
+
     @property
     def warmup_frames(self) -> int:
         """The map's first frame compiles the maps and fusion kernels, the next one rendering and ICP; frames

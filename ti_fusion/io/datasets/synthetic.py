@@ -19,7 +19,8 @@ class SyntheticDataset(Dataset):
     name = "synthetic"
     format = "synthetic"
     color_registered = True  # rendered: colour and depth from the same camera
-    renders_on_taichi = True  # frames come from Taichi kernels: read on the pipeline's own thread (io.prefetch)
+    renders_on_taichi = True  # frames come from Taichi kernels: not read on a thread (io.prefetch)
+    renders_in_process = True  # on the CPU backend, rendered in a reader process (io.prefetch.read_mode)
 
     def __init__(self, root: str | Path = "synthetic", config: DatasetConfig | None = None,
                  synth: SynthConfig | None = None, downsample: int = 1, start: int = 0,
@@ -34,6 +35,12 @@ class SyntheticDataset(Dataset):
     def from_config(cls, synth_cfg: SynthConfig, downsample: int = 1, start: int = 0,
                     stop: int | None = None, stride: int = 1) -> "SyntheticDataset":
         return cls("synthetic", synth=synth_cfg, downsample=downsample, start=start, stop=stop, stride=stride)
+
+    def __getstate__(self) -> dict:
+        """Pickled for a reader process without the sequence, which that process makes again."""
+        state = dict(self.__dict__)
+        state["_sequence"] = None
+        return state
 
     @property
     def sequence(self):

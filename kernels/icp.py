@@ -581,23 +581,12 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
         done = params[STATE, P_DONE]
         return (done != FAILED) & ((done != STOPPED) | (it == 0))
 
-    @ti.kernel
-    def iterate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                partials: ti.template(), params: state_t, serial: ti.template(), target: ti.template(),
-                terms: ti.template(), row: ti.i32, it: ti.i32):
-        """One whole ICP iteration in one launch, at the level of settings row ``row`` (its images' first
-        rows and sizes and its chunk count are in that row, written once per ``align``): the sums as
-        ``reduce``, then on one thread the checks, the Cholesky solve and the update T ← exp(δξ) T of the
-        pose in the state row (written back in place). Appends a record (R_* layout) at row RECORDS +
-        ``params[STATE, P_RECORDS]`` and sets ``params[STATE, P_DONE]`` to FAILED when the system was not
-        solved, STOPPED when ‖δξ‖ fell below the level's P_STOP. After FAILED, and after STOPPED until the
-        next level's first iteration (``it`` = 0), a launch does nothing: its loops run zero times, so the
-        caller may launch every iteration of the schedule without reading anything back. The caller
-        replays the records (``ti_fusion.tracking.icp``), with the condition-number check of
-        ``ti_fusion.tracking.solve`` too, which is why it is not repeated here. The system solved is the first
-        term's plus λ × each other term's (module docstring), and the record holds the other terms' sums from
-        R_TERMS on. Float64 backends add the partials serially, float32 ones in groups and
-        then the group totals (Kahan-compensated, as ``reduce``) into the record, which the solve then reads."""
+    @ti.func
+    def _iteration_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                        partials: ti.template(), params: ti.template(), serial: ti.template(), target: ti.template(),
+                        terms: ti.template(), row, it):
+        """``iterate``'s sums at the level of settings row ``row``: the partials of its chunks (none when the
+        launch does nothing), and off the CPU their Kahan-compensated totals into the record."""
         n_sums = ti.static(n_all)
         runs = _runs(params, it)
         n_chunks = ti.select(runs, ti.cast(params[row, P_CHUNKS], ti.i32), 0)
@@ -615,6 +604,14 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
                 if runs:
                     k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
                     params[k, ti.select(e < N_SUMS, R_SUMS + e, R_TERMS + e - N_SUMS)] = _group_total(partials, e)
+
+    @ti.func
+    def _iteration_solve(partials: ti.template(), params: ti.template(), row, it):
+        """``iterate``'s serial part, on the calling thread: the record, the checks, the Cholesky solve and
+        the update of the pose in the state row."""
+        n_sums = ti.static(n_all)
+        runs = _runs(params, it)
+        n_chunks = ti.select(runs, ti.cast(params[row, P_CHUNKS], ti.i32), 0)
         ti.loop_config(serialize=True)  # on the calling thread, as reduce's sum
         for _ in range(ti.select(runs, 1, 0)):
             k = RECORDS + ti.cast(params[STATE, P_RECORDS], ti.i32)
@@ -662,6 +659,39 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
                                               ti.select(update < params[row, P_STOP], STOPPED, 0.0))
 
     @ti.kernel
+    def iterate(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                partials: ti.template(), params: state_t, serial: ti.template(), target: ti.template(),
+                terms: ti.template(), row: ti.i32, it: ti.i32):
+        """One whole ICP iteration in one launch, at the level of settings row ``row`` (its images' first
+        rows and sizes and its chunk count are in that row, written once per ``align``): the sums as
+        ``reduce``, then on one thread the checks, the Cholesky solve and the update T ← exp(δξ) T of the
+        pose in the state row (written back in place). Appends a record (R_* layout) at row RECORDS +
+        ``params[STATE, P_RECORDS]`` and sets ``params[STATE, P_DONE]`` to FAILED when the system was not
+        solved, STOPPED when ‖δξ‖ fell below the level's P_STOP. After FAILED, and after STOPPED until the
+        next level's first iteration (``it`` = 0), a launch does nothing: its loops run zero times, so the
+        caller may launch every iteration of the schedule without reading anything back. The caller
+        replays the records (``ti_fusion.tracking.icp``), with the condition-number check of
+        ``ti_fusion.tracking.solve`` too, which is why it is not repeated here. The system solved is the first
+        term's plus λ × each other term's (module docstring), and the record holds the other terms' sums from
+        R_TERMS on. Float64 backends add the partials serially, float32 ones in groups and
+        then the group totals (Kahan-compensated, as ``reduce``) into the record, which the solve then reads."""
+        _iteration_sums(src_v, src_n, tgt_v, tgt_n, partials, params, serial, target, terms, row, it)
+        _iteration_solve(partials, params, row, it)
+
+    @ti.kernel
+    def iterate_sums(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
+                     partials: ti.template(), params: state_t, serial: ti.template(), target: ti.template(),
+                     terms: ti.template(), row: ti.i32, it: ti.i32):
+        """On the CPU, ``iterate`` as two launches, this one's sums then ``iterate_solve``: the halves compile
+        in about two thirds of the whole's time (docs/PERFORMANCE.md), for one launch more per iteration."""
+        _iteration_sums(src_v, src_n, tgt_v, tgt_n, partials, params, serial, target, terms, row, it)
+
+    @ti.kernel
+    def iterate_solve(partials: ti.template(), params: state_t, row: ti.i32, it: ti.i32):
+        """``iterate``'s record, solve and update, after ``iterate_sums``."""
+        _iteration_solve(partials, params, row, it)
+
+    @ti.kernel
     def start(params: state_t, pose: ti.types.vector(12, real)):
         """Off the CPU, the start of an ``align``: the pose into the state row, no records, not done. A
         launch with the pose as an argument, where copying the state array from NumPy would wait for the
@@ -687,7 +717,8 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
                                                params[STATE, P_DIST2], params[STATE, P_COS])
             status[v, u] = s
 
-    return {"reduce": reduce, "iterate": iterate, "start": start, "status_map": status_map}
+    return {"reduce": reduce, "iterate": iterate, "iterate_sums": iterate_sums, "iterate_solve": iterate_solve,
+            "start": start, "status_map": status_map}
 
 
 def kernels_for(real, state_in_field: bool = False, term_rows: tuple = ()):
@@ -865,7 +896,8 @@ class PointToPlane:
         self._level = level
 
     def iterate(self, iteration: int, level: int | None = None) -> int:
-        """One ICP iteration in one launch (``iterate`` kernel) at ``level`` (default: the last one begun).
+        """One ICP iteration in one launch (``iterate`` kernel; on the CPU ``iterate_sums`` and ``iterate_solve``)
+        at ``level`` (default: the last one begun).
         On the CPU, where the kernel writes the host's array in place: 0, or STOPPED / FAILED (stop the
         level / the run), so the caller launches no more than needed. Elsewhere nothing is read back: 0,
         and the caller launches the whole schedule, whose iterations after a stop are no-ops on the device."""
@@ -881,8 +913,12 @@ class PointToPlane:
             params = self.state_device
             self._device_newer = True
         self._uploaded = True
+        if self.on_host:  # two kernels that compile faster than one; a launch costs the CPU microseconds
+            k["iterate_sums"](*images, partials, params, self.serial, self.target, terms, SETTINGS + level, iteration)
+            k["iterate_solve"](partials, params, SETTINGS + level, iteration)
+            return int(self.state[STATE, P_DONE])
         k["iterate"](*images, partials, params, self.serial, self.target, terms, SETTINGS + level, iteration)
-        return int(self.state[STATE, P_DONE]) if self.on_host else 0
+        return 0
 
     def _start_on_device(self) -> None:
         """The settings rows to the device where they changed (a copy from NumPy waits for the device, so

@@ -82,3 +82,20 @@ def test_bench_cold_start_names_a_bad_option():
 def test_bench_sessions_names_a_bad_case():
     out = run("bench_sessions.py", "--cases", "redkitchen,kitchen")
     assert out.returncode == 2 and "--cases: no case 'kitchen' (redkitchen, loop)" in out.stderr
+
+
+def test_bench_kernel_tasks_names_a_bad_option():
+    for args, line in ((("--frames", "2"), "--frames 2: give at least 3"),
+                       (("--repeat", "-1"), "--repeat -1: give at least 0"),
+                       (("/no/such/folder",), "/no/such/folder: not a folder (give a dataset folder)")):
+        out = run("bench_kernel_tasks.py", *args)
+        assert out.returncode == 2 and out.stderr.strip() == f"bench_kernel_tasks.py: {line}"
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not (CABINET / "depth.txt").is_file(), reason=f"real data not found at {CABINET}")
+def test_bench_kernel_tasks_prints_its_tables():
+    out = run("bench_kernel_tasks.py", str(CABINET), "--frames", "4", "--repeat", "1", "--top", "3")
+    assert out.returncode == 0, out.stderr
+    assert "| ms per frame | launches per frame | task |" in out.stdout
+    assert "| stage | task | fastest ms |" in out.stdout and "| render | " in out.stdout

@@ -8,7 +8,7 @@ The jobs are the manifest's (``--manifest``), or one per ``--inputs`` name: a sy
 ``wall``, ...) or a folder of the shared data (``redkitchen``: ../shared/data/redkitchen-7scenes,
 ``tum-cabinet``: ../shared/data/tum-fr3-cabinet-keyframes), each with ``--frames`` and ``--downsample``.
 
-1. the first job, untimed, as each arm runs it (Taichi's default threads, pinned; the batch's threads,
+1. the first job, untimed, as each arm runs it (Taichi's default threads, pinned; the batch's Taichi threads,
    unpinned), so that both find Taichi's kernel cache warm: the cache's keys depend on what a process
    compiled before, and pinning compiles a probe kernel first;
 2. one by one: each job's ``python -m ti_fusion slam ARGS`` after the other, as a shell loop runs them
@@ -114,7 +114,7 @@ def main() -> int:
 
     sys.path.insert(0, str(ROOT))
     from ti_fusion.batch.manifest import read_manifest
-    from ti_fusion.batch.runner import MISSING_RAY, job_env
+    from ti_fusion.batch.runner import MISSING_RAY, job_env, local_cpus, taichi_threads
     from ti_fusion.errors import InputError
 
     if importlib.util.find_spec("ray") is None:  # else the batch arm fails in a second and the ratio means nothing
@@ -142,7 +142,7 @@ def main() -> int:
           f"(load average now {os.getloadavg()[0]:.2f})", flush=True)
 
     if not args.no_warmup:
-        for arm, env in (("one by one", None), ("batch", job_env(args.threads))):
+        for arm, env in (("one by one", None), ("batch", job_env(args.threads, taichi_threads(args.threads, local_cpus())))):
             seconds, code = timed(py + ["slam", *jobs[0].args, "--out", str(work / "warmup"), "--overwrite",
                                         "--quiet"], work / "warmup.log", env)
             print(f"warm-up as {arm} ({jobs[0].name}): {seconds:.1f} s, exit {code}", flush=True)
@@ -190,7 +190,8 @@ def main() -> int:
     print_timeline(launched, launched + batched, batch_summary, batch_dir)
     ray_s = batch_summary.get("ray_start_s")
     print(f"one by one (Taichi's default threads): {sequential:.1f} s")
-    print(f"batch, {args.jobs} jobs at once x {args.threads} thread(s), Ray's start included: {batched:.1f} s"
+    print(f"batch, {args.jobs} jobs at once x {args.threads} CPU(s) "
+          f"({taichi_threads(args.threads, local_cpus())} Taichi threads), Ray's start included: {batched:.1f} s"
           + (f" (Ray's start: {ray_s:.1f} s)" if ray_s is not None else ""))
     print(f"batch / one by one: {batched / sequential:.2f}x; rows identical: {'yes' if same_all else 'NO'}; "
           f"load average after: {os.getloadavg()[0]:.2f}")

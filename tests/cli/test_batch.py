@@ -20,7 +20,7 @@ import pytest
 
 from ti_fusion.batch import results
 from ti_fusion.batch.manifest import read_manifest
-from ti_fusion.batch.runner import MISSING_RAY, Batch
+from ti_fusion.batch.runner import MISSING_RAY, Batch, job_env, local_cpus, taichi_threads
 from ti_fusion.batch.task import error_line
 from ti_fusion.cli.main import main
 from ti_fusion.errors import TiFusionError
@@ -159,6 +159,16 @@ def test_error_line_of_a_job(tmp_path):
     assert error_line(137, log) == "stopped by SIGKILL"
 
 
+def test_a_local_job_runs_twice_its_threads_in_taichi_up_to_the_cpus():
+    # the job left alone at a batch's end uses the CPU its partner left; OpenBLAS, which spins, keeps its share
+    assert [taichi_threads(t, cpus) for t, cpus in ((1, 1), (1, 2), (2, 2), (1, 16), (3, 4), (4, 16))] == \
+        [1, 2, 2, 2, 4, 8]
+    env = job_env(1, 2)
+    assert env["TI_CPU_MAX_NUM_THREADS"] == "2" and env["TI_FUSION_PIN_THREADS"] == "0"
+    assert env["OMP_NUM_THREADS"] == env["OPENBLAS_NUM_THREADS"] == env["MKL_NUM_THREADS"] == "1"
+    assert job_env(3)["TI_CPU_MAX_NUM_THREADS"] == "3"
+
+
 # --------------------------------------------------------------------------------------------------
 # Batches on a local Ray
 # --------------------------------------------------------------------------------------------------
@@ -227,6 +237,8 @@ data = "empty"
     proc = _start_batch(manifest, out, "--jobs", "2")
     try:
         victim = _wait_for_process(str(out / "runs" / "victim"), proc)
+        with open(f"/proc/{victim}/environ", "rb") as f:
+            env = dict(v.split(b"=", 1) for v in f.read().split(b"\0") if b"=" in v)
         os.kill(victim, signal.SIGKILL)
         stdout, stderr = proc.communicate(timeout=600)
     finally:
@@ -239,6 +251,8 @@ data = "empty"
     assert room["status"] == "done" and room["exit"] == "0" and room["frames"] == "3"
     assert float(room["ate_m"]) == summary["ate_rmse_m"] and room["run_dir"] == "runs/synthetic-room"
     assert killed["status"] == "failed" and killed["exit"] == "-9" and killed["error"] == "killed by SIGKILL"
+    assert env[b"TI_CPU_MAX_NUM_THREADS"] == str(taichi_threads(1, local_cpus())).encode()
+    assert json.loads((out / "jobs" / "victim.json").read_text())["taichi_threads"] == taichi_threads(1, local_cpus())
     assert empty["status"] == "failed" and empty["exit"] == "2" and "unrecognised dataset layout" in empty["error"]
     assert "| synthetic-room |  | done | 0 | 3 |" in (out / "results.md").read_text()
     assert (out / "ate.png").stat().st_size > 0

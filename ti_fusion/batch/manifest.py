@@ -22,10 +22,11 @@ A manifest is TOML, YAML or JSON::
 
 An option key is a ``ti-fusion slam`` option with ``_`` for ``-`` (``depth_scale``, ``no_relocalise = true``,
 ``set`` a list of ``SECTION.KEY=VALUE``, ``config``, ``arch``), ``data`` for DATA, and two of the batch's
-own: ``threads`` (Taichi's CPU threads in the job, and the CPUs it asks Ray for) and ``gpus`` (the GPUs it
-asks Ray for; default 1 with ``arch`` cuda or vulkan). Options merge defaults < input < variant, and ``set``
-lists are joined in that order (the last value of a key wins, as on the command line). The keys are read
-from ``ti-fusion slam``'s own parser, so a new slam option is a manifest key with no change here.
+own: ``threads`` (the CPUs the job asks Ray for, and its Taichi's CPU threads: locally up to twice as many,
+``runner.taichi_threads``) and ``gpus`` (the GPUs it asks Ray for; default 1 with ``arch`` cuda or vulkan).
+Options merge defaults < input < variant, and ``set`` lists are joined in that order (the last value of a
+key wins, as on the command line). The keys are read from ``ti-fusion slam``'s own parser, so a new slam
+option is a manifest key with no change here.
 
 ``read_manifest`` checks what the slam run itself would check first (the option's type and choices, the
 config file and every ``--set`` against the typed config, the frame options, DATA and files that exist)
@@ -60,7 +61,7 @@ class Job:
     input: str
     variant: str                # "" when the manifest has no variants
     args: tuple[str, ...]       # ti-fusion slam's arguments, without --out (the batch adds it)
-    threads: int                # Taichi's CPU threads, and the CPUs the job asks Ray for
+    threads: int                # the CPUs the job asks Ray for (Taichi's threads: runner.taichi_threads)
     gpus: float                 # the GPUs the job asks Ray for
 
 

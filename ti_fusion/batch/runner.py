@@ -108,11 +108,20 @@ def _import_plotting() -> None:
         pass
 
 
-def job_env(threads: int) -> dict[str, str]:
+def taichi_threads(threads: int, cpus: int) -> int:
+    """Taichi's CPU threads in a local job that asks Ray for ``threads`` CPUs on a machine of ``cpus``: twice
+    as many, at most ``cpus``, so that the job left running alone at the batch's end also uses the CPUs
+    its finished partners left idle (docs/BATCH.md, "Threads and Ray")."""
+    return max(threads, min(cpus, 2 * threads))
+
+
+def job_env(threads: int, taichi: int | None = None) -> dict[str, str]:
     """What a job's process gets on top of the worker's environment: the driver's Taichi and ti-fusion
-    settings (a cluster's workers do not inherit the driver's environment), and its thread counts."""
+    settings (a cluster's workers do not inherit the driver's environment), and its thread counts: Taichi's
+    ``taichi`` (default ``threads``), OpenMP's and BLAS's ``threads`` (OpenBLAS spins while it waits, and
+    would take a partner job's CPU)."""
     env = {k: v for k, v in os.environ.items() if k.startswith(("TI_", "TI_FUSION_"))}
-    env.update({"TI_CPU_MAX_NUM_THREADS": str(threads), "TI_FUSION_PIN_THREADS": "0",
+    env.update({"TI_CPU_MAX_NUM_THREADS": str(taichi or threads), "TI_FUSION_PIN_THREADS": "0",
                 "OMP_NUM_THREADS": str(threads), "OPENBLAS_NUM_THREADS": str(threads),
                 "MKL_NUM_THREADS": str(threads)})
     return env
@@ -280,14 +289,19 @@ class Batch:
             self._stop(ray, running)
             raise
 
+    def taichi_threads(self, job: Job) -> int:
+        """Locally, where the machine's CPUs are known, ``taichi_threads``; on a cluster, the job's threads."""
+        return job.threads if self.address is not None else taichi_threads(job.threads, local_cpus())
+
     def _spec(self, job: Job) -> dict:
         return {"args": list(job.args), "run_dir": str(results.run_dir(self.folder, job.name).resolve()),
-                "log": str(results.log_path(self.folder, job.name).resolve()), "env": job_env(job.threads),
+                "log": str(results.log_path(self.folder, job.name).resolve()),
+                "env": job_env(job.threads, self.taichi_threads(job)),
                 "cwd": os.getcwd(), "summary_fields": list(results.SUMMARY_FIELDS)}
 
     def _record(self, job: Job, **fields) -> dict:
         rec = {"job": job.name, "input": job.input, "variant": job.variant, "args": list(job.args),
-               "threads": job.threads, "gpus": job.gpus, "status": results.FAILED, "exit_code": None,
+               "threads": job.threads, "taichi_threads": self.taichi_threads(job), "gpus": job.gpus, "status": results.FAILED, "exit_code": None,
                "error": "", "wall_s": None, "summary": None,
                "finished": datetime.now().isoformat(timespec="seconds")}
         rec.update(fields)

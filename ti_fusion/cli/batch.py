@@ -17,8 +17,9 @@ def add_arguments(parser) -> None:
                         help="an existing Ray cluster (auto, HOST:PORT, ray://HOST:10001) instead of a local Ray "
                              "on this machine; the batch folder and inputs must be at the same paths on its nodes")
     parser.add_argument("--threads", type=int, default=1, metavar="N",
-                        help="Taichi CPU threads per job, and the CPUs each job asks Ray for, where the manifest "
-                             "does not say (threads = N); local Ray runs cores / N jobs at once (default: 1)")
+                        help="the CPUs each job asks Ray for, where the manifest does not say (threads = N): local "
+                             "Ray runs cores / N jobs at once, each with up to 2N Taichi threads so that the last "
+                             "job alone uses the idle CPUs (at most the cores; on --address: N) (default: 1)")
     parser.add_argument("--jobs", type=int, default=None, metavar="N",
                         help="at most N jobs at once (default: as many as the CPUs allow)")
     parser.add_argument("--rerun-failed", action="store_true",

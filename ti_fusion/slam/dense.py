@@ -210,13 +210,19 @@ class DenseSLAM:
                                    self.mapper.frame_level(self.frame_pyramid))
 
     def warm_up(self, frame: Frame) -> None:
-        """The kernels of a frame's maps first launched (compiled, with an empty kernel cache) on ``frame``, a
-        blank frame of the run's camera, while the first frame is being made in another process; the next
-        frame's maps replace what they leave. Nothing when ``frame`` is not of this map's size."""
+        """Before the first frame, while it is being made in another process: the kernels of a frame's maps,
+        of the prediction and of ICP first launched (compiled, with an empty kernel cache) on ``frame``, a
+        blank frame of the run's camera, and the map's prediction from the origin; the first frames' maps and
+        predictions replace what they leave, and the alignment's result is dropped. Nothing when ``frame`` is
+        not of this map's size or a frame was registered already."""
         check_usable(self._generation, "DenseSLAM.warm_up")
-        if frame.depth.shape != self.frame_pyramid.input_shape:
+        if frame.depth.shape != self.frame_pyramid.input_shape or self.poses or self.skipped:
             return
-        self._frame_maps(frame, self.icp.terms_for(frame))
+        terms = self.icp.terms_for(frame)
+        self._frame_maps(frame, terms)
+        source, _ = self._reference("intensity" in self.icp.needs(terms), at=np.eye(4))
+        self.icp.align(source, self.frame_pyramid, init=np.eye(4), terms=self.icp.ready(terms, source,
+                                                                                        self.frame_pyramid))
 
     def _track_and_fuse(self, frame: Frame) -> FrameResult:
         check_frame(self, frame)  # one InputError for a frame this map cannot take (ti_fusion/slam/checks.py)

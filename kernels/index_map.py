@@ -6,7 +6,9 @@ nearest, so a frame vertex at pixel u projects back to u) and lists, per block o
 keeps; ``gather_listed`` joins the lists in index order, and the index map's two passes run over that list
 only (about half the map when rendering, a few percent with Keller's association order).
 
-Why two passes: Vulkan guarantees only 32-bit atomics, so a 64-bit key (depth << 32 | index) is out, and
+On the CPU one pass does it (``nearest_packed``): an atomic min of the 64-bit key depth bits << 32 | index
+per pixel, whose low half is then the index (``unpack_loop``): the same winner, one pass over the list
+fewer. Elsewhere two passes. Why two: Vulkan guarantees only 32-bit atomics, so a 64-bit key (depth << 32 | index) is out, and
 a packed 32-bit key would leave too few bits for either (4 M surfels need 22 bits, leaving 10 bits of
 depth: 4 mm steps over 4 m, so surfels a few millimetres apart would tie and be ranked by index). So pass 1
 (``nearest_listed``) takes an atomic min of the depth's float bits (``depth_bits``) per pixel, and pass 2
@@ -16,8 +18,11 @@ backend.
 """
 
 import taichi as ti
+from taichi.lang import impl
 
 from ti_fusion.kernels.common import BLOCK, INT_MAX, Rigid, data_oriented, depth_bits, rigid
+
+INT64_MAX = 2**63 - 1  # "no surfel" in a packed key
 
 
 @data_oriented
@@ -26,15 +31,23 @@ class IndexMap:
 
     def __init__(self, height: int, width: int):
         shape = (height, width)
-        self.depth_key = ti.field(ti.i32, shape=shape)  # float bits of the nearest depth, INT_MAX = none
         self.index = ti.field(ti.i32, shape=shape)  # the nearest surfel, INT_MAX = none
+        # CPU: one pass with 64-bit keys (module docstring); elsewhere the two 32-bit passes
+        self.packed = impl.current_cfg().arch in (ti.x64, ti.arm64)
+        if self.packed:
+            self.key = ti.field(ti.i64, shape=shape)  # depth bits << 32 | index of the nearest, INT64_MAX = none
+        else:
+            self.depth_key = ti.field(ti.i32, shape=shape)  # float bits of the nearest depth, INT_MAX = none
 
 
 @ti.func
 def clear_loop(imap: ti.template()):
     for v, u in imap.index:
-        imap.depth_key[v, u] = INT_MAX
-        imap.index[v, u] = INT_MAX
+        if ti.static(imap.packed):
+            imap.key[v, u] = ti.i64(INT64_MAX)
+        else:
+            imap.depth_key[v, u] = INT_MAX
+            imap.index[v, u] = INT_MAX
 
 
 @ti.func
@@ -131,6 +144,28 @@ def claim_listed(s: ti.template(), imap: ti.template()):
             ti.atomic_min(imap.index[v, u], i)
 
 
+@ti.func
+def nearest_packed(s: ti.template(), imap: ti.template()):
+    """The index map in one pass over the listed surfels (CPU): per pixel the smallest key depth bits << 32 |
+    index, so the nearest depth and, among exact ties, the smallest index, as the two passes choose."""
+    W = imap.index.shape[1]
+    for k in range(s.n_listed[None]):
+        i = s.listed[k]
+        pix = s.proj_pixel[i]
+        v, u = pix // W, pix % W
+        key = (ti.cast(s.proj_depth[i], ti.i64) << 32) | ti.cast(i, ti.i64)
+        if key < imap.key[v, u]:  # plain read first: most lose, and skip the atomic
+            ti.atomic_min(imap.key[v, u], key)
+
+
+@ti.func
+def unpack_loop(imap: ti.template()):
+    """index = the packed key's low half, INT_MAX where no surfel projects."""
+    for v, u in imap.index:
+        key = imap.key[v, u]
+        imap.index[v, u] = ti.select(key == ti.i64(INT64_MAX), INT_MAX, ti.cast(key & ti.i64(0xFFFFFFFF), ti.i32))
+
+
 @ti.kernel
 def build_listed(s: ti.template(), n: ti.i32, imap: ti.template(), with_index: ti.template()):
     """``build_loops`` in one launch."""
@@ -139,13 +174,18 @@ def build_listed(s: ti.template(), n: ti.i32, imap: ti.template(), with_index: t
 
 @ti.func
 def build_loops(s: ti.template(), n, imap: ti.template(), with_index: ti.template()):
-    """``gather_listed``, then with ``with_index`` ``clear_loop``, ``nearest_listed`` and ``claim_listed``:
-    their loops one after the other (each reads what the one before wrote, ``n_listed`` included)."""
+    """``gather_listed``, then with ``with_index`` ``clear_loop``, ``nearest_listed`` and ``claim_listed`` (on the
+    CPU ``clear_loop``, ``nearest_packed`` and ``unpack_loop``): their loops one after the other (each reads what
+    the one before wrote, ``n_listed`` included)."""
     gather_listed(s, n)
     if ti.static(with_index):
         clear_loop(imap)
-        nearest_listed(s, imap)
-        claim_listed(s, imap)
+        if ti.static(imap.packed):
+            nearest_packed(s, imap)
+            unpack_loop(imap)
+        else:
+            nearest_listed(s, imap)
+            claim_listed(s, imap)
 
 
 def build(s, n: int, imap: IndexMap, with_index: bool = True) -> None:

@@ -202,9 +202,13 @@ def test_icp_frame_out_of_the_synthetic_sequence_names_the_option_not_a_folder(c
 @pytest.fixture
 def disk_full_for(monkeypatch):
     """``disk_full_for("matches.png")``: writing that output fails as on a full disk (at the rename of its
-    temporary file, after the writer wrote it)."""
+    temporary file, after the writer wrote it). The disk is full in this process only, so trajectory.png is
+    drawn here too rather than in the plot's process (which, on a disk really full, fails and leaves it here)."""
     import errno
 
+    from ti_fusion.evaluation.plot_process import PlotProcess
+
+    monkeypatch.setattr(PlotProcess, "start", classmethod(lambda cls: None))
     real_replace = os.replace
 
     def arm(name: str):

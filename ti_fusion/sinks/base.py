@@ -102,3 +102,7 @@ class Sink:
         ``on_stop``): write the files; return this output's summary.json fields."""
         return {}
 
+    def close(self) -> None:
+        """After ``finish`` and its background work, or instead of them (a stop, a failure): free what
+        ``start`` took (a process), whatever ended the run."""
+

@@ -13,6 +13,16 @@ class EvaluationSink(Sink):
     name = "evaluation"
     commands = ("slam", "vo")  # the commands whose poses are estimates
 
+    def start(self, run: Run) -> None:
+        from ti_fusion.evaluation.plot_process import PlotProcess
+
+        self._plotter = PlotProcess.start()  # imports Matplotlib on the other core while the run starts
+
+    def close(self) -> None:
+        plotter, self._plotter = getattr(self, "_plotter", None), None
+        if plotter is not None:
+            plotter.close()
+
     def finish(self, run: Run) -> dict:
         """ATE/RPE of the posed frames that have ground truth (``gt_frames`` of them; ``gt_note`` says so when
         that is not every posed frame), and trajectory.png."""
@@ -46,11 +56,16 @@ class EvaluationSink(Sink):
         edges = run.step.loop_edges()
         path, est, ref = run.out.file("trajectory.png"), np.stack(poses), np.stack(gt) if with_gt else None
 
-        def plot():  # Matplotlib (its import too) on an outputs' thread, beside the map's files and views
+        figure = dict(path_png=path, est_poses=est, gt_poses=ref, timestamps=stamps, title=title, metrics=metrics,
+                      **({"loop_edges": edges} if edges else {}))
+        plotter = getattr(self, "_plotter", None)  # (closed by ``close`` too, should the plot not run)
+
+        def plot():  # in the plot's process, else Matplotlib here, on an outputs' thread beside the map's files
+            if plotter is not None and plotter.plot(**figure):
+                return
             from ti_fusion.evaluation.plots import plot_trajectory
 
-            plot_trajectory(path, est, ref, timestamps=stamps, title=title, metrics=metrics,
-                            **({"loop_edges": edges} if edges else {}))
+            plot_trajectory(**figure)
 
         run.in_background(plot)
         return fields

@@ -113,7 +113,11 @@ class Pipeline:
         self._take_current_poses()
         nothing = None if error is not None or stop is not None else self._nothing_done()
         only_kept = stop is not None or nothing is not None or (error is not None and not self.results)
-        fields, failure = self._finish(started, only_kept, error)
+        try:
+            fields, failure = self._finish(started, only_kept, error)
+        finally:
+            for sink in started:
+                sink.close()
         if stop is not None:
             raise stop
         if error is not None:

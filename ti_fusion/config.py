@@ -338,8 +338,9 @@ class DatasetConfig:
                                     # pixel), so photometric tracking may use them; TUM, ICL-NUIM and synthetic
                                     # are, 7-Scenes is not (its own word); a bag with one frame_id for both is
     read_workers: NonNegativeInt = 0  # processes that read frames ahead of the loop where frames are image files
-                                      # (folder, TUM, 7-Scenes, ICL-NUIM; bags and logs: one); 0 = a quarter of
-                                      # the usable CPUs, 1 to 4 (docs/PERFORMANCE.md, reading in processes)
+                                      # (folder, TUM, 7-Scenes, ICL-NUIM; bags, logs and the synthetic sequence
+                                      # on the CPU backend: one); 0 = a quarter of the usable CPUs, 1 to 4
+                                      # (docs/PERFORMANCE.md, reading in processes)
 
 
 @dataclass

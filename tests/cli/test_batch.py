@@ -265,7 +265,8 @@ data = "empty"
     for job in ("synthetic-room", "victim", "empty"):
         steps = [events.index((e, job)) for e in ("task submitted", "task", "job process", "job process end", "result")]
         assert steps == sorted(steps) and events.index(("ray ready", "")) < steps[0]
-    assert events.index(("ray down", "")) < events.index(("table and plot written", ""))
+    assert events.index(("ray shutdown", "")) < events.index(("table and plot written", ""))  # while Ray stops
+    assert events.index(("ray shutdown", "")) < events.index(("ray down", ""))
 
     # resumed: nothing runs (Ray is not even started), the rows stay
     room_record = (out / "jobs" / "synthetic-room.json").read_text()

@@ -141,6 +141,7 @@ class Batch:
         # (time.time(), event, job): where a batch's time goes, in its summary.json and bench_batch.py's output
         self.origin = process_started() or time.time()
         self.events: list[tuple[float, str, str]] = []
+        self._table: list[dict] | None = None  # the rows, once written
 
     def mark(self, event: str, job: str = "", at: float | None = None) -> None:
         self.events.append((time.time() if at is None else at, event, job))
@@ -183,14 +184,26 @@ class Batch:
             if to_run:
                 self._on_ray(to_run)
         finally:
-            table = results.rows(self.folder, self.manifest.jobs)
-            results.write_tables(self.folder, table)
-            try:
-                results.plot_ate(self.folder, table, self.manifest.inputs, self.manifest.variants)
-            except Exception as exc:  # the table is the result; a plot that fails says so and is left out
-                log.warning("no ate.png: %s", exc)
-            self.mark("table and plot written")
-        return table
+            if self._table is None:  # no Ray, or its writer did not get to end
+                self._write_results()
+        return self._table
+
+    def _write_results(self) -> None:
+        """The table and the plot from every job's record."""
+        table = results.rows(self.folder, self.manifest.jobs)
+        results.write_tables(self.folder, table)
+        try:
+            results.plot_ate(self.folder, table, self.manifest.inputs, self.manifest.variants)
+        except Exception as exc:  # the table is the result; a plot that fails says so and is left out
+            log.warning("no ate.png: %s", exc)
+        self.mark("table and plot written")
+        self._table = table
+
+    def _try_write_results(self) -> None:
+        try:
+            self._write_results()
+        except BaseException as exc:  # run() writes them again on its own thread, where the error is raised
+            log.debug("writing the results while Ray stops: %s", exc)
 
     def _on_ray(self, jobs: list[Job]) -> None:
         ray = import_ray()
@@ -231,10 +244,16 @@ class Batch:
             self._schedule(ray, jobs)
         finally:  # also after a Ctrl-C during ray.init: what it started goes
             self.mark("ray shutdown")
-            ray.shutdown()
-            if node is not None:
-                stop_local_node(node)
-            self.mark("ray down")
+            # the records are final: the table and plot are written while Ray's processes stop
+            writer = threading.Thread(target=self._try_write_results, name="batch-results", daemon=True)
+            writer.start()
+            try:
+                ray.shutdown()
+                if node is not None:
+                    stop_local_node(node)
+                self.mark("ray down")
+            finally:
+                writer.join()
 
     def _schedule(self, ray, jobs: list[Job]) -> None:
         total = ray.cluster_resources()

@@ -495,7 +495,8 @@ def mark_removal_loops(s: ti.template(), counts: ti.template(), n_projected, fra
                         d = depth[pix // W, pix % W]
                         if d > 0 and d > bits_depth(s.proj_depth[i]) + margin:
                             rm = 1
-            s.removals_by_block[b * BLOCK + removed] = i
+            if rm:  # rare (a few surfels a frame): a branch that predicts, and no store for the others
+                s.removals_by_block[b * BLOCK + removed] = i
             removed += rm
         s.block_removals[b] = removed
 

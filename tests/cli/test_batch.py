@@ -20,7 +20,7 @@ import pytest
 
 from ti_fusion.batch import results
 from ti_fusion.batch.manifest import read_manifest
-from ti_fusion.batch.runner import MISSING_RAY, Batch, job_env, local_cpus, taichi_threads
+from ti_fusion.batch.runner import MISSING_RAY, Batch, job_env, local_cpus, longest_first, taichi_threads
 from ti_fusion.batch.task import error_line
 from ti_fusion.cli.main import main
 from ti_fusion.errors import TiFusionError
@@ -167,6 +167,17 @@ def test_a_local_job_runs_twice_its_threads_in_taichi_up_to_the_cpus():
     assert env["TI_CPU_MAX_NUM_THREADS"] == "2" and env["TI_FUSION_PIN_THREADS"] == "0"
     assert env["OMP_NUM_THREADS"] == env["OPENBLAS_NUM_THREADS"] == env["MKL_NUM_THREADS"] == "1"
     assert job_env(3)["TI_CPU_MAX_NUM_THREADS"] == "3"
+
+
+def test_jobs_start_longest_first_by_frames_and_pixels(tmp_path):
+    inputs = "".join(f'[[inputs]]\nname = "{n}"\nscene = "wall"\n{o}\n' for n, o in (
+        ("short", "frames = 10\ndownsample = 2"), ("small", "frames = 20\ndownsample = 4"),
+        ("long", "frames = 30"), ("tie", "frames = 10\ndownsample = 2"), ("range", "start = 5\nstop = 25")))
+    m = read_manifest(_write(tmp_path / "m.toml", inputs))
+    assert [j.name for j in longest_first(m.jobs)] == ["long", "range", "short", "tie", "small"]
+    # a job of a whole recording: its length is unknown, and the manifest's order stays
+    m = read_manifest(_write(tmp_path / "m.toml", inputs + '[[inputs]]\nname = "all"\nscene = "room"\n'))
+    assert [j.name for j in longest_first(m.jobs)] == [j.name for j in m.jobs]
 
 
 # --------------------------------------------------------------------------------------------------

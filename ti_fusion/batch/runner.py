@@ -127,6 +127,31 @@ def job_env(threads: int, taichi: int | None = None) -> dict[str, str]:
     return env
 
 
+def job_size(job: Job) -> float | None:
+    """A job's work, to start the longest first: its frames times its share of the full image's pixels
+    (frames / downsample²); None where its arguments do not say how many frames (a whole recording)."""
+    opts = dict(a[2:].split("=", 1) for a in job.args if a.startswith("--") and "=" in a)
+    try:
+        if "frames" in opts:
+            frames = float(opts["frames"])
+        elif "stop" in opts:
+            frames = (int(opts["stop"]) - int(opts.get("start", 0))) / int(opts.get("stride", 1))
+        else:
+            return None
+        return frames / int(opts.get("downsample", 1)) ** 2
+    except (ValueError, ZeroDivisionError):
+        return None
+
+
+def longest_first(jobs: list[Job]) -> list[Job]:
+    """The jobs by ``job_size``, largest first (ties in the manifest's order), so that the batch does not
+    end on a long job with the other slots idle; the manifest's order where any job's size is unknown."""
+    sizes = {j.name: job_size(j) for j in jobs}
+    if any(size is None for size in sizes.values()):
+        return list(jobs)
+    return sorted(jobs, key=lambda j: -sizes[j.name])
+
+
 # -- on the driver ---------------------------------------------------------------------------------------------
 class Batch:
     """One invocation over one manifest and one batch folder."""
@@ -268,7 +293,7 @@ class Batch:
                  f"{cpus:g} CPUs{f', {gpus:g} GPUs' if gpus else ''}), at most {slots} at once; "
                  f"results in {self.folder}/results.md")
         remote = ray.remote(run_job)
-        pending = list(jobs)
+        pending = longest_first(jobs)
         running: dict = {}  # ref -> (job, started)
         progress = _Progress(len(self.manifest.jobs), self.say if self.progress else None)
         progress.done = self.counts["skipped_done"]

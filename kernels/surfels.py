@@ -247,14 +247,14 @@ class SurfelStore:
         for name in names:
             field = getattr(self.arrays, name)
             dtype = np.float32 if field.dtype == ti.f32 else np.int32
-            if getattr(field, "n", 1) == 3:
-                out[name] = np.empty((m, 3), dtype)
-                if m:
-                    export_vector(field, out[name], stride)
-            else:
-                out[name] = np.empty(m, dtype)
-                if m:
-                    export_scalar(field, out[name], stride)
+            out[name] = np.empty((m, 3) if getattr(field, "n", 1) == 3 else m, dtype)
+        if m and set(names) <= set(STORED):  # one launch, one kernel instance for every such export
+            asked = sum(1 << j for j, name in enumerate(STORED) if name in out)
+            export_stored(self.arrays, m, stride, asked, *(out.get(name, _NOT_ASKED[name]) for name in STORED))
+        elif m:
+            for name in names:
+                export = export_vector if out[name].ndim == 2 else export_scalar
+                export(getattr(self.arrays, name), out[name], stride)
         return out
 
     def from_numpy(self, data: dict[str, np.ndarray]) -> None:
@@ -303,3 +303,42 @@ def export_vector(src: ti.template(), out: ti.types.ndarray(), stride: ti.i32):
 def export_scalar(src: ti.template(), out: ti.types.ndarray(), stride: ti.i32):
     for k in range(out.shape[0]):
         out[k] = src[k * stride]
+
+
+# the outputs of ``export_stored`` not asked for (a row, not none: a GPU backend copies each array to the
+# device and back), with the dtype and dimensions of those asked for
+_NOT_ASKED = {name: np.zeros((1, 3) if name in ("position", "normal", "color") else 1,
+                             np.int32 if name in ("t_created", "t_updated", "anchor") else np.float32)
+              for name in STORED}
+
+
+@ti.kernel
+def export_stored(s: ti.template(), m: ti.i32, stride: ti.i32, asked: ti.i32, position: ti.types.ndarray(),
+                  normal: ti.types.ndarray(), color: ti.types.ndarray(), weight: ti.types.ndarray(),
+                  radius: ti.types.ndarray(), t_created: ti.types.ndarray(), t_updated: ti.types.ndarray(),
+                  anchor: ti.types.ndarray()):
+    """Row k < m of each output asked for (bit j of ``asked``: STORED[j]): surfel k · stride's attribute.
+    The exports of a run (map.ply, the saved map, the log's snapshots) are one kernel instance instead of one
+    per attribute (``export_vector``, ``export_scalar``), each of which costs its first launch
+    (docs/PERFORMANCE.md)."""
+    for k in range(m):
+        i = k * stride
+        if asked & 1:
+            for c in ti.static(range(3)):
+                position[k, c] = s.position[i][c]
+        if asked & 2:
+            for c in ti.static(range(3)):
+                normal[k, c] = s.normal[i][c]
+        if asked & 4:
+            for c in ti.static(range(3)):
+                color[k, c] = s.color[i][c]
+        if asked & 8:
+            weight[k] = s.weight[i]
+        if asked & 16:
+            radius[k] = s.radius[i]
+        if asked & 32:
+            t_created[k] = s.t_created[i]
+        if asked & 64:
+            t_updated[k] = s.t_updated[i]
+        if asked & 128:
+            anchor[k] = s.anchor[i]

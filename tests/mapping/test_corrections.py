@@ -200,3 +200,25 @@ def test_unstable_surfels_are_removed_although_loops_reactivate_the_map(cpu, rng
             smap.reactivate(frame, 3.0)
         smap.remove(frame, True, 3.0, 20)
     assert smap.count == n - weak
+
+
+def test_exports_copy_the_live_surfels_and_every_stride_th(arch, rng):
+    """``to_numpy``: each attribute asked for (any subset of STORED, in one launch of ``export_stored``) holds
+    the live surfels, or every stride-th of them, as the fields do; a name outside STORED (scratch) too."""
+    n = BLOCK + 37
+    data = random_surfels(rng, n, rng.integers(0, 4, n))
+    smap = SurfelMap(2 * BLOCK)
+    smap.from_numpy(data)
+    fields = {name: getattr(smap.arrays, name).to_numpy()[:n] for name in STORED}
+    for names in (STORED, ("position", "color"), ("anchor",), ("weight", "t_updated", "normal")):
+        for stride in (1, 3, n + 5):
+            got = smap.to_numpy(names, stride)
+            assert list(got) == list(names)
+            for name in names:
+                assert got[name].dtype == fields[name].dtype and got[name].flags.c_contiguous
+                np.testing.assert_array_equal(got[name], fields[name][::stride], err_msg=f"{name} / {stride}")
+    got = smap.to_numpy(("position", "proj_pixel"), 2)
+    np.testing.assert_array_equal(got["proj_pixel"], smap.arrays.proj_pixel.to_numpy()[:n:2])
+    np.testing.assert_array_equal(got["position"], fields["position"][::2])
+    smap.clear()
+    assert {k: v.shape for k, v in smap.to_numpy(("position", "weight")).items()} == {"position": (0, 3), "weight": (0,)}

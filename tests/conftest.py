@@ -20,6 +20,10 @@ import pytest
 
 from ti_fusion.backend import init_backend, vulkan_available
 
+# Matplotlib imported once per test process: the runs' trajectory.png is then drawn in-process, not by a
+# plot process per run that imports it again (ti_fusion/evaluation/plot_process.py; tested there).
+import matplotlib.figure  # noqa: F401
+
 REDKITCHEN = Path(__file__).resolve().parents[2] / "shared" / "data" / "redkitchen-7scenes"
 SCRIPTS = Path(__file__).resolve().parents[1] / "scripts"
 

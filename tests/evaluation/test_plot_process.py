@@ -66,3 +66,28 @@ def test_a_process_killed_or_closed_draws_nothing_and_is_reaped(tmp_path):
     unused.close()
     assert _gone(unused) and _gone(plotter)
     assert not unused.plot(path_png=tmp_path / "t.png", est_poses=_poses())  # closed: nothing drawn there
+
+
+@pytest.mark.slow
+def test_a_run_draws_its_plot_in_the_process_where_matplotlib_is_not_imported(cpu, tmp_path, monkeypatch):
+    """A run in a process that has not imported Matplotlib (the command line) starts the plot's process with
+    its sinks and has trajectory.png drawn there; none is left when the run ends. (The test session imports
+    Matplotlib, so its other runs draw in-process.)"""
+    import sys
+
+    from ti_fusion.cli.main import main
+
+    drawn, processes = [], []
+    plot = PlotProcess.plot
+
+    def spy(self, **figure):
+        processes.append(self)
+        drawn.append(plot(self, **figure))
+        return drawn[-1]
+
+    monkeypatch.setattr(PlotProcess, "plot", spy)
+    monkeypatch.delitem(sys.modules, "matplotlib.figure")
+    out = tmp_path / "run"
+    assert main(["vo", "--frames", "3", "--downsample", "4", "--out", str(out), "--quiet"]) == 0
+    assert drawn == [True] and (out / "trajectory.png").stat().st_size > 0
+    assert _gone(processes[0])

@@ -3,6 +3,8 @@ trajectory.png (the estimate against the ground truth, loop edges in the top vie
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 
 from ti_fusion.evaluation.metrics import held_trajectory, tracked_ate, trajectory_metrics
@@ -16,7 +18,9 @@ class EvaluationSink(Sink):
     def start(self, run: Run) -> None:
         from ti_fusion.evaluation.plot_process import PlotProcess
 
-        self._plotter = PlotProcess.start()  # imports Matplotlib on the other core while the run starts
+        # A process imports Matplotlib on the other core while the run starts; where this process has
+        # imported it already (a notebook, a test session), drawing here costs no import and the process would.
+        self._plotter = None if "matplotlib.figure" in sys.modules else PlotProcess.start()
 
     def close(self) -> None:
         plotter, self._plotter = getattr(self, "_plotter", None), None

@@ -10,6 +10,9 @@ a signal blocked in the main thread is still delivered to any other thread (Taic
 reader's), and Python then runs the handler in the main thread at once, inside the write. Python runs
 signal handlers in the main thread only, so blocks on other threads defer nothing.
 
+A stop that arrives while the main thread imports a module (``after_import``) is sent again when the import
+ends: raised inside an extension module's initialisation it would turn into an ``ImportError``.
+
 A stream without an end of its own (a live camera) ends at Ctrl-C: the loop over it runs inside
 ``stream_end()``, and the CLI's Ctrl-C handler first calls ``end_stream()``, which asks that loop to end after
 its current frame (the run then finishes as at a recording's end); a second Ctrl-C stops the run.
@@ -17,7 +20,10 @@ its current frame (the run then finishes as at a recording's end); a second Ctrl
 
 from __future__ import annotations
 
+import signal
+import sys
 import threading
+import time
 
 _depth = 0                                 # critical blocks the main thread is in
 _pending: BaseException | None = None      # the stop that arrived inside one
@@ -56,6 +62,42 @@ def interrupt(exc: BaseException) -> None:
         raise exc
     if _pending is None:
         _pending = exc
+
+
+def _importing(frame) -> bool:
+    """Whether ``frame`` (the main thread's, where a handler runs) is inside an import."""
+    while frame is not None:
+        if frame.f_code.co_filename.startswith("<frozen importlib."):
+            return True
+        frame = frame.f_back
+    return False
+
+
+_redelivering = False  # a stop signal is waiting for the main thread's import to end
+
+
+def after_import(signum: int, frame) -> bool:
+    """For a signal handler: True when the main thread is inside an import, having arranged for ``signum`` to be
+    sent to it again once the import ends; the handler then returns. An exception raised into an extension
+    module's initialisation (GTSAM's, OpenCV's, imported lazily during a run) comes out as ``ImportError:
+    initialization failed`` instead of the stop."""
+    global _redelivering
+    if not _importing(frame):
+        return False
+    if _redelivering:
+        return True
+    _redelivering = True
+    main = threading.main_thread().ident
+
+    def redeliver() -> None:
+        global _redelivering
+        while _importing(sys._current_frames().get(main)):
+            time.sleep(0.01)
+        _redelivering = False
+        signal.pthread_kill(main, signum)
+
+    threading.Thread(target=redeliver, name="stop-after-import", daemon=True).start()
+    return True
 
 
 class stream_end:

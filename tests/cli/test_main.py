@@ -305,6 +305,27 @@ def test_ctrl_c_stops_a_dataset_and_a_second_ctrl_c_a_live_stream(cpu, tmp_path,
     assert not (out / "map.ply").exists() and not (out / "map").exists() and not (out / "summary.json").exists()
 
 
+def test_a_stop_during_an_import_waits_for_the_import(tmp_path, monkeypatch):
+    """Raised inside an extension module's initialisation (GTSAM's, imported as loop closure starts) the stop
+    came out as ``ImportError: initialization failed`` and exit 1; it is sent again once the import ends."""
+    from ti_fusion.cli.main import Stopped, _stop_signals_raise
+
+    (tmp_path / "slow_to_import.py").write_text(
+        "import signal\nsignal.raise_signal(signal.SIGTERM)\nDONE = True\n")  # the stop, halfway through
+    monkeypatch.syspath_prepend(str(tmp_path))
+    imported = None
+    with _stop_signals_raise():
+        with pytest.raises(Stopped):
+            import slow_to_import
+
+            imported = slow_to_import.DONE
+            deadline = time.monotonic() + 60  # a bound for a broken hand-over, not a timing the test depends on
+            while time.monotonic() < deadline:
+                time.sleep(0.01)  # the stop arrives here, from the thread that waited for the import's end
+    monkeypatch.delitem(sys.modules, "slow_to_import", raising=False)
+    assert imported  # the module's whole body ran before the stop
+
+
 def test_sigterm_from_outside_the_process(tmp_path):
     """Whenever it lands (a log write is finished first: tests/cli/test_run_checks.py checks that deterministically)."""
     out = tmp_path / "run"

@@ -41,7 +41,7 @@ from ti_fusion.backend import ARCH_CHOICES, BackendInfo, init_backend
 from ti_fusion.cli.options import add_flags, apply_flags
 from ti_fusion.config import Config, load_config
 from ti_fusion.errors import InputError, OutputError, TiFusionError
-from ti_fusion.interrupts import end_stream, interrupt
+from ti_fusion.interrupts import after_import, end_stream, interrupt
 from ti_fusion.io.outputs import RunDir, base_summary
 from ti_fusion.timing import Stopwatch
 
@@ -219,11 +219,15 @@ def _stop_signals_raise():
         return
 
     def stop(signum, frame):
+        if after_import(signum, frame):
+            return
         for s in STOP_SIGNALS:
             signal.signal(s, signal.SIG_IGN)
         interrupt(Stopped(signum))
 
     def ctrl_c(signum, frame):
+        if after_import(signum, frame):
+            return
         if end_stream():  # a live camera's: the run ends as at a recording's end, with its map
             _say_from_handler(FINISHING)
             return

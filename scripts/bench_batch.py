@@ -9,8 +9,8 @@ The jobs are the manifest's (``--manifest``), or one per ``--inputs`` name: a sy
 ``tum-cabinet``: ../shared/data/tum-fr3-cabinet-keyframes), each with ``--frames`` and ``--downsample``.
 
 1. the first job, untimed, as each arm runs it (Taichi's default threads, pinned; the batch's Taichi threads,
-   unpinned), so that both find Taichi's kernel cache warm: the cache's keys depend on what a process
-   compiled before, and pinning compiles a probe kernel first;
+   unpinned), just before that arm, so that both find Taichi's kernel cache warm: the cache's keys depend on
+   what a process compiled before and on its thread count, and pinning compiles a probe kernel first;
 2. one by one: each job's ``python -m ti_fusion slam ARGS`` after the other, as a shell loop runs them
    (Taichi's default threads: one per core), timed from the first start to the last end;
 3. the batch: ``python -m ti_fusion batch MANIFEST --jobs N --threads T``, timed the same way (Ray's start
@@ -141,12 +141,14 @@ def main() -> int:
     print(f"{len(jobs)} jobs from {manifest}; runs in {work}; {os.cpu_count()} CPUs "
           f"(load average now {os.getloadavg()[0]:.2f})", flush=True)
 
-    if not args.no_warmup:
-        for arm, env in (("one by one", None), ("batch", job_env(args.threads, taichi_threads(args.threads, local_cpus())))):
+    def warm_up(arm: str, env: dict | None) -> None:
+        if not args.no_warmup:
             seconds, code = timed(py + ["slam", *jobs[0].args, "--out", str(work / "warmup"), "--overwrite",
                                         "--quiet"], work / "warmup.log", env)
             print(f"warm-up as {arm} ({jobs[0].name}): {seconds:.1f} s, exit {code}", flush=True)
 
+    # each arm's warm-up just before it: the kernel cache is an LRU that other runs on the machine evict from
+    warm_up("one by one", None)
     one = {}
     started = time.perf_counter()
     for job in jobs:
@@ -157,6 +159,7 @@ def main() -> int:
         print(f"  one by one: {job.name}: {seconds:.1f} s, exit {code}", flush=True)
     sequential = time.perf_counter() - started
 
+    warm_up("batch", job_env(args.threads, taichi_threads(args.threads, local_cpus())))
     batch_dir = work / "batch"
     launched = time.time()
     batched, code = timed(py + ["batch", str(manifest), "--out", str(batch_dir), "--overwrite", "--jobs",
@@ -182,6 +185,15 @@ def main() -> int:
         same_all &= same
         print(f"| {job.name} | {s.get('frames')} / {frames_batch} | {ate_one!r} | {ate_batch!r} | "
               f"{'yes' if same else 'NO'} |")
+    compiled = {"one by one": sum(s.get("kernels_compiled") or 0 for s in one.values()), "batch": 0}
+    for job in jobs:
+        try:
+            compiled["batch"] += json.loads((batch_dir / "runs" / job.name / "summary.json").read_text()).get(
+                "kernels_compiled") or 0
+        except (OSError, ValueError):
+            pass
+    print(f"kernels compiled: one by one {compiled['one by one']}, batch {compiled['batch']}"
+          + (" (not a warm-cache measurement: the kernel cache lost them meanwhile)" if any(compiled.values()) else ""))
     print()
     try:
         batch_summary = json.loads((batch_dir / "summary.json").read_text())

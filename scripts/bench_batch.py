@@ -2,7 +2,8 @@
 """``ti-fusion batch`` on local Ray against the same ``ti-fusion slam`` runs one after another, in one run.
 
     python scripts/bench_batch.py [--inputs room,wall,corridor,loop] [--frames 20] [--downsample 2]
-                                  [--jobs 2] [--threads 1] [--manifest FILE] [--keep DIR] [--no-warmup]
+                                  [--jobs 2] [--threads 1] [--taichi-threads N] [--manifest FILE] [--keep DIR]
+                                  [--no-warmup]
 
 The jobs are the manifest's (``--manifest``), or one per ``--inputs`` name: a synthetic scene (``room``,
 ``wall``, ...) or a folder of the shared data (``redkitchen``: ../shared/data/redkitchen-7scenes,
@@ -13,8 +14,8 @@ The jobs are the manifest's (``--manifest``), or one per ``--inputs`` name: a sy
    what a process compiled before and on its thread count, and pinning compiles a probe kernel first;
 2. one by one: each job's ``python -m ti_fusion slam ARGS`` after the other, as a shell loop runs them
    (Taichi's default threads: one per core), timed from the first start to the last end;
-3. the batch: ``python -m ti_fusion batch MANIFEST --jobs N --threads T``, timed the same way (Ray's start
-   included).
+3. the batch: ``python -m ti_fusion batch MANIFEST --jobs N --threads T`` (and ``--taichi-threads N`` where
+   given), timed the same way (Ray's start included).
 
 Prints each job's frames and ATE in both arms (from the one-by-one run's summary.json and the batch's
 results.csv) and whether they are identical, the batch's timeline (its summary.json's: Ray's start, each
@@ -108,6 +109,8 @@ def main() -> int:
     ap.add_argument("--manifest", default=None, help="a manifest of one's own instead of --inputs")
     ap.add_argument("--jobs", type=int, default=2, help="the batch's jobs at once (default 2)")
     ap.add_argument("--threads", type=int, default=1, help="Taichi CPU threads per batch job (default 1)")
+    ap.add_argument("--taichi-threads", type=int, default=None,
+                    help="Taichi CPU threads per batch job (default: the batch's, twice --threads up to the cores)")
     ap.add_argument("--keep", default=None, metavar="DIR", help="write the runs here (default: a temporary folder)")
     ap.add_argument("--no-warmup", action="store_true", help="no untimed job first")
     args = ap.parse_args()
@@ -159,11 +162,13 @@ def main() -> int:
         print(f"  one by one: {job.name}: {seconds:.1f} s, exit {code}", flush=True)
     sequential = time.perf_counter() - started
 
-    warm_up("batch", job_env(args.threads, taichi_threads(args.threads, local_cpus())))
+    taichi = args.taichi_threads or taichi_threads(args.threads, local_cpus())
+    warm_up("batch", job_env(args.threads, taichi))
     batch_dir = work / "batch"
     launched = time.time()
     batched, code = timed(py + ["batch", str(manifest), "--out", str(batch_dir), "--overwrite", "--jobs",
-                                str(args.jobs), "--threads", str(args.threads)], work / "batch.log")
+                                str(args.jobs), "--threads", str(args.threads)] +
+                           (["--taichi-threads", str(taichi)] if args.taichi_threads else []), work / "batch.log")
     print(f"  batch: {batched:.1f} s, exit {code}", flush=True)
     if code != 0:
         print(f"bench_batch.py: the batch failed (exit {code}); no ratio: see {work / 'batch.log'}", file=sys.stderr)
@@ -203,7 +208,7 @@ def main() -> int:
     ray_s = batch_summary.get("ray_start_s")
     print(f"one by one (Taichi's default threads): {sequential:.1f} s")
     print(f"batch, {args.jobs} jobs at once x {args.threads} CPU(s) "
-          f"({taichi_threads(args.threads, local_cpus())} Taichi threads), Ray's start included: {batched:.1f} s"
+          f"({taichi} Taichi threads), Ray's start included: {batched:.1f} s"
           + (f" (Ray's start: {ray_s:.1f} s)" if ray_s is not None else ""))
     print(f"batch / one by one: {batched / sequential:.2f}x; rows identical: {'yes' if same_all else 'NO'}; "
           f"load average after: {os.getloadavg()[0]:.2f}")

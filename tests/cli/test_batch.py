@@ -159,7 +159,7 @@ def test_error_line_of_a_job(tmp_path):
     assert error_line(137, log) == "stopped by SIGKILL"
 
 
-def test_a_local_job_runs_twice_its_threads_in_taichi_up_to_the_cpus():
+def test_a_local_job_runs_twice_its_threads_in_taichi_up_to_the_cpus(tmp_path):
     # the job left alone at a batch's end uses the CPU its partner left; OpenBLAS, which spins, keeps its share
     assert [taichi_threads(t, cpus) for t, cpus in ((1, 1), (1, 2), (2, 2), (1, 16), (3, 4), (4, 16))] == \
         [1, 2, 2, 2, 4, 8]
@@ -167,6 +167,10 @@ def test_a_local_job_runs_twice_its_threads_in_taichi_up_to_the_cpus():
     assert env["TI_CPU_MAX_NUM_THREADS"] == "2" and env["TI_FUSION_PIN_THREADS"] == "0"
     assert env["OMP_NUM_THREADS"] == env["OPENBLAS_NUM_THREADS"] == env["MKL_NUM_THREADS"] == "1"
     assert job_env(3)["TI_CPU_MAX_NUM_THREADS"] == "3"
+    job = read_manifest(_write(tmp_path / "m.toml", '[[inputs]]\nscene = "wall"\n')).jobs[0]
+    assert Batch(None, tmp_path).taichi_threads(job) == taichi_threads(1, local_cpus())
+    assert Batch(None, tmp_path, address="auto").taichi_threads(job) == 1
+    assert Batch(None, tmp_path, taichi=3).taichi_threads(job) == 3  # --taichi-threads
 
 
 def test_jobs_start_longest_first_by_frames_and_pixels(tmp_path):

@@ -157,8 +157,9 @@ class Batch:
     """One invocation over one manifest and one batch folder."""
 
     def __init__(self, manifest, folder: Path, *, address: str | None = None, max_jobs: int | None = None,
-                 rerun_failed: bool = False, progress: bool = True, say=print):
+                 rerun_failed: bool = False, progress: bool = True, say=print, taichi: int | None = None):
         self.manifest, self.folder = manifest, Path(folder)
+        self.taichi = taichi  # every job's Taichi threads, where given (--taichi-threads)
         self.address, self.max_jobs, self.rerun_failed = address, max_jobs, rerun_failed
         self.progress, self.say = progress, say
         self.counts = {"ran": 0, "skipped_done": 0, "kept_failed": 0}
@@ -334,7 +335,10 @@ class Batch:
             raise
 
     def taichi_threads(self, job: Job) -> int:
-        """Locally, where the machine's CPUs are known, ``taichi_threads``; on a cluster, the job's threads."""
+        """``--taichi-threads``; else locally, where the machine's CPUs are known, ``taichi_threads``; on a
+        cluster, the job's threads."""
+        if self.taichi is not None:
+            return self.taichi
         return job.threads if self.address is not None else taichi_threads(job.threads, local_cpus())
 
     def _spec(self, job: Job) -> dict:

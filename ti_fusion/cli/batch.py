@@ -20,6 +20,9 @@ def add_arguments(parser) -> None:
                         help="the CPUs each job asks Ray for, where the manifest does not say (threads = N): local "
                              "Ray runs cores / N jobs at once, each with up to 2N Taichi threads so that the last "
                              "job alone uses the idle CPUs (at most the cores; on --address: N) (default: 1)")
+    parser.add_argument("--taichi-threads", type=int, default=None, metavar="N",
+                        help="every job's Taichi CPU threads, whatever it asks Ray for (default: twice its "
+                             "threads, at most the cores; on --address: its threads)")
     parser.add_argument("--jobs", type=int, default=None, metavar="N",
                         help="at most N jobs at once (default: as many as the CPUs allow)")
     parser.add_argument("--rerun-failed", action="store_true",
@@ -33,14 +36,14 @@ def run(ctx) -> dict:
     from ti_fusion.errors import InputError
 
     args = ctx.args
-    for name in ("threads", "jobs"):
+    for name in ("threads", "jobs", "taichi_threads"):
         value = getattr(args, name)
         if value is not None and value < 1:
-            raise InputError(None, f"--{name} {value}: must be at least 1")
+            raise InputError(None, f"--{name.replace('_', '-')} {value}: must be at least 1")
     manifest = read_manifest(args.manifest, default_threads=args.threads)
     say = (lambda line: None) if ctx.quiet else ctx.log
     batch = Batch(manifest, ctx.out.path, address=args.address, max_jobs=args.jobs,
-                  rerun_failed=args.rerun_failed, progress=not ctx.quiet, say=say)
+                  rerun_failed=args.rerun_failed, progress=not ctx.quiet, say=say, taichi=args.taichi_threads)
     table = batch.run()
     if batch.ray_start_s is not None:
         # the interpreter's exit with Ray's modules loaded spends its time in the garbage collector's last

@@ -64,10 +64,12 @@ def interrupt(exc: BaseException) -> None:
         _pending = exc
 
 
-def _importing(frame) -> bool:
-    """Whether ``frame`` (the main thread's, where a handler runs) is inside an import."""
-    while frame is not None:
-        if frame.f_code.co_filename.startswith("<frozen importlib."):
+def _importing(frame, outer) -> bool:
+    """Whether ``frame`` (the main thread's, where a handler runs) is inside an import that began after ``outer``
+    (the frame that installed the handlers): a run started by a module's own import is stopped as any other."""
+    while frame is not None and frame is not outer:
+        name = frame.f_code.co_filename
+        if name.startswith("<frozen importlib.") or "importlib/_bootstrap" in name:  # frozen or not
             return True
         frame = frame.f_back
     return False
@@ -76,13 +78,13 @@ def _importing(frame) -> bool:
 _redelivering = False  # a stop signal is waiting for the main thread's import to end
 
 
-def after_import(signum: int, frame) -> bool:
-    """For a signal handler: True when the main thread is inside an import, having arranged for ``signum`` to be
-    sent to it again once the import ends; the handler then returns. An exception raised into an extension
-    module's initialisation (GTSAM's, OpenCV's, imported lazily during a run) comes out as ``ImportError:
-    initialization failed`` instead of the stop."""
+def after_import(signum: int, frame, outer) -> bool:
+    """For a signal handler: True when the main thread is inside an import begun below ``outer`` (the frame that
+    installed the handler), having arranged for ``signum`` to be sent to it again once the import ends; the
+    handler then returns. An exception raised into an extension module's initialisation (GTSAM's, OpenCV's,
+    imported lazily during a run) comes out as ``ImportError: initialization failed`` instead of the stop."""
     global _redelivering
-    if not _importing(frame):
+    if not _importing(frame, outer):
         return False
     if _redelivering:
         return True
@@ -91,7 +93,7 @@ def after_import(signum: int, frame) -> bool:
 
     def redeliver() -> None:
         global _redelivering
-        while _importing(sys._current_frames().get(main)):
+        while _importing(sys._current_frames().get(main), outer):
             time.sleep(0.01)
         _redelivering = False
         signal.pthread_kill(main, signum)

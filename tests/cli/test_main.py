@@ -326,6 +326,20 @@ def test_a_stop_during_an_import_waits_for_the_import(tmp_path, monkeypatch):
     assert imported  # the module's whole body ran before the stop
 
 
+def test_a_run_started_by_an_import_is_stopped_at_once(tmp_path, monkeypatch):
+    """A script without a ``__main__`` guard, imported (``python -c "import exp"``, a notebook's ``import``),
+    runs the whole run inside that import: its stops must not wait for the import's end."""
+    (tmp_path / "starts_a_run.py").write_text(
+        "import signal\nfrom ti_fusion.cli.main import Stopped, _stop_signals_raise\nSTOPPED = False\n"
+        "try:\n    with _stop_signals_raise():\n        signal.raise_signal(signal.SIGTERM)\n"
+        "        raise SystemExit('not stopped')\nexcept Stopped:\n    STOPPED = True\n")
+    monkeypatch.syspath_prepend(str(tmp_path))
+    import starts_a_run
+
+    monkeypatch.delitem(sys.modules, "starts_a_run")
+    assert starts_a_run.STOPPED
+
+
 def test_sigterm_from_outside_the_process(tmp_path):
     """Whenever it lands (a log write is finished first: tests/cli/test_run_checks.py checks that deterministically)."""
     out = tmp_path / "run"

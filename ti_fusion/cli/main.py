@@ -217,16 +217,17 @@ def _stop_signals_raise():
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    outer = sys._getframe(2)  # the ``with`` statement's (below contextlib's __enter__): imports from here on count
 
     def stop(signum, frame):
-        if after_import(signum, frame):
+        if after_import(signum, frame, outer):
             return
         for s in STOP_SIGNALS:
             signal.signal(s, signal.SIG_IGN)
         interrupt(Stopped(signum))
 
     def ctrl_c(signum, frame):
-        if after_import(signum, frame):
+        if after_import(signum, frame, outer):
             return
         if end_stream():  # a live camera's: the run ends as at a recording's end, with its map
             _say_from_handler(FINISHING)

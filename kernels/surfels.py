@@ -305,6 +305,9 @@ def export_scalar(src: ti.template(), out: ti.types.ndarray(), stride: ti.i32):
         out[k] = src[k * stride]
 
 
+# export_stored's parameters and _NOT_ASKED's dtypes follow this order: a reordered STORED must change them too
+assert STORED == ("position", "normal", "color", "weight", "radius", "t_created", "t_updated", "anchor"), STORED
+
 # the outputs of ``export_stored`` not asked for (a row, not none: a GPU backend copies each array to the
 # device and back), with the dtype and dimensions of those asked for
 _NOT_ASKED = {name: np.zeros((1, 3) if name in ("position", "normal", "color") else 1,

@@ -175,7 +175,7 @@ def clock_first_launches() -> bool:
 
     materialize, launch = Kernel.materialize, Kernel.launch_kernel
     pending: dict = {}  # the instance being materialised → the front end's seconds, until its first launch
-    launched: set[int] = set()
+    launched: dict[int, object] = {}  # id → the instance, held: a freed instance's id may be a new one's
     compile_cpu: dict = {}  # the instance being launched first → CPU seconds of its compile step (or load)
     try:
         from taichi._lib import core as _ti_core
@@ -206,7 +206,7 @@ def clock_first_launches() -> bool:
     def timed_launch(self, t_kernel, *args):
         if id(t_kernel) in launched:
             return launch(self, t_kernel, *args)
-        launched.add(id(t_kernel))
+        launched[id(t_kernel)] = t_kernel
         if program is not None:  # its compile step timed on this launch only: later launches pay nothing
             program.compile_kernel = timed_compile
         start = time.perf_counter()

@@ -124,15 +124,13 @@ def _fmt(value, spec: str, scale: float = 1) -> str:
 def plot_ate(batch: Path, table: list[dict], inputs, variants) -> Path:
     """ate.png: a bar per input per variant (ATE in cm; log scale when the ATEs span more than 100×);
     an input without ground truth, or a job that did not finish, is written where its bar would be."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure  # not pyplot: drawn on a thread while Ray stops, and its state is global
 
     variants = list(variants) or [""]
     by = {(r["input"], r["variant"]): r for r in table}
     width = 0.8 / len(variants)
-    fig, ax = plt.subplots(figsize=(max(5.0, 1.2 * len(inputs) * max(1, len(variants)) ** 0.5 + 2), 4), dpi=110)
+    fig = Figure(figsize=(max(5.0, 1.2 * len(inputs) * max(1, len(variants)) ** 0.5 + 2), 4), dpi=110)
+    ax = fig.add_subplot()
     values = [r["ate_m"] * 100 for r in table if r["ate_m"] is not None and r["ate_m"] > 0]
     log = bool(values) and max(values) > 100 * min(values)
     floor = min(values) if values else 1.0
@@ -161,5 +159,4 @@ def plot_ate(batch: Path, table: list[dict], inputs, variants) -> Path:
     path = batch / "ate.png"
     with atomic_write(path, "wb") as f:
         fig.savefig(f, format="png")
-    plt.close(fig)
     return path

@@ -168,6 +168,7 @@ class Batch:
         self.origin = process_started() or time.time()
         self.events: list[tuple[float, str, str]] = []
         self._table: list[dict] | None = None  # the rows, once written
+        self._writer: threading.Thread | None = None  # writes them while Ray stops
 
     def mark(self, event: str, job: str = "", at: float | None = None) -> None:
         self.events.append((time.time() if at is None else at, event, job))
@@ -210,6 +211,8 @@ class Batch:
             if to_run:
                 self._on_ray(to_run)
         finally:
+            if self._writer is not None:  # a second Ctrl-C during its join: it still writes, not beside us
+                self._writer.join()
             if self._table is None:  # no Ray, or its writer did not get to end
                 self._write_results()
         return self._table
@@ -271,7 +274,8 @@ class Batch:
         finally:  # also after a Ctrl-C during ray.init: what it started goes
             self.mark("ray shutdown")
             # the records are final: the table and plot are written while Ray's processes stop
-            writer = threading.Thread(target=self._try_write_results, name="batch-results", daemon=True)
+            writer = self._writer = threading.Thread(target=self._try_write_results, name="batch-results",
+                                                     daemon=True)
             writer.start()
             try:
                 ray.shutdown()

@@ -6,7 +6,7 @@
 Each row launches a kernel whose body writes one element (no loop: nothing for the device to do) N times
 and prints the wall time per launch, with ``ti.sync()`` inside the timing, and the launching thread's CPU
 time per launch (less moved by other work on the machine), through ti-fusion's shorter path for an
-instance launched before (``frontend.fast_launches``) and through Taichi's own ``Kernel.__call__``, the
+instance launched before (``launches.fast_launches``) and through Taichi's own ``Kernel.__call__``, the
 two alternated in rounds of N/4. A frame's host overhead is about its launches times these figures
 (``bench_host.py`` counts the launches). The two ``data_oriented`` rows
 compare an object passed as a template argument under Taichi's own decorator, which hooks every attribute
@@ -88,7 +88,7 @@ def main() -> int:
     from taichi.lang.kernel_impl import Kernel
 
     short = Kernel.__call__
-    taichis = getattr(short, "__wrapped__", short)  # Taichi's own path (ti_fusion.frontend.fast_launches)
+    taichis = getattr(short, "__wrapped__", short)  # Taichi's own path (ti_fusion.launches.fast_launches)
     rounds = min(4, args.launches)
     print(f"bench_launch.py --arch {backend.arch} --launches {args.launches}")
     print("| launch | µs per launch | CPU µs per launch | Taichi's path: µs | CPU µs |")

@@ -16,7 +16,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # peers and may not import each other. A module belongs to the group of its longest matching prefix.
 LAYERS: list[tuple[int, str, tuple[str, ...]]] = [
     (0, "leaves", ("ti_fusion", "ti_fusion.errors", "ti_fusion.geometry", "ti_fusion.sensor", "ti_fusion.camera",
-                   "ti_fusion.frame", "ti_fusion.timing", "ti_fusion.interrupts", "ti_fusion.frontend",
+                   "ti_fusion.frame", "ti_fusion.timing", "ti_fusion.interrupts", "ti_fusion.frontend", "ti_fusion.launches",
                    "ti_fusion.io", "ti_fusion.io.formats", "ti_fusion.io.tables", "ti_fusion.status",
                    "ti_fusion.tracking", "ti_fusion.mapping", "ti_fusion.loop", "ti_fusion.slam",
                    "ti_fusion.synthetic", "ti_fusion.evaluation", "ti_fusion.reference")),

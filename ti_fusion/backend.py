@@ -104,7 +104,8 @@ def _try_start(arch: str, **kwargs) -> bool:
     """Start Taichi on ``arch``; False (and Taichi reset) when that backend is absent."""
     import taichi as ti
 
-    from ti_fusion.frontend import clock_first_launches, fast_class_check, fast_launches, memoize_source_positions
+    from ti_fusion.frontend import clock_first_launches, fast_class_check, memoize_source_positions
+    from ti_fusion.launches import fast_launches
 
     memoize_source_positions()
     fast_class_check()

@@ -353,8 +353,8 @@ class Batch:
 
     def _record(self, job: Job, **fields) -> dict:
         rec = {"job": job.name, "input": job.input, "variant": job.variant, "args": list(job.args),
-               "threads": job.threads, "taichi_threads": self.taichi_threads(job), "gpus": job.gpus, "status": results.FAILED, "exit_code": None,
-               "error": "", "wall_s": None, "summary": None,
+               "threads": job.threads, "taichi_threads": self.taichi_threads(job), "gpus": job.gpus,
+               "status": results.FAILED, "exit_code": None, "error": "", "wall_s": None, "summary": None,
                "finished": datetime.now().isoformat(timespec="seconds")}
         rec.update(fields)
         results.write_record(self.folder, rec)

@@ -10,9 +10,7 @@ threads share the interpreter with the loop's thread). Started as the run starts
 Matplotlib on the other core while the loop's thread loads its first kernels, and draws beside the other
 outputs at the end (docs/PERFORMANCE.md).
 
-How it starts: a fresh interpreter (``sys.executable -c``), as the frame readers (``io.frame_workers``): not
-multiprocessing's ``fork`` (Taichi's threads), nor ``spawn``/``forkserver`` (they run the caller's
-``__main__`` again). It runs in a session of its own (the terminal's Ctrl-C is the caller's to handle), takes
+How it starts: as the frame readers, ``io.frame_workers.fresh_interpreter`` (which says why), and takes
 the plot's arguments pickled on its stdin and answers one byte on its stdout. It ends when the caller closes
 its stdin without arguments, and when the caller is gone (its stdin then ends too). Anything that goes wrong
 there (the process gone, a failed draw) makes ``plot`` answer False, and the caller draws the figure itself,
@@ -39,13 +37,13 @@ class PlotProcess:
     @classmethod
     def start(cls) -> "PlotProcess | None":
         """The process, starting; None where none can start here (the caller then draws in-process)."""
+        from ti_fusion.io.frame_workers import fresh_interpreter
+
         if not sys.executable:
             return None
-        code = (f"import sys; sys.path[:] = {sys.path!r}; "
-                f"from ti_fusion.evaluation.plot_process import _main; _main()")
         try:
-            proc = subprocess.Popen([sys.executable, "-c", code], stdin=subprocess.PIPE, stdout=subprocess.PIPE,
-                                    stderr=subprocess.DEVNULL, close_fds=True, start_new_session=True)
+            proc = fresh_interpreter(__name__, "_main()", stdin=subprocess.PIPE, stdout=subprocess.PIPE,
+                                     stderr=subprocess.DEVNULL)
         except OSError:
             return None
         return cls(proc)

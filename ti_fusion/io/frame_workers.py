@@ -53,6 +53,15 @@ _STOP_WAIT_S = 5.0  # how long a stopping worker may take to finish its frame be
 _WORKER_ENV = {"TI_FUSION_ARCH": "cpu", "TI_FUSION_PIN_THREADS": "0"}
 
 
+def fresh_interpreter(module: str, call: str, **popen) -> subprocess.Popen:
+    """``from module import ...; call`` in a fresh interpreter of this Python with this process's
+    ``sys.path``, in a session of its own (module docstring: why not multiprocessing, why a session);
+    ``popen``: the rest of ``subprocess.Popen``'s arguments (its pipes, descriptors and environment)."""
+    name = call.split("(", 1)[0]
+    code = f"import sys; sys.path[:] = {sys.path!r}; from {module} import {name}; {call}"
+    return subprocess.Popen([sys.executable, "-c", code], close_fds=True, start_new_session=True, **popen)
+
+
 class ReaderDied(TiFusionError):
     """A frame reader process ended while the run waited for its frame."""
 
@@ -102,11 +111,9 @@ class WorkerPool:
     def _start(self, payload: bytes) -> None:
         ours, theirs = socket.socketpair()
         try:
-            code = (f"import sys; sys.path[:] = {sys.path!r}; "
-                    f"from ti_fusion.io.frame_workers import _main; _main({theirs.fileno()}, {self._fd})")
-            proc = subprocess.Popen([sys.executable, "-c", code], pass_fds=(theirs.fileno(), self._fd),
-                                    stdin=subprocess.DEVNULL, close_fds=True, start_new_session=True,
-                                    env={**os.environ, **_WORKER_ENV})
+            proc = fresh_interpreter(__name__, f"_main({theirs.fileno()}, {self._fd})",
+                                     pass_fds=(theirs.fileno(), self._fd), stdin=subprocess.DEVNULL,
+                                     env={**os.environ, **_WORKER_ENV})
         except BaseException:
             ours.close()
             raise

@@ -62,6 +62,14 @@ def _pyrealsense2():
     return rs
 
 
+def _stop_pipeline(pipe, playback) -> None:
+    """Stop the streams; a playback goes back to real time first, so that the SDK's reader is not blocked on a
+    full queue while the pipeline stops (librealsense's non-real-time stop can hang or abort)."""
+    if playback is not None:
+        playback.set_real_time(True)
+    pipe.stop()
+
+
 class RealSenseCamera(Dataset):
     """Frames from a RealSense device (or the SDK's playback of a recording) as a Dataset."""
 
@@ -98,13 +106,14 @@ class RealSenseCamera(Dataset):
             cfg.enable_stream(rs.stream.color, WIDTH, HEIGHT, rs.format.rgb8, FPS)
         self._pipe = rs.pipeline()
         try:
-            profile = self._pipe.start(cfg)
+            if recording is not None:  # every recorded frame, as fast as the run takes them, from the first one
+                cfg.resolve(rs.pipeline_wrapper(self._pipe)).get_device().as_playback().set_real_time(False)
+            profile = self._pipe.start(cfg)  # starts the device the config resolved (it keeps it)
         except RuntimeError as exc:
             raise InputError(None, f"--camera {spec}: the camera's streams cannot be started: {exc}") from None
-        self._stop = weakref.finalize(self, self._pipe.stop)
         device = profile.get_device()
-        if recording is not None:
-            device.as_playback().set_real_time(False)  # every recorded frame, as fast as the run takes them
+        self._stop = weakref.finalize(self, _stop_pipeline, self._pipe,
+                                      device.as_playback() if recording is not None else None)
         self.device_name = device.get_info(rs.camera_info.name)
         where = "the recording played back by pyrealsense2" if recording else f"the device ({self.device_name})"
         units = device.first_depth_sensor().get_depth_scale()  # metres per depth unit

@@ -75,3 +75,30 @@ def test_pose_error():
     rot, trans = g.pose_error(A, np.eye(4))
     assert rot == pytest.approx(3.0)
     assert trans == pytest.approx(np.linalg.norm(A[:3, 3]))
+
+
+def test_fast_paths_give_numpys_bits(rng):
+    """orthonormalize, se3_log, the norms and rigidity_error's last-row test call NumPy's gufuncs without the
+    wrappers: the same bits as np.linalg.svd / det / solve / norm and np.allclose give."""
+    for _ in range(200):
+        xi = rng.normal(size=6) * 10.0 ** rng.uniform(-9, 0.4)
+        T = g.se3_exp(xi)
+        T[:3, :3] += rng.normal(scale=1e-6, size=(3, 3))
+        R = T[:3, :3]
+        U, _, Vt = np.linalg.svd(R)
+        expected = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+        assert g.orthonormalize(R).tobytes() == expected.tobytes()
+        w = g.so3_log(R)
+        assert g.se3_log(T)[3:].tobytes() == np.linalg.solve(g._left_jacobian(w), T[:3, 3]).tobytes()
+        assert g._norm(xi) == np.linalg.norm(xi) and g._norm(xi[::2]) == np.linalg.norm(xi[::2])
+    for value in (1e-6, 1.0001e-6, -1e-6, 2e-6):
+        row = np.array([0.0, value, 0.0, 1.0])
+        T = np.eye(4)
+        T[3] = row
+        assert (g.rigidity_error(T) is None) == np.allclose(row, [0, 0, 0, 1], atol=1e-6)
+    for value in (1 + 1.1e-5, 1 + 1.0999e-5, 1 - 1.1e-5, 1 - 1.2e-5):
+        T = np.eye(4)
+        T[3, 3] = value
+        assert (g.rigidity_error(T) is None) == np.allclose(T[3], [0, 0, 0, 1], atol=1e-6)
+    with pytest.raises(np.linalg.LinAlgError):  # NumPy's own path and error where the matrix is not finite
+        g.orthonormalize(np.full((3, 3), np.nan))

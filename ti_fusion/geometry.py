@@ -11,31 +11,56 @@ from __future__ import annotations
 
 import numpy as np
 
+try:  # the gufuncs behind np.linalg.svd, det and solve: the same LAPACK calls without their wrappers' Python
+    from numpy.linalg import _umath_linalg as _lapack
+
+    _svd_f, _det, _solve1 = _lapack.svd_f, _lapack.det, _lapack.solve1
+except (ImportError, AttributeError):  # pragma: no cover - another NumPy layout: the public functions
+    _svd_f = _det = _solve1 = None
+
 _EPS = 1e-10
+_I3 = np.eye(3)
+_D_KEEP, _D_FLIP = np.diag([1.0, 1.0, 1.0]), np.diag([1.0, 1.0, -1.0])  # orthonormalize's D for det ±1
+_I3.flags.writeable = _D_KEEP.flags.writeable = _D_FLIP.flags.writeable = False
+_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
 
 
 def hat(w: np.ndarray) -> np.ndarray:
     """The skew-symmetric matrix [w]× with [w]× x = w × x."""
-    wx, wy, wz = np.asarray(w, dtype=np.float64)
+    wx, wy, wz = np.asarray(w, dtype=np.float64).tolist()
     return np.array([[0.0, -wz, wy], [wz, 0.0, -wx], [-wy, wx, 0.0]])
+
+
+def _norm(w: np.ndarray):
+    """np.linalg.norm of a vector, as it computes a float64 one (the square root of the dot product of its
+    raveled copy), without the checks of its other cases."""
+    if w.ndim != 1 or w.dtype != np.float64:
+        return np.linalg.norm(w)
+    x = w.ravel(order="K")
+    return np.sqrt(x.dot(x))
 
 
 def so3_exp(w: np.ndarray) -> np.ndarray:
     """Rotation matrix of the axis-angle vector ``w`` (Rodrigues' formula)."""
     w = np.asarray(w, dtype=np.float64)
-    theta = np.linalg.norm(w)
+    theta = _norm(w)
     W = hat(w)
     if theta < 1e-8:
-        return np.eye(3) + W + 0.5 * W @ W
-    return np.eye(3) + np.sin(theta) / theta * W + (1.0 - np.cos(theta)) / theta**2 * W @ W
+        return _I3 + W + 0.5 * W @ W
+    return _I3 + np.sin(theta) / theta * W + (1.0 - np.cos(theta)) / theta**2 * W @ W
 
 
 def so3_log(R: np.ndarray) -> np.ndarray:
     """Axis-angle vector of a rotation matrix (inverse of so3_exp, angle in [0, π])."""
     R = np.asarray(R, dtype=np.float64)
-    cos_theta = np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0)
+    cos_theta = (R.trace() - 1.0) / 2.0
+    if cos_theta < -1.0:  # np.clip's result, NaN kept
+        cos_theta = np.float64(-1.0)
+    elif cos_theta > 1.0:
+        cos_theta = np.float64(1.0)
     theta = np.arccos(cos_theta)
-    vee = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    r = R.tolist()
+    vee = np.array([r[2][1] - r[1][2], r[0][2] - r[2][0], r[1][0] - r[0][1]])
     if theta < 1e-6:
         return 0.5 * vee
     if np.pi - theta < 1e-4:
@@ -52,12 +77,12 @@ def so3_log(R: np.ndarray) -> np.ndarray:
 
 
 def _left_jacobian(w: np.ndarray) -> np.ndarray:
-    theta = np.linalg.norm(w)
+    theta = _norm(w)
     W = hat(w)
     if theta < 1e-8:
-        return np.eye(3) + 0.5 * W + W @ W / 6.0
+        return _I3 + 0.5 * W + W @ W / 6.0
     return (
-        np.eye(3)
+        _I3
         + (1.0 - np.cos(theta)) / theta**2 * W
         + (theta - np.sin(theta)) / theta**3 * W @ W
     )
@@ -66,9 +91,16 @@ def _left_jacobian(w: np.ndarray) -> np.ndarray:
 def se3_exp(xi: np.ndarray) -> np.ndarray:
     """4×4 rigid transform of the twist ξ = (ω, v), rotation first. Exact, always rigid."""
     xi = np.asarray(xi, dtype=np.float64)
+    w = xi[:3]
+    theta, W = _norm(w), hat(w)  # so3_exp's and _left_jacobian's, computed once
     T = np.eye(4)
-    T[:3, :3] = so3_exp(xi[:3])
-    T[:3, 3] = _left_jacobian(xi[:3]) @ xi[3:]
+    if theta < 1e-8:
+        T[:3, :3] = _I3 + W + 0.5 * W @ W
+        T[:3, 3] = (_I3 + 0.5 * W + W @ W / 6.0) @ xi[3:]
+        return T
+    sin, cos = np.sin(theta), np.cos(theta)
+    T[:3, :3] = _I3 + sin / theta * W + (1.0 - cos) / theta**2 * W @ W
+    T[:3, 3] = (_I3 + (1.0 - cos) / theta**2 * W + (theta - sin) / theta**3 * W @ W) @ xi[3:]
     return T
 
 
@@ -76,7 +108,10 @@ def se3_log(T: np.ndarray) -> np.ndarray:
     """Twist ξ = (ω, v) of a rigid transform (inverse of se3_exp)."""
     T = np.asarray(T, dtype=np.float64)
     w = so3_log(T[:3, :3])
-    v = np.linalg.solve(_left_jacobian(w), T[:3, 3])
+    J = _left_jacobian(w)
+    # np.linalg.solve's gufunc where J is finite (then regular: |ω| ≤ π); the wrapper's errors for the others
+    v = _solve1(J, T[:3, 3], signature="dd->d") if _solve1 is not None and np.isfinite(J).all() else \
+        np.linalg.solve(J, T[:3, 3])
     return np.concatenate([w, v])
 
 
@@ -101,14 +136,26 @@ def unflatten_pose(p12: np.ndarray) -> np.ndarray:
 
 def invert(T: np.ndarray) -> np.ndarray:
     """Inverse of a rigid transform, using Rᵀ rather than a general inverse."""
-    R, t = T[:3, :3], T[:3, 3]
-    return make_pose(R.T, -R.T @ t)
+    Rt = T[:3, :3].T
+    out = np.empty((4, 4))
+    out[:3, :3] = Rt
+    out[:3, 3] = -Rt @ T[:3, 3]
+    out[3] = _LAST_ROW
+    return out
 
 
 def orthonormalize(R: np.ndarray) -> np.ndarray:
     """Nearest rotation matrix (SVD projection onto SO(3))."""
-    U, _, Vt = np.linalg.svd(np.asarray(R, dtype=np.float64))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = np.asarray(R, dtype=np.float64)
+    # np.linalg.svd's and det's own gufuncs where the matrix is finite (the wrappers' error handling is for
+    # the others, which take them), a fifth of a pose update's host time
+    if _svd_f is not None and R.shape == (3, 3) and np.isfinite(R).all():
+        U, _, Vt = _svd_f(R, signature="d->ddd")
+        sign = np.sign(_det(U @ Vt, signature="d->d"))
+    else:
+        U, _, Vt = np.linalg.svd(R)
+        sign = np.sign(np.linalg.det(U @ Vt))
+    D = _D_KEEP if sign == 1.0 else _D_FLIP if sign == -1.0 else np.diag([1.0, 1.0, sign])
     return U @ D @ Vt
 
 
@@ -129,15 +176,16 @@ def rigidity_error(T: np.ndarray) -> str | None:
     T = np.asarray(T, dtype=np.float64)
     if T.shape != (4, 4):
         return f"expected a 4x4 matrix, got shape {T.shape}"
-    if not np.all(np.isfinite(T)):
+    if not np.isfinite(T).all():
         return "contains NaN or infinite values"
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+    a, b, c, d = T[3].tolist()  # np.allclose(T[3], [0, 0, 0, 1], atol=1e-6), its default rtol 1e-5, finite values
+    if not (abs(a) <= 1e-6 and abs(b) <= 1e-6 and abs(c) <= 1e-6 and abs(d - 1.0) <= 1e-6 + 1e-5):
         return f"last row is {T[3].tolist()}, not [0, 0, 0, 1]"
     R = T[:3, :3]
-    ortho = np.abs(R.T @ R - np.eye(3)).max()
+    ortho = np.abs(R.T @ R - _I3).max()
     if ortho > 1e-2:
         return f"rotation block is not orthonormal (|RᵀR - I| = {ortho:.3g})"
-    det = np.linalg.det(R)
+    det = _det(R, signature="d->d") if _det is not None else np.linalg.det(R)
     if det < 0:
         return f"rotation block is a reflection (det = {det:.3g})"
     return None
@@ -177,10 +225,10 @@ def rot_to_quat(R: np.ndarray) -> np.ndarray:
 
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a rotation matrix in degrees."""
-    return float(np.degrees(np.linalg.norm(so3_log(R))))
+    return float(np.degrees(_norm(so3_log(R))))
 
 
 def pose_error(T_est: np.ndarray, T_ref: np.ndarray) -> tuple[float, float]:
     """(rotation error in degrees, translation error in metres) of T_est against T_ref."""
     E = invert(T_ref) @ T_est
-    return rotation_angle_deg(E[:3, :3]), float(np.linalg.norm(T_est[:3, 3] - T_ref[:3, 3]))
+    return rotation_angle_deg(E[:3, :3]), float(_norm(T_est[:3, 3] - T_ref[:3, 3]))

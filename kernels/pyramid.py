@@ -55,7 +55,6 @@ from taichi.lang.util import in_taichi_scope
 from ti_fusion.backend import serial_for
 from ti_fusion.kernels.common import INT_MAX, data_oriented
 from ti_fusion.kernels.fusion import pack_color, pack_color_loop
-from ti_fusion.kernels.prediction import clear_holes_loop
 from ti_fusion.kernels.surfels import Pool
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import PyramidConfig
@@ -445,14 +444,9 @@ G_ROW0, G_H, G_W, G_FX, G_FY, G_CX, G_CY, G_JUMP, N_GEOMETRY = range(9)
 
 @ti.kernel
 def maps_levels(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
-                levels: ti.template(), first_maps: ti.i32, serial: ti.template(), holes: ti.template(),
-                with_holes: ti.template(), clear: ti.i32):
-    """``maps_levels_loops`` in one launch; with ``with_holes`` and ``clear`` = 1, then level 0 taken back to
-    the pixels a surfel projects to in the render ``holes`` (``prediction.clear_holes_loop``: the model's
-    maps are built from a render whose holes were filled)."""
+                levels: ti.template(), first_maps: ti.i32, serial: ti.template()):
+    """``maps_levels_loops`` in one launch."""
     maps_levels_loops(depth, vertex, normal, geometry, levels, first_maps, serial)
-    if ti.static(with_holes):
-        clear_holes_loop(holes, vertex, normal, depth, clear)
 
 
 @ti.kernel
@@ -719,7 +713,6 @@ class FramePyramid:
         self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
         self._geometry = None  # the levels' rows, sizes and intrinsics (G_* columns) for the maps' kernels
         self._geometry_for = None  # the intrinsics it holds
-        self._holes = None  # the renderer's images whose holes ``compute_from_field`` clears (model pyramids)
         # the frame's colour packed for the fusion step (``compute(..., color=...)``): per level, on first use
         self._color: dict[int, object] = {}
         self._color_source = None  # (weak reference to the image, level) the last ``compute`` packed, else None
@@ -907,32 +900,32 @@ class FramePyramid:
             depth = np.pad(depth, ((0, 0), (0, packs * LANES - W)))
         return depth.reshape(H, packs, LANES)
 
-    def compute_from_field(self, intrinsics: Intrinsics, level0_maps: bool = True, clear_holes_of=None) -> None:
+    def compute_from_field(self, intrinsics: Intrinsics, level0_maps: bool = True, level1_from=None) -> None:
         """Build every level from ``self.depth[0]`` already on the Taichi side (without level 0's vertex
         and normal maps when ``level0_maps`` is False: a renderer that writes them itself). No smoothing.
-        With ``clear_holes_of`` (the renderer's ``PredictionImages`` of level 0's size), then level 0 back to
-        the pixels a surfel projects to, in the same launch (``SurfelMapper.render_pyramid``). Pyramids built so
-        once pass those images to every later build too, with nothing cleared, so that the model's maps
-        and a depth uploaded into them (loop verification) share one compiled instance."""
+        With ``level1_from`` (a depth field of level 0's size: the render's ``filled_depth``), level 1 is
+        averaged down from it instead of from level 0 (``SurfelMapper.render_pyramid``)."""
         self._set_geometry(intrinsics)
-        if clear_holes_of is not None:
-            if (clear_holes_of.height, clear_holes_of.width) != tuple(self.shapes[0]):
-                raise ValueError(f"a render of {clear_holes_of.height}x{clear_holes_of.width} pixels for maps "
-                                 f"whose level 0 is {self.shapes[0][0]}x{self.shapes[0][1]}")
-            self._holes = clear_holes_of
-        self._levels_and_maps(0 if level0_maps else 1, int(clear_holes_of is not None))
+        if level1_from is not None and tuple(level1_from.shape) != tuple(self.shapes[0]):
+            raise ValueError(f"level 1 from a depth of {level1_from.shape[0]}x{level1_from.shape[1]} pixels for "
+                             f"maps whose level 0 is {self.shapes[0][0]}x{self.shapes[0][1]}")
+        self._levels_and_maps(0 if level0_maps else 1, level1_from)
 
-    def _levels_and_maps(self, first_maps: int, clear: int = 0) -> None:
-        """Every level's depth from level 0 (``pyramid_down``, a launch per level), then the vertex and normal
-        maps of levels ``first_maps`` and on, and with ``clear`` the holes of the render ``_holes`` taken back
-        (``maps_levels``). A launch per level rather than the levels' loops in one kernel, which compiled
-        slower (docs/PERFORMANCE.md, "Cold start")."""
-        stack, holes = self.depth[0].field, self._holes
+    def _levels_and_maps(self, first_maps: int, level1_from=None) -> None:
+        """Every level's depth from level 0 (``pyramid_down``, a launch per level; level 1 from ``level1_from``
+        when given), then the vertex and normal maps of levels ``first_maps`` and on (``maps_levels``). A
+        launch per level rather than the levels' loops in one kernel, which compiled slower
+        (docs/PERFORMANCE.md, "Cold start")."""
+        stack = self.depth[0].field
         for l in range(1, self.levels):
             h, w = self.shapes[l - 1]
-            pyramid_down(stack, self.row0[l - 1], h, w, stack, self.row0[l], self.max_depth_diff, False, self._serial)
+            if l == 1 and level1_from is not None:
+                pyramid_down(level1_from, 0, h, w, stack, self.row0[1], self.max_depth_diff, False, self._serial)
+            else:
+                pyramid_down(stack, self.row0[l - 1], h, w, stack, self.row0[l], self.max_depth_diff, False,
+                             self._serial)
         maps_levels(stack, self.vertex[0].field, self.normal[0].field, self._geometry, self.levels, first_maps,
-                    self._serial, stack if holes is None else holes, holes is not None, clear)
+                    self._serial)
 
     def _set_geometry(self, intrinsics: Intrinsics) -> None:
         """``intrinsics`` (of level 0) and the levels' rows and sizes into ``_geometry``, where they changed."""

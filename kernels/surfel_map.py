@@ -219,7 +219,7 @@ class SurfelMap(SurfelStore):
     # -- prediction -----------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics, out_vertex=None, out_normal=None, out_depth=None,
                min_weight: float = 0.0, max_half: int = 1, fill_half: int = 0,
-               min_time: int = -2**31) -> PredictionImages:
+               min_time: int = -2**31, holes_apart: bool = False) -> PredictionImages:
         """Predicted vertex / normal / depth maps in the camera frame of ``pose`` (zero = no surfel).
 
         Outputs are Taichi fields of shape (intrinsics.height, intrinsics.width), e.g. a FramePyramid' level
@@ -229,14 +229,20 @@ class SurfelMap(SurfelStore):
         on the pixel's ray, at the depth where the ray meets the disc. A pixel that no surfel projects to
         (a hole) takes the nearest disc its ray meets within max(``max_half``, ``fill_half``) pixels.
         Surfels last updated before frame ``min_time`` (inactive: ElasticFusion's time window) are left out.
+
+        With ``holes_apart`` (``max_half`` 0 and ``fill_half`` 1 only), the outputs keep the holes (what
+        ``clear_holes`` leaves) and the returned images' ``filled_depth`` has the filled depth, in the same
+        launch and for less than the fill alone costs (``prediction.splat_apart_loop``).
         """
+        if holes_apart and (max_half, fill_half) != (0, 1):
+            raise ValueError(f"holes_apart renders max_half 0 and fill_half 1, not {max_half} and {fill_half}")
         img = self.prediction_images(intrinsics.height, intrinsics.width)
         to_camera = self._pose(pose)[1]
         fx, fy, cx, cy = intrinsics.as_tuple()
         prediction.render(self.arrays, self.count, img, to_camera, fx, fy, cx, cy, float(min_weight), int(min_time),
                           int(max_half), int(fill_half), img.vertex if out_vertex is None else out_vertex,
                           img.normal if out_normal is None else out_normal,
-                          img.depth if out_depth is None else out_depth)
+                          img.depth if out_depth is None else out_depth, bool(holes_apart))
         self._projected = 0  # the projection scratch now holds the render's projection, not the fusion step's
         return img
 

@@ -619,6 +619,7 @@ def test_render_matches_reference(arch, rng):
         if half == 0 < fill:  # only holes change: a pixel with a surfel of its own keeps it
             own, own_z, _ = ref_render(data, pose, 0, 1.0)
             assert np.all(want_i[own >= 0] == own[own >= 0]) and (want_i >= 0).sum() > (own >= 0).sum()
+            filled = got_z.copy()
             # clear_holes takes the filled render back to the surfels' own pixels
             smap.clear_holes(K, out_v, out_n, out_d)
             got_i = img.view_index.to_numpy()
@@ -627,6 +628,17 @@ def test_render_matches_reference(arch, rng):
             assert same.mean() > 0.995 and np.all((out_d.to_numpy() > 0) == (got_i >= 0))
             assert np.all(out_v.to_numpy()[got_i < 0] == 0) and np.all(out_n.to_numpy()[got_i < 0] == 0)
             assert_close(out_d.to_numpy()[same], own_z[same], 1e-4)
+            if fill == 1:  # holes_apart: the cleared outputs and the filled depth in one render, bit for bit
+                cleared = [f.to_numpy() for f in (img.view_index, out_v, out_n, out_d)]
+                apart = smap.render(pose, K, out_v, out_n, out_d, min_weight=1.0, max_half=0, fill_half=1,
+                                    holes_apart=True)
+                for want, field in zip(cleared, (apart.view_index, out_v, out_n, out_d)):
+                    assert want.tobytes() == field.to_numpy().tobytes()
+                assert apart.filled_depth.to_numpy().tobytes() == filled.tobytes()
+                filled_i = want_i >= 0
+                assert_close(filled[filled_i & (got_i < 0)], want_z[filled_i & (got_i < 0)], 1e-4)
+                with pytest.raises(ValueError, match="holes_apart renders max_half 0 and fill_half 1, not 1 and 1"):
+                    smap.render(pose, K, max_half=1, fill_half=1, holes_apart=True)
     # the footprint makes discs cover more pixels than their points
     assert (want_i >= 0).sum() > (ref_render(data, pose, 0, 1.0)[0] >= 0).sum()
 
@@ -767,12 +779,11 @@ def test_render_maps_reproduces_the_fused_frame(cpu, rng):
     assert (predicted.depth[1].to_numpy() > 0).mean() > 0.9  # the pyramid was built from the rendering
 
 
-def test_model_maps_clear_the_holes_in_their_own_launch(arch, rng):
-    """``render_pyramid`` builds the model's levels from the filled render and takes level 0 back to the
-    surfels' own pixels in the maps' launch (``maps_levels`` with the render's images): the same maps, bit for
-    bit, as the render, the pyramid and ``clear_holes`` launched one after the other. A depth uploaded into
-    those maps later (loop verification's keyframes) is built by the same compiled instance and keeps
-    every pixel."""
+def test_model_maps_take_level_1_from_the_filled_render(arch, rng):
+    """``render_pyramid`` renders level 0 with the surfels' own pixels and the filled depth apart, and averages
+    level 1 down from the filled depth: the same maps, bit for bit, as the filled render, the pyramid built
+    from it and ``clear_holes`` launched one after the other. A depth uploaded into those maps later (loop
+    verification's keyframes) is built by the same compiled instance of the maps and keeps every pixel."""
     from ti_fusion.kernels import pyramid as pyramid_kernels
     from ti_fusion.mapping.mapper import FILL_HALF
 
@@ -780,26 +791,28 @@ def test_model_maps_clear_the_holes_in_their_own_launch(arch, rng):
     data["radius"] = rng.uniform(0.0, 0.05, len(data["radius"])).astype(np.float32)  # small discs: holes
     mapper = SurfelMapper(FusionConfig(capacity=4096))
     mapper.map.from_numpy(data)
-    one = FramePyramid(RAW, H, W, levels=2)
+    one = FramePyramid(RAW, H, W, levels=3)
     mapper.render_pyramid(one, pose, K)
-    two = FramePyramid(RAW, H, W, levels=2)
+    two = FramePyramid(RAW, H, W, levels=3)
     level0 = two.vertex[0], two.normal[0], two.depth[0]
     mapper.map.render(pose, K, *level0, mapper.config.render_min_weight, 0, FILL_HALF)
     two.compute_from_field(K, level0_maps=False)
     mapper.map.clear_holes(K, *level0)
     for name in ("depth", "vertex", "normal"):
-        for level in range(2):
+        for level in range(3):
             np.testing.assert_array_equal(getattr(one, name)[level].to_numpy(), getattr(two, name)[level].to_numpy())
     holes = one.depth[0].to_numpy() == 0
-    assert holes.any() and (one.depth[1].to_numpy() > 0).any()
+    assert holes.any() and ((one.depth[1].to_numpy() > 0) & holes[::2, ::2]).any()  # level 1 from the filled depth
     instances = len(pyramid_kernels.maps_levels._primal.compiled_kernels)
     one.depth[0].from_numpy(np.full((H, W), 1.5, np.float32))
     one.compute_from_field(K)  # as loop verification's ``fill``
     assert len(pyramid_kernels.maps_levels._primal.compiled_kernels) == instances
     assert np.all(one.depth[0].to_numpy() == 1.5) and np.all(one.normal[0].to_numpy()[1:-1, 1:-1, 2] != 0)
+    assert np.all(one.depth[1].to_numpy() == 1.5)
     small = FramePyramid(RAW, H // 2, W // 2, levels=1)
-    with pytest.raises(ValueError, match="a render of 72x70 pixels for maps whose level 0 is 36x35"):
-        small.compute_from_field(K.downsampled(2), level0_maps=False, clear_holes_of=mapper.map.prediction_images(H, W))
+    with pytest.raises(ValueError, match="level 1 from a depth of 72x70 pixels for maps whose level 0 is 36x35"):
+        small.compute_from_field(K.downsampled(2), level0_maps=False,
+                                 level1_from=mapper.map.prediction_images(H, W).filled_depth)
 
 
 @pytest.mark.slow

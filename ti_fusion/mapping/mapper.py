@@ -30,7 +30,8 @@ from ti_fusion.timing import StageTimer, timed_stage
 STAGES = ("project", "merge", "add", "remove")
 # The prediction for tracking shows each surfel at its own pixel (a disc reaching a pixel further dilated occluding
 # edges and cost ATE), and builds its coarse levels from a render whose holes take the nearest disc within this
-# many pixels (without it they empty out walking forward; docs/BENCHMARKS.md, "Settled and removed settings").
+# many pixels (without it they empty out walking forward; docs/BENCHMARKS.md, "Settled and removed settings"). 1, or
+# 0 for no fill: the render's ``holes_apart`` takes 1 only.
 FILL_HALF = 1
 
 
@@ -146,7 +147,8 @@ class SurfelMapper:
         the photometric term).
 
         The pyramid is built from a render whose holes (pixels no surfel projects to) take a neighbour's
-        disc (``FILL_HALF``); level 0 then goes back to the surfels' own pixels. Why: surfels fused from afar
+        disc (``FILL_HALF``), while level 0 keeps the surfels' own pixels: the render writes both, the filled
+        depth apart (``holes_apart``), and level 1 is averaged down from that. Why: surfels fused from afar
         lie up to two pixels apart once the camera comes nearer (fusion adds none where a neighbour's disc
         covers the pixel), and a coarse pixel exists only where its centre fine pixel has depth, so the coarse
         levels emptied (tracking lost on the synthetic corridor loop); filled at level 0 too, the synthetic
@@ -154,8 +156,9 @@ class SurfelMapper:
         if min_weight is None:
             min_weight = self.config.render_min_weight
         level0 = frame_pyramid.vertex[0], frame_pyramid.normal[0], frame_pyramid.depth[0]
-        img = self.map.render(pose, intrinsics, *level0, min_weight, 0, FILL_HALF, min_time)
-        frame_pyramid.compute_from_field(intrinsics, level0_maps=False, clear_holes_of=img if FILL_HALF > 0 else None)
+        apart = FILL_HALF > 0
+        img = self.map.render(pose, intrinsics, *level0, min_weight, 0, FILL_HALF, min_time, holes_apart=apart)
+        frame_pyramid.compute_from_field(intrinsics, level0_maps=False, level1_from=img.filled_depth if apart else None)
         if intensity:
             frame_pyramid.intensity_from_surfels(img.view_index, self.map.arrays.color)  # the render's view
 

@@ -27,7 +27,8 @@ peak memory and the cores to itself (apart from other users of the machine). Col
   quarter between runs here, through the caches it shares with them);
 - ``read wait``: the share of ti-fusion's loop spent waiting for the next frame (the ``load`` stage after
   the first two frames, over the loop's wall-clock time).
-ti-fusion is the ``ti-fusion slam`` command itself (every output written), run in the child, with ``--set``
+ti-fusion is the ``ti-fusion slam`` command itself (every output written; the child ends as the command does,
+``end_process``), run in the child, with ``--set``
 passed on to it (e.g. ``--set slam.loop_closure=false`` where GTSAM is not installed). ``--cold``
 adds a run of it with an empty Taichi kernel cache (a fresh TI_OFFLINE_CACHE_FILE_PATH), and the next
 ti-fusion run reads that cache (warm, and independent of the user's cache, which holds other versions of
@@ -301,6 +302,10 @@ def main() -> int:
         workers = {"open3d": run_open3d, "opencv": run_opencv,
                    "ti-fusion": run_ti_fusion, "ti-fusion-cold": lambda a: run_ti_fusion(a, cold=True)}
         print("RESULT " + json.dumps(workers[args.worker](args)), flush=True)
+        if args.worker.startswith("ti-fusion"):  # the process ends as the ti-fusion command's does
+            from ti_fusion.cli.main import end_process
+
+            end_process(0)
         return 0
 
     systems = args.systems.split(",")

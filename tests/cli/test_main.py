@@ -493,3 +493,51 @@ def test_a_command_builds_only_its_own_parser():
     parsers = [build_parser(only)[0] for only in (None, "slam")]
     assert vars(parsers[0].parse_args(argv)) == vars(parsers[1].parse_args(argv))
     assert set(build_parser("slam")[1]) == {"slam"} and "batch" in build_parser()[1]
+
+
+# --------------------------------------------------------------------------------------------------
+# The command's end: end_process
+# --------------------------------------------------------------------------------------------------
+_ENDS = """
+import atexit, sys, threading, time
+from ti_fusion.cli.main import end_process
+atexit.register(lambda: print("atexit ran", flush=False))
+print("buffered", end=" ")
+if sys.argv[1] == "thread":  # a thread the interpreter waits for: the usual exit, after it
+    threading.Thread(target=lambda: (time.sleep(0.5), print("thread done", end=" "))).start()
+end_process(int(sys.argv[2]))
+print("not reached")
+"""
+
+
+@pytest.mark.parametrize("case", ["plain", "thread"])
+def test_end_process_runs_the_atexit_handlers_flushes_and_keeps_the_code(case):
+    proc = subprocess.run([sys.executable, "-c", _ENDS, case, "3"], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 3, proc.stderr[-2000:]
+    want = "buffered thread done atexit ran" if case == "thread" else "buffered atexit ran"
+    assert proc.stdout.strip() == want and "not reached" not in proc.stdout
+
+
+def test_end_process_writes_the_kernels_compiled_into_the_offline_cache(tmp_path):
+    """os._exit skips the interpreter's teardown, where Taichi writes what it compiled: end_process resets Taichi
+    first, so a second process loads the kernel instead of compiling it."""
+    script = """
+import sys, time
+import taichi as ti
+from ti_fusion.cli.main import end_process
+ti.init(arch=ti.cpu, offline_cache=True, offline_cache_file_path=sys.argv[1], log_level=ti.ERROR)
+x = ti.field(ti.f32, shape=8)
+@ti.kernel
+def fill(v: ti.f32):
+    for i in x:
+        x[i] = v * i + 0.25
+fill(2.0)
+assert x[3] == 6.25
+end_process(0)
+"""
+    cache, path = tmp_path / "cache", tmp_path / "kernel.py"  # (Taichi reads a kernel's source from its file)
+    path.write_text(script)
+    for _ in range(2):
+        proc = subprocess.run([sys.executable, str(path), str(cache)], capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+        assert list(cache.glob("*.tic")) and (cache / "ticache.tcb").is_file()

@@ -1,5 +1,5 @@
 """The ``ti-fusion`` command line: ``main`` parses and dispatches; one module per sub-command."""
 
-from ti_fusion.cli.main import main
+from ti_fusion.cli.main import command, main
 
-__all__ = ["main"]
+__all__ = ["command", "main"]

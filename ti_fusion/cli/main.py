@@ -361,6 +361,35 @@ def main(argv: list[str] | None = None) -> int:
         return _run(args, modules[args.command])
 
 
+def command() -> None:
+    """The ``ti-fusion`` command and ``python -m ti_fusion``: ``main()``, then ``end_process`` with its code."""
+    end_process(main())
+
+
+def end_process(code: int) -> None:
+    """End the process with exit status ``code`` as ``sys.exit`` would, less the interpreter's teardown of every
+    module and object (0.1–0.7 s after a run; docs/PERFORMANCE.md): the atexit handlers run, Taichi is reset
+    (which writes the kernels this process compiled into the offline cache, as its teardown would) and stdout and
+    stderr are flushed, then ``os._exit``. Where the interpreter would still wait for another thread, or a flush
+    fails (a reader that went away), ``sys.exit`` ends it the usual way. For the command line only: a caller's
+    own process (a notebook, a test) is not to be ended."""
+    if any(t is not threading.main_thread() and not t.daemon and t.is_alive() for t in threading.enumerate()):
+        sys.exit(code)
+    import atexit
+
+    atexit._run_exitfuncs()  # (what the interpreter runs first at its exit; it clears them: none runs twice)
+    taichi = sys.modules.get("taichi")
+    if taichi is not None and taichi.lang.impl.get_runtime().prog is not None:
+        taichi.reset()
+    try:
+        for stream in (sys.stdout, sys.stderr):
+            if stream is not None:
+                stream.flush()
+    except (OSError, ValueError):
+        sys.exit(code)
+    os._exit(code if isinstance(code, int) else 1)
+
+
 def _write_partial_summary(command: str, out: RunDir | None, exc: TiFusionError) -> None:
     """summary.json of the frames a run did before ``exc`` (which carries them as ``partial_summary``), with
     the error's line; nothing when the run did no frame or the summary cannot be written."""
@@ -454,4 +483,4 @@ def _run(args: argparse.Namespace, module: ModuleType) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    command()

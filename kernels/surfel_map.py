@@ -255,6 +255,14 @@ class SurfelMap(SurfelStore):
     def render_image(self, pose: np.ndarray, intrinsics, by_normal: bool = False, min_weight: float = 0.0,
                      max_half: int = 3, background=(0.12, 0.12, 0.12)) -> np.ndarray:
         """uint8 RGB view of the map from ``pose``: surfel colours, or world normals as (n + 1) / 2."""
+        return self.render_images(pose, intrinsics, (by_normal,), min_weight, max_half, background)[0]
+
+    def render_images(self, pose: np.ndarray, intrinsics, by_normal=(False, True), min_weight: float = 0.0,
+                      max_half: int = 3, background=(0.12, 0.12, 0.12)) -> list[np.ndarray]:
+        """``render_image`` for each of ``by_normal``, from one render (the shading reads only its index map)."""
         img = self.render(pose, intrinsics, min_weight=min_weight, max_half=max_half)
-        prediction.shade(self.arrays, img, int(by_normal), np.asarray(background, dtype=np.float32))
-        return (np.clip(img.image.to_numpy(), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+        out = []
+        for normal in by_normal:
+            prediction.shade(self.arrays, img, int(normal), np.asarray(background, dtype=np.float32))
+            out.append((np.clip(img.image.to_numpy(), 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8))
+        return out

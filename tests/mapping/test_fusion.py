@@ -667,6 +667,9 @@ def test_render_image_colors(arch, rng):
     np.testing.assert_allclose(rgb[hit], np.rint(data["color"][idx[hit]]), atol=1)
     np.testing.assert_allclose(nrm[hit], np.rint((data["normal"][idx[hit]] + 1) / 2 * 255), atol=1)
     assert np.all(rgb[~hit] == round(0.12 * 255))
+    both = smap.render_images(pose, K, (False, True, False), max_half=1)  # one render, shaded three times
+    for got, want in zip(both, (rgb, nrm, rgb)):
+        np.testing.assert_array_equal(got, want)
 
 
 # -- the pipeline (cpu) ----------------------------------------------------------------------------------

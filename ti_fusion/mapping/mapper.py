@@ -166,6 +166,10 @@ class SurfelMapper:
         """uint8 RGB view of the map from ``pose`` (surfel colour, or world normal as (n + 1) / 2)."""
         return self.map.render_image(pose, intrinsics, by_normal)
 
+    def render_images(self, pose: np.ndarray, intrinsics: Intrinsics, by_normal=(False, True)) -> list[np.ndarray]:
+        """``render_image`` for each of ``by_normal``, from one render of the map."""
+        return self.map.render_images(pose, intrinsics, by_normal)
+
     # -- export --------------------------------------------------------------------------------------------
     def to_numpy(self) -> dict[str, np.ndarray]:
         return self.map.to_numpy()

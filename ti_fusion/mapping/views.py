@@ -28,15 +28,20 @@ def save_views(surfel_map, pose: np.ndarray, out_dir: str | Path, prefix: str = 
                intrinsics: Intrinsics = VIEW_INTRINSICS, later=None) -> dict[str, Path]:
     """Write ``<prefix>_color.png`` and ``<prefix>_normals.png`` of ``surfel_map`` seen from ``pose``.
 
-    ``surfel_map`` is a ``SurfelMap`` (or anything with its ``render_image(pose, intrinsics, by_normal)``).
+    ``surfel_map`` is a ``SurfelMap`` (or anything with its ``render_image(pose, intrinsics, by_normal)``; its
+    ``render_images``, where it has one, renders both from one render).
     Each file is written whole or not at all (``OutputError`` naming it when it cannot be). ``later``: a
     function that runs a function elsewhere (``Pipeline.in_background``), given each image's encoding and
     writing (the views are rendered here; the paths returned are those the files will have).
     """
     out_dir = Path(out_dir)
     paths = {}
-    for name, by_normal in (("color", False), ("normals", True)):
-        rgb = surfel_map.render_image(pose, intrinsics, by_normal=by_normal)
+    kinds = (("color", False), ("normals", True))
+    if hasattr(surfel_map, "render_images"):  # both from one render
+        images = surfel_map.render_images(pose, intrinsics, tuple(by_normal for _, by_normal in kinds))
+    else:
+        images = [surfel_map.render_image(pose, intrinsics, by_normal=by_normal) for _, by_normal in kinds]
+    for (name, _), rgb in zip(kinds, images):
         paths[name] = path = out_dir / f"{prefix}_{name}.png"
         write = lambda path=path, rgb=rgb: write_image(path, cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
         write() if later is None else later(write)

@@ -9,7 +9,7 @@ import pytest
 
 from ti_fusion.config import Config
 from ti_fusion.geometry import invert, pose_error
-from ti_fusion.loop.place_recognition import FIRST_VOCABULARY, PlaceDatabase, k_majority, precheck
+from ti_fusion.loop.place_recognition import FIRST_VOCABULARY, PlaceDatabase, k_majority, pairwise_distances, precheck
 from ti_fusion.loop.verification import LoopVerifier
 from tests.conftest import _use
 from tests.loop.scenes import HEIGHT, WIDTH, keyframe, moved, sequence, view
@@ -201,3 +201,15 @@ def fill_target(target, keyframe) -> None:
     from ti_fusion.loop.verification import fill
 
     fill(target, keyframe)
+
+
+@pytest.mark.parametrize("n", [2, 3, 7, 8, 33, 300])
+def test_pairwise_distances_are_numpys_norm_bit_for_bit(n):
+    rng = np.random.default_rng(n)
+    for scale in (1e-3, 1.0, 1e8):
+        p = rng.normal(size=(n, 3)) * scale * 10.0 ** rng.uniform(-3, 3, size=(n, 1))
+        p[0] = (scale * 1e8, 0.5, 0.5)  # where the order of the three squares' sum shows
+        expected = np.linalg.norm(p[:, None] - p[None], axis=2)
+        assert pairwise_distances(p).tobytes() == expected.tobytes()
+        p32 = p.astype(np.float32)
+        assert pairwise_distances(p32).tobytes() == np.linalg.norm(p32[:, None] - p32[None], axis=2).tobytes()

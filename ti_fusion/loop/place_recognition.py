@@ -187,6 +187,22 @@ class PlaceDatabase:
         return votes / len(q)
 
 
+def pairwise_distances(p: np.ndarray) -> np.ndarray:
+    """``np.linalg.norm(p[:, None] - p[None], axis=2)`` bit for bit (each coordinate's squared difference, added x, y,
+    z in that order, as its reduction over the axis of three adds them), a tenth of its time: that reduction over
+    an axis of three elements is most of a verification's pre-check."""
+    d = None
+    for k in range(p.shape[1]):
+        c = p[:, k]
+        diff = c[:, None] - c[None]
+        diff *= diff
+        if d is None:
+            d = diff
+        else:
+            d += diff
+    return np.sqrt(d, out=d)
+
+
 def precheck(a: Keyframe, b: Keyframe, vo: VOConfig, tolerance_m: float) -> int:
     """The size of the largest group of good ORB matches between ``a`` and ``b`` (both lifted to 3D) whose
     pairwise distances agree within ``tolerance_m``, as the best match's count of agreeing partners plus
@@ -201,8 +217,7 @@ def precheck(a: Keyframe, b: Keyframe, vo: VOConfig, tolerance_m: float) -> int:
     pa, pb = pa[ok][:PRECHECK_MATCHES], pb[ok][:PRECHECK_MATCHES]
     if len(pa) < 2:
         return int(len(pa))
-    da = np.linalg.norm(pa[:, None] - pa[None], axis=2)
-    db = np.linalg.norm(pb[:, None] - pb[None], axis=2)
+    da, db = pairwise_distances(pa), pairwise_distances(pb)
     agree = np.abs(da - db) < tolerance_m
     best = int(np.argmax(agree.sum(axis=1)))
     group = np.flatnonzero(agree[best])

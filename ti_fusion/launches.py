@@ -160,6 +160,18 @@ def fast_launches() -> bool:
                     setter(index + (k,), cast(x))
         return ctx
 
+    def materialized(runtime) -> bool:
+        """Whether ``runtime.materialize()`` would do nothing: no field, gradient or matrix field made since its
+        last call (it empties those lists), no fields builder left unfinalised but the root's, and the root
+        finalised or still empty. Its checks then cost a launch a few microseconds for nothing."""
+        try:
+            fb = impl._root_fb
+            return (runtime.materialized and (fb.finalized or fb.empty) and not runtime.global_vars
+                    and not runtime.grad_vars and not runtime.dual_vars and not runtime.matrix_fields
+                    and all(b is fb for b in runtime.unfinalized_fields_builder))
+        except Exception:  # Taichi not initialised, or another layout: its own materialize decides
+            return False
+
     def __call__(self, *args, **kwargs):
         runtime = self.runtime
         if (kwargs or self.autodiff_mode != none_mode or runtime.fwd_mode_manager or runtime.target_tape
@@ -191,7 +203,8 @@ def fast_launches() -> bool:
                     plans.clear()
                 plans[key] = _Plan(instance_key, t_kernel, refs)
             return result
-        runtime.materialize()  # as Taichi's path: fields made since the last launch get their tree now
+        if not materialized(runtime):
+            runtime.materialize()  # as Taichi's path: fields made since the last launch get their tree now
         ctx = set_args(spec, plan.t_kernel, args)
         if ctx is None:
             return original(self, *args)

@@ -96,6 +96,44 @@ def test_source_lines_are_kept_per_function(cpu):
     assert x.to_numpy().tolist() == [1.5, 2.5]
 
 
+def test_the_wrapping_answers_as_textwrap():
+    """MemoWrapper(width=80).wrap equals TextWrapper's on every line of this project's and Taichi's sources and
+    on the caret lines the front end builds under them (every start and length, padded to the line), on blank,
+    tabbed, non-ASCII and long texts, asked twice (the memo's answer too)."""
+    import textwrap
+    from pathlib import Path
+
+    from ti_fusion.frontend import MemoWrapper
+
+    root = Path(__file__).resolve().parents[1]
+    files = [*root.glob("ti_fusion/**/*.py"), *root.glob("kernels/*.py"), *Path(ti.__file__).parent.glob("lang/**/*.py")]
+    lines = {line for path in files for line in path.read_text().splitlines()}
+    texts = set(lines) | {"", " ", " " * 81, "\t x", "a\tb", "é" * 10, "x" * 81, "a-b " * 30, "  ^", "^" * 90}
+    for line in sorted(lines)[::7]:
+        for start in range(0, len(line) + 1, 5):
+            for n in (1, 3, 17, len(line) - start):
+                texts.add((" " * start + "^" * n).ljust(len(line)))
+    ours, theirs = MemoWrapper(width=80), textwrap.TextWrapper(width=80)
+    for text in sorted(texts):
+        want = theirs.wrap(text)
+        assert ours.wrap(text) == want and ours.wrap(text) == want, repr(text)
+    assert len(texts) > 10000
+
+
+def test_the_front_ends_fill_and_dedent_are_textwraps(cpu):
+    import textwrap
+
+    from taichi.lang import kernel_impl
+
+    assert memoize_source_positions()
+    shim = kernel_impl.textwrap
+    assert shim is not textwrap and shim.TextWrapper is textwrap.TextWrapper
+    for text in ("  a\tb  ", "\t\tx = 1", "", "    def f():\n        return 1\n"):
+        for _ in range(2):
+            assert shim.fill(text, tabsize=4, width=9999) == textwrap.fill(text, tabsize=4, width=9999)
+            assert shim.dedent(text) == textwrap.dedent(text)
+
+
 # --------------------------------------------------------------------------------------------------
 # The kernels' first launches timed, and the terminal told when kernels compile
 # --------------------------------------------------------------------------------------------------

@@ -13,6 +13,8 @@ file's text) again for every instance; ``memoize_source_positions`` keeps them p
 
 from __future__ import annotations
 
+import textwrap as _textwrap
+
 _installed = False
 
 
@@ -46,8 +48,74 @@ def memoize_source_positions() -> bool:
     get_pos_info.__wrapped__ = original
     context.get_pos_info = get_pos_info
     _memoize_source_lines()
+    _memoize_wrapping(utils)
     _installed = True
     return True
+
+
+def _memoize_wrapping(utils) -> None:
+    """The position text's ``TextWrapper(width=80).wrap`` of a source line and of its caret line (about 22,000
+    calls in a run for about 8,000 different texts; most lines of this project are longer than 80 columns), and
+    the front end's ``textwrap.fill`` and ``dedent`` of each function's source lines for every instance, answered
+    from memos of those pure functions of their text: the same strings, once each."""
+    import types
+
+    textwrap = _textwrap
+    if getattr(utils, "TextWrapper", None) is textwrap.TextWrapper:
+        utils.TextWrapper = MemoWrapper
+    try:
+        from taichi.lang import kernel_impl
+    except ImportError:
+        return
+    if getattr(kernel_impl, "textwrap", None) is textwrap:
+        fills: dict = {}
+        dedents: dict = {}
+
+        def fill(text, **options):
+            key = (text, tuple(sorted(options.items())))
+            out = fills.get(key)
+            if out is None:
+                out = fills[key] = textwrap.fill(text, **options)
+            return out
+
+        def dedent(text):
+            out = dedents.get(text)
+            if out is None:
+                out = dedents[text] = textwrap.dedent(text)
+            return out
+
+        shim = types.ModuleType("textwrap")  # textwrap itself, but for these two
+        shim.__dict__.update(textwrap.__dict__)
+        shim.fill, shim.dedent = fill, dedent
+        kernel_impl.textwrap = shim
+
+
+_PRINTABLE_ASCII = frozenset(map(chr, range(0x20, 0x7F)))
+
+
+class MemoWrapper(_textwrap.TextWrapper):
+    """``TextWrapper`` whose ``wrap`` keeps its answer per (width, text) when made with the width alone (as the
+    front end makes it). A printable ASCII text no longer than the width is not split: its lines are the text
+    without its trailing spaces, or none when it is blank (``TextWrapper``'s rule there, checked in the tests
+    against it on every line of the sources)."""
+
+    _memo: dict = {}
+
+    def __init__(self, width: int = 70, **options):
+        super().__init__(width, **options)
+        self._plain = not options
+
+    def wrap(self, text):
+        if not self._plain:
+            return super().wrap(text)
+        if len(text) <= self.width and _PRINTABLE_ASCII.issuperset(text):
+            text = text.rstrip(" ")
+            return [text] if text.strip(" ") else []
+        key = (self.width, text)
+        lines = self._memo.get(key)
+        if lines is None:
+            lines = self._memo[key] = tuple(super().wrap(text))
+        return list(lines)
 
 
 def _memoize_source_lines() -> None:

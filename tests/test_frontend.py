@@ -304,3 +304,28 @@ def test_the_class_check_answers_as_taichis(monkeypatch):
     assert answers[:4] == [(True, True), (True, True), (False, False), (False, False)]
     assert len(answers) > 10 and all(mine == theirs for mine, theirs in answers)
     assert Owner.method._is_classkernel and not plain._is_classkernel
+
+
+def test_the_class_check_is_in_place_while_taichi_is_imported(tmp_path):
+    """Importing ti_fusion before Taichi installs the cheap check as Taichi's kernel_impl is loaded, so that
+    Taichi's own decorators use it, and the finder that did it is gone afterwards."""
+    import subprocess
+    import sys
+
+    code = ("import sys, ti_fusion\n"
+            "assert 'taichi' not in sys.modules\n"
+            "from taichi.lang import kernel_impl\n"
+            "assert hasattr(kernel_impl._inside_class, '__wrapped__')\n"
+            "from ti_fusion.frontend import _ClassCheckFinder\n"
+            "assert not any(isinstance(f, _ClassCheckFinder) for f in sys.meta_path)\n"
+            "import taichi as ti\n"
+            "@ti.data_oriented\n"
+            "class A:\n"
+            "    @ti.kernel\n"
+            "    def k(self):\n"
+            "        pass\n"
+            "assert A.k._is_classkernel\n")
+    script = tmp_path / "script.py"  # (the class check reads the decorator's line from its file)
+    script.write_text(code)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]

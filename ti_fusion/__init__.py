@@ -38,3 +38,13 @@ def _ensure_home() -> None:
 
 
 _ensure_home()
+
+
+def _before_taichi() -> None:
+    """Taichi's decorators' class check made cheap before Taichi itself is imported (ti_fusion/frontend.py)."""
+    from ti_fusion.frontend import class_check_on_import
+
+    class_check_on_import()
+
+
+_before_taichi()

@@ -541,3 +541,13 @@ end_process(0)
         proc = subprocess.run([sys.executable, str(path), str(cache)], capture_output=True, text=True, timeout=300)
         assert proc.returncode == 0, proc.stderr[-2000:]
         assert list(cache.glob("*.tic")) and (cache / "ticache.tcb").is_file()
+
+
+@pytest.mark.parametrize("given", [None, "OFF"])
+def test_the_command_leaves_taichis_version_check_out_unless_asked(given):
+    env = {k: v for k, v in os.environ.items() if k != "TI_SKIP_VERSION_CHECK"}
+    if given is not None:
+        env["TI_SKIP_VERSION_CHECK"] = given
+    code = "import os, ti_fusion.cli.main; print(os.environ['TI_SKIP_VERSION_CHECK'])"
+    proc = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120)
+    assert proc.stdout.strip() == (given or "ON"), proc.stderr[-2000:]

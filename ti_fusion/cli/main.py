@@ -23,6 +23,10 @@ from __future__ import annotations
 import os
 
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")  # keep stdout for our own output
+# Taichi's ti.init starts a thread that asks Taichi's server for a newer release (once a day, every run where the
+# request fails): its TLS set-up took the GIL from the run's start (about 35 ms), and the pinned Taichi is the
+# one to use anyway
+os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
 
 import argparse
 import importlib

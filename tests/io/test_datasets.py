@@ -796,3 +796,30 @@ def test_a_corrupt_image_is_one_line_and_nothing_else(tmp_path, rng, capfd):
             SevenScenesDataset(root)[1]
     out, err = capfd.readouterr()
     assert out == "" and err == ""
+
+
+@pytest.mark.parametrize("text", ["1 2 3\n4 5 6\n", "1,2,3\n\n 4\t5 6 \n", "# K\n585 0 320\n0 585 240\n0 0 1\n",
+                                  "", "1e-3 -0.5\r\n2 3\r\n", "1 2 x\n", "1 2\nnan 3\n", "1 2\ninf 3\n"])
+def test_read_numbers_is_the_line_by_line_reading(tmp_path, text):
+    """The whole-file parse gives the numbers, or the error naming the line, that reading line by line gives."""
+    from ti_fusion.io.datasets.imageio import read_numbers
+    from ti_fusion.io.tables import parse_floats, read_table
+
+    path = tmp_path / "numbers.txt"
+    path.write_text(text)
+
+    def line_by_line():
+        parsed = [parse_floats(fields, path, lineno) for lineno, fields in read_table(path, "file")]
+        return np.concatenate(parsed) if parsed else np.zeros(0)
+
+    try:
+        want = line_by_line()
+    except InputError as exc:
+        with pytest.raises(InputError) as info:
+            read_numbers(path, "file")
+        assert str(info.value) == str(exc)
+    else:
+        got = read_numbers(path, "file")
+        assert got.dtype == want.dtype and got.shape == want.shape and np.array_equal(got, want)
+    with pytest.raises(InputError, match="not found"):
+        read_numbers(tmp_path / "missing.txt", "file")

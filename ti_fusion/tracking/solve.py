@@ -18,6 +18,11 @@ def condition_number(AtA: np.ndarray) -> float:
 def condition_numbers(AtA: np.ndarray) -> np.ndarray:
     """``condition_number`` of each of a stack of matrices (n × 6 × 6), in one eigenvalue call."""
     cond = np.full(AtA.shape[0], np.inf)
+    if np.isfinite(AtA).all():  # as below with every matrix finite, without the selection's copies
+        lam = np.linalg.eigvalsh(AtA)
+        ok = (lam[:, -1] > 0) & (lam[:, 0] > lam[:, -1] * 1e-15)
+        cond[ok] = lam[ok, -1] / lam[ok, 0]
+        return cond
     finite = np.all(np.isfinite(AtA), axis=(1, 2))
     if finite.any():
         lam = np.linalg.eigvalsh(AtA[finite])

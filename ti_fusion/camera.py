@@ -14,6 +14,10 @@ MIN_FOV_DEG, MAX_FOV_DEG = 20.0, 170.0
 DISTORTION_MODELS = ("plumb_bob", "rational_polynomial", "equidistant")
 
 
+# (intrinsics, factor, the types of both's numbers) → Intrinsics.downsampled's answer
+_DOWNSAMPLED: dict = {}
+
+
 @dataclass(frozen=True)
 class Intrinsics:
     """Pinhole intrinsics of a depth image of ``width`` × ``height`` pixels.
@@ -70,6 +74,20 @@ class Intrinsics:
         """Intrinsics of the image subsampled as ``img[::factor, ::factor]`` (pixel u' is pixel factor·u')."""
         if factor == 1:
             return self
+        # a frame's pyramid asks for the same few every frame, each a dataclass made and checked anew
+        try:
+            key = (self, factor, type(factor), type(self.fx), type(self.fy), type(self.cx), type(self.cy),
+                   type(self.skew))
+            known = _DOWNSAMPLED.get(key)
+        except TypeError:  # a value that cannot be a key (a list of distortion coefficients)
+            return self._downsampled(factor)
+        if known is None:
+            if len(_DOWNSAMPLED) >= 64:
+                _DOWNSAMPLED.clear()
+            known = _DOWNSAMPLED[key] = self._downsampled(factor)
+        return known
+
+    def _downsampled(self, factor) -> "Intrinsics":
         return replace(
             self,
             fx=self.fx / factor,

@@ -816,3 +816,32 @@ def test_the_gil_switch_interval_is_shorter_while_a_writer_thread_runs(tmp_path)
     assert sys.getswitchinterval() == interval
     with RunLogger(tmp_path / "c.mcap", threaded=False):
         assert sys.getswitchinterval() == interval
+
+
+def test_json_message_is_the_two_passes_in_one():
+    """log_stats's one pass gives what jsonable then without_nulls give, on every kind of value they take."""
+    import collections
+    import enum
+    from pathlib import Path
+
+    from ti_fusion.io.mcap_log import json_message, without_nulls
+    from ti_fusion.io.outputs import jsonable
+
+    class Kind(enum.IntEnum):
+        A = 3
+
+    value = {
+        "frame": 7, "ok": True, "status": "ok", "none": None, "nan": float("nan"), "inf": -float("inf"), "x": 0.25,
+        "np": np.float64(1.5), "np_nan": np.float32("nan"), "npi": np.int64(4), "arr": np.array([[1.0, np.nan]]),
+        "ms": {"pyramid": 1.25, "gone": None, "nested": [None, float("nan"), {"a": None, "b": 2}]},
+        "tuple": (1, None, "x", (2.5, np.inf)), "path": Path("/tmp/x"), "enum": Kind.A,
+        "ordered": collections.OrderedDict([("b", None), ("a", 1.0)]), "keys": {1: "one", 2.5: None, "1": 2},
+        "empty": {}, "list": [], "deep": {"a": {"b": {"c": [{"d": np.nan, "e": [1, 2]}]}}},
+    }
+    expected = without_nulls(jsonable(value))
+    got = json_message(value)
+    assert got == expected and list(got) == list(expected)
+    assert json.dumps(got) == json.dumps(expected)
+    assert json_message({1: "one", "1": None}) == without_nulls(jsonable({1: "one", "1": None}))
+    for scalar in (1, 1.5, float("nan"), None, "s", True, np.float64(2.0), [1, None]):
+        assert json_message(scalar) == without_nulls(jsonable(scalar))

@@ -214,6 +214,30 @@ def without_nulls(value):
     return value
 
 
+def json_message(value):
+    """``without_nulls(jsonable(value))`` in one pass: plain dicts with text keys, lists, tuples, and Python
+    numbers, text, booleans and None are taken as they are (a NaN or infinite float becomes None, and a None
+    dict entry is left out); anything else goes through those two. A frame's stats are almost all such
+    values, and the two passes were a tenth of the log's per-frame time on the loop's thread."""
+    kind = type(value)
+    if kind is float:
+        return value if math.isfinite(value) else None
+    if kind is int or kind is str or kind is bool or value is None:
+        return value
+    if kind is dict:
+        out = {}
+        for k, v in value.items():
+            if type(k) is not str:  # str(k) could make two keys one: the two passes' order decides
+                return without_nulls(jsonable(value))
+            v = json_message(v)
+            if v is not None:
+                out[k] = v
+        return out
+    if kind is list or kind is tuple:
+        return [json_message(v) for v in value]
+    return without_nulls(jsonable(value))
+
+
 # --------------------------------------------------------------------------------------------------
 # Writing
 
@@ -325,7 +349,7 @@ class RunLogger:
         if not isinstance(stats, dict):
             raise TypeError(f"stats must be a dict, got {type(stats).__name__}")
         ns = self._ns(t)
-        message = without_nulls(jsonable(stats))  # a copy: the caller may change its dict afterwards
+        message = json_message(stats)  # a copy: the caller may change its dict afterwards
         if channel not in self._topics:
             self.declare_json(channel, _json_schema_of(message))
         self._submit(_write_json, channel, message, ns)

@@ -296,7 +296,18 @@ class DenseSLAM:
         last = self._held_pose()
         if not self.config.slam.motion_model:
             return last.copy()
-        return renormalize(last @ se3_exp(self._velocity * self._elapsed(timestamp)))
+        return renormalize(self._extrapolate(last, self._elapsed(timestamp)))
+
+    def _extrapolate(self, last: np.ndarray, dt: float) -> np.ndarray:
+        """``last`` · exp(velocity · dt), not renormalised: the guess and, once the frame is tracked, the motion
+        model's check of it take the same product, worked out once (the same pose, velocity and dt)."""
+        memo = self.__dict__.get("_extrapolated")
+        if memo is not None and memo[0] is last and memo[1] is self._velocity and memo[2] == dt and \
+                memo[3] == last.tobytes():
+            return memo[4]
+        product = last @ se3_exp(self._velocity * dt)
+        self._extrapolated = (last, self._velocity, dt, last.tobytes(), product)
+        return product
 
     def _elapsed(self, timestamp: float) -> float:
         """Seconds since the last posed frame, or 1 (a frame) where the timestamps do not increase."""
@@ -494,7 +505,7 @@ class DenseSLAM:
         if before is not None and result.tracked:
             dt = self._elapsed(timestamp)
             step = se3_log(renormalize(invert(before) @ result.pose))
-            predicted = before @ se3_exp(self._velocity * dt)
+            predicted = self._extrapolate(before, dt)
             missed = np.linalg.norm(se3_log(renormalize(invert(predicted) @ result.pose)))
             irregular = bool(np.any(self._velocity)) and (  # from rest, a miss says nothing of the speed
                 result.hypothesis not in GUESSES or

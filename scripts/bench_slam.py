@@ -303,8 +303,10 @@ def main() -> int:
                    "ti-fusion": run_ti_fusion, "ti-fusion-cold": lambda a: run_ti_fusion(a, cold=True)}
         print("RESULT " + json.dumps(workers[args.worker](args)), flush=True)
         if args.worker.startswith("ti-fusion"):  # the process ends as the ti-fusion command's does
-            from ti_fusion.cli.main import end_process
-
+            try:
+                from ti_fusion.cli.main import end_process
+            except ImportError:  # (a ti_fusion from before it, on PYTHONPATH: its command ended the usual way)
+                return 0
             end_process(0)
         return 0
 

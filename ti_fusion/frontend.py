@@ -72,7 +72,7 @@ def _memoize_wrapping(utils) -> None:
         dedents: dict = {}
 
         def fill(text, **options):
-            key = (text, tuple(sorted(options.items())))
+            key = (text, tuple(options.items()))
             out = fills.get(key)
             if out is None:
                 out = fills[key] = textwrap.fill(text, **options)
@@ -119,8 +119,9 @@ class MemoWrapper(_textwrap.TextWrapper):
 
 
 def _memoize_source_lines() -> None:
-    """Keep ``getsourcelines``'s answer per function (the function itself is the key, so a function that
-    is gone cannot hand its source to a new one at the same address); the caller copies the list."""
+    """Keep ``getsourcelines``'s (and ``getsourcefile``'s) answer per function (the function itself is the key, so
+    a function that is gone cannot hand its source to a new one at the same address); the caller copies the
+    list."""
     try:
         from taichi.lang import kernel_impl
     except ImportError:
@@ -138,6 +139,19 @@ def _memoize_source_lines() -> None:
 
     getsourcelines.__wrapped__ = original
     kernel_impl.getsourcelines = getsourcelines
+    original_file = getattr(kernel_impl, "getsourcefile", None)
+    if original_file is None:
+        return
+    files: dict = {}
+
+    def getsourcefile(func):  # likewise the file the source is read from
+        file = files.get(func)
+        if file is None:
+            file = files[func] = original_file(func)
+        return file
+
+    getsourcefile.__wrapped__ = original_file
+    kernel_impl.getsourcefile = getsourcefile
 
 
 def fast_class_check() -> bool:

@@ -29,6 +29,7 @@ os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")  # keep stdout for 
 os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
 
 import argparse
+import gc
 import importlib
 import logging
 import re
@@ -367,6 +368,7 @@ def main(argv: list[str] | None = None) -> int:
 
 def command() -> None:
     """The ``ti-fusion`` command and ``python -m ti_fusion``: ``main()``, then ``end_process`` with its code."""
+    gc.freeze()  # what the imports made so far lives to the process's end: the run's full collections skip it
     end_process(main())
 
 

@@ -167,3 +167,27 @@ def test_fields_made_between_launches_are_materialised_first(cpu, taichi_launche
     np.testing.assert_array_equal(later.to_numpy(), [5.0, 5.0, 5.0])
     assert total[None] == 10.0
     assert taichi_launches.count("add") == 1
+
+
+def test_the_last_calls_plan_is_taken_only_for_the_same_objects(cpu, taichi_launches):
+    """A launch with the very template objects and array kinds of the kernel's last launch reuses its plan;
+    another object, another array dtype or a Taichi ndarray in turn takes its own instance."""
+    a, b = _Holder(3), _Holder(3)
+
+    @ti.kernel
+    def put(h: ti.template(), x: ti.types.ndarray(), v: ti.f32):
+        for i in range(3):
+            h.out[i] = x[i] + v
+
+    for round in range(3):
+        for holder, offset in ((a, 1.0), (a, 2.0), (b, 3.0), (a, 4.0), (b, 5.0)):
+            put(holder, np.arange(3, dtype=np.float32), offset + round)
+            np.testing.assert_array_equal(holder.out.to_numpy(), np.arange(3) + offset + round)
+        put(a, np.arange(3, dtype=np.float64), 0.5)  # another dtype: another instance
+        np.testing.assert_array_equal(a.out.to_numpy(), np.arange(3) + 0.5)
+        nd = ti.ndarray(ti.f32, shape=3)
+        nd.from_numpy(np.full(3, 7.0, np.float32))
+        put(a, nd, 0.0)
+        put(a, nd, 1.0)
+        np.testing.assert_array_equal(a.out.to_numpy(), [8.0, 8.0, 8.0])
+    assert taichi_launches.count("put") <= 2 + 3 + 3  # each kind's first launch, and each new ndarray's

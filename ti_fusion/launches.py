@@ -172,6 +172,31 @@ def fast_launches() -> bool:
         except Exception:  # Taichi not initialised, or another layout: its own materialize decides
             return False
 
+    def same_as_last(kernel, spec, args):
+        """The last call's plan where this call's template arguments are the very objects it had (held by the
+        kernel until its next call, so none of them can have died and left its id to another), its NumPy
+        arrays have the same dtypes and shapes as the key reads them and its Taichi ndarrays are the same
+        objects: the key and the plan it finds would be the same, so they are not worked out again (a launch
+        with the same fields as the last, as most of a frame's are)."""
+        last = kernel.__dict__.get("_fast_last")
+        if last is None:
+            return None
+        plan, objects, arrays = last
+        for i, o in zip(spec[1], objects):
+            if args[i] is not o:
+                return None
+        for (i, element_dim), part in zip(spec[2], arrays):
+            v = args[i]
+            if type(v) is np.ndarray:
+                if type(part) is not tuple or part != (v.dtype, v.ndim, v.shape[v.ndim - element_dim:]
+                                                       if element_dim else ()):
+                    return None
+            elif v is not part:
+                return None
+        if kernel.compiled_kernels.get(plan.key) is not plan.t_kernel:
+            return None
+        return plan
+
     def __call__(self, *args, **kwargs):
         runtime = self.runtime
         if (kwargs or self.autodiff_mode != none_mode or runtime.fwd_mode_manager or runtime.target_tape
@@ -183,26 +208,31 @@ def fast_launches() -> bool:
             self._fast_plans = {}
         if spec is None:
             return original(self, *args)
-        key, held = key_of(spec, args)
-        if key is None:
-            return original(self, *args)
-        plans = self._fast_plans
-        plan = plans.get(key)
-        # a plan's ids are its objects' while they live (a dead one's id may be another's now)
-        if plan is None or any(ref() is None for ref in plan.refs) or \
-                self.compiled_kernels.get(plan.key) is not plan.t_kernel:
-            result = original(self, *args)  # compiles (or loads) and launches as Taichi does
-            try:
-                refs = tuple(weakref.ref(v) for v in held)
-            except TypeError:  # an object without weak references: its id alone cannot be trusted
+        plan = same_as_last(self, spec, args)
+        if plan is None:
+            key, held = key_of(spec, args)
+            if key is None:
+                return original(self, *args)
+            plans = self._fast_plans
+            plan = plans.get(key)
+            # a plan's ids are its objects' while they live (a dead one's id may be another's now)
+            if plan is None or any(ref() is None for ref in plan.refs) or \
+                    self.compiled_kernels.get(plan.key) is not plan.t_kernel:
+                result = original(self, *args)  # compiles (or loads) and launches as Taichi does
+                try:
+                    refs = tuple(weakref.ref(v) for v in held)
+                except TypeError:  # an object without weak references: its id alone cannot be trusted
+                    return result
+                instance_key = (self.func, self.mapper.lookup(args)[0], self.autodiff_mode)
+                t_kernel = self.compiled_kernels.get(instance_key)
+                if t_kernel is not None:
+                    if len(plans) >= _MAX_PLANS:
+                        plans.clear()
+                    plans[key] = _Plan(instance_key, t_kernel, refs)
                 return result
-            instance_key = (self.func, self.mapper.lookup(args)[0], self.autodiff_mode)
-            t_kernel = self.compiled_kernels.get(instance_key)
-            if t_kernel is not None:
-                if len(plans) >= _MAX_PLANS:
-                    plans.clear()
-                plans[key] = _Plan(instance_key, t_kernel, refs)
-            return result
+            self._fast_last = (plan, tuple(args[i] for i in spec[1]),
+                               tuple(args[i] if type(args[i]) is not np.ndarray else part
+                                     for (i, _), part in zip(spec[2], key[len(spec[1]):])))
         if not materialized(runtime):
             runtime.materialize()  # as Taichi's path: fields made since the last launch get their tree now
         ctx = set_args(spec, plan.t_kernel, args)

@@ -14,10 +14,11 @@ class _Plan:
     """What a launch of one kernel instance needs, for arguments like the ones it was made from: Taichi's key
     of the instance, the instance, and weak references to the objects whose ids are in the plan's key."""
 
-    __slots__ = ("key", "t_kernel", "refs")
+    __slots__ = ("key", "t_kernel", "refs", "compiled")
 
     def __init__(self, key, t_kernel, refs):
         self.key, self.t_kernel, self.refs = key, t_kernel, refs
+        self.compiled = None  # (the program, its compiled kernel data of t_kernel), after the first launch here
 
 
 def fast_launches() -> bool:
@@ -240,7 +241,16 @@ def fast_launches() -> bool:
             return original(self, *args)
         try:
             prog = impl.get_runtime().prog
-            compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), plan.t_kernel)
+            known = plan.compiled
+            if known is not None and known[0] is prog:
+                compiled = known[1]
+            else:
+                # The program's compiled data of the instance: compile_kernel looks it up by a key it rebuilds
+                # from the config each call (about 11 us with config() and get_device_caps()); it stays in the
+                # program's cache for the program's life, and a new program (ti.init) resets every instance,
+                # so the plan with it.
+                compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), plan.t_kernel)
+                plan.compiled = (prog, compiled)
             prog.launch_kernel(compiled, ctx)
         except Exception as e:
             e = handle_exception_from_cpp(e)

@@ -35,7 +35,7 @@ import taichi as ti
 
 from ti_fusion.kernels.common import (BLOCK, INT_MAX, Mat3, Rigid, Vec3, bits_depth, data_oriented, depth_bits,
                                       depth_noise_scale, is_valid, rigid)
-from ti_fusion.kernels.index_map import IndexMap, build_loops, list_if, project_to_pixel
+from ti_fusion.kernels.index_map import LANES, IndexMap, build_loops, list_if, project_one, project_pack
 from ti_fusion.kernels.surfels import copy_surfel
 
 # Each image row is counted and appended in this many segments, so that the loops over segments have
@@ -190,7 +190,7 @@ def project_compatible_loop(s: ti.template(), n, img: ti.template(), pose: ti.te
     nearest one.
 
     This loop over every surfel is the step's largest cost, hence its shape: each block is two loops, the
-    first projects (no reads of the frame), the second reads the measurement at the projected pixel and
+    first projects (no reads of the frame; on the CPU eight surfels at a time, ``index_map.project_pack``), the second reads the measurement at the projected pixel and
     tests; no branches (every surfel reads a pixel, (0, 0) when outside, and is written into the list,
     which keeps it only when it passes); the pose is read per surfel; no atomics (on Vulkan, atomics inside
     the serial loop of a parallel one are unreliable in Taichi 1.7, so they live in the flat loops over
@@ -199,13 +199,13 @@ def project_compatible_loop(s: ti.template(), n, img: ti.template(), pose: ti.te
     H, W = img.assoc.shape
     for b in range((n + BLOCK - 1) // BLOCK):  # parallel over blocks, serial inside one
         m = ti.min(BLOCK, n - b * BLOCK)  # a trip count rather than a break at n
-        for j in range(m):
-            i = b * BLOCK + j
-            R, t = rigid(pose)
-            pc = R @ s.position[i] + t
-            inside, u, v = project_to_pixel(pc, fx, fy, cx, cy, H, W)
-            s.proj_pixel[i] = ti.select(inside, v * W + u, -1)
-            s.proj_depth[i] = depth_bits(ti.abs(pc.z))
+        packs = 0
+        if ti.static(img.index_map.packed):  # the CPU: eight surfels at a time as 8-vectors
+            packs = m // LANES
+        for g in range(packs):
+            project_pack(s, b * BLOCK + g * LANES, pose, fx, fy, cx, cy, H, W)
+        for j in range(packs * LANES, m):
+            project_one(s, b * BLOCK + j, pose, fx, fy, cx, cy, H, W, False, 0.0, 0)
         found = 0
         for j in range(m):
             i = b * BLOCK + j

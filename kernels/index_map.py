@@ -6,6 +6,10 @@ nearest, so a frame vertex at pixel u projects back to u) and lists, per block o
 keeps; ``gather_listed`` joins the lists in index order, and the index map's two passes run over that list
 only (about half the map when rendering, a few percent with Keller's association order).
 
+On the CPU the projection takes eight surfels at a time as 8-vectors (``project_pack``), which LLVM
+vectorises where it leaves a loop over surfels scalar; the few whose packed result could round to another
+pixel or facing than one at a time are projected again one at a time (``project_one``).
+
 On the CPU one pass does it (``nearest_packed``): an atomic min of the 64-bit key depth bits << 32 | index
 per pixel, whose low half is then the index (``unpack_loop``): the same winner, one pass over the list
 fewer. Elsewhere two passes. Why two: Vulkan guarantees only 32-bit atomics, so a 64-bit key (depth << 32 | index) is out, and
@@ -77,27 +81,94 @@ def project_surfels(s: ti.template(), n: ti.i32, imap: ti.template(), pose: Rigi
     project_surfels_loop(s, n, imap, pose, fx, fy, cx, cy, render, min_weight, min_time)
 
 
+LANES = 8  # surfels per pack of the CPU's projection loops (LLVM vectorises the 8-vectors, not the loop)
+Pack = ti.types.vector(LANES, ti.f32)
+IPack = ti.types.vector(LANES, ti.i32)
+# A packed projection whose pixel coordinate lies this close to a pixel edge is done again one surfel at a time
+# (``project_pack``).
+EDGE = 1e-3
+
+
+@ti.func
+def near_edge(f):
+    r = f - ti.floor(f)
+    return (r < EDGE) | (r > 1.0 - EDGE)
+
+
+@ti.func
+def project_one(s: ti.template(), i, pose: ti.template(), fx, fy, cx, cy, H, W, render: ti.template(), min_weight,
+                min_time):
+    """``proj_pixel`` and ``proj_depth`` of surfel i, one at a time; returns whether it is kept."""
+    R, t = rigid(pose)  # per surfel: see docs/KERNELS.md
+    pc = R @ s.position[i] + t
+    keep, u, v = project_to_pixel(pc, fx, fy, cx, cy, H, W)
+    if ti.static(render):
+        keep = keep & (s.weight[i] >= min_weight) & ((R @ s.normal[i]).dot(pc) < 0) \
+            & (s.t_updated[i] >= min_time)
+    s.proj_pixel[i] = ti.select(keep, v * W + u, -1)
+    s.proj_depth[i] = depth_bits(ti.abs(pc.z))
+    return keep
+
+
+@ti.func
+def project_pack(s: ti.template(), i0, pose: ti.template(), fx, fy, cx, cy, H, W):
+    """``project_one`` without the render's filters for surfels i0 .. i0 + 7 as 8-vectors (LLVM vectorises
+    them; a loop over surfels it leaves scalar). Taichi compiles with fast math, so the packed arithmetic may
+    round differently from ``project_one``'s: where that could move a point to another pixel (``EDGE``) the
+    surfel is projected again by ``project_one``, so the pixels are the one-at-a-time ones. (The depths
+    agreed bit for bit with the scalar loop's on redkitchen, not by construction: docs/PERFORMANCE.md.)"""
+    R, t = rigid(pose)
+    px = Pack([s.position[i0 + l][0] for l in ti.static(range(LANES))])
+    py = Pack([s.position[i0 + l][1] for l in ti.static(range(LANES))])
+    pz = Pack([s.position[i0 + l][2] for l in ti.static(range(LANES))])
+    x = R[0, 0] * px + R[0, 1] * py + R[0, 2] * pz + t[0]
+    y = R[1, 0] * px + R[1, 1] * py + R[1, 2] * pz + t[1]
+    z = R[2, 0] * px + R[2, 1] * py + R[2, 2] * pz + t[2]
+    inv_z = 1.0 / z
+    uf = fx * x * inv_z + cx + 0.5
+    vf = fy * y * inv_z + cy + 0.5
+    inside = (z > 0) & (uf >= 0.0) & (uf < W) & (vf >= 0.0) & (vf < H)
+    u = ti.min(ti.cast(ti.select(inside, uf, 0.0), ti.i32), W - 1)
+    v = ti.min(ti.cast(ti.select(inside, vf, 0.0), ti.i32), H - 1)
+    again = (near_edge(uf) | near_edge(vf)) & (z > 0)
+    pix = ti.select(inside, v * W + u, -1)
+    az = ti.abs(z)
+    redo = 0
+    for l in ti.static(range(LANES)):
+        s.proj_pixel[i0 + l] = pix[l]
+        s.proj_depth[i0 + l] = depth_bits(az[l])
+        redo |= ti.select(again[l], 1 << l, 0)
+    if redo != 0:  # rare: a branch that predicts
+        for l in range(LANES):
+            if (redo >> l) & 1:
+                project_one(s, i0 + l, pose, fx, fy, cx, cy, H, W, False, 0.0, 0)
+
+
 @ti.func
 def project_surfels_loop(s: ti.template(), n, imap: ti.template(), pose: ti.template(), fx, fy, cx, cy,
                          render: ti.template(), min_weight, min_time):
     """``proj_pixel`` ≥ 0 (and a listing per block) for the surfels inside the image of ``imap`` with
     z > 0: filter pass 1 of the fusion step. With ``render``, surfels below ``min_weight``, facing away or
     last updated before frame ``min_time`` (inactive, ElasticFusion's time window) are left out too.
-    ``pose`` (R, t) maps world to camera. Branch-free, as ``fusion.project_compatible_loop``.
+    ``pose`` (R, t) maps world to camera. Branch-free, as ``fusion.project_compatible_loop``; without
+    ``render``, on the CPU eight surfels at a time (``project_pack``; with the render's filters packing did
+    not pay: docs/PERFORMANCE.md).
     """
     H, W = imap.index.shape
     for b in range((n + BLOCK - 1) // BLOCK):  # parallel over blocks, serial inside one
         found = 0
-        for j in range(ti.min(BLOCK, n - b * BLOCK)):  # a trip count, not a break at n
+        m = ti.min(BLOCK, n - b * BLOCK)
+        packs = 0
+        if ti.static(imap.packed and not render):
+            packs = m // LANES
+        for g in range(packs):
+            i0 = b * BLOCK + g * LANES
+            project_pack(s, i0, pose, fx, fy, cx, cy, H, W)
+            for l in ti.static(range(LANES)):
+                found = list_if(s, b, found, i0 + l, s.proj_pixel[i0 + l] >= 0)
+        for j in range(packs * LANES, m):  # a trip count, not a break at n
             i = b * BLOCK + j
-            R, t = rigid(pose)  # per surfel: see docs/KERNELS.md
-            pc = R @ s.position[i] + t
-            keep, u, v = project_to_pixel(pc, fx, fy, cx, cy, H, W)
-            if ti.static(render):
-                keep = keep & (s.weight[i] >= min_weight) & ((R @ s.normal[i]).dot(pc) < 0) \
-                    & (s.t_updated[i] >= min_time)
-            s.proj_pixel[i] = ti.select(keep, v * W + u, -1)
-            s.proj_depth[i] = depth_bits(ti.abs(pc.z))
+            keep = project_one(s, i, pose, fx, fy, cx, cy, H, W, render, min_weight, min_time)
             found = list_if(s, b, found, i, keep)
         s.block_listed[b] = found
 

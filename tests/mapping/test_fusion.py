@@ -323,6 +323,58 @@ def test_index_map_and_pass1(arch, rng):
     assert counts.max() >= 2
 
 
+@ti.kernel
+def _project_one_at_a_time(s: ti.template(), n: ti.i32, imap: ti.template(), pose: ti.types.ndarray(dtype=ti.f32, ndim=1),
+                           fx: ti.f32, fy: ti.f32, cx: ti.f32, cy: ti.f32, render: ti.template(), min_weight: ti.f32,
+                           min_time: ti.i32):
+    H, W = imap.index.shape
+    for i in range(n):
+        index_map.project_one(s, i, pose, fx, fy, cx, cy, H, W, render, min_weight, min_time)
+
+
+@pytest.mark.parametrize("render", [False, True])
+def test_packed_projection_is_the_one_at_a_time_projection(arch, rng, render):
+    """The CPU projects eight surfels at a time (``index_map.project_pack``; not with the render's filters)
+    and again one at a time those near a pixel edge: the same pixels and lists as ``project_one`` for every
+    surfel, for a count that is no multiple of eight, points on pixel edges and surfels seen edge-on among
+    them."""
+    pose = random_pose(rng)
+    n = 8 * 301 + 5
+    uu, vv = rng.uniform(-5, W + 5, n), rng.uniform(-5, H + 5, n)
+    uu[:400] = rng.integers(0, W + 1, 400) - 0.5  # on a pixel edge (u = ⌊uf⌋ with uf = u + ½)
+    pc = rays(uu, vv) * rng.uniform(0.5, 3.0, n)[:, None]
+    pc[-20:] *= -1.0  # behind the camera
+    nc = rng.normal(size=(n, 3))
+    nc[:, 2] = -np.abs(nc[:, 2])
+    ray = pc[400:800] / np.linalg.norm(pc[400:800], axis=1, keepdims=True)
+    nc[400:800] = np.cross(ray, rng.normal(size=(400, 3)))  # seen edge-on: normal ⊥ ray
+    nc /= np.linalg.norm(nc, axis=1, keepdims=True)
+    edge = slice(0, 400)
+    data = {"position": (pc @ pose[:3, :3].T + pose[:3, 3]).astype(np.float32),
+            "normal": (nc @ pose[:3, :3].T).astype(np.float32),
+            "color": np.zeros((n, 3), np.float32), "weight": rng.uniform(0.0, 4.0, n).astype(np.float32),
+            "radius": np.full(n, 0.01, np.float32), "t_created": np.zeros(n, np.int32),
+            "t_updated": np.zeros(n, np.int32)}
+    smap = SurfelMap(4096)
+    smap.from_numpy(data)
+    img = smap.fusion_images(H, W)
+    args = (smap._pose(pose)[1], *K.as_tuple(), render, 1.0, 0)
+    index_map.project_surfels(smap.arrays, n, img.index_map, *args)
+    packed = [f.to_numpy()[:n] for f in (smap.arrays.proj_pixel, smap.arrays.proj_depth)]
+    blocks = (n + 127) // 128
+    counts = smap.arrays.block_listed.to_numpy()[:blocks]
+    lists = smap.arrays.listed_by_block.to_numpy()
+    _project_one_at_a_time(smap.arrays, n, img.index_map, *args)
+    np.testing.assert_array_equal(packed[0], smap.arrays.proj_pixel.to_numpy()[:n])
+    # the depths to rounding: how LLVM rounds R p + t depends on the loop it is compiled in (fast math)
+    depth = [d.view(np.float32).astype(np.float64) for d in (packed[1], smap.arrays.proj_depth.to_numpy()[:n])]
+    np.testing.assert_allclose(depth[0], depth[1], rtol=1e-6)
+    kept = packed[0] >= 0
+    for b in range(blocks):
+        np.testing.assert_array_equal(lists[b * 128:b * 128 + counts[b]], np.flatnonzero(kept[b * 128:(b + 1) * 128]) + b * 128)
+    assert 100 < kept.sum() < n and (packed[0][edge] >= 0).sum() > 100
+
+
 def test_compatible_association(arch, rng):
     pose, vertex, normal, depth, color, data, smap = setup(rng)
     fv, fn, _ = frame_fields(vertex, normal, depth)

@@ -54,8 +54,8 @@ def memoize_source_positions() -> bool:
 
 
 def _memoize_wrapping(utils) -> None:
-    """The position text's ``TextWrapper(width=80).wrap`` of a source line and of its caret line (about 22,000
-    calls in a run for about 8,000 different texts; most lines of this project are longer than 80 columns), and
+    """The position text's ``TextWrapper(width=80).wrap`` of a source line and of its caret line (called again and
+    again for the same few texts; most lines of this project are longer than 80 columns), and
     the front end's ``textwrap.fill`` and ``dedent`` of each function's source lines for every instance, answered
     from memos of those pure functions of their text: the same strings, once each."""
     import types
@@ -69,7 +69,6 @@ def _memoize_wrapping(utils) -> None:
         return
     if getattr(kernel_impl, "textwrap", None) is textwrap:
         fills: dict = {}
-        dedents: dict = {}
 
         def fill(text, **options):
             key = (text, tuple(options.items()))
@@ -78,15 +77,9 @@ def _memoize_wrapping(utils) -> None:
                 out = fills[key] = textwrap.fill(text, **options)
             return out
 
-        def dedent(text):
-            out = dedents.get(text)
-            if out is None:
-                out = dedents[text] = textwrap.dedent(text)
-            return out
-
         shim = types.ModuleType("textwrap")  # textwrap itself, but for these two
         shim.__dict__.update(textwrap.__dict__)
-        shim.fill, shim.dedent = fill, dedent
+        shim.fill, shim.dedent = fill, _memo(textwrap.dedent)
         kernel_impl.textwrap = shim
 
 
@@ -126,32 +119,24 @@ def _memoize_source_lines() -> None:
         from taichi.lang import kernel_impl
     except ImportError:
         return
-    original = getattr(kernel_impl, "getsourcelines", None)
-    if original is None:
-        return
-    cache: dict = {}
+    for name in ("getsourcelines", "getsourcefile"):
+        original = getattr(kernel_impl, name, None)
+        if original is not None:
+            setattr(kernel_impl, name, _memo(original))
 
-    def getsourcelines(func):
-        lines = cache.get(func)
-        if lines is None:
-            lines = cache[func] = original(func)
-        return lines
 
-    getsourcelines.__wrapped__ = original
-    kernel_impl.getsourcelines = getsourcelines
-    original_file = getattr(kernel_impl, "getsourcefile", None)
-    if original_file is None:
-        return
-    files: dict = {}
+def _memo(function):
+    """``function`` of one hashable argument answered from a memo of its answers (None is asked again)."""
+    answers: dict = {}
 
-    def getsourcefile(func):  # likewise the file the source is read from
-        file = files.get(func)
-        if file is None:
-            file = files[func] = original_file(func)
-        return file
+    def memo(key):
+        answer = answers.get(key)
+        if answer is None:
+            answer = answers[key] = function(key)
+        return answer
 
-    getsourcefile.__wrapped__ = original_file
-    kernel_impl.getsourcefile = getsourcefile
+    memo.__wrapped__ = function
+    return memo
 
 
 def fast_class_check() -> bool:
@@ -195,7 +180,7 @@ _class_check_installed = False
 def class_check_on_import() -> None:
     """Have ``fast_class_check`` installed as soon as Taichi's ``kernel_impl`` is imported, where Taichi is not
     imported yet: Taichi's own ~90 kernels and functions, decorated while ``import taichi`` runs, then take the
-    cheap check too (about 35 ms of a bare ``import taichi``, more with more modules loaded). A finder on
+    cheap check too (the expensive one scans every loaded module: docs/PERFORMANCE.md). A finder on
     ``sys.meta_path`` for that one module, gone once used; any surprise leaves the import as it was."""
     import sys
 

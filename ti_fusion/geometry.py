@@ -148,7 +148,7 @@ def orthonormalize(R: np.ndarray) -> np.ndarray:
     """Nearest rotation matrix (SVD projection onto SO(3))."""
     R = np.asarray(R, dtype=np.float64)
     # np.linalg.svd's and det's own gufuncs where the matrix is finite (the wrappers' error handling is for
-    # the others, which take them), a fifth of a pose update's host time
+    # the others, which take them): they were much of a pose update's host time
     if _svd_f is not None and R.shape == (3, 3) and np.isfinite(R).all():
         U, _, Vt = _svd_f(R, signature="d->ddd")
         sign = np.sign(_det(U @ Vt, signature="d->d"))

@@ -246,7 +246,7 @@ def fast_launches() -> bool:
                 compiled = known[1]
             else:
                 # The program's compiled data of the instance: compile_kernel looks it up by a key it rebuilds
-                # from the config each call (about 11 us with config() and get_device_caps()); it stays in the
+                # from the config each call (with config() and get_device_caps()); it stays in the
                 # program's cache for the program's life, and a new program (ti.init) resets every instance,
                 # so the plan with it.
                 compiled = prog.compile_kernel(prog.config(), prog.get_device_caps(), plan.t_kernel)

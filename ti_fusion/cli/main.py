@@ -24,8 +24,7 @@ import os
 
 os.environ.setdefault("ENABLE_TAICHI_HEADER_PRINT", "false")  # keep stdout for our own output
 # Taichi's ti.init starts a thread that asks Taichi's server for a newer release (once a day, every run where the
-# request fails): its TLS set-up took the GIL from the run's start (about 35 ms), and the pinned Taichi is the
-# one to use anyway
+# request fails): its TLS set-up takes the GIL at the run's start, and the pinned Taichi is the one to use anyway
 os.environ.setdefault("TI_SKIP_VERSION_CHECK", "ON")
 
 import argparse
@@ -374,7 +373,7 @@ def command() -> None:
 
 def end_process(code: int) -> None:
     """End the process with exit status ``code`` as ``sys.exit`` would, less the interpreter's teardown of every
-    module and object (0.1–0.7 s after a run; docs/PERFORMANCE.md): the atexit handlers run, Taichi is reset
+    module and object (docs/PERFORMANCE.md, "The warm run's fixed cost"): the atexit handlers run, Taichi is reset
     (which writes the kernels this process compiled into the offline cache, as its teardown would) and stdout and
     stderr are flushed, then ``os._exit``. Where the interpreter would still wait for another thread, or a flush
     fails (a reader that went away), ``sys.exit`` ends it the usual way. For the command line only: a caller's

@@ -218,7 +218,7 @@ def json_message(value):
     """``without_nulls(jsonable(value))`` in one pass: plain dicts with text keys, lists, tuples, and Python
     numbers, text, booleans and None are taken as they are (a NaN or infinite float becomes None, and a None
     dict entry is left out); anything else goes through those two. A frame's stats are almost all such
-    values, and the two passes were a tenth of the log's per-frame time on the loop's thread."""
+    values, and the two passes were a large share of the log's per-frame time on the loop's thread."""
     kind = type(value)
     if kind is float:
         return value if math.isfinite(value) else None

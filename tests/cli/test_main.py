@@ -518,6 +518,16 @@ def test_end_process_runs_the_atexit_handlers_flushes_and_keeps_the_code(case):
     assert proc.stdout.strip() == want and "not reached" not in proc.stdout
 
 
+def test_end_process_leaves_a_profilers_report_to_be_written(tmp_path):
+    """Under ``python -m cProfile -o FILE`` the profile is written after the command returns: end_process then
+    exits the usual way, and FILE is there."""
+    script, profile = tmp_path / "ends.py", tmp_path / "run.prof"
+    script.write_text("from ti_fusion.cli.main import end_process\nend_process(0)\n")
+    proc = subprocess.run([sys.executable, "-m", "cProfile", "-o", str(profile), str(script)], capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 0 and profile.is_file(), proc.stderr[-2000:]
+
+
 def test_end_process_writes_the_kernels_compiled_into_the_offline_cache(tmp_path):
     """os._exit skips the interpreter's teardown, where Taichi writes what it compiled: end_process resets Taichi
     first, so a second process loads the kernel instead of compiling it."""

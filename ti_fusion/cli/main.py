@@ -375,10 +375,13 @@ def end_process(code: int) -> None:
     """End the process with exit status ``code`` as ``sys.exit`` would, less the interpreter's teardown of every
     module and object (docs/PERFORMANCE.md, "The warm run's fixed cost"): the atexit handlers run, Taichi is reset
     (which writes the kernels this process compiled into the offline cache, as its teardown would) and stdout and
-    stderr are flushed, then ``os._exit``. Where the interpreter would still wait for another thread, or a flush
-    fails (a reader that went away), ``sys.exit`` ends it the usual way. For the command line only: a caller's
-    own process (a notebook, a test) is not to be ended."""
-    if any(t is not threading.main_thread() and not t.daemon and t.is_alive() for t in threading.enumerate()):
+    stderr are flushed, then ``os._exit``. Where the interpreter would still wait for another thread, where a
+    profiler, tracer or debugger watches the process or ``python -i`` asked for a prompt (each acts after the
+    command returns: ``python -m cProfile -o FILE -m ti_fusion`` writes FILE then), or where a flush fails (a
+    reader that went away), ``sys.exit`` ends it the usual way. For the command line only: a caller's own
+    process (a notebook, a test) is not to be ended."""
+    if any(t is not threading.main_thread() and not t.daemon and t.is_alive() for t in threading.enumerate()) or \
+            sys.getprofile() is not None or sys.gettrace() is not None or sys.flags.inspect:
         sys.exit(code)
     import atexit
 

@@ -35,24 +35,25 @@ class PredictionImages:
         self.normal = ti.Vector.field(3, ti.f32, shape=shape)
         self.depth = ti.field(ti.f32, shape=shape)
         self.image = ti.Vector.field(3, ti.f32, shape=shape)  # RGB in [0, 1] (``shade``)
-        # the depth with the holes filled, beside outputs that keep them (``splat_apart_loop``)
+        # the depth with the holes filled, beside outputs that keep them (``splat_apart_loop``), by default
         self.filled_depth = ti.field(ti.f32, shape=shape)
 
 
 @ti.kernel
 def render(s: ti.template(), n: ti.i32, img: ti.template(), pose: Rigid, fx: ti.f32, fy: ti.f32, cx: ti.f32,
            cy: ti.f32, min_weight: ti.f32, min_time: ti.i32, half: ti.i32, fill_half: ti.i32,
-           out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template(), apart: ti.template()):
+           out_vertex: ti.template(), out_normal: ti.template(), out_depth: ti.template(), apart: ti.template(),
+           out_filled: ti.template()):
     """A prediction of the first ``n`` surfels in one launch, as consecutive loops: the projection with the
     render's filters (``index_map.project_surfels_loop``), the index map (``index_map.build_loops``: cleared,
     then the nearest surfel per pixel), ``gather_front_loop`` and ``splat_gather_loop`` (with ``apart``
     ``splat_apart_loop``, whose outputs are those of ``half`` = 0, ``fill_half`` = 1 and ``clear_holes``, and
-    ``img.filled_depth`` the filled depth). ``pose`` maps world to camera; with n = 0 every pixel is empty."""
+    ``out_filled`` the filled depth). ``pose`` maps world to camera; with n = 0 every pixel is empty."""
     project_surfels_loop(s, n, img.index_map, pose, fx, fy, cx, cy, True, min_weight, min_time)
     build_loops(s, n, img.index_map, True)
     gather_front_loop(s, img, pose)
     if ti.static(apart):
-        splat_apart_loop(img, fx, fy, cx, cy, out_vertex, out_normal, out_depth)
+        splat_apart_loop(img, fx, fy, cx, cy, out_vertex, out_normal, out_depth, out_filled)
     else:
         splat_gather_loop(img, fx, fy, cx, cy, half, fill_half, out_vertex, out_normal, out_depth)
 
@@ -164,10 +165,10 @@ def splat_gather_loop(img: ti.template(), fx, fy, cx, cy, half, fill_half, out_v
 
 @ti.func
 def splat_apart_loop(img: ti.template(), fx, fy, cx, cy, out_vertex: ti.template(), out_normal: ti.template(),
-                     out_depth: ti.template()):
+                     out_depth: ti.template(), out_filled: ti.template()):
     """``splat_gather_loop`` with ``half`` = 0 and ``fill_half`` = 1, its holes kept apart: the outputs and
     ``img.view_index`` hold each pixel's own front surfel and zero (INT_MAX) where it has none, what
-    ``clear_holes_loop`` leaves of the filled render, and ``img.filled_depth`` the filled render's depth (the
+    ``clear_holes_loop`` leaves of the filled render, and ``out_filled`` the filled render's depth (the
     nearest disc the ray meets among the 8 neighbours' front surfels at a hole, the own depth elsewhere), from
     which the model's coarse levels are built (``SurfelMapper.render_pyramid``).
 
@@ -209,7 +210,7 @@ def splat_apart_loop(img: ti.template(), fx, fy, cx, cy, out_vertex: ti.template
             out_vertex[v, u] = Vec3(0.0, 0.0, 0.0)
             out_normal[v, u] = Vec3(0.0, 0.0, 0.0)
             out_depth[v, u] = 0.0
-        img.filled_depth[v, u] = filled
+        out_filled[v, u] = filled
 
 
 @ti.kernel

@@ -698,7 +698,11 @@ class FramePyramid:
         self.row0, rows, _ = stacked_rows(self.shapes)
         self._rows = tuple((r, h, w) for r, (h, w) in zip(self.row0, self.shapes))  # template argument
         self._stack_shape = (rows, width)
-        self.depth = self._levels(ti.field(ti.f32, shape=self._stack_shape))
+        # the depth's field has one level 0 more below the levels (``spare_depth``: the render's filled depth,
+        # ``SurfelMapper.render_pyramid``), so that a level built from it shares the levels' compiled instance
+        depth = ti.field(ti.f32, shape=(rows + height, width))
+        self.depth = self._levels(depth)
+        self.spare_depth = Level(depth, rows, self.shapes[0])
         self.vertex = self._levels(ti.Vector.field(3, ti.f32, shape=self._stack_shape))
         self.normal = self._levels(ti.Vector.field(3, ti.f32, shape=self._stack_shape))
         self.intrinsics: list[Intrinsics] = []
@@ -733,7 +737,7 @@ class FramePyramid:
     def _upload_level0(self, stack, image: np.ndarray) -> None:
         """Level 0 of ``stack`` = ``image`` in one copy (the coarse levels' rows are zeroed: the pyramid is
         rebuilt from level 0 right after)."""
-        whole = np.zeros(self._stack_shape, dtype=np.float32)
+        whole = np.zeros(tuple(stack.shape), dtype=np.float32)
         whole[:self.height] = image
         stack.from_numpy(whole)
 
@@ -903,8 +907,9 @@ class FramePyramid:
     def compute_from_field(self, intrinsics: Intrinsics, level0_maps: bool = True, level1_from=None) -> None:
         """Build every level from ``self.depth[0]`` already on the Taichi side (without level 0's vertex
         and normal maps when ``level0_maps`` is False: a renderer that writes them itself). No smoothing.
-        With ``level1_from`` (a depth field of level 0's size: the render's ``filled_depth``), level 1 is
-        averaged down from it instead of from level 0 (``SurfelMapper.render_pyramid``)."""
+        With ``level1_from`` (a depth of level 0's size, a field or a ``Level``: the render's filled depth, in
+        ``spare_depth``), level 1 is averaged down from it instead of from level 0
+        (``SurfelMapper.render_pyramid``)."""
         self._set_geometry(intrinsics)
         if level1_from is not None and tuple(level1_from.shape) != tuple(self.shapes[0]):
             raise ValueError(f"level 1 from a depth of {level1_from.shape[0]}x{level1_from.shape[1]} pixels for "
@@ -920,7 +925,8 @@ class FramePyramid:
         for l in range(1, self.levels):
             h, w = self.shapes[l - 1]
             if l == 1 and level1_from is not None:
-                pyramid_down(level1_from, 0, h, w, stack, self.row0[1], self.max_depth_diff, False, self._serial)
+                fine = as_level(level1_from)
+                pyramid_down(fine.field, fine.row0, h, w, stack, self.row0[1], self.max_depth_diff, False, self._serial)
             else:
                 pyramid_down(stack, self.row0[l - 1], h, w, stack, self.row0[l], self.max_depth_diff, False,
                              self._serial)

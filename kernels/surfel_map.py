@@ -219,7 +219,7 @@ class SurfelMap(SurfelStore):
     # -- prediction -----------------------------------------------------------------------------------------
     def render(self, pose: np.ndarray, intrinsics, out_vertex=None, out_normal=None, out_depth=None,
                min_weight: float = 0.0, max_half: int = 1, fill_half: int = 0,
-               min_time: int = -2**31, holes_apart: bool = False) -> PredictionImages:
+               min_time: int = -2**31, holes_apart: bool = False, out_filled=None) -> PredictionImages:
         """Predicted vertex / normal / depth maps in the camera frame of ``pose`` (zero = no surfel).
 
         Outputs are Taichi fields of shape (intrinsics.height, intrinsics.width), e.g. a FramePyramid' level
@@ -231,8 +231,8 @@ class SurfelMap(SurfelStore):
         Surfels last updated before frame ``min_time`` (inactive: ElasticFusion's time window) are left out.
 
         With ``holes_apart`` (``max_half`` 0 and ``fill_half`` 1 only), the outputs keep the holes (what
-        ``clear_holes`` leaves) and the returned images' ``filled_depth`` has the filled depth, in the same
-        launch and for less than the fill alone costs (``prediction.splat_apart_loop``).
+        ``clear_holes`` leaves) and ``out_filled`` (default: the returned images' ``filled_depth``) the filled
+        depth, in the same launch and for less than the fill alone costs (``prediction.splat_apart_loop``).
         """
         if holes_apart and (max_half, fill_half) != (0, 1):
             raise ValueError(f"holes_apart renders max_half 0 and fill_half 1, not {max_half} and {fill_half}")
@@ -242,7 +242,8 @@ class SurfelMap(SurfelStore):
         prediction.render(self.arrays, self.count, img, to_camera, fx, fy, cx, cy, float(min_weight), int(min_time),
                           int(max_half), int(fill_half), img.vertex if out_vertex is None else out_vertex,
                           img.normal if out_normal is None else out_normal,
-                          img.depth if out_depth is None else out_depth, bool(holes_apart))
+                          img.depth if out_depth is None else out_depth, bool(holes_apart),
+                          img.filled_depth if out_filled is None else out_filled)
         self._projected = 0  # the projection scratch now holds the render's projection, not the fusion step's
         return img
 

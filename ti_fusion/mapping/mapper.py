@@ -148,7 +148,8 @@ class SurfelMapper:
 
         The pyramid is built from a render whose holes (pixels no surfel projects to) take a neighbour's
         disc (``FILL_HALF``), while level 0 keeps the surfels' own pixels: the render writes both, the filled
-        depth apart (``holes_apart``), and level 1 is averaged down from that. Why: surfels fused from afar
+        depth apart (``holes_apart``, into the pyramid's ``spare_depth``), and level 1 is averaged down from that.
+        Why: surfels fused from afar
         lie up to two pixels apart once the camera comes nearer (fusion adds none where a neighbour's disc
         covers the pixel), and a coarse pixel exists only where its centre fine pixel has depth, so the coarse
         levels emptied (tracking lost on the synthetic corridor loop); filled at level 0 too, the synthetic
@@ -157,8 +158,10 @@ class SurfelMapper:
             min_weight = self.config.render_min_weight
         level0 = frame_pyramid.vertex[0], frame_pyramid.normal[0], frame_pyramid.depth[0]
         apart = FILL_HALF > 0
-        img = self.map.render(pose, intrinsics, *level0, min_weight, 0, FILL_HALF, min_time, holes_apart=apart)
-        frame_pyramid.compute_from_field(intrinsics, level0_maps=False, level1_from=img.filled_depth if apart else None)
+        img = self.map.render(pose, intrinsics, *level0, min_weight, 0, FILL_HALF, min_time, holes_apart=apart,
+                              out_filled=frame_pyramid.spare_depth)
+        frame_pyramid.compute_from_field(intrinsics, level0_maps=False,
+                                         level1_from=frame_pyramid.spare_depth if apart else None)
         if intensity:
             frame_pyramid.intensity_from_surfels(img.view_index, self.map.arrays.color)  # the render's view
 

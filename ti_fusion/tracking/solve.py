@@ -17,17 +17,21 @@ def condition_number(AtA: np.ndarray) -> float:
 
 def condition_numbers(AtA: np.ndarray) -> np.ndarray:
     """``condition_number`` of each of a stack of matrices (n × 6 × 6), in one eigenvalue call."""
+    if np.isfinite(AtA).all():  # (every tracked frame's: no selection, no copy)
+        return _eigenvalue_ratios(AtA)
     cond = np.full(AtA.shape[0], np.inf)
-    if np.isfinite(AtA).all():  # as below with every matrix finite, without the selection's copies
-        lam = np.linalg.eigvalsh(AtA)
-        ok = (lam[:, -1] > 0) & (lam[:, 0] > lam[:, -1] * 1e-15)
-        cond[ok] = lam[ok, -1] / lam[ok, 0]
-        return cond
     finite = np.all(np.isfinite(AtA), axis=(1, 2))
     if finite.any():
-        lam = np.linalg.eigvalsh(AtA[finite])
-        ok = (lam[:, -1] > 0) & (lam[:, 0] > lam[:, -1] * 1e-15)
-        cond[np.flatnonzero(finite)[ok]] = lam[ok, -1] / lam[ok, 0]
+        cond[finite] = _eigenvalue_ratios(AtA[finite])
+    return cond
+
+
+def _eigenvalue_ratios(AtA: np.ndarray) -> np.ndarray:
+    """λmax / λmin of each finite symmetric matrix of the stack; inf where it is singular or not positive."""
+    lam = np.linalg.eigvalsh(AtA)
+    ok = (lam[:, -1] > 0) & (lam[:, 0] > lam[:, -1] * 1e-15)
+    cond = np.full(AtA.shape[0], np.inf)
+    cond[ok] = lam[ok, -1] / lam[ok, 0]
     return cond
 
 

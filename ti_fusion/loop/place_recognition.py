@@ -189,8 +189,8 @@ class PlaceDatabase:
 
 def pairwise_distances(p: np.ndarray) -> np.ndarray:
     """``np.linalg.norm(p[:, None] - p[None], axis=2)`` with the same sums (each coordinate's squared difference,
-    added x, y, z in that order, as NumPy's reduction over the axis of three adds them today), in less time: that reduction over
-    an axis of three elements is most of a verification's pre-check."""
+    added x, y, z in that order, as NumPy's reduction over the axis of three adds them today), in less time:
+    that reduction over an axis of three elements is most of a verification's pre-check."""
     d = None
     for k in range(p.shape[1]):
         c = p[:, k]

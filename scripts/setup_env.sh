@@ -20,4 +20,8 @@ if [ ! -f "$STAMP" ] || [ pyproject.toml -nt "$STAMP" ]; then
     .venv/bin/python -m pip install --quiet -e ".[$EXTRAS]" >&2
     touch "$STAMP"
 fi
+# the package's modules byte-compiled where missing or stale, as pip does for an installed package: an editable
+# install leaves it to the first import, which PYTHONDONTWRITEBYTECODE=1 turns off, and every run would then
+# compile the ~125 modules again (docs/PERFORMANCE.md, "The warm run's fixed cost, again")
+.venv/bin/python -m compileall -q ti_fusion kernels >/dev/null
 export PATH="$ROOT/.venv/bin:$PATH"

@@ -33,6 +33,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass, field
+from functools import partial
 
 import cv2
 import numpy as np
@@ -40,6 +41,7 @@ import numpy as np
 from ti_fusion.config import Config
 from ti_fusion.geometry import invert, pose_error, renormalize
 from ti_fusion.loop.keyframes import Keyframe, KeyframeSelector, grid_points
+from ti_fusion.loop.lookahead import InOrder, Job, look_ahead
 from ti_fusion.loop.place_recognition import PlaceDatabase
 from ti_fusion.loop.pose_graph import PoseGraph, edge_covariance, frame_covariance
 from ti_fusion.loop.verification import LoopCandidate, LoopVerifier, fill
@@ -113,7 +115,11 @@ class LoopClosure:
         self.config = config
         self.selector = KeyframeSelector(config.loop)
         self.gap = candidate_gap(config)
-        self.database = PlaceDatabase(dataclasses.replace(config.loop, min_frame_gap=self.gap))
+        self._database = PlaceDatabase(dataclasses.replace(config.loop, min_frame_gap=self.gap))
+        # additions to the database and frames' looks ahead, on threads beside the loop's (loop/lookahead.py)
+        self._beside = InOrder()
+        self._ahead: tuple[int, Job] | None = None  # (frame index, its look ahead) of the last frame that had one
+        self._ahead_orb = cv2.ORB_create(config.loop.n_features)  # the looks ahead's own: theirs run beside ``_orb``
         self.graph = PoseGraph(config.loop)
         self.verifier = LoopVerifier(config)
         self.keyframes: list[Keyframe] = []
@@ -135,7 +141,27 @@ class LoopClosure:
         # keyframe instead of odometry, and takes that frame's features
         self._found: Placement | None = None
 
+    @property
+    def database(self) -> PlaceDatabase:
+        """Place recognition's database, once the additions handed to the threads before are in it."""
+        self._beside.settle()
+        return self._database
+
     # -- the verb -------------------------------------------------------------------------------
+    def look_ahead(self, frame, guess: np.ndarray) -> None:
+        """Before ``frame`` is tracked: where the motion model's ``guess`` of its pose makes it a keyframe, what
+        verifying it needs of its images alone (ORB, candidates, their pre-check and PnP) starts on a thread
+        (loop/lookahead.py), for ``after_frame`` to take if the tracked pose makes it one."""
+        if self._ahead is not None:
+            self._ahead[1].cancelled = True  # an earlier frame's, not taken: not started, it does not run
+        self._ahead = None
+        if self._found is not None or len(self.keyframes) <= self.session_start or frame.color is None or \
+                self.selector.why(self.keyframes[-1], guess, frame.index) is None:
+            return
+        self._ahead = frame.index, self._beside.submit(partial(
+            look_ahead, frame, len(self.keyframes), self._vo, self._ahead_orb, self._database, self.keyframes,
+            self.verifier), quiet=True)
+
     def after_frame(self, frame, result, maps: LoopMaps) -> LoopReport | None:
         """Loop closure's part of one frame, after tracking and fusion gave ``result`` for it."""
         if result.pose is None:
@@ -150,7 +176,11 @@ class LoopClosure:
             return None
         watch = Stopwatch()
         tied = None if self._found is None else self._found.keyframe.id
-        kf = self._make_keyframe(frame, result.pose, maps)
+        # the look ahead of this frame, if its guess made it a keyframe too (the same features, candidates and checks)
+        ahead = None
+        if self._ahead is not None and self._ahead[0] == frame.index and tied is None:
+            ahead = self._beside.take(self._ahead[1])
+        kf = self._make_keyframe(frame, result.pose, maps, None if ahead is None else ahead.features)
         report = LoopReport(kf.id, why)
         report.ms["keyframe"] = watch.lap()
         exclude = set()
@@ -158,8 +188,8 @@ class LoopClosure:
             # to the map's other visits of it (a lap's end where it met its start), which can undo the map's drift
             near = self.keyframes[tied].frame
             exclude = {k for k in range(self.session_start) if abs(self.keyframes[k].frame - near) < self.gap}
-        places = self.database.query(kf, exclude=exclude)
-        self.database.add(kf)
+        places = ahead.places if ahead is not None else self.database.query(kf, exclude=exclude)
+        self._beside.submit(partial(self._database.add, kf))  # the next keyframe's query waits for it
         report.ms["detect"] = watch.lap()
         self.ms["detect"].append(report.ms["keyframe"] + report.ms["detect"])
         if not self._warmed_up and kf.frame - self.keyframes[0].frame >= self.gap - self.gap // 4:
@@ -172,9 +202,9 @@ class LoopClosure:
                 fill(maps.scratch, kf)
             self._warmed_up = True
         verified = None
-        for place in places:
+        for k, place in enumerate(places):
             c = self.verifier.verify(kf, self.keyframes[place.keyframe], place.score, maps.scratch, maps.frame,
-                                     target_ready=True)
+                                     target_ready=True, checked=None if ahead is None else ahead.checks[k])
             report.candidates.append(c)
             self.candidates.append(c)
             # on by default: a rejected candidate is routine (debug; every candidate is in summary.json)
@@ -208,12 +238,14 @@ class LoopClosure:
             return combined_system(icp.sums, icp.weights)[0]
         return unpack_sums(icp.sums)["AtA"]
 
-    def _make_keyframe(self, frame, pose: np.ndarray, maps: LoopMaps) -> Keyframe:
+    def _make_keyframe(self, frame, pose: np.ndarray, maps: LoopMaps, features=None) -> Keyframe:
+        """``features``: the frame's ORB features where its look ahead has them."""
         depth, K = maps.frame.depth[maps.level].to_numpy(), maps.frame.intrinsics[maps.level]  # the map's resolution
         found, self._found = self._found, None
         # the frame that found itself in a saved map has its features from ``find_place``
-        features = found.features if found is not None and found.frame == frame.index else \
-            extract_features(frame, self._vo, self._orb)
+        if features is None:
+            features = found.features if found is not None and found.frame == frame.index else \
+                extract_features(frame, self._vo, self._orb)
         kf = Keyframe(len(self.keyframes), frame.index, frame.timestamp, pose.copy(), features, frame.intrinsics,
                       depth, K, grid_points(depth, K))
         self.keyframes.append(kf)

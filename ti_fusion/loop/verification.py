@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 
@@ -30,7 +31,7 @@ from ti_fusion.config import Config
 from ti_fusion.geometry import pose_error, se3_exp
 from ti_fusion.loop.keyframes import Keyframe
 from ti_fusion.loop.place_recognition import precheck
-from ti_fusion.tracking.features import solve_pnp
+from ti_fusion.tracking.features import PnPEstimate, solve_pnp
 from ti_fusion.tracking.icp import ICP
 from ti_fusion.timing import Stopwatch
 
@@ -53,6 +54,13 @@ def dense_starts(init: np.ndarray) -> list[np.ndarray]:
             twist[axis] = sign * (np.radians(DENSE_OFFSET_DEG) if axis < 3 else DENSE_OFFSET_M)
             starts.append(se3_exp(twist) @ init)
     return starts
+
+
+class FeatureCheck(NamedTuple):
+    """A candidate's first two gates (``LoopVerifier.check_features``)."""
+
+    consistent: int  # matches passing the pre-check
+    pnp: PnPEstimate | None  # PnP's estimate, None where the pre-check rejected the candidate
 
 
 @dataclass
@@ -98,23 +106,33 @@ class LoopVerifier:
         self.vo = dataclasses.replace(config.vo, n_features=config.loop.n_features, match="min_distance")
 
     def verify(self, query: Keyframe, match: Keyframe, score: float, source, target,
-               target_ready: bool = False) -> LoopCandidate:
+               target_ready: bool = False, checked: FeatureCheck | None = None) -> LoopCandidate:
+        """``checked``: the first two gates' ``check_features(query, match)`` where the caller has it already."""
         watch = Stopwatch()
         candidate = LoopCandidate(query.id, match.id, score)
         try:
-            self._verify(candidate, query, match, source, target, target_ready)
+            self._verify(candidate, query, match, source, target, target_ready,
+                         checked if checked is not None else self.check_features(query, match))
         finally:
             candidate.ms = watch.ms
         return candidate
 
+    def check_features(self, query: Keyframe, match: Keyframe) -> FeatureCheck:
+        """The first two gates, which read the keyframes' ORB features only (no Taichi, no pose): the pre-check's
+        consistent matches, and PnP's estimate where the pre-check passes."""
+        consistent = precheck(match, query, self.vo, self.config.loop.consistent_m)
+        if consistent < self.config.loop.min_consistent:
+            return FeatureCheck(consistent, None)
+        return FeatureCheck(consistent, solve_pnp(match.features, query.features, query.intrinsics, self.vo,
+                                                  check_motion=False))
+
     def _verify(self, c: LoopCandidate, query: Keyframe, match: Keyframe, source, target,
-                target_ready: bool) -> None:
+                target_ready: bool, checked: FeatureCheck) -> None:
         cfg = self.config.loop
-        c.consistent = precheck(match, query, self.vo, cfg.consistent_m)
-        if c.consistent < cfg.min_consistent:
+        c.consistent, pnp = checked
+        if pnp is None:
             c.reason = f"pre-check: {c.consistent} consistent matches < {cfg.min_consistent}"
             return
-        pnp = solve_pnp(match.features, query.features, query.intrinsics, self.vo, check_motion=False)
         c.pnp_inliers = pnp.inliers
         if pnp.T is None or pnp.inliers < cfg.min_pnp_inliers:
             c.reason = f"PnP: {pnp.inliers} inliers < {cfg.min_pnp_inliers}"

@@ -228,6 +228,10 @@ class DenseSLAM:
         check_frame(self, frame)  # one InputError for a frame this map cannot take (ti_fusion/slam/checks.py)
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
         terms = self.icp.terms_for(frame)  # the tracking terms besides the geometry that this frame can use
+        if self.loop is not None and self.poses and not self.localizing and \
+                (self.session is None or self.session.localised):  # to be tracked (``_track``, below): where the
+            # guess makes it a keyframe, its image work for loop closure starts beside the frame (loop/lookahead.py)
+            self.loop.look_ahead(frame, self._guess(frame.timestamp))
         with timer.stage("pyramid"):
             self._frame_maps(frame, terms)
         if self.session is not None and not self.session.localised:  # where in the map? (slam/session.py)
@@ -297,6 +301,12 @@ class DenseSLAM:
         if not self.config.slam.motion_model:
             return last.copy()
         return renormalize(self._extrapolate(last, self._elapsed(timestamp)))
+
+    def _guess(self, timestamp: float) -> np.ndarray:
+        """The motion model's guess at ``timestamp`` before ``_predicted_pose`` renormalises it (the same product,
+        worked out once): for loop closure's keyframe test on the guess, which needs no more."""
+        last = self._held_pose()
+        return self._extrapolate(last, self._elapsed(timestamp)) if self.config.slam.motion_model else last
 
     def _extrapolate(self, last: np.ndarray, dt: float) -> np.ndarray:
         """``last`` · exp(velocity · dt), not renormalised: the guess and, once the frame is tracked, the motion

@@ -26,7 +26,8 @@ LOOP_CANDIDATE_SCHEMA = json_object({
     "icp_inlier_ratio": json_field("number", "the keyframes' ICP inlier ratio (left out: ICP did not run)"),
     "icp_residual_mm": json_field("number", "the keyframes' ICP RMS residual, millimetres (left out: ICP did "
                                             "not run)"),
-    "ms": json_field("number", "verifying this candidate, milliseconds"),
+    "ms": json_field("number", "verifying this candidate on the loop's thread, milliseconds (its pre-check and PnP "
+                                 "may have run beside the frame: ti_fusion/loop/lookahead.py)"),
 }, required=("query", "match", "score", "verified", "reason", "consistent", "pnp_inliers", "ms"))
 
 # The /slam/stats message, every field (docs/LOGS.md shows one; the pipeline adds ms.load and ms.log).

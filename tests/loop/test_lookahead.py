@@ -1,0 +1,131 @@
+"""Loop closure's work beside the loop (``ti_fusion/loop/lookahead.py``): functions run in the order handed over,
+failures where they belong, and a frame's look ahead equal to what the loop closer computes of it itself; end to
+end, a run with looks ahead gives the run without them."""
+
+import dataclasses
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from ti_fusion.config import Config
+from ti_fusion.io.datasets.arrays import FrameList
+from ti_fusion.io.outputs import RunDir
+from ti_fusion.loop.closure import LoopClosure
+from ti_fusion.loop.lookahead import InOrder, look_ahead
+from ti_fusion.loop.place_recognition import PlaceDatabase
+from ti_fusion.loop.verification import LoopVerifier
+from ti_fusion.slam.pipeline import SLAMPipeline
+from tests.conftest import _use
+from tests.loop.scenes import keyframe, moved, sequence, view
+
+
+def test_functions_run_in_the_order_handed_over_each_on_a_thread():
+    queue, order, threads = InOrder(), [], set()
+
+    def step(k, pause):
+        time.sleep(pause)  # a later function that would finish first if it did not wait
+        order.append(k)
+        threads.add(threading.get_ident())
+        return k
+
+    jobs = [queue.submit(lambda k=k: step(k, 0.02 * (3 - k))) for k in range(4)]
+    assert queue.take(jobs[2]) == 2 and order == [0, 1, 2]
+    queue.settle()
+    assert order == [0, 1, 2, 3] and threading.get_ident() not in threads
+
+
+def test_a_failure_is_raised_by_settle_unless_quiet():
+    queue = InOrder()
+    quiet = queue.submit(lambda: 1 / 0, quiet=True)
+    after = queue.submit(lambda: "ran")  # a failure before it does not stop it
+    assert queue.take(quiet) is None  # the taker does the work itself
+    queue.settle()
+    assert after.result == "ran"
+    queue.submit(lambda: [][1])
+    with pytest.raises(IndexError):
+        queue.settle()
+    queue.settle()  # raised once
+
+
+def test_a_cancelled_function_does_not_run():
+    queue, gate, ran = InOrder(), threading.Event(), []
+    queue.submit(gate.wait)
+    job = queue.submit(lambda: ran.append(1), quiet=True)
+    job.cancelled = True
+    gate.set()
+    assert queue.take(job) is None
+    queue.settle()
+    assert ran == []
+
+
+@pytest.fixture(scope="module")
+def place():
+    """Five keyframes of the room in a database, and a frame of the first place seen again."""
+    _use("cpu")
+    seq = sequence()
+    cfg = Config()
+    cfg.loop = dataclasses.replace(cfg.loop, min_frame_gap=1, min_score=0.0)
+    database = PlaceDatabase(cfg.loop)
+    keyframes = []
+    for k, yaw in enumerate((0, 180, 90, -90, 45)):
+        pose = moved(seq.poses[0], yaw)
+        keyframes.append(keyframe(k, view(seq, pose, 10 * k, seed=k), pose))
+        database.add(keyframes[-1])
+    again = view(seq, moved(seq.poses[0], 4, (0.05, 0.0, -0.03)), 100, seed=9)
+    return cfg, database, keyframes, again
+
+
+def test_a_look_ahead_is_what_the_loop_closer_computes_of_the_frame(place):
+    cfg, database, keyframes, frame = place
+    verifier = LoopVerifier(cfg)
+    vo = dataclasses.replace(cfg.vo, n_features=cfg.loop.n_features)
+    ahead = look_ahead(frame, len(keyframes), vo, cv2.ORB_create(cfg.loop.n_features), database, keyframes, verifier)
+    kf = keyframe(len(keyframes), frame, np.eye(4), cfg.loop.n_features)  # as LoopClosure._make_keyframe makes it
+    assert np.array_equal(ahead.features.descriptors, kf.features.descriptors)
+    assert np.array_equal(ahead.features.points, kf.features.points, equal_nan=True)
+    assert ahead.places == database.query(kf) and ahead.places[0].keyframe == 0
+    for place_, check in zip(ahead.places, ahead.checks):
+        own = verifier.check_features(kf, keyframes[place_.keyframe])
+        assert check.consistent == own.consistent
+        assert (check.pnp is None) == (own.pnp is None)
+        if own.pnp is not None:
+            assert check.pnp.inliers == own.pnp.inliers and np.array_equal(check.pnp.T, own.pnp.T)
+    assert ahead.checks[0].pnp is not None and ahead.checks[0].pnp.inliers >= cfg.loop.min_pnp_inliers
+
+
+def _slam_run(out, look_ahead_on: bool):
+    """A 30-frame out-and-back run with loop closure (tests/loop/test_closure.py's), with or without looks ahead."""
+    seq = sequence()
+    path = list(range(0, 60, 4))
+    frames = [view(seq, seq.poses[i], k, seed=1000 + k) for k, i in enumerate(path + path[::-1])]
+    cfg = Config()
+    cfg.log.progress = False
+    cfg.loop.keyframe_translation = 0.1
+    cfg.loop.min_frame_gap = 15
+    cfg.slam.active_window = 15
+    cfg.loop.min_loop_error = 0.0
+    pipeline = SLAMPipeline(FrameList(frames, name="out-and-back"), cfg, RunDir("slam", out), None,
+                            show_progress=False)
+    taken = []
+    loop = pipeline.step.slam.loop
+    if look_ahead_on:
+        take = loop._beside.take
+        loop._beside.take = lambda job: taken.append(take(job)) or taken[-1]
+    else:
+        loop.look_ahead = lambda frame, guess: None
+    summary = pipeline.run()
+    return summary, (out / "trajectory.tum").read_bytes(), taken
+
+
+@pytest.mark.slow
+def test_a_run_with_looks_ahead_is_the_run_without_them(cpu, tmp_path):
+    with_, trajectory, taken = _slam_run(tmp_path / "with", True)
+    without, trajectory_without, _ = _slam_run(tmp_path / "without", False)
+    assert any(a is not None for a in taken)  # the keyframes' work was done beside the frame
+    assert trajectory == trajectory_without
+    strip = lambda log: [{k: v for k, v in c.items() if k != "ms"} for c in log]
+    assert strip(with_["loop_candidates_log"]) == strip(without["loop_candidates_log"])
+    assert with_["loops"] == without["loops"] and with_["loops_applied"] >= 1

@@ -36,6 +36,12 @@ def data_oriented(cls):
     return cls
 
 
+def given(x) -> bool:
+    """Whether an optional template argument was given: ``ti.static(given(x))`` (``is not None`` is not
+    allowed in Taichi scope, even inside ``ti.static``)."""
+    return x is not None
+
+
 @ti.func
 def rigid(pose: ti.template()):
     """(R, t) of a ``Rigid`` argument."""

@@ -161,7 +161,7 @@ def associate(s: ti.template(), n: ti.i32, img: ti.template(), vertex: ti.templa
     is unassociated."""
     world_measurements_loop(img, vertex, normal, to_world)
     project_compatible_loop(s, n, img, to_camera, fx, fy, cx, cy, dist_threshold, cos_threshold)
-    build_loops(s, n, img.index_map, True)
+    build_loops(s, n, img.index_map, True, None)
     assoc_from_index_loop(img)
 
 
@@ -231,9 +231,15 @@ def pack_color_loop(color: ti.template(), rgb: ti.template(), step):
     """color[v, u] = the uint8 RGB image ``rgb`` at row v·``step``, column u·``step``, packed
     r | g << 8 | b << 16 (``unpack_color`` reads it)."""
     for v, u in color:
-        y, x = v * step, u * step
-        color[v, u] = (ti.cast(rgb[y, x, 0], ti.i32) | (ti.cast(rgb[y, x, 1], ti.i32) << 8)
-                       | (ti.cast(rgb[y, x, 2], ti.i32) << 16))
+        pack_color_pixel(color, rgb, step, v, u)
+
+
+@ti.func
+def pack_color_pixel(color: ti.template(), rgb: ti.template(), step, v, u):
+    """Pixel (v, u) of ``pack_color_loop``."""
+    y, x = v * step, u * step
+    color[v, u] = (ti.cast(rgb[y, x, 0], ti.i32) | (ti.cast(rgb[y, x, 1], ti.i32) << 8)
+                   | (ti.cast(rgb[y, x, 2], ti.i32) << 16))
 
 
 @ti.func

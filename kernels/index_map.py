@@ -24,7 +24,7 @@ backend.
 import taichi as ti
 from taichi.lang import impl
 
-from ti_fusion.kernels.common import BLOCK, INT_MAX, Rigid, data_oriented, depth_bits, rigid
+from ti_fusion.kernels.common import BLOCK, INT_MAX, Rigid, data_oriented, depth_bits, given, rigid
 
 INT64_MAX = 2**63 - 1  # "no surfel" in a packed key
 
@@ -230,30 +230,36 @@ def nearest_packed(s: ti.template(), imap: ti.template()):
 
 
 @ti.func
-def unpack_loop(imap: ti.template()):
-    """index = the packed key's low half, INT_MAX where no surfel projects."""
+def unpack_loop(imap: ti.template(), front_radius: ti.template()):
+    """index = the packed key's low half, INT_MAX where no surfel projects; with ``front_radius`` (a field,
+    else None) −1 everywhere too, the renderer's clearing before ``gather_front_loop`` writes the winners': a
+    parallel loop (a wake-up and join of the worker threads) fewer. (The association's ``assoc`` written here
+    too was slower than its own loop: docs/PERFORMANCE.md.)"""
     for v, u in imap.index:
         key = imap.key[v, u]
         imap.index[v, u] = ti.select(key == ti.i64(INT64_MAX), INT_MAX, ti.cast(key & ti.i64(0xFFFFFFFF), ti.i32))
+        if ti.static(given(front_radius)):
+            front_radius[v, u] = -1.0
 
 
 @ti.kernel
 def build_listed(s: ti.template(), n: ti.i32, imap: ti.template(), with_index: ti.template()):
     """``build_loops`` in one launch."""
-    build_loops(s, n, imap, with_index)
+    build_loops(s, n, imap, with_index, None)
 
 
 @ti.func
-def build_loops(s: ti.template(), n, imap: ti.template(), with_index: ti.template()):
+def build_loops(s: ti.template(), n, imap: ti.template(), with_index: ti.template(), front_radius: ti.template()):
     """``gather_listed``, then with ``with_index`` ``clear_loop``, ``nearest_listed`` and ``claim_listed`` (on the
-    CPU ``clear_loop``, ``nearest_packed`` and ``unpack_loop``): their loops one after the other (each reads what
-    the one before wrote, ``n_listed`` included)."""
+    CPU ``clear_loop``, ``nearest_packed`` and ``unpack_loop``, with ``front_radius``: None, or a field the caller
+    clears itself off the CPU): their loops one after the other (each reads what the one before wrote,
+    ``n_listed`` included)."""
     gather_listed(s, n)
     if ti.static(with_index):
         clear_loop(imap)
         if ti.static(imap.packed):
             nearest_packed(s, imap)
-            unpack_loop(imap)
+            unpack_loop(imap, front_radius)
         else:
             nearest_listed(s, imap)
             claim_listed(s, imap)

@@ -52,9 +52,9 @@ import taichi as ti
 from taichi.lang import impl as ti_impl
 from taichi.lang.util import in_taichi_scope
 
-from ti_fusion.backend import serial_for
-from ti_fusion.kernels.common import INT_MAX, data_oriented
-from ti_fusion.kernels.fusion import pack_color, pack_color_loop
+from ti_fusion.backend import current_backend, serial_for
+from ti_fusion.kernels.common import INT_MAX, data_oriented, given
+from ti_fusion.kernels.fusion import pack_color, pack_color_loop, pack_color_pixel
 from ti_fusion.kernels.surfels import Pool
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import PyramidConfig
@@ -157,12 +157,12 @@ def pyramid_pixel(fine: ti.template(), f0, H, W, v, u, max_diff):
 def pyramid_down(fine: ti.template(), f0: ti.i32, H: ti.i32, W: ti.i32, coarse: ti.template(), c0: ti.i32,
                  max_diff: ti.f32, packed: ti.template(), serial: ti.template()):
     """One level of ``pyramid_loop`` in one launch."""
-    pyramid_loop(fine, f0, H, W, coarse, c0, max_diff, packed, serial)
+    pyramid_loop(fine, f0, H, W, coarse, c0, max_diff, packed, serial, None, None, 0)
 
 
 @ti.func
 def pyramid_loop(fine: ti.template(), f0, H, W, coarse: ti.template(), c0, max_diff, packed: ti.template(),
-                 serial: ti.template()):
+                 serial: ti.template(), color: ti.template(), rgb: ti.template(), color_step):
     """coarse = fine averaged down one level (see the module docstring): the H × W image at row ``f0`` of
     ``fine`` into the one at row ``c0`` of ``coarse`` (levels of stacked fields, see ``Level``); ``packed``:
     coarse is a packed image (``LANES`` pixels per element, see ``smooth_rows``) rather than a plain one.
@@ -171,7 +171,9 @@ def pyramid_loop(fine: ti.template(), f0, H, W, coarse: ti.template(), c0, max_d
     three fine rows is read once as the 17 pixels the eight 3×3 windows span, and every tap is a fixed
     selection of them. Packs on the image border take the pixel-at-a-time path (``pyramid_pixel``). A
     function with one loop: called at a kernel's top level, that loop is one of the kernel's parallel loops
-    (``pyramid_down``)."""
+    (``pyramid_down``). With ``color`` (a field of the coarse image's size, else None) the uint8 RGB image
+    ``rgb`` is packed into it in the same loop (``fusion.pack_color_loop``'s pixels, at every ``color_step``-th
+    pixel of ``rgb``): a parallel loop fewer (``input_images``)."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
     Wc = (W + 1) // 2
@@ -207,6 +209,10 @@ def pyramid_loop(fine: ti.template(), f0, H, W, coarse: ti.template(), c0, max_d
                         coarse[c0 + v, b][l] = pyramid_pixel(fine, f0, H, W, v, u, max_diff)
                     else:
                         coarse[c0 + v, u] = pyramid_pixel(fine, f0, H, W, v, u, max_diff)
+        if ti.static(given(color)):
+            for l in range(LANES):
+                if u0 + l < Wc:
+                    pack_color_pixel(color, rgb, color_step, v, u0 + l)
 
 
 @ti.func
@@ -453,19 +459,23 @@ def maps_levels(depth: ti.template(), vertex: ti.template(), normal: ti.template
 def input_images(fine: ti.types.ndarray(dtype=ti.f32, ndim=2), raw: ti.template(), max_diff: ti.f32,
                  serial_input: ti.template(), grey: ti.types.ndarray(dtype=ti.f32, ndim=2), intensity: ti.template(),
                  with_grey: ti.template(), rgb: ti.types.ndarray(dtype=ti.u8, ndim=3), color: ti.template(),
-                 color_step: ti.i32, with_color: ti.template()):
+                 color_step: ti.i32, with_color: ti.template(), color_in_pyramid: ti.template()):
     """Every loop of a frame's maps that reads the caller's arrays, for an input averaged down once and
     smoothed (the default at 640×480): ``pyramid_loop`` from the input image ``fine`` (not copied first)
     into the packed ``raw``; with ``with_grey``, the grey image ``grey`` averaged down into level 0 of
     ``intensity``; with ``with_color``, the uint8 RGB image ``rgb`` packed into ``color``
-    (``pack_color_loop``). Off the CPU each array argument is copied back after the launch, a wait, so
+    (``pack_color_loop``; with ``color_in_pyramid``, where ``color`` is of ``raw``'s size, inside the
+    pyramid's loop: a parallel loop fewer). Off the CPU each array argument is copied back after the launch, a wait, so
     depth, grey and colour cross together; the rest of the maps are launches of their own
     (``FramePyramid._input_launches``)."""
     H, W = fine.shape
-    pyramid_loop(fine, 0, H, W, raw, 0, max_diff, True, serial_input)
+    if ti.static(with_color and color_in_pyramid):
+        pyramid_loop(fine, 0, H, W, raw, 0, max_diff, True, serial_input, color, rgb, color_step)
+    else:
+        pyramid_loop(fine, 0, H, W, raw, 0, max_diff, True, serial_input, None, None, 0)
     if ti.static(with_grey):
         intensity_down_loop(grey, 0, H, W, intensity, 0, serial_input)
-    if ti.static(with_color):
+    if ti.static(with_color and not color_in_pyramid):
         pack_color_loop(color, rgb, color_step)
 
 
@@ -827,8 +837,12 @@ class FramePyramid:
         serial_input = serial_for(((h + 1) // 2) * ((w + 1) // 2))
         intensity = self.intensity[0].field if grey is not None else 0
         colour = packed if packed is not None else (_NO_RGB, 0, 0)  # not read: with_color is off
+        # the colour packed inside the pyramid's loop where it is of the loop's size (on the CPU: a
+        # parallel loop fewer; elsewhere the loops' order does not cost a dispatch)
+        in_pyramid = packed is not None and tuple(packed[1].shape) == (self.height, self.width) \
+            and current_backend().arch == "cpu"
         input_images(depth, raw, self.max_depth_diff, serial_input, grey if grey is not None else _NO_GREY,
-                     intensity, grey is not None, *colour, packed is not None)
+                     intensity, grey is not None, *colour, packed is not None, in_pyramid)
         stack = self.depth[0].field
         smooth_depth(raw, rows, stack, self.width, self.smooth_radius, self.max_depth_diff)
         self._levels_and_maps(0)

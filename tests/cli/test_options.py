@@ -38,6 +38,24 @@ def test_every_flagged_field_is_an_option_with_its_comment_as_help(command):
                 assert tuple(action.choices) == rule.choices.choices
 
 
+def test_a_command_line_without_help_builds_the_options_without_their_texts(capsys):
+    """The help texts come from reading config.py's comments (``field_docs``): a command line that cannot ask for
+    --help gets the same options without them; one that can (an abbreviation of --help too) gets them."""
+    from ti_fusion.cli.main import _asks_for_help, main
+
+    parser, _ = build_parser("slam", help_texts=False)
+    sub = next(a for a in parser._actions if a.dest == "command").choices["slam"]
+    bare = {s: a for a in sub._actions for s in a.option_strings}
+    full = _actions("slam")
+    assert set(bare) == set(full) and all(bare[o].help is None for o in KNOWN)
+    assert [bare[o].dest for o in KNOWN] == [full[o].dest for o in KNOWN]
+    assert not _asks_for_help(["slam", "../data", "--frames", "3", "--out", "run"])
+    assert all(_asks_for_help(["slam", flag]) for flag in ("-h", "--help", "--he"))
+    with pytest.raises(SystemExit):
+        main(["slam", "--hel"])
+    assert "(dataset.depth_scale)" in capsys.readouterr().out
+
+
 def _apply(argv: list[str], overrides: list[str] | None = None):
     parser, _ = build_parser()
     args = parser.parse_args(["slam", *argv])

@@ -106,7 +106,7 @@ def _available_commands(names: tuple[str, ...] = COMMAND_NAMES) -> dict[str, Mod
     return modules
 
 
-def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
+def _add_common(parser: argparse.ArgumentParser, module: ModuleType, help_texts: bool = True) -> None:
     g = parser.add_argument_group("common options")
     positional = getattr(module, "OUT_FROM_POSITIONAL", None)
     if positional is None:
@@ -130,12 +130,15 @@ def _add_common(parser: argparse.ArgumentParser, module: ModuleType) -> None:
                             "ROS bag (a ROS 1 .bag, e.g. a RealSense recording; a rosbag2 folder or an .mcap file); "
                             "omitted: the embedded synthetic sequence")
         d.add_argument("--frames", type=int, default=None, metavar="N", help="number of frames (from --start)")
-        add_flags(d, module.__name__.rsplit(".", 1)[-1])
+        add_flags(d, module.__name__.rsplit(".", 1)[-1], help_texts)
 
 
-def build_parser(only: str | None = None) -> tuple[argparse.ArgumentParser, dict[str, ModuleType]]:
+def build_parser(only: str | None = None, help_texts: bool = True) -> tuple[argparse.ArgumentParser,
+                                                                            dict[str, ModuleType]]:
     """The command line's parser and the commands' modules; with ``only`` (a command's name), that command's
-    alone: the other commands' modules import Taichi and the kernels, which ``batch``'s driver never needs."""
+    alone: the other commands' modules import Taichi and the kernels, which ``batch``'s driver never needs.
+    Without ``help_texts``, the dataset options have no help text (``add_flags``): for a command line that asks
+    for no help (``_asks_for_help``)."""
     parser = argparse.ArgumentParser(
         prog="ti-fusion",
         description="Dense RGB-D SLAM with point-to-plane ICP and surfel fusion on Taichi kernels.",
@@ -146,7 +149,7 @@ def build_parser(only: str | None = None) -> tuple[argparse.ArgumentParser, dict
     for name, module in modules.items():
         p = sub.add_parser(name, help=module.HELP, description=module.HELP)
         module.add_arguments(p)
-        _add_common(p, module)
+        _add_common(p, module, help_texts)
     return parser, modules
 
 
@@ -354,9 +357,15 @@ def _join_negative_values(argv: list[str], options: set[str]) -> list[str]:
     return out
 
 
+def _asks_for_help(argv: list[str]) -> bool:
+    """Whether ``argv`` may ask argparse for a help text: any -h or --h... token (argparse takes abbreviations of
+    --help, and -h among other short flags), whatever it turns out to be."""
+    return any(token.startswith(("-h", "--h")) for token in argv)
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
-    parser, modules = build_parser(argv[0] if argv else None)
+    parser, modules = build_parser(argv[0] if argv else None, _asks_for_help(argv))
     args = parser.parse_args(_join_negative_values(argv, _value_options(parser)))
     if not args.command:
         parser.print_help()

@@ -29,17 +29,20 @@ def option(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
-def add_flags(group: argparse._ArgumentGroup, command: str | None = None) -> None:
+def add_flags(group: argparse._ArgumentGroup, command: str | None = None, help_texts: bool = True) -> None:
     """Every section's flags (``command``'s) as options of ``group``; an option left out stays None (the
-    config's value)."""
-    docs = field_docs()
+    config's value). Without ``help_texts`` the options have no help (a command line that does not ask for
+    --help prints none, and the texts come from reading config.py's comments: ``field_docs``)."""
+    docs = field_docs() if help_texts else None
     for section, section_type in SECTIONS.items():
         for name, rule in flags(section, command):
-            help_text = docs[section_type.__name__, name]
-            if section == "synth":
-                help_text = "without DATA: " + help_text
-            kwargs = dict(default=None, dest=name, metavar=rule.flag.metavar,
-                          help=f"{help_text} ({section}.{name})".replace("%", "%%"))
+            help_text = None
+            if docs is not None:
+                help_text = docs[section_type.__name__, name]
+                if section == "synth":
+                    help_text = "without DATA: " + help_text
+                help_text = f"{help_text} ({section}.{name})".replace("%", "%%")
+            kwargs = dict(default=None, dest=name, metavar=rule.flag.metavar, help=help_text)
             if rule.kind is bool:  # a switch: given, it is true
                 kwargs.pop("metavar")
                 kwargs["action"] = "store_true"

@@ -496,21 +496,29 @@ def maps_levels_loops(depth: ti.template(), vertex: ti.template(), normal: ti.te
     from ``geometry``: one copy of the per-pack code for every level (one loop per level compiled 3.5 times
     as long). ``first_maps`` is a runtime value (the rows of the levels before it are skipped), so that one
     instance serves a rendered model, whose level 0 maps come from the renderer, and depth uploaded into
-    the same maps (loop verification's keyframes)."""
-    rows = ti.cast(geometry[levels - 1, G_ROW0] + geometry[levels - 1, G_H], ti.i32)
-    packs = (ti.cast(geometry[0, G_W], ti.i32) + LANES - 1) // LANES
+    the same maps (loop verification's keyframes).
+
+    The loop runs over the packs of those levels only, numbered level by level (a level's H × ⌈W/8⌉ packs row by
+    row): a loop over every row of the stack and the widest level's packs spent most of its iterations on
+    skipping (three quarters of them for a rendered model's levels 1 and 2)."""
+    start = ti.Vector([0] * levels)  # the first pack of each level in the loop's numbering
+    total = 0
+    for l in ti.static(range(levels)):
+        start[l] = total
+        if l >= first_maps:
+            total += ti.cast(geometry[l, G_H], ti.i32) * ((ti.cast(geometry[l, G_W], ti.i32) + LANES - 1) // LANES)
     if ti.static(serial):
         ti.loop_config(serialize=True)
-    for row, b in ti.ndrange(rows, packs):
-        l = 0
-        for k in ti.static(range(1, levels)):
-            l += ti.select(row >= ti.cast(geometry[k, G_ROW0], ti.i32), 1, 0)
-        r0 = ti.cast(geometry[l, G_ROW0], ti.i32)
+    for k in range(total):
+        l = 0  # the levels before first_maps have no packs: their starts are 0, below every k
+        for m in ti.static(range(1, levels)):
+            l += ti.select(k >= start[m], 1, 0)
         W = ti.cast(geometry[l, G_W], ti.i32)
-        if l >= first_maps and b * LANES < W:
-            vertex_normal_pack(depth, vertex, normal, r0, ti.cast(geometry[l, G_H], ti.i32), W, row - r0, b,
-                               1.0 / geometry[l, G_FX], 1.0 / geometry[l, G_FY], geometry[l, G_CX], geometry[l, G_CY],
-                               geometry[l, G_JUMP])
+        packs = (W + LANES - 1) // LANES
+        r = k - start[l]
+        vertex_normal_pack(depth, vertex, normal, ti.cast(geometry[l, G_ROW0], ti.i32), ti.cast(geometry[l, G_H], ti.i32),
+                           W, r // packs, r % packs, 1.0 / geometry[l, G_FX], 1.0 / geometry[l, G_FY], geometry[l, G_CX],
+                           geometry[l, G_CY], geometry[l, G_JUMP])
 
 
 GREY = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights of R, G, B

@@ -204,6 +204,23 @@ def test_frames_cross_through_shared_memory_bit_for_bit(clean):
             assert frame.depth.flags.writeable and frame.color.flags.writeable
 
 
+def test_frames_are_taken_from_the_readers_on_the_receiver_thread(clean, monkeypatch):
+    """The caller's thread neither waits for a reader's message nor copies a frame out of the shared memory: the
+    receiver thread does, while the caller works on the frame before; leaving the loop early stops it."""
+    from ti_fusion.io.frame_workers import WorkerPool
+
+    takers, take = set(), WorkerPool.take
+    monkeypatch.setattr(WorkerPool, "take", lambda *a: takers.add(threading.current_thread().name) or take(*a))
+    data = readers.Frames(12)
+    with Prefetcher(data, ahead=3, workers=2, mode="processes") as frames:
+        for i, frame, _ in frames:
+            np.testing.assert_array_equal(frame.depth, data[i].depth)
+            if i == 8:
+                break
+    assert takers and all(name.startswith("ti-fusion-receiver") for name in takers)
+    assert not [t for t in threading.enumerate() if t.name.startswith("ti-fusion-receiver")]
+
+
 def test_processes_stay_within_ahead_of_the_caller(clean, tmp_path):
     """No process starts frame j before the caller has taken frame j − ahead; frame 0 is read by the caller
     itself, while the processes start."""

@@ -80,6 +80,15 @@ def can_use_processes(dataset) -> bool:
     return True
 
 
+def count_launches(launches: list) -> None:
+    """The kernels' first launches a reader reported with an item (a renderer's), counted with this process's."""
+    if launches:
+        from ti_fusion.frontend import CLOCK
+
+        for name, seconds, compiled in launches:
+            CLOCK.add(seconds, name, compiled, elsewhere=True)
+
+
 def _aligned(n: int) -> int:
     return (n + _ALIGN - 1) // _ALIGN * _ALIGN
 
@@ -134,6 +143,22 @@ class WorkerPool:
     def receive(self, i: int, worker: int, slot: int) -> tuple[str, object, float]:
         """Item ``i`` from ``worker``: ("frame", item, read ms) with its arrays copied out of ``slot``, or
         ("error", the exception its reading raised, 0.0). ``ReaderDied`` when the process is gone."""
+        kind, item, read_ms, launches = self.take(i, worker, slot)
+        count_launches(launches)
+        return kind, item, read_ms
+
+    def ready(self, worker: int, timeout: float) -> bool:
+        """Whether ``worker`` has sent something to ``take`` (or has gone), waiting up to ``timeout`` seconds."""
+        try:
+            return self._conns[worker].poll(timeout)
+        except (EOFError, OSError):
+            return True  # ``take`` says how it went
+        except IndexError:  # closed
+            return False
+
+    def take(self, i: int, worker: int, slot: int) -> tuple[str, object, float, list]:
+        """``receive`` on any thread: its answer and the kernels' first launches the reader reports with the item,
+        for the caller to ``count_launches`` where the item is handed out."""
         try:
             message = self._conns[worker].recv()
         except (EOFError, OSError):
@@ -141,14 +166,9 @@ class WorkerPool:
         kind, index, item, read_ms, launches = message
         if index != i:  # (a protocol error, not a user's: say it plainly)
             raise RuntimeError(f"frame reader sent item {index} where {i} was due")
-        if launches:  # kernels the reader launched first (a renderer's): counted with this process's
-            from ti_fusion.frontend import CLOCK
-
-            for name, seconds, compiled in launches:
-                CLOCK.add(seconds, name, compiled, elsewhere=True)
         if kind == "frame":
             item = self._unpack(item, slot)
-        return kind, item, read_ms
+        return kind, item, read_ms, launches
 
     def _unpack(self, item, slot: int):
         packed = getattr(item, "_shm", None)

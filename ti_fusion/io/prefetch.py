@@ -9,7 +9,10 @@ Frames come out in order. ``mode``:
 
 - "processes" (files and bags): ``workers`` reader processes (``ti_fusion.io.frame_workers``) decode
   frames and hand their depth and colour over through shared memory, so decoding runs beside Taichi's
-  kernel launches, which hold the GIL (docs/PERFORMANCE.md, reading in processes). The caller reads the
+  kernel launches, which hold the GIL (docs/PERFORMANCE.md, reading in processes). A receiver thread takes
+  frame i + 1 from its reader (the message, and the arrays copied out of the shared memory, a copy that
+  releases the GIL) while the caller works on frame i; the caller still asks for each frame, so the bound
+  below holds as it did. The caller reads the
   first frame itself while the processes start, except a rendered one. On the CPU backend the synthetic
   sequence is rendered in a reader process too: its renderer compiles and runs beside the loop's kernels.
 - "thread": one background thread (a camera, frames in memory, a dataset that does not pickle).
@@ -29,9 +32,10 @@ from __future__ import annotations
 import logging
 import os
 import threading
+from concurrent.futures import Future, ThreadPoolExecutor
 from typing import Iterator, Sequence
 
-from ti_fusion.io.frame_workers import WorkerPool, can_use_processes
+from ti_fusion.io.frame_workers import WorkerPool, can_use_processes, count_launches
 from ti_fusion.timing import Stopwatch
 
 _STOP_POLL_S = 0.05  # how often a waiting reader thread or caller checks whether the reading is to stop
@@ -100,6 +104,9 @@ class Prefetcher:
         self._end = self.n  # no index from here on is read (after an error at k: k + 1)
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
+        # the processes' side: the thread that takes the next frame from its reader (its arrays copied out of the
+        # shared memory, which releases the GIL) while the caller works on the one before
+        self._receiver: ThreadPoolExecutor | None = None
 
     @classmethod
     def for_dataset(cls, dataset, setting: int = 0, ahead: int = 3, arch: str | None = None) -> "Prefetcher":
@@ -130,6 +137,7 @@ class Prefetcher:
         # ahead of them asked for at once
         self._first = 0 if getattr(self.dataset, "renders_on_taichi", False) else 1
         self._asked = self._first
+        self._receiver = ThreadPoolExecutor(max_workers=1, thread_name_prefix="ti-fusion-receiver")
         while self._asked < min(self.n, self._first + self.ahead):
             self.pool.request(self._asked, self._worker(self._asked), self._asked % self.ahead)
             self._asked += 1
@@ -156,8 +164,11 @@ class Prefetcher:
                 with self._lock:
                     self._lock.notify_all()
                 self._thread.join()
+            if self._receiver is not None:  # (it stops waiting within _STOP_POLL_S: before the memory goes)
+                self._receiver.shutdown(wait=True)
         finally:  # a second Ctrl-C during the join still stops the processes
             self._thread = None
+            self._receiver = None
             self._ready.clear()
             if self.pool is not None:
                 pool, self.pool = self.pool, None
@@ -187,16 +198,33 @@ class Prefetcher:
             watch = Stopwatch()
             frame = self.dataset[0]
             yield 0, frame, watch.ms
+        receiver = self._receiver
+        coming: Future | None = None  # frame i's receipt on the receiver thread, started as frame i - 1 went out
         for i in range(self._first, n):
             if self.pool is None:  # closed while the caller still iterates: nothing more comes
                 return
-            kind, payload, read_ms = pool.receive(i, self._worker(i), i % ahead)
+            received = (coming or receiver.submit(self._receive, pool, i)).result()
+            coming = None
+            if received is None:  # closed meanwhile
+                return
+            kind, payload, read_ms, launches = received
+            count_launches(launches)  # here: with the frame they were reported with
             if kind == "error":
                 raise payload
             if asked < n:  # the slot is free again: the next frame into it
                 pool.request(asked, self._worker(asked), asked % ahead)
                 asked += 1
+            if i + 1 < n:
+                coming = receiver.submit(self._receive, pool, i + 1)
             yield i, payload, read_ms
+
+    def _receive(self, pool: WorkerPool, i: int) -> tuple[str, object, float, list] | None:
+        """Frame ``i`` from its reader (``WorkerPool.take``), on the receiver thread; None once closing."""
+        worker = self._worker(i)
+        while not self._stop.is_set():
+            if pool.ready(worker, _STOP_POLL_S):
+                return pool.take(i, worker, i % self.ahead)
+        return None
 
     # -- the thread -----------------------------------------------------------------------------
     def _from_thread(self) -> Iterator[tuple[int, object, float]]:

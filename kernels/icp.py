@@ -300,10 +300,12 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
         return R, t, K
 
     @ti.func
-    def _target_pixel(src_v: ti.template(), src_n: ti.template(), s0, Ht, Wt, v, u, params: ti.template(), row):
-        """The first three tests of the association, without branches: the target pixel vi·Wt + ui that
-        source pixel (v, u) projects to; else, the first test it fails: SOURCE_INVALID (no vertex or
-        normal), BEHIND_TARGET (z′ ≤ 0), NO_TARGET (outside the target image)."""
+    def _target_pixel(src_v: ti.template(), src_n: ti.template(), s0, Ht, Wt, v, u, params: ti.template(), row,
+                      tbase, tstride):
+        """The first three tests of the association, without branches: the index tbase + vi·tstride + ui of
+        the target pixel (vi, ui) that source pixel (v, u) projects to, in the target's field (``_target_base``);
+        else, the first test it fails: SOURCE_INVALID (no vertex or normal), BEHIND_TARGET (z′ ≤ 0), NO_TARGET
+        (outside the target image)."""
         R, t, K = _pose(params, row)  # per pixel, as the surfel projections (hoisted, it ran slower: docs/KERNELS.md)
         p = ti.cast(src_v[s0 + v, u], real)
         n = ti.cast(src_n[s0 + v, u], real)
@@ -318,8 +320,17 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
         ui = ti.cast(ti.select(inside, uf, 0.0), ti.i32)
         vi = ti.cast(ti.select(inside, vf, 0.0), ti.i32)
         valid = (p.z > 0) & (n.dot(n) > 0)
-        return ti.select(valid, ti.select(inside, vi * Wt + ui, ti.select(front, NO_TARGET, BEHIND_TARGET)),
-                         SOURCE_INVALID)
+        tp = tbase + vi * tstride + ui
+        return ti.select(valid, ti.select(inside, tp, ti.select(front, NO_TARGET, BEHIND_TARGET)), SOURCE_INVALID)
+
+    @ti.func
+    def _target_base(tgt_v: ti.template(), t0):
+        """(tbase, tstride) of ``_target_pixel`` for a target level at row t0 of its field: the pixel's index in
+        the whole field, so that ``_correspondence`` finds its row and column by a division by the field's
+        width, a compile-time constant, where one by the level's width took an integer division per pixel
+        (docs/PERFORMANCE.md: ICP's iteration, 2026-11-29)."""
+        tstride = tgt_v.shape[1]  # (``x = ti.static(...)`` would bind a name, not make a variable)
+        return t0 * tstride, tstride
 
     @ti.func
     def _chunk_range(H, W, c, n_chunks):
@@ -331,7 +342,7 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
 
     @ti.func
     def _project_chunk(src_v: ti.template(), src_n: ti.template(), s0, W, Ht, Wt, begin, end,
-                       params: ti.template(), row, target: ti.template()):
+                       params: ti.template(), row, target: ti.template(), tbase, tstride):
         """First pass over a chunk: ``target[k]`` = ``_target_pixel`` of each of its pixels k.
 
         Every kernel that tests correspondences makes two passes over a chunk: this one projects (no
@@ -342,7 +353,7 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
         v = begin // W
         u = begin - v * W
         for k in range(begin, end):
-            target[k] = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params, row)
+            target[k] = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params, row, tbase, tstride)
             u += 1
             if u == W:
                 u = 0
@@ -350,14 +361,15 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
 
     @ti.func
     def _correspondence(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),
-                        s0, t0, Wt, tp, v, u, R, t, dist2_thr, cos_thr):
-        """Second pass, for source pixel (v, u) with target pixel ``tp`` ≥ 0 (``_target_pixel``): (status,
+                        s0, tp, v, u, R, t, dist2_thr, cos_thr):
+        """Second pass, for source pixel (v, u) with target pixel ``tp`` ≥ 0 (``_target_pixel``, its index in the
+        target's field: ``_target_base``): (status,
         p′, q, n_q), status the first of the remaining tests it fails (STATUS_TARGET_INVALID,
         STATUS_TOO_FAR, STATUS_NORMAL_ANGLE) or STATUS_OK."""
         status = STATUS_TARGET_INVALID
         pt = vec3(0.0)
-        q = ti.cast(tgt_v[t0 + tp // Wt, tp % Wt], real)
-        nq = ti.cast(tgt_n[t0 + tp // Wt, tp % Wt], real)
+        q = ti.cast(tgt_v[tp // ti.static(tgt_v.shape[1]), tp % ti.static(tgt_v.shape[1])], real)
+        nq = ti.cast(tgt_n[tp // ti.static(tgt_v.shape[1]), tp % ti.static(tgt_v.shape[1])], real)
         if q.z > 0 and nq.dot(nq) > 0:
             status = STATUS_TOO_FAR
             pt = R @ ti.cast(src_v[s0 + v, u], real) + t
@@ -376,7 +388,8 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
         correspondence, each term's row (``rows[j]``, with its mode and images ``terms[j]``) into its 29 sums,
         and the count of valid source pixels."""
         begin, end = _chunk_range(Hs, W, c, n_chunks)
-        _project_chunk(src_v, src_n, s0, W, Ht, Wt, begin, end, params, row, target)
+        tbase, tstride = _target_base(tgt_v, t0)
+        _project_chunk(src_v, src_n, s0, W, Ht, Wt, begin, end, params, row, target, tbase, tstride)
         R, t, K = _pose(params, row)
         dist2_thr, cos_thr = params[row, P_DIST2], params[row, P_COS]
         settings = [ti.Vector([params[row, ti.static(term_column(j) + 1 + i)] for i in ti.static(range(TERM_SETTINGS))],
@@ -389,8 +402,8 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
             if tp != SOURCE_INVALID:
                 acc[SUM_SOURCE] += 1.0
             if tp >= 0:
-                status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, t0, Wt, tp, v, u, R, t,
-                                                    dist2_thr, cos_thr)
+                status, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, tp, v, u, R, t, dist2_thr,
+                                                    cos_thr)
                 if status == STATUS_OK:
                     for j in ti.static(range(n_terms)):
                         ok, A, r, w = rows[j](ti.static(Correspondence(v, u, pt, q, nq, K, R, t, s0, t0, Ht, Wt)),
@@ -708,12 +721,13 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
                    s0: ti.i32, Hs: ti.i32, Ws: ti.i32, t0: ti.i32, Ht: ti.i32, Wt: ti.i32,
                    status: ti.template(), params: params_t):
         for v, u in ti.ndrange(Hs, Ws):
-            tp = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params, STATE)
+            tbase, tstride = _target_base(tgt_v, t0)
+            tp = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params, STATE, tbase, tstride)
             s = ti.select(tp == SOURCE_INVALID, STATUS_SOURCE_INVALID,
                           ti.select(tp == BEHIND_TARGET, STATUS_BEHIND, STATUS_OUT_OF_IMAGE))
             if tp >= 0:
                 R, t, K = _pose(params, STATE)
-                s, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, t0, Wt, tp, v, u, R, t,
+                s, pt, q, nq = _correspondence(src_v, src_n, tgt_v, tgt_n, s0, tp, v, u, R, t,
                                                params[STATE, P_DIST2], params[STATE, P_COS])
             status[v, u] = s
 

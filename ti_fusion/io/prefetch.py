@@ -211,15 +211,20 @@ class Prefetcher:
             count_launches(launches)  # here: with the frame they were reported with
             if kind == "error":
                 raise payload
-            if asked < n:  # the slot is free again: the next frame into it
-                pool.request(asked, self._worker(asked), asked % ahead)
-                asked += 1
+            ask = None
+            if asked < n:  # the slot is free again: the next frame into it, asked for on the receiver thread
+                ask, asked = asked, asked + 1
             if i + 1 < n:
-                coming = receiver.submit(self._receive, pool, i + 1)
+                coming = receiver.submit(self._receive, pool, i + 1, ask)
+            elif ask is not None:
+                pool.request(ask, self._worker(ask), ask % ahead)
             yield i, payload, read_ms
 
-    def _receive(self, pool: WorkerPool, i: int) -> tuple[str, object, float, list] | None:
-        """Frame ``i`` from its reader (``WorkerPool.take``), on the receiver thread; None once closing."""
+    def _receive(self, pool: WorkerPool, i: int, ask: int | None = None) -> tuple[str, object, float, list] | None:
+        """On the receiver thread: frame ``ask`` asked for (its slot is free: the frame before in it has been
+        handed out), then frame ``i`` from its reader (``WorkerPool.take``); None once closing."""
+        if ask is not None:
+            pool.request(ask, self._worker(ask), ask % self.ahead)
         worker = self._worker(i)
         while not self._stop.is_set():
             if pool.ready(worker, _STOP_POLL_S):

@@ -36,6 +36,11 @@ def data_oriented(cls):
     return cls
 
 
+def on_cpu() -> bool:
+    """Whether the running Taichi program is on the CPU (at compile time: ``if ti.static(on_cpu()):``)."""
+    return impl.current_cfg().arch in (ti.x64, ti.arm64)
+
+
 def given(x) -> bool:
     """Whether an optional template argument was given: ``ti.static(given(x))`` (``is not None`` is not
     allowed in Taichi scope, even inside ``ti.static``)."""

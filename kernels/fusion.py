@@ -34,7 +34,7 @@ import numpy as np
 import taichi as ti
 
 from ti_fusion.kernels.common import (BLOCK, INT_MAX, Mat3, Rigid, Vec3, bits_depth, data_oriented, depth_bits,
-                                      depth_noise_scale, is_valid, rigid)
+                                      depth_noise_scale, is_valid, on_cpu, rigid)
 from ti_fusion.kernels.index_map import LANES, IndexMap, build_loops, list_if, project_one, project_pack
 from ti_fusion.kernels.surfels import copy_surfel
 
@@ -56,6 +56,15 @@ COVERED = -2  # ``assoc`` of a pixel that a neighbour's merged surfel already co
 # stages after the add take their loop bounds from TOTAL and KEPT on the device, so that a step needs no
 # count from the host between its kernels.
 C_NEW, C_MERGED, C_COVERED, C_LOST, C_REMOVED, C_TOTAL, C_KEPT, N_COUNTS = range(8)
+
+
+@ti.kernel
+def read_counts(counts: ti.template(), out: ti.types.ndarray(dtype=ti.i32, ndim=1)):
+    """out = ``counts`` (the N_COUNTS of a step) on the calling thread: a field's ``to_numpy`` copies in a
+    parallel loop, a wake-up and join of the worker threads for eight numbers."""
+    ti.loop_config(serialize=True)
+    for k in range(N_COUNTS):
+        out[k] = counts[k]
 
 
 def weight_bits(radial: bool, depth: bool) -> int:
@@ -575,10 +584,16 @@ def fill_holes_loops(s: ti.template(), counts: ti.template()):
     blocks for a loop over blocks to use more than one thread. With no removals every loop is empty."""
     n = counts[C_TOTAL]
     m = counts[C_KEPT]
+    # On the CPU the two listing loops run on the calling thread: removals are a few hundred surfels a frame,
+    # so they take microseconds, less than handing a loop to the worker threads and waiting for it.
+    if ti.static(on_cpu()):
+        ti.loop_config(serialize=True)
     for b in range((m + BLOCK - 1) // BLOCK):
         k = s.hole_offset[b]
         for j in range(s.block_holes[b]):
             s.holes[k + j] = s.removals_by_block[b * BLOCK + j]
+    if ti.static(on_cpu()):
+        ti.loop_config(serialize=True)
     for b in range(ti.select(m < n, m // BLOCK, 0), ti.select(m < n, (n + BLOCK - 1) // BLOCK, 0)):
         k = s.mover_offset[b]
         lo = b * BLOCK

@@ -121,7 +121,7 @@ class SurfelMap(SurfelStore):
             return None
         fusion.count_segments(img, vertex, normal, to_world, dist, math.cos(math.radians(angle)), cover is not None)
         fusion.scan_segments(img, self.counts, self.count)
-        c = self.counts.to_numpy()  # the exact count, to grow the map for it
+        c = self._read_counts()  # the exact count, to grow the map for it
         counts = AddCounts(int(c[fusion.C_NEW]), int(c[fusion.C_MERGED]), int(c[fusion.C_COVERED]))
         self.ensure_capacity(self.count + counts.new)  # before any write: grow or raise
         if counts.new == 0:
@@ -134,6 +134,12 @@ class SurfelMap(SurfelStore):
         self._check_lost(int(self.counts[fusion.C_LOST]))
         self.count += counts.new
         return counts
+
+    def _read_counts(self) -> np.ndarray:
+        """``counts`` as NumPy (``fusion.read_counts``)."""
+        out = np.empty(fusion.N_COUNTS, np.int32)
+        fusion.read_counts(self.counts, out)
+        return out
 
     def _check_lost(self, lost: int) -> None:
         if lost:  # cannot happen after ensure_capacity; never let it pass silently
@@ -175,7 +181,7 @@ class SurfelMap(SurfelStore):
     def step_counts(self) -> dict[str, int]:
         """What the last step did (new, merged, covered, removed, surfels): one read of the counts, which
         also brings the host's ``count`` up to date after a deferred add and removal."""
-        c = self.counts.to_numpy()
+        c = self._read_counts()
         if self._count_on_device:
             self._count_on_device = False
             self._check_lost(int(c[fusion.C_LOST]))

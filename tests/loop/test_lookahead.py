@@ -61,6 +61,33 @@ def test_a_cancelled_function_does_not_run():
     assert ran == []
 
 
+def test_a_settle_cut_by_ctrl_c_leaves_the_rest_for_the_next(monkeypatch):
+    """A Ctrl-C that arrives while the loop's thread waits (a notebook's interrupted cell, then more frames or
+    ``save_map``): the functions not yet waited for are still waited for, and their failures raised, by the
+    next ``settle``, so nothing reads the database while an addition still runs on it."""
+    from ti_fusion.loop.lookahead import Job
+
+    queue, gate = InOrder(), threading.Event()
+    first = queue.submit(gate.wait)
+    queue.submit(lambda: [][1])
+    wait, cut = Job.wait, []
+
+    def interrupted(job):
+        if not cut:
+            cut.append(job)
+            raise KeyboardInterrupt
+        wait(job)
+
+    monkeypatch.setattr(Job, "wait", interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        queue.settle()
+    assert cut == [first]
+    gate.set()
+    with pytest.raises(IndexError):  # waited for, not forgotten
+        queue.settle()
+    assert not first._thread.is_alive()
+
+
 @pytest.fixture(scope="module")
 def place():
     """Five keyframes of the room in a database, and a frame of the first place seen again."""

@@ -79,10 +79,13 @@ class InOrder:
         """Wait for every function handed over (up to ``upto`` and it), and raise the first failure of one not
         ``quiet``."""
         end = len(self._jobs) if upto is None else self._jobs.index(upto) + 1
-        done, self._jobs = self._jobs[:end], self._jobs[end:]
+        # each job forgotten only once waited for: a Ctrl-C inside a wait leaves the rest for the next settle
+        # (the database is not read while an addition may still run on it)
         failure = None
-        for job in done:
+        for _ in range(end):
+            job = self._jobs[0]
             job.wait()
+            del self._jobs[0]
             if failure is None and not job.quiet and job.error is not None:
                 failure = job.error
         if failure is not None:

@@ -11,10 +11,10 @@ Frames come out in order. ``mode``:
   frames and hand their depth and colour over through shared memory, so decoding runs beside Taichi's
   kernel launches, which hold the GIL (docs/PERFORMANCE.md, reading in processes). A receiver thread takes
   frame i + 1 from its reader (the message, and the arrays copied out of the shared memory, a copy that
-  releases the GIL) while the caller works on frame i; the caller still asks for each frame, so the bound
-  below holds as it did. The caller reads the
-  first frame itself while the processes start, except a rendered one. On the CPU backend the synthetic
-  sequence is rendered in a reader process too: its renderer compiles and runs beside the loop's kernels.
+  releases the GIL) while the caller works on frame i, and as it starts, asks for frame i + ``ahead`` into
+  the slot frame i has left, so the bound below holds as it did. The caller reads the first frame itself
+  while the processes start, except a rendered one. On the CPU backend the synthetic sequence is rendered
+  in a reader process too: its renderer compiles and runs beside the loop's kernels.
 - "thread": one background thread (a camera, frames in memory, a dataset that does not pickle).
 - "inline": the caller's thread (the synthetic sequence on a GPU backend: its frames come from Taichi kernels,
   which would hold the GIL anyway, and Taichi is not meant to launch from two threads at once).
@@ -193,7 +193,7 @@ class Prefetcher:
 
     # -- processes ------------------------------------------------------------------------------
     def _from_processes(self) -> Iterator[tuple[int, object, float]]:
-        pool, n, ahead, asked = self.pool, self.n, self.ahead, self._asked
+        pool, n, asked = self.pool, self.n, self._asked
         if self._first:
             watch = Stopwatch()
             frame = self.dataset[0]
@@ -214,10 +214,8 @@ class Prefetcher:
             ask = None
             if asked < n:  # the slot is free again: the next frame into it, asked for on the receiver thread
                 ask, asked = asked, asked + 1
-            if i + 1 < n:
+            if i + 1 < n:  # (at the last frame every frame has been asked for: asked > i, and ask is None)
                 coming = receiver.submit(self._receive, pool, i + 1, ask)
-            elif ask is not None:
-                pool.request(ask, self._worker(ask), ask % ahead)
             yield i, payload, read_ms
 
     def _receive(self, pool: WorkerPool, i: int, ask: int | None = None) -> tuple[str, object, float, list] | None:

@@ -171,10 +171,12 @@ def _memfds() -> int:
 
 @pytest.fixture
 def clean():
-    """Every test of reader processes ends with none of them left, no memfd open and /dev/shm as it was."""
+    """Every test of reader processes ends with none of them left, no receiver thread, no memfd open and /dev/shm
+    as it was."""
     before, shm = _children(), set(os.listdir("/dev/shm"))
     yield
     assert _children() <= before
+    assert not [t for t in threading.enumerate() if t.name.startswith("ti-fusion-receiver")]
     assert _memfds() == 0
     assert set(os.listdir("/dev/shm")) <= shm
 

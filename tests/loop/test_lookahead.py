@@ -70,10 +70,10 @@ def test_a_settle_cut_by_ctrl_c_leaves_the_rest_for_the_next(monkeypatch):
     queue, gate = InOrder(), threading.Event()
     first = queue.submit(gate.wait)
     queue.submit(lambda: [][1])
-    wait, cut = Job.wait, []
+    wait, cut, me = Job.wait, [], threading.get_ident()
 
-    def interrupted(job):
-        if not cut:
+    def interrupted(job):  # a Ctrl-C reaches the waiting caller only, not a job's thread waiting for the one before
+        if not cut and threading.get_ident() == me:
             cut.append(job)
             raise KeyboardInterrupt
         wait(job)

@@ -88,6 +88,25 @@ def test_a_settle_cut_by_ctrl_c_leaves_the_rest_for_the_next(monkeypatch):
     assert not first._thread.is_alive()
 
 
+def test_a_dropped_function_keeps_nothing_and_leaves_the_queue():
+    """Looks ahead that go unused (a frame the tracked pose did not make a keyframe; every frame of a lost
+    stretch): neither their inputs nor their results stay in the queue until the next keyframe settles it."""
+    queue, gate, started = InOrder(), threading.Event(), threading.Event()
+    done = queue.submit(lambda: "ahead", quiet=True)
+    done.wait()
+    queue.drop(done)
+    assert done.result is None and done not in queue._jobs
+    running = queue.submit(lambda: started.set() or gate.wait() and "ahead", quiet=True)
+    waiting = queue.submit(lambda: "never", quiet=True)
+    started.wait()
+    queue.drop(running)  # dropped while it runs: it stays until done, then keeps no result
+    queue.drop(waiting)  # not started: it does not run
+    assert running in queue._jobs and waiting in queue._jobs
+    gate.set()
+    queue.settle()
+    assert running.result is None and waiting.result is None and waiting._fn is None and queue._jobs == []
+
+
 @pytest.fixture(scope="module")
 def place():
     """Five keyframes of the room in a database, and a frame of the first place seen again."""

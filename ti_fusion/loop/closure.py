@@ -152,8 +152,8 @@ class LoopClosure:
         """Before ``frame`` is tracked: where the motion model's ``guess`` of its pose makes it a keyframe, what
         verifying it needs of its images alone (ORB, candidates, their pre-check and PnP) starts on a thread
         (loop/lookahead.py), for ``after_frame`` to take if the tracked pose makes it one."""
-        if self._ahead is not None:
-            self._ahead[1].cancelled = True  # an earlier frame's, not taken: not started, it does not run
+        if self._ahead is not None:  # an earlier frame's, not taken: not started, it does not run
+            self._beside.drop(self._ahead[1])
         self._ahead = None
         if self._found is not None or len(self.keyframes) <= self.session_start or frame.color is None or \
                 self.selector.why(self.keyframes[-1], guess, frame.index) is None:

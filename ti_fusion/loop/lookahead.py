@@ -40,7 +40,7 @@ class Job:
 
     def __init__(self, fn: Callable[[], object], previous: Job | None, quiet: bool):
         self.quiet = quiet  # its failure is the taker's to handle (``InOrder.take``), not raised by ``settle``
-        self.cancelled = False  # set before it starts: it does not run
+        self.cancelled = False  # set before it starts: it does not run (``InOrder.drop``)
         self.result = self.error = None
         self._fn, self._previous = fn, previous
         # a daemon: what is left running when the process ends is read by nothing (the database is read settled)
@@ -51,13 +51,15 @@ class Job:
         if self._previous is not None:
             self._previous.wait()
             self._previous = None
+        fn, self._fn = self._fn, None  # (a cancelled job keeps no frame alive either)
         if self.cancelled:
             return
         try:
-            self.result = self._fn()
+            self.result = fn()
         except BaseException as exc:  # handed to the loop's thread (``InOrder.settle``, ``InOrder.take``)
             self.error = exc
-        self._fn = None
+        if self.cancelled:  # cancelled while it ran: ``InOrder.drop`` cleared the result before it was set
+            self.result = None
 
     def wait(self) -> None:
         self._thread.join()
@@ -90,6 +92,13 @@ class InOrder:
                 failure = job.error
         if failure is not None:
             raise failure
+
+    def drop(self, job: Job) -> None:
+        """``job`` (``quiet``) will not be taken: it does not start if it has not, keeps no result, and leaves the
+        queue once done, so that frames whose look ahead goes unused (a lost stretch: one a frame) add nothing."""
+        job.cancelled, job.result = True, None
+        # those dropped and done: nothing to wait for, and their failures are no one's (``quiet``)
+        self._jobs = [j for j in self._jobs if not (j.quiet and j.cancelled and not j._thread.is_alive())]
 
     def take(self, job: Job):
         """``job``'s result once it and every function handed over before it are done; None where it failed or

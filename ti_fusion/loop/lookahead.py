@@ -44,7 +44,7 @@ class Job:
         self.result = self.error = None
         self._fn, self._previous = fn, previous
         # a daemon: what is left running when the process ends is read by nothing (the database is read settled)
-        self._thread = threading.Thread(target=self._run, name="loop-closure", daemon=True)
+        self._thread = threading.Thread(target=self._run, name="ti-fusion-loop-closure", daemon=True)
         self._thread.start()
 
     def _run(self) -> None:

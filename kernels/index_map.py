@@ -174,19 +174,30 @@ def project_surfels_loop(s: ti.template(), n, imap: ti.template(), pose: ti.temp
 
 
 @ti.func
-def gather_listed(s: ti.template(), n):
+def gather_listed(s: ti.template(), n, clear: ti.template()):
     """The per-block lists of the last projection (``project_surfels`` or ``fusion.project_compatible_loop``)
     into one list in index order, ``listed[:n_listed]``: a serial scan over the blocks, then one parallel
-    copy per block."""
+    copy per block. With ``clear`` (an ``IndexMap`` with a packed key, else None), that copy's loop also empties
+    the key image, a row per iteration (``clear_loop``'s work, a parallel loop fewer; still just before
+    ``nearest_packed``, whose scattered atomics then find the image in the cache)."""
     total = 0
     ti.loop_config(serialize=True)
     for b in range((n + BLOCK - 1) // BLOCK):
         s.listed_offset[b] = total
         total += s.block_listed[b]
     s.n_listed[None] = total
-    for b in range((n + BLOCK - 1) // BLOCK):
-        for k in range(s.block_listed[b]):
-            s.listed[s.listed_offset[b] + k] = s.listed_by_block[b * BLOCK + k]
+    blocks = (n + BLOCK - 1) // BLOCK
+    rows = 0
+    if ti.static(given(clear)):
+        rows = clear.key.shape[0]
+    for b in range(ti.max(blocks, rows)):
+        if b < blocks:
+            for k in range(s.block_listed[b]):
+                s.listed[s.listed_offset[b] + k] = s.listed_by_block[b * BLOCK + k]
+        if ti.static(given(clear)):
+            if b < rows:
+                for u in range(clear.key.shape[1]):
+                    clear.key[b, u] = ti.i64(INT64_MAX)
 
 
 @ti.func
@@ -251,16 +262,17 @@ def build_listed(s: ti.template(), n: ti.i32, imap: ti.template(), with_index: t
 @ti.func
 def build_loops(s: ti.template(), n, imap: ti.template(), with_index: ti.template(), front_radius: ti.template()):
     """``gather_listed``, then with ``with_index`` ``clear_loop``, ``nearest_listed`` and ``claim_listed`` (on the
-    CPU ``clear_loop``, ``nearest_packed`` and ``unpack_loop``, with ``front_radius``: None, or a field the caller
-    clears itself off the CPU): their loops one after the other (each reads what the one before wrote,
-    ``n_listed`` included)."""
-    gather_listed(s, n)
-    if ti.static(with_index):
-        clear_loop(imap)
-        if ti.static(imap.packed):
-            nearest_packed(s, imap)
-            unpack_loop(imap, front_radius)
-        else:
+    CPU ``gather_listed`` with ``clear_loop``'s work in its copy loop, ``nearest_packed`` and ``unpack_loop``, with
+    ``front_radius``: None, or a field the caller clears itself off the CPU): their loops one after the other
+    (each reads what the one before wrote, ``n_listed`` included)."""
+    if ti.static(with_index and imap.packed):
+        gather_listed(s, n, imap)  # with clear_loop's work
+        nearest_packed(s, imap)
+        unpack_loop(imap, front_radius)
+    else:
+        gather_listed(s, n, None)
+        if ti.static(with_index):
+            clear_loop(imap)
             nearest_listed(s, imap)
             claim_listed(s, imap)
 

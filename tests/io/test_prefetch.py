@@ -281,6 +281,19 @@ def test_an_interrupted_loop_stops_every_process(clean, tmp_path):
     assert max(readers.read_indices(log)) <= 5 + 3
 
 
+def test_a_pool_closed_while_a_frame_is_copied_out_of_it_closes(clean):
+    """A second Ctrl-C inside ``Prefetcher.close`` cuts its wait for the receiver thread, and the pool then closes
+    while that thread may still copy a frame out of the shared memory: the close ends as usual (no BufferError
+    instead of the stop), and the memory goes once the copy's view does."""
+    from ti_fusion.io.frame_workers import WorkerPool
+
+    pool = WorkerPool(readers.Items(4), workers=1, slots=2, slot_bytes=4096)
+    view = np.frombuffer(pool._buf, dtype=np.uint8, count=8)  # the receiver's view, mid-copy
+    pool.close()
+    assert not pool.pids
+    del view  # (the clean fixture: no memfd left open)
+
+
 def test_a_reader_process_that_dies_ends_the_loop_at_its_frame(clean):
     """A reader killed (SIGKILL, as by the OOM killer) at frame 5: the frames before it come out, then
     ``ReaderDied`` names the process and the frame, and the other processes are stopped."""

@@ -218,8 +218,11 @@ class WorkerPool:
                     proc.wait()
             self._procs = []
             if self._buf is not None:
-                self._buf.close()
-                self._buf = None
+                buf, self._buf = self._buf, None
+                try:
+                    buf.close()
+                except BufferError:  # a frame's copy out of it still holds a view (the prefetcher's receiver
+                    pass             # thread, after a second Ctrl-C cut its join): the mapping goes with the view
             if self._fd is not None:
                 os.close(self._fd)
                 self._fd = None

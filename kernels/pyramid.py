@@ -450,9 +450,9 @@ G_ROW0, G_H, G_W, G_FX, G_FY, G_CX, G_CY, G_JUMP, N_GEOMETRY = range(9)
 
 @ti.kernel
 def maps_levels(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
-                levels: ti.template(), first_maps: ti.i32, serial: ti.template()):
+                levels: ti.template(), first_maps: ti.i32, serial: ti.template(), shift: ti.i32):
     """``maps_levels_loops`` in one launch."""
-    maps_levels_loops(depth, vertex, normal, geometry, levels, first_maps, serial)
+    maps_levels_loops(depth, vertex, normal, geometry, levels, first_maps, serial, shift)
 
 
 @ti.kernel
@@ -490,13 +490,15 @@ def smooth_depth(raw: ti.template(), rows: ti.template(), depth: ti.template(), 
 
 @ti.func
 def maps_levels_loops(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
-                      levels: ti.template(), first_maps, serial: ti.template()):
+                      levels: ti.template(), first_maps, serial: ti.template(), shift):
     """The vertex and normal maps of levels ``first_maps`` .. levels − 1 of a stack (``vertex_normal_loop``'s
     packs) in one loop over the rows of every level, each pack with its level's row, size and intrinsics
     from ``geometry``: one copy of the per-pack code for every level (one loop per level compiled 3.5 times
     as long). ``first_maps`` is a runtime value (the rows of the levels before it are skipped), so that one
     instance serves a rendered model, whose level 0 maps come from the renderer, and depth uploaded into
-    the same maps (loop verification's keyframes).
+    the same maps (loop verification's keyframes). The rows in ``geometry`` are the stack's own, and its levels lie
+    ``shift`` rows further down the fields (a stack in the fields of another, ``FramePyramid.pair``: the same
+    geometry and the same instance for both).
 
     The loop runs over the packs of those levels only, numbered level by level (a level's H × ⌈W/8⌉ packs row by
     row): a loop over every row of the stack and the widest level's packs spent most of its iterations on
@@ -516,9 +518,9 @@ def maps_levels_loops(depth: ti.template(), vertex: ti.template(), normal: ti.te
         W = ti.cast(geometry[l, G_W], ti.i32)
         packs = (W + LANES - 1) // LANES
         r = k - start[l]
-        vertex_normal_pack(depth, vertex, normal, ti.cast(geometry[l, G_ROW0], ti.i32), ti.cast(geometry[l, G_H], ti.i32),
-                           W, r // packs, r % packs, 1.0 / geometry[l, G_FX], 1.0 / geometry[l, G_FY], geometry[l, G_CX],
-                           geometry[l, G_CY], geometry[l, G_JUMP])
+        vertex_normal_pack(depth, vertex, normal, ti.cast(geometry[l, G_ROW0], ti.i32) + shift,
+                           ti.cast(geometry[l, G_H], ti.i32), W, r // packs, r % packs, 1.0 / geometry[l, G_FX],
+                           1.0 / geometry[l, G_FY], geometry[l, G_CX], geometry[l, G_CY], geometry[l, G_JUMP])
 
 
 GREY = (0.299, 0.587, 0.114)  # ITU-R BT.601 luma weights of R, G, B
@@ -611,9 +613,10 @@ def intensity_maps_loops(fine: ti.template(), stack: ti.template(), grad: ti.tem
 
 
 @ti.func
-def surfel_intensity_loop(view_index: ti.template(), color: ti.template(), out: ti.template(), serial: ti.template()):
-    """out[v, u] = the grey level in [0, 1] of the surfel seen at the pixel (``color`` RGB in [0, 255]), −1
-    where none is (``view_index`` INT_MAX); ``out`` level 0 of a stack (row 0), of ``view_index``'s size."""
+def surfel_intensity_loop(view_index: ti.template(), color: ti.template(), out: ti.template(), serial: ti.template(),
+                          r0: ti.template()):
+    """out[r0 + v, u] = the grey level in [0, 1] of the surfel seen at the pixel (``color`` RGB in [0, 255]), −1
+    where none is (``view_index`` INT_MAX); ``out`` level 0 of a stack (at row ``r0``), of ``view_index``'s size."""
     if ti.static(serial):
         ti.loop_config(serialize=True)
     H, W = view_index.shape
@@ -623,7 +626,7 @@ def surfel_intensity_loop(view_index: ti.template(), color: ti.template(), out: 
         if i != INT_MAX:
             c = color[i]
             g = (GREY[0] * c[0] + GREY[1] * c[1] + GREY[2] * c[2]) / 255.0
-        out[v, u] = g
+        out[r0 + v, u] = g
 
 
 @ti.kernel
@@ -631,7 +634,7 @@ def surfel_intensity_maps(view_index: ti.template(), color: ti.template(), stack
                           rows: ti.template(), serial: ti.template()):
     """The model's intensity pyramid in one launch: ``surfel_intensity_loop`` into level 0 of ``stack``,
     then ``intensity_levels_loops`` (``rows`` as in ``intensity_maps``)."""
-    surfel_intensity_loop(view_index, color, stack, serial)
+    surfel_intensity_loop(view_index, color, stack, serial, rows[0][0])
     intensity_levels_loops(stack, rows, serial)
 
 
@@ -680,6 +683,17 @@ def jpeg_blockiness(grey: np.ndarray) -> float:
 
 
 @data_oriented
+def _level_shapes(height: int, width: int, levels: int = 3, input_level: int = 0) -> list[tuple[int, int]]:
+    """The (height, width) of each level of ``FramePyramid(settings, height, width, levels, input_level)``."""
+    for _ in range(input_level):
+        height, width = (height + 1) // 2, (width + 1) // 2
+    shapes = []
+    for _ in range(levels):
+        shapes.append((height, width))
+        height, width = (height + 1) // 2, (width + 1) // 2
+    return shapes
+
+
 class FramePyramid:
     """Depth, vertex and normal maps of one frame at every pyramid level (camera frame, metres).
 
@@ -690,7 +704,8 @@ class FramePyramid:
     views of level l of one stacked field per quantity (module docstring).
     """
 
-    def __init__(self, settings: PyramidConfig, height: int, width: int, levels: int = 3, input_level: int = 0):
+    def __init__(self, settings: PyramidConfig, height: int, width: int, levels: int = 3, input_level: int = 0,
+                 _pair_room: bool = False, _stack_of: "FramePyramid | None" = None):
         """Maps of ``levels`` levels for depth images of ``height`` × ``width``, built with ``settings``
         (resolved here, once: the smoothing radius for this size, the range check of the depth means).
         With ``input_level`` L > 0 the input is first averaged down L times (``pyramid_down``) and level 0
@@ -714,15 +729,25 @@ class FramePyramid:
             self.shapes.append((h, w))
             h, w = (h + 1) // 2, (w + 1) // 2
         self.row0, rows, _ = stacked_rows(self.shapes)
+        # ``pair``: the second pyramid's levels lie in the first's fields, ``_shift`` rows down (below the first's
+        # levels and spare rows), so that both build their maps with the same kernel instances
+        self._shift = 0 if _stack_of is None else _stack_of._pair_shift
+        self._pair_shift = rows + height if _pair_room else 0
+        self.row0 = [r + self._shift for r in self.row0]
         self._rows = tuple((r, h, w) for r, (h, w) in zip(self.row0, self.shapes))  # template argument
-        self._stack_shape = (rows, width)
-        # the depth's field has one level 0 more below the levels (``spare_depth``: the render's filled depth,
-        # ``SurfelMapper.render_pyramid``), so that a level built from it shares the levels' compiled instance
-        depth = ti.field(ti.f32, shape=(rows + height, width))
+        self._stack_shape = (2 * rows + height if _pair_room or _stack_of is not None else rows, width)
+        if _stack_of is None:
+            # the depth's field has one level 0 more below the levels (``spare_depth``: the render's filled depth,
+            # ``SurfelMapper.render_pyramid``), so that a level built from it shares the levels' compiled instance
+            depth = ti.field(ti.f32, shape=(2 * (rows + height) if _pair_room else rows + height, width))
+            vertex = ti.Vector.field(3, ti.f32, shape=self._stack_shape)
+            normal = ti.Vector.field(3, ti.f32, shape=self._stack_shape)
+        else:
+            depth, vertex, normal = _stack_of.depth[0].field, _stack_of.vertex[0].field, _stack_of.normal[0].field
         self.depth = self._levels(depth)
-        self.spare_depth = Level(depth, rows, self.shapes[0])
-        self.vertex = self._levels(ti.Vector.field(3, ti.f32, shape=self._stack_shape))
-        self.normal = self._levels(ti.Vector.field(3, ti.f32, shape=self._stack_shape))
+        self.spare_depth = Level(depth, self._shift + rows, self.shapes[0])
+        self.vertex = self._levels(vertex)
+        self.normal = self._levels(normal)
         self.intrinsics: list[Intrinsics] = []
         # one choice for every level (a per-level one would compile an instance per choice): the loops run on
         # the calling thread when level 0 is small (tests), and the coarse levels of larger ones in parallel
@@ -733,8 +758,10 @@ class FramePyramid:
         self.intensity_grad: list | None = None  # per level, (I, ∂I/∂x, ∂I/∂y) (live frames only)
         self.blockiness = float("nan")  # ``jpeg_blockiness`` of the last grey image given (live frames only)
         self._grey_inputs: list = []  # input_level > 0: the grey input and the intermediate averaged images
-        self._geometry = None  # the levels' rows, sizes and intrinsics (G_* columns) for the maps' kernels
-        self._geometry_for = None  # the intrinsics it holds
+        # the levels' rows (the stack's own), sizes and intrinsics (G_* columns) for the maps' kernels, and the
+        # intrinsics it holds: shared with a pyramid in the same fields (``pair``), which uploads its own when
+        # they differ
+        self._geo = _stack_of._geo if _stack_of is not None else {"field": None, "for": None}
         # the frame's colour packed for the fusion step (``compute(..., color=...)``): per level, on first use
         self._color: dict[int, object] = {}
         self._color_source = None  # (weak reference to the image, level) the last ``compute`` packed, else None
@@ -749,13 +776,33 @@ class FramePyramid:
         key = (cls, astuple(settings), height, width, levels, input_level)
         return Pool.lend(owner, key, lambda: cls(settings, height, width, levels, input_level))
 
+    @classmethod
+    def pair(cls, settings: PyramidConfig, first: tuple, second: tuple) -> tuple["FramePyramid", "FramePyramid"]:
+        """``FramePyramid(settings, *first)`` and ``FramePyramid(settings, *second)`` (each ``(height, width, levels,
+        input_level)``); where their levels have the same sizes, the second's lie in the first's fields (below the
+        first's rows), so that building either pyramid runs the same kernel instances (``pyramid_down``,
+        ``maps_levels``): a tenth of a second of loading each in every process, half a second of compiling with
+        an empty kernel cache (docs/PERFORMANCE.md). The second is then built from a render or a stored depth
+        (``compute_from_field``), not ``compute``."""
+        if _level_shapes(*first) != _level_shapes(*second):
+            return cls(settings, *first), cls(settings, *second)
+        one = cls(settings, *first, _pair_room=True)
+        return one, cls(settings, *second, _stack_of=one)
+
+    @classmethod
+    def pair_lent_to(cls, owner, settings: PyramidConfig, first: tuple, second: tuple) -> tuple["FramePyramid",
+                                                                                               "FramePyramid"]:
+        """``pair(settings, first, second)`` for ``owner``'s lifetime, as ``lent_to`` lends one pyramid."""
+        key = (cls, "pair", astuple(settings), tuple(first), tuple(second))
+        return Pool.lend(owner, key, lambda: cls.pair(settings, first, second))
+
     def _levels(self, stack) -> list[Level]:
         return [Level(stack, r, s) for r, s in zip(self.row0, self.shapes)]
 
     def _upload_level0(self, stack, image: np.ndarray) -> None:
         """Level 0 of ``stack`` = ``image`` in one copy (the coarse levels' rows are zeroed: the pyramid is
-        rebuilt from level 0 right after)."""
-        whole = np.zeros(tuple(stack.shape), dtype=np.float32)
+        rebuilt from level 0 right after; a pair's other rows are kept)."""
+        whole = stack.to_numpy() if self._pair_shift else np.zeros(tuple(stack.shape), dtype=np.float32)
         whole[:self.height] = image
         stack.from_numpy(whole)
 
@@ -771,6 +818,8 @@ class FramePyramid:
         module docstring); ``depth[0]`` then holds the smoothed depth."""
         if depth.shape != self.input_shape:
             raise ValueError(f"depth of shape {depth.shape} given to FramePyramid of shape {self.input_shape}")
+        if self._shift:  # its level 0 would be written at the fields' first rows, the other pyramid's
+            raise ValueError("the second pyramid of a pair (FramePyramid.pair) is built by compute_from_field")
         depth = np.ascontiguousarray(depth, dtype=np.float32)
         if grey is not None:
             grey = self._checked_grey(grey)
@@ -878,6 +927,8 @@ class FramePyramid:
     def compute_intensity(self, grey: np.ndarray) -> None:
         """The live frame's intensity pyramid and gradients from a float32 grey image of the input's size
         (``grey_image``; values in [0, 1], negative = none), averaged down like the depth."""
+        if self._shift:  # its level 0 would be written at the field's first rows
+            raise ValueError("the second pyramid of a pair (FramePyramid.pair) takes its intensity from surfels")
         self._intensity_maps(self._checked_grey(grey))
 
     def _intensity_maps(self, grey: np.ndarray) -> None:
@@ -952,19 +1003,20 @@ class FramePyramid:
             else:
                 pyramid_down(stack, self.row0[l - 1], h, w, stack, self.row0[l], self.max_depth_diff, False,
                              self._serial)
-        maps_levels(stack, self.vertex[0].field, self.normal[0].field, self._geometry, self.levels, first_maps,
-                    self._serial)
+        maps_levels(stack, self.vertex[0].field, self.normal[0].field, self._geo["field"], self.levels, first_maps,
+                    self._serial, self._shift)
 
     def _set_geometry(self, intrinsics: Intrinsics) -> None:
         """``intrinsics`` (of level 0) and the levels' rows and sizes into ``_geometry``, where they changed."""
         self.intrinsics = [intrinsics.downsampled(2**l) for l in range(self.levels)]
-        key = tuple(K.as_tuple() for K in self.intrinsics)
-        if self._geometry_for != key:  # once per run: a copy from NumPy waits for a GPU
+        key = (tuple(K.as_tuple() for K in self.intrinsics), self.max_depth_jump)
+        geo = self._geo
+        if geo["for"] != key:  # once per run (a pair's with equal intrinsics too): a copy from NumPy waits for a GPU
             g = np.zeros((self.levels, N_GEOMETRY), np.float32)
             for l, (K, (h, w)) in enumerate(zip(self.intrinsics, self.shapes)):
                 # A depth edge at a coarse level spans 2**l fine pixels: scale the jump threshold with it.
-                g[l] = (self.row0[l], h, w, *K.as_tuple(), self.max_depth_jump * 2**l)
-            if self._geometry is None:
-                self._geometry = ti.field(ti.f32, shape=(self.levels, N_GEOMETRY))
-            self._geometry.from_numpy(g)
-            self._geometry_for = key
+                g[l] = (self.row0[l] - self._shift, h, w, *K.as_tuple(), self.max_depth_jump * 2**l)
+            if geo["field"] is None:
+                geo["field"] = ti.field(ti.f32, shape=(self.levels, N_GEOMETRY))
+            geo["field"].from_numpy(g)
+            geo["for"] = key

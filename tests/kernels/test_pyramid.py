@@ -432,6 +432,38 @@ def _instances(kernel) -> int:
     return len(kernel._primal.compiled_kernels)
 
 
+def test_a_pair_builds_both_pyramids_in_one_set_of_fields_with_the_same_instances(cpu, rng):
+    """``FramePyramid.pair``: the second pyramid's levels lie below the first's in the first's fields, so building
+    it adds no instance of ``pyramid_down`` or ``maps_levels``; both hold the maps that pyramids of their own
+    build, bit for bit, and neither overwrites the other's. Levels of other sizes make two pyramids as before."""
+    from ti_fusion.kernels import pyramid as kmaps
+
+    H, W = 40, 48
+    K = Intrinsics(60.0, 60.0, 24.0, 20.0, W, H)
+    frame_depth, model_depth = random_depth(rng, shape=(H, W)), random_depth(rng, shape=(H, W))
+    one, two = FramePyramid.pair(settings(), (H, W, 3), (H, W, 3))
+    assert two.depth[0].field is one.depth[0].field and two.vertex[0].field is one.vertex[0].field
+    one.compute(frame_depth, K)
+    kernels = (kmaps.pyramid_down, kmaps.maps_levels)
+    counts = [len(k._primal.compiled_kernels) for k in kernels]
+    two.depth[0].from_numpy(model_depth)
+    two.compute_from_field(K)
+    assert [len(k._primal.compiled_kernels) for k in kernels] == counts
+    alone_one, alone_two = FramePyramid(settings(), H, W, 3), FramePyramid(settings(), H, W, 3)
+    alone_one.compute(frame_depth, K)
+    alone_two.depth[0].from_numpy(model_depth)
+    alone_two.compute_from_field(K)
+    for paired, alone in ((one, alone_one), (two, alone_two)):
+        for name in ("depth", "vertex", "normal"):
+            for level in range(3):
+                np.testing.assert_array_equal(getattr(paired, name)[level].to_numpy(),
+                                              getattr(alone, name)[level].to_numpy())
+    with pytest.raises(ValueError, match="compute_from_field"):
+        two.compute(model_depth, K)
+    other_one, other_two = FramePyramid.pair(settings(), (H, W, 3), (H // 2, W // 2, 3))
+    assert other_two.depth[0].field is not other_one.depth[0].field and other_two.row0[0] == 0
+
+
 @pytest.mark.slow
 def test_every_level_shares_one_kernel_instance(cpu, rng):
     """The levels of a pyramid are rows of one field per quantity, so a new FramePyramid adds one instance

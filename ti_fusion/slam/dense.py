@@ -140,13 +140,13 @@ class DenseSLAM:
         self.map_level = map_level = config.fusion.map_level(W)
         # The incoming frame: ICP target (averaged down to the map's level first).
         frame_level = config.frame_input_level(W)
-        self.frame_pyramid = FramePyramid.lent_to(self, config.pyramid, H, W,
-                                                  max(levels, map_level - frame_level + 1), input_level=frame_level)
         # The map rendered at the last pose: ICP source, at the map's resolution: level l of the model is
-        # aligned to level l of the frame maps, at the same resolution.
+        # aligned to level l of the frame maps, at the same resolution. Both in one set of fields where their
+        # levels have the same sizes (``FramePyramid.pair``: the same kernel instances build both).
         self.model_intrinsics = intrinsics.downsampled(2**map_level)
-        self.model_pyramid = FramePyramid.lent_to(self, config.pyramid, self.model_intrinsics.height,
-                                                  self.model_intrinsics.width, levels)
+        self.frame_pyramid, self.model_pyramid = FramePyramid.pair_lent_to(
+            self, config.pyramid, (H, W, max(levels, map_level - frame_level + 1), frame_level),
+            (self.model_intrinsics.height, self.model_intrinsics.width, levels))
         self.icp = ICP(config.icp)
         # Dense re-localisation: the same levels with more iterations and wider gates at the coarse ones.
         wide = config.slam.relocalise_iterations

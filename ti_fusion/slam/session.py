@@ -152,8 +152,13 @@ class KeptMaps:
         self.frame, self.model = frame_pyramid, model_pyramid
         fields = [(frame_pyramid.vertex[0].field, model_pyramid.vertex[0].field),
                   (frame_pyramid.normal[0].field, model_pyramid.normal[0].field)]
-        self.usable = all(a.shape == b.shape for a, b in fields) and frame_pyramid.row0 == model_pyramid.row0 and \
-            frame_pyramid.levels >= model_pyramid.levels
+        # a pair (FramePyramid.pair): one set of fields, the model's levels below the frame's, of the same sizes
+        self.shared = all(a is b for a, b in fields)
+        if self.shared:
+            self.usable = frame_pyramid.shapes[:model_pyramid.levels] == model_pyramid.shapes
+        else:
+            self.usable = all(a.shape == b.shape for a, b in fields) and frame_pyramid.row0 == model_pyramid.row0 and \
+                frame_pyramid.levels >= model_pyramid.levels
         self.copies = [ti.Vector.field(3, ti.f32, shape=a.shape) for a, _ in fields] if self.usable else []
         self.index: int | None = None  # the frame whose maps are kept
 
@@ -165,6 +170,15 @@ class KeptMaps:
 
     def into_model(self):
         """The model pyramid holding the kept frame's maps (its depth and intensity are not used by depth ICP)."""
+        if self.shared:  # the frame's rows of the copies into the model's rows of the one set of fields
+            first, last = self.model.row0[0], self.model.row0[-1] + self.model.shapes[-1][0]
+            start = self.frame.row0[0]
+            for field, copy in ((self.model.vertex[0].field, self.copies[0]),
+                                (self.model.normal[0].field, self.copies[1])):
+                whole = field.to_numpy()
+                whole[first:last] = copy.to_numpy()[start:start + last - first]
+                field.from_numpy(whole)
+            return self.model
         self.model.vertex[0].field.copy_from(self.copies[0])
         self.model.normal[0].field.copy_from(self.copies[1])
         return self.model

@@ -306,9 +306,17 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
         the target pixel (vi, ui) that source pixel (v, u) projects to, in the target's field (``_target_base``);
         else, the first test it fails: SOURCE_INVALID (no vertex or normal), BEHIND_TARGET (z′ ≤ 0), NO_TARGET
         (outside the target image)."""
+        return _target_pixel_at(src_v, src_n, (s0 + v) * src_v.shape[1] + u, Ht, Wt, params, row, tbase, tstride)
+
+    @ti.func
+    def _target_pixel_at(src_v: ti.template(), src_n: ti.template(), sf, Ht, Wt, params: ti.template(), row,
+                         tbase, tstride):
+        """``_target_pixel`` of the source pixel at index ``sf`` of the source's field (its row times the field's
+        width, a compile-time constant, plus its column), which the first pass keeps running: LLVM then reads the
+        pixel at sf × its size, without the row's multiplication (docs/PERFORMANCE.md, 2026-11-29)."""
         R, t, K = _pose(params, row)  # per pixel, as the surfel projections (hoisted, it ran slower: docs/KERNELS.md)
-        p = ti.cast(src_v[s0 + v, u], real)
-        n = ti.cast(src_n[s0 + v, u], real)
+        p = ti.cast(src_v[sf // ti.static(src_v.shape[1]), sf % ti.static(src_v.shape[1])], real)
+        n = ti.cast(src_n[sf // ti.static(src_v.shape[1]), sf % ti.static(src_v.shape[1])], real)
         pt = R @ p + t
         inv_z = 1.0 / pt.z  # inf or negative where z′ ≤ 0: masked below
         # ⌊x⌋ in [0, W) exactly when x in [0, W), and there truncation is the floor: one conversion,
@@ -352,12 +360,15 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
         ``reduce`` and ``iterate`` share both passes, so they find the same correspondences."""
         v = begin // W
         u = begin - v * W
+        fw = src_v.shape[1]
+        sf = (s0 + v) * fw + u  # the pixel's index in the source's field (``_target_pixel_at``)
         for k in range(begin, end):
-            target[k] = _target_pixel(src_v, src_n, s0, Ht, Wt, v, u, params, row, tbase, tstride)
+            target[k] = _target_pixel_at(src_v, src_n, sf, Ht, Wt, params, row, tbase, tstride)
             u += 1
+            sf += 1
             if u == W:
                 u = 0
-                v += 1
+                sf += fw - W
 
     @ti.func
     def _correspondence(src_v: ti.template(), src_n: ti.template(), tgt_v: ti.template(), tgt_n: ti.template(),

@@ -492,9 +492,9 @@ def smooth_depth(raw: ti.template(), rows: ti.template(), depth: ti.template(), 
 def maps_levels_loops(depth: ti.template(), vertex: ti.template(), normal: ti.template(), geometry: ti.template(),
                       levels: ti.template(), first_maps, serial: ti.template(), shift):
     """The vertex and normal maps of levels ``first_maps`` .. levels − 1 of a stack (``vertex_normal_loop``'s
-    packs) in one loop over the rows of every level, each pack with its level's row, size and intrinsics
+    packs) in one loop over the packs of every level, each pack with its level's row, size and intrinsics
     from ``geometry``: one copy of the per-pack code for every level (one loop per level compiled 3.5 times
-    as long). ``first_maps`` is a runtime value (the rows of the levels before it are skipped), so that one
+    as long). ``first_maps`` is a runtime value (the levels before it have no packs in the loop), so that one
     instance serves a rendered model, whose level 0 maps come from the renderer, and depth uploaded into
     the same maps (loop verification's keyframes). The rows in ``geometry`` are the stack's own, and its levels lie
     ``shift`` rows further down the fields (a stack in the fields of another, ``FramePyramid.pair``: the same

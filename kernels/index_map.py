@@ -186,18 +186,20 @@ def gather_listed(s: ti.template(), n, clear: ti.template()):
         s.listed_offset[b] = total
         total += s.block_listed[b]
     s.n_listed[None] = total
-    blocks = (n + BLOCK - 1) // BLOCK
-    rows = 0
     if ti.static(given(clear)):
+        blocks = (n + BLOCK - 1) // BLOCK
         rows = clear.key.shape[0]
-    for b in range(ti.max(blocks, rows)):
-        if b < blocks:
-            for k in range(s.block_listed[b]):
-                s.listed[s.listed_offset[b] + k] = s.listed_by_block[b * BLOCK + k]
-        if ti.static(given(clear)):
+        for b in range(ti.max(blocks, rows)):
+            if b < blocks:
+                for k in range(s.block_listed[b]):
+                    s.listed[s.listed_offset[b] + k] = s.listed_by_block[b * BLOCK + k]
             if b < rows:
                 for u in range(clear.key.shape[1]):
                     clear.key[b, u] = ti.i64(INT64_MAX)
+    else:
+        for b in range((n + BLOCK - 1) // BLOCK):
+            for k in range(s.block_listed[b]):
+                s.listed[s.listed_offset[b] + k] = s.listed_by_block[b * BLOCK + k]
 
 
 @ti.func

@@ -513,11 +513,13 @@ def maps_levels_loops(depth: ti.template(), vertex: ti.template(), normal: ti.te
         ti.loop_config(serialize=True)
     for k in range(total):
         l = 0  # the levels before first_maps have no packs: their starts are 0, below every k
+        first = 0  # the first pack of level l (static indices only: no dynamic index into a local vector)
         for m in ti.static(range(1, levels)):
             l += ti.select(k >= start[m], 1, 0)
+            first = ti.select(k >= start[m], start[m], first)
         W = ti.cast(geometry[l, G_W], ti.i32)
         packs = (W + LANES - 1) // LANES
-        r = k - start[l]
+        r = k - first
         vertex_normal_pack(depth, vertex, normal, ti.cast(geometry[l, G_ROW0], ti.i32) + shift,
                            ti.cast(geometry[l, G_H], ti.i32), W, r // packs, r % packs, 1.0 / geometry[l, G_FX],
                            1.0 / geometry[l, G_FY], geometry[l, G_CX], geometry[l, G_CY], geometry[l, G_JUMP])

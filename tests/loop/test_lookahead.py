@@ -107,6 +107,25 @@ def test_a_dropped_function_keeps_nothing_and_leaves_the_queue():
     assert running.result is None and waiting.result is None and waiting._fn is None and queue._jobs == []
 
 
+def test_the_summary_waits_for_the_threads_and_raises_a_failed_addition():
+    """At a run's end (summary.json's loop closure fields) nothing handed to a thread is left running or lost: a
+    look ahead not taken is dropped, and a database addition that failed raises there."""
+    closer, gate = LoopClosure(Config()), threading.Event()
+    job = closer._beside.submit(lambda: gate.wait() and "ahead", quiet=True)
+    closer._ahead = 7, job
+    gate.set()
+    assert closer.summary()["keyframes"] == 0
+    assert closer._ahead is None and job.result is None and closer._beside._jobs == []
+
+    def fails():
+        raise RuntimeError("the vocabulary")
+
+    closer._beside.submit(fails)
+    with pytest.raises(RuntimeError, match="the vocabulary"):
+        closer.summary()
+    assert closer._beside._jobs == []
+
+
 @pytest.fixture(scope="module")
 def place():
     """Five keyframes of the room in a database, and a frame of the first place seen again."""

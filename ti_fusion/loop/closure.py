@@ -385,8 +385,18 @@ class LoopClosure:
         """Every candidate checked, as a segment between the two keyframes' current centres."""
         return self.loop_segments(self.candidates)
 
+    def settle(self) -> None:
+        """Wait for the work handed to threads (loop/lookahead.py): a look ahead not taken is dropped, and a failed
+        database addition raises here, not at a next keyframe that a run's end never brings."""
+        if self._ahead is not None:
+            self._beside.drop(self._ahead[1])
+            self._ahead = None
+        self._beside.settle()
+
     def summary(self) -> dict:
-        """The counts for summary.json, and what each part cost per call (milliseconds: mean, max)."""
+        """The counts for summary.json, and what each part cost per call (milliseconds: mean, max), once the
+        threads' work is done (``settle``)."""
+        self.settle()
         ms = {**self.ms, "correct": [r.ms["correct"] for r in self._corrected]}
         cost = {name: {"calls": len(v), "mean": round(float(np.mean(v)), 2), "max": round(float(np.max(v)), 2)}
                 for name, v in ms.items() if v}

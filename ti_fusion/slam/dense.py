@@ -228,9 +228,10 @@ class DenseSLAM:
         check_frame(self, frame)  # one InputError for a frame this map cannot take (ti_fusion/slam/checks.py)
         timer = StageTimer()  # this frame's stages only: a lost frame has no "fuse" time
         terms = self.icp.terms_for(frame)  # the tracking terms besides the geometry that this frame can use
-        if self.loop is not None and self.poses and not self.localizing and \
+        if self.loop is not None and self.poses and not self.localizing and not self._lost_streak and \
                 (self.session is None or self.session.localised):  # to be tracked (``_track``, below): where the
-            # guess makes it a keyframe, its image work for loop closure starts beside the frame (loop/lookahead.py)
+            # guess makes it a keyframe, its image work for loop closure starts beside the frame (loop/lookahead.py);
+            # not after a lost frame, whose guess is the extrapolation that failed
             self.loop.look_ahead(frame, self._guess(frame.timestamp))
         with timer.stage("pyramid"):
             self._frame_maps(frame, terms)

@@ -432,7 +432,7 @@ def _instances(kernel) -> int:
     return len(kernel._primal.compiled_kernels)
 
 
-def test_a_pair_builds_both_pyramids_in_one_set_of_fields_with_the_same_instances(cpu, rng):
+def test_a_pair_builds_both_pyramids_in_one_set_of_fields_with_the_same_instances(arch, rng):
     """``FramePyramid.pair``: the second pyramid's levels lie below the first's in the first's fields, so building
     it adds no instance of ``pyramid_down`` or ``maps_levels``; both hold the maps that pyramids of their own
     build, bit for bit, and neither overwrites the other's. Levels of other sizes make two pyramids as before."""

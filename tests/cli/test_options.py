@@ -50,7 +50,7 @@ def test_a_command_line_without_help_builds_the_options_without_their_texts(caps
     assert set(bare) == set(full) and all(bare[o].help is None for o in KNOWN)
     assert [bare[o].dest for o in KNOWN] == [full[o].dest for o in KNOWN]
     assert not _asks_for_help(["slam", "../data", "--frames", "3", "--out", "run"])
-    assert all(_asks_for_help(["slam", flag]) for flag in ("-h", "--help", "--he"))
+    assert all(_asks_for_help(["slam", flag]) for flag in ("-h", "--help", "--he", "-vh"))
     with pytest.raises(SystemExit):
         main(["slam", "--hel"])
     assert "(dataset.depth_scale)" in capsys.readouterr().out

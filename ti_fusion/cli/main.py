@@ -358,9 +358,10 @@ def _join_negative_values(argv: list[str], options: set[str]) -> list[str]:
 
 
 def _asks_for_help(argv: list[str]) -> bool:
-    """Whether ``argv`` may ask argparse for a help text: any -h or --h... token (argparse takes abbreviations of
-    --help, and -h among other short flags), whatever it turns out to be."""
-    return any(token.startswith(("-h", "--h")) for token in argv)
+    """Whether ``argv`` may ask argparse for a help text: any --h... token (argparse takes abbreviations of --help)
+    or short-flag token with an h in it (-h, or -h among other short flags), whatever it turns out to be."""
+    return any(token.startswith("--h") or (token[:1] == "-" and token[1:2] != "-" and "h" in token)
+               for token in argv)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -91,14 +91,25 @@ def timed_stage(timer: StageTimer | None, name: str, **kwargs):
         yield
 
 
+# A script that sets up the environment and then execs the command (scripts/run.sh) keeps its process, which the
+# kernel dates from the script's start: the script says when it exec'd (seconds since the epoch), read once here.
+_EXEC_AT = os.environ.pop("TI_FUSION_EXEC_AT", None)
+
+
 def process_age_s() -> float | None:
     """Seconds since this process started, from the kernel's record of its start (Linux; 10 ms steps), so
-    that the interpreter's start and every import count; None where /proc is missing."""
+    that the interpreter's start and every import count; from the exec where a script said when it exec'd
+    (``TI_FUSION_EXEC_AT``), as a set-up before it is not the command's; None where /proc is missing."""
     try:
         with open("/proc/self/stat") as f:
             fields = f.read().rsplit(")", 1)[1].split()  # after the command name, which may hold spaces
         with open("/proc/uptime") as f:
             uptime = float(f.read().split()[0])
-        return round(uptime - int(fields[19]) / os.sysconf("SC_CLK_TCK"), 2)  # field 22: start, in ticks
+        age = round(uptime - int(fields[19]) / os.sysconf("SC_CLK_TCK"), 2)  # field 22: start, in ticks
     except (OSError, ValueError, IndexError):
         return None
+    try:
+        since_exec = time.time() - float(_EXEC_AT)
+    except (TypeError, ValueError):
+        return age
+    return round(since_exec, 2) if 0.0 <= since_exec <= age else age

@@ -152,9 +152,7 @@ class LoopClosure:
         """Before ``frame`` is tracked: where the motion model's ``guess`` of its pose makes it a keyframe, what
         verifying it needs of its images alone (ORB, candidates, their pre-check and PnP) starts on a thread
         (loop/lookahead.py), for ``after_frame`` to take if the tracked pose makes it one."""
-        if self._ahead is not None:  # an earlier frame's, not taken: not started, it does not run
-            self._beside.drop(self._ahead[1])
-        self._ahead = None
+        self._drop_ahead()  # an earlier frame's, not taken: not started, it does not run
         if self._found is not None or len(self.keyframes) <= self.session_start or frame.color is None or \
                 self.selector.why(self.keyframes[-1], guess, frame.index) is None:
             return
@@ -388,10 +386,14 @@ class LoopClosure:
     def settle(self) -> None:
         """Wait for the work handed to threads (loop/lookahead.py): a look ahead not taken is dropped, and a failed
         database addition raises here, not at a next keyframe that a run's end never brings."""
+        self._drop_ahead()
+        self._beside.settle()
+
+    def _drop_ahead(self) -> None:
+        """The last look ahead will not be taken (``InOrder.drop``)."""
         if self._ahead is not None:
             self._beside.drop(self._ahead[1])
-            self._ahead = None
-        self._beside.settle()
+        self._ahead = None
 
     def summary(self) -> dict:
         """The counts for summary.json, and what each part cost per call (milliseconds: mean, max), once the

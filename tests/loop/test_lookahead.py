@@ -31,8 +31,11 @@ def test_functions_run_in_the_order_handed_over_each_on_a_thread():
         threads.add(threading.get_ident())
         return k
 
-    jobs = [queue.submit(lambda k=k: step(k, 0.02 * (3 - k))) for k in range(4)]
+    gate = threading.Event()  # the last runs only once let: what take saw is then not raced by it
+    jobs = [queue.submit(lambda k=k: step(k, 0.02 * (3 - k))) for k in range(3)]
+    jobs.append(queue.submit(lambda: gate.wait() and step(3, 0.0)))
     assert queue.take(jobs[2]) == 2 and order == [0, 1, 2]
+    gate.set()
     queue.settle()
     assert order == [0, 1, 2, 3] and threading.get_ident() not in threads
 

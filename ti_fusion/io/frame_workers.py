@@ -3,7 +3,8 @@
 
     pool = WorkerPool(dataset, workers=2, slots=3, slot_bytes=...)   # starts the processes
     pool.request(i, worker, slot)      # worker reads dataset[i] into slot
-    kind, item, read_ms = pool.receive(i, worker, slot)             # ("frame", Frame, ms) or ("error", exc, 0)
+    kind, item, read_ms, launches = pool.take(i, worker, slot)   # ("frame", Frame, ms, …) or ("error", exc, 0, …)
+    count_launches(launches)           # a renderer's first launches, counted where the item is handed out
     pool.close()                       # stops and reaps every process
 
 Why processes: Taichi holds the GIL through every kernel launch, so a reader thread gets the interpreter
@@ -140,13 +141,6 @@ class WorkerPool:
         except OSError:  # it is gone: receive() says so at this item
             pass
 
-    def receive(self, i: int, worker: int, slot: int) -> tuple[str, object, float]:
-        """Item ``i`` from ``worker``: ("frame", item, read ms) with its arrays copied out of ``slot``, or
-        ("error", the exception its reading raised, 0.0). ``ReaderDied`` when the process is gone."""
-        kind, item, read_ms, launches = self.take(i, worker, slot)
-        count_launches(launches)
-        return kind, item, read_ms
-
     def ready(self, worker: int, timeout: float) -> bool:
         """Whether ``worker`` has sent something to ``take`` (or has gone), waiting up to ``timeout`` seconds."""
         try:
@@ -157,8 +151,10 @@ class WorkerPool:
             return False
 
     def take(self, i: int, worker: int, slot: int) -> tuple[str, object, float, list]:
-        """``receive`` on any thread: its answer and the kernels' first launches the reader reports with the item,
-        for the caller to ``count_launches`` where the item is handed out."""
+        """Item ``i`` from ``worker``, on any thread: ("frame", item, read ms, launches) with its arrays copied out
+        of ``slot``, or ("error", the exception its reading raised, 0.0, launches); ``launches``: the kernels' first
+        launches the reader reports with the item, for the caller to ``count_launches`` where the item is handed
+        out. ``ReaderDied`` when the process is gone."""
         try:
             message = self._conns[worker].recv()
         except (EOFError, OSError):

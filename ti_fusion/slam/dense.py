@@ -298,10 +298,8 @@ class DenseSLAM:
     def _predicted_pose(self, timestamp: float) -> np.ndarray:
         """The motion model's guess at ``timestamp``: the last tracked motion per second over the time since
         the last tracked frame, from that frame's pose (so lost frames never compound it)."""
-        last = self._held_pose()
-        if not self.config.slam.motion_model:
-            return last.copy()
-        return renormalize(self._extrapolate(last, self._elapsed(timestamp)))
+        guess = self._guess(timestamp)
+        return renormalize(guess) if self.config.slam.motion_model else guess.copy()
 
     def _guess(self, timestamp: float) -> np.ndarray:
         """The motion model's guess at ``timestamp`` before ``_predicted_pose`` renormalises it (the same product,

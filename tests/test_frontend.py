@@ -170,6 +170,30 @@ def test_first_launches_are_clocked(cpu):
     assert CLOCK.instances == before + 2 and x[0] == 2.0 and y[7] == 3.0
 
 
+def test_an_instance_given_a_freed_instances_wrapper_is_a_first_launch(cpu, monkeypatch):
+    """After a reset frees the program's instances, a new one can be allocated at a freed one's address, and
+    pybind then hands back the wrapper still registered there (and held by the clock): it is clocked anyway."""
+    from taichi._lib import core as _ti_core
+
+    from ti_fusion.frontend import CLOCK, clock_first_launches
+
+    assert clock_first_launches()
+    x = ti.field(ti.f32, shape=8)
+
+    @ti.kernel
+    def fill(f: ti.template(), v: ti.f32):
+        for i in f:
+            f[i] = v
+
+    fill(x, 1.0)
+    (old,) = fill._primal.compiled_kernels.values()
+    fill._primal.compiled_kernels.clear()  # as a reset does
+    monkeypatch.setattr(_ti_core.Program, "create_kernel", lambda self, *args: old)  # the reused address's wrapper
+    before = CLOCK.instances
+    fill(x, 2.0)
+    assert CLOCK.instances == before + 1 and x[0] == 2.0
+
+
 def test_a_first_launch_counts_as_compiled_by_the_cpu_time_of_its_compile_step(cpu, monkeypatch):
     """Whether a first launch compiled is judged by the CPU time of Taichi's compile step (a load from the
     cache takes milliseconds of it), not by the launch's wall time, which a loaded machine stretches; the

@@ -285,7 +285,7 @@ def clock_first_launches() -> bool:
 
     materialize, launch = Kernel.materialize, Kernel.launch_kernel
     pending: dict = {}  # the instance being materialised → the front end's seconds, until its first launch
-    launched: dict[int, object] = {}  # id → the instance, held: a freed instance's id may be a new one's
+    launched: dict[int, object] = {}  # id → the instance launched (held, so its wrapper's id stays its own)
     compile_cpu: dict = {}  # the instance being launched first → CPU seconds of its compile step (or load)
     try:
         from taichi._lib import core as _ti_core
@@ -312,6 +312,9 @@ def clock_first_launches() -> bool:
             kernel = self.compiled_kernels.get(key)
             if kernel is not None:
                 pending[id(kernel)] = time.perf_counter() - start
+                # a new instance has not been launched, even where it got a freed one's wrapper: after a reset,
+                # pybind hands back the wrapper still registered at a reused address
+                launched.pop(id(kernel), None)
 
     def timed_launch(self, t_kernel, *args):
         if id(t_kernel) in launched:

@@ -78,7 +78,9 @@ def _field(msg, name: str):
 
 
 def _stamp(header) -> float:
-    return header.stamp.sec + header.stamp.nanosec * 1e-9
+    # whole nanoseconds over 10⁹ as integers: Python rounds the quotient once, so a stamp written from a decimal
+    # text of at most nine places (a TUM file's) reads back as that text's float, not an ulp off it
+    return (int(header.stamp.sec) * 10**9 + int(header.stamp.nanosec)) / 10**9
 
 
 # --------------------------------------------------------------------------------------------------

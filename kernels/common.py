@@ -8,8 +8,8 @@ the values, so that 32-bit atomics can take a nearest depth on every backend.
 
 import numpy as np
 import taichi as ti
-from taichi.lang import impl
 
+from ti_fusion.backend import on_cpu
 from ti_fusion.geometry import flatten_pose
 from ti_fusion.sensor import SIGMA_1M, SIGMA_A, SIGMA_B, SIGMA_Z0
 
@@ -34,11 +34,6 @@ def data_oriented(cls):
         raise TypeError(f"{cls.__name__} has @ti.kernel methods: decorate it with ti.data_oriented")
     del cls.__getattribute__
     return cls
-
-
-def on_cpu() -> bool:
-    """Whether the running Taichi program is on the CPU (at compile time: ``if ti.static(on_cpu()):``)."""
-    return impl.current_cfg().arch in (ti.x64, ti.arm64)
 
 
 def given(x) -> bool:
@@ -81,7 +76,7 @@ class PoseArgs:
     """
 
     def __init__(self):
-        self.on_host = impl.current_cfg().arch in (ti.x64, ti.arm64)
+        self.on_host = on_cpu()
         self._key = None
         self._pair = None
         if not self.on_host:

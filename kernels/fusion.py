@@ -33,8 +33,9 @@ import math
 import numpy as np
 import taichi as ti
 
+from ti_fusion.backend import on_cpu
 from ti_fusion.kernels.common import (BLOCK, INT_MAX, Mat3, Rigid, Vec3, bits_depth, data_oriented, depth_bits,
-                                      depth_noise_scale, is_valid, on_cpu, rigid)
+                                      depth_noise_scale, is_valid, rigid)
 from ti_fusion.kernels.index_map import LANES, IndexMap, build_loops, list_if, project_one, project_pack
 from ti_fusion.kernels.surfels import copy_surfel
 
@@ -209,7 +210,7 @@ def project_compatible_loop(s: ti.template(), n, img: ti.template(), pose: ti.te
     for b in range((n + BLOCK - 1) // BLOCK):  # parallel over blocks, serial inside one
         m = ti.min(BLOCK, n - b * BLOCK)  # a trip count rather than a break at n
         packs = 0
-        if ti.static(img.index_map.packed):  # the CPU: eight surfels at a time as 8-vectors
+        if ti.static(on_cpu()):  # eight surfels at a time as 8-vectors
             packs = m // LANES
         for g in range(packs):
             project_pack(s, b * BLOCK + g * LANES, pose, fx, fy, cx, cy, H, W)

@@ -74,7 +74,7 @@ from typing import NamedTuple
 import numpy as np
 import taichi as ti
 
-from ti_fusion.backend import SERIAL_BELOW
+from ti_fusion.backend import SERIAL_BELOW, on_cpu
 from ti_fusion.geometry import flatten_pose, unflatten_pose
 from ti_fusion.kernels.common import data_oriented, depth_noise_scale
 from ti_fusion.kernels.pyramid import as_level
@@ -218,10 +218,10 @@ MIN_CHUNK_PIXELS = 256
 GROUPS = 128
 
 
-def default_chunks(arch: str) -> int:
+def default_chunks() -> int:
     """Parallel runs per reduction. Taichi's CPU backend gives each task at least 512 loop iterations,
     so 512 runs per thread are needed to use every thread; GPUs want many more, shorter runs."""
-    if arch == "cpu":
+    if on_cpu():
         return 512 * max(2, os.cpu_count() or 2)
     return 16384
 
@@ -764,18 +764,17 @@ class PointToPlane:
     Images (``src_v`` … ``tgt_n``) are ``Level`` views or plain 2-D fields (module docstring).
     """
 
-    def __init__(self, max_pixels: int, has_f64: bool, arch: str = "cpu", n_chunks: int | None = None,
-                 min_chunk_pixels: int | None = None):
+    def __init__(self, max_pixels: int, has_f64: bool, n_chunks: int | None = None, min_chunk_pixels: int | None = None):
         self.real = ti.f64 if has_f64 else ti.f32
         self.np_real = np.float64 if has_f64 else np.float32
         self.max_pixels = int(max_pixels)
-        self.n_chunks = int(n_chunks or default_chunks(arch))
+        self.n_chunks = int(n_chunks or default_chunks())
         # GPUs want one short chunk per thread; on the CPU a chunk run serially should outweigh its bookkeeping
-        self.min_chunk_pixels = int(min_chunk_pixels or (MIN_CHUNK_PIXELS if arch == "cpu" else 1))
-        self.serial_below = SERIAL_BELOW if arch == "cpu" else 0  # smaller sources run on the calling thread
+        self.min_chunk_pixels = int(min_chunk_pixels or (MIN_CHUNK_PIXELS if on_cpu() else 1))
+        self.serial_below = SERIAL_BELOW if on_cpu() else 0  # smaller sources run on the calling thread
         # one choice for every level (each choice is an instance of the kernels): small maximum, serial
         self.serial = self.max_pixels < self.serial_below
-        self.on_host = arch == "cpu"  # kernels read and write NumPy arrays in place: nothing to copy
+        self.on_host = on_cpu()  # kernels read and write NumPy arrays in place: nothing to copy
         self.k = kernels_for(self.real, state_in_field=not self.on_host)  # ``start``, ``status_map``
         # per chunk, then (float32) the GROUPS group totals of the second pass; one field per number of sums
         self.partials = ti.field(self.real, shape=(self.n_chunks + GROUPS, N_SUMS))

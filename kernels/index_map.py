@@ -22,8 +22,8 @@ backend.
 """
 
 import taichi as ti
-from taichi.lang import impl
 
+from ti_fusion.backend import on_cpu
 from ti_fusion.kernels.common import BLOCK, INT_MAX, Rigid, data_oriented, depth_bits, given, rigid
 
 INT64_MAX = 2**63 - 1  # "no surfel" in a packed key
@@ -37,8 +37,8 @@ class IndexMap:
         shape = (height, width)
         self.index = ti.field(ti.i32, shape=shape)  # the nearest surfel, INT_MAX = none
         # CPU: one pass with 64-bit keys (module docstring); elsewhere the two 32-bit passes
-        self.packed = impl.current_cfg().arch in (ti.x64, ti.arm64)
-        if self.packed:
+        self.packed_keys = on_cpu()
+        if self.packed_keys:
             self.key = ti.field(ti.i64, shape=shape)  # depth bits << 32 | index of the nearest, INT64_MAX = none
         else:
             self.depth_key = ti.field(ti.i32, shape=shape)  # float bits of the nearest depth, INT_MAX = none
@@ -47,7 +47,7 @@ class IndexMap:
 @ti.func
 def clear_loop(imap: ti.template()):
     for v, u in imap.index:
-        if ti.static(imap.packed):
+        if ti.static(imap.packed_keys):
             imap.key[v, u] = ti.i64(INT64_MAX)
         else:
             imap.depth_key[v, u] = INT_MAX
@@ -159,7 +159,7 @@ def project_surfels_loop(s: ti.template(), n, imap: ti.template(), pose: ti.temp
         found = 0
         m = ti.min(BLOCK, n - b * BLOCK)
         packs = 0
-        if ti.static(imap.packed and not render):
+        if ti.static(on_cpu() and not render):
             packs = m // LANES
         for g in range(packs):
             i0 = b * BLOCK + g * LANES
@@ -267,7 +267,7 @@ def build_loops(s: ti.template(), n, imap: ti.template(), with_index: ti.templat
     CPU ``gather_listed`` with ``clear_loop``'s work in its copy loop, ``nearest_packed`` and ``unpack_loop``, with
     ``front_radius``: None, or a field the caller clears itself off the CPU): their loops one after the other
     (each reads what the one before wrote, ``n_listed`` included)."""
-    if ti.static(with_index and imap.packed):
+    if ti.static(with_index and imap.packed_keys):
         gather_listed(s, n, imap)  # with clear_loop's work
         nearest_packed(s, imap)
         unpack_loop(imap, front_radius)

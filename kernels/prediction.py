@@ -50,8 +50,8 @@ def render(s: ti.template(), n: ti.i32, img: ti.template(), pose: Rigid, fx: ti.
     ``splat_apart_loop``, whose outputs are those of ``half`` = 0, ``fill_half`` = 1 and ``clear_holes``, and
     ``out_filled`` the filled depth). ``pose`` maps world to camera; with n = 0 every pixel is empty."""
     project_surfels_loop(s, n, img.index_map, pose, fx, fy, cx, cy, True, min_weight, min_time)
-    # on the CPU the index map's last loop clears the front radius too (a parallel loop fewer)
-    build_loops(s, n, img.index_map, True, img.front_radius if ti.static(img.index_map.packed) else None)
+    # with packed keys (the CPU) the index map's last loop clears the front radius too (a parallel loop fewer)
+    build_loops(s, n, img.index_map, True, img.front_radius if ti.static(img.index_map.packed_keys) else None)
     gather_front_loop(s, img, pose)
     if ti.static(apart):
         splat_apart_loop(img, fx, fy, cx, cy, out_vertex, out_normal, out_depth, out_filled)
@@ -66,7 +66,7 @@ def gather_front_loop(s: ti.template(), img: ti.template(), pose: ti.template())
     pixel in the index map writes it there. Visiting the listed surfels in index order reads their
     attributes in memory order, where a loop over the pixels reached them in random order
     (docs/PERFORMANCE.md)."""
-    if ti.static(not img.index_map.packed):
+    if ti.static(not img.index_map.packed_keys):
         for v, u in img.front_radius:
             img.front_radius[v, u] = -1.0
     W = img.front_radius.shape[1]

@@ -52,7 +52,7 @@ import taichi as ti
 from taichi.lang import impl as ti_impl
 from taichi.lang.util import in_taichi_scope
 
-from ti_fusion.backend import current_backend, serial_for
+from ti_fusion.backend import on_cpu, serial_for
 from ti_fusion.kernels.common import INT_MAX, data_oriented, given
 from ti_fusion.kernels.fusion import pack_color, pack_color_loop, pack_color_pixel
 from ti_fusion.kernels.surfels import Pool
@@ -899,7 +899,7 @@ class FramePyramid:
         # the colour packed inside the pyramid's loop where it is of the loop's size (on the CPU: a
         # parallel loop fewer; elsewhere the loops' order does not cost a dispatch)
         in_pyramid = packed is not None and tuple(packed[1].shape) == (self.height, self.width) \
-            and current_backend().arch == "cpu"
+            and on_cpu()
         input_images(depth, raw, self.max_depth_diff, serial_input, grey if grey is not None else _NO_GREY,
                      intensity, grey is not None, *colour, packed is not None, in_pyramid)
         stack = self.depth[0].field

@@ -94,7 +94,7 @@ def main() -> int:
                 for _ in range(2)]
     icp = ICP(icp_cfg)
     backend = current_backend()
-    kernels = PointToPlane(pyramids[0].shapes[0][0] * pyramids[0].shapes[0][1], backend.has_f64, backend.arch)
+    kernels = PointToPlane(pyramids[0].shapes[0][0] * pyramids[0].shapes[0][1], backend.has_f64)
 
     def compute(m, i):
         frame = dataset[i]

@@ -167,7 +167,7 @@ SERIAL_BELOW = 16384
 
 def serial_for(n_items: int) -> bool:
     """Whether a loop over ``n_items`` should run on the calling thread (see SERIAL_BELOW)."""
-    return n_items < SERIAL_BELOW and current_backend().arch == "cpu"
+    return n_items < SERIAL_BELOW and on_cpu()
 
 
 _threads_before_init: set[int] = set()  # this process's threads before the last ti.init (Linux)
@@ -244,6 +244,12 @@ def current_backend() -> BackendInfo:
     if _current is None:
         return init_backend(os.environ.get("TI_FUSION_ARCH", "cpu"))
     return _current
+
+
+def on_cpu() -> bool:
+    """Whether the kernels run on the CPU: what every CPU-only kernel variant and host-memory shortcut asks, in
+    Python or at compile time (``if ti.static(on_cpu()):``)."""
+    return current_backend().arch == "cpu"
 
 
 def vulkan_available() -> bool:

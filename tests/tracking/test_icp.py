@@ -43,7 +43,7 @@ def vec_field(a: np.ndarray):
 
 def pass_for(n_pixels: int, n_chunks: int | None = None) -> kicp.PointToPlane:
     b = current_backend()
-    return kicp.PointToPlane(n_pixels, b.has_f64, b.arch, n_chunks, min_chunk_pixels=1 if n_chunks else None)
+    return kicp.PointToPlane(n_pixels, b.has_f64, n_chunks, min_chunk_pixels=1 if n_chunks else None)
 
 
 def rays(K: Intrinsics, u, v):

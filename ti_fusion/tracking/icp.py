@@ -130,7 +130,7 @@ class ICP:
         backend = current_backend()
         shared = _SHARED.get("pass")
         if shared is None or _SHARED.get("backend") is not backend or shared.max_pixels < n_pixels:
-            shared = PointToPlane(n_pixels, backend.has_f64, backend.arch)
+            shared = PointToPlane(n_pixels, backend.has_f64)
             _SHARED.update({"pass": shared, "backend": backend})
         return shared
 

@@ -1,10 +1,9 @@
-"""Loop closure's work beside the loop (``ti_fusion/loop/lookahead.py``): functions run in the order handed over,
-failures where they belong, and a frame's look ahead equal to what the loop closer computes of it itself; end to
-end, a run with looks ahead gives the run without them."""
+"""Loop closure's work beside the loop (``ti_fusion/loop/lookahead.py``): the run's end waits for it and raises a
+failed addition, and a frame's look ahead equals what the loop closer computes of it itself; end to end, a run with
+looks ahead gives the run without them. (The queue it runs on: tests/loop/test_in_order.py.)"""
 
 import dataclasses
 import threading
-import time
 
 import cv2
 import numpy as np
@@ -14,100 +13,12 @@ from ti_fusion.config import Config
 from ti_fusion.io.datasets.arrays import FrameList
 from ti_fusion.io.outputs import RunDir
 from ti_fusion.loop.closure import LoopClosure
-from ti_fusion.loop.lookahead import InOrder, look_ahead
+from ti_fusion.loop.lookahead import look_ahead
 from ti_fusion.loop.place_recognition import PlaceDatabase
 from ti_fusion.loop.verification import LoopVerifier
 from ti_fusion.slam.pipeline import SLAMPipeline
 from tests.conftest import _use
 from tests.loop.scenes import keyframe, moved, sequence, view
-
-
-def test_functions_run_in_the_order_handed_over_each_on_a_thread():
-    queue, order, threads = InOrder(), [], set()
-
-    def step(k, pause):
-        time.sleep(pause)  # a later function that would finish first if it did not wait
-        order.append(k)
-        threads.add(threading.get_ident())
-        return k
-
-    gate = threading.Event()  # the last runs only once let: what take saw is then not raced by it
-    jobs = [queue.submit(lambda k=k: step(k, 0.02 * (3 - k))) for k in range(3)]
-    jobs.append(queue.submit(lambda: gate.wait() and step(3, 0.0)))
-    assert queue.take(jobs[2]) == 2 and order == [0, 1, 2]
-    gate.set()
-    queue.settle()
-    assert order == [0, 1, 2, 3] and threading.get_ident() not in threads
-
-
-def test_a_failure_is_raised_by_settle_unless_quiet():
-    queue = InOrder()
-    quiet = queue.submit(lambda: 1 / 0, quiet=True)
-    after = queue.submit(lambda: "ran")  # a failure before it does not stop it
-    assert queue.take(quiet) is None  # the taker does the work itself
-    queue.settle()
-    assert after.result == "ran"
-    queue.submit(lambda: [][1])
-    with pytest.raises(IndexError):
-        queue.settle()
-    queue.settle()  # raised once
-
-
-def test_a_cancelled_function_does_not_run():
-    queue, gate, ran = InOrder(), threading.Event(), []
-    queue.submit(gate.wait)
-    job = queue.submit(lambda: ran.append(1), quiet=True)
-    job.cancelled = True
-    gate.set()
-    assert queue.take(job) is None
-    queue.settle()
-    assert ran == []
-
-
-def test_a_settle_cut_by_ctrl_c_leaves_the_rest_for_the_next(monkeypatch):
-    """A Ctrl-C that arrives while the loop's thread waits (a notebook's interrupted cell, then more frames or
-    ``save_map``): the functions not yet waited for are still waited for, and their failures raised, by the
-    next ``settle``, so nothing reads the database while an addition still runs on it."""
-    from ti_fusion.loop.lookahead import Job
-
-    queue, gate = InOrder(), threading.Event()
-    first = queue.submit(gate.wait)
-    queue.submit(lambda: [][1])
-    wait, cut, me = Job.wait, [], threading.get_ident()
-
-    def interrupted(job):  # a Ctrl-C reaches the waiting caller only, not a job's thread waiting for the one before
-        if not cut and threading.get_ident() == me:
-            cut.append(job)
-            raise KeyboardInterrupt
-        wait(job)
-
-    monkeypatch.setattr(Job, "wait", interrupted)
-    with pytest.raises(KeyboardInterrupt):
-        queue.settle()
-    assert cut == [first]
-    gate.set()
-    with pytest.raises(IndexError):  # waited for, not forgotten
-        queue.settle()
-    assert not first._thread.is_alive()
-
-
-def test_a_dropped_function_keeps_nothing_and_leaves_the_queue():
-    """Looks ahead that go unused (a frame the tracked pose did not make a keyframe; every frame of a lost
-    stretch): neither their inputs nor their results stay in the queue until the next keyframe settles it."""
-    queue, gate, started = InOrder(), threading.Event(), threading.Event()
-    done = queue.submit(lambda: "ahead", quiet=True)
-    done.wait()
-    queue.drop(done)
-    assert done.result is None and done not in queue._jobs
-    running = queue.submit(lambda: started.set() or gate.wait() and "ahead", quiet=True)
-    waiting = queue.submit(lambda: "never", quiet=True)
-    started.wait()
-    queue.drop(running)  # dropped while it runs: it stays until done, then keeps no result
-    queue.drop(waiting)  # not started: it does not run
-    assert running in queue._jobs and waiting in queue._jobs
-    gate.set()
-    queue.settle()
-    assert running.result is None and waiting.result is None and waiting._fn is None and queue._jobs == []
 
 
 def test_the_summary_waits_for_the_threads_and_raises_a_failed_addition():

@@ -41,7 +41,8 @@ import numpy as np
 from ti_fusion.config import Config
 from ti_fusion.geometry import invert, pose_error, renormalize
 from ti_fusion.loop.keyframes import Keyframe, KeyframeSelector, grid_points
-from ti_fusion.loop.lookahead import InOrder, Job, look_ahead
+from ti_fusion.loop.in_order import InOrder, Job
+from ti_fusion.loop.lookahead import look_ahead
 from ti_fusion.loop.place_recognition import PlaceDatabase
 from ti_fusion.loop.pose_graph import PoseGraph, edge_covariance, frame_covariance
 from ti_fusion.loop.verification import LoopCandidate, LoopVerifier, fill
@@ -116,8 +117,9 @@ class LoopClosure:
         self.selector = KeyframeSelector(config.loop)
         self.gap = candidate_gap(config)
         self._database = PlaceDatabase(dataclasses.replace(config.loop, min_frame_gap=self.gap))
-        # additions to the database and frames' looks ahead, on threads beside the loop's (loop/lookahead.py)
-        self._beside = InOrder()
+        # on threads beside the loop's, in order (loop/in_order.py): each keyframe's addition to the database, which
+        # only the next keyframe's query reads (``database`` waits for it), and frames' looks ahead (loop/lookahead.py)
+        self._beside = InOrder("ti-fusion-loop-closure")
         self._ahead: tuple[int, Job] | None = None  # (frame index, its look ahead) of the last frame that had one
         self._ahead_orb = cv2.ORB_create(config.loop.n_features)  # the looks ahead's own: theirs run beside ``_orb``
         self.graph = PoseGraph(config.loop)
@@ -384,7 +386,7 @@ class LoopClosure:
         return self.loop_segments(self.candidates)
 
     def settle(self) -> None:
-        """Wait for the work handed to threads (loop/lookahead.py): a look ahead not taken is dropped, and a failed
+        """Wait for the work handed to threads (loop/in_order.py): a look ahead not taken is dropped, and a failed
         database addition raises here, not at a next keyframe that a run's end never brings."""
         self._drop_ahead()
         self._beside.settle()

@@ -119,6 +119,15 @@ def as_level(x) -> Level:
     return x if isinstance(x, Level) else Level(x, 0, x.shape)
 
 
+@ti.kernel
+def copy_rows(src: ti.template(), s0: ti.i32, dst: ti.template(), d0: ti.i32, rows: ti.i32):
+    """Rows ``s0`` .. ``s0`` + ``rows`` of ``src`` into rows ``d0`` .. ``d0`` + ``rows`` of ``dst``, every column of
+    ``dst`` (stacked fields of the same width, see ``Level``): on the device, where a NumPy round trip would carry
+    both whole fields to the host and back."""
+    for v, u in ti.ndrange(rows, dst.shape[1]):
+        dst[d0 + v, u] = src[s0 + v, u]
+
+
 def stacked_rows(shapes) -> tuple[list[int], int, int]:
     """(first row of each level, total rows, width) of levels of ``shapes`` stacked top to bottom."""
     row0, rows = [], 0

@@ -513,6 +513,25 @@ def test_level_views_read_and_write_their_own_pixels(arch, rng):
         level.from_numpy(values[:, :4])
 
 
+def test_copy_rows_matches_reference(arch, rng):
+    """``copy_rows``: a band of rows of one stacked field into another band of a field of the same width (vector
+    fields, as the kept maps of a localisation), the other rows of the destination unchanged."""
+    import taichi as ti
+
+    from ti_fusion.kernels.pyramid import copy_rows
+
+    src64, dst64 = rng.normal(size=(13, 7, 3)), rng.normal(size=(11, 7, 3))
+    src, dst = ti.Vector.field(3, ti.f32, shape=(13, 7)), ti.Vector.field(3, ti.f32, shape=(11, 7))
+    src.from_numpy(src64.astype(np.float32))
+    dst.from_numpy(dst64.astype(np.float32))
+    copy_rows(src, 6, dst, 2, 5)
+    expected = dst64.copy()
+    expected[2:7] = src64[6:11]
+    np.testing.assert_array_equal(dst.to_numpy(), expected.astype(np.float32))
+    copy_rows(src, 0, dst, 11, 0)  # no rows: nothing written
+    np.testing.assert_array_equal(dst.to_numpy(), expected.astype(np.float32))
+
+
 # -- JPEG blockiness of the grey image (host NumPy) ----------------------------------------------------------
 def _jpeg(image: np.ndarray, quality: int) -> np.ndarray:
     import cv2

@@ -244,3 +244,38 @@ def test_odometry_near_a_localisations_alignment_settles_its_weak_direction(monk
                            (FrameResult(1, 0.0, near, Tracking.LOST, "odometry: few inliers"), False), (None, False)):
         monkeypatch.setattr(session_module, "odometry", lambda slam, frame, why, moved=moved: moved)
         assert session_module.odometry_settles(None, None, alignment) is settles, (moved and moved.status)
+
+
+@pytest.mark.parametrize("paired", [True, pytest.param(False, marks=pytest.mark.slow)])
+def test_kept_maps_go_into_the_model_pyramid(arch, rng, paired):
+    """``KeptMaps``: the maps of the frame kept (every level the model has) are the model pyramid's after
+    ``into_model``, bit for bit, though the frame pyramid was built again since; the frame's own maps are left
+    as they are. In a pair (one set of fields) and in two pyramids of their own."""
+    from ti_fusion.camera import Intrinsics
+    from ti_fusion.config import PyramidConfig
+    from ti_fusion.kernels.pyramid import FramePyramid
+    from ti_fusion.slam.session import KeptMaps
+
+    H, W = 40, 48
+    K = Intrinsics(60.0, 60.0, 24.0, 20.0, W, H)
+    if paired:
+        frame, model = FramePyramid.pair(PyramidConfig(), (H, W, 3), (H, W, 3))
+        assert model.vertex[0].field is frame.vertex[0].field
+    else:
+        frame, model = FramePyramid(PyramidConfig(), H, W, 3), FramePyramid(PyramidConfig(), H, W, 3)
+    v, u = np.mgrid[0:H, 0:W]
+    depth = lambda: (1.0 + rng.uniform(0.0, 0.5) + rng.uniform(-0.01, 0.01) * u + rng.uniform(-0.01, 0.01) * v
+                     ).astype(np.float32)  # a plane at random: maps and normals differ from one to the next
+    frame.compute(depth(), K)
+    kept_maps = KeptMaps(frame, model)
+    assert kept_maps.usable and kept_maps.shared == paired
+    kept_maps.keep(7)
+    kept = [(frame.vertex[l].to_numpy(), frame.normal[l].to_numpy()) for l in range(3)]
+    frame.compute(depth(), K)  # the next frame
+    now = [(frame.vertex[l].to_numpy(), frame.normal[l].to_numpy()) for l in range(3)]
+    assert kept_maps.into_model() is model and kept_maps.index == 7
+    for l in range(3):
+        np.testing.assert_array_equal(model.vertex[l].to_numpy(), kept[l][0])
+        np.testing.assert_array_equal(model.normal[l].to_numpy(), kept[l][1])
+        np.testing.assert_array_equal(frame.vertex[l].to_numpy(), now[l][0])
+        np.testing.assert_array_equal(frame.normal[l].to_numpy(), now[l][1])

@@ -171,13 +171,12 @@ class KeptMaps:
     def into_model(self):
         """The model pyramid holding the kept frame's maps (its depth and intensity are not used by depth ICP)."""
         if self.shared:  # the frame's rows of the copies into the model's rows of the one set of fields
+            from ti_fusion.kernels.pyramid import copy_rows
+
             first, last = self.model.row0[0], self.model.row0[-1] + self.model.shapes[-1][0]
             start = self.frame.row0[0]
-            for field, copy in ((self.model.vertex[0].field, self.copies[0]),
-                                (self.model.normal[0].field, self.copies[1])):
-                whole = field.to_numpy()
-                whole[first:last] = copy.to_numpy()[start:start + last - first]
-                field.from_numpy(whole)
+            copy_rows(self.copies[0], start, self.model.vertex[0].field, first, last - first)
+            copy_rows(self.copies[1], start, self.model.normal[0].field, first, last - first)
             return self.model
         self.model.vertex[0].field.copy_from(self.copies[0])
         self.model.normal[0].field.copy_from(self.copies[1])

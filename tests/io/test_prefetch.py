@@ -231,30 +231,48 @@ def test_frames_are_taken_from_the_readers_on_the_receiver_thread(clean, monkeyp
     assert not [t for t in threading.enumerate() if t.name.startswith("ti-fusion-receiver")]
 
 
-def test_processes_stay_within_ahead_of_the_caller(clean, tmp_path):
-    """No process starts frame j before the caller has taken frame j − ahead; frame 0 is read by the caller
-    itself, while the processes start."""
+def test_processes_stay_within_ahead_of_the_caller(clean, tmp_path, monkeypatch):
+    """No process is asked for frame j before the caller has begun to take frame j − ahead (frame 0 is read by the
+    caller itself, while the processes start), and no process reads a frame it was not asked for. Each request is
+    checked as it is made, against the frames the caller has begun to take by then, so no interleaving of the
+    receiver thread, the processes and the caller can hide a request made too early."""
+    from ti_fusion.io.frame_workers import WorkerPool
+
     log = tmp_path / "reads"
     data = readers.Items(100, log=log)
     ahead = 3
+    taking = 0  # the caller's next() calls begun: frames 0 .. taking - 1 taken or being taken
+    asked: list[tuple[int, int]] = []  # (frame, taking) at each request, in the order made
+    request = WorkerPool.request
+
+    def recorded(pool, i, worker, slot):
+        asked.append((i, taking))  # before the request is sent: a process reads nothing not recorded here
+        request(pool, i, worker, slot)
+
+    monkeypatch.setattr(WorkerPool, "request", recorded)
     with Prefetcher(data, ahead=ahead, workers=2, mode="processes") as frames:
-        deadline = time.monotonic() + DEADLINE_S
+        assert asked == [(1, 0), (2, 0), (3, 0)]  # asked for before the caller took any
+        deadline = time.monotonic() + DEADLINE_S  # a bound for a broken test, not a timing the test depends on
         while len(readers.read_indices(log)) < ahead and time.monotonic() < deadline:
             time.sleep(0.01)
-        time.sleep(0.1)
-        assert sorted(readers.read_indices(log)) == [1, 2, 3]  # asked for before the caller took any
+        assert sorted(readers.read_indices(log)) == [1, 2, 3]
         for k in range(1, 12):
-            next(frames)  # frames 0 .. k - 1 taken
-            time.sleep(0.02)
-            assert max(readers.read_indices(log)) <= k - 1 + ahead
+            taking = k
+            assert next(frames)[0] == k - 1
+            assert set(readers.read_indices(log)) <= {0} | {i for i, _ in asked}  # (0: the caller's own read)
+    too_early = [(i, k) for i, k in asked if i > max(k, 1) - 1 + ahead]
+    assert not too_early, too_early
+    assert [i for i, _ in asked] == list(range(1, 11 + ahead))  # each asked for once, in order
+    assert set(readers.read_indices(log)) <= {0} | {i for i, _ in asked}
 
 
 def test_reader_processes_are_out_of_reach_of_the_terminals_signals(clean):
     """Readers run in a session of their own from the moment they start: a Ctrl-C that the terminal sends to
     the caller's process group while a reader's interpreter is still starting (before it could ignore
     SIGINT) would kill it and end the run as a failed read instead of an interrupted one."""
+    others = _children()  # (an earlier test's process still ending in this worker is not a reader)
     with Prefetcher(readers.Items(20), ahead=3, workers=2, mode="processes") as frames:
-        pids = _children()
+        pids = _children() - others
         assert len(pids) == 2
         assert all(os.getsid(pid) == pid and os.getpgid(pid) != os.getpgid(0) for pid in pids)
         assert [item for _, item, _ in frames] == list(range(20))

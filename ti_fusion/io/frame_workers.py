@@ -49,6 +49,9 @@ from ti_fusion.errors import TiFusionError
 _ALIGN = 64  # each array in a slot starts on a cache line
 _ARRAYS = ("depth", "color")  # the Frame fields that travel through shared memory
 _STOP_WAIT_S = 5.0  # how long a stopping worker may take to finish its frame before it is killed
+# How long a worker whose end of the socket closed may take to be reaped before it is said not to answer: a bound for
+# one that closed it and lives on, not a timing the message depends on (a killed one's exit can be slow under load).
+_DIED_WAIT_S = 60.0
 # A reader that renders frames with Taichi (the synthetic sequence) does so on the CPU, leaving the caller's
 # threads pinned to the CPUs alone (ti_fusion.backend).
 _WORKER_ENV = {"TI_FUSION_ARCH": "cpu", "TI_FUSION_PIN_THREADS": "0"}
@@ -183,7 +186,7 @@ class WorkerPool:
     def _died(self, i: int, worker: int) -> ReaderDied:
         proc = self._procs[worker]
         try:
-            code = proc.wait(timeout=1.0)
+            code = proc.wait(timeout=_DIED_WAIT_S)
         except subprocess.TimeoutExpired:
             code = None
         how = ("is not answering" if code is None else

@@ -180,8 +180,10 @@ def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
     """A client subscribed to every channel decodes the run's messages: the same schemas as the file, the
     same bytes at the same log times, and live maps of at most the live bound. The run waits for the
     client before each frame (its subscriptions to every channel, advertised when the log opens, and the
-    last frame's stats), so what arrives does not depend on timing; the last frame and the final map,
-    sent as the run closes, are checked when they arrive."""
+    last frame's stats), and the server's close waits for the trajectory logged as the run closes (closing
+    gives a client's queue a fixed time to drain, which a loaded machine can miss), so what arrives does not
+    depend on timing; the last frame and the final map, sent before the trajectory, are checked as they
+    arrived."""
     frames = 8
     cfg = _config(frames)
     dataset = open_dataset(cfg.dataset, cfg.synth)
@@ -199,6 +201,13 @@ def test_a_live_run_sends_what_it_logs(cpu, tmp_path):
         return register(frame)
 
     pipeline.step.register_frame = after_the_client
+    close = live.close
+
+    def after_the_trajectory():  # the last message the log sends (one queue per client: the rest came before it)
+        client.wait_for(lambda: client.received("/trajectory"), "trajectory logged as the run closes")
+        close()
+
+    live.close = after_the_trajectory
     pipeline.run()
     client.join(WAIT_S)
     assert not client.is_alive() and client.error is None  # the server closed the connection
@@ -437,6 +446,14 @@ def test_channels_logged_at_the_end_reach_a_client_that_subscribed_at_once(tmp_p
     client.wait_for(lambda: {c["topic"] for c in client.channels.values()} >= {"/tf", "/trajectory", "/map/mesh"},
                     "advertisements before the log opens")
     client.wait_for(lambda: all(live.subscribed(t) for t in live.topics), "subscriptions")
+    close = live.close
+
+    def after_they_arrive():  # (closing gives a client's queue a fixed time to drain: not what is tested here)
+        client.wait_for(lambda: all(client.received(t) for t in ("/tf", "/trajectory", "/map/mesh")),
+                        "the channels logged at the end")
+        close()
+
+    live.close = after_they_arrive
     mesh = Mesh(vertices=np.array([[0, 0, 1], [1, 0, 1], [0, 1, 1]], np.float32), faces=np.array([[0, 1, 2]]),
                 normals=np.tile(np.float32([0, 0, -1]), (3, 1)), colors=np.full((3, 3), 200, np.uint8))
     with RunLogger(tmp_path / "log.mcap", live=live) as log:

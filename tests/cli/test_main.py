@@ -503,8 +503,12 @@ import atexit, sys, threading, time
 from ti_fusion.cli.main import end_process
 atexit.register(lambda: print("atexit ran", flush=False))
 print("buffered", end=" ")
+def last():  # it ends only once the interpreter's exit waits for it: with os._exit it would never print
+    while threading.main_thread().is_alive():
+        time.sleep(0.01)
+    print("thread done", end=" ")
 if sys.argv[1] == "thread":  # a thread the interpreter waits for: the usual exit, after it
-    threading.Thread(target=lambda: (time.sleep(0.5), print("thread done", end=" "))).start()
+    threading.Thread(target=last).start()
 end_process(int(sys.argv[2]))
 print("not reached")
 """

@@ -22,6 +22,12 @@ INT_MAX = 2147483647  # "no surfel" in index maps and "no depth" in depth keys
 # a few hundred thousand surfels still has enough iterations to run on several threads (see
 # docs/KERNELS.md).
 BLOCK = 128
+# Values per pack of the CPU's vectorised loops: Taichi's CPU backend does not vectorise a loop over pixels or
+# surfels, but LLVM's SLP vectoriser turns one operation on a small vector's components into SIMD instructions,
+# so the pyramid's loops take eight pixels of a row, the projections eight surfels, as one 8-vector
+# (docs/KERNELS.md).
+LANES = 8
+Pack = ti.types.vector(LANES, ti.f32)
 
 
 def data_oriented(cls):

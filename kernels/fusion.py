@@ -34,9 +34,9 @@ import numpy as np
 import taichi as ti
 
 from ti_fusion.backend import on_cpu
-from ti_fusion.kernels.common import (BLOCK, INT_MAX, Mat3, Rigid, Vec3, bits_depth, data_oriented, depth_bits,
+from ti_fusion.kernels.common import (BLOCK, INT_MAX, LANES, Mat3, Rigid, Vec3, bits_depth, data_oriented, depth_bits,
                                       depth_noise_scale, is_valid, rigid)
-from ti_fusion.kernels.index_map import LANES, IndexMap, build_loops, list_if, project_one, project_pack
+from ti_fusion.kernels.index_map import IndexMap, build_loops, list_if, project_one, project_pack
 from ti_fusion.kernels.surfels import copy_surfel
 
 # Each image row is counted and appended in this many segments, so that the loops over segments have

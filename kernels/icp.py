@@ -39,8 +39,8 @@ reduction
     pass with independent running sums; in float32 (GPU backends) in two more parallel loops, each
     Kahan-compensated: GROUPS threads per sum add a contiguous run of the chunks each, then one thread per
     sum adds the GROUPS group totals. That keeps the float32 path within the stated tolerance of float64,
-    and no thread adds more than a few hundred numbers in a row (one thread per sum over all 16384 chunks
-    made ICP's iterations 1.8 of the 3.2 ms of kernel time per frame on an H200: docs/PERFORMANCE.md).
+    and no thread adds more than a few hundred numbers in a row (one thread per sum over all the chunks made
+    ICP's iterations more than half of a GPU's kernel time: docs/PERFORMANCE.md, "A fourth H200 lease").
     Every product and sum is in the arithmetic type, AᵀA's included: its off-diagonal entries are sums of
     signed terms that can cancel as well as Aᵀb's, so float32 products for them would miss float64 by
     more than the float32 path's tolerance (docs/KERNELS.md).
@@ -286,8 +286,8 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
     vec3 = ti.types.vector(3, real)
     params_t = ti.types.ndarray(dtype=real, ndim=2)
     out_t = ti.types.ndarray(dtype=real, ndim=1)
-    # a field costs a launch about half of what an ndarray argument does (bench_launch.py: 35 against 66 µs
-    # on an H200's host), and off the CPU ``iterate`` is launched for every iteration of the schedule
+    # a field costs a launch less than an ndarray argument does (docs/PERFORMANCE.md, "A fourth H200 lease"),
+    # and off the CPU ``iterate`` is launched for every iteration of the schedule
     state_t = ti.template() if state_in_field else params_t
 
     @ti.func
@@ -442,7 +442,7 @@ def _build_kernels(real, state_in_field: bool, term_rows: tuple = ()):
         loop is then the kernel's parallel loop over chunks (float64: on the calling thread with ``serial``).
         In float32 (off the CPU) the loop's bound is the partials' chunk rows, a compile-time constant, and
         chunks past ``n_chunks`` do nothing: a loop with a bound known only on the device is launched as a
-        whole device's grid (lavapipe runs that on the CPU, 11–13 ms even for a launch after a stop)."""
+        whole device's grid (lavapipe runs that on the CPU, even for a launch after a stop: docs/PERFORMANCE.md)."""
         if ti.static(real == ti.f32):
             for c in range(ti.static(partials.shape[0] - GROUPS)):
                 if c < n_chunks:
@@ -764,7 +764,8 @@ class PointToPlane:
     Images (``src_v`` … ``tgt_n``) are ``Level`` views or plain 2-D fields (module docstring).
     """
 
-    def __init__(self, max_pixels: int, has_f64: bool, n_chunks: int | None = None, min_chunk_pixels: int | None = None):
+    def __init__(self, max_pixels: int, has_f64: bool, n_chunks: int | None = None,
+                 min_chunk_pixels: int | None = None):
         self.real = ti.f64 if has_f64 else ti.f32
         self.np_real = np.float64 if has_f64 else np.float32
         self.max_pixels = int(max_pixels)

@@ -24,7 +24,7 @@ backend.
 import taichi as ti
 
 from ti_fusion.backend import on_cpu
-from ti_fusion.kernels.common import BLOCK, INT_MAX, Rigid, data_oriented, depth_bits, given, rigid
+from ti_fusion.kernels.common import BLOCK, INT_MAX, LANES, Pack, Rigid, data_oriented, depth_bits, given, rigid
 
 INT64_MAX = 2**63 - 1  # "no surfel" in a packed key
 
@@ -81,9 +81,6 @@ def project_surfels(s: ti.template(), n: ti.i32, imap: ti.template(), pose: Rigi
     project_surfels_loop(s, n, imap, pose, fx, fy, cx, cy, render, min_weight, min_time)
 
 
-LANES = 8  # surfels per pack of the CPU's projection loops (LLVM vectorises the 8-vectors, not the loop)
-Pack = ti.types.vector(LANES, ti.f32)
-IPack = ti.types.vector(LANES, ti.i32)
 # A packed projection whose pixel coordinate lies this close to a pixel edge is done again one surfel at a time
 # (``project_pack``).
 EDGE = 1e-3

@@ -53,20 +53,12 @@ from taichi.lang import impl as ti_impl
 from taichi.lang.util import in_taichi_scope
 
 from ti_fusion.backend import on_cpu, serial_for
-from ti_fusion.kernels.common import INT_MAX, data_oriented, given
+from ti_fusion.kernels.common import INT_MAX, LANES, Pack, data_oriented, given
 from ti_fusion.kernels.fusion import pack_color, pack_color_loop, pack_color_pixel
 from ti_fusion.kernels.surfels import Pool
 from ti_fusion.camera import Intrinsics
 from ti_fusion.config import PyramidConfig
 from ti_fusion.errors import InputError
-
-
-# Pixels per pack in the packed depth images of the smoothing. Taichi's CPU backend does not vectorise a
-# loop over pixels (see the module docstring), but LLVM's SLP vectoriser does turn the same operation on
-# the components of a small vector into SIMD instructions: a row of 8 depths stored as one 8-vector, the
-# 2r + 1 taps applied to all 8 at once (docs/KERNELS.md has the speed-up).
-LANES = 8
-Pack = ti.types.vector(LANES, ti.f32)
 
 
 @data_oriented
@@ -502,12 +494,12 @@ def maps_levels_loops(depth: ti.template(), vertex: ti.template(), normal: ti.te
                       levels: ti.template(), first_maps, serial: ti.template(), shift):
     """The vertex and normal maps of levels ``first_maps`` .. levels − 1 of a stack (``vertex_normal_loop``'s
     packs) in one loop over the packs of every level, each pack with its level's row, size and intrinsics
-    from ``geometry``: one copy of the per-pack code for every level (one loop per level compiled 3.5 times
-    as long). ``first_maps`` is a runtime value (the levels before it have no packs in the loop), so that one
-    instance serves a rendered model, whose level 0 maps come from the renderer, and depth uploaded into
-    the same maps (loop verification's keyframes). The rows in ``geometry`` are the stack's own, and its levels lie
-    ``shift`` rows further down the fields (a stack in the fields of another, ``FramePyramid.pair``: the same
-    geometry and the same instance for both).
+    from ``geometry``: one copy of the per-pack code for every level (one loop per level compiled several times
+    as long: docs/PERFORMANCE.md, "The frame's maps as five kernels"). ``first_maps`` is a runtime value (the
+    levels before it have no packs in the loop), so that one instance serves a rendered model, whose level 0
+    maps come from the renderer, and depth uploaded into the same maps (loop verification's keyframes). The rows
+    in ``geometry`` are the stack's own, and its levels lie ``shift`` rows further down the fields (a stack in the
+    fields of another, ``FramePyramid.pair``: the same geometry and the same instance for both).
 
     The loop runs over the packs of those levels only, numbered level by level (a level's H × ⌈W/8⌉ packs row by
     row): a loop over every row of the stack and the widest level's packs spent most of its iterations on
@@ -792,9 +784,9 @@ class FramePyramid:
         """``FramePyramid(settings, *first)`` and ``FramePyramid(settings, *second)`` (each ``(height, width, levels,
         input_level)``); where their levels have the same sizes, the second's lie in the first's fields (below the
         first's rows), so that building either pyramid runs the same kernel instances (``pyramid_down``,
-        ``maps_levels``): a tenth of a second of loading each in every process, half a second of compiling with
-        an empty kernel cache (docs/PERFORMANCE.md). The second is then built from a render or a stored depth
-        (``compute_from_field``), not ``compute``."""
+        ``maps_levels``), loaded in every process or compiled with an empty kernel cache once, not twice
+        (docs/PERFORMANCE.md, "The warm run's fixed cost, again"). The second is then built from a render or a
+        stored depth (``compute_from_field``), not ``compute``."""
         if _level_shapes(*first) != _level_shapes(*second):
             return cls(settings, *first), cls(settings, *second)
         one = cls(settings, *first, _pair_room=True)
@@ -895,8 +887,7 @@ class FramePyramid:
         intensity pyramid of ``grey`` and the colour ``packed`` (from ``_checked_color``) if given: the
         caller's arrays in one launch (``input_images``), then the smoothing, the pyramid, the maps and the
         intensity levels, a launch each; False for any other layout. Kernels rather than one: Taichi's
-        compile time grows faster than the kernel, and these loops as one kernel took 2.3 times as long to
-        compile as the five (docs/PERFORMANCE.md, "Cold start")."""
+        compile time grows faster than the kernel (docs/PERFORMANCE.md, "The frame's maps as five kernels")."""
         if self.input_level != 1 or self.smooth_radius <= 0:
             return False
         self._set_geometry(intrinsics.downsampled(2))

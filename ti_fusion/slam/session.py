@@ -141,10 +141,10 @@ def find_in_map(slam, frame, terms: tuple[str, ...]):
 
 
 class KeptMaps:
-    """Copies of the frame pyramid's vertex and normal maps (every level) of the last frame with a pose: off the
-    map, a localisation tracks the next frame against them (``odometry``), put into the model pyramid, whose
-    maps ICP's kernels already take as the source. Not ``usable`` where the two pyramids differ in shape (then
-    a frame off the map has no odometry: lost, as before)."""
+    """Copies of the frame pyramid's vertex and normal maps (the rows of the levels the model has) of the last frame
+    with a pose: off the map, a localisation tracks the next frame against them (``odometry``), put into the model
+    pyramid, whose maps ICP's kernels already take as the source. Not ``usable`` where the two pyramids differ in
+    shape (then a frame off the map has no odometry: lost, as before)."""
 
     def __init__(self, frame_pyramid, model_pyramid):
         import taichi as ti
@@ -159,27 +159,28 @@ class KeptMaps:
         else:
             self.usable = all(a.shape == b.shape for a, b in fields) and frame_pyramid.row0 == model_pyramid.row0 and \
                 frame_pyramid.levels >= model_pyramid.levels
-        self.copies = [ti.Vector.field(3, ti.f32, shape=a.shape) for a, _ in fields] if self.usable else []
+        # the model's levels' rows, from its first level's: the frame's levels of the same sizes span as many
+        self.rows = model_pyramid.row0[-1] + model_pyramid.shapes[-1][0] - model_pyramid.row0[0]
+        self.copies = [ti.Vector.field(3, ti.f32, shape=(self.rows, a.shape[1])) for a, _ in fields] \
+            if self.usable else []
         self.index: int | None = None  # the frame whose maps are kept
 
     def keep(self, index: int) -> None:
+        from ti_fusion.kernels.pyramid import copy_rows
+
         if self.usable:
-            self.copies[0].copy_from(self.frame.vertex[0].field)
-            self.copies[1].copy_from(self.frame.normal[0].field)
+            start = self.frame.row0[0]
+            copy_rows(self.frame.vertex[0].field, start, self.copies[0], 0, self.rows)
+            copy_rows(self.frame.normal[0].field, start, self.copies[1], 0, self.rows)
             self.index = index
 
     def into_model(self):
         """The model pyramid holding the kept frame's maps (its depth and intensity are not used by depth ICP)."""
-        if self.shared:  # the frame's rows of the copies into the model's rows of the one set of fields
-            from ti_fusion.kernels.pyramid import copy_rows
+        from ti_fusion.kernels.pyramid import copy_rows
 
-            first, last = self.model.row0[0], self.model.row0[-1] + self.model.shapes[-1][0]
-            start = self.frame.row0[0]
-            copy_rows(self.copies[0], start, self.model.vertex[0].field, first, last - first)
-            copy_rows(self.copies[1], start, self.model.normal[0].field, first, last - first)
-            return self.model
-        self.model.vertex[0].field.copy_from(self.copies[0])
-        self.model.normal[0].field.copy_from(self.copies[1])
+        first = self.model.row0[0]
+        copy_rows(self.copies[0], 0, self.model.vertex[0].field, first, self.rows)
+        copy_rows(self.copies[1], 0, self.model.normal[0].field, first, self.rows)
         return self.model
 
 

@@ -93,3 +93,69 @@ def test_cpu_workers_are_pinned_one_per_cpu(monkeypatch):
     assert len(set(cpus)) >= 2, cpus  # at least two workers, on different CPUs
     monkeypatch.setenv("TI_FUSION_PIN_THREADS", "0")
     assert backend.pin_cpu_workers() == ""  # the opt-out
+
+
+def _run_fresh(tmp_path, code: str) -> str:
+    script = tmp_path / "script.py"  # (Taichi reads a kernel's source from its file)
+    script.write_text(code)
+    proc = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    return proc.stdout
+
+
+_ASK_IN_A_KERNEL = """
+x = ti.field(ti.i32, shape=4)
+
+@ti.kernel
+def fill():
+    for i in x:
+        if ti.static(backend.on_cpu()):
+            x[i] = 1
+        else:
+            x[i] = 2
+"""
+
+
+def test_on_cpu_restarts_no_taichi_started_by_hand(tmp_path):
+    """In a process that ran ti.init itself, asking on_cpu (while a kernel compiles, or as an index map is made)
+    answers from that program: it neither starts Taichi again (which would free its fields and drop its
+    settings) nor breaks the kernel's compilation."""
+    out = _run_fresh(tmp_path, """
+import taichi as ti
+from taichi.lang import impl
+from ti_fusion import backend
+from ti_fusion.kernels.index_map import IndexMap
+ti.init(arch=ti.cpu, log_level=ti.ERROR, kernel_profiler=True)
+runtime = impl.get_runtime()
+""" + _ASK_IN_A_KERNEL + """
+fill()
+imap = IndexMap(4, 4)
+assert impl.get_runtime() is runtime and impl.current_cfg().kernel_profiler, "Taichi was started again"
+print(backend.on_cpu(), imap.packed_keys, x.to_numpy().tolist())
+""")
+    assert out.strip().splitlines()[-1] == "True True [1, 1, 1, 1]", out
+
+
+def test_on_cpu_answers_for_the_backend_taichi_runs(tmp_path):
+    """After init_backend("cpu"), a program started by hand on vulkan gets the GPU's kernel variants and
+    layout: the CPU's answer recorded by init_backend must not leak onto it."""
+    if os.environ.get("TI_FUSION_NO_VULKAN") is not None:
+        pytest.skip("TI_FUSION_NO_VULKAN is set")
+    out = _run_fresh(tmp_path, """
+import taichi as ti
+from ti_fusion import backend
+from ti_fusion.kernels.index_map import IndexMap
+backend.init_backend("cpu")
+assert backend.on_cpu()
+try:
+    ti.init(arch=ti.vulkan, log_level=ti.ERROR, enable_fallback=False)
+except RuntimeError:
+    print("no vulkan")
+    raise SystemExit(0)
+""" + _ASK_IN_A_KERNEL + """
+fill()
+print(backend.on_cpu(), IndexMap(4, 4).packed_keys, x.to_numpy().tolist())
+""")
+    if out.strip().splitlines()[-1] == "no vulkan":
+        pytest.skip("no Vulkan device (apt-get install mesa-vulkan-drivers for lavapipe)")
+    assert out.strip().splitlines()[-1] == "False False [2, 2, 2, 2]", out

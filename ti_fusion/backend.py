@@ -16,6 +16,7 @@ import contextlib
 import io
 import os
 import threading
+import weakref
 from dataclasses import dataclass, field
 
 from ti_fusion.errors import BackendUnavailable, TiFusionError
@@ -246,10 +247,25 @@ def current_backend() -> BackendInfo:
     return _current
 
 
+_on_cpu_asked: tuple | None = None  # (weak reference to the Taichi runtime asked, its answer)
+
+
 def on_cpu() -> bool:
     """Whether the kernels run on the CPU: what every CPU-only kernel variant and host-memory shortcut asks, in
-    Python or at compile time (``if ti.static(on_cpu()):``)."""
-    return current_backend().arch == "cpu"
+    Python or at compile time (``if ti.static(on_cpu()):``). The running Taichi program answers, not what
+    init_backend recorded, so that asking never restarts Taichi (started by ``ti.init`` itself, or a kernel
+    compiled inside init_backend) nor answers for a backend no longer running; with none started, it starts
+    one as ``current_backend`` does."""
+    global _on_cpu_asked
+    from taichi.lang import impl
+
+    runtime = impl.get_runtime()  # a new one at every ti.init and ti.reset
+    if runtime.prog is None:
+        return current_backend().arch == "cpu"
+    asked = _on_cpu_asked
+    if asked is None or asked[0]() is not runtime:  # the program's config is read once: a read takes microseconds
+        asked = _on_cpu_asked = (weakref.ref(runtime), _started_arch() == "cpu")
+    return asked[1]
 
 
 def vulkan_available() -> bool:

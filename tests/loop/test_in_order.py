@@ -9,6 +9,8 @@ import pytest
 
 from ti_fusion.loop.in_order import InOrder, Job
 
+WAIT_S = 60  # a bound for a broken queue, not a timing any test depends on
+
 
 def test_functions_run_in_the_order_handed_over_each_on_a_thread():
     queue, order, threads, names = InOrder("in-order-test"), [], set(), set()
@@ -88,7 +90,7 @@ def test_a_dropped_function_keeps_nothing_and_leaves_the_queue():
     assert done.result is None and done not in queue._jobs
     running = queue.submit(lambda: started.set() or gate.wait() and "ahead", quiet=True)
     waiting = queue.submit(lambda: "never", quiet=True)
-    started.wait()
+    assert started.wait(WAIT_S), "the function after a dropped one did not start"
     queue.drop(running)  # dropped while it runs: it stays until done, then keeps no result
     queue.drop(waiting)  # not started: it does not run
     assert running in queue._jobs and waiting in queue._jobs

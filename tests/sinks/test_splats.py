@@ -30,7 +30,11 @@ def test_the_quaternion_turns_z_onto_the_normal(rng):
     q = z_onto(normals)
     np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1.0, atol=1e-12)
     R = rotation(q)
-    np.testing.assert_allclose(R[:, :, 2], normals, atol=1e-9)  # the thin axis (scale_2) along the normal
+    # the thin axis (scale_2) along the normal: to float64's rounding, but for a normal within 1e-6 of −z, which
+    # z_onto turns about x (the shortest arc's axis is lost there), so onto −z itself, |n + z| away from it
+    err = np.abs(R[:, :, 2] - normals).max(axis=1)
+    near_minus_z = np.linalg.norm(normals - [0, 0, -1], axis=1) < 1e-6
+    assert near_minus_z.sum() == 2 and np.all(err[near_minus_z] <= 1e-6) and np.all(err[~near_minus_z] <= 1e-12)
     np.testing.assert_allclose(R @ R.transpose(0, 2, 1), np.broadcast_to(np.eye(3), R.shape), atol=1e-9)
 
 

@@ -158,26 +158,32 @@ def test_normal_faces_the_camera_on_a_slanted_plane(arch):
     np.testing.assert_allclose(N, np.broadcast_to(n, N.shape), atol=2e-4)
 
 
-def smooth_ref(depth, radius, max_diff):
+def smooth_ref(depth, radius, max_diff, margins: bool = False):
     """Range-checked mean along rows, then along columns (each against its own centre); near the border
-    the window shrinks to the symmetric radius that fits."""
+    the window shrinks to the symmetric radius that fits. ``margins``: also, per pass, each pixel's least distance
+    between a neighbour's |difference| from its centre and ``max_diff`` (where rounding could flip the check)."""
     out = depth.astype(np.float64)
+    passes = []
     for axis in (1, 0):
         src = out
         n = src.shape[axis]
         total = np.zeros_like(src)
         count = np.zeros_like(src)
+        margin = np.full(src.shape, np.inf)
         pos = np.arange(n)
         fit = np.minimum(pos, n - 1 - pos)  # symmetric window at the border
         for k in range(-radius, radius + 1):
             shifted = np.roll(src, -k, axis=axis)
             inside = (abs(k) <= fit)[None, :] if axis == 1 else (abs(k) <= fit)[:, None]
+            seen = inside & (shifted > 0) & (src > 0)
+            margin = np.where(seen, np.minimum(margin, np.abs(np.abs(shifted - src) - max_diff)), margin)
             ok = inside & (shifted > 0) & (np.abs(shifted - src) < max_diff)
             total += np.where(ok, shifted, 0.0)
             count += ok
         out = np.where(src > 0, total / np.maximum(count, 1), 0.0)
         out = out.astype(np.float32).astype(np.float64)  # the kernel stores the row pass in float32
-    return out
+        passes.append(margin)
+    return (out, passes) if margins else out
 
 
 def test_smoothing_and_pyramid_keep_a_ramp_up_to_the_border(arch):
@@ -199,12 +205,20 @@ def test_smoothing_matches_reference(arch_loops, rng, radius, shape):
     pyramid = FramePyramid(settings(radius=radius), *depth.shape, levels=2)
     pyramid.compute(depth, K)
     got = pyramid.depth[0].to_numpy()
-    expected = smooth_ref(depth, radius, np.float32(PYR))
+    expected, (row_margin, column_margin) = smooth_ref(depth, radius, np.float32(PYR), margins=True)
     np.testing.assert_array_equal(got > 0, depth > 0)
     # each pass a mean of at most n = 2r + 1 positive values, summed in float32: within n·u of the exact mean
     # (u = 2⁻²⁴); the row pass off the reference's float32 row by (n + 1)u, the column pass adding its own n·u
-    n = 2 * radius + 1
-    np.testing.assert_allclose(got, expected, rtol=(2 * n + 2) * 2.0 ** -24)
+    n, u = 2 * radius + 1, 2.0 ** -24
+    # The column pass's range check compares two row-pass values, each up to (n + 1)u d off the reference's: a
+    # neighbour whose difference lies that close to the threshold may be taken on one side only, which no
+    # rounding bound covers, so those pixels are left out (the row pass's inputs are multiples of 1/1024 m, a
+    # quarter step from the threshold: its checks cannot flip).
+    band = 2 * (n + 1) * u * depth.max()
+    assert row_margin.min() > band
+    clear = column_margin > band
+    assert clear.mean() > 0.95
+    np.testing.assert_allclose(got[clear], expected[clear], rtol=(2 * n + 2) * u)
     assert np.abs(got - depth).max() > 1e-3  # it did smooth
     np.testing.assert_allclose(pyramid.vertex[0].to_numpy(), backproject_ref(got, K), rtol=2e-6, atol=1e-7)
 

@@ -106,9 +106,16 @@ class RealSenseCamera(Dataset):
             cfg.enable_stream(rs.stream.color, WIDTH, HEIGHT, rs.format.rgb8, FPS)
         self._pipe = rs.pipeline()
         try:
+            playback = None
             if recording is not None:  # every recorded frame, as fast as the run takes them, from the first one
-                cfg.resolve(rs.pipeline_wrapper(self._pipe)).get_device().as_playback().set_real_time(False)
+                playback = cfg.resolve(rs.pipeline_wrapper(self._pipe)).get_device().as_playback()
+                playback.set_real_time(False)
+                # paused until the pipeline has started: a playback that reads while the pipeline starts hands
+                # frames to a syncer not yet listening, and which are lost depends on the threads' timing
+                playback.pause()
             profile = self._pipe.start(cfg)  # starts the device the config resolved (it keeps it)
+            if playback is not None:
+                playback.resume()
         except RuntimeError as exc:
             raise InputError(None, f"--camera {spec}: the camera's streams cannot be started: {exc}") from None
         device = profile.get_device()

@@ -685,7 +685,6 @@ def jpeg_blockiness(grey: np.ndarray) -> float:
     return float(max(found)) if found else 1.0
 
 
-@data_oriented
 def _level_shapes(height: int, width: int, levels: int = 3, input_level: int = 0) -> list[tuple[int, int]]:
     """The (height, width) of each level of ``FramePyramid(settings, height, width, levels, input_level)``."""
     for _ in range(input_level):
@@ -697,6 +696,7 @@ def _level_shapes(height: int, width: int, levels: int = 3, input_level: int = 0
     return shapes
 
 
+@data_oriented
 class FramePyramid:
     """Depth, vertex and normal maps of one frame at every pyramid level (camera frame, metres).
 
@@ -726,11 +726,7 @@ class FramePyramid:
         if not self.max_depth_diff > 0:  # every range check would reject even the centre pixel
             raise InputError(None, f"pyramid.depth_sigma must be positive, not {settings.depth_sigma}")
         self.smooth_radius = int(settings.smooth_radius(width))
-        self.shapes = []
-        h, w = height, width
-        for _ in range(levels):
-            self.shapes.append((h, w))
-            h, w = (h + 1) // 2, (w + 1) // 2
+        self.shapes = _level_shapes(height, width, levels)
         self.row0, rows, _ = stacked_rows(self.shapes)
         # ``pair``: the second pyramid's levels lie in the first's fields, ``_shift`` rows down (below the first's
         # levels and spare rows), so that both build their maps with the same kernel instances
